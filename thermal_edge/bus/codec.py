@@ -1,0 +1,516 @@
+"""Encode and decode the frames of ``dbc/thermal_edge.dbc`` with their protection.
+
+:class:`FrameCodec` wraps the cantools database. ``encode`` fills the alive
+counter and the CRC; ``decode`` checks length, CRC and counter and never raises:
+a frame that fails a check is dropped (``None``) and counted by reason in a
+:class:`~thermal_edge.bus.stats.FrameStats`.
+
+Values are in the DBC's physical units (A, rpm, Nm, V, degC, s, K). A
+temperature whose raw value is the DBC's ``NoValueRaw`` (0xFFF) decodes to NaN,
+and NaN encodes to it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import numbers
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from decimal import Decimal
+from pathlib import Path
+from typing import Any, Protocol
+
+import cantools
+from cantools.database.can import Message as _DbcMessage
+from cantools.database.can import Signal as _DbcSignal
+
+from .crc import frame_crc
+from .frames import COUNTER_SUFFIX, CRC_SUFFIX, DEFAULT_DBC_PATH
+from .stats import FrameStats
+
+__all__ = [
+    "DbcError",
+    "DecodedFrame",
+    "FrameCodec",
+    "FrameEncodeError",
+    "MessageLike",
+]
+
+log = logging.getLogger(__name__)
+
+FrameRef = str | int
+COUNTER_START_BIT, COUNTER_BITS = 48, 4
+CRC_START_BIT, CRC_BITS = 56, 8
+_NO_VALUE_ATTRIBUTE = "NoValueRaw"
+_CYCLE_ATTRIBUTE = "GenMsgCycleTime"
+
+
+class DbcError(ValueError):
+    """The DBC cannot be loaded or breaks the conventions of the CAN matrix."""
+
+
+class FrameEncodeError(ValueError):
+    """Signals given to :meth:`FrameCodec.encode` do not fit the frame."""
+
+
+class MessageLike(Protocol):
+    """What :meth:`FrameCodec.decode_message` reads from a message (python-can's ``can.Message`` fits)."""
+
+    arbitration_id: int
+    data: Any
+    timestamp: float
+    is_extended_id: bool
+    is_error_frame: bool
+    is_remote_frame: bool
+    is_rx: bool
+
+
+@dataclass(frozen=True, slots=True)
+class DecodedFrame:
+    """One accepted received frame.
+
+    Attributes
+    ----------
+    name : str
+        Frame name in the DBC (e.g. ``"INV_Currents"``).
+    frame_id : int
+        11-bit CAN identifier.
+    signals : dict of str to float
+        Physical values of the frame's signals in DBC units (counter and CRC
+        excluded). Temperatures without value are NaN; enumerations, flags and
+        counts are ``int``.
+    counter : int
+        Alive counter of the frame, 0..15.
+    timestamp : float or None
+        Reception (or log) time in seconds (POSIX epoch for live buses), if known.
+    lost_before : int
+        Frames of this identifier missing just before this one (counter gap).
+    is_rx : bool
+        False for frames this node transmitted (read back from a log).
+    """
+
+    name: str
+    frame_id: int
+    signals: dict[str, float]
+    counter: int
+    timestamp: float | None = None
+    lost_before: int = 0
+    is_rx: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class _SignalSpec:
+    name: str
+    signal: _DbcSignal
+    raw_min: int
+    raw_max: int
+    no_value_raw: int | None
+    identity: bool  # factor 1, offset 0: physical value is the raw integer
+    decimals: int  # decimals of factor and offset: decoded values are rounded to them
+
+
+@dataclass(frozen=True, slots=True)
+class _FrameSpec:
+    name: str
+    frame_id: int
+    length: int
+    message: _DbcMessage
+    signals: tuple[_SignalSpec, ...]
+    counter_name: str
+    crc_name: str
+    cycle_time_s: float | None
+    senders: frozenset[str]
+    by_name: dict[str, _SignalSpec] = field(default_factory=dict)
+
+
+def _bit_range(sig: _DbcSignal) -> tuple[int, int]:
+    if sig.is_signed:
+        return -(1 << (sig.length - 1)), (1 << (sig.length - 1)) - 1
+    return 0, (1 << sig.length) - 1
+
+
+def _raw_limits(sig: _DbcSignal) -> tuple[int, int]:
+    lo, hi = _bit_range(sig)
+    scale, offset = float(sig.scale), float(sig.offset)
+    if sig.minimum is not None:
+        lo = max(lo, math.ceil((float(sig.minimum) - offset) / scale - 1e-6))
+    if sig.maximum is not None:
+        hi = min(hi, math.floor((float(sig.maximum) - offset) / scale + 1e-6))
+    return lo, hi
+
+
+def _signal_spec(sig: _DbcSignal) -> _SignalSpec:
+    no_value: int | None = None
+    if sig.dbc is not None and _NO_VALUE_ATTRIBUTE in sig.dbc.attributes:
+        value = int(sig.dbc.attributes[_NO_VALUE_ATTRIBUTE].value)
+        no_value = value if value >= 0 else None
+    raw_min, raw_max = _raw_limits(sig)
+    identity = float(sig.scale) == 1.0 and float(sig.offset) == 0.0
+    decimals = max(0, *(-int(Decimal(str(v)).normalize().as_tuple().exponent) for v in (sig.scale, sig.offset)))
+    return _SignalSpec(sig.name, sig, raw_min, raw_max, no_value, identity, decimals)
+
+
+def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
+    where = f"{path}: frame {msg.name} (0x{msg.frame_id:03X})"
+    if msg.is_extended_frame or msg.frame_id > 0x7FF:
+        raise DbcError(f"{where}: only 11-bit identifiers are allowed")
+    if msg.length != 8:
+        raise DbcError(f"{where}: DLC {msg.length}, the CAN matrix requires 8")
+    counter_name, crc_name = msg.name + COUNTER_SUFFIX, msg.name + CRC_SUFFIX
+    for name, start, bits in ((counter_name, COUNTER_START_BIT, COUNTER_BITS), (crc_name, CRC_START_BIT, CRC_BITS)):
+        try:
+            sig = msg.get_signal_by_name(name)
+        except KeyError:
+            raise DbcError(f"{where}: signal {name} missing") from None
+        if (sig.start, sig.length, sig.byte_order, sig.is_signed) != (start, bits, "little_endian", False):
+            raise DbcError(f"{where}: signal {name} must be unsigned little-endian at bit {start}, {bits} bits")
+    cycle = msg.cycle_time
+    if cycle is None and msg.dbc is not None and _CYCLE_ATTRIBUTE in msg.dbc.attributes:
+        cycle = msg.dbc.attributes[_CYCLE_ATTRIBUTE].value
+    specs = tuple(_signal_spec(s) for s in msg.signals if s.name not in (counter_name, crc_name))
+    return _FrameSpec(
+        name=msg.name,
+        frame_id=msg.frame_id,
+        length=msg.length,
+        message=msg,
+        signals=specs,
+        counter_name=counter_name,
+        crc_name=crc_name,
+        cycle_time_s=float(cycle) / 1000.0 if cycle else None,
+        senders=frozenset(msg.senders or ()),
+        by_name={s.name: s for s in specs},
+    )
+
+
+class FrameCodec:
+    """DBC-based encoder/decoder with alive counter and CRC handling.
+
+    Parameters
+    ----------
+    dbc_path : str or Path, optional
+        The DBC to load (strict mode). Defaults to the project's
+        ``dbc/thermal_edge.dbc``.
+    stats : FrameStats, optional
+        Where to count frames; a new one by default (see :attr:`stats`).
+    resync_after_cycles : float, optional
+        If two accepted frames of one identifier are more than this many cycle
+        times apart (timestamps known), the counter of the second is not judged
+        (a 4-bit counter cannot tell how many frames were missed); counted as
+        ``counter_resync``. Default 8.
+
+    Raises
+    ------
+    DbcError
+        If the DBC cannot be loaded or a frame lacks the counter/CRC layout.
+
+    Notes
+    -----
+    Encode and decode are thread-safe. Counters for transmission (one per
+    frame, +1 mod 16 per :meth:`encode`) and for reception (last accepted
+    counter per identifier) are kept apart.
+    """
+
+    def __init__(
+        self,
+        dbc_path: str | Path = DEFAULT_DBC_PATH,
+        *,
+        stats: FrameStats | None = None,
+        resync_after_cycles: float = 8.0,
+    ) -> None:
+        self._path = Path(dbc_path)
+        try:
+            self._db = cantools.database.load_file(str(self._path), strict=True)
+        except Exception as exc:  # cantools raises many types; report one line
+            raise DbcError(f"{self._path}: cannot load DBC: {exc}") from exc
+        if not isinstance(self._db, cantools.database.can.Database):
+            raise DbcError(f"{self._path}: not a CAN database")
+        self._frames: dict[int, _FrameSpec] = {}
+        self._by_name: dict[str, _FrameSpec] = {}
+        for msg in self._db.messages:
+            spec = _frame_spec(msg, self._path)
+            self._frames[spec.frame_id] = spec
+            self._by_name[spec.name] = spec
+        self.stats: FrameStats = stats if stats is not None else FrameStats()
+        self._resync_after = float(resync_after_cycles)
+        self._lock = threading.Lock()
+        self._tx_counter: dict[int, int] = {}
+        self._rx_last: dict[int, tuple[int, float | None]] = {}
+
+    # ------------------------------------------------------------------ lookup
+    @property
+    def dbc_path(self) -> Path:
+        """Path of the loaded DBC."""
+        return self._path
+
+    @property
+    def database(self) -> cantools.database.can.Database:
+        """The cantools database (read only by convention)."""
+        return self._db
+
+    @property
+    def frame_names(self) -> tuple[str, ...]:
+        """All frame names, in DBC order."""
+        return tuple(self._by_name)
+
+    def _spec(self, frame: FrameRef) -> _FrameSpec:
+        spec = self._by_name.get(frame) if isinstance(frame, str) else self._frames.get(frame)
+        if spec is None:
+            ref = frame if isinstance(frame, str) else f"0x{frame:X}"
+            raise KeyError(f"frame {ref} is not in {self._path.name}")
+        return spec
+
+    def frame_id(self, frame: FrameRef) -> int:
+        """CAN identifier of a frame given by name or identifier (KeyError if unknown)."""
+        return self._spec(frame).frame_id
+
+    def frame_name(self, frame: FrameRef) -> str:
+        """Name of a frame given by name or identifier (KeyError if unknown)."""
+        return self._spec(frame).name
+
+    def cycle_time_s(self, frame: FrameRef) -> float | None:
+        """Cycle time of a frame in seconds (``GenMsgCycleTime``), None if not cyclic."""
+        return self._spec(frame).cycle_time_s
+
+    def signal_names(self, frame: FrameRef) -> tuple[str, ...]:
+        """Application signals of a frame (counter and CRC excluded), in DBC order."""
+        return tuple(s.name for s in self._spec(frame).signals)
+
+    def frames_sent_by(self, node: str) -> frozenset[int]:
+        """Identifiers of the frames whose DBC sender is ``node`` (e.g. ``"TE"``)."""
+        return frozenset(fid for fid, s in self._frames.items() if node in s.senders)
+
+    def reset_counters(self, *, rx: bool = True, tx: bool = False) -> None:
+        """Forget the last received counters (and optionally restart transmit counters at 0)."""
+        with self._lock:
+            if rx:
+                self._rx_last.clear()
+            if tx:
+                self._tx_counter.clear()
+
+    # ------------------------------------------------------------------ encode
+    def _raw_value(self, frame: _FrameSpec, spec: _SignalSpec, value: Any) -> int:
+        sig = spec.signal
+        if isinstance(value, str) or type(value).__name__ == "NamedSignalValue":
+            raw = sig.conversion.choice_to_number(str(value)) if sig.choices else None
+            if raw is None:
+                raise FrameEncodeError(f"{frame.name}.{spec.name}: {value!r} is not one of its named values")
+            return int(raw)
+        if isinstance(value, bool):
+            value = int(value)
+        if not isinstance(value, numbers.Real):
+            raise FrameEncodeError(f"{frame.name}.{spec.name}: expected a number, got {type(value).__name__}")
+        x = float(value)
+        if math.isnan(x):
+            if spec.no_value_raw is None:
+                raise FrameEncodeError(f"{frame.name}.{spec.name}: NaN, and the signal has no 'no value' code")
+            return spec.no_value_raw
+        if math.isinf(x):  # deliberate saturation (e.g. TE_TimeToLimit = inf), not counted
+            return spec.raw_max if x > 0 else spec.raw_min
+        raw = round((x - float(sig.offset)) / float(sig.scale))
+        if raw < spec.raw_min or raw > spec.raw_max:
+            with self._lock:
+                self.stats.clamped += 1
+            log.debug("%s.%s: %r outside the DBC range, saturated", frame.name, spec.name, value)
+            return min(max(raw, spec.raw_min), spec.raw_max)
+        return int(raw)
+
+    def encode(self, frame: FrameRef, signals: Mapping[str, Any], *, counter: int | None = None) -> bytes:
+        """Encode one frame, alive counter and CRC included.
+
+        Parameters
+        ----------
+        frame : str or int
+            Frame name or CAN identifier.
+        signals : mapping of str to number
+            Physical value of every application signal of the frame, in DBC
+            units (A, rpm, Nm, V, degC, s, K; enumerations as int, IntEnum or
+            value-table name). NaN encodes a temperature as "no value" (0xFFF);
+            values outside the DBC range (inf included) are saturated to it and
+            counted in ``stats.clamped``. Counter/CRC entries are ignored.
+        counter : int, optional
+            Force the alive counter (0..15), for tests and emulators; by default
+            the frame's transmit counter is used and advanced by 1 (mod 16).
+
+        Returns
+        -------
+        bytes
+            The 8 data bytes, CRC in byte 7.
+
+        Raises
+        ------
+        KeyError
+            Unknown frame.
+        FrameEncodeError
+            Missing or unknown signal, non-numeric value, or NaN on a signal
+            without a "no value" code.
+        """
+        spec = self._spec(frame)
+        if not isinstance(signals, Mapping):
+            raise FrameEncodeError(f"{spec.name}: signals must be a mapping, got {type(signals).__name__}")
+        unknown = set(signals) - set(spec.by_name) - {spec.counter_name, spec.crc_name}
+        if unknown:
+            raise FrameEncodeError(f"{spec.name}: unknown signal(s) {', '.join(sorted(unknown))}")
+        missing = [s.name for s in spec.signals if s.name not in signals]
+        if missing:
+            raise FrameEncodeError(f"{spec.name}: missing signal(s) {', '.join(missing)}")
+        raw = {s.name: self._raw_value(spec, s, signals[s.name]) for s in spec.signals}
+        raw[spec.crc_name] = 0
+        with self._lock:
+            if counter is None:
+                value = self._tx_counter.get(spec.frame_id, 0)
+            else:
+                if not 0 <= int(counter) <= 15:
+                    raise FrameEncodeError(f"{spec.name}: counter {counter} outside 0..15")
+                value = int(counter)
+            raw[spec.counter_name] = value
+            try:
+                data = bytearray(spec.message.encode(raw, scaling=False, strict=True))
+            except Exception as exc:
+                raise FrameEncodeError(f"{spec.name}: {exc}") from exc
+            self._tx_counter[spec.frame_id] = (value + 1) % 16
+            self.stats.sent[spec.name] += 1
+        data[7] = frame_crc(spec.frame_id, data)
+        return bytes(data)
+
+    # ------------------------------------------------------------------ decode
+    def decode(
+        self,
+        arbitration_id: int,
+        data: Any,
+        *,
+        timestamp: float | None = None,
+        is_rx: bool = True,
+        is_extended_id: bool = False,
+    ) -> DecodedFrame | None:
+        """Check and decode one received frame; never raises.
+
+        Parameters
+        ----------
+        arbitration_id : int
+            CAN identifier.
+        data : bytes-like
+            Frame data (must be exactly the DBC length, 8 bytes).
+        timestamp : float, optional
+            Reception time in seconds, used for counter resynchronisation and
+            passed through.
+        is_rx : bool, optional
+            Passed through to :attr:`DecodedFrame.is_rx`.
+        is_extended_id : bool, optional
+            A 29-bit identifier is never one of ours (dropped as ``unknown_id``).
+
+        Returns
+        -------
+        DecodedFrame or None
+            None if the frame was dropped: unknown identifier, wrong length,
+            wrong CRC, repeated counter or undecodable. Each drop is counted in
+            :attr:`stats`; a counter jump counts the missing frames as ``lost``.
+        """
+        try:
+            return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
+        except Exception:  # never raise on bad input
+            log.debug("undecodable frame id=%r data=%r", arbitration_id, data, exc_info=True)
+            with self._lock:
+                self.stats.count_drop("decode_error")
+            return None
+
+    def _decode(
+        self, arbitration_id: Any, data: Any, timestamp: float | None, is_rx: bool, is_extended_id: bool
+    ) -> DecodedFrame | None:
+        spec = None
+        if not is_extended_id and isinstance(arbitration_id, numbers.Integral):
+            spec = self._frames.get(int(arbitration_id))
+        if spec is None:
+            with self._lock:
+                self.stats.count_drop("unknown_id")
+            return None
+        if data is None or isinstance(data, str):
+            payload = None
+        else:
+            try:
+                payload = bytes(data)
+            except (TypeError, ValueError):
+                payload = None
+        if payload is None:
+            with self._lock:
+                self.stats.count_drop("decode_error", spec.name)
+            return None
+        if len(payload) != spec.length:
+            with self._lock:
+                self.stats.count_drop("dlc", spec.name)
+            return None
+        if payload[7] != frame_crc(spec.frame_id, payload):
+            with self._lock:
+                self.stats.count_drop("crc", spec.name)
+            return None
+        try:
+            raw = spec.message.decode(payload, decode_choices=False, scaling=False)
+            values: dict[str, float] = {}
+            for s in spec.signals:
+                r = int(raw[s.name])
+                if s.no_value_raw is not None and r == s.no_value_raw:
+                    values[s.name] = math.nan
+                elif s.identity:
+                    values[s.name] = r
+                else:
+                    values[s.name] = round(r * float(s.signal.scale) + float(s.signal.offset), s.decimals)
+            counter = int(raw[spec.counter_name])
+        except Exception:
+            log.debug("cannot decode %s data=%s", spec.name, payload.hex(), exc_info=True)
+            with self._lock:
+                self.stats.count_drop("decode_error", spec.name)
+            return None
+        ts = float(timestamp) if timestamp is not None else None
+        with self._lock:
+            lost = 0
+            last = self._rx_last.get(spec.frame_id)
+            if last is not None:
+                last_counter, last_ts = last
+                cycle = spec.cycle_time_s
+                if (
+                    ts is not None
+                    and last_ts is not None
+                    and cycle
+                    and abs(ts - last_ts) > self._resync_after * cycle
+                ):
+                    self.stats.counter_resync += 1
+                else:
+                    step = (counter - last_counter) % 16
+                    if step == 0:
+                        self.stats.count_drop("counter_repeat", spec.name)
+                        return None
+                    lost = step - 1
+                    if lost:
+                        self.stats.lost += lost
+                        self.stats.lost_by_frame[spec.name] += lost
+            self._rx_last[spec.frame_id] = (counter, ts)
+            self.stats.received[spec.name] += 1
+        return DecodedFrame(spec.name, spec.frame_id, values, counter, ts, lost, bool(is_rx))
+
+    def decode_message(self, msg: MessageLike) -> DecodedFrame | None:
+        """Decode a python-can ``can.Message`` (or alike); never raises.
+
+        Error frames and extended identifiers count as ``unknown_id``, remote
+        frames as ``dlc``; everything else goes through :meth:`decode`.
+        """
+        try:
+            if getattr(msg, "is_error_frame", False) or getattr(msg, "is_extended_id", False):
+                with self._lock:
+                    self.stats.count_drop("unknown_id")
+                return None
+            if getattr(msg, "is_remote_frame", False):
+                spec = self._frames.get(msg.arbitration_id)
+                with self._lock:
+                    self.stats.count_drop("dlc" if spec else "unknown_id", spec.name if spec else None)
+                return None
+            return self.decode(
+                msg.arbitration_id,
+                msg.data,
+                timestamp=getattr(msg, "timestamp", None),
+                is_rx=getattr(msg, "is_rx", True),
+            )
+        except Exception:
+            with self._lock:
+                self.stats.count_drop("decode_error")
+            return None

@@ -1,0 +1,142 @@
+"""Counters of the CAN layer: frame integrity drops and transport health.
+
+Plain counters, no I/O; the service exports them as metrics.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, fields
+
+__all__ = ["DROP_REASONS", "FrameStats", "TransportStats"]
+
+#: Reasons for which the codec drops a received frame.
+DROP_REASONS: tuple[str, ...] = (
+    "crc",
+    "counter_repeat",
+    "unknown_id",
+    "dlc",
+    "decode_error",
+)
+
+
+@dataclass
+class FrameStats:
+    """Frame counters of one :class:`~thermal_edge.bus.codec.FrameCodec`.
+
+    Attributes
+    ----------
+    crc, counter_repeat, unknown_id, dlc, decode_error : int
+        Received frames dropped, by reason: wrong CRC; alive counter equal to
+        the previous accepted one; identifier not in the DBC (or extended,
+        remote or error frame); data length not the DBC's; anything else that
+        could not be decoded (bad input types included).
+    lost : int
+        Frames missing according to the alive counter (a jump of ``n > 1``
+        counts ``n - 1``).
+    counter_resync : int
+        Accepted frames whose counter was not judged because the previous one
+        of that frame was too long ago (more than 8 cycle times).
+    clamped : int
+        Signal values saturated to the DBC range when encoding.
+    received, sent : collections.Counter
+        Accepted received frames and encoded frames, per frame name.
+    dropped_by_frame, lost_by_frame : collections.Counter
+        Drops and lost frames per frame name (known identifiers only).
+    """
+
+    crc: int = 0
+    counter_repeat: int = 0
+    unknown_id: int = 0
+    dlc: int = 0
+    decode_error: int = 0
+    lost: int = 0
+    counter_resync: int = 0
+    clamped: int = 0
+    received: Counter[str] = field(default_factory=Counter)
+    sent: Counter[str] = field(default_factory=Counter)
+    dropped_by_frame: Counter[str] = field(default_factory=Counter)
+    lost_by_frame: Counter[str] = field(default_factory=Counter)
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """Drops by reason, every reason of :data:`DROP_REASONS` present."""
+        return {reason: getattr(self, reason) for reason in DROP_REASONS}
+
+    @property
+    def dropped_total(self) -> int:
+        """All dropped received frames."""
+        return sum(self.dropped.values())
+
+    def count_drop(self, reason: str, frame_name: str | None = None) -> None:
+        """Count one dropped frame.
+
+        Parameters
+        ----------
+        reason : str
+            One of :data:`DROP_REASONS`.
+        frame_name : str, optional
+            Frame name if the identifier is known.
+        """
+        if reason not in DROP_REASONS:
+            raise ValueError(f"unknown drop reason {reason!r}")
+        setattr(self, reason, getattr(self, reason) + 1)
+        if frame_name is not None:
+            self.dropped_by_frame[frame_name] += 1
+
+    def as_dict(self) -> dict[str, object]:
+        """Snapshot as plain ``dict`` (counters copied to ``dict``)."""
+        out: dict[str, object] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            out[f.name] = dict(value) if isinstance(value, Counter) else value
+        return out
+
+
+@dataclass
+class TransportStats:
+    """Health counters of one :class:`~thermal_edge.bus.transport.CanTransport`.
+
+    Attributes
+    ----------
+    bus_errors : int
+        Errors raised by the bus (open, receive or send failed, bus closed/down).
+    reconnects : int
+        Successful (re)opens of the bus after the first one.
+    tx_frames : int
+        Frames handed to the bus without error.
+    tx_failed : int
+        Frames not sent: bus down or send error.
+    rx_messages : int
+        Raw messages received from the bus (before integrity checks, own echoes
+        excluded).
+    own_echo : int
+        Received messages ignored because this node transmits that identifier
+        (``udp_multicast`` loops a sender's own frames back).
+    provider_errors : int
+        Cyclic-frame providers that raised or returned unusable signals.
+    fallback_sent : int
+        Cyclic frames sent from the fallback values instead of the provider's.
+    cyclic_overruns : int
+        Cyclic periods missed because the loop was late by more than a period.
+    callback_errors : int
+        Frame callbacks that raised.
+    queue_overflow : int
+        Decoded frames dropped because the output queue was full.
+    """
+
+    bus_errors: int = 0
+    reconnects: int = 0
+    tx_frames: int = 0
+    tx_failed: int = 0
+    rx_messages: int = 0
+    own_echo: int = 0
+    provider_errors: int = 0
+    fallback_sent: int = 0
+    cyclic_overruns: int = 0
+    callback_errors: int = 0
+    queue_overflow: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """Snapshot as plain ``dict``."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}

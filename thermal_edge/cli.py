@@ -1,0 +1,3 @@
+"""CLI placeholder."""
+def main() -> int:
+    return 0

@@ -1,0 +1,21 @@
+"""The thermal model: pure numpy/scipy, no I/O beyond loading a model file.
+
+Load a machine model, simulate it, and get exact parameter sensitivities::
+
+    model = load_model("config/machines/pm10kw.yaml")
+    sim = Simulator(model)
+    traj = sim.simulate(model.nominal(), inputs, dt=1.0, T0=T0, wrt=model.adaptable)
+"""
+from .discretise import Discrete, NotPassive, UnstableDiscretisation, discretise
+from .expr import ExprError, parse
+from .loader import load_model
+from .model import Limit, Model, ModelError, Parameter
+from .network import Continuous, Network
+from .simulate import Simulator, Trajectory
+from .steady import initial_state, steady_state
+
+__all__ = [
+    "Continuous", "Discrete", "ExprError", "Limit", "Model", "ModelError", "Network", "NotPassive", "Parameter",
+    "Simulator", "Trajectory", "UnstableDiscretisation", "discretise", "initial_state", "load_model", "parse",
+    "steady_state",
+]

@@ -1,0 +1,474 @@
+"""Law expressions: a whitelist grammar, exact symbolic derivatives, compiled numpy closures.
+
+A law is a string such as ``"P20 * (1 + alpha * (T.sw - 20))"``. It is parsed by a small
+recursive-descent parser (never ``eval``) into an immutable tree of :class:`Expr` nodes. The
+grammar admits numbers, names (letters, digits, ``_`` and ``.``), ``+ - * / **``, parentheses and
+the functions ``exp log sqrt tanh min max abs`` plus any lookup tables the model declares.
+Derivatives are taken symbolically on the tree (with light constant folding) and every tree
+compiles to a closure over numpy arrays, so a law evaluates on whole time series at once.
+
+>>> e = parse("2 * x ** 3 + exp(y)")
+>>> str(e.diff("x"))
+'(2 * (3 * x ** 2))'
+>>> float(e.compile()({"x": 2.0, "y": 0.0}))
+17.0
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Callable, Mapping
+
+import numpy as np
+
+Env = Mapping[str, object]
+Compiled = Callable[[Env], object]
+
+FUNCTIONS_1 = {"exp": np.exp, "log": np.log, "sqrt": np.sqrt, "tanh": np.tanh, "abs": np.abs}
+FUNCTIONS_2 = {"min": np.minimum, "max": np.maximum}
+
+
+class ExprError(ValueError):
+    """A law that does not parse, names something unknown or cannot be differentiated."""
+
+
+class Expr:
+    """Base of the expression tree. Subclasses are frozen dataclasses."""
+
+    def free(self) -> frozenset[str]:
+        """Names this expression depends on."""
+        raise NotImplementedError
+
+    def diff(self, name: str) -> "Expr":
+        """Exact derivative with respect to ``name``."""
+        raise NotImplementedError
+
+    def compile(self) -> Compiled:
+        """Closure evaluating the expression from a mapping of names to floats or arrays."""
+        raise NotImplementedError
+
+    def substitute(self, values: Mapping[str, "Expr"]) -> "Expr":
+        """Replace names by expressions (used to inline constants and derived inputs)."""
+        raise NotImplementedError
+
+    def is_const(self) -> bool:
+        return isinstance(self, Num)
+
+    # operator sugar used when building element laws in code
+    def __add__(self, o: "Expr | float") -> "Expr":
+        return add(self, as_expr(o))
+
+    def __radd__(self, o: float) -> "Expr":
+        return add(as_expr(o), self)
+
+    def __sub__(self, o: "Expr | float") -> "Expr":
+        return sub(self, as_expr(o))
+
+    def __mul__(self, o: "Expr | float") -> "Expr":
+        return mul(self, as_expr(o))
+
+    def __rmul__(self, o: float) -> "Expr":
+        return mul(as_expr(o), self)
+
+    def __truediv__(self, o: "Expr | float") -> "Expr":
+        return div(self, as_expr(o))
+
+    def __rtruediv__(self, o: float) -> "Expr":
+        return div(as_expr(o), self)
+
+    def __neg__(self) -> "Expr":
+        return neg(self)
+
+
+@dataclass(frozen=True)
+class Num(Expr):
+    value: float
+
+    def free(self) -> frozenset[str]:
+        return frozenset()
+
+    def diff(self, name: str) -> Expr:
+        return ZERO
+
+    def compile(self) -> Compiled:
+        v = self.value
+        return lambda env: v
+
+    def substitute(self, values: Mapping[str, Expr]) -> Expr:
+        return self
+
+    def __str__(self) -> str:
+        v = self.value
+        return repr(int(v)) if v == int(v) and abs(v) < 1e15 else repr(v)
+
+
+@dataclass(frozen=True)
+class Name(Expr):
+    name: str
+
+    def free(self) -> frozenset[str]:
+        return frozenset((self.name,))
+
+    def diff(self, name: str) -> Expr:
+        return ONE if name == self.name else ZERO
+
+    def compile(self) -> Compiled:
+        n = self.name
+        return lambda env: env[n]
+
+    def substitute(self, values: Mapping[str, Expr]) -> Expr:
+        return values.get(self.name, self)
+
+    def __str__(self) -> str:
+        return self.name
+
+
+@dataclass(frozen=True)
+class Bin(Expr):
+    op: str  # one of + - * / **
+    a: Expr
+    b: Expr
+
+    def free(self) -> frozenset[str]:
+        return self.a.free() | self.b.free()
+
+    def diff(self, name: str) -> Expr:
+        a, b = self.a, self.b
+        if name not in self.free():
+            return ZERO
+        da, db = a.diff(name), b.diff(name)
+        if self.op == "+":
+            return add(da, db)
+        if self.op == "-":
+            return sub(da, db)
+        if self.op == "*":
+            return add(mul(da, b), mul(a, db))
+        if self.op == "/":
+            return sub(div(da, b), div(mul(a, db), mul(b, b)))
+        # power: constant exponent is the common case and keeps the result defined at a <= 0
+        if name not in b.free():
+            return mul(mul(b, power(a, sub(b, ONE))), da)
+        return mul(self, add(mul(db, call("log", a)), div(mul(b, da), a)))
+
+    def compile(self) -> Compiled:
+        fa, fb = self.a.compile(), self.b.compile()
+        op = self.op
+        if op == "+":
+            return lambda env: fa(env) + fb(env)
+        if op == "-":
+            return lambda env: fa(env) - fb(env)
+        if op == "*":
+            return lambda env: fa(env) * fb(env)
+        if op == "/":
+            return lambda env: fa(env) / fb(env)
+        return lambda env: np.power(fa(env), fb(env))
+
+    def substitute(self, values: Mapping[str, Expr]) -> Expr:
+        return _bin(self.op, self.a.substitute(values), self.b.substitute(values))
+
+    def __str__(self) -> str:
+        return f"({self.a} {self.op} {self.b})" if self.op != "**" else f"{_atom(self.a)} ** {_atom(self.b)}"
+
+
+@dataclass(frozen=True)
+class Call(Expr):
+    fn: str
+    args: tuple[Expr, ...]
+    table: object = None  # a Lookup for model-declared tables, else None
+
+    def free(self) -> frozenset[str]:
+        out: frozenset[str] = frozenset()
+        for a in self.args:
+            out |= a.free()
+        return out
+
+    def diff(self, name: str) -> Expr:
+        if name not in self.free():
+            return ZERO
+        a = self.args[0]
+        da = a.diff(name)
+        fn = self.fn
+        if self.table is not None:
+            raise ExprError(f"table {fn}() may depend only on inputs, not on {name!r}")
+        if fn == "exp":
+            return mul(self, da)
+        if fn == "log":
+            return div(da, a)
+        if fn == "sqrt":
+            return div(da, mul(Num(2.0), self))
+        if fn == "tanh":
+            return mul(sub(ONE, mul(self, self)), da)
+        if fn == "abs":
+            return mul(Call("sign", (a,)), da)
+        if fn == "sign":
+            return ZERO
+        if fn in ("min", "max"):
+            b = self.args[1]
+            db = b.diff(name)
+            # the derivative of the branch that is active (a one-sided choice at ties)
+            pick_a = Call("step_ge" if fn == "max" else "step_le", (a, b))
+            return add(mul(pick_a, da), mul(sub(ONE, pick_a), db))
+        if fn in ("step_ge", "step_le"):
+            return ZERO
+        raise ExprError(f"cannot differentiate {fn}()")
+
+    def compile(self) -> Compiled:
+        fargs = [a.compile() for a in self.args]
+        fn = self.fn
+        if self.table is not None:
+            table = self.table
+            return lambda env: table(*[f(env) for f in fargs])
+        if fn in FUNCTIONS_1:
+            f1, g = FUNCTIONS_1[fn], fargs[0]
+            return lambda env: f1(g(env))
+        if fn in FUNCTIONS_2:
+            f2, g, h = FUNCTIONS_2[fn], fargs[0], fargs[1]
+            return lambda env: f2(g(env), h(env))
+        if fn == "sign":
+            g = fargs[0]
+            return lambda env: np.sign(g(env))
+        g, h = fargs
+        if fn == "step_ge":
+            return lambda env: np.where(np.asarray(g(env)) >= h(env), 1.0, 0.0)
+        return lambda env: np.where(np.asarray(g(env)) <= h(env), 1.0, 0.0)
+
+    def substitute(self, values: Mapping[str, Expr]) -> Expr:
+        return call(self.fn, *[a.substitute(values) for a in self.args], table=self.table)
+
+    def __str__(self) -> str:
+        return f"{self.fn}({', '.join(str(a) for a in self.args)})"
+
+
+ZERO, ONE = Num(0.0), Num(1.0)
+
+
+def as_expr(x: "Expr | float | int | str") -> Expr:
+    """Numbers become :class:`Num`, strings are parsed, expressions pass through."""
+    if isinstance(x, Expr):
+        return x
+    if isinstance(x, str):
+        return parse(x)
+    return Num(float(x))
+
+
+def _atom(e: Expr) -> str:
+    return str(e) if isinstance(e, (Num, Name, Call)) and not (isinstance(e, Num) and e.value < 0) else f"({e})"
+
+
+def _bin(op: str, a: Expr, b: Expr) -> Expr:
+    return {"+": add, "-": sub, "*": mul, "/": div, "**": power}[op](a, b)
+
+
+def add(a: Expr, b: Expr) -> Expr:
+    if isinstance(a, Num) and isinstance(b, Num):
+        return Num(a.value + b.value)
+    if a == ZERO:
+        return b
+    if b == ZERO:
+        return a
+    return Bin("+", a, b)
+
+
+def sub(a: Expr, b: Expr) -> Expr:
+    if isinstance(a, Num) and isinstance(b, Num):
+        return Num(a.value - b.value)
+    if b == ZERO:
+        return a
+    if a == ZERO:
+        return neg(b)
+    return Bin("-", a, b)
+
+
+def neg(a: Expr) -> Expr:
+    if isinstance(a, Num):
+        return Num(-a.value)
+    return Bin("*", Num(-1.0), a)
+
+
+def mul(a: Expr, b: Expr) -> Expr:
+    if isinstance(a, Num) and isinstance(b, Num):
+        return Num(a.value * b.value)
+    if a == ZERO or b == ZERO:
+        return ZERO
+    if a == ONE:
+        return b
+    if b == ONE:
+        return a
+    return Bin("*", a, b)
+
+
+def div(a: Expr, b: Expr) -> Expr:
+    if isinstance(b, Num) and b.value == 0.0:
+        raise ExprError("division by the constant zero")
+    if isinstance(a, Num) and isinstance(b, Num):
+        return Num(a.value / b.value)
+    if a == ZERO:
+        return ZERO
+    if b == ONE:
+        return a
+    return Bin("/", a, b)
+
+
+def power(a: Expr, b: Expr) -> Expr:
+    if isinstance(a, Num) and isinstance(b, Num):
+        return Num(float(a.value) ** b.value)
+    if b == ZERO:
+        return ONE
+    if b == ONE:
+        return a
+    return Bin("**", a, b)
+
+
+def call(fn: str, *args: Expr, table: object = None) -> Expr:
+    if table is None and all(isinstance(a, Num) for a in args):
+        vals = [a.value for a in args]  # type: ignore[attr-defined]
+        if fn in FUNCTIONS_1:
+            return Num(float(FUNCTIONS_1[fn](vals[0])))
+        if fn in FUNCTIONS_2:
+            return Num(float(FUNCTIONS_2[fn](vals[0], vals[1])))
+    return Call(fn, tuple(args), table)
+
+
+# ---------------------------------------------------------------------------------------------
+# parser
+
+_TOKEN = re.compile(
+    r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<name>[A-Za-z_][A-Za-z0-9_.]*)"
+    r"|(?P<op>\*\*|[-+*/(),]))"
+)
+
+
+def _tokenize(text: str) -> list[tuple[str, str]]:
+    pos, out = 0, []
+    text = text.rstrip()
+    while pos < len(text):
+        m = _TOKEN.match(text, pos)
+        if not m or m.end() == pos:
+            raise ExprError(f"unexpected character {text[pos:].strip()[:1]!r} at position {pos} in {text!r}")
+        kind = m.lastgroup
+        assert kind is not None
+        out.append((kind, m.group(kind)))
+        pos = m.end()
+    out.append(("end", ""))
+    return out
+
+
+class _Parser:
+    def __init__(self, text: str, tables: Mapping[str, object]) -> None:
+        self.text = text
+        self.toks = _tokenize(text)
+        self.i = 0
+        self.tables = tables
+
+    def peek(self) -> tuple[str, str]:
+        return self.toks[self.i]
+
+    def take(self, value: str | None = None) -> tuple[str, str]:
+        tok = self.toks[self.i]
+        if value is not None and tok[1] != value:
+            raise ExprError(f"expected {value!r} but found {tok[1] or 'end'!r} in {self.text!r}")
+        self.i += 1
+        return tok
+
+    def expr(self) -> Expr:
+        left = self.term()
+        while self.peek()[1] in ("+", "-"):
+            op = self.take()[1]
+            left = _bin(op, left, self.term())
+        return left
+
+    def term(self) -> Expr:
+        left = self.unary()
+        while self.peek()[1] in ("*", "/"):
+            op = self.take()[1]
+            left = _bin(op, left, self.unary())
+        return left
+
+    def unary(self) -> Expr:
+        if self.peek()[1] == "-":
+            self.take()
+            return neg(self.unary())
+        if self.peek()[1] == "+":
+            self.take()
+            return self.unary()
+        return self.power()
+
+    def power(self) -> Expr:
+        base = self.atom()
+        if self.peek()[1] == "**":
+            self.take()
+            return power(base, self.unary())  # right-associative, binds tighter than unary minus on the left
+        return base
+
+    def atom(self) -> Expr:
+        kind, val = self.take()
+        if kind == "num":
+            return Num(float(val))
+        if kind == "name":
+            if self.peek()[1] == "(":
+                return self.call(val)
+            return Name(val)
+        if val == "(":
+            e = self.expr()
+            self.take(")")
+            return e
+        raise ExprError(f"unexpected {val or 'end'!r} in {self.text!r}")
+
+    def call(self, fn: str) -> Expr:
+        self.take("(")
+        args = [self.expr()]
+        while self.peek()[1] == ",":
+            self.take()
+            args.append(self.expr())
+        self.take(")")
+        if fn in self.tables:
+            table = self.tables[fn]
+            want = getattr(table, "arity", len(args))
+            if len(args) != want:
+                raise ExprError(f"table {fn}() takes {want} argument(s), got {len(args)} in {self.text!r}")
+            return Call(fn, tuple(args), table)
+        want = 1 if fn in FUNCTIONS_1 else 2 if fn in FUNCTIONS_2 else None
+        if want is None:
+            allowed = ", ".join(sorted([*FUNCTIONS_1, *FUNCTIONS_2, *self.tables]))
+            raise ExprError(f"unknown function {fn}() in {self.text!r} (allowed: {allowed})")
+        if len(args) != want:
+            raise ExprError(f"{fn}() takes {want} argument(s), got {len(args)} in {self.text!r}")
+        return call(fn, *args)
+
+
+def parse(text: str | float | int, tables: Mapping[str, object] | None = None) -> Expr:
+    """Parse a law into an expression tree.
+
+    Parameters
+    ----------
+    text : str or number
+        The law. Numbers are accepted as they are (YAML gives them as floats).
+    tables : mapping, optional
+        Model-declared lookup tables, callable as functions by name.
+
+    Raises
+    ------
+    ExprError
+        With the offending text when the law does not parse.
+    """
+    if isinstance(text, bool):
+        raise ExprError(f"expected a number or an expression, got {text!r}")
+    if isinstance(text, (int, float)):
+        return Num(float(text))
+    if not isinstance(text, str) or not text.strip():
+        raise ExprError(f"expected a number or an expression, got {text!r}")
+    p = _Parser(text, tables or {})
+    e = p.expr()
+    if p.peek()[0] != "end":
+        raise ExprError(f"unexpected {p.peek()[1]!r} after a complete expression in {text!r}")
+    return e
+
+
+def evaluate_const(e: Expr) -> float:
+    """Value of an expression with no free names (e.g. geometry after inlining constants)."""
+    if e.free():
+        raise ExprError(f"{e} still depends on {', '.join(sorted(e.free()))}")
+    return float(np.asarray(e.compile()({})))
+
+
+__all__ = ["Expr", "ExprError", "Num", "Name", "Bin", "Call", "parse", "as_expr", "evaluate_const"]

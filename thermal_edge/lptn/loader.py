@@ -1,0 +1,384 @@
+"""Load a machine model file (YAML, ``docs/model-format.md``) into a validated :class:`Model`.
+
+Every error is a :class:`ModelError` whose message starts with the file name and the key,
+e.g. ``pm10kw.yaml: arcs[3].r2: must be greater than r1``.
+"""
+from __future__ import annotations
+
+import os
+from collections import Counter
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
+from .expr import Expr, ExprError, Num, evaluate_const, parse
+from .model import Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
+from .tables import Lookup, load_table
+
+TEMP_PREFIX = "T."
+MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
+
+
+class _Ctx:
+    """Parsing context: file name for messages, tables, constants, known names."""
+
+    def __init__(self, fname: str) -> None:
+        self.fname = fname
+        self.tables: dict[str, Lookup] = {}
+        self.constants: dict[str, Expr] = {}
+
+    def fail(self, key: str, msg: str) -> ModelError:
+        return ModelError(f"{self.fname}: {key}: {msg}")
+
+    def law(self, key: str, value: Any, allowed: set[str], what: str) -> Expr:
+        try:
+            e = parse(value, self.tables).substitute(self.constants)
+        except ExprError as exc:
+            raise self.fail(key, str(exc)) from None
+        bad = sorted(n for n in e.free() if n not in allowed)
+        if bad:
+            raise self.fail(key, f"{what} may not use {', '.join(bad)} (unknown, or not allowed here)")
+        return e
+
+    def number(self, key: str, value: Any, positive: bool = False) -> float:
+        e = self.law(key, value, set(), "a geometric or fixed quantity")
+        v = evaluate_const(e)
+        if positive and not v > 0:
+            raise self.fail(key, f"must be positive, got {v}")
+        return v
+
+
+def _req(ctx: _Ctx, d: Mapping[str, Any], key: str, where: str) -> Any:
+    if not isinstance(d, Mapping):
+        raise ctx.fail(where, f"expected a mapping, got {type(d).__name__}")
+    if key not in d:
+        raise ctx.fail(f"{where}.{key}" if where else key, "is required")
+    return d[key]
+
+
+def _mapping(ctx: _Ctx, d: Any, key: str) -> Mapping[str, Any]:
+    if d is None:
+        return {}
+    if not isinstance(d, Mapping):
+        raise ctx.fail(key, f"expected a mapping, got {type(d).__name__}")
+    return d
+
+
+def _list(ctx: _Ctx, d: Any, key: str) -> list[Any]:
+    if d is None:
+        return []
+    if not isinstance(d, list):
+        raise ctx.fail(key, f"expected a list, got {type(d).__name__}")
+    return d
+
+
+def load_model(path: str | os.PathLike[str], data_dir: str | os.PathLike[str] | None = None) -> Model:
+    """Load and validate a machine model file.
+
+    Parameters
+    ----------
+    path : path-like
+        The YAML model file.
+    data_dir : path-like, optional
+        Where the model's table files are; default: ``$THERMAL_EDGE_DATA_DIR``, else the file's
+        ``data_dir`` key (relative to the file).
+
+    Raises
+    ------
+    ModelError
+        Naming the file and the key of the first problem found.
+    """
+    path = Path(path)
+    fname = path.name
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ModelError(f"{fname}: not valid YAML: {exc}") from None
+    return build_model(raw, fname=fname, path=path, data_dir=data_dir)
+
+
+def build_model(
+    raw: Any, fname: str = "<model>", path: Path | None = None, data_dir: str | os.PathLike[str] | None = None
+) -> Model:
+    """Validate an already-parsed model document (see :func:`load_model`)."""
+    ctx = _Ctx(fname)
+    if not isinstance(raw, Mapping):
+        raise ctx.fail("(top)", "expected a mapping of model sections")
+    known = {
+        "name", "description", "discretisation", "inputs", "boundaries", "constants", "derived", "tables",
+        "data_dir", "parameters", "materials", "arcs", "nodes", "points", "conductances", "losses", "sensors",
+        "limits", "drive",
+    }
+    extra = sorted(set(raw) - known)
+    if extra:
+        raise ctx.fail(extra[0], f"unknown section (known: {', '.join(sorted(known))})")
+    name = str(_req(ctx, raw, "name", ""))
+
+    # constants first: they may refer to earlier constants
+    for k, v in _mapping(ctx, raw.get("constants"), "constants").items():
+        ctx.constants[k] = Num(ctx.number(f"constants.{k}", v))
+
+    # tables
+    base = Path(
+        data_dir
+        or os.environ.get("THERMAL_EDGE_DATA_DIR")
+        or ((path.parent if path else Path.cwd()) / str(raw.get("data_dir", ".")))
+    )
+    for k, spec in _mapping(ctx, raw.get("tables"), "tables").items():
+        key = f"tables.{k}"
+        f = base / str(_req(ctx, spec, "file", key))
+        if not f.exists():
+            raise ctx.fail(f"{key}.file", f"table file {f} not found (set data_dir or THERMAL_EDGE_DATA_DIR)")
+        try:
+            ctx.tables[k] = load_table(k, f, str(spec.get("kind", "curve")), str(spec.get("lookup", "nearest")))
+        except (ValueError, IndexError) as exc:
+            raise ctx.fail(key, f"cannot read {f}: {exc}") from None
+
+    inputs = tuple(_mapping(ctx, raw.get("inputs"), "inputs"))
+    if not inputs:
+        raise ctx.fail("inputs", "at least one input is required")
+    boundaries = {str(k): str(v) for k, v in _mapping(ctx, raw.get("boundaries"), "boundaries").items()}
+    for b, col in boundaries.items():
+        if col not in inputs:
+            raise ctx.fail(f"boundaries.{b}", f"input {col!r} is not declared under inputs")
+
+    derived: dict[str, Expr] = {}
+    for k, v in _mapping(ctx, raw.get("derived"), "derived").items():
+        derived[k] = ctx.law(f"derived.{k}", v, set(inputs) | set(derived), "a derived input")
+
+    params: list[Parameter] = []
+    for k, spec in _mapping(ctx, raw.get("parameters"), "parameters").items():
+        key = f"parameters.{k}"
+        if k in inputs or k in derived or k in ctx.constants:
+            raise ctx.fail(key, "name already used by an input, derived input or constant")
+        value = ctx.number(f"{key}.value", _req(ctx, spec, "value", key))
+        lo = ctx.number(f"{key}.min", _req(ctx, spec, "min", key), positive=True)
+        hi = ctx.number(f"{key}.max", _req(ctx, spec, "max", key))
+        if not lo <= value <= hi:
+            raise ctx.fail(key, f"value {value} outside [min, max] = [{lo}, {hi}]")
+        params.append(
+            Parameter(k, value, lo, hi, str(spec.get("unit", "")), bool(spec.get("adaptable", False)), str(spec.get("doc", "")))
+        )
+    pnames = {p.name for p in params}
+    op_names = set(inputs) | set(derived)
+
+    materials: dict[str, dict[str, Expr]] = {}
+    for k, spec in _mapping(ctx, raw.get("materials"), "materials").items():
+        materials[k] = _material(ctx, f"materials.{k}", spec, pnames)
+
+    builder = _Builder(ctx)
+    for i, spec in enumerate(_list(ctx, raw.get("arcs"), "arcs")):
+        builder.arc(f"arcs[{i}]", spec, materials, {p.name: Num(p.value) for p in params})
+    for i, spec in enumerate(_list(ctx, raw.get("nodes"), "nodes")):
+        key = f"nodes[{i}]"
+        nname = str(_req(ctx, spec, "name", key))
+        cap = ctx.law(f"{key}.capacity", _req(ctx, spec, "capacity", key), pnames, "a capacity")
+        builder.add_node(key, nname, cap)
+    for i, pname in enumerate(_list(ctx, raw.get("points"), "points")):
+        builder.add_point(f"points[{i}]", str(pname))
+    for b in boundaries:
+        builder.declare(f"boundaries.{b}", b)
+
+    conns = _list(ctx, raw.get("conductances"), "conductances")
+    builder.connect(conns, pnames | op_names, boundaries)
+
+    temp_names = {TEMP_PREFIX + n for n in builder.nodes}
+    losses: list[Loss] = []
+    for i, spec in enumerate(_list(ctx, raw.get("losses"), "losses")):
+        key = f"losses[{i}]"
+        target = str(_req(ctx, spec, "node", key))
+        if target not in builder.nodes and target not in builder.points:
+            raise ctx.fail(f"{key}.node", f"unknown node or point {target!r}")
+        law = ctx.law(f"{key}.power", _req(ctx, spec, "power", key), pnames | op_names | temp_names, "a loss")
+        losses.append(Loss(target, law, key))
+
+    sensors: dict[str, str] = {}
+    for k, spec in _mapping(ctx, raw.get("sensors"), "sensors").items():
+        node = str(_req(ctx, spec, "node", f"sensors.{k}"))
+        if node not in builder.nodes:
+            raise ctx.fail(f"sensors.{k}.node", f"{node!r} is not a node with heat capacity")
+        sensors[k] = node
+    limits = []
+    for k, spec in _mapping(ctx, raw.get("limits"), "limits").items():
+        key = f"limits.{k}"
+        node = str(_req(ctx, spec, "node", key))
+        if node not in builder.nodes:
+            raise ctx.fail(f"{key}.node", f"{node!r} is not a node with heat capacity")
+        warn = ctx.number(f"{key}.warn_c", _req(ctx, spec, "warn_c", key))
+        mx = ctx.number(f"{key}.max_c", _req(ctx, spec, "max_c", key))
+        if not warn < mx:
+            raise ctx.fail(key, f"warn_c ({warn}) must be below max_c ({mx})")
+        limits.append(Limit(k, node, warn, mx))
+
+    disc = _mapping(ctx, raw.get("discretisation"), "discretisation")
+    method = str(disc.get("method", "zoh"))
+    if method not in ("zoh", "euler"):
+        raise ctx.fail("discretisation.method", f"must be zoh or euler, got {method!r}")
+    sub = disc.get("max_substep_s")
+    substep = None if sub is None else ctx.number("discretisation.max_substep_s", sub, positive=True)
+    drive = {str(k): ctx.number(f"drive.{k}", v) for k, v in _mapping(ctx, raw.get("drive"), "drive").items()}
+    if not builder.nodes:
+        raise ctx.fail("nodes", "the model has no node with heat capacity")
+    return Model(
+        name=name,
+        path=path,
+        description=str(raw.get("description", "")),
+        inputs=inputs,
+        derived=derived,
+        boundaries=boundaries,
+        parameters=tuple(params),
+        nodes=tuple(builder.nodes),
+        capacities=tuple(builder.caps),
+        points=tuple(builder.points),
+        edges=tuple(builder.edges),
+        losses=tuple(losses),
+        sensors=sensors,
+        limits=tuple(limits),
+        discretisation=Discretisation(method, substep),
+        drive=drive,
+    )
+
+
+def _material(ctx: _Ctx, key: str, spec: Any, pnames: set[str]) -> dict[str, Expr]:
+    spec = _mapping(ctx, spec, key)
+    out = {}
+    for m in MATERIAL_KEYS:
+        out[m] = ctx.law(f"{key}.{m}", _req(ctx, spec, m, key), pnames, "a material property")
+    extra = sorted(set(spec) - set(MATERIAL_KEYS) - {"doc"})
+    if extra:
+        raise ctx.fail(f"{key}.{extra[0]}", f"unknown material property (known: {', '.join(MATERIAL_KEYS)})")
+    return out
+
+
+class _Builder:
+    """Expands arcs and connections into nodes, points and edges."""
+
+    def __init__(self, ctx: _Ctx) -> None:
+        self.ctx = ctx
+        self.nodes: list[str] = []
+        self.caps: list[Expr] = []
+        self.points: list[str] = []
+        self.edges: list[Edge] = []
+        self.names: dict[str, str] = {}  # name -> key that declared it
+        self.faces: dict[str, tuple[str, Expr]] = {}  # "arc.face" -> (mid-point, face resistance)
+
+    def declare(self, key: str, name: str) -> None:
+        if name in self.names:
+            raise self.ctx.fail(key, f"name {name!r} already declared at {self.names[name]}")
+        if not name or "/" in name and not key.startswith("arcs"):
+            raise self.ctx.fail(key, f"invalid name {name!r}")
+        self.names[name] = key
+
+    def add_node(self, key: str, name: str, cap: Expr) -> None:
+        self.declare(key, name)
+        self.nodes.append(name)
+        self.caps.append(cap)
+
+    def add_point(self, key: str, name: str) -> None:
+        self.declare(key, name)
+        self.points.append(name)
+
+    def arc(self, key: str, spec: Any, materials: dict[str, dict[str, Expr]], nominal: dict[str, Expr]) -> None:
+        ctx = self.ctx
+        name = str(_req(ctx, spec, "name", key))
+        r1 = ctx.number(f"{key}.r1", _req(ctx, spec, "r1", key), positive=True)
+        r2 = ctx.number(f"{key}.r2", _req(ctx, spec, "r2", key), positive=True)
+        if not r2 > r1:
+            raise ctx.fail(f"{key}.r2", f"must be greater than r1 ({r1} m), got {r2} m")
+        theta = ctx.number(f"{key}.theta", _req(ctx, spec, "theta", key), positive=True)
+        length = ctx.number(f"{key}.length", _req(ctx, spec, "length", key), positive=True)
+        count = ctx.number(f"{key}.count", spec.get("count", 1), positive=True)
+        mat = _req(ctx, spec, "material", key)
+        if isinstance(mat, str):
+            if mat not in materials:
+                raise ctx.fail(f"{key}.material", f"unknown material {mat!r} (declared: {', '.join(materials)})")
+            props = materials[mat]
+        else:
+            props = _material(ctx, f"{key}.material", mat, set(nominal))
+        res = arc_resistances(r1, r2, theta, length, props["k_r"], props["k_a"], props["k_c"], count)
+        self.add_node(key, name, arc_capacity(r1, r2, theta, length, props["rho"], props["c_p"], count))
+        for d in DIRECTIONS:
+            mid = f"{name}/{d}"
+            self.add_point(key, mid)
+            r3 = res[d][2]
+            self.edges.append(Edge(name, mid, Num(1.0) / r3, f"{key} ({d} interior)"))
+        for face, (d, i) in FACES.items():
+            self.faces[f"{name}.{face}"] = (f"{name}/{d}", res[d][i])
+        # each direction's T must be passive on its own: R_face + R3 > 0 at nominal values
+        for d in DIRECTIONS:
+            r_1, r_2, r_3 = res[d]
+            vals = [evaluate_const(x.substitute(nominal)) for x in (r_1, r_2, r_3)]
+            if min(vals[0], vals[1]) + vals[2] <= 0:
+                raise ctx.fail(key, f"{d} T-model is not passive (R1={vals[0]:.3g}, R2={vals[1]:.3g}, R3={vals[2]:.3g})")
+
+    def endpoint(self, key: str, ref: str, boundaries: Mapping[str, str]) -> str:
+        if ref in self.faces or ref in self.nodes or ref in self.points or ref in boundaries:
+            return ref
+        raise self.ctx.fail(key, f"unknown node, point, arc face or boundary {ref!r}")
+
+    def connect(self, conns: list[Any], allowed: set[str], boundaries: Mapping[str, str]) -> None:
+        ctx = self.ctx
+        parsed = []
+        for i, spec in enumerate(conns):
+            key = f"conductances[{i}]"
+            between = _req(ctx, spec, "between", key)
+            if not isinstance(between, list) or len(between) != 2:
+                raise ctx.fail(f"{key}.between", "expected a list of two endpoints")
+            a, b = (self.endpoint(f"{key}.between", str(x), boundaries) for x in between)
+            if a == b:
+                raise ctx.fail(f"{key}.between", f"both ends are {a!r}")
+            if a in boundaries and b in boundaries:
+                raise ctx.fail(f"{key}.between", "a conductance between two boundaries does nothing")
+            if a in boundaries:
+                a, b = b, a
+            has_g, has_r = "g" in spec, "r" in spec
+            if has_g and has_r:
+                raise ctx.fail(key, "give either g (W/K) or r (K/W), not both")
+            law = None
+            if has_g:
+                law = ("g", ctx.law(f"{key}.g", spec["g"], allowed, "a conductance"))
+            elif has_r:
+                law = ("r", ctx.law(f"{key}.r", spec["r"], allowed, "a resistance"))
+            parsed.append((key, a, b, law))
+        uses = Counter(e for _, a, b, _ in parsed for e in (a, b) if e in self.faces)
+        # a face with several connections becomes a point of its own
+        for face, n in uses.items():
+            if n > 1:
+                mid, rf = self.faces[face]
+                fp = face.replace(".", "/", 1)
+                self.add_point(f"face {face}", fp)
+                self.edges.append(Edge(mid, fp, Num(1.0) / rf, f"face {face}"))
+                self.faces[face] = (fp, Num(0.0))
+        for key, a, b, law in parsed:
+            series: Expr = Num(0.0)
+            ends = []
+            for e in (a, b):
+                if e in self.faces:
+                    pt, rf = self.faces[e]
+                    series = series + rf
+                    ends.append(pt)
+                else:
+                    ends.append(e)
+            if law is None:
+                if series == Num(0.0):
+                    raise ctx.fail(key, "needs g or r (no arc face resistance to stand for it)")
+                g = Num(1.0) / series
+            elif law[0] == "r":
+                g = Num(1.0) / (series + law[1])
+            elif series == Num(0.0):
+                g = law[1]
+            else:
+                g = Num(1.0) / (series + Num(1.0) / law[1])
+            self.edges.append(Edge(ends[0], ends[1], g, key))
+
+
+def temperature_name(node: str) -> str:
+    """The law name of a node temperature, ``T.<node>``."""
+    return TEMP_PREFIX + node
+
+
+__all__ = ["load_model", "build_model", "temperature_name", "ModelError"]

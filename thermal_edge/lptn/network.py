@@ -1,0 +1,171 @@
+"""The numeric network: conductance laws -> Laplacian -> Schur elimination -> ``A``, ``W``.
+
+For a batch of ``K`` operating points (values of the inputs that enter conductances) and a
+parameter vector ``θ`` this module returns the continuous system of ``DESIGN.md`` §4::
+
+    C dT/dt = A T + W w,      w = [U; P]  (boundary temperatures, then the loss sources)
+
+with ``A = −(L_DD − L_DQ X)``, ``X = L_QQ⁻¹ L_QD`` and ``W = [K_DU − Xᵀ K_QU,  M_D − Xᵀ M_Q]``
+(``M`` maps loss sources to points), and, for any subset of parameters, the exact derivatives
+``dA``, ``dW`` and ``dc`` from the symbolic derivatives of the laws.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .expr import Compiled, Expr
+from .loader import temperature_name
+from .model import Model
+
+
+@dataclass
+class Continuous:
+    """Continuous system at ``K`` operating points; derivatives over ``p`` chosen parameters.
+
+    Shapes: ``A`` (K, n, n) W/K, ``W`` (K, n, m), ``c`` (n,) J/K, ``dA`` (K, p, n, n),
+    ``dW`` (K, p, n, m), ``dc`` (p, n).
+    """
+
+    A: np.ndarray
+    W: np.ndarray
+    c: np.ndarray
+    dA: np.ndarray | None = None
+    dW: np.ndarray | None = None
+    dc: np.ndarray | None = None
+
+
+class _Law:
+    """A compiled law and the compiled derivatives with respect to the parameters it uses."""
+
+    def __init__(self, expr: Expr, params: Sequence[str]) -> None:
+        self.expr = expr
+        self.f: Compiled = expr.compile()
+        self.d: dict[int, Compiled] = {i: expr.diff(p).compile() for i, p in enumerate(params) if p in expr.free()}
+
+
+class Network:
+    """Numeric form of a :class:`Model` (built once; evaluated for any ``θ`` and operating points)."""
+
+    def __init__(self, model: Model) -> None:
+        self.model = model
+        params = model.parameter_names
+        self.n = n = len(model.nodes)
+        pts = list(model.nodes) + list(model.points)
+        self.n_points = len(pts)
+        index = {p: i for i, p in enumerate(pts)}
+        bnames = list(model.boundaries)
+        bindex = {b: i for i, b in enumerate(bnames)}
+        self.n_bound = len(bnames)
+        self.n_loss = len(model.losses)
+        E = len(model.edges)
+        self.inc = np.zeros((E, self.n_points))
+        self.binc = np.zeros((E, self.n_bound))
+        for e, edge in enumerate(model.edges):
+            self.inc[e, index[edge.a]] += 1.0
+            if edge.b in bindex:
+                self.binc[e, bindex[edge.b]] = 1.0
+            else:
+                self.inc[e, index[edge.b]] -= 1.0
+        self.pinc = (self.inc > 0) * (self.binc.sum(axis=1, keepdims=True) > 0)  # point side of boundary edges
+        self.loss_map = np.zeros((self.n_points, self.n_loss))
+        for j, loss in enumerate(model.losses):
+            self.loss_map[index[loss.point], j] = 1.0
+        self.edge_laws = [_Law(e.g, params) for e in model.edges]
+        self.cap_laws = [_Law(c, params) for c in model.capacities]
+        inputs = set(model.inputs) | set(model.derived)
+        used: set[str] = set()
+        for e in model.edges:
+            used |= e.g.free() & inputs
+        #: inputs/derived inputs that enter conductances: an operating point is a value of these
+        self.matrix_inputs: tuple[str, ...] = tuple(sorted(used))
+        self.derived = [(k, v.compile()) for k, v in model.derived.items()]
+        self.temp_names = [temperature_name(x) for x in model.nodes]
+
+    # -- environments ---------------------------------------------------------------------
+    def env(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> dict[str, object]:
+        """Name -> value mapping for laws: parameters (floats), inputs and derived inputs (arrays)."""
+        env: dict[str, object] = dict(zip(self.model.parameter_names, (float(v) for v in theta)))
+        env.update(inputs)
+        for k, f in self.derived:
+            env[k] = np.asarray(f(env), dtype=float)
+        return env
+
+    # -- capacities -----------------------------------------------------------------------
+    def capacities(self, theta: np.ndarray, wrt: Sequence[int] = ()) -> tuple[np.ndarray, np.ndarray]:
+        """Capacities ``c`` (n,) in J/K and their derivatives ``dc`` (len(wrt), n)."""
+        env = dict(zip(self.model.parameter_names, (float(v) for v in theta)))
+        c = np.array([float(law.f(env)) for law in self.cap_laws])
+        dc = np.zeros((len(wrt), self.n))
+        for j, pi in enumerate(wrt):
+            for i, law in enumerate(self.cap_laws):
+                if pi in law.d:
+                    dc[j, i] = float(law.d[pi](env))
+        return c, dc
+
+    # -- conductances ---------------------------------------------------------------------
+    def conductances(
+        self, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int, wrt: Sequence[int] = ()
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Edge conductances ``g`` (K, E) in W/K and ``dg`` (K, p, E) at ``K`` operating points."""
+        env = self.env(theta, op)
+        E = len(self.edge_laws)
+        g = np.empty((K, E))
+        dg = np.zeros((K, len(wrt), E))
+        for e, law in enumerate(self.edge_laws):
+            g[:, e] = law.f(env)
+            for j, pi in enumerate(wrt):
+                if pi in law.d:
+                    dg[:, j, e] = law.d[pi](env)
+        return g, dg
+
+    def continuous(
+        self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None = None, K: int = 1, wrt: Sequence[int] = ()
+    ) -> Continuous:
+        """The eliminated continuous system at ``K`` operating points (see module docstring).
+
+        Parameters
+        ----------
+        theta : ndarray
+            Full parameter vector (model order).
+        op : mapping
+            Values (arrays of length ``K``) of :attr:`matrix_inputs` (others are ignored).
+        wrt : sequence of int
+            Parameter indices to differentiate with respect to (none: no derivatives).
+        """
+        op = {k: np.asarray(v, dtype=float) for k, v in (op or {}).items()}
+        missing = [k for k in self.matrix_inputs if k not in op and k not in self.model.derived]
+        if missing:
+            raise KeyError(f"operating point lacks input(s) {', '.join(missing)}")
+        n = self.n
+        g, dg = self.conductances(theta, op, K, wrt)
+        inc = self.inc
+        L = np.einsum("ea,ke,eb->kab", inc, g, inc, optimize=True)
+        KU = np.einsum("ea,ke,eb->kab", self.pinc, g, self.binc, optimize=True)
+        D, Q = slice(0, n), slice(n, None)
+        LQQ, LQD = L[:, Q, Q], L[:, Q, D]
+        has_q = self.n_points > n
+        X = np.linalg.solve(LQQ, LQD) if has_q else np.zeros((K, 0, n))
+        Xt = np.swapaxes(X, -1, -2)
+        A = -(L[:, D, D] - L[:, D, Q] @ X)
+        B = KU[:, D, :] - Xt @ KU[:, Q, :]
+        EP = self.loss_map[D][None] - Xt @ self.loss_map[Q][None]
+        W = np.concatenate([B, EP], axis=-1)
+        c, dc = self.capacities(theta, wrt)
+        cont = Continuous(A=A, W=W, c=c)
+        if len(wrt):
+            dL = np.einsum("ea,kpe,eb->kpab", inc, dg, inc, optimize=True)
+            dKU = np.einsum("ea,kpe,eb->kpab", self.pinc, dg, self.binc, optimize=True)
+            Xp, Xtp = X[:, None], Xt[:, None]
+            if has_q:
+                dX = np.linalg.solve(LQQ[:, None], dL[:, :, Q, D] - dL[:, :, Q, Q] @ Xp)
+            else:
+                dX = np.zeros((K, len(wrt), 0, n))
+            dXt = np.swapaxes(dX, -1, -2)
+            dA = -(dL[:, :, D, D] - dL[:, :, D, Q] @ Xp - Xtp @ dL[:, :, Q, D] + Xtp @ dL[:, :, Q, Q] @ Xp)
+            dB = dKU[:, :, D, :] - dXt @ KU[:, None, Q, :] - Xtp @ dKU[:, :, Q, :]
+            dEP = -dXt @ self.loss_map[Q][None, None]
+            cont.dA, cont.dW, cont.dc = dA, np.concatenate([dB, dEP], axis=-1), dc
+        return cont

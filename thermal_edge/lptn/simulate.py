@@ -1,0 +1,259 @@
+"""Simulation of a run and forward sensitivities ``S_k = ∂T_k/∂θ`` (paper eqs. 35–37).
+
+The discrete model (``docs/model-format.md``)::
+
+    T[k+1] = Φ(θ, u_k) T[k] + Γ_U(θ, u_k) U[k] + Γ_P(θ, u_k) P(θ, u_k, T[k])
+
+``Φ`` and ``Γ`` are computed once per distinct operating point of the run (exact grouping on the
+values of the inputs that enter conductances). Losses that are affine in the temperatures (the
+copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that is evaluated for the
+whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
+
+Sensitivities run after the simulation: the forcing
+``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ`` is computed for all steps at once (one matrix product per
+operating point, vectorised over parameters), leaving the recursion
+``S_{k+1} = (Φ + Γ_P ∂P/∂T) S_k + X_k`` with one small matrix product per step.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from .discretise import Discrete, discretise
+from .model import Model
+from .network import Network, _Law
+
+
+@dataclass
+class Trajectory:
+    """Result of :meth:`Simulator.simulate`.
+
+    Attributes
+    ----------
+    T : ndarray (N, n)
+        Node temperatures at the sample times, °C (``T[0]`` is the initial state).
+    P : ndarray (N, n_loss)
+        Losses of every loss source at each sample (W); the last row repeats for the final sample.
+    S : ndarray (N, n, p) or None
+        Sensitivities ``∂T_k/∂θ_j`` (K per parameter unit) for the parameters in ``wrt``.
+    """
+
+    T: np.ndarray
+    P: np.ndarray
+    wrt: tuple[str, ...] = ()
+    S: np.ndarray | None = None
+    nodes: tuple[str, ...] = ()
+    extra: dict[str, object] = field(default_factory=dict)
+
+    def node(self, name: str) -> np.ndarray:
+        """Temperature series of one node, °C."""
+        return self.T[:, self.nodes.index(name)]
+
+
+@dataclass
+class _Prepared:
+    ops: np.ndarray  # operating point index per step (N-1,)
+    disc: Discrete
+    U: np.ndarray  # (N, nb)
+    env: dict[str, object]  # per-sample law environment (arrays of length N)
+
+
+class Simulator:
+    """Simulates a :class:`Model` and its parameter sensitivities.
+
+    Parameters
+    ----------
+    model : Model
+    method : {"zoh", "euler"}, optional
+        Default: the model's ``discretisation.method``.
+    max_substep : float, optional
+        Euler sub-step limit (s); default: the model's.
+    """
+
+    def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None) -> None:
+        self.model = model
+        self.net = Network(model)
+        self.method = method or model.discretisation.method
+        self.max_substep = max_substep if max_substep is not None else model.discretisation.max_substep_s
+        params = model.parameter_names
+        self.n = len(model.nodes)
+        # loss laws: which node temperatures they use; affine ones are split into constant + slope
+        tnames = self.net.temp_names
+        used = sorted({tnames.index(t) for loss in model.losses for t in loss.power.free() if t in tnames})
+        self.tv = np.array(used, dtype=int)  # nodes whose temperature enters losses
+        self.tvn = [tnames[i] for i in used]
+        self.loss_laws = [_Law(loss.power, params) for loss in model.losses]
+        self.loss_dT = [[loss.power.diff(t) for t in self.tvn] for loss in model.losses]
+        self.affine = [all(not (d.free() & set(self.tvn)) for d in row) for row in self.loss_dT]
+        self.loss_dT_c = [[d.compile() for d in row] for row in self.loss_dT]
+        self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
+
+    # ---------------------------------------------------------------------------------------
+    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int]) -> _Prepared:
+        model, net = self.model, self.net
+        N = len(next(iter(inputs.values())))
+        missing = [c for c in model.inputs if c not in inputs]
+        if missing:
+            raise KeyError(f"run lacks input column(s) {', '.join(missing)} needed by model {model.name}")
+        env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
+        steps = max(N - 1, 1)
+        if net.matrix_inputs:
+            keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[:steps] for k in net.matrix_inputs], axis=1)
+            uniq, ops = np.unique(keys, axis=0, return_inverse=True)
+            op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
+        else:
+            uniq, ops, op = np.zeros((1, 0)), np.zeros(steps, dtype=int), {}
+        cont = net.continuous(theta, op, K=len(uniq), wrt=wrt)
+        disc = discretise(cont, dt, self.method, self.max_substep)
+        U = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()], axis=1) if model.boundaries else np.zeros((N, 0))
+        return _Prepared(ops=np.asarray(ops).reshape(-1), disc=disc, U=U, env=env)
+
+    def _loss_terms(self, env: dict[str, object], N: int, T: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Losses (N, nl) and ∂P/∂T at the loss-temperature nodes (N, nl, ntv).
+
+        With ``T`` None the temperatures are zero: for affine laws that gives the constant part.
+        """
+        e = dict(env)
+        for i, t in zip(self.tv, self.tvn):
+            e[t] = 0.0 if T is None else T[:, i]
+        nl, nt = len(self.loss_laws), len(self.tv)
+        P = np.zeros((N, nl))
+        dPdT = np.zeros((N, nl, nt))
+        for j, law in enumerate(self.loss_laws):
+            P[:, j] = law.f(e)
+            for i, f in enumerate(self.loss_dT_c[j]):
+                dPdT[:, j, i] = f(e)
+        return P, dPdT
+
+    def _loss_theta(self, env: dict[str, object], T: np.ndarray, wrt: Sequence[int]) -> np.ndarray:
+        """∂P/∂θ (N, nl, p) along the simulated trajectory."""
+        e = dict(env)
+        for i, t in zip(self.tv, self.tvn):
+            e[t] = T[:, i]
+        out = np.zeros((T.shape[0], len(self.loss_laws), len(wrt)))
+        for j, law in enumerate(self.loss_laws):
+            for q, pi in enumerate(wrt):
+                if pi in law.d:
+                    out[:, j, q] = law.d[pi](e)
+        return out
+
+    # ---------------------------------------------------------------------------------------
+    def simulate(
+        self,
+        theta: np.ndarray,
+        inputs: Mapping[str, np.ndarray],
+        dt: float,
+        T0: np.ndarray,
+        wrt: Sequence[str] | None = None,
+    ) -> Trajectory:
+        """Simulate a run open-loop, optionally with sensitivities.
+
+        Parameters
+        ----------
+        theta : ndarray
+            Full parameter vector in model order.
+        inputs : mapping
+            Input columns (arrays of length N, one per sample); inputs at sample ``k`` are held
+            over ``[t_k, t_k + dt)``.
+        dt : float
+            Sample period, s.
+        T0 : ndarray (n,)
+            Node temperatures at the first sample, °C.
+        wrt : sequence of str, optional
+            Parameters to compute ``S = ∂T/∂θ`` for.
+        """
+        names = tuple(wrt or ())
+        widx = list(self.model.parameter_index(names)) if names else []
+        N = len(next(iter(inputs.values())))
+        prep = self._prepare(np.asarray(theta, dtype=float), inputs, float(dt), widx)
+        d = prep.disc
+        n, nb = self.n, prep.U.shape[1]
+        GU, GP = d.Gam[:, :, :nb], d.Gam[:, :, nb:]
+        P0, dPdT0 = self._loss_terms(prep.env, N, None)
+        na = self.nonaffine
+        P0[:, na] = 0.0  # laws not affine in T are evaluated per step instead
+        dPdT0[:, na] = 0.0
+        ops = prep.ops
+        # input-driven part of every step, for all steps at once (grouped by operating point)
+        f = np.empty((max(N - 1, 0), n))
+        fb = np.zeros((max(N - 1, 0), n, len(self.tv)))
+        for o in range(d.Phi.shape[0]):
+            sel = np.nonzero(ops[: N - 1] == o)[0]
+            f[sel] = prep.U[sel] @ GU[o].T + P0[sel] @ GP[o].T
+            fb[sel] = GP[o] @ dPdT0[sel]
+        T = np.empty((N, n))
+        T[0] = T0
+        tv, Phi = self.tv, d.Phi
+        has_fb = len(tv) > 0 and bool(np.any(fb))
+        step_losses = self._step_losses(prep, N) if na else None
+        GPna = GP[:, :, na]
+        x = T[0].copy()
+        for k in range(N - 1):
+            o = ops[k]
+            y = Phi[o] @ x + f[k]
+            if has_fb:
+                y += fb[k] @ x[tv]
+            if step_losses is not None:
+                y += GPna[o] @ step_losses(k, x)
+            x = y
+            T[k + 1] = x
+        P, dPdT = self._loss_terms(prep.env, N, T)
+        traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
+        if names:
+            traj.S = self._sensitivities(prep, T, P, dPdT, widx)
+        return traj
+
+    def _step_losses(self, prep: _Prepared, N: int):  # type: ignore[no-untyped-def]
+        """Per-step evaluator of the loss laws that are not affine in temperature."""
+        env = prep.env
+        scal = {k: v for k, v in env.items() if np.ndim(v) == 0}
+        series = [(k, np.broadcast_to(np.asarray(v, dtype=float), (N,))) for k, v in env.items() if np.ndim(v) > 0]
+        laws = [self.loss_laws[j].f for j in self.nonaffine]
+        temps = list(zip(self.tv, self.tvn))
+
+        def at(k: int, x: np.ndarray) -> np.ndarray:
+            e = dict(scal)
+            for key, arr in series:
+                e[key] = arr[k]
+            for i, t in temps:
+                e[t] = x[i]
+            return np.array([float(g(e)) for g in laws])
+
+        return at
+
+    def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int]) -> np.ndarray:
+        d = prep.disc
+        assert d.dPhi is not None and d.dGam is not None
+        N, n = T.shape
+        p = len(widx)
+        nb = prep.U.shape[1]
+        GP = d.Gam[:, :, nb:]
+        w = np.concatenate([prep.U, P], axis=1)
+        dPdth = self._loss_theta(prep.env, T, widx)
+        ops = prep.ops
+        X = np.empty((max(N - 1, 0), n, p))
+        fb = np.zeros((max(N - 1, 0), n, len(self.tv)))
+        m = w.shape[1]
+        for o in range(d.Phi.shape[0]):
+            sel = np.nonzero(ops == o)[0]
+            if not len(sel):
+                continue
+            dPhi = d.dPhi[o].reshape(p * n, n)
+            dGam = d.dGam[o].reshape(p * n, m)
+            Xo = (T[sel] @ dPhi.T + w[sel] @ dGam.T).reshape(len(sel), p, n)
+            X[sel] = np.swapaxes(Xo, 1, 2) + GP[o] @ dPdth[sel]
+            fb[sel] = GP[o] @ dPdT[sel]
+        S = np.zeros((N, n, p))
+        Phi, tv = d.Phi, self.tv
+        s = S[0]
+        if len(tv) and np.any(fb):
+            for k in range(N - 1):
+                s = Phi[ops[k]] @ s + X[k] + fb[k] @ s[tv]
+                S[k + 1] = s
+        else:
+            for k in range(N - 1):
+                s = Phi[ops[k]] @ s + X[k]
+                S[k + 1] = s
+        return S
