@@ -3,7 +3,7 @@
 A law is a string such as ``"P20 * (1 + alpha * (T.sw - 20))"``. It is parsed by a small
 recursive-descent parser (never ``eval``) into an immutable tree of :class:`Expr` nodes. The
 grammar admits numbers, names (letters, digits, ``_`` and ``.``), ``+ - * / **``, parentheses and
-the functions ``exp log sqrt tanh min max abs`` plus any lookup tables the model declares.
+the functions ``exp log sqrt tanh min max abs sign`` plus any lookup tables the model declares.
 Derivatives are taken symbolically on the tree (with light constant folding) and every tree
 compiles to a closure over numpy arrays, so a law evaluates on whole time series at once.
 
@@ -24,7 +24,7 @@ import numpy as np
 Env = Mapping[str, object]
 Compiled = Callable[[Env], object]
 
-FUNCTIONS_1 = {"exp": np.exp, "log": np.log, "sqrt": np.sqrt, "tanh": np.tanh, "abs": np.abs}
+FUNCTIONS_1 = {"exp": np.exp, "log": np.log, "sqrt": np.sqrt, "tanh": np.tanh, "abs": np.abs, "sign": np.sign}
 FUNCTIONS_2 = {"min": np.minimum, "max": np.maximum}
 
 
@@ -224,9 +224,6 @@ class Call(Expr):
         if fn in FUNCTIONS_2:
             f2, g, h = FUNCTIONS_2[fn], fargs[0], fargs[1]
             return lambda env: f2(g(env), h(env))
-        if fn == "sign":
-            g = fargs[0]
-            return lambda env: np.sign(g(env))
         g, h = fargs
         if fn == "step_ge":
             return lambda env: np.where(np.asarray(g(env)) >= h(env), 1.0, 0.0)

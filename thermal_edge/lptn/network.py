@@ -75,13 +75,15 @@ class Network:
             self.loss_map[index[loss.point], j] = 1.0
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         self.cap_laws = [_Law(c, params) for c in model.capacities]
-        inputs = set(model.inputs) | set(model.derived)
         used: set[str] = set()
         for e in model.edges:
-            used |= e.g.free() & inputs
-        #: inputs/derived inputs that enter conductances: an operating point is a value of these
-        self.matrix_inputs: tuple[str, ...] = tuple(sorted(used))
-        self.derived = [(k, v.compile()) for k, v in model.derived.items()]
+            used |= e.g.free()
+        for k in reversed(list(model.derived)):  # derived inputs are declared in dependency order
+            if k in used:
+                used |= model.derived[k].free()
+        #: raw inputs that enter conductances: an operating point is a value of these
+        self.matrix_inputs: tuple[str, ...] = tuple(sorted(used & set(model.inputs)))
+        self.derived = [(k, v.free(), v.compile()) for k, v in model.derived.items()]
         self.temp_names = [temperature_name(x) for x in model.nodes]
 
     # -- environments ---------------------------------------------------------------------
@@ -89,8 +91,9 @@ class Network:
         """Name -> value mapping for laws: parameters (floats), inputs and derived inputs (arrays)."""
         env: dict[str, object] = dict(zip(self.model.parameter_names, (float(v) for v in theta)))
         env.update(inputs)
-        for k, f in self.derived:
-            env[k] = np.asarray(f(env), dtype=float)
+        for k, free, f in self.derived:
+            if free <= env.keys():  # an operating point carries only the inputs conductances use
+                env[k] = np.asarray(f(env), dtype=float)
         return env
 
     # -- capacities -----------------------------------------------------------------------
@@ -121,6 +124,21 @@ class Network:
                     dg[:, j, e] = law.d[pi](env)
         return g, dg
 
+    def point_temperatures(
+        self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None, T: np.ndarray, U: np.ndarray, P: np.ndarray
+    ) -> np.ndarray:
+        """Temperatures (°C) of all points, dynamic nodes first, at one operating point.
+
+        The algebraic points follow from ``0 = M_Q P − L_QD T − L_QQ T_Q + K_QU U`` (W balance).
+        """
+        op = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in (op or {}).items()}
+        g, _ = self.conductances(theta, op, 1)
+        L = np.einsum("ea,e,eb->ab", self.inc, g[0], self.inc)
+        KU = np.einsum("ea,e,eb->ab", self.pinc, g[0], self.binc)
+        n = self.n
+        rhs = self.loss_map[n:] @ P - L[n:, :n] @ T + KU[n:] @ U
+        return np.concatenate([T, np.linalg.solve(L[n:, n:], rhs)]) if self.n_points > n else np.asarray(T, float)
+
     def continuous(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None = None, K: int = 1, wrt: Sequence[int] = ()
     ) -> Continuous:
@@ -136,7 +154,7 @@ class Network:
             Parameter indices to differentiate with respect to (none: no derivatives).
         """
         op = {k: np.asarray(v, dtype=float) for k, v in (op or {}).items()}
-        missing = [k for k in self.matrix_inputs if k not in op and k not in self.model.derived]
+        missing = [k for k in self.matrix_inputs if k not in op]
         if missing:
             raise KeyError(f"operating point lacks input(s) {', '.join(missing)}")
         n = self.n

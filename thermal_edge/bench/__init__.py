@@ -1,0 +1,1 @@
+"""Benchmarks behind ``thermal-edge bench …``: tables side by side with their baselines."""

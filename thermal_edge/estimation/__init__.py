@@ -1,0 +1,1 @@
+"""Parameter estimation: objective, screening, SQP and baselines, observer, online adapter."""

@@ -1,0 +1,1 @@
+"""The simulated machine: drive cycles, the plant, sensor models and the inverter emulator."""

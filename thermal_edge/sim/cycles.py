@@ -1,0 +1,130 @@
+"""Drive cycles (``config/cycles/*.yaml``): segments of speed, torque and ambient, turned into a run.
+
+A segment holds its speed (rpm), torque (Nm), ambient and coolant (°C) for ``duration_s``; with
+``ramp_s`` it starts with a linear ramp from the previous segment's values. The simulated inverter
+turns torque into currents with the machine's torque constant (``drive.kt_nm_per_arms``, i_d = 0
+control): ``i_rms = |torque| / kt``, ``i_q = sqrt(2) i_rms · sign(torque)``.
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ..data import Run
+
+FIELDS = ("speed_rpm", "torque_nm", "ambient_c", "coolant_c")
+
+
+class CycleError(ValueError):
+    """An invalid cycle file; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class Segment:
+    duration_s: float
+    speed_rpm: float
+    torque_nm: float
+    ambient_c: float
+    coolant_c: float
+    ramp_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Cycle:
+    name: str
+    dt_s: float
+    segments: tuple[Segment, ...]
+    description: str = ""
+
+    @property
+    def duration_s(self) -> float:
+        return sum(s.duration_s for s in self.segments)
+
+
+def load_cycle(path: str | os.PathLike[str]) -> Cycle:
+    """Load and validate a cycle file."""
+    path = Path(path)
+    f = path.name
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise CycleError(f"{path}: cannot read: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise CycleError(f"{f}: not valid YAML: {exc}") from None
+    if not isinstance(raw, dict):
+        raise CycleError(f"{f}: (top): expected a mapping")
+
+    def num(key: str, v: Any, positive: bool = False) -> float:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise CycleError(f"{f}: {key}: expected a number, got {v!r}")
+        if positive and not v > 0:
+            raise CycleError(f"{f}: {key}: must be positive, got {v}")
+        return float(v)
+
+    dt = num("dt_s", raw.get("dt_s", 1.0), positive=True)
+    defaults = {"ambient_c": num("ambient_c", raw.get("ambient_c", 25.0)), "coolant_c": num("coolant_c", raw.get("coolant_c", raw.get("ambient_c", 25.0)))}
+    segs_raw = raw.get("segments")
+    if not isinstance(segs_raw, list) or not segs_raw:
+        raise CycleError(f"{f}: segments: expected a non-empty list")
+    segs = []
+    for i, s in enumerate(segs_raw):
+        key = f"segments[{i}]"
+        if not isinstance(s, dict):
+            raise CycleError(f"{f}: {key}: expected a mapping")
+        unknown = set(s) - set(FIELDS) - {"duration_s", "ramp_s"}
+        if unknown:
+            raise CycleError(f"{f}: {key}.{sorted(unknown)[0]}: unknown key")
+        for req in ("duration_s", "speed_rpm", "torque_nm"):
+            if req not in s:
+                raise CycleError(f"{f}: {key}.{req}: is required")
+        segs.append(
+            Segment(
+                duration_s=num(f"{key}.duration_s", s["duration_s"], positive=True),
+                speed_rpm=num(f"{key}.speed_rpm", s["speed_rpm"]),
+                torque_nm=num(f"{key}.torque_nm", s["torque_nm"]),
+                ambient_c=num(f"{key}.ambient_c", s.get("ambient_c", defaults["ambient_c"])),
+                coolant_c=num(f"{key}.coolant_c", s.get("coolant_c", defaults["coolant_c"])),
+                ramp_s=num(f"{key}.ramp_s", s.get("ramp_s", 0.0)),
+            )
+        )
+    repeat = int(num("repeat", raw.get("repeat", 1), positive=True))
+    return Cycle(str(raw.get("name", path.stem)), dt, tuple(segs) * repeat, str(raw.get("description", "")))
+
+
+def cycle_run(cycle: Cycle, kt_nm_per_arms: float, duration_s: float | None = None) -> Run:
+    """Sample a cycle into a run of inputs (no sensor columns).
+
+    Parameters
+    ----------
+    cycle : Cycle
+    kt_nm_per_arms : float
+        Torque constant, Nm per RMS ampere.
+    duration_s : float, optional
+        Truncate (or repeat the cycle up to) this duration.
+    """
+    total = cycle.duration_s if duration_s is None else duration_s
+    n = int(round(total / cycle.dt_s)) + 1
+    t = np.arange(n) * cycle.dt_s
+    bounds = np.cumsum([0.0] + [s.duration_s for s in cycle.segments])
+    cols = {k: np.empty(n) for k in FIELDS}
+    tt = np.mod(t, cycle.duration_s) if duration_s is not None and duration_s > cycle.duration_s else np.minimum(t, cycle.duration_s)
+    idx = np.clip(np.searchsorted(bounds, tt, side="right") - 1, 0, len(cycle.segments) - 1)
+    for i, seg in enumerate(cycle.segments):
+        sel = idx == i
+        prev = cycle.segments[i - 1] if i > 0 else seg
+        local = tt[sel] - bounds[i]
+        frac = np.clip(local / seg.ramp_s, 0.0, 1.0) if seg.ramp_s > 0 else np.ones(sel.sum())
+        for k in FIELDS:
+            a, b = getattr(prev, k), getattr(seg, k)
+            cols[k][sel] = a + (b - a) * frac
+    i_rms = np.abs(cols["torque_nm"]) / kt_nm_per_arms
+    cols["i_rms"] = i_rms
+    cols["i_d"] = np.zeros(n)
+    cols["i_q"] = math.sqrt(2.0) * i_rms * np.sign(cols["torque_nm"])
+    return Run(t, cols, f"cycle:{cycle.name}")
