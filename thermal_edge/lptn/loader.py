@@ -266,11 +266,12 @@ class _Builder:
         self.names: dict[str, str] = {}  # name -> key that declared it
         self.faces: dict[str, tuple[str, Expr]] = {}  # "arc.face" -> (mid-point, face resistance)
 
-    def declare(self, key: str, name: str) -> None:
+    def declare(self, key: str, name: str, internal: bool = False) -> None:
+        """Reserve a name; user-given names may not contain ``/`` or ``.`` (kept for arc parts)."""
         if name in self.names:
             raise self.ctx.fail(key, f"name {name!r} already declared at {self.names[name]}")
-        if not name or "/" in name and not key.startswith("arcs"):
-            raise self.ctx.fail(key, f"invalid name {name!r}")
+        if not internal and (not name or "/" in name or "." in name):
+            raise self.ctx.fail(key, f"invalid name {name!r} ('/' and '.' are reserved for arc mid- and face points)")
         self.names[name] = key
 
     def add_node(self, key: str, name: str, cap: Expr) -> None:
@@ -278,8 +279,8 @@ class _Builder:
         self.nodes.append(name)
         self.caps.append(cap)
 
-    def add_point(self, key: str, name: str) -> None:
-        self.declare(key, name)
+    def add_point(self, key: str, name: str, internal: bool = False) -> None:
+        self.declare(key, name, internal)
         self.points.append(name)
 
     def arc(self, key: str, spec: Any, materials: dict[str, dict[str, Expr]], nominal: dict[str, Expr]) -> None:
@@ -303,7 +304,7 @@ class _Builder:
         self.add_node(key, name, arc_capacity(r1, r2, theta, length, props["rho"], props["c_p"], count))
         for d in DIRECTIONS:
             mid = f"{name}/{d}"
-            self.add_point(key, mid)
+            self.add_point(key, mid, internal=True)
             r3 = res[d][2]
             self.edges.append(Edge(name, mid, Num(1.0) / r3, f"{key} ({d} interior)"))
         for face, (d, i) in FACES.items():
@@ -350,7 +351,7 @@ class _Builder:
             if n > 1:
                 mid, rf = self.faces[face]
                 fp = face.replace(".", "/", 1)
-                self.add_point(f"face {face}", fp)
+                self.add_point(f"face {face}", fp, internal=True)
                 self.edges.append(Edge(mid, fp, Num(1.0) / rf, f"face {face}"))
                 self.faces[face] = (fp, Num(0.0))
         for key, a, b, law in parsed:

@@ -16,6 +16,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from scipy import sparse
+
 from .expr import Compiled, Expr
 from .loader import temperature_name
 from .model import Model
@@ -70,6 +72,10 @@ class Network:
             else:
                 self.inc[e, index[edge.b]] -= 1.0
         self.pinc = (self.inc > 0) * (self.binc.sum(axis=1, keepdims=True) > 0)  # point side of boundary edges
+        # sparse scatter matrices: edge conductances -> flattened Laplacian and point-boundary block
+        npt, nb = self.n_points, self.n_bound
+        self._scatter_L = sparse.csr_matrix(np.einsum("ea,eb->eab", self.inc, self.inc).reshape(E, npt * npt))
+        self._scatter_K = sparse.csr_matrix(np.einsum("ea,eb->eab", self.pinc, self.binc).reshape(E, npt * nb))
         self.loss_map = np.zeros((self.n_points, self.n_loss))
         for j, loss in enumerate(model.losses):
             self.loss_map[index[loss.point], j] = 1.0
@@ -124,6 +130,44 @@ class Network:
                     dg[:, j, e] = law.d[pi](env)
         return g, dg
 
+    def _assemble(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Laplacian (..., N, N) and point-boundary block (..., N, nb) from edge values (..., E)."""
+        lead = g.shape[:-1]
+        flat = g.reshape(-1, g.shape[-1])
+        npt, nb = self.n_points, self.n_bound
+        L = np.asarray((self._scatter_L.T @ flat.T).T).reshape(*lead, npt, npt)
+        KU = np.asarray((self._scatter_K.T @ flat.T).T).reshape(*lead, npt, nb)
+        return L, KU
+
+    def _derivatives(self, L: np.ndarray, KU: np.ndarray, X: np.ndarray, dg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``dA`` (K, p, n, n) and ``dW`` (K, p, n, m) from the edge derivatives ``dg`` (K, p, E).
+
+        The Schur complement's derivative with respect to one conductance is rank one: with
+        ``u`` the edge's incidence vector, ``y = L_QQ⁻¹ u_Q`` and ``z = u_D − L_DQ y``,
+        ``∂A/∂g = −z zᵀ`` and ``∂W/∂g = −z vᵀ`` with ``v = [ũ_U + K_QUᵀ y; M_Qᵀ y]``
+        (``ũ_U`` the edge's incidence on the boundaries). Only edges whose law depends on a
+        chosen parameter take part.
+        """
+        n = self.n
+        live = np.nonzero(np.any(dg != 0.0, axis=(0, 1)))[0]
+        K, p = dg.shape[:2]
+        m = self.n_bound + self.n_loss
+        if not len(live):
+            return np.zeros((K, p, n, n)), np.zeros((K, p, n, m))
+        inc = self.inc[live]
+        uD, uQ = inc[:, :n].T, inc[:, n:].T  # (n, e), (q, e)
+        if self.n_points > n:
+            Y = np.linalg.solve(L[:, n:, n:], np.broadcast_to(uQ, (K, *uQ.shape)))
+            Z = uD - L[:, :n, n:] @ Y
+            V = np.concatenate([-self.binc[live].T + np.swapaxes(KU[:, n:], -1, -2) @ Y, self.loss_map[n:].T @ Y], axis=1)
+        else:
+            Z = np.broadcast_to(uD, (K, *uD.shape))
+            V = np.broadcast_to(np.concatenate([-self.binc[live].T, np.zeros((self.n_loss, len(live)))]), (K, m, len(live)))
+        Zg = Z[:, None] * dg[:, :, None, live]  # (K, p, n, e)
+        dA = -(Zg @ np.swapaxes(Z, -1, -2)[:, None])
+        dW = -(Zg @ np.swapaxes(V, -1, -2)[:, None])
+        return dA, dW
+
     def point_temperatures(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None, T: np.ndarray, U: np.ndarray, P: np.ndarray
     ) -> np.ndarray:
@@ -133,8 +177,7 @@ class Network:
         """
         op = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in (op or {}).items()}
         g, _ = self.conductances(theta, op, 1)
-        L = np.einsum("ea,e,eb->ab", self.inc, g[0], self.inc)
-        KU = np.einsum("ea,e,eb->ab", self.pinc, g[0], self.binc)
+        L, KU = self._assemble(g[0])
         n = self.n
         rhs = self.loss_map[n:] @ P - L[n:, :n] @ T + KU[n:] @ U
         return np.concatenate([T, np.linalg.solve(L[n:, n:], rhs)]) if self.n_points > n else np.asarray(T, float)
@@ -159,9 +202,7 @@ class Network:
             raise KeyError(f"operating point lacks input(s) {', '.join(missing)}")
         n = self.n
         g, dg = self.conductances(theta, op, K, wrt)
-        inc = self.inc
-        L = np.einsum("ea,ke,eb->kab", inc, g, inc, optimize=True)
-        KU = np.einsum("ea,ke,eb->kab", self.pinc, g, self.binc, optimize=True)
+        L, KU = self._assemble(g)
         D, Q = slice(0, n), slice(n, None)
         LQQ, LQD = L[:, Q, Q], L[:, Q, D]
         has_q = self.n_points > n
@@ -174,16 +215,6 @@ class Network:
         c, dc = self.capacities(theta, wrt)
         cont = Continuous(A=A, W=W, c=c)
         if len(wrt):
-            dL = np.einsum("ea,kpe,eb->kpab", inc, dg, inc, optimize=True)
-            dKU = np.einsum("ea,kpe,eb->kpab", self.pinc, dg, self.binc, optimize=True)
-            Xp, Xtp = X[:, None], Xt[:, None]
-            if has_q:
-                dX = np.linalg.solve(LQQ[:, None], dL[:, :, Q, D] - dL[:, :, Q, Q] @ Xp)
-            else:
-                dX = np.zeros((K, len(wrt), 0, n))
-            dXt = np.swapaxes(dX, -1, -2)
-            dA = -(dL[:, :, D, D] - dL[:, :, D, Q] @ Xp - Xtp @ dL[:, :, Q, D] + Xtp @ dL[:, :, Q, Q] @ Xp)
-            dB = dKU[:, :, D, :] - dXt @ KU[:, None, Q, :] - Xtp @ dKU[:, :, Q, :]
-            dEP = -dXt @ self.loss_map[Q][None, None]
-            cont.dA, cont.dW, cont.dc = dA, np.concatenate([dB, dEP], axis=-1), dc
+            cont.dA, cont.dW = self._derivatives(L, KU, X, dg)
+            cont.dc = dc
         return cont

@@ -37,7 +37,8 @@ class Trajectory:
     P : ndarray (N, n_loss)
         Losses of every loss source at each sample (W); the last row repeats for the final sample.
     S : ndarray (N, n, p) or None
-        Sensitivities ``∂T_k/∂θ_j`` (K per parameter unit) for the parameters in ``wrt``.
+        Sensitivities ``∂T_k/∂θ_j`` (K per parameter unit) for the parameters in ``wrt``
+        (only the nodes in ``rows`` when the simulation was asked for a subset).
     """
 
     T: np.ndarray
@@ -139,6 +140,11 @@ class Simulator:
                     out[:, j, q] = law.d[pi](e)
         return out
 
+    BLOCK = 512  # time steps per block of the sensitivity forcing
+
+    def _rows(self, nodes: Sequence[str]) -> np.ndarray:
+        return np.array([self.model.node_index(x) for x in nodes], dtype=int)
+
     # ---------------------------------------------------------------------------------------
     def simulate(
         self,
@@ -147,6 +153,7 @@ class Simulator:
         dt: float,
         T0: np.ndarray,
         wrt: Sequence[str] | None = None,
+        rows: Sequence[str] | None = None,
     ) -> Trajectory:
         """Simulate a run open-loop, optionally with sensitivities.
 
@@ -163,6 +170,8 @@ class Simulator:
             Node temperatures at the first sample, °C.
         wrt : sequence of str, optional
             Parameters to compute ``S = ∂T/∂θ`` for.
+        rows : sequence of str, optional
+            Keep the sensitivities of these nodes only (e.g. the sensor nodes); default all.
         """
         names = tuple(wrt or ())
         widx = list(self.model.parameter_index(names)) if names else []
@@ -175,35 +184,57 @@ class Simulator:
         na = self.nonaffine
         P0[:, na] = 0.0  # laws not affine in T are evaluated per step instead
         dPdT0[:, na] = 0.0
-        ops = prep.ops
+        ops = prep.ops[: max(N - 1, 0)]
         # input-driven part of every step, for all steps at once (grouped by operating point)
         f = np.empty((max(N - 1, 0), n))
-        fb = np.zeros((max(N - 1, 0), n, len(self.tv)))
         for o in range(d.Phi.shape[0]):
-            sel = np.nonzero(ops[: N - 1] == o)[0]
+            sel = np.nonzero(ops == o)[0]
             f[sel] = prep.U[sel] @ GU[o].T + P0[sel] @ GP[o].T
-            fb[sel] = GP[o] @ dPdT0[sel]
         T = np.empty((N, n))
         T[0] = T0
-        tv, Phi = self.tv, d.Phi
-        has_fb = len(tv) > 0 and bool(np.any(fb))
+        mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT0)
         step_losses = self._step_losses(prep, N) if na else None
-        GPna = GP[:, :, na]
-        x = T[0].copy()
+        GPna = [GP[o][:, na] for o in range(GP.shape[0])]
+        opl = ops.tolist()
+        x = np.array(T0, dtype=float)
         for k in range(N - 1):
-            o = ops[k]
-            y = Phi[o] @ x + f[k]
-            if has_fb:
-                y += fb[k] @ x[tv]
-            if step_losses is not None:
-                y += GPna[o] @ step_losses(k, x)
+            y = mats[mi[k]] @ x
+            y += f[k]
+            if step_losses is not None:  # evaluated at T_k, before the update
+                y += GPna[opl[k]] @ step_losses(k, x)
             x = y
             T[k + 1] = x
         P, dPdT = self._loss_terms(prep.env, N, T)
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
-            traj.S = self._sensitivities(prep, T, P, dPdT, widx)
+            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows))
         return traj
+
+    def _step_matrices(
+        self, Phi: np.ndarray, GP: np.ndarray, ops: np.ndarray, dPdT: np.ndarray
+    ) -> tuple[list[np.ndarray], list[int]]:
+        """Per-step transition matrices ``Φ + Γ_P ∂P/∂T`` (temperature feedback of the losses folded in).
+
+        Steps with the same operating point and the same loss slopes share one matrix (a drive
+        cycle holds its current over a segment); the list of distinct matrices and each step's
+        index into it are returned.
+        """
+        steps = len(ops)
+        if not len(self.tv) or not np.any(dPdT) or not steps:
+            return [Phi[o] for o in range(Phi.shape[0])], ops.tolist()
+        slopes = dPdT[:steps].reshape(steps, -1)
+        # a new matrix where the operating point or the slopes change from the previous step
+        change = np.ones(steps, dtype=bool)
+        change[1:] = (ops[1:] != ops[:-1]) | np.any(slopes[1:] != slopes[:-1], axis=1)
+        starts = np.nonzero(change)[0]
+        mi = (np.cumsum(change) - 1).tolist()
+        shape = (len(self.loss_laws), len(self.tv))
+        mats = []
+        for k in starts:
+            m = Phi[ops[k]].copy()
+            m[:, self.tv] += GP[ops[k]] @ slopes[k].reshape(shape)
+            mats.append(m)
+        return mats, mi
 
     def _step_losses(self, prep: _Prepared, N: int):  # type: ignore[no-untyped-def]
         """Per-step evaluator of the loss laws that are not affine in temperature."""
@@ -223,7 +254,9 @@ class Simulator:
 
         return at
 
-    def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int]) -> np.ndarray:
+    def _sensitivities(
+        self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int], rows: np.ndarray | None
+    ) -> np.ndarray:
         d = prep.disc
         assert d.dPhi is not None and d.dGam is not None
         N, n = T.shape
@@ -232,28 +265,36 @@ class Simulator:
         GP = d.Gam[:, :, nb:]
         w = np.concatenate([prep.U, P], axis=1)
         dPdth = self._loss_theta(prep.env, T, widx)
-        ops = prep.ops
-        X = np.empty((max(N - 1, 0), n, p))
-        fb = np.zeros((max(N - 1, 0), n, len(self.tv)))
-        m = w.shape[1]
-        for o in range(d.Phi.shape[0]):
-            sel = np.nonzero(ops == o)[0]
-            if not len(sel):
-                continue
-            dPhi = d.dPhi[o].reshape(p * n, n)
-            dGam = d.dGam[o].reshape(p * n, m)
-            Xo = (T[sel] @ dPhi.T + w[sel] @ dGam.T).reshape(len(sel), p, n)
-            X[sel] = np.swapaxes(Xo, 1, 2) + GP[o] @ dPdth[sel]
-            fb[sel] = GP[o] @ dPdT[sel]
-        S = np.zeros((N, n, p))
-        Phi, tv = d.Phi, self.tv
-        s = S[0]
-        if len(tv) and np.any(fb):
-            for k in range(N - 1):
-                s = Phi[ops[k]] @ s + X[k] + fb[k] @ s[tv]
-                S[k + 1] = s
-        else:
-            for k in range(N - 1):
-                s = Phi[ops[k]] @ s + X[k]
-                S[k + 1] = s
+        loss_theta = bool(np.any(dPdth))
+        ops = prep.ops[: max(N - 1, 0)]
+        # forcing X_k = dΦ T_k + dΓ w_k (+ Γ_P ∂P/∂θ): per operating point one product over all
+        # its steps and parameters; done in blocks of time so the buffer stays in cache
+        dPhiT = [np.ascontiguousarray(d.dPhi[o].reshape(p * n, n).T) for o in range(d.Phi.shape[0])]
+        dGamT = [np.ascontiguousarray(d.dGam[o].reshape(p * n, -1).T) for o in range(d.Phi.shape[0])]
+        mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT[: N - 1])
+        keep = np.arange(n) if rows is None else np.asarray(rows, dtype=int)
+        S = np.zeros((N, len(keep), p))
+        block = min(self.BLOCK, max(N - 1, 1))
+        X = np.empty((block, n, p))
+        s = np.zeros((n, p))
+        for a in range(0, N - 1, block):
+            b = min(a + block, N - 1)
+            ob = ops[a:b]
+            for o in np.unique(ob):
+                sel = np.nonzero(ob == o)[0]
+                Xo = (T[a + sel] @ dPhiT[o] + w[a + sel] @ dGamT[o]).reshape(len(sel), p, n)
+                X[sel] = Xo.swapaxes(1, 2)
+                if loss_theta:  # Γ_P ∂P/∂θ as one product: (n, nl) @ (nl, steps·p)
+                    Dl = np.moveaxis(dPdth[a + sel], 1, 0).reshape(dPdth.shape[1], -1)
+                    X[sel] += (GP[o] @ Dl).reshape(n, len(sel), p).swapaxes(0, 1)
+            if rows is None:
+                for k in range(a, b):
+                    s = mats[mi[k]] @ s
+                    s += X[k - a]
+                    S[k + 1] = s
+            else:
+                for k in range(a, b):
+                    s = mats[mi[k]] @ s
+                    s += X[k - a]
+                    S[k + 1] = s[keep]
         return S
