@@ -68,17 +68,28 @@ class CandumpRecorder:
         self.write_errors = 0
         self._flush_interval = float(flush_interval_s)
         self._last_flush = time.monotonic()
+        self._last_timestamp: float | None = None
         self._lock = threading.Lock()
         self._writer: can.CanutilsLogWriter | None = can.CanutilsLogWriter(self.path, channel=channel, append=append)
 
     def write(self, msg: can.Message) -> None:
-        """Append one message (its ``is_rx`` flag selects R/T; timestamp in s since the epoch)."""
+        """Append one message (its ``is_rx`` flag selects R/T).
+
+        The line's timestamp is the message's (s since the epoch; now if it has
+        none), raised if needed so that timestamps never decrease in the file.
+        """
         with self._lock:
             if self._writer is None:
                 return
             try:
+                # Lines are written in processing order; keep their timestamps non-decreasing
+                # (a received frame can carry a kernel time older than a frame just sent).
+                timestamp = msg.timestamp if msg.timestamp else time.time()
+                if self._last_timestamp is not None and timestamp < self._last_timestamp:
+                    timestamp = self._last_timestamp
+                self._last_timestamp = timestamp
                 line = can.Message(
-                    timestamp=msg.timestamp,
+                    timestamp=timestamp,
                     arbitration_id=msg.arbitration_id,
                     is_extended_id=msg.is_extended_id,
                     is_remote_frame=msg.is_remote_frame,

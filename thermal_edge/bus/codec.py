@@ -293,15 +293,19 @@ class FrameCodec:
     def _raw_value(self, frame: _FrameSpec, spec: _SignalSpec, value: Any) -> int:
         sig = spec.signal
         if isinstance(value, str) or type(value).__name__ == "NamedSignalValue":
-            raw = sig.conversion.choice_to_number(str(value)) if sig.choices else None
+            try:
+                raw = sig.conversion.choice_to_number(str(value)) if sig.choices else None
+            except KeyError:
+                raw = None
             if raw is None:
                 raise FrameEncodeError(f"{frame.name}.{spec.name}: {value!r} is not one of its named values")
             return int(raw)
-        if isinstance(value, bool):
-            value = int(value)
-        if not isinstance(value, numbers.Real):
-            raise FrameEncodeError(f"{frame.name}.{spec.name}: expected a number, got {type(value).__name__}")
-        x = float(value)
+        try:
+            x = float(value)  # int, float, bool, IntEnum, numpy scalars and 0-d arrays
+        except (TypeError, ValueError):
+            raise FrameEncodeError(
+                f"{frame.name}.{spec.name}: expected a number, got {type(value).__name__}"
+            ) from None
         if math.isnan(x):
             if spec.no_value_raw is None:
                 raise FrameEncodeError(f"{frame.name}.{spec.name}: NaN, and the signal has no 'no value' code")

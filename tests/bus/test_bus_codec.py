@@ -1,0 +1,273 @@
+"""FrameCodec: round trips, bit layout, protection, drops counted, never raising."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import pytest
+
+from thermal_edge.bus import DerateReason, FrameCodec, FrameEncodeError, SensorStatus
+from thermal_edge.bus.stats import DROP_REASONS
+
+from bus_testlib import DBC_PATH, crc8_bitwise
+
+
+def _bits(data: bytes, start: int, length: int, signed: bool = False) -> int:
+    """Independent little-endian (Intel) bit extraction."""
+    value = (int.from_bytes(data, "little") >> start) & ((1 << length) - 1)
+    if signed and value >> (length - 1):
+        value -= 1 << length
+    return value
+
+
+def _expected_crc(can_id: int, data: bytes) -> int:
+    did = 0x1000 + can_id
+    return crc8_bitwise(bytes([did & 0xFF, did >> 8]) + data[:7])
+
+
+def _random_signals(codec: FrameCodec, name: str, rng: random.Random) -> dict[str, float]:
+    msg = codec.database.get_message_by_name(name)
+    out = {}
+    for sig_name in codec.signal_names(name):
+        sig = msg.get_signal_by_name(sig_name)
+        lo, hi = float(sig.minimum), float(sig.maximum)
+        if float(sig.scale) == 1 and float(sig.offset) == 0:
+            out[sig_name] = rng.randint(int(lo), int(hi))
+        else:
+            out[sig_name] = rng.uniform(lo, hi)
+    return out
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps",
+     "TE_Limits", "TE_Estimates", "TE_Forecast", "TE_Status"],
+)
+def test_round_trip_every_frame(codec, name):
+    rng = random.Random(name)
+    msg = codec.database.get_message_by_name(name)
+    frame_id = codec.frame_id(name)
+    for i in range(40):
+        values = _random_signals(codec, name, rng)
+        data = codec.encode(name, values)
+        assert len(data) == 8
+        assert _bits(data, 48, 4) == i % 16  # transmit counter, +1 mod 16
+        assert data[7] == _expected_crc(frame_id, data)
+        frame = codec.decode(frame_id, data)
+        assert frame is not None and frame.name == name and frame.frame_id == frame_id
+        assert frame.counter == i % 16 and frame.lost_before == 0
+        assert set(frame.signals) == set(values)
+        for sig_name, value in values.items():
+            sig = msg.get_signal_by_name(sig_name)
+            assert frame.signals[sig_name] == pytest.approx(value, abs=float(sig.scale) / 2 + 1e-9), sig_name
+            raw = _bits(data, sig.start, sig.length, sig.is_signed)  # independent of cantools
+            assert raw == round((value - float(sig.offset)) / float(sig.scale)), sig_name
+    assert codec.stats.received[name] == 40 and codec.stats.sent[name] == 40
+    assert codec.stats.dropped_total == 0 and codec.stats.lost == 0
+
+
+def test_extremes_round_trip(codec):
+    values = dict(INV_Id=-1638.4, INV_Iq=1638.35, INV_IphRms=3276.75)
+    frame = codec.decode(0x0A0, codec.encode("INV_Currents", values))
+    assert frame.signals == pytest.approx(values)
+    assert codec.stats.clamped == 0
+
+
+def test_known_bit_layout(codec):
+    data = codec.encode(
+        "INV_StatorTemps",
+        dict(INV_T_WindingSlot=85.3, INV_T_EndWinding=-50.0, INV_T_Housing=359.4,
+             INV_S_WindingSlot=SensorStatus.VALID, INV_S_EndWinding=SensorStatus.SHORT_CIRCUIT,
+             INV_S_Housing="not_fitted"),
+    )
+    assert _bits(data, 0, 12) == 1353  # (85.3 + 50) / 0.1
+    assert _bits(data, 12, 12) == 0
+    assert _bits(data, 24, 12) == 4094
+    assert (_bits(data, 36, 2), _bits(data, 38, 2), _bits(data, 40, 2)) == (0, 2, 3)
+    assert _bits(data, 42, 6) == 0 and _bits(data, 52, 4) == 0  # unused bits stay 0
+
+
+def test_nan_temperature_is_raw_fff(codec):
+    values = dict(INV_T_Ambient=math.nan, INV_T_Coolant=21.5, INV_S_Ambient=1, INV_S_Coolant=0)
+    data = codec.encode("INV_AmbientTemps", values)
+    assert _bits(data, 0, 12) == 0xFFF
+    frame = codec.decode(0x0B1, data)
+    assert math.isnan(frame.signals["INV_T_Ambient"])
+    assert frame.signals["INV_T_Coolant"] == pytest.approx(21.5)
+    assert frame.signals["INV_S_Ambient"] == SensorStatus.OPEN_CIRCUIT
+
+
+def test_raw_fff_from_the_wire_decodes_to_nan(codec):
+    payload = bytearray(8)
+    word = 0xFFF | (0xFFF << 12) | (0xFFF << 24) | (0xFFF << 36)  # four temperatures "no value"
+    payload[:7] = (word | (5 << 48)).to_bytes(7, "little")
+    payload[7] = _expected_crc(0x2B0, bytes(payload))
+    frame = codec.decode(0x2B0, bytes(payload))
+    assert frame is not None and frame.counter == 5
+    assert all(math.isnan(v) for v in frame.signals.values())
+
+
+def test_numpy_values(codec):
+    import numpy as np
+
+    values = dict(TE_TorqueLimit=np.float32(12.5), TE_CurrentLimit=np.float64(7.05),
+                  TE_DerateActive=np.bool_(True), TE_DerateReason=np.int64(4))
+    frame = codec.decode(0x2A0, codec.encode("TE_Limits", values))
+    assert frame.signals == {"TE_TorqueLimit": 12.5, "TE_CurrentLimit": 7.05, "TE_DerateActive": 1, "TE_DerateReason": 4}
+    with pytest.raises(FrameEncodeError):
+        codec.encode("TE_Limits", {**values, "TE_TorqueLimit": np.array([1.0, 2.0])})
+
+
+def test_saturation_and_infinity(codec):
+    data = codec.encode("TE_Forecast", dict(TE_TimeToLimit=math.inf, TE_LookaheadCurrent=9999.0, TE_Horizon=-3))
+    frame = codec.decode(0x2B1, data)
+    assert frame.signals == {"TE_TimeToLimit": 65535, "TE_LookaheadCurrent": 3276.75, "TE_Horizon": 0}
+    assert codec.stats.clamped == 2  # inf is a deliberate saturation, not counted
+
+
+def test_encode_errors(codec):
+    good = dict(TE_TorqueLimit=10, TE_CurrentLimit=5, TE_DerateActive=True, TE_DerateReason=DerateReason.WINDING)
+    with pytest.raises(FrameEncodeError, match="missing"):
+        codec.encode("TE_Limits", {k: v for k, v in good.items() if k != "TE_CurrentLimit"})
+    with pytest.raises(FrameEncodeError, match="unknown"):
+        codec.encode("TE_Limits", {**good, "TE_Typo": 1})
+    with pytest.raises(FrameEncodeError, match="NaN"):
+        codec.encode("TE_Limits", {**good, "TE_TorqueLimit": math.nan})
+    with pytest.raises(FrameEncodeError):
+        codec.encode("TE_Limits", {**good, "TE_DerateReason": "no_such_reason"})
+    with pytest.raises(FrameEncodeError):
+        codec.encode("TE_Limits", {**good, "TE_TorqueLimit": "ten"})
+    with pytest.raises(KeyError):
+        codec.encode("NoSuchFrame", good)
+    assert codec.stats.sent["TE_Limits"] == 0  # failed encodes do not advance the counter
+    frame = codec.decode(0x2A0, codec.encode("TE_Limits", good))
+    assert frame.counter == 0 and frame.signals["TE_DerateReason"] == DerateReason.WINDING
+    assert frame.signals["TE_DerateActive"] == 1
+
+
+def _fresh_pair():
+    return FrameCodec(DBC_PATH), FrameCodec(DBC_PATH)
+
+
+def _currents(i: float) -> dict[str, float]:
+    return dict(INV_Id=i, INV_Iq=-i, INV_IphRms=abs(i))
+
+
+def test_corrupt_crc_dropped_and_counted():
+    tx, rx = _fresh_pair()
+    data = bytearray(tx.encode("INV_Currents", _currents(3.0)))
+    for bit in range(64):
+        bad = bytearray(data)
+        bad[bit // 8] ^= 1 << (bit % 8)
+        assert rx.decode(0x0A0, bytes(bad)) is None
+    assert rx.stats.crc == 64  # every single-bit error is caught (CRC-8 has Hamming distance >= 2)
+    assert rx.decode(0x0A0, bytes(data)) is not None  # the good frame still passes afterwards
+    assert rx.stats.received["INV_Currents"] == 1 and rx.stats.dropped_by_frame["INV_Currents"] == 64
+
+
+def test_wrong_data_id_is_a_crc_error():
+    tx, rx = _fresh_pair()
+    data = tx.encode("INV_Currents", _currents(1.0))
+    assert rx.decode(0x0A1, data) is None  # same bytes under another identifier
+    assert rx.stats.crc == 1
+
+
+def test_repeated_counter_dropped():
+    tx, rx = _fresh_pair()
+    first = tx.encode("INV_Currents", _currents(1.0), counter=7)
+    again = tx.encode("INV_Currents", _currents(2.0), counter=7)
+    assert rx.decode(0x0A0, first) is not None
+    assert rx.decode(0x0A0, again) is None
+    assert rx.decode(0x0A0, first) is None
+    assert rx.stats.counter_repeat == 2 and rx.stats.lost == 0
+    nxt = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(3.0), counter=8))
+    assert nxt is not None and nxt.lost_before == 0
+
+
+def test_counter_gap_counts_lost_frames_with_wraparound():
+    tx, rx = _fresh_pair()
+    assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=14)) is not None
+    frame = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=2))  # 15, 0, 1 missing
+    assert frame is not None and frame.lost_before == 3
+    frame = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=3))
+    assert frame.lost_before == 0
+    assert rx.stats.lost == 3 and rx.stats.lost_by_frame["INV_Currents"] == 3
+    assert rx.stats.dropped_total == 0
+    # counters are tracked per identifier
+    assert rx.decode(0x0A1, tx.encode("INV_Mechanics", dict(INV_Speed=0, INV_Torque=0, INV_Udc=0), counter=3))
+
+
+def test_counter_resync_after_long_silence():
+    tx, rx = _fresh_pair()
+    assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=4), timestamp=100.0)
+    # same counter 0.5 s later = 50 cycles of 10 ms: the 4-bit counter cannot judge, accept and resync
+    frame = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=4), timestamp=100.5)
+    assert frame is not None and frame.lost_before == 0 and frame.timestamp == 100.5
+    assert rx.stats.counter_resync == 1 and rx.stats.counter_repeat == 0
+    # ... but within a few cycles a repeat is a repeat
+    assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=4), timestamp=100.51) is None
+    assert rx.stats.counter_repeat == 1
+
+
+def test_unknown_id_short_dlc_and_garbage_never_raise():
+    tx, rx = _fresh_pair()
+    good = tx.encode("INV_Currents", _currents(1.0))
+    cases = [
+        ((0x123, good), "unknown_id"),
+        ((0x0A0, good, {"is_extended_id": True}), "unknown_id"),
+        ((-1, good), "unknown_id"),
+        (("0x0A0", good), "unknown_id"),
+        ((None, good), "unknown_id"),
+        ((0x0A0, good[:7]), "dlc"),
+        ((0x0A0, b""), "dlc"),
+        ((0x0A0, good + b"\x00"), "dlc"),
+        ((0x0A0, None), "decode_error"),
+        ((0x0A0, "not bytes"), "decode_error"),
+        ((0x0A0, [1, 2, 300, 4, 5, 6, 7, 8]), "decode_error"),
+        ((0x0A0, 12345), "dlc"),  # bytes(12345) is 12345 zero bytes
+        ((0x0A0, object()), "decode_error"),
+    ]
+    for args, reason in cases:
+        kwargs = args[2] if len(args) == 3 else {}
+        before = rx.stats.dropped[reason]
+        assert rx.decode(args[0], args[1], **kwargs) is None, (args, reason)
+        assert rx.stats.dropped[reason] == before + 1, (args, reason)
+    assert rx.stats.dropped_total == len(cases)
+    assert set(rx.stats.dropped) == set(DROP_REASONS)
+    assert rx.decode(0x0A0, good) is not None  # nothing of the above disturbed the state
+    assert rx.stats.received["INV_Currents"] == 1
+
+
+def test_decode_message_flags():
+    import can
+
+    tx, rx = _fresh_pair()
+    good = tx.encode("INV_Currents", _currents(1.0))
+    assert rx.decode_message(can.Message(arbitration_id=0x0A0, is_extended_id=False, is_remote_frame=True, dlc=8)) is None
+    assert rx.decode_message(can.Message(is_error_frame=True)) is None
+    assert rx.decode_message(can.Message(arbitration_id=0x0A0, data=good, is_extended_id=True)) is None
+    assert rx.stats.dlc == 1 and rx.stats.unknown_id == 2
+    frame = rx.decode_message(can.Message(arbitration_id=0x0A0, data=good, is_extended_id=False, timestamp=12.5))
+    assert frame is not None and frame.timestamp == 12.5 and frame.is_rx
+    assert rx.decode_message(object()) is None and rx.stats.decode_error == 1
+
+
+def test_frame_lookup(codec):
+    assert codec.frame_id("TE_Limits") == 0x2A0 and codec.frame_name(0x2A0) == "TE_Limits"
+    assert codec.cycle_time_s("INV_Currents") == pytest.approx(0.01)
+    assert codec.cycle_time_s(0x2C0) == pytest.approx(1.0)
+    assert codec.frames_sent_by("TE") == {0x2A0, 0x2B0, 0x2B1, 0x2C0}
+    assert codec.frames_sent_by("INV") == {0x0A0, 0x0A1, 0x0B0, 0x0B1}
+    assert codec.signal_names("TE_Limits") == ("TE_TorqueLimit", "TE_CurrentLimit", "TE_DerateActive", "TE_DerateReason")
+
+
+def test_bad_dbc_is_reported_with_its_path(tmp_path):
+    from thermal_edge.bus import DbcError
+
+    bad = tmp_path / "bad.dbc"
+    bad.write_text(DBC_PATH.read_text().replace(" SG_ INV_Currents_CRC : 56|8@1+", " SG_ INV_Currents_CRC : 55|8@1+"))
+    with pytest.raises(DbcError, match="bad.dbc"):
+        FrameCodec(bad)
+    with pytest.raises(DbcError, match="missing.dbc"):
+        FrameCodec(tmp_path / "missing.dbc")

@@ -1,0 +1,86 @@
+"""Two processes on python-can ``udp_multicast`` (hop_limit=0: nothing leaves this host)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import socket
+import sys
+from pathlib import Path
+
+import can
+import pytest
+
+from thermal_edge.bus import CanTransport, DerateReason, FrameCodec, create_bus
+
+from bus_testlib import DBC_PATH, REPO, free_udp_port
+
+PEER = Path(__file__).with_name("udp_peer.py")
+N_FRAMES = 200
+LIMITS = dict(TE_TorqueLimit=99.9, TE_CurrentLimit=123.45, TE_DerateActive=1, TE_DerateReason=DerateReason.MAGNET)
+
+
+@pytest.fixture
+def udp_port() -> int:
+    """A free port on which multicast loopback works, else skip with the reason."""
+    port = free_udp_port()
+    try:
+        a = create_bus({"interface": "udp_multicast", "port": port})
+    except Exception as exc:  # no IPv6 / no multicast route / msgpack missing ...
+        pytest.skip(f"udp_multicast unavailable on this machine: {type(exc).__name__}: {exc}")
+    try:
+        b = create_bus({"interface": "udp_multicast", "port": port})
+        try:
+            a.send(can.Message(arbitration_id=0x7FF, data=b"probe", is_extended_id=False))
+            msg = b.recv(1.0)
+        finally:
+            b.shutdown()
+    finally:
+        a.shutdown()
+    if msg is None or msg.arbitration_id != 0x7FF:
+        pytest.skip("udp_multicast unavailable on this machine: loopback probe not received")
+    return port
+
+
+async def test_two_processes_over_udp_multicast(udp_port):
+    queue: asyncio.Queue = asyncio.Queue()
+    te = CanTransport({"interface": "udp_multicast", "port": udp_port, "node": "TE"}, FrameCodec(DBC_PATH), queue=queue)
+    async with te:
+        sock = te.bus._multicast._socket
+        assert sock.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS) == 0
+        te.start_cyclic("TE_Limits", lambda: LIMITS, period_s=0.02)
+        env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, str(PEER), str(udp_port), str(N_FRAMES),
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, cwd=str(REPO), env=env,
+        )
+        out, err = await asyncio.wait_for(proc.communicate(), 15.0)
+        assert proc.returncode == 0, err.decode()
+        await asyncio.sleep(0.05)
+    peer = json.loads(out.decode().strip().splitlines()[-1])
+
+    frames = []
+    while not queue.empty():
+        frames.append(queue.get_nowait())
+    currents = [f for f in frames if f.name == "INV_Currents"]
+    stats = te.codec.stats
+    # UDP may drop under load; every drop must show up as lost, never as a bad frame
+    assert len(currents) >= 0.9 * N_FRAMES
+    assert stats.crc == 0 and stats.counter_repeat == 0 and stats.dropped_total == 0
+    if currents[-1].counter == (N_FRAMES - 1) % 16:
+        assert len(currents) + stats.lost == N_FRAMES
+    for f in currents:
+        i = round(f.signals["INV_Id"] / 0.05)
+        assert f.counter == i % 16
+        assert f.signals["INV_IphRms"] == pytest.approx(i * 0.1)
+    assert te.stats.own_echo > 0  # our TE_Limits came back through multicast loopback and were ignored
+    assert stats.received.get("TE_Limits", 0) == 0
+
+    # the peer: its hop_limit=7 was overridden, it got our limits, ignored its own echoes
+    assert peer["hop_limit"] == 0
+    assert len(peer["limits"]) >= 5
+    assert peer["limits"][0] == pytest.approx({k: float(v) for k, v in LIMITS.items()})
+    assert peer["codec"]["crc"] == 0 and peer["codec"]["counter_repeat"] == 0
+    assert peer["transport"]["own_echo"] > 0 and "INV_Currents" not in peer["codec"]["received"]
+    assert peer["transport"]["tx_frames"] == N_FRAMES

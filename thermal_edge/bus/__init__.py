@@ -1,0 +1,85 @@
+"""CAN layer of thermal_edge: DBC codec with frame integrity, python-can transport, candump logs.
+
+Knows ``dbc/thermal_edge.dbc`` and nothing of the thermal model.
+
+- :class:`FrameCodec` -- encode (counter + CRC filled) / decode (DLC, CRC, counter
+  checked; drops counted in :class:`FrameStats`; never raises).
+- :class:`CanTransport` -- asyncio receive/transmit/record on one bus, reconnecting.
+- :class:`CyclicSender` -- periodic frame from a provider, with fallback values.
+- :class:`BusConfig`, :func:`create_bus` -- python-can bus from configuration
+  (``udp_multicast`` always with ``hop_limit=0``).
+- :class:`CandumpRecorder`, :class:`CandumpReader`, :func:`read_candump` -- ``candump -L`` logs.
+- :func:`crc8_sae_j1850`, :func:`frame_crc`, :func:`data_id` -- the frame CRC.
+"""
+
+from .busconfig import (
+    DEFAULT_UDP_MULTICAST_GROUP,
+    DEFAULT_UDP_MULTICAST_PORT,
+    BusConfig,
+    BusConfigError,
+    bus_kwargs,
+    create_bus,
+)
+from .candump import CandumpFormatError, CandumpReader, CandumpRecorder, read_candump
+from .codec import DbcError, DecodedFrame, FrameCodec, FrameEncodeError
+from .crc import crc8_sae_j1850, data_id, frame_crc
+from .cyclic import CyclicSender
+from .frames import (
+    DEFAULT_DBC_PATH,
+    INV_AMBIENT_TEMPS,
+    INV_CURRENTS,
+    INV_MECHANICS,
+    INV_STATOR_TEMPS,
+    NODE_INVERTER,
+    NODE_THERMAL_EDGE,
+    TE_ESTIMATES,
+    TE_FORECAST,
+    TE_LIMITS,
+    TE_STATUS,
+    TIME_TO_LIMIT_NOT_WITHIN_HORIZON_S,
+    DerateReason,
+    SensorStatus,
+    TeState,
+)
+from .stats import DROP_REASONS, FrameStats, TransportStats
+from .transport import CanTransport
+
+__all__ = [
+    "DEFAULT_DBC_PATH",
+    "DEFAULT_UDP_MULTICAST_GROUP",
+    "DEFAULT_UDP_MULTICAST_PORT",
+    "DROP_REASONS",
+    "INV_AMBIENT_TEMPS",
+    "INV_CURRENTS",
+    "INV_MECHANICS",
+    "INV_STATOR_TEMPS",
+    "NODE_INVERTER",
+    "NODE_THERMAL_EDGE",
+    "TE_ESTIMATES",
+    "TE_FORECAST",
+    "TE_LIMITS",
+    "TE_STATUS",
+    "TIME_TO_LIMIT_NOT_WITHIN_HORIZON_S",
+    "BusConfig",
+    "BusConfigError",
+    "CanTransport",
+    "CandumpFormatError",
+    "CandumpReader",
+    "CandumpRecorder",
+    "CyclicSender",
+    "DbcError",
+    "DecodedFrame",
+    "DerateReason",
+    "FrameCodec",
+    "FrameEncodeError",
+    "FrameStats",
+    "SensorStatus",
+    "TeState",
+    "TransportStats",
+    "bus_kwargs",
+    "crc8_sae_j1850",
+    "create_bus",
+    "data_id",
+    "frame_crc",
+    "read_candump",
+]
