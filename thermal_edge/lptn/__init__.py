@@ -13,9 +13,10 @@ from .model import Limit, Model, ModelError, Parameter
 from .network import Continuous, Network
 from .simulate import Simulator, Trajectory
 from .steady import initial_state, steady_state
+from .stepper import Stepper
 
 __all__ = [
     "Continuous", "Discrete", "ExprError", "Limit", "Model", "ModelError", "Network", "NotPassive", "Parameter",
-    "Simulator", "Trajectory", "UnstableDiscretisation", "discretise", "initial_state", "load_model", "parse",
+    "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "discretise", "initial_state", "load_model", "parse",
     "steady_state",
 ]

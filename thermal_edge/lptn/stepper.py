@@ -1,0 +1,82 @@
+"""One step at a time: the model as the service runs it at 1 Hz.
+
+The service advances the model by one tick with that tick's inputs. The discretisation depends
+on the parameters and on the inputs that enter conductances (speed, coolant, …); it is cached per
+exact operating point, and the cache is dropped when the parameters change.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Mapping
+
+import numpy as np
+
+from .discretise import discretise
+from .loader import temperature_name
+from .model import Model
+from .network import Network
+
+
+class Stepper:
+    """Advance node temperatures by one step of ``dt`` seconds.
+
+    Parameters
+    ----------
+    model : Model
+    theta : ndarray, optional
+        Parameter vector (default nominal).
+    dt : float
+        Step, s.
+    cache_size : int
+        Distinct operating points kept.
+    """
+
+    def __init__(self, model: Model, theta: np.ndarray | None = None, dt: float = 1.0, method: str | None = None,
+                 max_substep: float | None = None, cache_size: int = 512) -> None:
+        self.model = model
+        self.net = Network(model)
+        self.dt = float(dt)
+        self.method = method or model.discretisation.method
+        self.max_substep = max_substep if max_substep is not None else model.discretisation.max_substep_s
+        self.cache_size = cache_size
+        self._cache: OrderedDict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.theta = model.nominal() if theta is None else np.asarray(theta, dtype=float)
+        self._laws = [loss.power.compile() for loss in model.losses]
+        self._tnames = [temperature_name(x) for x in model.nodes]
+        self.n_bound = len(model.boundaries)
+
+    def set_parameters(self, theta: np.ndarray) -> None:
+        """Use new parameters (drops the cached discretisations)."""
+        self.theta = np.asarray(theta, dtype=float).copy()
+        self._cache.clear()
+
+    def matrices(self, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """``Φ`` (n, n) and ``Γ`` (n, nb + n_loss) at this operating point."""
+        key = tuple(float(inputs[k]) for k in self.net.matrix_inputs)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        op = {k: np.array([v]) for k, v in zip(self.net.matrix_inputs, key)}
+        d = discretise(self.net.continuous(self.theta, op, K=1), self.dt, self.method, self.max_substep)
+        hit = (d.Phi[0], d.Gam[0])
+        self._cache[key] = hit
+        if len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return hit
+
+    def boundary(self, inputs: Mapping[str, float]) -> np.ndarray:
+        """Boundary temperatures (°C) from the inputs."""
+        return np.array([float(inputs[c]) for c in self.model.boundaries.values()])
+
+    def losses(self, T: np.ndarray, inputs: Mapping[str, float]) -> np.ndarray:
+        """Loss of every loss source (W) at node temperatures ``T`` and these inputs."""
+        env = self.net.env(self.theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
+        env.update(zip(self._tnames, (float(x) for x in T)))
+        return np.array([float(g(env)) for g in self._laws])
+
+    def step(self, T: np.ndarray, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """Temperatures after one step (°C) and the losses used over it (W)."""
+        Phi, Gam = self.matrices(inputs)
+        P = self.losses(T, inputs)
+        return Phi @ T + Gam @ np.concatenate([self.boundary(inputs), P]), P
