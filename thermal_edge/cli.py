@@ -5,11 +5,18 @@ the file and key; it never prints a traceback.
 """
 from __future__ import annotations
 
-import argparse
-import sys
+import os
 
-from . import __version__
-from .commands import COMMANDS, USER_ERRORS
+# The matrices here are small (tens of nodes): BLAS threads only contend with each other and with
+# the service's own threads. Set before numpy is imported; an explicit setting wins.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+
+from . import __version__  # noqa: E402
+from .commands import COMMANDS, USER_ERRORS  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:

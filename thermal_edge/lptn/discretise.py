@@ -54,6 +54,18 @@ def _eig(cont: Continuous) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     return s, At, lam, Qm
 
 
+def sandwich(left: np.ndarray, mid: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """``left @ mid[:, j] @ right`` for every ``j``: (K, n, n), (K, p, n, n), (K, n, n) -> (K, p, n, n).
+
+    Done as two products per operating point over all ``p`` matrices at once (stacked side by
+    side, then on top of each other) rather than ``2p`` small ones.
+    """
+    K, p, n, _ = mid.shape
+    a = left @ mid.transpose(0, 2, 1, 3).reshape(K, n, p * n)  # [left M_1, left M_2, ...]
+    a = a.reshape(K, n, p, n).transpose(0, 2, 1, 3).reshape(K, p * n, n)
+    return (a @ right).reshape(K, p, n, n)
+
+
 def euler_substeps(lam: np.ndarray, dt: float, max_substep: float | None) -> int:
     """Number of Euler sub-steps: ``ceil(dt / max_substep)``; refuses if that is unstable.
 
@@ -93,8 +105,8 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
             small = np.abs(delta) < 1e-10
             ratio = np.where(small, 1.0 + delta / 2.0, np.expm1(delta) / np.where(small, 1.0, delta))
             Dd = dt * ex[:, None, :] * ratio  # divided differences of exp(λ dt) w.r.t. λ
-            Qt = np.swapaxes(Qm, -1, -2)[:, None]
-            dE = Qm[:, None] @ ((Qt @ dAt @ Qm[:, None]) * Dd[:, None]) @ Qt
+            Qt = np.swapaxes(Qm, -1, -2)
+            dE = sandwich(Qm, sandwich(Qt, dAt, Qm) * Dd[:, None], Qt)
             dPhi = -r[None, :, :, None] * Phi[:, None] + dE / s[:, None] * s[None, :] + Phi[:, None] * r[None, :, None, :]
     elif method == "euler":
         m = euler_substeps(lam, dt, max_substep)
@@ -121,7 +133,11 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
     Gam = PmI @ H
     out = Discrete(Phi=Phi, Gam=Gam, substeps=m)
     if with_d:
-        dH = np.linalg.solve(cont.A[:, None], cont.dW - cont.dA @ H[:, None])
+        # one factorisation per operating point for all parameters: stack the right-hand sides
+        rhs = cont.dW - cont.dA @ H[:, None]  # (K, p, n, m)
+        p_, m_ = rhs.shape[1], rhs.shape[3]
+        dH = np.linalg.solve(cont.A, rhs.transpose(0, 2, 1, 3).reshape(K, n, p_ * m_))
+        dH = dH.reshape(K, n, p_, m_).transpose(0, 2, 1, 3)
         out.dPhi = dPhi
         out.dGam = dPhi @ H[:, None] + PmI[:, None] @ dH
     return out

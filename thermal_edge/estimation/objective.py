@@ -1,0 +1,151 @@
+"""The weighted prediction-error objective, its analytic gradient and Gauss-Newton Hessian.
+
+``Obj(φ) = Σ_k w_k r_kᵀ r_k + ρ Σ_j ((φ_j − φ_j⁰)/σ_j)²`` with residuals ``r_k = S_m T_k − y_k``
+(open-loop prediction from the window's first state minus the readings; missing readings give
+zero residual), weights ``w_k`` that favour recent samples, and an optional prior toward the
+offline values ``φ⁰`` (MAP instead of plain least squares: with few sensors the unmeasured nodes
+otherwise pay for a better fit of the measured ones, ``reference/findings.md`` §1).
+
+Gradient ``2 Σ_k w_k J_kᵀ r_k`` and Gauss-Newton Hessian ``2 Σ_k w_k J_kᵀ J_k`` come from the
+forward sensitivities, ``J_k = S_m ∂T_k/∂φ`` (paper eqs. 33–37).
+
+Weights (both normalised to sum 1):
+
+* ``paper``: ``w_k = (1 − e^{−kF}) / Σ_j (1 − e^{−jF})`` with ``F = 0.05`` and ``k`` counted in
+  samples from the window start (the paper's §5.1 form): the first ~1/F samples, taken from a
+  state the model may not know well, count less.
+* ``forgetting``: ``w_k = exp(−(t_N − t_k)/τ)``: exponential forgetting with time constant ``τ``
+  (s), so that slow drifts (aging) are followed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..lptn import Simulator
+from .common import ParamSpace, Window
+
+
+def weights(t: np.ndarray, kind: str = "paper", F: float = 0.05, tau_s: float = 3600.0) -> np.ndarray:
+    """Sample weights (sum 1) for sample times ``t`` (s)."""
+    N = len(t)
+    if kind == "paper":
+        k = np.arange(1, N + 1)
+        w = 1.0 - np.exp(-k * F)
+    elif kind == "forgetting":
+        w = np.exp(-(t[-1] - t) / tau_s)
+    elif kind == "uniform":
+        w = np.ones(N)
+    else:
+        raise ValueError(f"unknown weighting {kind!r} (paper, forgetting, uniform)")
+    return w / w.sum()
+
+
+@dataclass
+class Evaluation:
+    """Objective, gradient (log-parameters), Gauss-Newton Hessian and the pieces they came from."""
+
+    value: float
+    grad: np.ndarray
+    hess: np.ndarray
+    residuals: np.ndarray  # (N, ns) K, zero where not measured
+    jac: np.ndarray  # (N, ns, p) K per unit log-parameter
+    sqrt_w: np.ndarray  # (N, 1)
+    T: np.ndarray  # (N, n) predicted node temperatures
+
+
+class Objective:
+    """Prediction-error objective of a model over a window, for a set of parameters.
+
+    Parameters
+    ----------
+    sim : Simulator
+    space : ParamSpace
+        Which parameters vary (log-scaled), the fixed rest, and the prior.
+    window : Window
+    sensors : sequence of str
+        Sensors used (a subset of the window's).
+    weighting : {"paper", "forgetting", "uniform"}
+    prior_weight : float
+        ``ρ`` relative to the data term at unit residual: the penalty is
+        ``ρ · Σ ((φ − φ⁰)/σ)²`` with ``σ = (log U − log L)/4``. 0 = plain least squares.
+    """
+
+    def __init__(self, sim: Simulator, space: ParamSpace, window: Window, sensors: list[str] | None = None,
+                 weighting: str = "paper", prior_weight: float = 0.0, tau_s: float = 3600.0) -> None:
+        self.sim, self.space, self.window = sim, space, window
+        model = sim.model
+        self.sensors = list(sensors or window.measured)
+        self.rows = [model.sensors[s] for s in self.sensors]
+        self.Y = np.column_stack([window.measured[s] for s in self.sensors])
+        self.mask = np.isfinite(self.Y)
+        self.Y0 = np.where(self.mask, self.Y, 0.0)
+        self.w = weights(window.t, weighting, tau_s=tau_s)[:, None] * self.mask
+        self.prior_weight = prior_weight
+        self.sigma = (np.log(space.upper) - np.log(space.lower)) / 4.0
+        self.evaluations = 0
+        self._last: tuple[bytes, Evaluation] | None = None
+
+    def _prior(self, phi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        if not self.prior_weight:
+            p = len(phi)
+            return 0.0, np.zeros(p), np.zeros((p, p))
+        z = (phi - np.log(self.space.prior)) / self.sigma
+        return (float(self.prior_weight * z @ z), 2 * self.prior_weight * z / self.sigma,
+                np.diag(2 * self.prior_weight / self.sigma**2))
+
+    def evaluate(self, phi: np.ndarray, derivatives: bool = True) -> Evaluation:
+        """Objective at log-parameters ``phi`` (with gradient and GN Hessian when asked)."""
+        key = phi.tobytes() + bytes([derivatives])
+        if self._last is not None and self._last[0] == key:
+            return self._last[1]
+        self.evaluations += 1
+        theta_sub = self.space.from_log(phi)
+        th = self.space.full(theta_sub)
+        W = self.window
+        traj = self.sim.simulate(th, W.inputs, W.dt, W.T0, wrt=self.space.names if derivatives else None,
+                                 rows=self.rows if derivatives else None)
+        idx = [self.sim.model.node_index(r) for r in self.rows]
+        pred = traj.T[:, idx]
+        r = np.where(self.mask, pred - self.Y0, 0.0)
+        value = float(np.sum(self.w * r * r))
+        pv, pg, ph = self._prior(phi)
+        p = len(phi)
+        if derivatives:
+            assert traj.S is not None
+            J = traj.S * theta_sub[None, None, :] * self.mask[:, :, None]  # ∂/∂log θ
+            wr = (self.w * r)[:, :, None]
+            grad = 2.0 * np.sum(wr * J, axis=(0, 1))
+            Jw = J * np.sqrt(self.w)[:, :, None]
+            Jf = Jw.reshape(-1, p)
+            hess = 2.0 * Jf.T @ Jf
+        else:
+            J, grad, hess = np.zeros((len(r), len(idx), p)), np.zeros(p), np.zeros((p, p))
+        ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, np.sqrt(self.w), traj.T)
+        self._last = (key, ev)
+        return ev
+
+    def value(self, phi: np.ndarray) -> float:
+        return self.evaluate(phi, derivatives=False).value
+
+    def value_and_grad(self, phi: np.ndarray) -> tuple[float, np.ndarray]:
+        ev = self.evaluate(phi)
+        return ev.value, ev.grad
+
+    def residual_vector(self, phi: np.ndarray) -> np.ndarray:
+        """Stacked weighted residuals (and prior terms) whose squared sum is the objective."""
+        ev = self.evaluate(phi)
+        res = (ev.sqrt_w * ev.residuals).ravel()
+        if self.prior_weight:
+            res = np.concatenate([res, np.sqrt(self.prior_weight) * (phi - np.log(self.space.prior)) / self.sigma])
+        return res
+
+    def residual_jacobian(self, phi: np.ndarray) -> np.ndarray:
+        """Jacobian of :meth:`residual_vector` with respect to ``phi``."""
+        ev = self.evaluate(phi)
+        p = len(phi)
+        Jr = (ev.sqrt_w[:, :, None] * ev.jac).reshape(-1, p)
+        if self.prior_weight:
+            Jr = np.vstack([Jr, np.diag(np.sqrt(self.prior_weight) / self.sigma)])
+        return Jr
