@@ -54,7 +54,9 @@ class AdapterConfig:
     prior_weight : float
         MAP weight toward the offline values (0 = least squares), K².
     validate_s : float
-        Recent data (s) on which candidate and current parameters are compared.
+        Recent data (s) on which candidate and current parameters are compared: a candidate is
+        accepted only if its RMS error over all sensors is no worse and no single sensor's RMS
+        error grows by more than ``sensor_tolerance_k`` (K).
     method : {"sqp", "gauss_newton", "numerical"}
     params : tuple of str, optional
         Adaptable parameters; default: the model's ``adaptable: true`` ones.
@@ -63,7 +65,7 @@ class AdapterConfig:
     """
 
     period_s: float = 180.0
-    threshold_k: float = 0.3
+    threshold_k: float = 0.25
     window_s: float = 10800.0
     decimate: int = 5
     max_iter: int = 3
@@ -72,6 +74,7 @@ class AdapterConfig:
     tau_s: float = 3600.0
     prior_weight: float = 1e-4
     validate_s: float = 1800.0
+    sensor_tolerance_k: float = 0.02
     method: str = "sqp"
     params: tuple[str, ...] | None = None
     sensors: tuple[str, ...] | None = None
@@ -201,15 +204,16 @@ class OnlineAdapter:
                 T0[self.model.node_index(self.model.sensors[s])] = y
         return Window(inputs, meas, T0, self.dt, t)
 
-    def _rms(self, theta: np.ndarray, window: Window) -> tuple[float, np.ndarray]:
-        """Open-loop RMS error over the window's sensors and the predicted trajectory."""
+    def _rms(self, theta: np.ndarray, window: Window) -> tuple[float, dict[str, float]]:
+        """Open-loop RMS error over the window: all sensors together, and per sensor (K)."""
         traj = self.sim.simulate(theta, window.inputs, window.dt, window.T0)
-        errs = []
+        errs = {}
         for s in self.sensors:
             e = traj.node(self.model.sensors[s]) - window.measured[s]
-            errs.append(e[np.isfinite(e)])
-        e = np.concatenate(errs) if errs else np.zeros(0)
-        return (float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")), traj.T
+            errs[s] = e[np.isfinite(e)]
+        e = np.concatenate(list(errs.values())) if errs else np.zeros(0)
+        per = {s: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan") for s, v in errs.items()}
+        return (float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")), per
 
     def recent_error(self, since: float) -> float:
         """RMS (K) of the recorded predictions against the readings since ``since``."""
@@ -259,13 +263,16 @@ class OnlineAdapter:
         d.iterations, d.evaluations = res.iterations, res.evaluations
         d.params = dict(zip(sc.selected, map(float, res.values)))
         val = self._window(t - cfg.validate_s)
-        d.current_error_k, _ = self._rms(self.theta, val)
-        d.candidate_error_k, _ = self._rms(cand, val)
-        if d.candidate_error_k <= d.current_error_k:
+        d.current_error_k, cur = self._rms(self.theta, val)
+        d.candidate_error_k, new = self._rms(cand, val)
+        worse = [s for s in self.sensors if new[s] > cur[s] + cfg.sensor_tolerance_k]
+        if d.candidate_error_k <= d.current_error_k and not worse:
             d.accepted = True
             d.reason = "candidate predicts recent data better"
             self.theta = cand
             self.version += 1
+        elif worse:
+            d.reason = f"rolled back: candidate predicts {', '.join(worse)} worse"
         else:
             d.reason = "rolled back: candidate predicts recent data worse"
         return self._done(d, t0)

@@ -7,22 +7,23 @@ face) meet at a mid-point, which is joined to the element's mean-temperature nod
 resistance ``R3``. ``R3`` is negative: it corrects the mid-point temperature to the element's
 mean temperature when heat is generated inside the element (Mellor, Roberts & Turner 1991).
 
-Radial (conductivity ``k_r``)::
+Radial (conductivity ``k_r``; the outer face sees more of the element's area, so its resistance
+is the smaller one)::
 
-    R1 = 1/(2 θ L k_r) · (2 r2² ln(r2/r1) / (r2² − r1²) − 1)
-    R2 = 1/(2 θ L k_r) · (1 − 2 r1² ln(r2/r1) / (r2² − r1²))
+    R1 (outer) = 1/(2 θ L k_r) · (1 − 2 r1² ln(r2/r1) / (r2² − r1²))
+    R2 (inner) = 1/(2 θ L k_r) · (2 r2² ln(r2/r1) / (r2² − r1²) − 1)
     R3 = −1/(4 θ L k_r (r2² − r1²)) · (r1² + r2² − 4 r1² r2² ln(r2/r1) / (r2² − r1²))
 
 Axial (``k_a``; the area is θ/2 (r2² − r1²))::
 
     R1 = R2 = L / (k_a θ (r2² − r1²)),   R3 = −L / (3 k_a θ (r2² − r1²))
 
-Circumferential (``k_c``; a slab of conductance L k_c ln(r2/r1) per radian)::
+Circumferential (``k_c``; conductance L k_c ln(r2/r1) per radian)::
 
-    R1 = R2 = θ / (2 L k_c ln(r2/r1)),   R3 = −θ / (6 L k_c ln(r2/r1))
+    R1 = R2 = θ / (2 L k_c ln(r2/r1)),
+    R3 = θ / (12 L k_c) · ((r2² + r1²)/(r2² − r1²) − 3 / ln(r2/r1))
 
-The circumferential ``R3`` is the uniform-slab value (−1/3 of a face resistance), the same
-construction as the axial one; the paper's extracted text of that cell lost its typesetting.
+(the paper's Table 2; exact for the area-mean temperature with uniform generation).
 
 Capacity: ``c = c_p ρ θ/2 L (r2² − r1²)`` (J/K). ``count`` identical elements in parallel divide
 every resistance and multiply the capacity.
@@ -77,14 +78,14 @@ def arc_resistances(
     ln = math.log(r2 / r1)
     n = float(count)
     rad = 1.0 / (2.0 * theta * length * n)
-    rad1 = rad * (2.0 * r2 * r2 * ln / d2 - 1.0)
-    rad2 = rad * (1.0 - 2.0 * r1 * r1 * ln / d2)
+    rad1 = rad * (1.0 - 2.0 * r1 * r1 * ln / d2)  # outer face
+    rad2 = rad * (2.0 * r2 * r2 * ln / d2 - 1.0)  # inner face
     rad3 = -(r1 * r1 + r2 * r2 - 4.0 * r1 * r1 * r2 * r2 * ln / d2) / (4.0 * theta * length * d2 * n)
     ax = length / (theta * d2 * n)
     ci = theta / (2.0 * length * ln * n)
     return {
         "radial": (Num(rad1) / k_r, Num(rad2) / k_r, Num(rad3) / k_r),
-        "circ": (Num(ci) / k_c, Num(ci) / k_c, Num(-ci / 3.0) / k_c),
+        "circ": (Num(ci) / k_c, Num(ci) / k_c, Num(theta / (12.0 * length * n) * ((r2 * r2 + r1 * r1) / d2 - 3.0 / ln)) / k_c),
         "axial": (Num(ax) / k_a, Num(ax) / k_a, Num(-ax / 3.0) / k_a),
     }
 

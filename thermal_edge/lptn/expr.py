@@ -461,6 +461,32 @@ def parse(text: str | float | int, tables: Mapping[str, object] | None = None) -
     return e
 
 
+def is_affine(e: Expr, names: "set[str] | frozenset[str]") -> bool:
+    """Whether ``e`` is affine in ``names`` by its structure (sums, products with factors free of
+    ``names``, division by such factors); functions of ``names`` (``abs``, ``sign``, ``min``, …)
+    are not, even where their derivative happens to be constant.
+
+    >>> is_affine(parse("2 * (1 + 0.004 * (T - 20)) * i ** 2"), {"T"})
+    True
+    >>> is_affine(parse("20 + 20 * sign(T - 30)"), {"T"})
+    False
+    """
+    if not (e.free() & names):
+        return True
+    if isinstance(e, Name):
+        return True
+    if isinstance(e, Bin):
+        a_free, b_free = not (e.a.free() & names), not (e.b.free() & names)
+        if e.op in "+-":
+            return is_affine(e.a, names) and is_affine(e.b, names)
+        if e.op == "*":
+            return (a_free and is_affine(e.b, names)) or (b_free and is_affine(e.a, names))
+        if e.op == "/":
+            return b_free and is_affine(e.a, names)
+        return e.b == ONE and is_affine(e.a, names)
+    return False
+
+
 def evaluate_const(e: Expr) -> float:
     """Value of an expression with no free names (e.g. geometry after inlining constants)."""
     if e.free():
@@ -468,4 +494,4 @@ def evaluate_const(e: Expr) -> float:
     return float(np.asarray(e.compile()({})))
 
 
-__all__ = ["Expr", "ExprError", "Num", "Name", "Bin", "Call", "parse", "as_expr", "evaluate_const"]
+__all__ = ["Expr", "ExprError", "Num", "Name", "Bin", "Call", "parse", "as_expr", "evaluate_const", "is_affine"]

@@ -58,6 +58,14 @@ def _req(ctx: _Ctx, d: Mapping[str, Any], key: str, where: str) -> Any:
     return d[key]
 
 
+def _only(ctx: _Ctx, d: Any, key: str, allowed: tuple[str, ...]) -> None:
+    """Reject keys an entry does not know (a typo must not silently drop a value)."""
+    if isinstance(d, Mapping):
+        extra = sorted(set(d) - set(allowed))
+        if extra:
+            raise ctx.fail(f"{key}.{extra[0]}", f"unknown key (known: {', '.join(allowed)})")
+
+
 def _mapping(ctx: _Ctx, d: Any, key: str) -> Mapping[str, Any]:
     if d is None:
         return {}
@@ -130,6 +138,7 @@ def build_model(
     )
     for k, spec in _mapping(ctx, raw.get("tables"), "tables").items():
         key = f"tables.{k}"
+        _only(ctx, spec, key, ("file", "kind", "lookup", "doc"))
         f = base / str(_req(ctx, spec, "file", key))
         if not f.exists():
             raise ctx.fail(f"{key}.file", f"table file {f} not found (set data_dir or THERMAL_EDGE_DATA_DIR)")
@@ -153,6 +162,7 @@ def build_model(
     params: list[Parameter] = []
     for k, spec in _mapping(ctx, raw.get("parameters"), "parameters").items():
         key = f"parameters.{k}"
+        _only(ctx, spec, key, ("value", "min", "max", "unit", "adaptable", "doc"))
         if k in inputs or k in derived or k in ctx.constants:
             raise ctx.fail(key, "name already used by an input, derived input or constant")
         value = ctx.number(f"{key}.value", _req(ctx, spec, "value", key))
@@ -175,6 +185,7 @@ def build_model(
         builder.arc(f"arcs[{i}]", spec, materials, {p.name: Num(p.value) for p in params})
     for i, spec in enumerate(_list(ctx, raw.get("nodes"), "nodes")):
         key = f"nodes[{i}]"
+        _only(ctx, spec, key, ("name", "capacity", "doc"))
         nname = str(_req(ctx, spec, "name", key))
         cap = ctx.law(f"{key}.capacity", _req(ctx, spec, "capacity", key), pnames, "a capacity")
         builder.add_node(key, nname, cap)
@@ -190,6 +201,7 @@ def build_model(
     losses: list[Loss] = []
     for i, spec in enumerate(_list(ctx, raw.get("losses"), "losses")):
         key = f"losses[{i}]"
+        _only(ctx, spec, key, ("node", "power", "doc"))
         target = str(_req(ctx, spec, "node", key))
         if target not in builder.nodes and target not in builder.points:
             raise ctx.fail(f"{key}.node", f"unknown node or point {target!r}")
@@ -198,6 +210,7 @@ def build_model(
 
     sensors: dict[str, str] = {}
     for k, spec in _mapping(ctx, raw.get("sensors"), "sensors").items():
+        _only(ctx, spec, f"sensors.{k}", ("node", "doc"))
         node = str(_req(ctx, spec, "node", f"sensors.{k}"))
         if node not in builder.nodes:
             raise ctx.fail(f"sensors.{k}.node", f"{node!r} is not a node with heat capacity")
@@ -205,6 +218,7 @@ def build_model(
     limits = []
     for k, spec in _mapping(ctx, raw.get("limits"), "limits").items():
         key = f"limits.{k}"
+        _only(ctx, spec, key, ("node", "warn_c", "max_c", "doc"))
         node = str(_req(ctx, spec, "node", key))
         if node not in builder.nodes:
             raise ctx.fail(f"{key}.node", f"{node!r} is not a node with heat capacity")
@@ -215,6 +229,7 @@ def build_model(
         limits.append(Limit(k, node, warn, mx))
 
     disc = _mapping(ctx, raw.get("discretisation"), "discretisation")
+    _only(ctx, disc, "discretisation", ("method", "max_substep_s"))
     method = str(disc.get("method", "zoh"))
     if method not in ("zoh", "euler"):
         raise ctx.fail("discretisation.method", f"must be zoh or euler, got {method!r}")
@@ -285,6 +300,7 @@ class _Builder:
 
     def arc(self, key: str, spec: Any, materials: dict[str, dict[str, Expr]], nominal: dict[str, Expr]) -> None:
         ctx = self.ctx
+        _only(ctx, spec, key, ("name", "r1", "r2", "theta", "length", "count", "material", "doc"))
         name = str(_req(ctx, spec, "name", key))
         r1 = ctx.number(f"{key}.r1", _req(ctx, spec, "r1", key), positive=True)
         r2 = ctx.number(f"{key}.r2", _req(ctx, spec, "r2", key), positive=True)
@@ -326,6 +342,7 @@ class _Builder:
         parsed = []
         for i, spec in enumerate(conns):
             key = f"conductances[{i}]"
+            _only(ctx, spec, key, ("between", "g", "r", "doc"))
             between = _req(ctx, spec, "between", key)
             if not isinstance(between, list) or len(between) != 2:
                 raise ctx.fail(f"{key}.between", "expected a list of two endpoints")

@@ -135,7 +135,8 @@ class Model:
             raise KeyError(f"unknown node {node!r} in model {self.name}") from None
 
     def with_parameters(self, values: dict[str, float]) -> "Model":
-        """A copy whose nominal values are replaced (bounds are kept; values are clipped into them)."""
+        """A copy whose nominal values are replaced; a value outside the bounds widens them (a
+        simulated plant may lie outside what the estimator is allowed to search)."""
         ps = []
         for p in self.parameters:
             if p.name in values:

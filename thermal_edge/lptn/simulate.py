@@ -22,6 +22,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .discretise import Discrete, discretise
+from .expr import is_affine
 from .model import Model
 from .network import Network, _Law
 
@@ -87,7 +88,7 @@ class Simulator:
         self.tvn = [tnames[i] for i in used]
         self.loss_laws = [_Law(loss.power, params) for loss in model.losses]
         self.loss_dT = [[loss.power.diff(t) for t in self.tvn] for loss in model.losses]
-        self.affine = [all(not (d.free() & set(self.tvn)) for d in row) for row in self.loss_dT]
+        self.affine = [is_affine(loss.power, frozenset(self.tvn)) for loss in model.losses]
         self.loss_dT_c = [[d.compile() for d in row] for row in self.loss_dT]
         self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
 

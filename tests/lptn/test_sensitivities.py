@@ -1,0 +1,176 @@
+"""Exact sensitivities ``S = ∂T/∂θ`` of ``Simulator.simulate(..., wrt=...)`` vs central finite
+differences of the simulation itself (step 1e-4 relative to each parameter).
+
+Criterion (per parameter j): on every entry of ``S[:, :, j]`` whose magnitude exceeds 1e-3 of
+that parameter's max |S|, the relative error is at most 1e-5. Both discretisations: ZOH and
+explicit Euler with a stable sub-step. The initial state is fixed (it does not depend on θ),
+so ``S[0] = 0``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from thermal_edge.lptn import Simulator
+
+from lptn_ref import Assembly, pm10kw_inputs, tiny_inputs
+
+REL_STEP = 1e-4
+REL_TOL = 1e-5
+THRESH = 1e-3
+
+STENCILS = {  # central differences: (offset in steps, weight); derivative = Σ w T(θ + k h) / h
+    "c2": [(-1, -0.5), (1, 0.5)],
+    "c6": [(-3, -1 / 60), (-2, 9 / 60), (-1, -45 / 60), (1, 45 / 60), (2, -9 / 60), (3, 1 / 60)],
+}
+
+
+def finite_difference_check(
+    model, inputs, dt, T0, wrt, method, max_substep=None, stencil="c2", rel_step=REL_STEP, noise_allowance=False
+):
+    """Compare ``S`` with finite differences of the simulation, parameter by parameter.
+
+    With ``noise_allowance`` the round-off floor ε of the simulation itself is measured (the
+    change of T under a 1e-13 relative change of the parameter, where the true change is ~1e-13
+    of S θ) and every gated entry may differ by 1e-5 |S| + Σ|w_k| ε/h (each run of the stencil
+    carries up to ε of round-off; for the 2-point difference that is 2ε/(2h)).
+    """
+    sim = Simulator(model, method=method, max_substep=max_substep)
+    theta = model.nominal()
+    traj = sim.simulate(theta, inputs, dt, T0, wrt=list(wrt))
+    S = traj.S
+    assert S.shape == (len(traj.T), len(model.nodes), len(wrt))
+    assert np.all(S[0] == 0.0)
+    idx = model.parameter_index(list(wrt))
+    run = lambda th: sim.simulate(th, inputs, dt, T0).T  # noqa: E731
+    report = {}
+    for j, pi in enumerate(idx):
+        h = rel_step * theta[pi]
+        fd = sum(w * run(np.where(np.arange(len(theta)) == pi, theta[pi] + k * h, theta)) for k, w in STENCILS[stencil]) / h
+        Sj = S[:, :, j]
+        scale = np.abs(Sj).max()
+        assert scale > 0, f"{wrt[j]}: zero sensitivity everywhere (parameter unused?)"
+        big = np.abs(Sj) > THRESH * scale
+        allow = 0.0
+        if noise_allowance:
+            eps = max(
+                np.abs(run(np.where(np.arange(len(theta)) == pi, theta[pi] * (1 + d), theta)) - traj.T - d * theta[pi] * Sj).max()
+                for d in (1e-13, -1e-13, 3e-14)
+            )
+            allow = sum(abs(w) for _, w in STENCILS[stencil]) * eps / h
+        err = np.abs(Sj - fd)
+        rel = err[big] / np.abs(Sj[big])
+        report[wrt[j]] = float(rel.max())
+        ok = err[big] <= REL_TOL * np.abs(Sj[big]) + allow
+        assert ok.all(), (
+            f"{method}/{stencil}: {wrt[j]}: {np.count_nonzero(~ok)} entries off, max relative error {rel.max():.2e} "
+            f"(allowance {allow:.2e})"
+        )
+        # the small entries left out above are still right in absolute terms
+        assert err.max() <= 1e-5 * scale + allow, wrt[j]
+    return traj, report
+
+
+def stable_substep(model, inputs, dt, safety=0.8):
+    """Largest stable explicit-Euler sub-step over the run's operating points, from the
+    eigenvalues of C⁻¹A computed here (independent assembly), times a safety factor."""
+    names = list(model.inputs)
+    N = len(next(iter(inputs.values())))
+    X = np.unique(np.stack([np.broadcast_to(np.asarray(inputs[k], float), (N,)) for k in names], axis=1)[:-1], axis=0)
+    lam_min = 0.0
+    for row in X:
+        asm = Assembly(model, model.nominal(), dict(zip(names, row)))
+        A, _ = asm.reduced()
+        lam = np.linalg.eigvals(A / asm.c[:, None]).real
+        lam_min = min(lam_min, lam.min())
+    h = safety * 2.0 / -lam_min
+    return min(h, dt)
+
+
+# ---------------------------------------------------------------------------------------------
+# the small models
+
+
+@pytest.mark.parametrize("method", ["zoh", "euler"])
+def test_tiny_model(tiny_model, method):
+    inputs = tiny_inputs(N=121, seed=1)
+    inputs = {k: inputs[k] for k in tiny_model.inputs}
+    T0 = np.array([45.0, 60.0, 35.0])
+    wrt = tiny_model.parameter_names
+    sub = stable_substep(tiny_model, inputs, 10.0) if method == "euler" else None
+    if method == "euler":
+        sub = min(sub, 2.0)  # several sub-steps per sample: exercises the sub-step derivative
+    finite_difference_check(tiny_model, inputs, 10.0, T0, wrt, method, sub)
+
+
+@pytest.mark.parametrize("method", ["zoh", "euler"])
+def test_tiny_plus_model(tiny_plus_model, method):
+    """With a parameter in a loss law, a loss not affine in T, a loss into an algebraic point,
+    a face point and two boundaries."""
+    m = tiny_plus_model
+    inputs = tiny_inputs(N=121, seed=2)
+    T0 = np.array([50.0, 70.0, 40.0])
+    sub = min(stable_substep(m, inputs, 10.0), 2.5) if method == "euler" else None
+    finite_difference_check(m, inputs, 10.0, T0, m.parameter_names, method, sub)
+
+
+def test_subset_of_parameters_matches_full(tiny_plus_model):
+    """``wrt`` picks columns: a subset in another order gives the same columns."""
+    m = tiny_plus_model
+    inputs = tiny_inputs(N=61, seed=4)
+    sim = Simulator(m, method="zoh")
+    T0 = np.array([50.0, 70.0, 40.0])
+    full = sim.simulate(m.nominal(), inputs, 10.0, T0, wrt=m.parameter_names)
+    sub = sim.simulate(m.nominal(), inputs, 10.0, T0, wrt=["h_gap", "R_amb"])
+    i = {p: k for k, p in enumerate(m.parameter_names)}
+    np.testing.assert_allclose(sub.S[:, :, 0], full.S[:, :, i["h_gap"]], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(sub.S[:, :, 1], full.S[:, :, i["R_amb"]], rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(sub.T, full.T)
+
+
+# ---------------------------------------------------------------------------------------------
+# paderborn4: all 8 parameters on a 600-row slice of run_a (cold start and heat-up)
+
+
+@pytest.mark.parametrize("method", ["zoh", "euler"])
+def test_paderborn4(paderborn_model, paderborn_run, method):
+    m = paderborn_model
+    run = paderborn_run.slice(0, 600)
+    inputs = {c: run.columns[c] for c in m.inputs}
+    T0 = np.array([run.columns[s][0] for s in ("pm", "stator_yoke", "stator_tooth", "stator_winding")])
+    assert [m.sensors[s] for s in ("pm", "stator_yoke", "stator_tooth", "stator_winding")] == list(m.nodes)
+    sub = 0.5 if method == "euler" else None  # the published sub-step; stable (checked below)
+    if method == "euler":
+        assert stable_substep(m, inputs, run.dt, safety=1.0) > 0.5
+    finite_difference_check(m, inputs, run.dt, T0, m.parameter_names, method, sub)
+
+
+# ---------------------------------------------------------------------------------------------
+# pm10kw: all 14 adaptable parameters, ~900 s of a drive cycle
+
+
+def _pm10kw_setup(m):
+    from thermal_edge.lptn import steady_state
+
+    inputs, dt, what = pm10kw_inputs(m, 900.0)
+    assert len(m.adaptable) == 14, f"expected 14 adaptable parameters, got {len(m.adaptable)}"
+    # a warm start: half-way between ambient and the steady state at the first operating point
+    first = {k: float(v[0]) for k, v in inputs.items()}
+    Ts, _ = steady_state(m, first)
+    T0 = 0.5 * (Ts + first.get("ambient_c", 25.0))
+    return inputs, dt, T0, what
+
+
+@pytest.mark.parametrize("method", ["zoh", "euler"])
+def test_pm10kw_high_order(pm10kw_model, method):
+    """On this 39-node stiff network the simulation's own round-off (~1e-10 K) divided by a
+    1e-4 step swamps 1e-5 of the small entries, so the reference is a sixth-order central
+    difference with a 2 % step (truncation below 1e-6 relative here): relative error <= 1e-5 on
+    every entry above 1e-3 of the parameter's max |S|, plus the measured round-off term."""
+    m = pm10kw_model
+    inputs, dt, T0, what = _pm10kw_setup(m)
+    sub = stable_substep(m, inputs, dt) if method == "euler" else None
+    _, report = finite_difference_check(
+        m, inputs, dt, T0, m.adaptable, method, sub, stencil="c6", rel_step=2e-2, noise_allowance=True
+    )
+    print(what, method, "substep", sub, "max rel err", max(report.values()))
