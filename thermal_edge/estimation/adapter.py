@@ -42,6 +42,9 @@ class AdapterConfig:
         RMS prediction error over the last period above which the adapter optimises, K.
     window_s : float
         History window used for estimation, s.
+    min_window_s : float
+        No optimisation before this much history (s): minutes of data from one operating point
+        cannot separate capacities from resistances, and a fit on them extrapolates badly.
     decimate : int
         Samples per optimiser step.
     max_iter : int
@@ -67,6 +70,7 @@ class AdapterConfig:
     period_s: float = 180.0
     threshold_k: float = 0.25
     window_s: float = 10800.0
+    min_window_s: float = 1800.0
     decimate: int = 5
     max_iter: int = 3
     coverage: float = 0.98
@@ -174,7 +178,7 @@ class OnlineAdapter:
         self.prior = self.theta.copy()
         self.params = tuple(config.params or model.adaptable)
         self.sensors = tuple(config.sensors or model.sensors)
-        self.sim = Simulator(model, method="zoh")
+        self.sim = Simulator(model)
         self.history = History(model, self.sensors, int(round(config.window_s / dt)) + 1)
         self.decisions: list[Decision] = []
         self.version = 0
@@ -204,12 +208,15 @@ class OnlineAdapter:
                 T0[self.model.node_index(self.model.sensors[s])] = y
         return Window(inputs, meas, T0, self.dt, t)
 
-    def _rms(self, theta: np.ndarray, window: Window) -> tuple[float, dict[str, float]]:
-        """Open-loop RMS error over the window: all sensors together, and per sensor (K)."""
+    def _rms(self, theta: np.ndarray, window: Window, since: float = -np.inf) -> tuple[float, dict[str, float]]:
+        """RMS error of the open-loop prediction over the window, scored from ``since`` on: all
+        sensors together, and per sensor (K). The prediction runs from the window's start, as
+        the model's state is derived after a decision."""
         traj = self.sim.simulate(theta, window.inputs, window.dt, window.T0)
+        scored = window.t >= since
         errs = {}
         for s in self.sensors:
-            e = traj.node(self.model.sensors[s]) - window.measured[s]
+            e = (traj.node(self.model.sensors[s]) - window.measured[s])[scored]
             errs[s] = e[np.isfinite(e)]
         e = np.concatenate(list(errs.values())) if errs else np.zeros(0)
         per = {s: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan") for s, v in errs.items()}
@@ -242,6 +249,10 @@ class OnlineAdapter:
         if not d.triggered:
             d.reason = "error below threshold" if np.isfinite(err) else "no readings in the last period"
             return self._done(d, t0)
+        t_hist = self.history.arrays()[0]
+        if t - t_hist[0] < cfg.min_window_s:
+            d.reason = f"waiting for {cfg.min_window_s:g} s of history before adapting"
+            return self._done(d, t0)
         full = self._window(t - cfg.window_s)
         coarse = decimate(full, cfg.decimate)
         obj = self.objective(coarse)
@@ -262,9 +273,8 @@ class OnlineAdapter:
         cand[sub.space.index] = res.values
         d.iterations, d.evaluations = res.iterations, res.evaluations
         d.params = dict(zip(sc.selected, map(float, res.values)))
-        val = self._window(t - cfg.validate_s)
-        d.current_error_k, cur = self._rms(self.theta, val)
-        d.candidate_error_k, new = self._rms(cand, val)
+        d.current_error_k, cur = self._rms(self.theta, coarse, t - cfg.validate_s)
+        d.candidate_error_k, new = self._rms(cand, coarse, t - cfg.validate_s)
         worse = [s for s in self.sensors if new[s] > cur[s] + cfg.sensor_tolerance_k]
         if d.candidate_error_k <= d.current_error_k and not worse:
             d.accepted = True

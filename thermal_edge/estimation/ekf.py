@@ -94,7 +94,8 @@ def run_ekf(
         key = tuple(u[c] for c in net.matrix_inputs)
         if key not in cache:
             op = {c: np.array([u[c]]) for c in net.matrix_inputs}
-            d = discretise(net.continuous(theta, op, K=1, wrt=list(idx)), dt, "zoh")
+            d = discretise(net.continuous(theta, op, K=1, wrt=list(idx)), dt, model.discretisation.method,
+                           model.discretisation.max_substep_s)
             cache[key] = (d.Phi[0], d.Gam[0], d.dPhi[0], d.dGam[0])
         Phi, Gam, dPhi, dGam = cache[key]
         env = net.env(theta, {c: np.asarray(v) for c, v in u.items()})

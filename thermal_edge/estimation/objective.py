@@ -85,7 +85,7 @@ class Objective:
         self.prior_weight = prior_weight
         self.sigma = (np.log(space.upper) - np.log(space.lower)) / 4.0
         self.evaluations = 0
-        self._last: tuple[bytes, Evaluation] | None = None
+        self._last: tuple[bytes, Evaluation, bool] | None = None
 
     def _prior(self, phi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         if not self.prior_weight:
@@ -97,9 +97,9 @@ class Objective:
 
     def evaluate(self, phi: np.ndarray, derivatives: bool = True) -> Evaluation:
         """Objective at log-parameters ``phi`` (with gradient and GN Hessian when asked)."""
-        key = phi.tobytes() + bytes([derivatives])
-        if self._last is not None and self._last[0] == key:
-            return self._last[1]
+        key = phi.tobytes()
+        if self._last is not None and self._last[0] == key and (self._last[2] or not derivatives):
+            return self._last[1]  # a value with derivatives also answers a request for the value
         self.evaluations += 1
         theta_sub = self.space.from_log(phi)
         th = self.space.full(theta_sub)
@@ -123,7 +123,7 @@ class Objective:
         else:
             J, grad, hess = np.zeros((len(r), len(idx), p)), np.zeros(p), np.zeros((p, p))
         ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, np.sqrt(self.w), traj.T)
-        self._last = (key, ev)
+        self._last = (key, ev, derivatives)
         return ev
 
     def value(self, phi: np.ndarray) -> float:
@@ -132,6 +132,9 @@ class Objective:
     def value_and_grad(self, phi: np.ndarray) -> tuple[float, np.ndarray]:
         ev = self.evaluate(phi)
         return ev.value, ev.grad
+
+    def grad(self, phi: np.ndarray) -> np.ndarray:
+        return self.evaluate(phi).grad
 
     def residual_vector(self, phi: np.ndarray) -> np.ndarray:
         """Stacked weighted residuals (and prior terms) whose squared sum is the objective."""

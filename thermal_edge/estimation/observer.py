@@ -38,7 +38,7 @@ class Observer:
     def __init__(self, model: Model, T0: np.ndarray, theta: np.ndarray | None = None, dt: float = 1.0,
                  q_k: float = 0.02, r_k: float = 0.15, p0_k: float = 2.0) -> None:
         self.model = model
-        self.stepper = Stepper(model, theta, dt, method="zoh")
+        self.stepper = Stepper(model, theta, dt)
         self.T = np.asarray(T0, dtype=float).copy()
         n = len(model.nodes)
         self.P = np.eye(n) * p0_k**2

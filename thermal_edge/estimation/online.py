@@ -43,7 +43,7 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
     pidx = model.parameter_index(ad.params)
     from ..lptn import Stepper
 
-    stepper = Stepper(model, ad.theta, dt, method="zoh")
+    stepper = Stepper(model, ad.theta, dt)
     for k in range(N):
         T[k] = x
         u = {c: float(v[k]) for c, v in inputs.items()}

@@ -27,7 +27,9 @@ def fit_sqp(obj: Objective, max_iter: int = 3, gradient: str = "analytic", metho
     f0 = obj.value(phi0)
     ev0 = obj.evaluations
     if gradient == "analytic":
-        fun, jac = obj.value_and_grad, True
+        # separate callables: line-search points need only the value (one simulation), the
+        # sensitivities run where SLSQP asks for a gradient
+        fun, jac = obj.value, obj.grad
     elif gradient == "numerical":
         fun, jac = obj.value, "2-point"
     else:
