@@ -94,17 +94,18 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
         dAt = cont.dA / np.outer(s, s) - At[:, None] * (r[None, :, :, None] + r[None, :, None, :])
     if method == "zoh":
         x = lam * dt
-        ex = np.exp(x)
         # Φ − I from expm1 so that slow modes (Φ ≈ I) keep their digits in Γ = (Φ − I) H
         Em1 = (Qm * np.expm1(x)[:, None, :]) @ np.swapaxes(Qm, -1, -2)
         PmI = Em1 / s[:, None] * s[None, :]
         Phi = PmI + eye
         m = 1
         if with_d:
-            delta = x[:, :, None] - x[:, None, :]
-            small = np.abs(delta) < 1e-10
-            ratio = np.where(small, 1.0 + delta / 2.0, np.expm1(delta) / np.where(small, 1.0, delta))
-            Dd = dt * ex[:, None, :] * ratio  # divided differences of exp(λ dt) w.r.t. λ
+            # divided differences of exp(λ dt) w.r.t. λ, (e^a − e^b)/(a − b) · dt, written as
+            # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels
+            ad = np.abs(x[:, :, None] - x[:, None, :])
+            small = ad < 1e-10
+            ratio = np.where(small, 1.0 - ad / 2.0, -np.expm1(-ad) / np.where(small, 1.0, ad))
+            Dd = dt * np.exp(np.maximum(x[:, :, None], x[:, None, :])) * ratio
             Qt = np.swapaxes(Qm, -1, -2)
             dE = sandwich(Qm, sandwich(Qt, dAt, Qm) * Dd[:, None], Qt)
             dPhi = -r[None, :, :, None] * Phi[:, None] + dE / s[:, None] * s[None, :] + Phi[:, None] * r[None, :, None, :]

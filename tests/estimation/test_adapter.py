@@ -1,0 +1,85 @@
+"""The online adapter: no future data, rollback of worse candidates, convergence, bounded history."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import thermal_edge.estimation.adapter as adapter_mod
+from thermal_edge.data import Run
+from thermal_edge.estimation.adapter import AdapterConfig, OnlineAdapter
+from thermal_edge.estimation.common import FitResult
+from thermal_edge.estimation.online import run_online
+
+
+@pytest.fixture(scope="module")
+def e1_run(pm10kw, make_run):
+    return make_run(pm10kw, "paper_600rpm_70nm.yaml", 5400.0, seed=3)
+
+
+def test_converges_to_the_plant_value(pm10kw, e1_run):
+    start = pm10kw.with_parameters({"R_e_hous": 6.1})
+    out = run_online(start, e1_run.run, AdapterConfig(params=("R_e_hous",)), T0=e1_run.truth.T[0])
+    assert out.param_trace["R_e_hous"][-1] == pytest.approx(9.1, rel=0.02)
+    assert any(d.accepted for d in out.decisions)
+    # every decision was recorded with its timing and outcome
+    assert all(d.t > 0 and d.duration_s >= 0 and d.reason for d in out.decisions)
+    last = e1_run.run.t >= e1_run.run.t[-1] - 1800
+    n = pm10kw.node_index(pm10kw.sensors["housing"])
+    assert np.sqrt(np.mean((out.T[last, n] - e1_run.run.columns["housing"][last]) ** 2)) < 0.3
+
+
+def test_decisions_never_read_future_samples(pm10kw, e1_run):
+    """Two runs identical up to t* but wildly different after it: every decision up to t* is the
+    same. An adapter peeking at later samples would differ."""
+    start = pm10kw.with_parameters({"R_e_hous": 6.1})
+    run = e1_run.run
+    t_star = 3000.0
+    cols = {k: v.copy() for k, v in run.columns.items()}
+    after = run.t > t_star
+    for s in pm10kw.sensors:
+        cols[s][after] += 25.0  # a future that would drag any estimate far away
+    cols["ambient_c"][after] += 15.0
+    other = Run(run.t, cols, "altered")
+    cfg = AdapterConfig(params=("R_e_hous",))
+    a = run_online(start, run, cfg, T0=e1_run.truth.T[0])
+    b = run_online(start, other, cfg, T0=e1_run.truth.T[0])
+    da = [(d.t, d.accepted, d.params) for d in a.decisions if d.t <= t_star]
+    db = [(d.t, d.accepted, d.params) for d in b.decisions if d.t <= t_star]
+    assert da == db and any(x[1] for x in da)
+    k = int(np.searchsorted(run.t, t_star))
+    assert np.array_equal(a.T[: k + 1], b.T[: k + 1])
+    assert [d.params for d in b.decisions if d.t > t_star] != [d.params for d in a.decisions if d.t > t_star]
+
+
+def test_worse_candidate_is_rolled_back(pm10kw, e1_run, monkeypatch):
+    start = pm10kw.with_parameters({"R_e_hous": 8.5})
+
+    def bad_fit(obj, max_iter=3, gradient="analytic", method_name=None):
+        v = obj.space.values() * 3.0  # far off: predicts everything worse
+        return FitResult("bad", obj.space.names, v, 1.0, 1.0, 1, 1, 0.0)
+
+    monkeypatch.setattr(adapter_mod, "fit_sqp", bad_fit)
+    ad = OnlineAdapter(start, AdapterConfig(params=("R_e_hous",), threshold_k=0.0, min_window_s=600), 1.0)
+    run = e1_run.run
+    before = ad.theta.copy()
+    for k in range(1200):
+        ad.record(float(run.t[k]), {c: float(run.columns[c][k]) for c in start.inputs},
+                  {s: float(run.columns[s][k]) for s in start.sensors}, e1_run.truth.T[k])
+    d = ad.decide(float(run.t[1199]))
+    assert d.triggered and not d.accepted and "rolled back" in d.reason
+    assert d.candidate_error_k > d.current_error_k
+    assert np.array_equal(ad.theta, before) and ad.version == 0
+
+
+def test_history_is_bounded(pm10kw):
+    ad = OnlineAdapter(pm10kw, AdapterConfig(window_s=100.0), 1.0)
+    x = np.full(len(pm10kw.nodes), 25.0)
+    for k in range(1000):
+        ad.record(float(k), {c: 0.0 for c in pm10kw.inputs}, {}, x)
+    t, _, _, _ = ad.history.arrays()
+    assert len(t) == 101 and t[0] == 899.0 and t[-1] == 999.0
+
+
+def test_unknown_method_is_refused(pm10kw):
+    with pytest.raises(ValueError, match="method"):
+        OnlineAdapter(pm10kw, AdapterConfig(method="magic"), 1.0)
