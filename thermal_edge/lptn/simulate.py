@@ -229,21 +229,23 @@ class Simulator:
         change[1:] = (ops[1:] != ops[:-1]) | np.any(slopes[1:] != slopes[:-1], axis=1)
         starts = np.nonzero(change)[0]
         mi = (np.cumsum(change) - 1).tolist()
-        shape = (len(self.loss_laws), len(self.tv))
-        mats = []
-        for k in starts:
-            m = Phi[ops[k]].copy()
-            m[:, self.tv] += GP[ops[k]] @ slopes[k].reshape(shape)
-            mats.append(m)
-        return mats, mi
+        o = ops[starts]
+        mats = Phi[o].copy()  # (distinct, n, n)
+        mats[:, :, self.tv] += GP[o] @ slopes[starts].reshape(len(starts), len(self.loss_laws), len(self.tv))
+        return list(mats), mi
 
     def _step_losses(self, prep: _Prepared, N: int):  # type: ignore[no-untyped-def]
         """Per-step evaluator of the loss laws that are not affine in temperature."""
         env = prep.env
-        scal = {k: v for k, v in env.items() if np.ndim(v) == 0}
-        series = [(k, np.broadcast_to(np.asarray(v, dtype=float), (N,))) for k, v in env.items() if np.ndim(v) > 0]
+        needed: set[str] = set()
+        for j in self.nonaffine:
+            needed |= self.loss_laws[j].expr.free()
+        # only the names these laws read go into the per-step environment
+        scal = {k: v for k, v in env.items() if k in needed and np.ndim(v) == 0}
+        series = [(k, np.broadcast_to(np.asarray(v, dtype=float), (N,))) for k, v in env.items()
+                  if k in needed and np.ndim(v) > 0]
         laws = [self.loss_laws[j].f for j in self.nonaffine]
-        temps = list(zip(self.tv, self.tvn))
+        temps = [(i, t) for i, t in zip(self.tv, self.tvn) if t in needed]
 
         def at(k: int, x: np.ndarray) -> np.ndarray:
             e = dict(scal)
