@@ -197,14 +197,15 @@ class Simulator:
         step_losses = self._step_losses(prep, N) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
         opl = ops.tolist()
-        x = np.array(T0, dtype=float)
-        for k in range(N - 1):
-            y = mats[mi[k]] @ x
-            y += f[k]
-            if step_losses is not None:  # evaluated at T_k, before the update
-                y += GPna[opl[k]] @ step_losses(k, x)
-            x = y
-            T[k + 1] = x
+        if step_losses is None:
+            for k in range(N - 1):
+                np.matmul(mats[mi[k]], T[k], out=T[k + 1])
+                T[k + 1] += f[k]
+        else:
+            for k in range(N - 1):
+                np.matmul(mats[mi[k]], T[k], out=T[k + 1])
+                T[k + 1] += f[k]
+                T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
         P, dPdT = self._loss_terms(prep.env, N, T)
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
@@ -292,9 +293,8 @@ class Simulator:
                     X[sel] += (GP[o] @ Dl).reshape(n, len(sel), p).swapaxes(0, 1)
             if rows is None:
                 for k in range(a, b):
-                    s = mats[mi[k]] @ s
-                    s += X[k - a]
-                    S[k + 1] = s
+                    np.matmul(mats[mi[k]], S[k], out=S[k + 1])
+                    S[k + 1] += X[k - a]
             else:
                 for k in range(a, b):
                     s = mats[mi[k]] @ s
