@@ -65,6 +65,9 @@ class AdapterConfig:
         Adaptable parameters; default: the model's ``adaptable: true`` ones.
     sensors : tuple of str, optional
         Sensors the adapter learns from; default: all the model's sensors present.
+    max_rel_std : float
+        A parameter is offered to the optimiser only if the window pins it down to this relative
+        standard deviation (Fisher information, all adaptable parameters free).
     """
 
     period_s: float = 180.0
@@ -82,7 +85,7 @@ class AdapterConfig:
     method: str = "sqp"
     params: tuple[str, ...] | None = None
     sensors: tuple[str, ...] | None = None
-    min_information: float = 1e-6
+    max_rel_std: float = 0.5
 
 
 @dataclass
@@ -96,6 +99,7 @@ class Decision:
     candidate_error_k: float = float("nan")  # validation RMS of the candidate
     current_error_k: float = float("nan")  # validation RMS of the current parameters
     selected: tuple[str, ...] = ()
+    unidentifiable: tuple[str, ...] = ()
     params: dict[str, float] = field(default_factory=dict)
     iterations: int = 0
     evaluations: int = 0
@@ -258,11 +262,14 @@ class OnlineAdapter:
         obj = self.objective(coarse)
         phi = np.log(self.theta[obj.space.index])
         ev = obj.evaluate(phi)
+        unc = estimate_uncertainty(obj, ev, cfg.max_rel_std)
+        self.uncertainty = unc
         sc = screen(obj.space.names, ev.grad, ev.hess, phi, obj.space.lower, obj.space.upper, cfg.coverage,
-                    cfg.min_information)
+                    unc.identifiable)
         d.selected = sc.selected
+        d.unidentifiable = tuple(n for n, ok in zip(obj.space.names, unc.identifiable) if not ok)
         if not sc.selected:
-            d.reason = "no parameter can reduce the error within its bounds"
+            d.reason = "no identifiable parameter can reduce the error within its bounds"
             return self._done(d, t0)
         sub = self.objective(coarse, sc.selected)
         if cfg.method == "gauss_newton":

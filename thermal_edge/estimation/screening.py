@@ -7,9 +7,10 @@ objective is ``Λ_k = ∂Obj/∂φ_k`` per unit change; its optimisation potenti
 potentials are kept until they cover ``coverage`` (98 %) of the total; the screening is repeated
 before every optimisation.
 
-Identifiability comes first (``reference/findings.md`` §1): a parameter the sensors cannot see
-(relative Fisher information below ``min_information`` of the best one) is not offered to the
-optimiser however large its gradient looks.
+Identifiability comes first (``reference/findings.md`` §1): a parameter the sensors cannot pin
+down (its relative standard deviation from the Fisher information of the window, all adaptable
+parameters free, above a limit: :mod:`.uncertainty`) is not offered to the optimiser however
+large its gradient looks.
 """
 from __future__ import annotations
 
@@ -54,11 +55,13 @@ def select(names: tuple[str, ...], potential: np.ndarray, coverage: float = 0.98
 
 def screen(
     names: tuple[str, ...], grad: np.ndarray, hess: np.ndarray, phi: np.ndarray, lower: np.ndarray, upper: np.ndarray,
-    coverage: float = 0.98, min_information: float = 1e-6,
+    coverage: float = 0.98, identifiable: np.ndarray | None = None,
 ) -> Screening:
-    """Screen parameters from the gradient and Gauss-Newton Hessian (Fisher information) at ``phi``."""
+    """Screen parameters from the gradient at ``phi``; only ``identifiable`` ones (default all) may
+    be chosen. ``hess`` (Gauss-Newton) is kept for the record: its diagonal is each parameter's
+    Fisher information."""
     info = np.clip(np.diag(hess), 0.0, None)
     pot = potentials(grad, phi, lower, upper)
-    seen = info >= min_information * max(float(info.max()), 1e-300)
+    seen = np.ones(len(names), dtype=bool) if identifiable is None else np.asarray(identifiable, dtype=bool)
     chosen = select(tuple(n for n, s in zip(names, seen) if s), pot[seen], coverage)
     return Screening(names, grad, pot, info, chosen)
