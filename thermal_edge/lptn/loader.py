@@ -99,14 +99,18 @@ def load_model(path: str | os.PathLike[str], data_dir: str | os.PathLike[str] | 
         Naming the file and the key of the first problem found.
     """
     path = Path(path)
-    fname = path.name
+    return build_model(read_yaml(path, ModelError), fname=path.name, path=path, data_dir=data_dir)
+
+
+def read_yaml(path: str | os.PathLike[str], error: type[Exception]) -> Any:
+    """Parse a YAML file; a missing file or bad YAML raises ``error`` naming the file."""
+    path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        return yaml.safe_load(path.read_text())
     except OSError as exc:
-        raise ModelError(f"{path}: cannot read: {exc.strerror}") from None
+        raise error(f"{path}: cannot read: {exc.strerror}") from None
     except yaml.YAMLError as exc:
-        raise ModelError(f"{fname}: not valid YAML: {exc}") from None
-    return build_model(raw, fname=fname, path=path, data_dir=data_dir)
+        raise error(f"{path.name}: not valid YAML: {exc}") from None
 
 
 def build_model(
@@ -399,4 +403,4 @@ def temperature_name(node: str) -> str:
     return TEMP_PREFIX + node
 
 
-__all__ = ["load_model", "build_model", "temperature_name", "ModelError"]
+__all__ = ["load_model", "build_model", "read_yaml", "temperature_name", "ModelError"]

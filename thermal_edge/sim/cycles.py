@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from ..data import Run
+from ..lptn.loader import read_yaml
 
 FIELDS = ("speed_rpm", "torque_nm", "ambient_c", "coolant_c")
 
@@ -51,12 +51,7 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
     """Load and validate a cycle file."""
     path = Path(path)
     f = path.name
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise CycleError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise CycleError(f"{f}: not valid YAML: {exc}") from None
+    raw = read_yaml(path, CycleError)
     if not isinstance(raw, dict):
         raise CycleError(f"{f}: (top): expected a mapping")
 
