@@ -1,0 +1,137 @@
+"""``thermal-edge discover``: find the physical effect a model lacks, add it, show the gap shrink.
+
+Refits the model's adaptable parameters on the first 2/3 of the run, analyses the residuals
+against the operating conditions, scores every catalogue effect on every applicable target
+(score test), fits the best few, ranks them on the held-out last third, adds the winner and
+repeats until no candidate improves the held-out gap significantly. With ``--out DIR`` it writes
+``DIR/report.md`` (Markdown with PNG figures; needs matplotlib, the ``report`` extra) and the
+augmented model ``DIR/<model>+<effect>.yaml``. The effect catalogue: ``--list-effects``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+from ..data import FORMATS, read_run
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("discover", help="find, name and add the physical effect a model lacks", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", required=True, help="machine model file (config/machines/*.yaml)")
+    p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
+    p.add_argument("--run", help="recorded run (CSV)")
+    p.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
+    p.add_argument("--sensors", help="comma-separated sensors to use (default: every model sensor the run has)")
+    p.add_argument("--out", help="directory for report.md, its figures and the augmented model")
+    p.add_argument("--model-out", help="path of the augmented model (default DIR/<model>+<effect>.yaml)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--effects", help="comma-separated catalogue effects to consider (default: all)")
+    p.add_argument("--max-rounds", type=int, default=3, help="effects added at most (default 3)")
+    p.add_argument("--min-improvement", type=float, default=0.10,
+                   help="relative held-out gap reduction a candidate must reach (default 0.10)")
+    p.add_argument("--min-gain", type=float, default=0.05, help="and absolute reduction, K (default 0.05)")
+    p.add_argument("--train-fraction", type=float, default=2 / 3, help="fitted share of the run (default 2/3)")
+    p.add_argument("--fit-step", type=float, default=5.0, help="step of the decimated fitting window, s (default 5)")
+    p.add_argument("--no-report", action="store_true", help="with --out: write the model only, no report")
+    p.add_argument("--list-effects", action="store_true", help="list the effect catalogue and the model's targets")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=run)
+
+
+def list_effects(args: argparse.Namespace) -> int:
+    from ..discovery import effects as E
+    from ..discovery import hidden
+
+    raw = hidden.read_document(args.model)
+    build = hidden.builder(args.model, args.data_dir)
+    ctx = E.context(raw, build(raw), None, build)
+    for name, eff in E.CATALOGUE.items():
+        tg = E.targets(ctx, eff)
+        params = ", ".join(f"{p.short} [{p.unit}] default {p.default:g}" + ("" if p.primary else " (shape)") for p in eff.params)
+        where = "not applicable" if not tg else ("no target" if tg == [None] else f"{len(tg)} targets: " + ", ".join(map(str, tg)))
+        print(f"{name}: {eff.doc}\n    parameters: {params}\n    {where}")
+    return 0
+
+
+def _run_header(path: str) -> list[str]:
+    """The comment lines at the top of a run CSV (how it was made), as shell comments."""
+    out = []
+    try:
+        with open(path) as fh:
+            for line in fh:
+                if not line.startswith("#"):
+                    break
+                out.append("# " + line[1:].strip())
+    except OSError:
+        return []
+    return (["# the run (its header):"] + out) if out else []
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.list_effects:
+        return list_effects(args)
+    if not args.run:
+        raise KeyError("--run is required (or --list-effects)")
+    from ..discovery import effects as E
+    from ..discovery import hidden, workflow
+
+    raw = hidden.read_document(args.model)
+    build = hidden.builder(args.model, args.data_dir)
+    rec = read_run(args.run, args.format)
+    opt = workflow.Options(
+        sensors=[s.strip() for s in args.sensors.split(",") if s.strip()] if args.sensors else None,
+        effects=[e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None,
+        max_rounds=args.max_rounds, min_improvement=args.min_improvement, min_gain_k=args.min_gain,
+        train_frac=args.train_fraction, fit_step_s=args.fit_step,
+    )
+    for e in opt.effects or ():
+        E.get(e)
+    log = None if (args.quiet or args.json) else (lambda m: print(m, file=sys.stderr, flush=True))
+    disc = workflow.discover(raw, rec, build, opt, log=log)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        if disc.added:
+            stem = Path(args.model).stem
+            tag = "+".join(r.fit.label.replace(":", "-") for r in disc.added)
+            disc.model_out = workflow.write_model(disc, args.model_out or out / f"{stem}+{tag}.yaml", args.model)
+        if not args.no_report:
+            try:
+                import matplotlib  # noqa: F401  (the report's figures: the ``report`` extra)
+            except ModuleNotFoundError:
+                print("thermal-edge discover: error: the report needs matplotlib (pip install 'thermal-edge[report]'); "
+                      "use --no-report for the model alone", file=sys.stderr)
+                return 2
+            from ..discovery import report
+
+            cmd = ["thermal-edge", "discover", "--model", args.model, "--run", args.run]
+            if args.format != "csv":
+                cmd += ["--format", args.format]
+            if args.sensors:
+                cmd += ["--sensors", args.sensors]
+            cmd += ["--out", args.out]
+            disc.report = report.write(disc, out, _run_header(args.run) + [shlex.join(cmd)])
+    elif args.model_out and disc.added:
+        disc.model_out = workflow.write_model(disc, args.model_out, args.model)
+    d = disc.as_dict()
+    if args.json:
+        print(json.dumps(d, indent=2, default=float))
+        return 0
+    print(f"{disc.model_name} on {args.run}: {d['verdict']}")
+    print(f"held-out gap over {', '.join(disc.data.sensors)}: {disc.gap_before:.3f} K -> {disc.gap_after:.3f} K"
+          f" (nominal parameters {disc.nominal.gap:.3f} K, noise floor {disc.noise_k:.3f} K), {disc.wall_s:.1f} s")
+    print(f"{'sensor':<18}{'before K':>10}{'after K':>10}")
+    for s in disc.data.sensors:
+        print(f"{s:<18}{d['per_sensor_before'][s]:>10.3f}{d['per_sensor_after'][s]:>10.3f}")
+    for r in disc.added:
+        vals = ", ".join(f"{k} = {v:.4g}" for k, v in disc.final.values(r.fit.effect_params).items())
+        print(f"added {r.fit.label}: {vals}")
+    if disc.model_out:
+        print(f"wrote {disc.model_out}")
+    if disc.report:
+        print(f"wrote {disc.report}")
+    return 0

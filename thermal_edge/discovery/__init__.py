@@ -1,0 +1,54 @@
+"""Model-gap discovery: find the physical effect a thermal model lacks, add it, show the gap shrink.
+
+Adapting parameters cannot fix a model that lacks a physical effect: its errors then follow the
+operating conditions in a way no parameter value removes. :func:`discover` takes a model file
+(its raw YAML document) and a recorded run and
+
+1. refits the model's adaptable parameters on the first 2/3 of the run (Gauss-Newton with the
+   analytic sensitivities of :mod:`thermal_edge.estimation`), so that what remains is structural;
+2. analyses the residuals per sensor against the operating variables (speed, current², the
+   readings, the boundary temperatures, dT/dt, time) and by regime (:mod:`.residuals`);
+3. lists every catalogue effect on every applicable target of the model (:mod:`.effects`) and
+   scores each with the score test at zero effect (gradient and Gauss-Newton information of the
+   prediction error with respect to the effect's parameters, the adaptable parameters projected
+   out: ``g*ᵀ I*⁻¹ g*``), plus a screen against the residual at the nominal parameters;
+4. fits the best few fully and ranks them on the held-out last third (RMS gap over the sensors,
+   BIC penalty for the effect's parameters); the winner must lower the held-out gap by 10 % and
+   0.05 K (``Options``);
+5. adds the winner to the model (a few lines of YAML: :func:`.workflow.write_model` patches
+   them into the original file), refits, and repeats until no candidate is accepted. With no
+   winner in the first round the verdict is "no missing effect found". :mod:`.report` writes a
+   Markdown report with PNG figures (matplotlib, the ``report`` extra).
+
+Effects (``NAME[:TARGET][=PARAM=VALUE,...]``, the syntax of ``thermal-edge simulate --effect``;
+``s = |speed_rpm| / n_ref``, ``n_ref``/``i_ref`` the run's 95th-percentile speed/current):
+
+=====================================  =========================================================
+``copper_temperature``                 winding loss ``X + (k100-1)(T-t_ref)/100 X(t_ref)``:
+                                       ``k100`` loss factor 100 K above ``t_ref`` [1.4],
+                                       ``t_ref`` °C [20]
+``speed_convection:<group>``           conductance ``g (1 + k s^m)``: ``k`` [1], ``m`` [1]
+``iron_loss_frequency``                iron loss ``X (1 + k s^m)``: ``k`` [1], ``m`` [1]
+``magnet_eddy_loss``                   magnet loss ``p (s i/i_ref)²``: ``p`` W [100]
+``bearing_loss``                       shaft/end-cap loss ``p s``: ``p`` W [60]
+``housing_radiation``                  frame heat out ``eps_a σ (T⁴ − T_amb⁴)``: ``eps_a`` m² [0.8]
+``natural_convection``                 frame heat out ``h max(T − T_amb, 0)^1.25``: ``h`` [1]
+``sensor_lag:<sensor>``                probe node, time constant ``tau`` s [300]
+``ambient_offset[:<boundary>]``        air ``dT`` K warmer than the boundary input [4]
+``contact_resistance:<conductance>``   extra series ``R`` K/W [2 × the path's resistance]
+=====================================  =========================================================
+
+Unset magnitudes of a hidden effect are raised (doubled, up to 8 times) until the plant differs
+from the model by at least 1 K RMS on some sensor over the cycle. Targets: a conductance group
+is named by the parameters its law uses (``R_e_hous``, ``h_gap0+h_gap1``) or by its two ends
+(``st-pm``); a single conductance by its ends (``housing_6-yoke_1``); ``thermal-edge discover
+--model M --list-effects`` lists them. Node roles (winding, stator iron, magnet, shaft/end cap,
+frame) are recognised by name (``effects.WINDING_RE`` …).
+
+Command line: ``thermal-edge discover --model M --run R [--format F] [--sensors a,b] [--out DIR]
+[--json]``; benchmark: ``python -m thermal_edge.discovery.bench``.
+"""
+from .effects import CATALOGUE, Candidate, Effect, EffectError, parse_spec
+from .workflow import Discovery, Options, discover, write_model
+
+__all__ = ["CATALOGUE", "Candidate", "Discovery", "Effect", "EffectError", "Options", "discover", "parse_spec", "write_model"]

@@ -1,0 +1,665 @@
+"""The effect catalogue: named physical effects a thermal model may lack, as edits of its YAML.
+
+Every effect is an *augmentation* of a model document (the raw YAML mapping): one to three new
+parameters and a few changed or added entries (losses, conductances, a node, a sensor), written
+in the model's own law grammar, so that adding an effect is writing a few lines of YAML. The
+augmented document is validated by :func:`thermal_edge.lptn.loader.build_model` like any model.
+
+Every effect has a *zero-effect* value of its parameters (the model is then unchanged) and a
+*default magnitude* used by ``thermal-edge simulate --effect`` to hide it in simulated data.
+
+Reference scales: ``s = |speed_rpm| / n_ref`` and ``i_rms / i_ref``, where ``n_ref`` and
+``i_ref`` are the 95th percentiles of the run's speed and current rounded to two significant
+digits (:func:`references`); they are written into the laws as numbers, so magnitudes read as
+"W (or a factor) at the run's typical high-load point".
+
+=====================================  =========================================================
+effect[:target]                        law (X = the existing law), parameters (default hidden)
+=====================================  =========================================================
+``copper_temperature``                 every winding loss ``X + (k100 - 1) (T.<node> - t_ref) / 100
+                                       * X(T=t_ref)``; ``k100`` the loss factor 100 K above
+                                       ``t_ref`` (1.4; 1 = none, < 1 allowed: AC copper loss
+                                       falls with temperature), ``t_ref`` °C (20, shape)
+``speed_convection:<conductance>``     ``g = X * (1 + k * s ** m)`` (``r`` laws are divided);
+                                       ``k`` (1.0), ``m`` (1.0, shape)
+``iron_loss_frequency``                every stator iron loss ``X * (1 + k * s ** m)``;
+                                       ``k`` (1.0), ``m`` (1.0, shape)
+``magnet_eddy_loss``                   loss ``p * (s * i_rms / i_ref) ** 2`` shared by the
+                                       magnet nodes; ``p`` W at the reference point (40)
+``bearing_loss``                       loss ``p * s`` shared by the shaft and end-cap nodes;
+                                       ``p`` W at ``n_ref`` (40)
+``housing_radiation``                  heat leaving the frame nodes ``eps_a * 5.67e-8 *
+                                       ((T + 273.15)^4 - (T_amb + 273.15)^4)`` (shared by
+                                       their conductance to ambient); ``eps_a`` m² (0.8)
+``natural_convection``                 heat leaving the frame nodes ``h * max(T - T_amb, 0)
+                                       ** 1.25`` (conductance ∝ ΔT^0.25); ``h`` W/K^1.25 (1.0)
+``sensor_lag:<sensor>``                a probe node of capacity ``tau * 0.01`` J/K joined to
+                                       the sensed node by 0.01 W/K, the sensor moved onto it;
+                                       ``tau`` s (300)
+``ambient_offset[:<boundary>]``        the air at the machine is ``dT`` warmer than the
+                                       boundary input: loss ``dT * g`` at every point joined
+                                       to the boundary by ``g``; ``dT`` K (4)
+``contact_resistance:<conductance>``   an extra series resistance ``R`` (K/W) on one
+                                       conductance; default 2 × its nominal resistance
+=====================================  =========================================================
+
+Targets: a *conductance group* (``speed_convection``) is named by the parameters its law uses
+(e.g. ``R_e_hous`` = the four housing-to-ambient conductances of pm10kw; ``h_gap0+h_gap1`` =
+the air-gap conductances), or by its two ends when the law uses no parameter (``st-pm``). A
+single conductance (``contact_resistance``) is named by its two ends, arc faces dropped
+(``housing_6-yoke_1``). A sensor target is a sensor name; a boundary target a boundary name.
+``applicable(raw, model, refs)`` lists every candidate a model admits.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from ..lptn.expr import parse
+from ..lptn.loader import build_model
+from ..lptn.model import Model, ModelError
+
+SIGMA_SB = 5.670374419e-8
+PROBE_G = 0.01  # W/K: conductance of a sensor probe node to the sensed node
+
+# node roles by name (documented in the module docstring of the package)
+WINDING_RE = re.compile(r"wind|coil|copper|^sw(_|\d|$)", re.I)
+IRON_RE = re.compile(r"yoke|tooth|teeth|core|lamination|stator_iron|^sy(_|\d|$)|^st(_|\d|$)", re.I)
+MAGNET_RE = re.compile(r"magnet|^pm(_|\d|$)", re.I)
+BEARING_RE = re.compile(r"shaft|bearing|end_?cap|end_?shield", re.I)
+FRAME_RE = re.compile(r"hous|frame|shell|fin|end_?cap|end_?shield", re.I)
+
+
+class EffectError(ModelError):
+    """An unknown effect, a target the model does not have, or a bad parameter setting."""
+
+
+@dataclass(frozen=True)
+class EffectParam:
+    """One parameter of an effect.
+
+    ``null`` is the zero-effect value (may lie outside ``[lower, upper]``: the model file needs
+    ``min > 0``, the score test evaluates at ``null``); ``primary`` parameters are score-tested,
+    shape parameters (``primary=False``) stay at ``nominal`` in the score test and are fitted in
+    the full fit.
+    """
+
+    short: str
+    unit: str
+    doc: str
+    null: float
+    nominal: float
+    lower: float
+    upper: float
+    default: float
+    primary: bool = True
+    two_sided: bool = False  # the effect may go either way from ``null`` (else only up)
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    abbr: str
+    target_kind: str  # none | group | edge | sensor | boundary
+    params: tuple[EffectParam, ...]
+    explains: str  # the operating variable the effect follows (residual analysis key)
+    doc: str
+    scale_by_target: bool = False  # parameter bounds/default scale with the target's nominal resistance
+
+
+@dataclass
+class Candidate:
+    """An effect on one target (``target`` None for effects without one)."""
+
+    effect: Effect
+    target: str | None = None
+
+    @property
+    def label(self) -> str:
+        return self.effect.name + (f":{self.target}" if self.target else "")
+
+
+@dataclass
+class Context:
+    """What the effects need to know about a model: its raw document, built form and roles."""
+
+    raw: dict[str, Any]
+    model: Model
+    refs: dict[str, float]
+    groups: dict[str, list[int]] = field(default_factory=dict)  # conductance group -> raw indices
+    edges: dict[str, int] = field(default_factory=dict)  # single conductance name -> raw index
+    edge_r_nominal: dict[int, float] = field(default_factory=dict)  # raw index -> nominal K/W
+
+    @property
+    def speed(self) -> str | None:
+        return "speed_rpm" if "speed_rpm" in self.model.inputs else None
+
+    @property
+    def current(self) -> str | None:
+        return "i_rms" if "i_rms" in self.model.inputs else None
+
+
+# ------------------------------------------------------------------------------------------
+# the catalogue
+
+def _p(short, unit, doc, nominal, lower, upper, default, null=0.0, primary=True, two_sided=False) -> EffectParam:  # type: ignore[no-untyped-def]
+    return EffectParam(short, unit, doc, null, nominal, lower, upper, default, primary, two_sided)
+
+
+CATALOGUE: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect("copper_temperature", "cuT", "none",
+               (_p("k100", "1", "winding loss factor 100 K above t_ref (1: no temperature dependence; below 1 "
+                   "when eddy/AC copper loss, which falls with temperature, dominates)", 1.0, 0.3, 3.0, 1.4, null=1.0,
+                   two_sided=True),
+                _p("t_ref", "degC", "winding temperature at which the modelled loss is right", 20.0, 1.0, 150.0, 20.0,
+                   null=20.0, primary=False)),
+               "temperature", "winding loss rises with winding temperature"),
+        Effect("speed_convection", "sc", "group",
+               (_p("k", "1", "relative rise of the conductance at the reference speed", 1e-4, 1e-5, 30.0, 1.0),
+                _p("m", "1", "speed exponent", 1.0, 0.2, 3.0, 1.0, null=1.0, primary=False)),
+               "speed", "a conductance grows with speed (fan, air gap, rotating surfaces)"),
+        Effect("iron_loss_frequency", "feF", "none",
+               (_p("k", "1", "relative rise of the iron loss at the reference speed", 1e-4, 1e-5, 20.0, 1.0),
+                _p("m", "1", "speed exponent of the rise", 1.0, 0.2, 3.0, 1.0, null=1.0, primary=False)),
+               "speed", "iron loss grows faster with speed than modelled"),
+        Effect("magnet_eddy_loss", "pmE", "none",
+               (_p("p", "W", "magnet eddy loss at the reference speed and current", 1e-3, 1e-4, 1e4, 100.0),),
+               "speed_current2", "rotor/magnet loss proportional to (speed x current)^2"),
+        Effect("bearing_loss", "brg", "none",
+               (_p("p", "W", "extra mechanical loss at the reference speed", 1e-3, 1e-4, 1e4, 60.0),),
+               "speed", "mechanical (bearing, seal) loss at the shaft and end caps proportional to speed"),
+        Effect("housing_radiation", "rad", "none",
+               (_p("eps_a", "m^2", "emissivity x radiating area of the frame", 1e-4, 1e-5, 20.0, 0.8),),
+               "rise", "radiation from the frame, proportional to T^4 - T_amb^4"),
+        Effect("natural_convection", "nc", "none",
+               (_p("h", "W/K^1.25", "natural-convection coefficient x area of the frame", 1e-4, 1e-5, 100.0, 1.0),),
+               "rise", "frame-to-ambient conductance grows with the temperature rise as dT^0.25"),
+        Effect("sensor_lag", "lag", "sensor",
+               (_p("tau", "s", "first-order time constant of the sensor", 5.0, 1.0, 3600.0, 300.0, null=1.0),),
+               "dTdt", "first-order lag of a sensor (probe node of small capacity)"),
+        Effect("ambient_offset", "amb", "boundary",
+               (_p("dT", "K", "air at the machine warmer than the boundary input", 0.1, 1e-3, 40.0, 4.0),),
+               "ambient", "the air at the machine is warmer than the ambient sensor"),
+        Effect("contact_resistance", "cr", "edge",
+               (_p("R", "K/W", "extra series resistance (aged insulation, loose fit)", 1e-3, 1e-4, 100.0, 2.0),),
+               "current2", "an extra series resistance on one conductance path", scale_by_target=True),
+    )
+}
+
+
+def references(columns: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Reference speed and current of a run: 95th percentiles rounded to two significant digits."""
+    def nice(x: float, floor: float) -> float:
+        if not np.isfinite(x) or x <= 0:
+            return floor
+        e = math.floor(math.log10(x)) - 1
+        return max(round(x / 10**e) * 10**e, floor)
+
+    out = {"n_ref": 1000.0, "i_ref": 10.0}
+    if "speed_rpm" in columns:
+        v = np.abs(np.asarray(columns["speed_rpm"], float))
+        out["n_ref"] = float(nice(float(np.nanpercentile(v, 95)), 1.0))
+    if "i_rms" in columns:
+        v = np.abs(np.asarray(columns["i_rms"], float))
+        out["i_ref"] = float(nice(float(np.nanpercentile(v, 95)), 0.1))
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# analysis of a model document
+
+def _dummy_tables(raw: Mapping[str, Any]) -> dict[str, object]:
+    return {k: object() for k in (raw.get("tables") or {})}
+
+
+def is_effect_parameter(spec: Any) -> bool:
+    """A parameter an effect added (its doc starts with ``<effect>[:<target>]: ``)."""
+    doc = str(spec.get("doc", "")) if isinstance(spec, Mapping) else ""
+    head = doc.split(": ", 1)[0] if ": " in doc else ""
+    return head.split(":", 1)[0] in CATALOGUE
+
+
+def law_params(raw: Mapping[str, Any], law: Any) -> set[str]:
+    """Model parameters a raw law uses (parameters added by effects not counted)."""
+    params = raw.get("parameters") or {}
+    pnames = {k for k, v in params.items() if not is_effect_parameter(v)}
+    return set(parse(law, _dummy_tables(raw)).free()) & pnames
+
+
+def _end(ref: str) -> str:
+    """An endpoint without its arc face suffix (``housing_1.r_out`` -> ``housing_1``)."""
+    return str(ref).split(".", 1)[0]
+
+
+def _sanitize(s: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_]", "_", s)
+
+
+def context(raw: Mapping[str, Any], model: Model | None = None, refs: Mapping[str, float] | None = None,
+            build: Callable[[dict[str, Any]], Model] | None = None) -> Context:
+    """Analyse a model document: conductance groups, single conductances and their scales."""
+    raw = copy.deepcopy(dict(raw))
+    model = model if model is not None else (build or build_model)(raw)
+    ctx = Context(raw, model, dict(refs or {"n_ref": 1000.0, "i_ref": 10.0}))
+    conns = raw.get("conductances") or []
+    by_key = {e.key: e for e in model.edges}
+    theta = model.nominal()
+    env_base: dict[str, object] = dict(zip(model.parameter_names, theta))
+    # a typical operating point for nominal values: the reference speed and current, 25 °C
+    op = {c: np.array(0.0) for c in model.inputs}
+    if ctx.speed:
+        op[ctx.speed] = np.array(ctx.refs["n_ref"] / 2)
+    if ctx.current:
+        op[ctx.current] = np.array(ctx.refs["i_ref"] / 2)
+    for c in model.boundaries.values():
+        op[c] = np.array(25.0)
+    env_base.update(op)
+    for k, expr in model.derived.items():
+        try:
+            env_base[k] = expr.compile()(env_base)
+        except Exception:  # noqa: BLE001 - tables at odd points; nominal scale is a guide only
+            env_base[k] = np.array(0.0)
+    names: dict[str, int] = {}
+    for i, spec in enumerate(conns):
+        a, b = (_end(x) for x in spec["between"])
+        name = f"{a}-{b}"
+        if name in names:
+            k = 2
+            while f"{name}#{k}" in names:
+                k += 1
+            name = f"{name}#{k}"
+        names[name] = i
+        edge = by_key.get(f"conductances[{i}]")
+        if edge is not None:
+            try:
+                g = float(np.asarray(edge.g.compile()(env_base)))
+                ctx.edge_r_nominal[i] = 1.0 / g if g > 0 else float("nan")
+            except Exception:  # noqa: BLE001
+                ctx.edge_r_nominal[i] = float("nan")
+        law = spec.get("g", spec.get("r"))
+        if law is None:
+            continue
+        ps = law_params(raw, law)
+        key = "+".join(sorted(ps)) if ps else name
+        ctx.groups.setdefault(key, []).append(i)
+    ctx.edges = names
+    return ctx
+
+
+def _loss_nodes(raw: Mapping[str, Any], pattern: re.Pattern[str]) -> list[int]:
+    return [i for i, spec in enumerate(raw.get("losses") or []) if pattern.search(str(spec.get("node", "")))]
+
+
+def _nodes_matching(model: Model, pattern: re.Pattern[str]) -> list[str]:
+    return [n for n in model.nodes if pattern.search(n)]
+
+
+def _boundary_edges(ctx: Context, boundary: str) -> list[int]:
+    """Raw indices of conductances to a boundary."""
+    return [i for i, spec in enumerate(ctx.raw.get("conductances") or []) if boundary in [str(x) for x in spec["between"]]]
+
+
+def _frame_nodes(ctx: Context) -> list[tuple[str, float]]:
+    """Frame nodes (outer surface to ambient) with their share of the frame's conductance to ambient."""
+    amb = [b for b in ctx.model.boundaries if "amb" in b.lower()] or list(ctx.model.boundaries)[:1]
+    out: dict[str, float] = {}
+    for b in amb:
+        for i in _boundary_edges(ctx, b):
+            spec = ctx.raw["conductances"][i]
+            node = next(_end(x) for x in spec["between"] if str(x) != b)
+            if node in ctx.model.nodes and FRAME_RE.search(node):
+                r = ctx.edge_r_nominal.get(i, float("nan"))
+                out[node] = out.get(node, 0.0) + (1.0 / r if r and np.isfinite(r) and r > 0 else 0.0)
+    tot = sum(out.values())
+    if not out or tot <= 0:
+        return []
+    return [(n, g / tot) for n, g in out.items()]
+
+
+def _iron_losses(ctx: Context) -> list[int]:
+    """Stator iron losses: loss laws at iron nodes that depend on speed (directly or via derived inputs)."""
+    raw = ctx.raw
+    speed_dep = {ctx.speed} if ctx.speed else set()
+    for k, expr in ctx.model.derived.items():  # in dependency order
+        if expr.free() & speed_dep:
+            speed_dep.add(k)
+    out = []
+    for i in _loss_nodes(raw, IRON_RE):
+        law = raw["losses"][i]["power"]
+        if MAGNET_RE.search(str(raw["losses"][i]["node"])):
+            continue
+        free = set(parse(law, _dummy_tables(raw)).free())
+        if free & speed_dep:
+            out.append(i)
+    return out
+
+
+def targets(ctx: Context, effect: Effect) -> list[str | None]:
+    """Every target of ``effect`` in the model (``[None]`` for an applicable effect without one,
+    ``[]`` when the model has nothing the effect can act on)."""
+    m = ctx.model
+    name = effect.name
+    if name == "copper_temperature":
+        return [None] if _loss_nodes(ctx.raw, WINDING_RE) else []
+    if name == "speed_convection":
+        return list(ctx.groups) if ctx.speed else []
+    if name == "iron_loss_frequency":
+        return [None] if ctx.speed and _iron_losses(ctx) else []
+    if name == "magnet_eddy_loss":
+        return [None] if ctx.speed and ctx.current and _nodes_matching(m, MAGNET_RE) else []
+    if name == "bearing_loss":
+        return [None] if ctx.speed and _nodes_matching(m, BEARING_RE) else []
+    if name in ("housing_radiation", "natural_convection"):
+        return [None] if _frame_nodes(ctx) else []
+    if name == "sensor_lag":
+        return [s for s, node in m.sensors.items() if not node.endswith("_probe")]
+    if name == "ambient_offset":
+        return list(m.boundaries)
+    if name == "contact_resistance":
+        return [n for n, i in ctx.edges.items() if np.isfinite(ctx.edge_r_nominal.get(i, float("nan")))]
+    raise EffectError(f"unknown effect {name!r}")
+
+
+def applicable(ctx: Context, names: Sequence[str] | None = None) -> list[Candidate]:
+    """All candidates (effect, target) the model admits."""
+    out = []
+    for name in names or CATALOGUE:
+        eff = get(name)
+        out.extend(Candidate(eff, t) for t in targets(ctx, eff))
+    return out
+
+
+def get(name: str) -> Effect:
+    try:
+        return CATALOGUE[name]
+    except KeyError:
+        raise EffectError(f"unknown effect {name!r} (known: {', '.join(CATALOGUE)})") from None
+
+
+# ------------------------------------------------------------------------------------------
+# parameters and application
+
+def param_names(ctx: Context, cand: Candidate) -> list[str]:
+    """The model parameter names of a candidate's parameters (unique in the document)."""
+    eff = cand.effect
+    tag = f"_{_sanitize(cand.target)}" if cand.target else ""
+    taken = set(ctx.raw.get("parameters") or {}) | set(ctx.raw.get("inputs") or {}) | \
+        set(ctx.raw.get("derived") or {}) | set(ctx.raw.get("constants") or {})
+    out = []
+    for p in eff.params:
+        base = f"{eff.abbr}{tag}_{p.short}"
+        name, k = base, 2
+        while name in taken and name not in out:
+            name = f"{base}{k}"
+            k += 1
+        out.append(name)
+    return out
+
+
+def scale(ctx: Context, cand: Candidate) -> float:
+    """Scale of the effect's parameters on its target (the nominal resistance for contact_resistance)."""
+    if cand.effect.scale_by_target and cand.target is not None:
+        r = ctx.edge_r_nominal.get(ctx.edges[cand.target], float("nan"))
+        return float(r) if np.isfinite(r) and r > 0 else 1.0
+    return 1.0
+
+
+def param_specs(ctx: Context, cand: Candidate, values: Mapping[str, float] | None = None) -> list[dict[str, Any]]:
+    """Parameter entries (``parameters:`` section) of a candidate; ``values`` by short name."""
+    sc = scale(ctx, cand)
+    values = dict(values or {})
+    out = []
+    for p in cand.effect.params:
+        lo, hi = p.lower * sc, p.upper * sc
+        v = float(values.get(p.short, p.nominal * sc))
+        lo, hi = min(lo, v), max(hi, v)
+        out.append({
+            "value": _num(v), "min": _num(lo), "max": _num(hi), "unit": p.unit, "adaptable": False,
+            "doc": f"{cand.label}: {p.doc}",
+        })
+    return out
+
+
+def _num(x: float) -> float:
+    return float(f"{x:.6g}")
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.6g}"
+
+
+@dataclass
+class Edit:
+    """One change of a model document (for the textual patch of the YAML file)."""
+
+    kind: str  # list_add | list_replace | map_add | map_replace
+    section: str
+    key: Any  # list index or mapping key (None for list_add)
+    entry: Any
+    label: str = ""
+
+
+def _speed_law(ctx: Context) -> str:
+    # kept off zero so that a fitted speed exponent has a finite derivative at standstill
+    return f"max(abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}, 1e-6)"
+
+
+def apply(ctx: Context, cand: Candidate, values: Mapping[str, float] | None = None,
+          inplace: bool = False) -> tuple[dict[str, Any], list[str], list[Edit]]:
+    """Add one candidate to ``ctx.raw`` (a copy is returned and ``ctx`` is left alone, unless ``inplace``).
+
+    Returns the new document, the new parameter names (in the effect's order) and the edits.
+    ``values`` sets parameters by short name (default: the zero-effect nominal values).
+    """
+    raw = ctx.raw if inplace else copy.deepcopy(ctx.raw)
+    edits: list[Edit] = []
+    names = param_names(ctx, cand)
+    specs = param_specs(ctx, cand, values)
+    raw.setdefault("parameters", {})
+    if raw["parameters"] is None:
+        raw["parameters"] = {}
+    for n, spec in zip(names, specs):
+        raw["parameters"][n] = spec
+        edits.append(Edit("map_add", "parameters", n, spec, cand.label))
+    P = dict(zip((p.short for p in cand.effect.params), names))
+    eff, tgt = cand.effect.name, cand.target
+    label = cand.label
+
+    def add_loss(node: str, law: str) -> None:
+        entry = {"node": node, "power": law}
+        raw.setdefault("losses", [])
+        raw["losses"].append(entry)
+        edits.append(Edit("list_add", "losses", None, entry, label))
+
+    def replace(section: str, i: int, entry: dict[str, Any]) -> None:
+        raw[section][i] = entry
+        edits.append(Edit("list_replace", section, i, entry, label))
+
+    if eff == "copper_temperature":
+        # X + a (T - t_ref) X(T = t_ref): the loss X rises by a per kelvin above t_ref. Written
+        # with X taken at t_ref the law stays affine in T when X is (fast simulation).
+        for i in _loss_nodes(ctx.raw, WINDING_RE):
+            spec = dict(raw["losses"][i])
+            node = spec["node"]
+            if node not in ctx.model.nodes:
+                continue
+            law = _law_str(spec["power"])
+            at_ref = re.sub(r"\bT\.[A-Za-z_][\w]*(?![\w.])", P["t_ref"], law)
+            spec["power"] = f"{law} + ({P['k100']} - 1) / 100 * (T.{node} - {P['t_ref']}) * ({at_ref})"
+            replace("losses", i, spec)
+    elif eff == "speed_convection":
+        if tgt not in ctx.groups:
+            raise EffectError(f"speed_convection: unknown conductance group {tgt!r} (known: {', '.join(ctx.groups)})")
+        fac = f"(1 + {P['k']} * ({_speed_law(ctx)}) ** {P['m']})"
+        for i in ctx.groups[tgt]:
+            spec = dict(raw["conductances"][i])
+            if "g" in spec:
+                spec["g"] = f"({_law_str(spec['g'])}) * {fac}"
+            else:
+                spec["r"] = f"({_law_str(spec['r'])}) / {fac}"
+            replace("conductances", i, spec)
+    elif eff == "iron_loss_frequency":
+        fac = f"(1 + {P['k']} * ({_speed_law(ctx)}) ** {P['m']})"
+        for i in _iron_losses(ctx):
+            spec = dict(raw["losses"][i])
+            spec["power"] = f"({_law_str(spec['power'])}) * {fac}"
+            replace("losses", i, spec)
+    elif eff == "magnet_eddy_loss":
+        nodes = _nodes_matching(ctx.model, MAGNET_RE)
+        x = f"abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])} * {ctx.current} / {_fmt(ctx.refs['i_ref'])}"
+        for node in nodes:
+            add_loss(node, f"{P['p']} / {len(nodes)} * ({x}) ** 2")
+    elif eff == "bearing_loss":
+        nodes = _nodes_matching(ctx.model, BEARING_RE)
+        for node in nodes:
+            add_loss(node, f"{P['p']} / {len(nodes)} * abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}")
+    elif eff in ("housing_radiation", "natural_convection"):
+        amb = next((b for b in ctx.model.boundaries if "amb" in b.lower()), next(iter(ctx.model.boundaries)))
+        ta = ctx.model.boundaries[amb]
+        for node, w in _frame_nodes(ctx):
+            if eff == "housing_radiation":
+                law = (f"-{P['eps_a']} * {_fmt(w)} * {SIGMA_SB:.6g} * ((T.{node} + 273.15) ** 4 - ({ta} + 273.15) ** 4)")
+            else:
+                law = f"-{P['h']} * {_fmt(w)} * max(T.{node} - {ta}, 0) ** 1.25"
+            add_loss(node, law)
+    elif eff == "sensor_lag":
+        sensors = raw.get("sensors") or {}
+        if tgt not in sensors:
+            raise EffectError(f"sensor_lag: unknown sensor {tgt!r} (known: {', '.join(sensors)})")
+        node = sensors[tgt]["node"]
+        probe = f"{_sanitize(tgt)}_probe"
+        k = 2
+        while probe in ctx.model.nodes or probe in (ctx.model.points or ()):
+            probe = f"{_sanitize(tgt)}_probe{k}"
+            k += 1
+        entry = {"name": probe, "capacity": f"{P['tau']} * {PROBE_G:g}"}
+        raw.setdefault("nodes", [])
+        raw["nodes"].append(entry)
+        edits.append(Edit("list_add", "nodes", None, entry, label))
+        cond = {"between": [node, probe], "g": PROBE_G}
+        raw.setdefault("conductances", [])
+        raw["conductances"].append(cond)
+        edits.append(Edit("list_add", "conductances", None, cond, label))
+        sspec = dict(sensors[tgt])
+        sspec["node"] = probe
+        raw["sensors"][tgt] = sspec
+        edits.append(Edit("map_replace", "sensors", tgt, sspec, label))
+    elif eff == "ambient_offset":
+        if tgt not in ctx.model.boundaries:
+            raise EffectError(f"ambient_offset: unknown boundary {tgt!r} (known: {', '.join(ctx.model.boundaries)})")
+        by_key = {e.key: e for e in ctx.model.edges}
+        for i in _boundary_edges(ctx, tgt):
+            edge = by_key[f"conductances[{i}]"]
+            add_loss(edge.a, f"{P['dT']} * ({edge.g})")
+    elif eff == "contact_resistance":
+        if tgt not in ctx.edges:
+            raise EffectError(f"contact_resistance: unknown conductance {tgt!r}")
+        i = ctx.edges[tgt]
+        spec = dict(raw["conductances"][i])
+        if "r" in spec:
+            spec["r"] = f"{_law_str(spec.pop('r'))} + {P['R']}"
+        elif "g" in spec:
+            spec["r"] = f"1 / ({_law_str(spec.pop('g'))}) + {P['R']}"
+        else:
+            spec["r"] = P["R"]
+        replace("conductances", i, spec)
+    else:  # pragma: no cover - get() already refused
+        raise EffectError(f"unknown effect {eff!r}")
+    return raw, names, edits
+
+
+def _law_str(law: Any) -> str:
+    return " ".join(str(law).split()) if isinstance(law, str) else repr(float(law))
+
+
+def augment(raw: Mapping[str, Any], cands: Sequence[tuple[Candidate, Mapping[str, float] | None]],
+            refs: Mapping[str, float], build: Callable[[dict[str, Any]], Model] | None = None,
+            model: Model | None = None) -> tuple[dict[str, Any], list[list[str]], list[Edit]]:
+    """Apply several candidates in turn (each on the document the previous one produced).
+
+    Returns the document, the parameter names of each candidate and all edits.
+    """
+    build = build or build_model
+    doc = copy.deepcopy(dict(raw))
+    names, edits = [], []
+    original = context(doc, model if model is not None else build(doc), refs, build)
+    model, built, version = original.model, 0, 0
+    for cand, values in cands:
+        # targets are resolved on the original document (later edits rename groups); the
+        # built model is refreshed only where an effect reads laws from it (ambient_offset)
+        if cand.effect.name == "ambient_offset" and built != version:
+            model, built = build(doc), version
+        ctx = Context(doc, model, dict(refs), original.groups, original.edges, original.edge_r_nominal)
+        doc, pn, ed = apply(ctx, cand, values, inplace=True)
+        version += 1
+        names.append(pn)
+        edits.extend(ed)
+    return doc, names, edits
+
+
+# ------------------------------------------------------------------------------------------
+# the --effect syntax
+
+def parse_spec(text: str) -> tuple[str, str | None, dict[str, float]]:
+    """Parse ``NAME[:TARGET][=PARAM=VALUE,...]`` into (name, target, {param: value}).
+
+    >>> parse_spec("speed_convection:R_e_hous=k=0.8,m=1.2")
+    ('speed_convection', 'R_e_hous', {'k': 0.8, 'm': 1.2})
+    """
+    head, sep, rest = text.strip().partition("=")
+    name, _, target = head.partition(":")
+    name = name.strip()
+    eff = get(name)
+    values: dict[str, float] = {}
+    if sep:
+        for item in rest.split(","):
+            k, s2, v = item.partition("=")
+            if not s2:
+                raise EffectError(f"--effect {text!r}: expected PARAM=VALUE, got {item!r}")
+            k = k.strip()
+            if k not in [p.short for p in eff.params]:
+                raise EffectError(f"--effect {text!r}: {name} has no parameter {k!r} "
+                                  f"(has: {', '.join(p.short for p in eff.params)})")
+            try:
+                values[k] = float(v)
+            except ValueError:
+                raise EffectError(f"--effect {text!r}: {v!r} is not a number") from None
+    return name, (target.strip() or None), values
+
+
+def hidden_candidate(ctx: Context, spec: str) -> tuple[Candidate, dict[str, float]]:
+    """The candidate and parameter values (defaults filled in) of one ``--effect`` spec."""
+    name, target, values = parse_spec(spec)
+    eff = get(name)
+    tg = targets(ctx, eff)
+    if not tg:
+        raise EffectError(f"--effect {spec!r}: model {ctx.model.name} has nothing {name} can act on")
+    if tg == [None]:
+        if target is not None:
+            raise EffectError(f"--effect {spec!r}: {name} takes no target")
+    elif target is None:
+        if eff.target_kind == "boundary" and tg:
+            target = next((b for b in tg if b and "amb" in b.lower()), tg[0])
+        else:
+            raise EffectError(f"--effect {spec!r}: {name} needs a target, one of: {', '.join(map(str, tg))}")
+    elif target not in tg:
+        raise EffectError(f"--effect {spec!r}: unknown target {target!r} for {name} (one of: {', '.join(map(str, tg))})")
+    cand = Candidate(eff, target)
+    sc = scale(ctx, cand)
+    full = {p.short: (p.default * sc if p.primary else p.default) for p in eff.params}
+    full.update(values)
+    return cand, full
+
+
+__all__ = [
+    "CATALOGUE", "Candidate", "Context", "Edit", "Effect", "EffectError", "EffectParam", "applicable", "apply",
+    "augment", "context", "get", "hidden_candidate", "param_names", "param_specs", "parse_spec", "references",
+    "targets",
+]
