@@ -1,0 +1,236 @@
+"""The systemd units: ``systemd-analyze verify``, the watchdog/notify protocol of the running
+service (``READY=1`` then ``WATCHDOG=1`` at half ``WATCHDOG_USEC``), the hardening that must not
+hide SocketCAN."""
+from __future__ import annotations
+
+import configparser
+import contextlib
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+import deploylib as dl
+
+UNIT = dl.DEPLOY / "systemd" / "thermal-edge.service"
+VCAN = dl.DEPLOY / "systemd" / "vcan.service"
+EXEC = Path("/opt/thermal-edge/bin/thermal-edge")
+
+
+def unit_entries(path: Path) -> dict[str, list[tuple[str, str]]]:
+    """Section -> [(key, value)] in file order (repeated keys kept)."""
+    out: dict[str, list[tuple[str, str]]] = {}
+    section = None
+    for raw in path.read_text().splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("["):
+            section = line.strip("[]")
+            out.setdefault(section, [])
+            continue
+        key, _, value = line.partition("=")
+        assert section is not None, f"{path.name}: {line!r} outside a section"
+        out[section].append((key.strip(), value.strip()))
+    return out
+
+
+def value(entries: list[tuple[str, str]], key: str) -> str | None:
+    vals = [v for k, v in entries if k == key]
+    return vals[-1] if vals else None
+
+
+def seconds(v: str) -> float:
+    total = 0.0
+    for num, unit in re.findall(r"(\d+(?:\.\d+)?)\s*(ms|s|min|h)?", v):
+        total += float(num) * {"ms": 1e-3, "s": 1.0, "min": 60.0, "h": 3600.0, "": 1.0}[unit]
+    return total
+
+
+def systemd_analyze() -> str:
+    exe = shutil.which("systemd-analyze")
+    if exe is None and os.geteuid() == 0 and shutil.which("apt-get"):
+        subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", "systemd"], capture_output=True,
+                       timeout=600, env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
+        exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze not available (apt-get install systemd)")
+    return exe
+
+
+@contextlib.contextmanager
+def exec_start_present() -> Iterator[None]:
+    """/opt/thermal-edge/bin/thermal-edge for the duration (a temporary symlink tree if absent)."""
+    if EXEC.exists():
+        yield
+        return
+    root = Path("/opt/thermal-edge")
+    if root.exists() or root.is_symlink():
+        pytest.skip(f"{root} exists without bin/thermal-edge: not touching it")
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix="thermal-edge-opt-"))
+    except OSError as exc:
+        pytest.skip(f"cannot create a temporary /opt/thermal-edge: {exc}")
+    try:
+        (tmp / "bin").mkdir()
+        target = dl.BIN / "thermal-edge"
+        if target.exists():
+            (tmp / "bin" / "thermal-edge").symlink_to(target)
+        else:
+            (tmp / "bin" / "thermal-edge").write_text(f"#!/bin/sh\nexec {dl.PY} -m thermal_edge.cli \"$@\"\n")
+            (tmp / "bin" / "thermal-edge").chmod(0o755)
+        try:
+            root.symlink_to(tmp)
+        except OSError as exc:
+            pytest.skip(f"cannot create a temporary {root}: {exc}")
+        try:
+            yield
+        finally:
+            root.unlink()
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def test_systemd_analyze_verify() -> None:
+    exe = systemd_analyze()
+    print(subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.splitlines()[0])
+    with exec_start_present():
+        r = subprocess.run([exe, "verify", str(UNIT), str(VCAN)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    # verify warns (exit 0) about unknown keys and bad values: none allowed
+    noise = [l for l in (r.stdout + r.stderr).splitlines() if l.strip()]
+    assert not noise, "\n".join(noise)
+
+
+def test_unit_contract() -> None:
+    u = unit_entries(UNIT)
+    s = u["Service"]
+    assert value(s, "Type") == "notify"
+    assert value(s, "ExecStart") == "/opt/thermal-edge/bin/thermal-edge run --config /etc/thermal-edge/edge.yaml"
+    assert value(s, "Restart") == "on-failure"
+    assert value(s, "StateDirectory") == "thermal-edge"
+    assert value(s, "ConfigurationDirectory") == "thermal-edge"
+    assert value(s, "DynamicUser") == "yes" or value(s, "User") not in (None, "root")
+    wd = seconds(value(s, "WatchdogSec") or "0")
+    # the service pings at WatchdogSec/2 and stops pinging when a tick is 3 s (3 ticks) late
+    assert 6.0 <= wd <= 60.0, wd
+    assert value(s, "RestartPreventExitStatus") == "2"  # bad configuration: restarting cannot help
+    for key, want in {"ProtectSystem": "strict", "ProtectHome": "yes", "PrivateTmp": "yes",
+                      "NoNewPrivileges": "yes", "CapabilityBoundingSet": ""}.items():
+        assert value(s, key) == want, key
+    fams = set((value(s, "RestrictAddressFamilies") or "").split())
+    assert {"AF_CAN", "AF_NETLINK", "AF_UNIX", "AF_INET", "AF_INET6"} <= fams
+    assert any(k == "SystemCallFilter" and v == "@system-service" for k, v in s)
+    # nothing that hides can0: no private network namespace, no restricted interfaces
+    assert value(s, "PrivateNetwork") in (None, "no")
+    assert value(s, "RestrictNetworkInterfaces") is None
+    assert value(s, "IPAddressDeny") is None or "any" not in (value(s, "IPAddressDeny") or "")
+    assert value(u["Install"], "WantedBy") == "multi-user.target"
+    v = unit_entries(VCAN)["Service"]
+    assert value(v, "Type") == "oneshot"
+    starts = [val for k, val in v if k == "ExecStart"]
+    assert any("modprobe vcan" in x for x in starts)
+    assert any("link add dev vcan0 type vcan" in x for x in starts)
+    assert any(x.endswith("vcan0 mtu 16 up") or x.endswith("vcan0 up") for x in starts)
+
+
+def test_unit_parses_as_ini() -> None:
+    cp = configparser.RawConfigParser(strict=False, interpolation=None)
+    cp.optionxform = str  # type: ignore[assignment,method-assign]
+    cp.read_string(UNIT.read_text())
+    assert {"Unit", "Service", "Install"} <= set(cp.sections())
+
+
+@pytest.mark.timeout(120)
+def test_notify_ready_then_watchdog(tmp_path: Path) -> None:
+    """The service under a fake systemd: READY=1, then WATCHDOG=1 every WATCHDOG_USEC/2, STOPPING=1 on SIGTERM."""
+    state = tmp_path / "state"
+    state.mkdir()
+    bus = {"interface": "virtual", "channel": f"notify-test-{os.getpid()}"}
+    cfg = dl.write_yaml(tmp_path / "edge.yaml", dl.service_config(state, bus=bus, metrics_port=None, clock="wall"))
+    sockdir = Path(tempfile.mkdtemp(prefix="te-notify-", dir="/tmp"))  # short path (sun_path < 108)
+    sock_path = sockdir / "notify.sock"
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(str(sock_path))
+    sock.settimeout(0.2)
+    log = tmp_path / "service.log"
+    watchdog_usec = 2_000_000
+    proc = subprocess.Popen([*dl.thermal_edge_cmd(), "run", "--config", str(cfg)],
+                            env=dl.env(NOTIFY_SOCKET=str(sock_path), WATCHDOG_USEC=str(watchdog_usec)),
+                            stdout=log.open("w"), stderr=subprocess.STDOUT)
+    msgs: list[tuple[float, str]] = []
+    try:
+        deadline = time.monotonic() + 60
+        pings = 0
+        while time.monotonic() < deadline and pings < 6:
+            if proc.poll() is not None:
+                break
+            try:
+                data = sock.recv(4096).decode()
+            except socket.timeout:
+                continue
+            msgs.append((time.monotonic(), data))
+            pings += sum(1 for l in data.splitlines() if l == "WATCHDOG=1")
+        assert proc.poll() is None, f"service exited {proc.returncode}:\n{log.read_text()}"
+        proc.send_signal(signal.SIGTERM)
+        end = time.monotonic() + 30
+        while time.monotonic() < end:
+            try:
+                msgs.append((time.monotonic(), sock.recv(4096).decode()))
+            except socket.timeout:
+                if proc.poll() is not None:
+                    break
+        rc = proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sock.close()
+        shutil.rmtree(sockdir, ignore_errors=True)
+    lines = [(t, l) for t, m in msgs for l in m.splitlines()]
+    kinds = [l.split("=", 1)[0] for _, l in lines if l.split("=", 1)[0] in ("READY", "WATCHDOG", "STOPPING")]
+    assert rc == 0, log.read_text()
+    assert kinds and kinds[0] == "READY", f"first notification must be READY=1, got {kinds[:5]}\n{log.read_text()}"
+    assert "READY=1" in [l for _, l in lines]
+    pings_t = [t for t, l in lines if l == "WATCHDOG=1"]
+    assert len(pings_t) >= 5, kinds
+    gaps = [b - a for a, b in zip(pings_t, pings_t[1:])]
+    gaps.sort()
+    median = gaps[len(gaps) // 2]
+    expected = watchdog_usec / 2e6
+    assert 0.6 * expected <= median <= 1.4 * expected, gaps
+    assert max(gaps) < watchdog_usec / 1e6, f"a ping gap reached WATCHDOG_USEC: {gaps}"
+    assert kinds[-1] == "STOPPING", kinds[-5:]
+    assert any(l.startswith("STATUS=") for _, l in lines)
+    assert (state / "state.json").exists(), "state not saved on SIGTERM"
+
+
+@pytest.mark.timeout(60)
+def test_state_directory_used_when_config_has_no_dir(tmp_path: Path) -> None:
+    """Under systemd the state goes to $STATE_DIRECTORY (StateDirectory=) when edge.yaml has no state.dir."""
+    raw = dl.service_config(tmp_path, bus={"interface": "virtual", "channel": f"sd-{os.getpid()}"}, metrics_port=None,
+                            clock="wall")
+    raw["state"].pop("dir")
+    cfg = dl.write_yaml(tmp_path / "edge.yaml", raw)
+    sd = tmp_path / "var-lib-thermal-edge"
+    sd.mkdir()
+    proc = subprocess.Popen([*dl.thermal_edge_cmd(), "run", "--config", str(cfg)], env=dl.env(STATE_DIRECTORY=str(sd)),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        time.sleep(4)
+        assert proc.poll() is None, proc.communicate()[0]
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, out
+    assert (sd / "state.json").exists(), out

@@ -1,0 +1,61 @@
+"""Fixtures of the service tests; ``async def`` tests run in a fresh event loop (no plugin needed)."""
+from __future__ import annotations
+
+import asyncio
+import inspect
+import itertools
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+if str(Path(__file__).parent) not in sys.path:  # svc_testlib importable under any --import-mode
+    sys.path.insert(0, str(Path(__file__).parent))
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+from svc_testlib import MODEL, free_udp_port, udp_available  # noqa: E402
+
+_ids = itertools.count()
+DEFAULT_ASYNC_TIMEOUT_S = 60.0
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "async_timeout(seconds): time limit of an async service test")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_pyfunc_call(pyfuncitem: pytest.Function) -> bool | None:
+    if not inspect.iscoroutinefunction(pyfuncitem.obj):
+        return None
+    marker = pyfuncitem.get_closest_marker("async_timeout")
+    timeout = float(marker.args[0]) if marker else DEFAULT_ASYNC_TIMEOUT_S
+    kwargs = {name: pyfuncitem.funcargs[name] for name in pyfuncitem._fixtureinfo.argnames}
+    asyncio.run(asyncio.wait_for(pyfuncitem.obj(**kwargs), timeout))
+    return True
+
+
+@pytest.fixture(scope="session")
+def model():
+    from thermal_edge.lptn import load_model
+
+    return load_model(MODEL)
+
+
+@pytest.fixture
+def channel() -> str:
+    """A virtual bus name unique to the test (python-can virtual buses are process-global)."""
+    return f"te-svc-{os.getpid()}-{next(_ids)}"
+
+
+@pytest.fixture(scope="session")
+def udp_ok() -> None:
+    why = udp_available(free_udp_port())
+    if why is not None:
+        pytest.skip(f"udp_multicast unavailable on this machine: {why}")
+
+
+@pytest.fixture
+def udp_port(udp_ok) -> int:  # noqa: ARG001
+    return free_udp_port()

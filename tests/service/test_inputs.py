@@ -1,0 +1,121 @@
+"""Input accumulation per tick, against direct computations on the same frame values."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from svc_testlib import EDGE_YAML
+from thermal_edge.bus import DecodedFrame, SensorStatus
+from thermal_edge.config import load_config
+from thermal_edge.service.clock import FrameClock, first_boundary
+from thermal_edge.service.inputs import InputAccumulator
+
+
+def frame(name: str, t: float, **signals: float) -> DecodedFrame:
+    return DecodedFrame(name, 0, dict(signals), 0, t)
+
+
+def stator(t: float, slot=60.0, end=62.0, hous=40.0, s_slot=0, s_end=0, s_hous=0) -> DecodedFrame:
+    return frame("INV_StatorTemps", t, INV_T_WindingSlot=slot, INV_T_EndWinding=end, INV_T_Housing=hous,
+                 INV_S_WindingSlot=s_slot, INV_S_EndWinding=s_end, INV_S_Housing=s_hous)
+
+
+def ambient(t: float, amb=25.0, status=0) -> DecodedFrame:
+    return frame("INV_AmbientTemps", t, INV_T_Ambient=amb, INV_T_Coolant=math.nan, INV_S_Ambient=status,
+                 INV_S_Coolant=int(SensorStatus.NOT_FITTED))
+
+
+@pytest.fixture
+def acc() -> InputAccumulator:
+    return InputAccumulator(load_config(EDGE_YAML))
+
+
+def test_current_is_the_root_mean_square_over_every_frame(acc):
+    rng = np.random.default_rng(1)
+    iq = 20 + 15 * np.sin(np.arange(100) / 3.0)  # strongly varying current within the tick
+    idd = rng.normal(0, 3, 100)
+    speed = 900 + rng.normal(0, 4, 100)
+    for k in range(100):
+        t = 10.0 + k * 0.01
+        acc.add(frame("INV_Currents", t, INV_Id=idd[k], INV_Iq=iq[k], INV_IphRms=0.0), t)
+        acc.add(frame("INV_Mechanics", t, INV_Speed=speed[k], INV_Torque=iq[k] * 3, INV_Udc=560.0), t)
+    acc.add(stator(10.5), 10.5)
+    acc.add(ambient(10.5), 10.5)
+    ti = acc.take(11.0)
+    expected = math.sqrt(np.mean(idd**2 + iq**2) / 2)  # peak d/q -> RMS phase current, mean square
+    square_of_mean = math.sqrt(np.mean(idd) ** 2 + np.mean(iq) ** 2) / math.sqrt(2)
+    assert ti.inputs["i_rms"] == pytest.approx(expected, rel=1e-12)
+    assert abs(expected - square_of_mean) > 0.5  # the distinction matters here
+    assert ti.inputs["speed_rpm"] == round(np.mean(speed))  # mean, rounded to the 1 rpm resolution
+    assert ti.inputs["torque_nm"] == pytest.approx(np.mean(iq * 3))
+    assert ti.inputs["ambient_c"] == 25.0
+    assert ti.measured == {"slot_winding": 60.0, "end_winding": 62.0, "housing": 40.0}
+    assert ti.ages["slot_winding"] == pytest.approx(0.5)
+    assert ti.frames["INV_Currents"] == 100 and not ti.stale and not ti.faults
+    # the next tick starts afresh; without current frames the value is held and flagged stale after the timeout
+    ti2 = acc.take(12.0)
+    assert ti2.inputs["i_rms"] == ti.inputs["i_rms"] and "i_rms" not in ti2.fresh
+    assert "INV_Currents" in ti2.stale  # 1 s > 0.5 s timeout
+
+
+def test_rms_mode_uses_the_phase_current_signal(tmp_path):
+    import yaml
+
+    from svc_testlib import REPO, write_yaml
+
+    raw = yaml.safe_load(EDGE_YAML.read_text())
+    raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
+    raw["codec"]["dbc"] = str(REPO / "dbc" / "thermal_edge.dbc")
+    raw["signals"]["inputs"]["i_rms"] = {"frame": "INV_Currents", "reduce": "rms", "signal": "INV_IphRms"}
+    acc = InputAccumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    vals = [10.0, 20.0, 30.0]
+    for k, v in enumerate(vals):
+        acc.add(frame("INV_Currents", k * 0.01, INV_Id=0.0, INV_Iq=0.0, INV_IphRms=v), k * 0.01)
+    assert acc.take(1.0).inputs["i_rms"] == pytest.approx(math.sqrt(np.mean(np.square(vals))))
+
+
+def test_sensor_faults_are_flagged_and_counted(acc):
+    acc.add(ambient(0.1), 0.1)
+    acc.add(stator(0.1, s_end=int(SensorStatus.OPEN_CIRCUIT), end=math.nan), 0.1)
+    ti = acc.take(1.0)
+    assert ti.faults == {"end_winding": "open_circuit"}
+    assert math.isnan(ti.measured["end_winding"]) and ti.measured["slot_winding"] == 60.0
+    acc.add(stator(1.1, s_slot=int(SensorStatus.SHORT_CIRCUIT)), 1.1)
+    acc.add(stator(1.2, hous=300.0), 1.2)  # valid status, implausible value
+    ti = acc.take(2.0)
+    assert ti.faults["slot_winding"] == "short_circuit" and ti.faults["housing"] == "out_of_range"
+    assert "end_winding" not in ti.faults  # it reported a valid value again
+    assert acc.bad_readings == {"open_circuit": 1, "short_circuit": 1, "out_of_range": 1}
+    # a sensor "not fitted" is no fault, just not measured
+    acc.add(stator(2.1, s_hous=int(SensorStatus.NOT_FITTED), hous=math.nan), 2.1)
+    ti = acc.take(3.0)
+    assert "housing" not in ti.faults and math.isnan(ti.measured["housing"])
+
+
+def test_stale_sensor_values_are_not_used(acc):
+    acc.add(stator(0.0), 0.0)
+    acc.add(ambient(0.0), 0.0)
+    assert acc.take(1.0).measured["housing"] == 40.0
+    ti = acc.take(5.0)  # the temperature frames stopped: older than their 1 s timeout
+    assert all(math.isnan(v) for v in ti.measured.values())
+    assert set(ti.stale) >= {"INV_StatorTemps", "INV_AmbientTemps"}
+    assert ti.inputs["ambient_c"] == 25.0  # the model keeps running on the last ambient
+    assert ti.ages["housing"] == pytest.approx(5.0)
+
+
+def test_malformed_frame_is_counted_not_raised(acc):
+    acc.add(frame("INV_Currents", 0.0, INV_Id=1.0), 0.0)  # signals missing
+    acc.add(frame("INV_Unknown", 0.0), 0.0)  # not mapped: ignored
+    assert acc.malformed == 1
+
+
+def test_frame_clock_ticks_at_boundaries_crossed():
+    c = FrameClock(1.0)
+    assert c.observe(100.2) == []
+    assert c.observe(100.9) == []
+    assert c.observe(101.0) == [101.0]
+    assert c.observe(100.5) == []  # backwards: ignored for the clock
+    assert c.observe(104.3) == [102.0, 103.0, 104.0]
+    assert first_boundary(7.0, 1.0) == 8.0 and first_boundary(7.2, 0.5) == 7.5

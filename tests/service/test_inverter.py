@@ -1,0 +1,92 @@
+"""The inverter emulator: its plant against the existing plant simulation, limits obeyed, aging,
+ambient drift, sensor noise and quantisation."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from svc_testlib import CYCLES, MODEL
+from thermal_edge.bus import DecodedFrame
+from thermal_edge.lptn import load_model
+from thermal_edge.sim.cycles import cycle_run, load_cycle
+from thermal_edge.sim.inverter import TABLE4_VARIATIONS, EmulatorConfig, InverterEmulator, table4_parameters
+from thermal_edge.sim.plant import simulate_plant
+
+
+def emulator(**kw) -> InverterEmulator:
+    base = dict(model_path=MODEL, cycle_path=CYCLES / "varied_drive.yaml", t0=0.0, current_period_s=0.1,
+                temperature_period_s=1.0, plant_dt_s=0.5, duration_s=1200.0)
+    base.update(kw)
+    return InverterEmulator(EmulatorConfig(**base))
+
+
+def run_offline(emu: InverterEmulator, seconds: float) -> list:
+    frames = []
+    while emu.elapsed < seconds - 1e-9:
+        frames += emu._step(None)
+    return frames
+
+
+def test_open_loop_plant_matches_the_plant_simulation():
+    params = table4_parameters(load_model(MODEL), -1.0)  # any parameters of its own
+    emu = emulator(params=params, noise_k=0.0, resolution_k=0.0, closed_loop=False)
+    run_offline(emu, 1200.0)
+    model = load_model(MODEL)
+    ref = simulate_plant(model, cycle_run(load_cycle(CYCLES / "varied_drive.yaml"), 5.6, 1200.0), params,
+                         noise_k=0, resolution_k=0)
+    T = np.array(emu.trace_T)  # every simulated second
+    assert T.shape[0] == 1200
+    assert np.max(np.abs(T - ref.truth.T[:1200])) < 0.05
+
+
+def test_frames_carry_the_plant_and_obey_the_limits():
+    emu = emulator(noise_k=0.0, resolution_k=0.1)
+    frames = run_offline(emu, 60.0)  # varied_drive starts at 600 rpm, 40 Nm
+    cur = [s for t, n, s in frames if n == "INV_Currents"]
+    mech = [s for t, n, s in frames if n == "INV_Mechanics"]
+    assert len(cur) == len(mech) == 600
+    assert cur[0]["INV_Iq"] == pytest.approx(math.sqrt(2) * 40 / 5.6) and cur[0]["INV_Id"] == 0.0
+    temps = [s for t, n, s in frames if n == "INV_StatorTemps"]
+    assert len(temps) == 60 and all(abs(s["INV_T_Housing"] * 10 - round(s["INV_T_Housing"] * 10)) < 1e-9 for s in temps)
+    ts = [t for t, n, s in frames]
+    assert ts == sorted(ts) and ts[0] == 0.0
+    # a TE_Limits arrives: the torque is clamped to the current limit times kt
+    emu._on_frame(DecodedFrame("TE_Limits", 0x2A0, {"TE_TorqueLimit": 200.0, "TE_CurrentLimit": 5.0, "TE_DerateActive": 1,
+                                                    "TE_DerateReason": 1}, 0, 0.0))
+    frames = emu._step(emu.limits_wall)
+    mech = [s for t, n, s in frames if n == "INV_Mechanics"]
+    assert all(s["INV_Torque"] == pytest.approx(5.0 * 5.6) for s in mech)
+    assert emu.summary.limited_s > 0
+    # open loop ignores them
+    emu2 = emulator(closed_loop=False)
+    run_offline(emu2, 10.0)
+    emu2._on_frame(DecodedFrame("TE_Limits", 0x2A0, {"TE_TorqueLimit": 1.0, "TE_CurrentLimit": 1.0, "TE_DerateActive": 1,
+                                                     "TE_DerateReason": 1}, 0, 0.0))
+    mech = [s for t, n, s in emu2._step(emu2.limits_wall) if n == "INV_Mechanics"]
+    assert all(s["INV_Torque"] == pytest.approx(40.0) for s in mech)
+
+
+def test_limits_absent_fall_back_to_the_inverters_own_protection():
+    emu = emulator(fallback_current_a=0.0, limits_timeout_s=0.3)
+    run_offline(emu, 10.0)
+    mech = [s for t, n, s in emu._step(123.0) if n == "INV_Mechanics"]  # no TE_Limits ever: tripped, standstill
+    assert all(s["INV_Torque"] == 0.0 and s["INV_Speed"] == 0.0 for s in mech)
+
+
+def test_aging_and_ambient_drift():
+    emu = emulator(aging={"R_e_hous": 0.1}, ambient_drift_k=2.0, ambient_drift_period_s=400.0, duration_s=3600.0)
+    i = emu.model.parameter_names.index("R_e_hous")
+    r0 = emu.plant.theta[i]
+    run_offline(emu, 1800.0)
+    assert emu.plant.theta[i] == pytest.approx(r0 * (1 + 0.1 * (1800 - 60) / 3600), rel=0.02)  # updated every 60 s
+    amb = np.array(emu.trace_i)[:, 2]
+    assert amb.max() == pytest.approx(27.0, abs=0.05) and amb.min() == pytest.approx(23.0, abs=0.05)
+
+
+def test_table4_variations():
+    m = load_model(MODEL)
+    p = table4_parameters(m)
+    nominal = dict(zip(m.parameter_names, m.nominal()))
+    assert {k: p[k] - nominal[k] for k in p} == pytest.approx(TABLE4_VARIATIONS)

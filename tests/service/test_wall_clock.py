@@ -1,0 +1,52 @@
+"""The service as on a drive: wall clock, real time. Ticks at 1 Hz from the timer, TE_Limits every
+100 ms and the 1 s frames from cyclic senders, metrics on 127.0.0.1, watchdog pings while ticking."""
+from __future__ import annotations
+
+import asyncio
+import time
+import urllib.request
+
+import pytest
+
+from svc_testlib import NotifySocket, edge_raw, emulator_config, write_yaml
+from thermal_edge.bus import DerateReason
+from thermal_edge.config import load_config
+from thermal_edge.service import EdgeService
+from thermal_edge.service.systemd import SystemdNotifier
+from thermal_edge.sim.inverter import InverterEmulator
+
+
+@pytest.mark.async_timeout(40)
+async def test_real_time_service_on_the_wall_clock(tmp_path, channel):
+    raw = edge_raw(tmp_path / "state", {"interface": "virtual", "channel": channel}, table4=False, adapt=False,
+                   metrics_port=0, clock={"mode": "wall"})
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
+    notify = NotifySocket(tmp_path / "notify")
+    notify.start_thread()
+    svc = EdgeService(cfg, notifier=SystemdNotifier({"NOTIFY_SOCKET": notify.address, "WATCHDOG_USEC": "600000"}))
+    await svc.start()
+    try:
+        host, port = svc.metrics_address
+        assert host == "127.0.0.1"
+        emu = InverterEmulator(emulator_config(duration_s=4.5, speed=1.0, t0=time.time(), current_period_s=0.01,
+                                               temperature_period_s=0.1, plant_dt_s=0.1, flow_control=False),
+                               {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
+        t = time.monotonic()
+        s = await emu.run()
+        assert time.monotonic() - t == pytest.approx(4.5, abs=0.6)  # real time
+        body = await asyncio.get_running_loop().run_in_executor(
+            None, lambda: urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode())
+    finally:
+        await svc.stop()
+        notify.close()
+    assert 3 <= svc.engine.ticks <= 6
+    assert 35 <= s.frames_received["TE_Limits"] <= 55  # every 100 ms
+    assert 3 <= s.frames_received["TE_Status"] <= 6  # every second
+    assert s.rx_lost == 0 and svc.codec.stats.lost == 0
+    assert svc.max_lateness_s < 0.2
+    assert svc.engine.last.initialized
+    assert s.limits_received and emu.last_reason in (DerateReason.STARTING, DerateReason.NONE, DerateReason.LOOK_AHEAD)
+    assert "thermal_edge_up 1.0" in body and "thermal_edge_ticks_total" in body
+    msgs = list(notify.messages)
+    assert msgs[0].startswith("READY=1") and msgs.count("WATCHDOG=1") >= 10  # every 0.3 s while ticking
+    assert msgs[-1].startswith("STOPPING=1")

@@ -1,0 +1,72 @@
+"""``thermal-edge run``: the edge service (CAN in, derating out), e.g. under systemd.
+
+Reads and validates the configuration, loads the saved state, opens the bus and runs until
+SIGTERM/SIGINT, which save the state and exit 0. Bad configuration exits 2 with one line naming
+the file and the key.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import sys
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    p = sub.add_parser("run", help="run the edge service", description=__doc__)
+    p.add_argument("--config", required=True, help="service configuration (config/edge.yaml)")
+    p.add_argument("--log-level", default=os.environ.get("THERMAL_EDGE_LOG_LEVEL", "info"), choices=LOG_LEVELS,
+                   help="log level (default info; env THERMAL_EDGE_LOG_LEVEL)")
+    p.add_argument("--check", action="store_true", help="validate the configuration, model and DBC, then exit")
+    p.set_defaults(func=run)
+
+
+def setup_logging(level: str) -> None:
+    # under systemd the journal adds the time; elsewhere keep it
+    fmt = "%(levelname)s %(name)s: %(message)s" if os.environ.get("INVOCATION_ID") else \
+        "%(asctime)s %(levelname)s %(name)s: %(message)s"
+    logging.basicConfig(level=getattr(logging, level.upper()), format=fmt, stream=sys.stderr)
+
+
+def fail(msg: str) -> int:
+    print(f"thermal-edge run: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    setup_logging(args.log_level)
+    from ..bus import BusConfigError, DbcError
+    from ..config import ConfigError, load_config
+
+    try:
+        config = load_config(args.config)
+        from ..service import EdgeService
+        from ..service.engine import load_service_model
+
+        model = load_service_model(config)
+        config.check_model(model)
+        if args.check:
+            from ..bus import FrameCodec
+            from ..bus.frames import DEFAULT_DBC_PATH
+
+            config.check_dbc(FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH))
+            print(f"{config.fname}: ok (model {model.name}, {len(model.nodes)} nodes, bus {config.bus.interface})")
+            return 0
+        service = EdgeService(config, model=model)
+    except (ConfigError, DbcError, BusConfigError) as exc:
+        return fail(str(exc).strip().splitlines()[0])
+    except OSError as exc:
+        return fail(f"{getattr(exc, 'filename', None) or ''}: {exc.strerror or exc}".lstrip(": "))
+    try:
+        return asyncio.run(service.run())
+    except (BusConfigError, ConfigError) as exc:
+        return fail(str(exc).strip().splitlines()[0])
+    except Exception as exc:  # e.g. an interface python-can does not have
+        import can
+
+        if isinstance(exc, (can.CanInterfaceNotImplementedError, can.CanInitializationError)):
+            return fail(f"{config.fname}: bus: {exc}")
+        raise

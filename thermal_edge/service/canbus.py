@@ -1,0 +1,117 @@
+"""The service's access to the bus: clock-stamped sends and buses that keep frame timestamps.
+
+- :class:`ClockedTransport` -- a :class:`~thermal_edge.bus.CanTransport` whose sent (and
+  recorded) frames carry the service's clock time instead of the wall time, so a candump log of a
+  replay or an accelerated run is in one consistent time base.
+- :func:`bus_factory` -- opens the configured bus; with ``preserve_timestamps: true`` in the bus
+  options the receiver keeps the sender's timestamps (``virtual`` supports this natively;
+  ``udp_multicast`` through :class:`TimestampedUdpMulticastBus`), which is how simulated time
+  travels with the frames. ``udp_multicast`` sockets also get a larger receive buffer
+  (``rcvbuf_bytes``, default 4 MiB) so that short stalls of the receiver do not drop datagrams.
+"""
+from __future__ import annotations
+
+import logging
+import socket
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import can
+from can.interfaces.udp_multicast import UdpMulticastBus
+from can.interfaces.udp_multicast.utils import unpack_message
+
+from ..bus.busconfig import BusConfig, _assert_hop_limit_zero, bus_kwargs, create_bus
+from ..bus.transport import CanTransport
+
+__all__ = ["ClockedTransport", "TimestampedUdpMulticastBus", "bus_factory"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_RCVBUF = 4 * 1024 * 1024
+
+
+class TimestampedUdpMulticastBus(UdpMulticastBus):
+    """``udp_multicast`` bus that can keep the sender's message timestamps on reception."""
+
+    def __init__(self, *args: Any, preserve_timestamps: bool = False, rcvbuf_bytes: int = DEFAULT_RCVBUF,
+                 **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.preserve_timestamps = bool(preserve_timestamps)
+        sock = getattr(getattr(self, "_multicast", None), "_socket", None)
+        if sock is not None and rcvbuf_bytes:
+            for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+                if opt is None:
+                    continue
+                try:
+                    sock.setsockopt(socket.SOL_SOCKET, opt, int(rcvbuf_bytes))
+                    break
+                except OSError:
+                    continue
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self.preserve_timestamps:
+            return super()._recv_internal(timeout)
+        result = self._multicast.recv(timeout)
+        if not result:
+            return None, False
+        data, _, kernel_ts = result
+        try:
+            msg = unpack_message(data, check=True)
+        except Exception as exc:
+            raise can.CanOperationError("could not unpack received message") from exc
+        if not msg.timestamp:
+            msg.timestamp = kernel_ts
+        return msg, False
+
+
+def bus_factory(config: BusConfig) -> can.BusABC:
+    """Open the bus of a configuration (see the module docstring for the extras)."""
+    if config.interface != "udp_multicast":
+        return create_bus(config)
+    kwargs = bus_kwargs(config)
+    kwargs.pop("interface")
+    preserve = bool(kwargs.pop("preserve_timestamps", False))
+    rcvbuf = int(kwargs.pop("rcvbuf_bytes", DEFAULT_RCVBUF))
+    bus = TimestampedUdpMulticastBus(preserve_timestamps=preserve, rcvbuf_bytes=rcvbuf, **kwargs)
+    _assert_hop_limit_zero(bus)
+    return bus
+
+
+class ClockedTransport(CanTransport):
+    """A :class:`CanTransport` whose sent frames are stamped by ``timestamp_fn`` (default wall time).
+
+    Parameters are those of :class:`CanTransport` plus ``timestamp_fn``; the bus factory defaults
+    to :func:`bus_factory`.
+    """
+
+    def __init__(self, config: BusConfig | Mapping[str, Any], codec: Any = None, *,
+                 timestamp_fn: Callable[[], float] = time.time, bus_factory: Callable[[BusConfig], can.BusABC] = bus_factory,
+                 **kwargs: Any) -> None:
+        super().__init__(config, codec, bus_factory=bus_factory, **kwargs)
+        self.timestamp_fn = timestamp_fn
+
+    def send_raw(self, arbitration_id: int, data: bytes) -> bool:
+        bus = self._bus
+        if bus is None or self._failed_flag:
+            self.stats.tx_failed += 1
+            return False
+        try:
+            ts = float(self.timestamp_fn())
+        except Exception:
+            ts = time.time()
+        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False, is_rx=False, timestamp=ts)
+        try:
+            bus.send(msg, timeout=self.config.send_timeout_s)
+        except can.CanTimeoutError as exc:
+            self.stats.tx_failed += 1
+            log.debug("send 0x%03X timed out: %s", arbitration_id, exc)
+            return False
+        except Exception as exc:
+            self.stats.tx_failed += 1
+            self._on_bus_error(exc, "send")
+            return False
+        self.stats.tx_frames += 1
+        if self._recorder is not None:
+            self._recorder.write(msg)
+        return True

@@ -1,0 +1,243 @@
+"""Input accumulation per tick: CAN frames -> the model's inputs and the sensor readings.
+
+Per tick (the frames of ``[t - period, t)``):
+
+- currents: the **mean of i²** over every current frame (copper loss needs the mean square, not
+  the square of the mean): ``dq_rms`` gives ``i_rms = sqrt(mean(i_d² + i_q²) / 2)`` from the d/q
+  peak amplitudes, ``rms`` gives ``sqrt(mean(x²))`` of one signal (e.g. ``INV_IphRms``);
+- ``mean`` inputs (speed, torque): the mean over the tick's frames (optionally rounded to a
+  resolution, which keeps the model's per-operating-point matrix cache effective);
+- ``latest`` inputs (ambient) and the sensors: the latest valid reading, with its age and status.
+
+A frame type that has not arrived for longer than its timeout makes its inputs *stale*; a sensor
+reporting open/short circuit, or a value outside the plausible range, is *faulty*. An input with
+no fresh value keeps its last value (the model must keep running) and is flagged. Bad readings
+are counted by kind in :attr:`InputAccumulator.bad_readings`.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Mapping
+
+from ..bus.codec import DecodedFrame
+from ..bus.frames import SensorStatus
+from ..config import EdgeConfig, InputSignal, SensorSignal
+
+__all__ = ["InputAccumulator", "TickInputs"]
+
+
+@dataclass
+class TickInputs:
+    """What one tick knows about the machine.
+
+    Attributes
+    ----------
+    t : float
+        Tick time (end of the interval), s.
+    inputs : dict
+        Model input name -> value (held from earlier ticks when nothing fresh arrived; NaN if
+        never received).
+    measured : dict
+        Sensor name -> reading in degC, NaN when not usable (invalid, stale, not fitted).
+    ages : dict
+        Sensor/input name -> seconds since its last valid value (inf if never).
+    status : dict
+        Sensor/input name -> last :class:`SensorStatus` (None when it has no status signal).
+    stale : list of str
+        Frames (by name) missing for longer than their timeout.
+    faults : dict
+        Sensor/input name -> fault kind (``open_circuit``, ``short_circuit``, ``out_of_range``,
+        ``no_value``) for the required ones.
+    frames : Counter
+        Accepted frames of the tick per frame name.
+    fresh : set of str
+        Inputs that received at least one value during this tick.
+    """
+
+    t: float
+    inputs: dict[str, float]
+    measured: dict[str, float]
+    ages: dict[str, float] = field(default_factory=dict)
+    status: dict[str, int | None] = field(default_factory=dict)
+    stale: list[str] = field(default_factory=list)
+    faults: dict[str, str] = field(default_factory=dict)
+    frames: Counter[str] = field(default_factory=Counter)
+    fresh: set[str] = field(default_factory=set)
+
+    @property
+    def complete(self) -> bool:
+        """Every model input has a finite value."""
+        return all(math.isfinite(v) for v in self.inputs.values())
+
+
+class _Latest:
+    __slots__ = ("value", "t", "status", "fault", "tick_fault")
+
+    def __init__(self) -> None:
+        self.value = math.nan
+        self.t = -math.inf
+        self.status: int | None = None
+        self.fault: str | None = None  # of the latest reading
+        self.tick_fault: str | None = None  # any fault seen during the current tick (reported with it)
+
+
+_STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatus.SHORT_CIRCUIT): "short_circuit"}
+
+
+class InputAccumulator:
+    """Accumulate decoded frames into :class:`TickInputs`, one tick at a time.
+
+    Parameters
+    ----------
+    config : EdgeConfig
+        Signal mapping (``signals``), plausible range and frame timeouts.
+    """
+
+    def __init__(self, config: EdgeConfig) -> None:
+        self.config = config
+        self.lo, self.hi = config.valid_range_c
+        self.reduced: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce != "latest"}
+        self.latest_inputs: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce == "latest"}
+        self.sensors: dict[str, SensorSignal] = dict(config.sensors)
+        # per frame: what to do with it
+        self._by_frame: dict[str, list[tuple[str, object]]] = {}
+        for name, spec in self.reduced.items():
+            self._by_frame.setdefault(spec.frame, []).append(("reduce", (name, spec)))
+        for name, spec in self.latest_inputs.items():
+            self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signals[0], spec.status)))
+        for name, spec in self.sensors.items():
+            self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signal, spec.status)))
+        self._sum = {k: 0.0 for k in self.reduced}
+        self._n = {k: 0 for k in self.reduced}
+        self._held = {k: math.nan for k in config.inputs}
+        self._latest: dict[str, _Latest] = {k: _Latest() for k in [*self.latest_inputs, *self.sensors]}
+        self._last_frame_t: dict[str, float] = {}
+        self._frames: Counter[str] = Counter()
+        self.started_t: float | None = None
+        #: Readings rejected, by kind (``open_circuit``, ``short_circuit``, ``out_of_range``, ``no_value``).
+        self.bad_readings: Counter[str] = Counter()
+        #: Frames whose signals did not have the expected names/values (counted, ignored).
+        self.malformed: int = 0
+
+    @property
+    def frames_of_interest(self) -> frozenset[str]:
+        return frozenset(self._by_frame)
+
+    def last_frame_time(self, frame: str) -> float:
+        return self._last_frame_t.get(frame, -math.inf)
+
+    # ------------------------------------------------------------------------------------------
+    def add(self, frame: DecodedFrame, t: float) -> None:
+        """Accumulate one accepted frame received at clock time ``t``; never raises."""
+        actions = self._by_frame.get(frame.name)
+        if self.started_t is None:
+            self.started_t = t
+        if actions is None:
+            return
+        try:
+            sig = frame.signals
+            for kind, arg in actions:
+                if kind == "reduce":
+                    name, spec = arg  # type: ignore[misc]
+                    self._reduce(name, spec, sig)
+                else:
+                    name, signal, status = arg  # type: ignore[misc]
+                    self._latest_value(name, signal, status, sig, t)
+        except (KeyError, TypeError, ValueError):
+            self.malformed += 1
+            return
+        self._last_frame_t[frame.name] = t
+        self._frames[frame.name] += 1
+
+    def _reduce(self, name: str, spec: InputSignal, sig: Mapping[str, float]) -> None:
+        if spec.reduce == "dq_rms":
+            d, q = float(sig[spec.signals[0]]), float(sig[spec.signals[1]])
+            x = 0.5 * (d * d + q * q)
+        else:
+            x = float(sig[spec.signals[0]])
+            if spec.reduce == "rms":
+                x = x * x
+        if not math.isfinite(x):
+            self.bad_readings["no_value"] += 1
+            return
+        self._sum[name] += x
+        self._n[name] += 1
+
+    def _latest_value(self, name: str, signal: str, status_sig: str | None, sig: Mapping[str, float], t: float) -> None:
+        slot = self._latest[name]
+        value = float(sig[signal])
+        status = int(sig[status_sig]) if status_sig else None
+        slot.status = status
+        fault: str | None = None
+        if status is not None and status in _STATUS_FAULT:
+            fault = _STATUS_FAULT[status]
+        elif status == int(SensorStatus.NOT_FITTED):
+            slot.fault = None
+            slot.value = math.nan
+            return
+        elif not math.isfinite(value):
+            fault = "no_value"
+        elif not self.lo <= value <= self.hi:
+            fault = "out_of_range"
+        if fault is not None:
+            if slot.fault != fault:
+                self.bad_readings[fault] += 1
+            slot.fault = slot.tick_fault = fault
+            return
+        slot.fault = None
+        slot.value = value
+        slot.t = t
+
+    # ------------------------------------------------------------------------------------------
+    def take(self, t: float) -> TickInputs:
+        """The tick ending at ``t``; resets the per-tick sums."""
+        inputs: dict[str, float] = {}
+        fresh: set[str] = set()
+        for name, spec in self.reduced.items():
+            n = self._n[name]
+            if n:
+                mean = self._sum[name] / n
+                v = math.sqrt(max(mean, 0.0)) if spec.reduce in ("rms", "dq_rms") else mean
+                if spec.resolution:
+                    v = round(v / spec.resolution) * spec.resolution
+                self._held[name] = v
+                fresh.add(name)
+            inputs[name] = self._held[name]
+            self._sum[name] = 0.0
+            self._n[name] = 0
+        ages: dict[str, float] = {}
+        status: dict[str, int | None] = {}
+        faults: dict[str, str] = {}
+        for name in self.latest_inputs:
+            slot = self._latest[name]
+            inputs[name] = slot.value
+            ages[name] = t - slot.t
+            status[name] = slot.status
+            if slot.fault or slot.tick_fault:
+                faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
+            slot.tick_fault = None
+            if slot.t > t - self.config.clock.tick_s:
+                fresh.add(name)
+        measured: dict[str, float] = {}
+        timeouts = self.config.timeouts
+        for name, spec in self.sensors.items():
+            slot = self._latest[name]
+            ages[name] = t - slot.t
+            status[name] = slot.status
+            limit = timeouts.get(spec.frame)
+            usable = slot.fault is None and math.isfinite(slot.value) and (limit is None or ages[name] <= limit)
+            measured[name] = slot.value if usable else math.nan
+            if (slot.fault or slot.tick_fault) and spec.required:
+                faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
+            slot.tick_fault = None
+        stale = [f for f, limit in timeouts.items() if t - self._last_frame_t.get(f, self.started_t if self.started_t is not None else -math.inf) > limit]
+        frames, self._frames = self._frames, Counter()
+        return TickInputs(t, inputs, measured, ages, status, stale, faults, frames, fresh)
+
+    def reset(self) -> None:
+        """Forget the per-tick sums (after a gap)."""
+        for k in self._sum:
+            self._sum[k] = 0.0
+            self._n[k] = 0

@@ -1,0 +1,162 @@
+"""Look-ahead: the largest RMS current that keeps every limited node under its limit over a
+horizon, and the time to limit at the present load.
+
+Over the horizon the inputs are held (present speed and ambient, constant current ``i``). The
+network is affine in the losses, and at a given speed every loss is affine in ``i²`` (copper
+``3 R20 i² (1 + α (T - 20))``, the current-dependent parts of iron and magnet losses). With the
+temperature coefficient of the copper evaluated at a fixed, conservative temperature (the highest
+limit of the model, so the winding resistance is never underestimated), the trajectory at every
+checkpoint ``k`` of the horizon is
+
+    T_k = c_k + i² d_k,
+
+where ``c_k`` follows from the present (upper-band) state with the current-independent losses and
+``d_k`` from the loss per ampere² starting at zero. Each limited node ``l`` then allows
+``i² <= (max_l - c_k,l) / d_k,l`` at every checkpoint: the look-ahead current is the square root
+of the smallest bound. No search. The time to limit at the present ``i²`` is the first checkpoint
+where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from ..lptn import Model, Stepper
+
+__all__ = ["Lookahead", "LookaheadResult"]
+
+
+@dataclass
+class LookaheadResult:
+    current_a: float  # largest RMS current that keeps every limit over the horizon (inf if unbounded)
+    time_to_limit_s: float  # at the present load; inf if not within the horizon, 0 if already over
+    binding: str | None  # limit that binds the look-ahead current
+
+
+def _loss_inputs(model: Model) -> set[str]:
+    """Model inputs the loss laws depend on (through derived quantities too)."""
+    seen: set[str] = set()
+    todo = [n for loss in model.losses for n in loss.power.free()]
+    while todo:
+        n = todo.pop()
+        if n in seen:
+            continue
+        seen.add(n)
+        if n in model.derived:
+            todo.extend(model.derived[n].free())
+    return seen & set(model.inputs)
+
+
+class Lookahead:
+    """Affine look-ahead over ``horizon_s`` with ``steps`` checkpoints.
+
+    Parameters
+    ----------
+    model : Model
+    theta : ndarray
+        Parameters (update with :meth:`set_parameters`).
+    limits : sequence of (name, node index, max °C)
+    horizon_s : float
+    steps : int
+        Checkpoints over the horizon (the ZOH step is ``horizon_s / steps``).
+    current_input : str
+        The model input that carries the RMS current (``i_rms``).
+    loss_temperature_c : float
+        Temperature at which temperature-dependent losses are evaluated (conservative: the highest
+        limit).
+    """
+
+    def __init__(self, model: Model, theta: np.ndarray, limits: Sequence[tuple[str, int, float]], horizon_s: float,
+                 steps: int, current_input: str = "i_rms", loss_temperature_c: float | None = None) -> None:
+        self.model = model
+        self.limits = list(limits)
+        self.horizon_s = float(horizon_s)
+        self.steps = int(steps)
+        self.dt = self.horizon_s / self.steps
+        self.stepper = Stepper(model, theta, self.dt, method="zoh")
+        self.current_input = current_input
+        self.rows = np.array([i for _, i, _ in self.limits], dtype=int)
+        self.max_c = np.array([m for _, _, m in self.limits], dtype=float)
+        self.loss_T = float(loss_temperature_c if loss_temperature_c is not None else self.max_c.max())
+        self.nb = len(model.boundaries)
+        # inputs that change the operator: those entering conductances or losses, except the current
+        # and the boundary temperatures (which enter through U)
+        bounds = set(model.boundaries.values())
+        used = set(self.stepper.net.matrix_inputs) | _loss_inputs(model)
+        self._key_inputs = tuple(k for k in model.inputs if k in used and k != current_input and k not in bounds)
+        self._cache: dict[tuple[float, ...], tuple[np.ndarray, ...]] = {}
+        self.cache_size = 64  # operating points (each ~75 kB for 60 checkpoints)
+
+    def set_parameters(self, theta: np.ndarray) -> None:
+        self.stepper.set_parameters(theta)
+        self._cache.clear()
+
+    def _operator(self, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per operating point (the inputs that enter conductances and losses, except the current and
+        the boundary temperatures): the limited rows of ``Φ^k`` and of ``Σ_{j<k} Φ^j`` for every
+        checkpoint, the boundary input matrix and the two loss forcings (cached)."""
+        st = self.stepper
+        key = tuple(float(inputs[k]) for k in self._key_inputs)
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        Phi, Gam = st.matrices(inputs)
+        n = Phi.shape[0]
+        T_eval = np.full(n, self.loss_T)
+        P0 = st.losses(T_eval, {**inputs, self.current_input: 0.0})
+        P1 = st.losses(T_eval, {**inputs, self.current_input: 1.0}) - P0  # loss per A²
+        GU, GP = Gam[:, : self.nb], Gam[:, self.nb:]
+        R = np.empty((self.steps, len(self.rows), n))  # rows of Φ^k, k = 1..steps
+        S = np.empty_like(R)  # rows of Σ_{j<k} Φ^j
+        Pk = np.eye(n)
+        Sk = np.zeros((n, n))
+        for k in range(self.steps):
+            Sk = Sk + Pk
+            Pk = Phi @ Pk
+            R[k], S[k] = Pk[self.rows], Sk[self.rows]
+        hit = (R, S, GU, GP @ P0, GP @ P1)
+        if len(self._cache) >= self.cache_size:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = hit
+        return hit
+
+    def compute(self, T_upper: np.ndarray, inputs: Mapping[str, float]) -> LookaheadResult:
+        """Look-ahead current and time to limit from the (upper-band) state ``T_upper``."""
+        R, S, GU, f0P, f1 = self._operator(inputs)
+        U = self.stepper.boundary(inputs)
+        f0 = GU @ U + f0P
+        c0 = np.asarray(T_upper, dtype=float)
+        C = np.empty((self.steps + 1, len(self.rows)))
+        D = np.zeros_like(C)
+        C[0] = c0[self.rows]
+        C[1:] = R @ c0 + S @ f0
+        D[1:] = S @ f1
+        # largest i² with C + i² D <= max at every checkpoint after the start
+        room = self.max_c[None, :] - C[1:]
+        Dk = D[1:]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            bound = np.where(Dk > 1e-12, room / Dk, np.where(room >= 0, np.inf, -np.inf))
+        flat = np.argmin(bound)
+        i2max = float(bound.flat[flat])
+        binding = self.limits[flat % len(self.limits)][0] if math.isfinite(i2max) else None
+        current = math.sqrt(i2max) if i2max > 0 else 0.0
+        # time to limit at the present load
+        i_now = float(inputs.get(self.current_input, 0.0))
+        i2 = i_now * i_now if math.isfinite(i_now) else 0.0
+        excess = C + i2 * D - self.max_c[None, :]  # (steps+1, n_limits)
+        over = np.max(excess, axis=1)
+        if over[0] >= 0:
+            ttl = 0.0
+        else:
+            hit = np.nonzero(over >= 0)[0]
+            if len(hit) == 0:
+                ttl = math.inf
+            else:
+                k = int(hit[0])
+                a, b = over[k - 1], over[k]
+                frac = a / (a - b) if b != a else 1.0
+                ttl = (k - 1 + frac) * self.dt
+        return LookaheadResult(current, ttl, binding)

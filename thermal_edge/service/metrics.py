@@ -1,0 +1,286 @@
+"""Prometheus metrics of the service (prefix ``thermal_edge_``, base units).
+
+Values that change every tick or every frame (node temperatures, limits, frame counters) are read
+by a custom collector at scrape time from the engine's last tick and the CAN layer's counters, so
+the hot paths do no metric work. Histograms (tick duration and lateness, adaptation duration) and
+a few counters are updated as events happen.
+
+The endpoint is read only (``/metrics``); it binds 127.0.0.1:9108 unless configured otherwise.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import platform
+import threading
+from typing import TYPE_CHECKING, Any, Callable, Iterable
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, StateSetMetricFamily
+from prometheus_client.registry import Collector
+
+from .. import __version__
+from ..bus.frames import DerateReason, TeState
+from ..bus.stats import DROP_REASONS
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .engine import ThermalEngine, TickOutput
+
+__all__ = ["ServiceMetrics"]
+
+log = logging.getLogger(__name__)
+
+P = "thermal_edge_"
+
+
+class _LiveCollector(Collector):
+    """Reads the latest tick and the frame counters at scrape time."""
+
+    def __init__(self, metrics: "ServiceMetrics") -> None:
+        self.m = metrics
+
+    def collect(self) -> Iterable[Any]:
+        m = self.m
+        eng = m.engine
+        out: "TickOutput | None" = eng.last if eng is not None else None
+        model = eng.model if eng is not None else None
+        if out is not None and model is not None:
+            est = GaugeMetricFamily(P + "node_estimate_celsius", "Best estimate (observer) of each node's temperature",
+                                    labels=["node"])
+            sig = GaugeMetricFamily(P + "node_estimate_stddev_celsius", "Standard deviation of each node's estimate",
+                                    labels=["node"])
+            pre = GaugeMetricFamily(P + "node_prediction_celsius", "Open-loop model prediction of each node's temperature",
+                                    labels=["node"])
+            for i, node in enumerate(model.nodes):
+                if math.isfinite(out.estimate[i]):
+                    est.add_metric([node], float(out.estimate[i]))
+                    sig.add_metric([node], float(out.sigma[i]))
+                if math.isfinite(out.prediction[i]):
+                    pre.add_metric([node], float(out.prediction[i]))
+            yield est
+            yield sig
+            yield pre
+            meas = GaugeMetricFamily(P + "sensor_measurement_celsius", "Latest usable reading of each sensor",
+                                     labels=["sensor", "node"])
+            err = GaugeMetricFamily(P + "prediction_error_celsius",
+                                    "Open-loop prediction minus reading, per sensor (last tick)", labels=["sensor", "node"])
+            for s, v in out.measured.items():
+                node = model.sensors.get(s, "")
+                if math.isfinite(v):
+                    meas.add_metric([s, node], v)
+                if s in out.pred_error:
+                    err.add_metric([s, node], out.pred_error[s])
+            yield meas
+            yield err
+            if math.isfinite(out.pred_err_rms):
+                yield GaugeMetricFamily(P + "prediction_error_rms_celsius",
+                                        "RMS open-loop prediction error over the last adaptation period",
+                                        value=out.pred_err_rms)
+            inp = GaugeMetricFamily(P + "input_value", "Model inputs of the last tick (units as the model names them)",
+                                    labels=["input"])
+            for k, v in out.inputs.items():
+                if math.isfinite(v):
+                    inp.add_metric([k], v)
+            yield inp
+            lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
+                                    labels=["limit", "node", "band"])
+            for b, (name, idx, warn, mx, _) in zip(out.bands, eng.limit_specs):  # type: ignore[union-attr]
+                node = model.nodes[idx]
+                lim.add_metric([name, node, "estimate"], b.estimate_c)
+                lim.add_metric([name, node, "upper"], b.upper_c)
+                lim.add_metric([name, node, "warn"], warn)
+                lim.add_metric([name, node, "max"], mx)
+            yield lim
+            yield GaugeMetricFamily(P + "current_limit_amperes", "Current limit sent in TE_Limits (A rms)",
+                                    value=out.limits.current_a)
+            yield GaugeMetricFamily(P + "torque_limit_newton_meters", "Torque limit sent in TE_Limits",
+                                    value=out.limits.torque_nm)
+            yield GaugeMetricFamily(P + "derate_active", "1 while the limits are reduced", value=float(out.limits.active))
+            yield GaugeMetricFamily(P + "derate_reason_code", "TE_DerateReason of the last tick (enumeration value)",
+                                    value=float(int(out.limits.reason)))
+            yield StateSetMetricFamily(P + "derate_reason", "Why the limits are reduced",
+                                       value={r.name.lower(): r == out.limits.reason for r in DerateReason})
+            if math.isfinite(out.lookahead_a):
+                yield GaugeMetricFamily(P + "lookahead_current_amperes",
+                                        "Largest RMS current that keeps every limit over the horizon",
+                                        value=out.lookahead_a)
+            yield GaugeMetricFamily(P + "time_to_limit_seconds",
+                                    "Time to the first limit at the present load (+Inf: not within the horizon)",
+                                    value=out.time_to_limit_s)
+            yield GaugeMetricFamily(P + "lookahead_horizon_seconds", "Look-ahead horizon", value=out.horizon_s)
+            yield GaugeMetricFamily(P + "state_code", "TE_State of the last tick (enumeration value)",
+                                    value=float(int(out.state)))
+            yield StateSetMetricFamily(P + "state", "Service state", value={s.name.lower(): s == out.state for s in TeState})
+            yield GaugeMetricFamily(P + "last_tick_timestamp_seconds", "Clock time of the last tick", value=out.t)
+            age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
+                                    labels=["sensor"])
+            for s in eng.config.sensors:  # type: ignore[union-attr]
+                a = eng.accumulator._latest[s].t  # type: ignore[union-attr]
+                if math.isfinite(a):
+                    age.add_metric([s], out.t - a)
+            yield age
+            stale = GaugeMetricFamily(P + "input_stale", "1 for each frame missing longer than its timeout",
+                                      labels=["frame"])
+            for f in eng.config.timeouts:  # type: ignore[union-attr]
+                stale.add_metric([f], float(f in out.stale))
+            yield stale
+            fault = GaugeMetricFamily(P + "sensor_fault", "1 for each required sensor/input reporting a fault",
+                                      labels=["sensor", "kind"])
+            for s, kind in out.faults.items():
+                fault.add_metric([s, kind], 1.0)
+            yield fault
+        if eng is not None and model is not None:
+            val = GaugeMetricFamily(P + "parameter_value", "Adaptable parameter value (unit in the label)",
+                                    labels=["parameter", "unit"])
+            band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information)",
+                                     labels=["parameter", "bound"])
+            ident = GaugeMetricFamily(P + "parameter_identifiable",
+                                      "1 if the sensors at hand pin the parameter down (relative sd < 25 %)",
+                                      labels=["parameter"])
+            units = {p.name: p.unit for p in model.parameters}
+            for name, v in eng.adaptable_values().items():
+                val.add_metric([name, units.get(name, "")], v)
+                if name in eng.param_bands:
+                    lo, hi = eng.param_bands[name]
+                    band.add_metric([name, "lower"], lo)
+                    band.add_metric([name, "upper"], hi)
+                if name in eng.identifiable:
+                    ident.add_metric([name], float(eng.identifiable[name]))
+            yield val
+            yield band
+            yield ident
+            yield GaugeMetricFamily(P + "parameter_version", "Accepted parameter sets so far", value=eng.param_version)
+            for name, value, doc in (
+                ("adaptation_runs", eng.adapt_runs, "Adaptations run (prediction error above the threshold)"),
+                ("adaptation_accepted", eng.adapt_accepted, "Adaptations accepted"),
+                ("adaptation_rejected", eng.adapt_rejected, "Adaptations rolled back"),
+                ("adaptation_failures", eng.adapt_failures, "Adaptations that failed with an error"),
+                ("adaptation_skipped", eng.adapt_skipped, "Decisions above the threshold that could not optimise yet"),
+                ("model_faults", eng.model_faults, "Times the model was found diverged (safe limit forced)"),
+                ("ticks", eng.ticks, "Ticks run"),
+                ("frame_gaps", eng.gaps, "Gaps in the frame clock bridged by cooling the state"),
+            ):
+                yield CounterMetricFamily(P + name, doc, value=value)
+            acc = eng.accumulator
+            bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=["kind"])
+            for kind in ("open_circuit", "short_circuit", "out_of_range", "no_value"):
+                bad.add_metric([kind], acc.bad_readings.get(kind, 0))
+            yield bad
+            yield CounterMetricFamily(P + "malformed_frames", "Accepted frames whose signals could not be used",
+                                      value=acc.malformed)
+        # frames (codec) and transport
+        codec = m.codec
+        if codec is not None:
+            st = codec.stats
+            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)", labels=["frame"])
+            for k, v in st.received.items():
+                rx.add_metric([k], v)
+            yield rx
+            tx = CounterMetricFamily(P + "frames_sent", "Frames encoded for sending", labels=["frame"])
+            for k, v in st.sent.items():
+                tx.add_metric([k], v)
+            yield tx
+            dr = CounterMetricFamily(P + "frames_dropped", "Received frames dropped, by reason", labels=["reason"])
+            for r in DROP_REASONS:
+                dr.add_metric([r], getattr(st, r))
+            yield dr
+            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter", labels=["frame"])
+            for k, v in st.lost_by_frame.items():
+                lost.add_metric([k], v)
+            yield lost
+            yield CounterMetricFamily(P + "frames_lost_all", "Frames missing according to the alive counter (all frames)",
+                                      value=st.lost)
+            yield CounterMetricFamily(P + "counter_resync", "Frames whose counter was not judged after a long gap",
+                                      value=st.counter_resync)
+            yield CounterMetricFamily(P + "frames_clamped", "Signal values saturated to the DBC range when sending",
+                                      value=st.clamped)
+        tr = m.transport_stats
+        if tr is not None:
+            for k, v in tr.as_dict().items():
+                yield CounterMetricFamily(P + "transport_" + k, f"CAN transport: {k.replace('_', ' ')}", value=v)
+        store = m.store
+        if store is not None:
+            yield CounterMetricFamily(P + "state_load_errors", "State files that could not be used at start",
+                                      value=store.load_errors)
+            yield CounterMetricFamily(P + "state_save_errors", "State saves that failed", value=store.save_errors)
+            yield CounterMetricFamily(P + "state_saves", "State saves", value=store.saves)
+        for name, fn, doc in m.extra:
+            try:
+                yield GaugeMetricFamily(P + name, doc, value=float(fn()))
+            except Exception:  # a broken extra must not break the scrape
+                log.debug("metric %s failed", name, exc_info=True)
+
+
+class ServiceMetrics:
+    """The service's metrics in their own registry, optionally served over HTTP.
+
+    Parameters
+    ----------
+    registry : CollectorRegistry, optional
+        Default: a new registry (several services in one process do not collide).
+    """
+
+    def __init__(self, registry: CollectorRegistry | None = None) -> None:
+        self.registry = registry if registry is not None else CollectorRegistry()
+        self.engine: "ThermalEngine | None" = None
+        self.codec: Any = None
+        self.transport_stats: Any = None
+        self.store: Any = None
+        self.extra: list[tuple[str, Callable[[], float], str]] = []
+        r = self.registry
+        self.tick_duration = Histogram(P + "tick_duration_seconds", "Compute time of one tick", registry=r,
+                                       buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0))
+        self.tick_lateness = Histogram(P + "tick_lateness_seconds", "Start of a tick after its scheduled time (wall clock)",
+                                       registry=r, buckets=(0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0))
+        self.adapt_duration = Histogram(P + "adaptation_duration_seconds", "Wall time of one adaptation decision",
+                                        registry=r, buckets=(0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60))
+        self.watchdog_pings = Counter(P + "watchdog_pings", "systemd watchdog notifications sent", registry=r)
+        self.info = Info(P + "build", "Build information", registry=r)
+        self.up = Gauge(P + "up", "1 while the service runs", registry=r)
+        r.register(_LiveCollector(self))
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+
+    def attach(self, engine: "ThermalEngine", codec: Any = None, transport_stats: Any = None, store: Any = None) -> None:
+        self.engine, self.codec, self.transport_stats, self.store = engine, codec, transport_stats, store
+        self.info.info({
+            "version": __version__,
+            "model": engine.model.name,
+            "python": platform.python_version(),
+            "clock": engine.config.clock.mode,
+        })
+
+    def observe_tick(self, out: "TickOutput", lateness_s: float | None = None) -> None:
+        self.tick_duration.observe(out.compute_s)
+        if lateness_s is not None:
+            self.tick_lateness.observe(lateness_s)
+        for res in out.new_results:
+            self.adapt_duration.observe(res.wall_s)
+
+    def serve(self, address: str, port: int) -> tuple[str, int]:
+        """Start the HTTP endpoint in a daemon thread; returns the bound (address, port)."""
+        from prometheus_client import start_http_server
+
+        server, thread = start_http_server(port, addr=address, registry=self.registry)
+        self._server, self._thread = server, thread
+        host, bound = server.server_address[:2]
+        log.info("metrics on http://%s:%d/metrics", host if ":" not in str(host) else f"[{host}]", bound)
+        return str(host), int(bound)
+
+    @property
+    def port(self) -> int | None:
+        return int(self._server.server_address[1]) if self._server is not None else None
+
+    def text(self) -> str:
+        from prometheus_client import generate_latest
+
+        return generate_latest(self.registry).decode()
+
+    def close(self) -> None:
+        if self._server is not None:
+            try:
+                self._server.shutdown()
+                self._server.server_close()
+            except Exception:
+                pass
+            self._server = None

@@ -1,0 +1,334 @@
+"""The asyncio edge service: CAN in, tick, derating out, metrics, persistence, systemd.
+
+:class:`EdgeService` wires the parts together:
+
+- a :class:`~.canbus.ClockedTransport` receives and checks the inverter's frames; each accepted
+  frame goes to the :class:`~.engine.ThermalEngine`'s input accumulator;
+- the tick runs at 1 Hz of the configured clock: with the wall clock from a timer task, with the
+  frame clock whenever a frame's timestamp crosses a tick boundary (replays, accelerated
+  simulation);
+- ``TE_Limits`` is sent every 100 ms by the transport's cyclic sender from the last tick's limits;
+  if that fails, the fallback is the safe limit (reason "model fault"); if the inverter goes silent
+  the limit drops to the safe limit with reason "stale input" even between ticks (and with the
+  frame clock, where ticks stop with the frames). The 1 s frames (estimates, forecast, status) go
+  out with every tick (frame clock) or from cyclic senders (wall clock);
+- the state is saved every ``state.save_interval_s``, after every accepted adaptation, and on stop;
+- systemd gets ``READY=1`` once the bus is up, ``WATCHDOG=1`` at half ``WatchdogSec`` while ticks
+  are on time, ``STATUS=`` lines, and ``STOPPING=1``; SIGTERM/SIGINT stop the service cleanly.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import signal
+import time
+from collections.abc import Callable
+from typing import Any
+
+from prometheus_client import CollectorRegistry
+
+from ..bus.codec import DecodedFrame, FrameCodec
+from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason,
+                          TeState)
+from ..config import EdgeConfig
+from ..lptn import Model
+from .canbus import ClockedTransport, bus_factory
+from .clock import FrameClock, WallClock
+from .engine import ThermalEngine, TickOutput, load_service_model
+from .memory import limit_heap_retention
+from .metrics import ServiceMetrics
+from .persistence import StateStore
+from .systemd import SystemdNotifier
+
+__all__ = ["EdgeService", "status_line"]
+
+log = logging.getLogger(__name__)
+
+ADAPT_WAIT_TIMEOUT_S = 300.0
+
+
+def status_line(out: TickOutput | None) -> str:
+    """One line: time, state, hot spot estimate/upper band, magnet, limit, reason, error, adaptations."""
+    if out is None:
+        return "starting: no tick yet"
+    hs, mg = out.hot_spot, out.magnet
+
+    def t(x: float | None) -> str:
+        return f"{x:6.1f}" if x is not None and math.isfinite(x) else "   -- "
+
+    stamp = time.strftime("%H:%M:%S", time.gmtime(out.t)) if out.t > 1e6 else f"{out.t:9.0f}s"
+    err = f"{out.pred_err_rms:5.2f}" if math.isfinite(out.pred_err_rms) else "  -- "
+    return (f"{stamp} {out.state.name.lower():9s} hot spot {t(hs.estimate_c if hs else None)}/{t(hs.upper_c if hs else None)} °C"
+            f"  magnet {t(mg.estimate_c if mg else None)} °C  limit {out.limits.current_a:5.1f} A {out.limits.torque_nm:6.1f} Nm"
+            f"  reason {out.limits.reason.name.lower():10s} pred err {err} K  adapted {out.adapt_accepted}/{out.adapt_runs}")
+
+
+class EdgeService:
+    """The service.
+
+    Parameters
+    ----------
+    config : EdgeConfig
+    model : Model, optional
+        Machine model with the offline parameters (default: loaded from the configuration).
+    registry : CollectorRegistry, optional
+        Metrics registry (default: a private one).
+    notifier : SystemdNotifier, optional
+        Default: from the environment (a no-op outside systemd).
+    serve_metrics : bool, optional
+        Start the HTTP endpoint if the configuration enables it (default True).
+    worker_mode : {"thread", "sync"}, optional
+        Adapter worker (default: the configuration's).
+    """
+
+    def __init__(self, config: EdgeConfig, *, model: Model | None = None, registry: CollectorRegistry | None = None,
+                 notifier: SystemdNotifier | None = None, serve_metrics: bool = True,
+                 worker_mode: str | None = None, bus_factory_fn: Callable[..., Any] = bus_factory) -> None:
+        self.config = config
+        self.model = model if model is not None else load_service_model(config)
+        config.check_model(self.model)
+        self.codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
+        config.check_dbc(self.codec)
+        self.store = StateStore(config.state.dir, self.model)
+        restored = self.store.load()
+        self.engine = ThermalEngine(config, self.model, restored, worker_mode)
+        self.frame_mode = config.clock.mode == "frame"
+        self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s) if self.frame_mode else WallClock(config.clock.tick_s)
+        self.metrics = ServiceMetrics(registry)
+        self.notifier = notifier if notifier is not None else SystemdNotifier()
+        self.transport = ClockedTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
+                                          bus_factory=bus_factory_fn)
+        self.metrics.attach(self.engine, self.codec, self.transport.stats, self.store)
+        self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
+                                   "Wall time minus clock time of the last frame (frame clock; large = behind)"))
+        self.serve_metrics = serve_metrics
+        self.metrics_address: tuple[str, int] | None = None
+        self._tasks: list[asyncio.Task[Any]] = []
+        self._last_frame_mono: float | None = None
+        self._started_mono: float | None = None
+        self._last_tick_mono: float | None = None
+        self._last_save_t: float | None = None
+        self._tick_lock = asyncio.Lock()
+        self._waiting = False
+        self._saved_running = False
+        self._stopped = False
+        self.on_tick: list[Callable[[TickOutput], Any]] = []
+        self.ticks_sent = 0
+        self.max_lateness_s = 0.0
+
+    # ------------------------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Open the bus, start the cyclic frames, the tick, the metrics endpoint and the watchdog."""
+        self._started_mono = time.monotonic()
+        limit_heap_retention()
+        await self.transport.start()
+        cfg = self.config
+        if self.serve_metrics and cfg.metrics.enabled:
+            try:
+                self.metrics_address = self.metrics.serve(cfg.metrics.address, cfg.metrics.port)
+            except OSError as exc:  # the service runs on without the endpoint
+                log.error("cannot serve metrics on %s:%d: %s", cfg.metrics.address, cfg.metrics.port, exc)
+        tr = self.transport
+        tr.start_cyclic(TE_LIMITS, self._limits_signals, period_s=cfg.transmit.limits_period_s,
+                        fallback=lambda: self.engine.policy.safe(DerateReason.MODEL_FAULT).signals())
+        loop = asyncio.get_running_loop()
+        if not self.frame_mode:
+            tr.start_cyclic(TE_ESTIMATES, lambda: self._last_or_start().estimates_signals(), period_s=cfg.transmit.status_period_s)
+            tr.start_cyclic(TE_FORECAST, lambda: self._last_or_start().forecast_signals(), period_s=cfg.transmit.status_period_s)
+            tr.start_cyclic(TE_STATUS, lambda: self._last_or_start().status_signals(), period_s=cfg.transmit.status_period_s)
+            self._tasks.append(loop.create_task(self._wall_ticks(), name="thermal-edge tick"))
+        if self.notifier.watchdog_interval_s:
+            self._tasks.append(loop.create_task(self._watchdog(), name="systemd watchdog"))
+        self.metrics.up.set(1)
+        self.notifier.ready(f"running: {self.model.name}, {cfg.clock.mode} clock")
+        log.info("thermal_edge service up: model %s, %s clock, bus %s:%s", self.model.name, cfg.clock.mode,
+                 cfg.bus.interface, cfg.bus.channel if cfg.bus.channel is not None else "default")
+
+    async def stop(self) -> None:
+        """Persist the state and stop (idempotent)."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self.notifier.stopping("stopping: saving state")
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            try:
+                await task
+            except (asyncio.CancelledError, Exception):
+                pass
+        self._tasks.clear()
+        try:
+            await self.transport.stop()
+        except Exception as exc:
+            log.warning("bus stop: %s", exc)
+        self.save()
+        self.engine.close()
+        self.metrics.up.set(0)
+        self.metrics.close()
+        self.notifier.close()
+        log.info("thermal_edge service stopped, state saved to %s", self.store.path)
+
+    async def run(self, stop: asyncio.Event | None = None, *, handle_signals: bool = True) -> int:
+        """Run until ``stop`` is set or SIGTERM/SIGINT arrives; returns the exit status (0)."""
+        stop = stop or asyncio.Event()
+        loop = asyncio.get_running_loop()
+        installed = []
+        if handle_signals:
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                try:
+                    loop.add_signal_handler(sig, stop.set)
+                    installed.append(sig)
+                except (NotImplementedError, RuntimeError, ValueError):
+                    pass
+        try:
+            await self.start()
+            await stop.wait()
+        finally:
+            await self.stop()
+            for sig in installed:
+                loop.remove_signal_handler(sig)
+        return 0
+
+    # ------------------------------------------------------------------------------------------
+    def _on_frame(self, frame: DecodedFrame) -> Any:
+        self._last_frame_mono = time.monotonic()
+        if self.frame_mode:
+            clock = self.clock
+            assert isinstance(clock, FrameClock)
+            boundaries = clock.observe(frame.timestamp)
+            if boundaries:
+                return self._frame_ticks(boundaries, frame)
+            self.engine.add_frame(frame, clock.now())
+            return None
+        self.engine.add_frame(frame, time.time())
+        return None
+
+    async def _frame_ticks(self, boundaries: list[float], frame: DecodedFrame) -> None:
+        tick = self.config.clock.tick_s
+        if len(boundaries) * tick > self.config.clock.max_catchup_s:
+            self.engine.bridge_gap(boundaries[-1] - tick)
+            boundaries = boundaries[-1:]
+        for b in boundaries:
+            await self._run_tick(b, None)
+        self.engine.add_frame(frame, self.clock.now())
+
+    async def _wall_ticks(self) -> None:
+        clock = self.clock
+        assert isinstance(clock, WallClock)
+        while True:
+            t, late = await clock.wait_next_tick()
+            try:
+                await self._run_tick(t, late)
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # the tick task must survive anything
+                log.exception("tick at %.3f failed", t)
+
+    async def _run_tick(self, t: float, lateness: float | None) -> TickOutput:
+        async with self._tick_lock:
+            rid = self.engine.awaiting(t)
+            if rid is not None and self.engine.worker is not None:
+                # frame clock: the decision is applied at a fixed tick; the sender waits for us meanwhile,
+                # which is not the inverter going silent
+                self._waiting = True
+                try:
+                    res = await self.engine.worker.wait_async(rid, ADAPT_WAIT_TIMEOUT_S)
+                finally:
+                    self._waiting = False
+                    self._last_frame_mono = time.monotonic()
+                if res is None:
+                    log.error("adaptation %d did not finish within %.0f s: dropped", rid, ADAPT_WAIT_TIMEOUT_S)
+                    self.engine.pending = None
+            out = self.engine.tick(t)
+            self._last_tick_mono = time.monotonic()
+            self.metrics.observe_tick(out, lateness)
+            if lateness is not None:
+                self.max_lateness_s = max(self.max_lateness_s, lateness)
+            if self.frame_mode:
+                tr = self.transport
+                tr.send(TE_LIMITS, self._limits_signals())
+                tr.send(TE_ESTIMATES, out.estimates_signals())
+                tr.send(TE_FORECAST, out.forecast_signals())
+                tr.send(TE_STATUS, out.status_signals())
+                self.ticks_sent += 1
+            accepted = any(r.accepted for r in out.new_results)
+            first = out.initialized and not self._saved_running  # the (re)started state, corrected by the readings
+            if accepted or first or self._last_save_t is None or t - self._last_save_t >= self.config.state.save_interval_s:
+                self.save(t)
+                self._saved_running = self._saved_running or out.initialized
+            for cb in self.on_tick:
+                try:
+                    cb(out)
+                except Exception:
+                    log.exception("tick callback failed")
+            return out
+
+    # ------------------------------------------------------------------------------------------
+    def _last_or_start(self) -> TickOutput:
+        out = self.engine.last
+        return out if out is not None else self.engine.placeholder(self.clock.now())
+
+    def _limits_signals(self) -> dict[str, float | int]:
+        policy = self.engine.policy
+        now = time.monotonic()
+        silence = self.config.transmit.bus_silence_s
+        ref = self._last_frame_mono if self._last_frame_mono is not None else self._started_mono
+        out = self.engine.last
+        if ref is not None and now - ref > silence and not self._waiting:
+            safe = policy.safe(DerateReason.STALE_INPUT)
+            if out is not None and out.limits.current_a < safe.current_a:
+                return {**safe.signals(), "TE_CurrentLimit": out.limits.current_a,
+                        "TE_TorqueLimit": min(out.limits.torque_nm, safe.torque_nm)}
+            return safe.signals()
+        if out is None:
+            return policy.safe(DerateReason.STARTING).signals()
+        if not self.frame_mode and self._last_tick_mono is not None and now - self._last_tick_mono > 3 * self.config.clock.tick_s:
+            return policy.safe(DerateReason.MODEL_FAULT).signals()  # ticks stopped: something is stuck
+        return out.limits.signals()
+
+    def _tx_time(self) -> float:
+        """Timestamp of sent (and recorded) frames: the clock's time. With the frame clock, frames
+        sent before the first frame arrived carry 1 µs after the epoch (time not known yet; 0 would
+        make the recorder use the wall clock), so that a recording never has a wall-clock stamp
+        ahead of the simulated times that follow."""
+        clock = self.clock
+        if isinstance(clock, FrameClock) and not clock.started:
+            return 1e-6
+        return clock.now()
+
+    def _clock_lag(self) -> float:
+        if not self.frame_mode:
+            return 0.0
+        return time.time() - self.clock.now()
+
+    def save(self, t: float | None = None) -> bool:
+        """Persist parameters, decisions and the thermal state now."""
+        t = t if t is not None else (self.engine.last.t if self.engine.last is not None else self.clock.now())
+        ok = self.store.save(self.engine.persisted(t))
+        self._last_save_t = t
+        return ok
+
+    async def _watchdog(self) -> None:
+        interval = self.notifier.watchdog_interval_s
+        assert interval
+        next_t = time.monotonic()
+        while True:
+            now = time.monotonic()
+            healthy = self.frame_mode or self._last_tick_mono is None or now - self._last_tick_mono < 3 * self.config.clock.tick_s
+            if healthy:  # a stalled tick loop stops the pings: systemd restarts the service
+                self.notifier.watchdog()
+                self.metrics.watchdog_pings.inc()
+            out = self.engine.last
+            if out is not None:
+                self.notifier.status(status_line(out))
+            next_t += interval  # fixed rate, no drift
+            if next_t < now:
+                next_t = now + interval
+            await asyncio.sleep(next_t - time.monotonic())
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def state(self) -> TeState:
+        return self.engine.last.state if self.engine.last is not None else TeState.STARTING

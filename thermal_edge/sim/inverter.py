@@ -1,0 +1,669 @@
+"""The inverter emulator: a simulated machine ("plant") behind the inverter's CAN frames.
+
+It sends ``INV_Currents`` and ``INV_Mechanics`` (every ``current_period_s``, the DBC's 10 ms by
+default) and ``INV_StatorTemps`` / ``INV_AmbientTemps`` (every ``temperature_period_s``, 100 ms)
+from a plant -- the machine model with its own parameters (e.g. the paper's Table 4 variations,
+or aging over time) -- with PT100 noise and quantisation and a drifting ambient, driven by a drive
+cycle from ``config/cycles/``.
+
+Closed loop, it **obeys** the ``TE_Limits`` it receives: the torque demand of the cycle is clamped
+to the torque limit and to the current limit times the torque constant (i_d = 0 control). Without
+a valid ``TE_Limits`` for ``limits_timeout_s`` (wall clock, 300 ms like the real inverter) it falls
+back to its own protection: ``fallback_current_a`` (None: no limit); accelerated, a limit also
+counts as absent after ``limits_timeout_sim_s`` of simulated time (300 ms of wall time would be
+minutes of machine time). Open loop it ignores them.
+
+Time: simulated time advances ``speed`` times faster than the wall clock (1: real time) and every
+frame's timestamp is its simulated time (an absolute epoch time starting at ``t0``). Sends are
+paced per plant step; with ``flow_control`` the emulator also stays at most ``max_lead_s`` of
+simulated time ahead of the service's ticks (it counts the service's ``TE_Status`` frames, one
+per tick with the frame clock), so a receiver that falls behind (e.g. while adapting) is waited
+for instead of having its ``udp_multicast`` socket overflow. If the service goes silent for
+``flow_timeout_s`` the emulator runs on at ``speed``.
+
+The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
+``trace_every_s``) for tests.
+
+Run as a process: ``python -m thermal_edge.sim.inverter --help``.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..bus.busconfig import BusConfig
+from ..bus.codec import DecodedFrame, FrameCodec
+from ..bus.frames import (DEFAULT_DBC_PATH, INV_AMBIENT_TEMPS, INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS,
+                          TE_ESTIMATES, TE_LIMITS, TE_STATUS, SensorStatus)
+from ..lptn import Model, Stepper, load_model, steady_state
+from .cycles import cycle_run, load_cycle
+
+__all__ = ["EmulatorConfig", "InverterEmulator", "Plant", "TABLE4_VARIATIONS", "main", "write_candump"]
+
+log = logging.getLogger(__name__)
+
+ROOT = Path(__file__).resolve().parents[2]
+
+#: The paper's Table 4 parameter variations (additive, in the parameters' units).
+TABLE4_VARIATIONS: dict[str, float] = {"k_r_sw": 4.0, "k_c_sw": 1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
+
+#: Default PT100 signals -> model sensors (the pm10kw model's production sensor set).
+DEFAULT_SENSOR_SIGNALS: dict[str, str] = {
+    "INV_T_WindingSlot": "slot_winding",
+    "INV_T_EndWinding": "end_winding",
+    "INV_T_Housing": "housing",
+}
+_STATUS_OF = {"INV_T_WindingSlot": "INV_S_WindingSlot", "INV_T_EndWinding": "INV_S_EndWinding",
+              "INV_T_Housing": "INV_S_Housing"}
+
+
+def table4_parameters(model: Model, sign: float = 1.0) -> dict[str, float]:
+    """The model's nominal values moved by the Table 4 variations (``sign`` -1: the other way)."""
+    nominal = dict(zip(model.parameter_names, model.nominal()))
+    return {k: float(nominal[k] + sign * v) for k, v in TABLE4_VARIATIONS.items()}
+
+
+@dataclass
+class EmulatorConfig:
+    """Settings of the emulator (all times in simulated seconds unless marked wall)."""
+
+    model_path: str | Path = ROOT / "config" / "machines" / "pm10kw.yaml"
+    cycle_path: str | Path = ROOT / "config" / "cycles" / "overload.yaml"
+    params: dict[str, float] = field(default_factory=dict)  # the plant's parameters (absolute values)
+    aging: dict[str, float] = field(default_factory=dict)  # relative change per simulated hour
+    aging_update_s: float = 60.0
+    duration_s: float | None = None  # default: the cycle's duration
+    speed: float = 1.0  # simulated s per wall s; 0: as fast as flow control allows
+    t0: float | None = None  # simulated epoch of the start (default: wall time at start)
+    current_period_s: float = 0.01
+    temperature_period_s: float = 0.1
+    plant_dt_s: float = 0.1
+    noise_k: float = 0.1
+    resolution_k: float = 0.1
+    ambient_drift_k: float = 0.0  # amplitude of a sinusoidal ambient drift, K
+    ambient_drift_period_s: float = 7200.0
+    current_ripple: float = 0.0  # relative ripple of the current over successive frames
+    udc_v: float = 560.0
+    closed_loop: bool = True
+    limits_timeout_s: float = 0.3  # wall
+    limits_timeout_sim_s: float | None = None  # simulated; default: max_lead_s + 3 service ticks
+    fallback_current_a: float | None = None
+    flow_control: bool = True
+    max_lead_s: float = 10.0
+    flow_timeout_s: float = 2.0  # wall
+    service_tick_s: float = 1.0
+    trace_every_s: float = 1.0
+    record_estimates: bool = True  # keep every TE_Estimates and TE_Limits change received (tests); off for long runs
+    seed: int = 0
+    sensor_signals: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_SENSOR_SIGNALS))
+    ambient_input: str = "ambient_c"
+    current_input: str = "i_rms"
+
+
+class Plant:
+    """The simulated machine: a model with its own (possibly aging) parameters, stepped in time."""
+
+    def __init__(self, model: Model, params: Mapping[str, float], dt: float, aging: Mapping[str, float] | None = None,
+                 T0: np.ndarray | None = None, ambient_c: float = 25.0) -> None:
+        self.base = model.with_parameters(dict(params))
+        self.model = self.base
+        self.theta0 = self.base.nominal()
+        self.aging = dict(aging or {})
+        self._aging_idx = self.base.parameter_index(list(self.aging)) if self.aging else np.zeros(0, dtype=int)
+        self.stepper = Stepper(self.base, self.theta0, dt)
+        self.dt = float(dt)
+        if T0 is None:
+            rest = {k: 0.0 for k in model.inputs}
+            for c in model.boundaries.values():
+                rest[c] = ambient_c
+            T0, _ = steady_state(self.base, rest)
+        self.T = np.asarray(T0, dtype=float).copy()
+
+    def age(self, hours: float) -> None:
+        """Apply the aging rates for ``hours`` of simulated time since the start."""
+        if not self.aging:
+            return
+        th = self.theta0.copy()
+        lo, hi = self.base.bounds()
+        for (name, rate), i in zip(self.aging.items(), self._aging_idx):
+            th[i] = min(max(self.theta0[i] * (1.0 + rate * hours), lo[i]), hi[i])
+        self.stepper.set_parameters(th)
+
+    @property
+    def theta(self) -> np.ndarray:
+        return self.stepper.theta
+
+    def step(self, inputs: Mapping[str, float]) -> np.ndarray:
+        self.T, _ = self.stepper.step(self.T, inputs)
+        return self.T
+
+    def node(self, name: str) -> float:
+        return float(self.T[self.base.node_index(name)])
+
+
+@dataclass
+class EmulatorSummary:
+    """What happened in a run (JSON-serialisable)."""
+
+    sim_start: float = 0.0
+    sim_end: float = 0.0
+    sim_seconds: float = 0.0
+    wall_seconds: float = 0.0
+    frames_sent: dict[str, int] = field(default_factory=dict)
+    send_failures: int = 0
+    frames_received: dict[str, int] = field(default_factory=dict)
+    rx_lost: int = 0
+    rx_dropped: dict[str, int] = field(default_factory=dict)
+    limits_received: int = 0
+    limits_applied_s: float = 0.0  # simulated time with a valid TE_Limits in force
+    limited_s: float = 0.0  # simulated time the demand was clamped
+    flow_waits: int = 0
+    flow_wait_wall_s: float = 0.0
+    true_max_c: dict[str, float] = field(default_factory=dict)  # per limited node of the model
+    true_max_t: dict[str, float] = field(default_factory=dict)
+    closed_loop: bool = True
+    params: dict[str, float] = field(default_factory=dict)
+
+
+class InverterEmulator:
+    """Emulate the inverter and its machine on a CAN bus (or into a candump log).
+
+    Parameters
+    ----------
+    config : EmulatorConfig
+    bus : BusConfig or mapping, optional
+        The bus (its ``node`` is forced to ``INV``); not needed for :meth:`write_candump`.
+    codec : FrameCodec, optional
+    model : Model, optional
+        The machine model (default: ``config.model_path``); the plant applies ``config.params``.
+    """
+
+    def __init__(self, config: EmulatorConfig, bus: BusConfig | Mapping[str, Any] | None = None,
+                 codec: FrameCodec | None = None, model: Model | None = None) -> None:
+        self.config = cfg = config
+        self.model = model if model is not None else load_model(cfg.model_path)
+        self.codec = codec if codec is not None else FrameCodec(DEFAULT_DBC_PATH, resync_after_cycles=1e9)
+        if bus is not None:
+            b = dict(bus.__dict__) if isinstance(bus, BusConfig) else dict(bus)
+            if isinstance(bus, BusConfig):
+                opts = b.pop("options", {})
+                b.update(opts)
+            b["node"] = "INV"
+            self.bus_config: BusConfig | None = BusConfig.from_mapping(b)
+        else:
+            self.bus_config = None
+        kt = self.model.drive.get("kt_nm_per_arms")
+        if kt is None:
+            raise ValueError(f"model {self.model.name} has no drive.kt_nm_per_arms: cannot turn torque into current")
+        self.kt = float(kt)
+        cycle = load_cycle(cfg.cycle_path)
+        self.cycle = cycle
+        self.duration = float(cfg.duration_s if cfg.duration_s is not None else cycle.duration_s)
+        self.run_inputs = cycle_run(cycle, self.kt, self.duration)
+        self.cycle_dt = cycle.dt_s
+        amb0 = float(self.run_inputs.columns["ambient_c"][0])
+        self.plant = Plant(self.model, cfg.params, cfg.plant_dt_s, cfg.aging, ambient_c=amb0)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.t0 = float(cfg.t0) if cfg.t0 is not None else time.time()
+        self.elapsed = 0.0  # simulated seconds since t0
+        self._ts = self.t0
+        self._frame_k = 0
+        self._temp_k = 0
+        self._next_trace = 0.0
+        self._next_aging = 0.0
+        # fault injection (tests)
+        self.sensor_status: dict[str, int] = {}
+        self.sensor_offset: dict[str, float] = {}
+        self.paused: set[str] = set()
+        # limits and service progress
+        self.current_limit: float | None = None
+        self.torque_limit: float | None = None
+        self.limits_wall: float | None = None
+        self.limits_sim = -math.inf
+        self.last_reason: int | None = None
+        self.status_count = 0
+        self.last_status_wall: float | None = None
+        self._status_event: asyncio.Event | None = None
+        self.estimates: list[tuple[float, float, float, float, float, float]] = []  # (sim t, rx ts, hs, hsU, mg, mgU)
+        self.limit_log: list[tuple[float, float, float, int]] = []  # (sim t, current, torque, reason)
+        # traces
+        self.trace_t: list[float] = []
+        self.trace_T: list[np.ndarray] = []
+        self.trace_i: list[tuple[float, float, float]] = []  # (demand i_rms, applied i_rms, ambient)
+        self.summary = EmulatorSummary(closed_loop=cfg.closed_loop, params=dict(cfg.params))
+        self._limit_nodes = {lim.name: self.model.node_index(lim.node) for lim in self.model.limits}
+        self._true_max = {n: -math.inf for n in self._limit_nodes}
+        self._true_max_t = {n: 0.0 for n in self._limit_nodes}
+        self.bus: Any = None
+        self._stop = False
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def T(self) -> np.ndarray:
+        """The plant's true node temperatures now, °C."""
+        return self.plant.T.copy()
+
+    @property
+    def sim_time(self) -> float:
+        """Simulated time now (absolute, s since the epoch)."""
+        return self.t0 + self.elapsed
+
+    def true(self, node: str) -> float:
+        return self.plant.node(node)
+
+    def trace(self) -> dict[str, np.ndarray]:
+        """Arrays of the trace: ``t`` (absolute simulated time), ``T`` (t, nodes), ``i_demand``,
+        ``i_applied``, ``ambient``, and the estimates received (``est_*``)."""
+        i = np.array(self.trace_i) if self.trace_i else np.zeros((0, 3))
+        e = np.array(self.estimates) if self.estimates else np.zeros((0, 6))
+        lg = np.array(self.limit_log) if self.limit_log else np.zeros((0, 4))
+        return {
+            "t": np.array(self.trace_t), "T": np.array(self.trace_T) if self.trace_T else np.zeros((0, len(self.model.nodes))),
+            "i_demand": i[:, 0], "i_applied": i[:, 1], "ambient": i[:, 2],
+            "est_t": e[:, 0], "est_ts": e[:, 1], "est_hot_spot": e[:, 2], "est_hot_spot_upper": e[:, 3],
+            "est_magnet": e[:, 4], "est_magnet_upper": e[:, 5],
+            "limit_t": lg[:, 0], "limit_current": lg[:, 1], "limit_torque": lg[:, 2], "limit_reason": lg[:, 3],
+        }
+
+    def stop(self) -> None:
+        self._stop = True
+
+    # -- one plant step -------------------------------------------------------------------------
+    def _demand(self, tau: float) -> tuple[float, float, float]:
+        """Speed, torque, ambient demanded by the cycle at elapsed time ``tau``."""
+        cols = self.run_inputs.columns
+        k = min(int(tau // self.cycle_dt), len(self.run_inputs) - 1)
+        amb = float(cols["ambient_c"][k])
+        cfg = self.config
+        if cfg.ambient_drift_k:
+            amb += cfg.ambient_drift_k * math.sin(2 * math.pi * tau / cfg.ambient_drift_period_s)
+        return float(cols["speed_rpm"][k]), float(cols["torque_nm"][k]), amb
+
+    def _limits_in_force(self, now_wall: float | None) -> tuple[float | None, float | None, bool]:
+        """(current limit, torque limit, from a fresh TE_Limits)."""
+        cfg = self.config
+        if not cfg.closed_loop:
+            return None, None, False
+        sim_timeout = cfg.limits_timeout_sim_s if cfg.limits_timeout_sim_s is not None else cfg.max_lead_s + 3 * cfg.service_tick_s
+        fresh = (self.limits_wall is not None and (now_wall is None or now_wall - self.limits_wall <= cfg.limits_timeout_s)
+                 and self.sim_time - self.limits_sim <= max(sim_timeout, cfg.limits_timeout_s))
+        if fresh:
+            return self.current_limit, self.torque_limit, True
+        if cfg.fallback_current_a is not None:
+            return cfg.fallback_current_a, cfg.fallback_current_a * self.kt, False
+        return None, None, False
+
+    def _step(self, now_wall: float | None) -> list[tuple[float, str, dict[str, float]]]:
+        """Advance the plant by one step; return the frames of that step (time, name, signals)."""
+        cfg = self.config
+        tau = self.elapsed
+        dt = cfg.plant_dt_s
+        if self.plant.aging and tau >= self._next_aging:
+            self.plant.age(tau / 3600.0)
+            self._next_aging = tau + cfg.aging_update_s
+        speed, torque_d, amb = self._demand(tau)
+        i_lim, t_lim, fresh = self._limits_in_force(now_wall)
+        if not fresh and i_lim == 0.0:  # its own protection tripped the drive: the machine stands still
+            speed = 0.0
+        torque = torque_d
+        limited = False
+        if i_lim is not None:
+            cap = min(t_lim if t_lim is not None else math.inf, i_lim * self.kt)
+            if abs(torque) > cap:
+                torque = math.copysign(cap, torque)
+                limited = True
+        if fresh:
+            self.summary.limits_applied_s += dt
+        if limited:
+            self.summary.limited_s += dt
+        i_rms = abs(torque) / self.kt
+        frames: list[tuple[float, str, dict[str, float]]] = []
+        # current/mechanics frames in [tau, tau + dt)
+        i2 = []
+        while self._frame_k * cfg.current_period_s < tau + dt - 1e-9:
+            ft = self._frame_k * cfg.current_period_s
+            ripple = 1.0
+            if cfg.current_ripple:
+                ripple = (1.0 + cfg.current_ripple * math.sin(2 * math.pi * self._frame_k / 7.0)) / math.sqrt(
+                    1.0 + cfg.current_ripple**2 / 2)
+            iq = math.sqrt(2.0) * i_rms * ripple * (1.0 if torque >= 0 else -1.0)
+            i2.append(iq * iq / 2.0)
+            frames.append((ft, INV_CURRENTS, {"INV_Id": 0.0, "INV_Iq": iq, "INV_IphRms": i_rms * ripple}))
+            frames.append((ft, INV_MECHANICS, {"INV_Speed": speed, "INV_Torque": torque, "INV_Udc": cfg.udc_v}))
+            self._frame_k += 1
+        while self._temp_k * cfg.temperature_period_s < tau + dt - 1e-9:
+            ft = self._temp_k * cfg.temperature_period_s
+            frames.append((ft, INV_STATOR_TEMPS, self._stator_signals()))
+            frames.append((ft, INV_AMBIENT_TEMPS, self._ambient_signals(amb)))
+            self._temp_k += 1
+        frames.sort(key=lambda f: f[0])
+        i_eff = math.sqrt(sum(i2) / len(i2)) if i2 else i_rms
+        inputs = {c: 0.0 for c in self.model.inputs}
+        inputs.update({"speed_rpm": speed, "torque_nm": torque, cfg.current_input: i_eff, cfg.ambient_input: amb})
+        if tau >= self._next_trace:
+            self.trace_t.append(self.t0 + tau)
+            self.trace_T.append(self.plant.T.copy())
+            self.trace_i.append((abs(torque_d) / self.kt, i_eff, amb))
+            self._next_trace += cfg.trace_every_s
+        self.plant.step(inputs)
+        self.elapsed = tau + dt
+        for name, i in self._limit_nodes.items():
+            v = float(self.plant.T[i])
+            if v > self._true_max[name]:
+                self._true_max[name] = v
+                self._true_max_t[name] = self.t0 + self.elapsed
+        return [(self.t0 + ft, name, sig) for ft, name, sig in frames]
+
+    def _reading(self, true_c: float) -> float:
+        cfg = self.config
+        y = true_c + (self.rng.normal(0.0, cfg.noise_k) if cfg.noise_k > 0 else 0.0)
+        return round(y / cfg.resolution_k) * cfg.resolution_k if cfg.resolution_k > 0 else y
+
+    def _stator_signals(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for sig, status_sig in _STATUS_OF.items():
+            sensor = self.config.sensor_signals.get(sig)
+            if sensor is None or sensor not in self.model.sensors:
+                out[sig], out[status_sig] = math.nan, int(SensorStatus.NOT_FITTED)
+                continue
+            status = self.sensor_status.get(sensor, int(SensorStatus.VALID))
+            if status == int(SensorStatus.VALID):
+                v = self._reading(self.plant.node(self.model.sensors[sensor])) + self.sensor_offset.get(sensor, 0.0)
+                out[sig] = min(max(v, -50.0), 359.4)
+            else:
+                out[sig] = math.nan
+            out[status_sig] = status
+        return out
+
+    def _ambient_signals(self, amb: float) -> dict[str, float]:
+        status = self.sensor_status.get("ambient", int(SensorStatus.VALID))
+        v = self._reading(amb) + self.sensor_offset.get("ambient", 0.0) if status == int(SensorStatus.VALID) else math.nan
+        return {"INV_T_Ambient": v, "INV_T_Coolant": math.nan, "INV_S_Ambient": status,
+                "INV_S_Coolant": int(SensorStatus.NOT_FITTED)}
+
+    # -- reception --------------------------------------------------------------------------------
+    def _on_frame(self, frame: DecodedFrame) -> None:
+        name = frame.name
+        self.summary.frames_received[name] = self.summary.frames_received.get(name, 0) + 1
+        now = time.monotonic()
+        if name == TE_LIMITS:
+            s = frame.signals
+            self.current_limit = float(s["TE_CurrentLimit"])
+            self.torque_limit = float(s["TE_TorqueLimit"])
+            self.last_reason = int(s["TE_DerateReason"])
+            self.limits_wall = now
+            self.limits_sim = self.sim_time
+            self.summary.limits_received += 1
+            if self.config.record_estimates and (
+                    not self.limit_log or self.limit_log[-1][1:] != (self.current_limit, self.torque_limit, self.last_reason)):
+                self.limit_log.append((self.sim_time, self.current_limit, self.torque_limit, self.last_reason))
+        elif name == TE_STATUS:
+            self.status_count += 1
+            self.last_status_wall = now
+            if self._status_event is not None:
+                self._status_event.set()
+        elif name == TE_ESTIMATES and self.config.record_estimates:
+            s = frame.signals
+            self.estimates.append((self.sim_time, float(frame.timestamp or math.nan), float(s["TE_T_HotSpot"]),
+                                   float(s["TE_T_HotSpotUpper"]), float(s["TE_T_Magnet"]), float(s["TE_T_MagnetUpper"])))
+
+    # -- live -------------------------------------------------------------------------------------
+    async def run(self, stop: asyncio.Event | None = None, started: asyncio.Event | None = None) -> EmulatorSummary:
+        """Run the cycle on the bus (until its end, :meth:`stop`, or ``stop`` is set).
+
+        The emulator owns its python-can bus and drains it after every plant step (and while it
+        waits): ``udp_multicast`` loops every sent frame back to the sender, and a reader that took
+        one message per event-loop turn would fall behind its own echoes.
+        """
+        import can
+
+        from ..service.canbus import bus_factory
+
+        if self.bus_config is None:
+            raise ValueError("no bus configured")
+        cfg = self.config
+        self.bus = bus = bus_factory(self.bus_config)
+        own = self.codec.frames_sent_by("INV")
+        ids = {name: self.codec.frame_id(name) for name in (INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS, INV_AMBIENT_TEMPS)}
+
+        def drain() -> int:
+            n = 0
+            while True:
+                try:
+                    msg = bus.recv(0)
+                except Exception as exc:  # a broken bus ends the run
+                    raise RuntimeError(f"emulator bus receive failed: {exc}") from exc
+                if msg is None:
+                    return n
+                if msg.arbitration_id in own and not msg.is_extended_id:
+                    continue
+                frame = self.codec.decode_message(msg)
+                if frame is not None:
+                    self._on_frame(frame)
+                    n += 1
+
+        if started is not None:
+            started.set()
+        wall0 = time.monotonic()
+        t_start = wall0
+        sim0 = self.elapsed
+        self.summary.sim_start = self.sim_time
+        synced = False
+        base_ticks = base_status = 0
+        tick = cfg.service_tick_s
+        ticks_sent = 0
+        max_lead = max(1, int(round(cfg.max_lead_s / tick)))
+        step_i = 0
+        try:
+            while self.elapsed < self.duration - 1e-9 and not self._stop and not (stop is not None and stop.is_set()):
+                drain()
+                # flow control: stay at most max_lead ticks ahead of the service
+                if cfg.flow_control:
+                    now = time.monotonic()
+                    alive = self.last_status_wall is not None and now - self.last_status_wall < cfg.flow_timeout_s
+                    if alive and not synced:
+                        synced, base_ticks, base_status = True, ticks_sent, self.status_count
+                    elif not alive:
+                        synced = False
+                    if synced and (ticks_sent - base_ticks) - (self.status_count - base_status) > max_lead:
+                        self.summary.flow_waits += 1
+                        w0 = time.monotonic()
+                        while (ticks_sent - base_ticks) - (self.status_count - base_status) > max_lead:
+                            if drain() == 0:
+                                await asyncio.sleep(0.0005)
+                            if time.monotonic() - self.last_status_wall >= cfg.flow_timeout_s:  # type: ignore[operator]
+                                synced = False  # the service is gone or lost frames: resync later
+                                break
+                        self.summary.flow_wait_wall_s += time.monotonic() - w0
+                        if not synced:
+                            wall0, sim0 = time.monotonic(), self.elapsed  # do not burst to catch up
+                frames = self._step(time.monotonic())
+                for ts, name, signals in frames:
+                    if name in self.paused:
+                        continue
+                    if math.floor(ts / tick) != math.floor(self._ts / tick):
+                        ticks_sent += 1
+                    self._ts = ts
+                    data = self.codec.encode(name, signals)
+                    try:
+                        bus.send(can.Message(timestamp=ts, arbitration_id=ids[name], data=data, is_extended_id=False),
+                                 timeout=0.05)
+                        self.summary.frames_sent[name] = self.summary.frames_sent.get(name, 0) + 1
+                    except Exception as exc:
+                        self.summary.send_failures += 1
+                        if self.summary.send_failures == 1:
+                            log.warning("emulator send failed: %s", exc)
+                step_i += 1
+                if cfg.speed > 0:
+                    target = wall0 + (self.elapsed - sim0) / cfg.speed
+                    delay = target - time.monotonic()
+                    if delay > 0:
+                        await asyncio.sleep(delay)
+                    else:
+                        await asyncio.sleep(0)
+                else:
+                    await asyncio.sleep(0)
+            t_end = time.monotonic() + 0.05  # the last replies
+            while time.monotonic() < t_end:
+                if drain() == 0:
+                    await asyncio.sleep(0.002)
+        finally:
+            self.summary.wall_seconds = time.monotonic() - t_start
+            try:
+                bus.shutdown()
+            except Exception:
+                pass
+            self._finish()
+        return self.summary
+
+    def inject(self, arbitration_id: int, data: bytes, *, extended: bool = False, remote: bool = False,
+               timestamp: float | None = None) -> None:
+        """Put a raw (possibly malformed) frame on the bus (tests)."""
+        import can
+
+        self.bus.send(can.Message(timestamp=self._ts if timestamp is None else timestamp, arbitration_id=arbitration_id,
+                                  data=data, is_extended_id=extended, is_remote_frame=remote, check=False))
+
+    def _finish(self) -> None:
+        s = self.summary
+        s.sim_end = self.sim_time
+        s.sim_seconds = self.elapsed
+        s.true_max_c = {k: float(v) for k, v in self._true_max.items()}
+        s.true_max_t = dict(self._true_max_t)
+        st = self.codec.stats
+        s.rx_lost = st.lost
+        s.rx_dropped = {k: int(v) for k, v in st.dropped.items()}
+
+    # -- offline ----------------------------------------------------------------------------------
+    def write_candump(self, path: str | os.PathLike[str], channel: str = "can0") -> EmulatorSummary:
+        """Write the inverter frames of the whole (open-loop) run as a ``candump -L`` log, no bus."""
+        import can
+
+        from ..bus.candump import CandumpRecorder
+
+        self.summary.sim_start = self.sim_time
+        with CandumpRecorder(path, channel=channel, flush_interval_s=60.0) as rec:
+            while self.elapsed < self.duration - 1e-9:
+                for ts, name, signals in self._step(None):
+                    data = self.codec.encode(name, signals)
+                    rec.write(can.Message(timestamp=ts, arbitration_id=self.codec.frame_id(name), data=data,
+                                          is_extended_id=False, is_rx=True))
+                    self.summary.frames_sent[name] = self.summary.frames_sent.get(name, 0) + 1
+        self._finish()
+        return self.summary
+
+
+def write_candump(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[str], out: str | os.PathLike[str], *,
+                  params: Mapping[str, float] | None = None, duration_s: float | None = None, noise_k: float = 0.1,
+                  resolution_k: float = 0.1, seed: int = 0, t0: float | None = None, current_period_s: float = 0.01,
+                  temperature_period_s: float = 0.1, channel: str = "can0") -> EmulatorSummary:
+    """The inverter frames of a simulated open-loop run as a ``candump -L`` log (``thermal-edge
+    simulate --format candump``)."""
+    cfg = EmulatorConfig(model_path=model_path, cycle_path=cycle_path, params=dict(params or {}), duration_s=duration_s,
+                         noise_k=noise_k, resolution_k=resolution_k, seed=seed, t0=t0 if t0 is not None else 1.7e9,
+                         current_period_s=current_period_s, temperature_period_s=temperature_period_s,
+                         closed_loop=False, plant_dt_s=max(current_period_s, min(1.0, temperature_period_s)))
+    return InverterEmulator(cfg).write_candump(out, channel)
+
+
+# ----------------------------------------------------------------------------------------------
+def _parse_params(items: list[str]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"inverter: --param {item!r}: expected NAME=VALUE")
+        out[name.strip()] = float(value)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m thermal_edge.sim.inverter``: run the emulator on a bus, as its own process."""
+    p = argparse.ArgumentParser(prog="python -m thermal_edge.sim.inverter", description=__doc__.split("\n\n")[0])
+    p.add_argument("--interface", default="udp_multicast", help="python-can interface (default udp_multicast)")
+    p.add_argument("--channel", default=None, help="bus channel (multicast group, virtual bus name, can0)")
+    p.add_argument("--port", type=int, default=None, help="udp_multicast port")
+    p.add_argument("--model", default=str(ROOT / "config" / "machines" / "pm10kw.yaml"))
+    p.add_argument("--cycle", default=str(ROOT / "config" / "cycles" / "overload.yaml"))
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="plant parameter (repeatable)")
+    p.add_argument("--table4", choices=("none", "plus", "minus"), default="none",
+                   help="plant parameters = model nominal +/- the paper's Table 4 variations")
+    p.add_argument("--aging", action="append", default=[], metavar="NAME=RATE", help="relative change per hour")
+    p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the cycle)")
+    p.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second (0: flow control only)")
+    p.add_argument("--t0", type=float, default=None, help="simulated epoch of the start (default: now)")
+    p.add_argument("--current-period", type=float, default=0.01)
+    p.add_argument("--temperature-period", type=float, default=0.1)
+    p.add_argument("--plant-dt", type=float, default=0.1)
+    p.add_argument("--ambient-drift", type=float, default=0.0)
+    p.add_argument("--open-loop", action="store_true", help="ignore TE_Limits")
+    p.add_argument("--fallback-current", type=float, default=None, help="A rms when TE_Limits is absent")
+    p.add_argument("--no-flow-control", action="store_true")
+    p.add_argument("--max-lead", type=float, default=10.0, help="simulated s the emulator may run ahead of the service")
+    p.add_argument("--flow-timeout", type=float, default=2.0, help="wall s without TE_Status before running on")
+    p.add_argument("--limits-timeout", type=float, default=0.3, help="wall s after which TE_Limits counts as absent")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--summary", default=None, help="write the summary JSON here")
+    p.add_argument("--trace", default=None, help="write the trace (npz) here")
+    p.add_argument("--ready-file", default=None, help="touch this file once the bus is open")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s inverter: %(message)s")
+    model = load_model(args.model)
+    params = {}
+    if args.table4 != "none":
+        params.update(table4_parameters(model, 1.0 if args.table4 == "plus" else -1.0))
+    params.update(_parse_params(args.param))
+    cfg = EmulatorConfig(
+        model_path=args.model, cycle_path=args.cycle, params=params, aging=_parse_params(args.aging),
+        duration_s=args.duration, speed=args.speed, t0=args.t0, current_period_s=args.current_period,
+        temperature_period_s=args.temperature_period, plant_dt_s=args.plant_dt, ambient_drift_k=args.ambient_drift,
+        closed_loop=not args.open_loop, fallback_current_a=args.fallback_current, flow_control=not args.no_flow_control,
+        max_lead_s=args.max_lead, seed=args.seed, flow_timeout_s=args.flow_timeout, limits_timeout_s=args.limits_timeout,
+    )
+    bus: dict[str, Any] = {"interface": args.interface, "preserve_timestamps": True}
+    if args.channel is not None:
+        bus["channel"] = args.channel
+    if args.port is not None:
+        bus["port"] = args.port
+    emu = InverterEmulator(cfg, bus, model=model)
+
+    async def go() -> EmulatorSummary:
+        started = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+        import signal as _signal
+
+        for sig in (_signal.SIGTERM, _signal.SIGINT):
+            try:
+                loop.add_signal_handler(sig, stop.set)
+            except (NotImplementedError, RuntimeError):
+                pass
+        task = loop.create_task(emu.run(stop, started))
+        await started.wait()
+        if args.ready_file:
+            Path(args.ready_file).touch()
+        return await task
+
+    summary = asyncio.run(go())
+    if args.summary:
+        Path(args.summary).write_text(json.dumps(asdict(summary), indent=2))
+    if args.trace:
+        np.savez_compressed(args.trace, **emu.trace())
+    print(json.dumps({"sim_seconds": summary.sim_seconds, "wall_seconds": round(summary.wall_seconds, 2),
+                      "true_max_c": summary.true_max_c, "rx_lost": summary.rx_lost}))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
