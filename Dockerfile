@@ -39,17 +39,12 @@ RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
     python -m venv /opt/thermal-edge \
  && /opt/thermal-edge/bin/pip install --no-cache-dir --no-index --find-links /wheels /wheels/thermal_edge-*.whl
 
-# The DBC where the package looks for it (the wheel does not carry it yet), the machine models
-# and edge.yaml in /etc/thermal-edge (a codec.dbc relative to the checkout pointed at that DBC),
-# the drive cycles for the simulated machine, an unprivileged user and its state directory.
+# The machine models and edge.yaml in /etc/thermal-edge (the DBC ships inside the wheel), the
+# drive cycles for the simulated machine, an unprivileged user and its state directory.
 COPY config/machines/ /etc/thermal-edge/machines/
 COPY config/cycles/ /opt/thermal-edge/share/thermal-edge/cycles/
-RUN --mount=type=bind,source=dbc,target=/mnt/dbc \
-    --mount=type=bind,source=config/edge.yaml,target=/mnt/edge.yaml \
-    DBC="$(python -I -c 'from thermal_edge.bus.frames import DEFAULT_DBC_PATH; print(DEFAULT_DBC_PATH)')" \
- && install -D -m 644 /mnt/dbc/thermal_edge.dbc "$DBC" \
- && sed "s|\.\./dbc/thermal_edge\.dbc|$DBC|" /mnt/edge.yaml > /etc/thermal-edge/edge.yaml \
- && thermal-edge run --check --config /etc/thermal-edge/edge.yaml \
+COPY config/edge.yaml /etc/thermal-edge/edge.yaml
+RUN thermal-edge run --check --config /etc/thermal-edge/edge.yaml \
  && useradd --system --no-log-init --uid 10001 --user-group --home-dir /var/lib/thermal-edge \
       --no-create-home --shell /usr/sbin/nologin thermal-edge \
  && install -d -o 10001 -g 10001 -m 0750 /var/lib/thermal-edge

@@ -29,8 +29,8 @@ __all__ = [
     "TeState",
 ]
 
-#: The DBC shipped with the project (``<repo>/dbc/thermal_edge.dbc``).
-DEFAULT_DBC_PATH: Path = Path(__file__).resolve().parents[2] / "dbc" / "thermal_edge.dbc"
+#: The DBC shipped inside the package (``<repo>/dbc/thermal_edge.dbc`` links to it).
+DEFAULT_DBC_PATH: Path = Path(__file__).resolve().parent / "thermal_edge.dbc"
 
 #: Node names (``BU_``) of the DBC.
 NODE_INVERTER = "INV"

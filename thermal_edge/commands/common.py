@@ -6,8 +6,8 @@ import argparse
 from ..lptn import Model, load_model
 
 
-def add_model_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", required=True, help="machine model file (config/machines/*.yaml)")
+def add_model_args(p: argparse.ArgumentParser, required: bool = True) -> None:
+    p.add_argument("--model", required=required, help="machine model file (config/machines/*.yaml)")
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     p.add_argument("--method", choices=("zoh", "euler"), help="discretisation (default: the model's)")
     p.add_argument("--max-substep", type=float, help="Euler sub-step limit, s (default: the model's)")

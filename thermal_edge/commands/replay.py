@@ -3,6 +3,8 @@
 Open loop (``--no-adapt``, the default) predicts the whole run from its measured initial state.
 With ``--adapt`` the online adapter runs over the run as the service would, learning only from
 ``--sensors``, and every sensor in the file is scored (the unseen ones too).
+A ``candump -L`` log (``--format candump``) goes through the service's own pipeline with the
+service configuration ``--config`` (frame timestamps as the clock) and is summarised.
 """
 from __future__ import annotations
 
@@ -15,15 +17,19 @@ from ..data import FORMATS, read_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.online import run_online
 from ..estimation.predict import open_loop, score, sensor_columns
+from ..bench.common import config_path
 from ..lptn import Trajectory
+from ..service.replay import format_summary, replay_summary
 from .common import add_model_args, model_from_args
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("replay", help="replay a recorded run through the model", description=__doc__)
-    add_model_args(p)
-    p.add_argument("--run", required=True, help="recorded run")
-    p.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
+    add_model_args(p, required=False)
+    p.add_argument("--run", required=True, help="recorded run, or a candump -L log with --format candump")
+    p.add_argument("--format", default="csv", choices=(*FORMATS, "candump"), help="run file format (default csv)")
+    p.add_argument("--config", default=str(config_path("edge.yaml")),
+                   help="candump: the service configuration to replay with (default config/edge.yaml)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--no-adapt", dest="adapt", action="store_false", help="open-loop prediction (default)")
     mode.add_argument("--adapt", dest="adapt", action="store_true", help="run the online adapter over the run")
@@ -36,6 +42,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.format == "candump":
+        summary = replay_summary(args.run, args.config, args.model)
+        print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
+        return 0
+    if not args.model:
+        raise KeyError("--model is required for CSV runs")
     model = model_from_args(args)
     rec = read_run(args.run, args.format)
     out: dict[str, object] = {"model": model.name, "run": args.run, "samples": len(rec), "adapt": bool(args.adapt)}

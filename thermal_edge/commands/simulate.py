@@ -16,6 +16,7 @@ from ..data import write_run
 from ..discovery import effects as E
 from ..discovery import hidden
 from ..sim.cycles import cycle_run, load_cycle
+from ..sim.inverter import write_candump
 from ..sim.plant import simulate_plant
 from .common import add_model_args
 
@@ -47,7 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)
     p.add_argument("--cycle", required=True, help="drive cycle file (config/cycles/*.yaml)")
-    p.add_argument("--out", required=True, help="output run CSV")
+    p.add_argument("--out", required=True, help="output file: run CSV, or candump -L log with --format candump")
+    p.add_argument("--format", choices=("csv", "candump"), default="csv",
+                   help="csv: run CSV (default); candump: the inverter's CAN frames as a candump -L log "
+                        "(decodable with python -m cantools decode dbc/thermal_edge.dbc)")
+    p.add_argument("--current-period", type=float, default=0.01,
+                   help="candump: INV_Currents/INV_Mechanics period, s (default 0.01 as the DBC)")
+    p.add_argument("--temperature-period", type=float, default=0.1,
+                   help="candump: INV_StatorTemps/INV_AmbientTemps period, s (default 0.1)")
+    p.add_argument("--t0", type=float, default=1.7e9, help="candump: timestamp of the first frame, s since the epoch")
     p.add_argument("--duration", type=float, help="override the cycle's duration, s")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="plant parameter (repeatable)")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:TARGET][=PARAM=VALUE,...]",
@@ -73,6 +82,8 @@ def parse_params(items: list[str]) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.format == "candump":
+        return run_candump(args)
     raw = hidden.read_document(args.model)
     build = hidden.builder(args.model, args.data_dir)
     model = build(raw)
@@ -108,4 +119,16 @@ def run(args: argparse.Namespace) -> int:
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
     print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; peak " +
           ", ".join(f"{k} {v:.1f} °C" for k, v in hot.items()))
+    return 0
+
+
+def run_candump(args: argparse.Namespace) -> int:
+    """The inverter's frames of a simulated run (open loop: no service answers) as a candump log."""
+    if args.effect:
+        raise KeyError("--effect is not supported with --format candump (the emulator plays the model file)")
+    st = write_candump(args.model, args.cycle, args.out, params=parse_params(args.param), duration_s=args.duration,
+                       noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
+                       current_period_s=args.current_period, temperature_period_s=args.temperature_period)
+    peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
+    print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s (candump -L); peak {peaks}")
     return 0
