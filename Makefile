@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast venv clean
+.PHONY: demo test test-fast test-all venv clean
 
 venv: $(STAMP)
 
@@ -18,11 +18,18 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/thermal-edge demo
 
+# the suite: everything but the long sweeps marked slow; the SocketCAN VM tests run when a VM
+# can be had (root + apt), else they skip and say why
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m "not slow"
 
+# quick local runs: no VM, no slow tests
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow and not vm"
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m "not slow and not vm"
+
+# everything, the slow sweeps included (discovery over all effects, installed service, VM bench)
+test-all: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -135,7 +135,7 @@ def test_relative_paths_resolve_against_the_config_directory():
     raw = yaml.safe_load(EDGE_YAML.read_text())
     raw["codec"]["dbc"] = "../dbc/thermal_edge.dbc"
     cfg = config_from_mapping(raw, EDGE_YAML)
-    assert cfg.codec.dbc.resolve() == (REPO / "dbc" / "thermal_edge.dbc")
+    assert cfg.codec.dbc.resolve() == (REPO / "dbc" / "thermal_edge.dbc").resolve()
 
 
 def test_run_command_rejects_a_broken_config_with_one_line(tmp_path):

@@ -22,7 +22,7 @@ from thermal_edge.config import load_config
 from thermal_edge.service import EdgeService, replay_candump
 from thermal_edge.sim.inverter import InverterEmulator
 
-REPLAY_PREFIX_S = 2700.0  # the replay check runs over the first 45 min (two adaptations applied)
+REPLAY_PREFIX_S = 5400.0  # the replay check runs over the first 90 min (adaptations applied)
 
 
 @dataclass

@@ -335,9 +335,6 @@ def test_link_down_up_reconnects_and_derates_safely(scenario):
     assert delta(snaps["C_up_0"], snaps["C_end"], "thermal_edge_frames_received_total") > 0
 
 
-@pytest.mark.xfail(strict=True, reason="package: on vcan the service's recording marks received frames 'T' "
-                   "(thermal_edge/service/canbus.py writes python-can's is_rx, False for every frame looped back "
-                   "by the local vcan0), so replaying the service's own recording replays nothing")
 def test_service_recording_marks_received_frames_rx_and_replays(scenario):
     rec = scenario["_dir"] / "service-can.log"
     lines = rec.read_text().splitlines()

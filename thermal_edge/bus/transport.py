@@ -359,6 +359,9 @@ class CanTransport:
             return
         self.stats.rx_messages += 1
         if self._recorder is not None:
+            # received by us, whatever the interface says: SocketCAN reports frames from another
+            # local socket (vcan) as looped back, not received, and the log must mark them R
+            msg.is_rx = True
             self._recorder.write(msg)
         frame = self.codec.decode_message(msg)
         if frame is None:
