@@ -102,6 +102,9 @@ class CanTransport:
     bus_factory : callable, optional
         Opens the bus from the configuration (default :func:`create_bus`); tests
         inject failing buses here.
+    timestamp_fn : callable, optional
+        Time stamp (s) of sent frames in the recording and on buses that carry it
+        (default wall time; replays and accelerated runs pass their own clock).
 
     Examples
     --------
@@ -120,8 +123,10 @@ class CanTransport:
         on_frame: FrameCallback | None = None,
         queue: asyncio.Queue[DecodedFrame] | None = None,
         bus_factory: Callable[[BusConfig], can.BusABC] = create_bus,
+        timestamp_fn: Callable[[], float] = time.time,
     ) -> None:
         self.config = BusConfig.coerce(config)
+        self.timestamp_fn = timestamp_fn
         self.codec = codec if codec is not None else FrameCodec()
         self.stats = TransportStats()
         self.on_frame = on_frame
@@ -404,13 +409,11 @@ class CanTransport:
         if bus is None or self._failed_flag:
             self.stats.tx_failed += 1
             return False
-        msg = can.Message(
-            arbitration_id=arbitration_id,
-            data=data,
-            is_extended_id=False,
-            is_rx=False,
-            timestamp=time.time(),
-        )
+        try:
+            ts = float(self.timestamp_fn())
+        except Exception:  # a broken clock must not stop TE_Limits
+            ts = time.time()
+        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False, is_rx=False, timestamp=ts)
         try:
             bus.send(msg, timeout=self.config.send_timeout_s)
         except can.CanTimeoutError as exc:

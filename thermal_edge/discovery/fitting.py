@@ -31,7 +31,7 @@ from ..estimation.common import ParamSpace, Window, decimate, window_from_arrays
 from ..estimation.gauss_newton import fit_gauss_newton
 from ..estimation.objective import Objective
 from ..estimation.predict import model_inputs
-from ..lptn import Model, Network, Simulator
+from ..lptn import Model, Network, Simulator, initial_state
 from . import effects as E
 
 
@@ -105,40 +105,13 @@ def simulator(model: Model) -> Simulator:
 
 def initial(model: Model, run: Run, theta: np.ndarray, k: int = 0) -> np.ndarray:
     """Node temperatures at sample ``k``: measured nodes from the sensors, the others from the
-    steady state given them at rest (as :func:`thermal_edge.lptn.initial_state`, on the cached
-    network, but with the heat flows the laws give at rest: an effect such as a warmer ambient
-    then starts the unmeasured nodes where the machine has them)."""
-    net = simulator(model).net
+    steady state given them with the heat flows the laws give at rest
+    (:func:`thermal_edge.lptn.initial_state`): an effect such as a warmer ambient then starts the
+    unmeasured nodes where the machine has them."""
     inp = {c: float(v[k]) for c, v in model_inputs(model, run).items()}
-    op = {c: np.array([inp[c]]) for c in model.inputs}
-    cont = net.continuous(theta, op, K=1)
-    A, W = cont.A[0], cont.W[0]
-    U = np.array([inp[c] for c in model.boundaries.values()])
-    T = np.full(len(model.nodes), np.nan)
-    for sname, node in model.sensors.items():
-        if sname in run.columns and np.isfinite(run.columns[sname][k]):
-            T[model.node_index(node)] = float(run.columns[sname][k])
-    known = np.isfinite(T)
-    if known.all():
-        return T
-    u = ~known
-    rhs = -(A[np.ix_(u, known)] @ T[known]) - W[u, : len(U)] @ U
-    T[u] = np.linalg.solve(A[np.ix_(u, u)], rhs)
-    # with the heat flows of the machine at rest (no speed, no current: zero losses, but an
-    # effect such as a warmer ambient or radiation enters as a heat flow): two fixed-point
-    # passes for T-dependent laws
-    sim = simulator(model)
-    if sim.loss_laws:
-        rest = {c: (0.0 if c in AT_REST else v) for c, v in inp.items()}
-        env = net.env(theta, {c: np.array(v) for c, v in rest.items()})
-        for _ in range(2):
-            for i, node in enumerate(model.nodes):
-                env[f"T.{node}"] = T[i]
-            P = np.array([float(np.asarray(law.f(env))) for law in sim.loss_laws])
-            if not np.all(np.isfinite(P)):
-                break
-            T[u] = np.linalg.solve(A[np.ix_(u, u)], rhs - W[u, len(U):] @ P)
-    return T
+    meas = {s: float(run.columns[s][k]) for s in model.sensors if s in run.columns}
+    rest = {c: (0.0 if c in AT_REST else v) for c, v in inp.items()}
+    return initial_state(model, inp, meas, theta, net=simulator(model).net, rest_inputs=rest)
 
 
 def train_window(model: Model, data: Data, theta: np.ndarray) -> Window:

@@ -61,7 +61,8 @@ def steady_state(
 
 
 def initial_state(
-    model: Model, inputs: Mapping[str, float], measured: Mapping[str, float], theta: np.ndarray | None = None
+    model: Model, inputs: Mapping[str, float], measured: Mapping[str, float], theta: np.ndarray | None = None,
+    net: Network | None = None, rest_inputs: Mapping[str, float] | None = None,
 ) -> np.ndarray:
     """Initial node temperatures (°C) from the sensors' first readings.
 
@@ -71,9 +72,16 @@ def initial_state(
         First-sample inputs (boundary temperatures at least).
     measured : mapping
         Sensor name -> reading (°C); NaN readings are ignored.
+    net : Network, optional
+        A network of ``model`` already built (saves compiling the laws again).
+    rest_inputs : mapping, optional
+        Inputs of the machine at rest (no speed, no current). With them the unmeasured nodes
+        also carry the heat flows the loss laws give at rest (a warmer ambient, radiation …),
+        by two fixed-point passes for temperature-dependent laws; without them, none.
     """
     theta = model.nominal() if theta is None else np.asarray(theta, dtype=float)
-    A, W, U = _point(Network(model), theta, inputs)
+    net = net or Network(model)
+    A, W, U = _point(net, theta, inputs)
     n = len(model.nodes)
     T = np.full(n, np.nan)
     for s, v in measured.items():
@@ -85,4 +93,13 @@ def initial_state(
     u = ~known
     rhs = -(A[np.ix_(u, known)] @ T[known]) - W[u, : len(U)] @ U
     T[u] = np.linalg.solve(A[np.ix_(u, u)], rhs)
+    if rest_inputs is not None and model.losses:
+        env = net.env(theta, {c: np.array(float(v)) for c, v in rest_inputs.items()})
+        laws = [loss.power.compile() for loss in model.losses]
+        for _ in range(2):
+            env.update((temperature_name(x), T[i]) for i, x in enumerate(model.nodes))
+            P = np.array([float(np.asarray(f(env))) for f in laws])
+            if not np.all(np.isfinite(P)):
+                break
+            T[u] = np.linalg.solve(A[np.ix_(u, u)], rhs - W[u, len(U):] @ P)
     return T

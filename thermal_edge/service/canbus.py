@@ -1,8 +1,8 @@
-"""The service's access to the bus: clock-stamped sends and buses that keep frame timestamps.
+"""The service's buses: ones that keep frame timestamps.
 
-- :class:`ClockedTransport` -- a :class:`~thermal_edge.bus.CanTransport` whose sent (and
-  recorded) frames carry the service's clock time instead of the wall time, so a candump log of a
-  replay or an accelerated run is in one consistent time base.
+(Sent frames carry the service's clock through ``CanTransport(timestamp_fn=...)``, so a candump
+log of a replay or an accelerated run is in one time base.)
+
 - :func:`bus_factory` -- opens the configured bus; with ``preserve_timestamps: true`` in the bus
   options the receiver keeps the sender's timestamps (``virtual`` supports this natively;
   ``udp_multicast`` through :class:`TimestampedUdpMulticastBus`), which is how simulated time
@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import logging
 import socket
-import time
-from collections.abc import Callable, Mapping
 from typing import Any
 
 import can
@@ -22,9 +20,8 @@ from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.utils import unpack_message
 
 from ..bus.busconfig import BusConfig, _assert_hop_limit_zero, bus_kwargs, create_bus
-from ..bus.transport import CanTransport
 
-__all__ = ["ClockedTransport", "TimestampedUdpMulticastBus", "bus_factory"]
+__all__ = ["TimestampedUdpMulticastBus", "bus_factory"]
 
 log = logging.getLogger(__name__)
 
@@ -76,42 +73,3 @@ def bus_factory(config: BusConfig) -> can.BusABC:
     bus = TimestampedUdpMulticastBus(preserve_timestamps=preserve, rcvbuf_bytes=rcvbuf, **kwargs)
     _assert_hop_limit_zero(bus)
     return bus
-
-
-class ClockedTransport(CanTransport):
-    """A :class:`CanTransport` whose sent frames are stamped by ``timestamp_fn`` (default wall time).
-
-    Parameters are those of :class:`CanTransport` plus ``timestamp_fn``; the bus factory defaults
-    to :func:`bus_factory`.
-    """
-
-    def __init__(self, config: BusConfig | Mapping[str, Any], codec: Any = None, *,
-                 timestamp_fn: Callable[[], float] = time.time, bus_factory: Callable[[BusConfig], can.BusABC] = bus_factory,
-                 **kwargs: Any) -> None:
-        super().__init__(config, codec, bus_factory=bus_factory, **kwargs)
-        self.timestamp_fn = timestamp_fn
-
-    def send_raw(self, arbitration_id: int, data: bytes) -> bool:
-        bus = self._bus
-        if bus is None or self._failed_flag:
-            self.stats.tx_failed += 1
-            return False
-        try:
-            ts = float(self.timestamp_fn())
-        except Exception:
-            ts = time.time()
-        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False, is_rx=False, timestamp=ts)
-        try:
-            bus.send(msg, timeout=self.config.send_timeout_s)
-        except can.CanTimeoutError as exc:
-            self.stats.tx_failed += 1
-            log.debug("send 0x%03X timed out: %s", arbitration_id, exc)
-            return False
-        except Exception as exc:
-            self.stats.tx_failed += 1
-            self._on_bus_error(exc, "send")
-            return False
-        self.stats.tx_frames += 1
-        if self._recorder is not None:
-            self._recorder.write(msg)
-        return True

@@ -2,7 +2,7 @@
 
 :class:`EdgeService` wires the parts together:
 
-- a :class:`~.canbus.ClockedTransport` receives and checks the inverter's frames; each accepted
+- a :class:`~thermal_edge.bus.CanTransport` (sent frames stamped by the service clock) receives and checks the inverter's frames; each accepted
   frame goes to the :class:`~.engine.ThermalEngine`'s input accumulator;
 - the tick runs at 1 Hz of the configured clock: with the wall clock from a timer task, with the
   frame clock whenever a frame's timestamp crosses a tick boundary (replays, accelerated
@@ -29,11 +29,12 @@ from typing import Any
 from prometheus_client import CollectorRegistry
 
 from ..bus.codec import DecodedFrame, FrameCodec
+from ..bus.transport import CanTransport
 from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason,
                           TeState)
 from ..config import EdgeConfig
 from ..lptn import Model
-from .canbus import ClockedTransport, bus_factory
+from .canbus import bus_factory
 from .clock import FrameClock, WallClock
 from .engine import ThermalEngine, TickOutput, load_service_model
 from .memory import limit_heap_retention
@@ -97,8 +98,8 @@ class EdgeService:
         self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s) if self.frame_mode else WallClock(config.clock.tick_s)
         self.metrics = ServiceMetrics(registry)
         self.notifier = notifier if notifier is not None else SystemdNotifier()
-        self.transport = ClockedTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
-                                          bus_factory=bus_factory_fn)
+        self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
+                                      bus_factory=bus_factory_fn)
         self.metrics.attach(self.engine, self.codec, self.transport.stats, self.store)
         self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
                                    "Wall time minus clock time of the last frame (frame clock; large = behind)"))
