@@ -475,7 +475,16 @@ mount -t devtmpfs devtmpfs /host/dev || fail "mount devtmpfs in chroot"
 mkdir -p /host/dev/pts /host/dev/shm
 mount -t devpts devpts /host/dev/pts
 mount -t tmpfs -o mode=1777 shm /host/dev/shm
+# the guest gets a fresh /tmp; host directories under /tmp it needs (a checkout cloned there)
+# are bound back in from the host root, read-only like the rest of it
+mkdir -p /hosttmp
+mount --bind /host/tmp /hosttmp || fail "bind mount of the host's /tmp"
 mount -t tmpfs -o mode=1777 tmp /host/tmp || fail "mount tmpfs on /tmp in chroot"
+if [ -f /share/tmpbinds ]; then
+    while read -r p; do
+        mkdir -p "/host$p" && mount --bind "/hosttmp${p#/tmp}" "/host$p" || say "ERROR bind of $p"
+    done < /share/tmpbinds
+fi
 mount -t tmpfs -o mode=755 run /host/run 2>/dev/null
 mkdir -p /host/tmp/vmshare /host/tmp/home
 mount --bind /share /host/tmp/vmshare || fail "bind mount of the share"
@@ -771,6 +780,10 @@ class VM:
                 )
             )
             (share / "stdin").write_bytes(stdin.encode() if isinstance(stdin, str) else stdin)
+            under_tmp = sorted({str(Path(d).resolve()) for d in (cwd, Path(__file__).resolve().parents[2])
+                                if Path(d).resolve().is_relative_to("/tmp")})
+            if under_tmp:
+                (share / "tmpbinds").write_text("".join(f"{d}\n" for d in under_tmp))
             if files:
                 (share / "files").mkdir()
                 for name, content in files.items():
