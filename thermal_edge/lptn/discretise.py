@@ -10,6 +10,12 @@ the step, for ZOH and for explicit Euler with sub-steps alike) and its derivativ
 * ``euler`` (the paper's choice): ``Φ = (I + h C⁻¹A)^m`` with ``m`` sub-steps of ``h = Δt/m``.
   Stable only if the spectral radius of ``I + h C⁻¹A`` is below 1; otherwise
   :class:`UnstableDiscretisation` says which step would be stable.
+
+Both ``Φ`` are functions of ``C⁻¹A = V Λ V⁻¹`` with ``V = C^-½ Q`` (``Q`` the orthonormal
+eigenvectors of ``Ã``), so the derivatives are kept in that modal basis, ``dΦ̃ = V⁻¹ dΦ V`` and
+``dΓ̃ = V⁻¹ dΓ``, where ZOH gets them from the rank-one factors of ``dA`` and ``dW`` without any
+dense product per parameter; :attr:`Discrete.dPhi` and :attr:`Discrete.dGam` give the dense
+node-coordinate forms on demand.
 """
 from __future__ import annotations
 
@@ -32,13 +38,50 @@ class NotPassive(ValueError):
 
 @dataclass
 class Discrete:
-    """``Φ`` (K, n, n), ``Γ`` (K, n, m) and, if asked, ``dΦ`` (K, p, n, n), ``dΓ`` (K, p, n, m)."""
+    """``Φ`` (K, n, n), ``Γ`` (K, n, m) and, if asked, their derivatives in the modal basis.
+
+    The modal basis of operating point ``k`` is ``V_k = diag(1/s) Q_k``: ``Φ = V diag(mu) V⁻¹``
+    and ``V⁻¹ (Φ − I) A⁻¹ = diag(phi) Q_kᵀ diag(1/s)`` (``phi = (mu − 1)/λ``, positive).
+    ``dPhit`` (K, p, n, n) is ``V⁻¹ dΦ_j V``. ``V⁻¹ dΓ_j`` is kept factored,
+    ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with ``Ht = V⁻¹ A⁻¹ W`` (K, n, m),
+    ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m) from the rank-one factors of
+    :class:`~thermal_edge.lptn.network.Continuous`: ``dΓ w = V (dPhit (Ht w) − phi ∘ Zh (dg ∘ Yt w))``
+    costs no more than ``dΦ T``.
+    """
 
     Phi: np.ndarray
     Gam: np.ndarray
-    dPhi: np.ndarray | None = None
-    dGam: np.ndarray | None = None
     substeps: int = 1
+    s: np.ndarray | None = None
+    Q: np.ndarray | None = None
+    mu: np.ndarray | None = None
+    phi: np.ndarray | None = None
+    dPhit: np.ndarray | None = None
+    Ht: np.ndarray | None = None
+    Zh: np.ndarray | None = None
+    Yt: np.ndarray | None = None
+    dg: np.ndarray | None = None
+
+    @property
+    def dGamt(self) -> np.ndarray | None:
+        """``V⁻¹ ∂Γ/∂θ_j`` (K, p, n, m)."""
+        if self.dPhit is None or self.Ht is None or self.Zh is None or self.Yt is None or self.dg is None:
+            return None
+        low = (self.Zh[:, None] * self.dg[:, :, None, :]) @ self.Yt[:, None]
+        return self.dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
+
+    @property
+    def dPhi(self) -> np.ndarray | None:
+        """``∂Φ/∂θ_j`` (K, p, n, n) in node coordinates."""
+        if self.dPhit is None:
+            return None
+        return sandwich(self.Q / self.s[:, None], self.dPhit, np.swapaxes(self.Q, -1, -2) * self.s)
+
+    @property
+    def dGam(self) -> np.ndarray | None:
+        """``∂Γ/∂θ_j`` (K, p, n, m) in node coordinates."""
+        dGamt = self.dGamt
+        return None if dGamt is None else (self.Q / self.s[:, None])[:, None] @ dGamt
 
 
 def _eig(cont: Continuous) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -88,57 +131,93 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
     s, At, lam, Qm = _eig(cont)
     K, n, _ = cont.A.shape
     eye = np.eye(n)
-    with_d = cont.dA is not None
-    if with_d:
-        r = cont.dc / (2.0 * cont.c)  # ds/s per parameter, (p, n)
-        dAt = cont.dA / np.outer(s, s) - At[:, None] * (r[None, :, :, None] + r[None, :, None, :])
+    with_d = cont.dg is not None
+    Qt = np.swapaxes(Qm, -1, -2)
     if method == "zoh":
-        x = lam * dt
-        # Φ − I from expm1 so that slow modes (Φ ≈ I) keep their digits in Γ = (Φ − I) H
-        Em1 = (Qm * np.expm1(x)[:, None, :]) @ np.swapaxes(Qm, -1, -2)
-        PmI = Em1 / s[:, None] * s[None, :]
-        Phi = PmI + eye
         m = 1
-        if with_d:
-            # divided differences of exp(λ dt) w.r.t. λ, (e^a − e^b)/(a − b) · dt, written as
-            # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels
-            ad = np.abs(x[:, :, None] - x[:, None, :])
-            small = ad < 1e-10
-            ratio = np.where(small, 1.0 - ad / 2.0, -np.expm1(-ad) / np.where(small, 1.0, ad))
-            Dd = dt * np.exp(np.maximum(x[:, :, None], x[:, None, :])) * ratio
-            Qt = np.swapaxes(Qm, -1, -2)
-            dE = sandwich(Qm, sandwich(Qt, dAt, Qm) * Dd[:, None], Qt)
-            dPhi = -r[None, :, :, None] * Phi[:, None] + dE / s[:, None] * s[None, :] + Phi[:, None] * r[None, :, None, :]
+        x = lam * dt
+        mu = np.exp(x)
+        phi = np.expm1(x) / lam
+        # Φ − I from expm1 so that slow modes (Φ ≈ I) keep their digits in Γ = (Φ − I) H
+        Em1 = (Qm * np.expm1(x)[:, None, :]) @ Qt
+        PmI = Em1 / s[:, None] * s[None, :]
     elif method == "euler":
         m = euler_substeps(lam, dt, max_substep)
         h = dt / m
+        mu = (1.0 + h * lam) ** m
+        phi = (mu - 1.0) / lam
         F = cont.A / cont.c[:, None]
         Phi1 = eye + h * F
         PmI = h * F
         for _ in range(m - 1):  # Φ1^(k+1) − I = Φ1 (Φ1^k − I) + (Φ1 − I), without cancellation
             PmI = Phi1 @ PmI + h * F
-        Phi = PmI + eye
-        if with_d:
-            dF = (cont.dA - cont.dc[None, :, :, None] * F[:, None]) / cont.c[None, None, :, None]
-            dPhi1 = h * dF
-            if m == 1:
-                dPhi = dPhi1
-            else:
-                pows = [np.broadcast_to(eye, Phi1.shape)]
-                for _ in range(m - 1):
-                    pows.append(pows[-1] @ Phi1)
-                dPhi = sum(pows[i][:, None] @ dPhi1 @ pows[m - 1 - i][:, None] for i in range(m))
     else:
         raise ValueError(f"unknown discretisation method {method!r} (zoh, euler)")
+    Phi = PmI + eye
     H = np.linalg.solve(cont.A, cont.W)
-    Gam = PmI @ H
-    out = Discrete(Phi=Phi, Gam=Gam, substeps=m)
-    if with_d:
-        # one factorisation per operating point for all parameters: stack the right-hand sides
-        rhs = cont.dW - cont.dA @ H[:, None]  # (K, p, n, m)
-        p_, m_ = rhs.shape[1], rhs.shape[3]
-        dH = np.linalg.solve(cont.A, rhs.transpose(0, 2, 1, 3).reshape(K, n, p_ * m_))
-        dH = dH.reshape(K, n, p_, m_).transpose(0, 2, 1, 3)
-        out.dPhi = dPhi
-        out.dGam = dPhi @ H[:, None] + PmI[:, None] @ dH
+    out = Discrete(Phi=Phi, Gam=PmI @ H, substeps=m, s=s, Q=Qm, mu=mu, phi=phi)
+    if not with_d:
+        return out
+    assert cont.dc is not None and cont.dZ is not None and cont.dV is not None and cont.dg is not None
+    out.Ht = Qt @ (s[:, None] * H)  # V⁻¹ H
+    out.Zh = Qt @ (cont.dZ / s[:, None])
+    out.Yt = np.swapaxes(cont.dV, -1, -2) - np.swapaxes(cont.dZ, -1, -2) @ H
+    out.dg = cont.dg
+    if method == "zoh":
+        out.dPhit = _zoh_modal_derivatives(cont, dt, lam, Qm, mu, out.Zh)
+    else:
+        Vi = Qt * s  # V⁻¹
+        out.dPhit = sandwich(Vi, _euler_derivatives(cont, Phi1, h, m), Qm / s[:, None])
     return out
+
+
+def _zoh_modal_derivatives(cont: Continuous, dt: float, lam: np.ndarray, Qm: np.ndarray, mu: np.ndarray,
+                           Zh: np.ndarray) -> np.ndarray:
+    """``V⁻¹ dΦ_j V`` (K, p, n, n) of the ZOH step, from the rank-one factors of ``dA``.
+
+    In the basis ``Q`` of ``Ã`` the derivative of ``exp(Ã dt)`` is ``(Qᵀ dÃ Q) ∘ D`` with ``D``
+    the divided differences of ``exp`` on the eigenvalues (Daleckii–Krein). With ``r = dc/2c``
+    and ``R = Qᵀ diag(r) Q``: ``Qᵀ dÃ Q = −Zh diag(dg) Zhᵀ − R ∘ (λ_a + λ_b)``, and the
+    similarity ``C^-½`` adds ``R ∘ (μ_a − μ_b)``.
+    """
+    assert cont.dc is not None and cont.dg is not None
+    K, n = lam.shape
+    p = cont.dc.shape[0]
+    x = lam * dt
+    # divided differences of exp(λ dt) w.r.t. λ, (e^a − e^b)/(a − b) · dt, written as
+    # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels
+    ad = np.abs(x[:, :, None] - x[:, None, :])
+    small = ad < 1e-10
+    ratio = np.where(small, 1.0 - ad / 2.0, -np.expm1(-ad) / np.where(small, 1.0, ad))
+    Dd = dt * np.exp(np.maximum(x[:, :, None], x[:, None, :])) * ratio
+    dPhit = np.zeros((K, p, n, n))
+    r = cont.dc / (2.0 * cont.c)
+    for j in range(p):
+        e = np.nonzero(np.any(cont.dg[:, j] != 0.0, axis=0))[0]  # the few edges of this parameter
+        if len(e):
+            Zg = Zh[:, :, e] * cont.dg[:, j][:, e][:, None, :]
+            np.matmul(-Zg, np.swapaxes(Zh[:, :, e], -1, -2), out=dPhit[:, j])
+        nz = np.nonzero(r[j])[0]  # the nodes whose capacity depends on it
+        if len(nz):
+            Qn = Qm[:, nz, :]
+            R = np.swapaxes(Qn, -1, -2) @ (r[j, nz, None] * Qn)
+            dPhit[:, j] -= R * (lam[:, :, None] + lam[:, None, :])
+            dPhit[:, j] *= Dd
+            dPhit[:, j] += R * (mu[:, :, None] - mu[:, None, :])
+        else:
+            dPhit[:, j] *= Dd
+    return dPhit
+
+
+def _euler_derivatives(cont: Continuous, Phi1: np.ndarray, h: float, m: int) -> np.ndarray:
+    """``dΦ_j`` (K, p, n, n) of ``m`` Euler sub-steps ``Φ = Φ1^m``, ``Φ1 = I + h C⁻¹A``."""
+    assert cont.dc is not None and cont.dA is not None
+    n = Phi1.shape[-1]
+    F = cont.A / cont.c[:, None]
+    dPhi1 = h * (cont.dA - cont.dc[None, :, :, None] * F[:, None]) / cont.c[None, None, :, None]
+    if m == 1:
+        return dPhi1
+    pows = [np.broadcast_to(np.eye(n), Phi1.shape)]
+    for _ in range(m - 1):
+        pows.append(pows[-1] @ Phi1)
+    return sum(pows[i][:, None] @ dPhi1 @ pows[m - 1 - i][:, None] for i in range(m))

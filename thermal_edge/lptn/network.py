@@ -27,16 +27,38 @@ from .model import Model
 class Continuous:
     """Continuous system at ``K`` operating points; derivatives over ``p`` chosen parameters.
 
-    Shapes: ``A`` (K, n, n) W/K, ``W`` (K, n, m), ``c`` (n,) J/K, ``dA`` (K, p, n, n),
-    ``dW`` (K, p, n, m), ``dc`` (p, n).
+    Shapes: ``A`` (K, n, n) W/K, ``W`` (K, n, m), ``c`` (n,) J/K, ``dc`` (p, n).
+
+    The derivatives of ``A`` and ``W`` are kept in factored form: each conductance ``g_e`` whose
+    law depends on a chosen parameter changes them by rank one, ``∂A/∂g_e = −z_e z_eᵀ`` and
+    ``∂W/∂g_e = −z_e v_eᵀ`` (see :meth:`Network._derivatives`), so ``dA_j = −Z diag(dg_j) Zᵀ``
+    with ``Z`` (K, n, e), ``V`` (K, m, e) and ``dg`` (K, p, e) over the ``e`` edges that take part.
+    :attr:`dA` and :attr:`dW` build the dense arrays on demand.
     """
 
     A: np.ndarray
     W: np.ndarray
     c: np.ndarray
-    dA: np.ndarray | None = None
-    dW: np.ndarray | None = None
     dc: np.ndarray | None = None
+    dZ: np.ndarray | None = None
+    dV: np.ndarray | None = None
+    dg: np.ndarray | None = None
+
+    @property
+    def dA(self) -> np.ndarray | None:
+        """``∂A/∂θ_j`` (K, p, n, n), W/K per parameter unit."""
+        if self.dZ is None or self.dg is None:
+            return None
+        Zg = self.dZ[:, None] * self.dg[:, :, None, :]
+        return -(Zg @ np.swapaxes(self.dZ, -1, -2)[:, None])
+
+    @property
+    def dW(self) -> np.ndarray | None:
+        """``∂W/∂θ_j`` (K, p, n, m)."""
+        if self.dZ is None or self.dV is None or self.dg is None:
+            return None
+        Zg = self.dZ[:, None] * self.dg[:, :, None, :]
+        return -(Zg @ np.swapaxes(self.dV, -1, -2)[:, None])
 
 
 class _Law:
@@ -139,8 +161,8 @@ class Network:
         KU = np.asarray((self._scatter_K.T @ flat.T).T).reshape(*lead, npt, nb)
         return L, KU
 
-    def _derivatives(self, L: np.ndarray, KU: np.ndarray, X: np.ndarray, dg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``dA`` (K, p, n, n) and ``dW`` (K, p, n, m) from the edge derivatives ``dg`` (K, p, E).
+    def _derivatives(self, L: np.ndarray, KU: np.ndarray, dg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rank-one factors ``Z`` (K, n, e), ``V`` (K, m, e) and ``dg`` (K, p, e) of ``dA``, ``dW``.
 
         The Schur complement's derivative with respect to one conductance is rank one: with
         ``u`` the edge's incidence vector, ``y = L_QQ⁻¹ u_Q`` and ``z = u_D − L_DQ y``,
@@ -150,23 +172,18 @@ class Network:
         """
         n = self.n
         live = np.nonzero(np.any(dg != 0.0, axis=(0, 1)))[0]
-        K, p = dg.shape[:2]
+        K = dg.shape[0]
         m = self.n_bound + self.n_loss
-        if not len(live):
-            return np.zeros((K, p, n, n)), np.zeros((K, p, n, m))
         inc = self.inc[live]
         uD, uQ = inc[:, :n].T, inc[:, n:].T  # (n, e), (q, e)
-        if self.n_points > n:
+        if self.n_points > n and len(live):
             Y = np.linalg.solve(L[:, n:, n:], np.broadcast_to(uQ, (K, *uQ.shape)))
             Z = uD - L[:, :n, n:] @ Y
             V = np.concatenate([-self.binc[live].T + np.swapaxes(KU[:, n:], -1, -2) @ Y, self.loss_map[n:].T @ Y], axis=1)
         else:
             Z = np.broadcast_to(uD, (K, *uD.shape))
             V = np.broadcast_to(np.concatenate([-self.binc[live].T, np.zeros((self.n_loss, len(live)))]), (K, m, len(live)))
-        Zg = Z[:, None] * dg[:, :, None, live]  # (K, p, n, e)
-        dA = -(Zg @ np.swapaxes(Z, -1, -2)[:, None])
-        dW = -(Zg @ np.swapaxes(V, -1, -2)[:, None])
-        return dA, dW
+        return np.ascontiguousarray(Z), np.ascontiguousarray(V), np.ascontiguousarray(dg[:, :, live])
 
     def point_temperatures(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None, T: np.ndarray, U: np.ndarray, P: np.ndarray
@@ -215,6 +232,6 @@ class Network:
         c, dc = self.capacities(theta, wrt)
         cont = Continuous(A=A, W=W, c=c)
         if len(wrt):
-            cont.dA, cont.dW = self._derivatives(L, KU, X, dg)
+            cont.dZ, cont.dV, cont.dg = self._derivatives(L, KU, dg)
             cont.dc = dc
         return cont

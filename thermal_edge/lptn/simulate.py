@@ -9,10 +9,8 @@ values of the inputs that enter conductances). Losses that are affine in the tem
 copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that is evaluated for the
 whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
 
-Sensitivities run after the simulation: the forcing
-``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ`` is computed for all steps at once (one matrix product per
-operating point, vectorised over parameters), leaving the recursion
-``S_{k+1} = (Φ + Γ_P ∂P/∂T) S_k + X_k`` with one small matrix product per step.
+Sensitivities run after the simulation (:mod:`.sensitivity`): in closed form over runs of held
+inputs, step by step elsewhere.
 """
 from __future__ import annotations
 
@@ -25,6 +23,7 @@ from .discretise import Discrete, discretise
 from .expr import is_affine
 from .model import Model
 from .network import Network, _Law
+from .sensitivity import Sensitivities, held_steps
 
 
 @dataclass
@@ -140,8 +139,6 @@ class Simulator:
                 if pi in law.d:
                     out[:, j, q] = law.d[pi](e)
         return out
-
-    BLOCK = 512  # time steps per block of the sensitivity forcing
 
     def _rows(self, nodes: Sequence[str]) -> np.ndarray:
         return np.array([self.model.node_index(x) for x in nodes], dtype=int)
@@ -262,42 +259,17 @@ class Simulator:
         self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int], rows: np.ndarray | None
     ) -> np.ndarray:
         d = prep.disc
-        assert d.dPhi is not None and d.dGam is not None
-        N, n = T.shape
-        p = len(widx)
+        N = T.shape[0]
         nb = prep.U.shape[1]
-        GP = d.Gam[:, :, nb:]
-        w = np.concatenate([prep.U, P], axis=1)
-        dPdth = self._loss_theta(prep.env, T, widx)
-        loss_theta = bool(np.any(dPdth))
         ops = prep.ops[: max(N - 1, 0)]
-        # forcing X_k = dΦ T_k + dΓ w_k (+ Γ_P ∂P/∂θ): per operating point one product over all
-        # its steps and parameters; done in blocks of time so the buffer stays in cache
-        dPhiT = [np.ascontiguousarray(d.dPhi[o].reshape(p * n, n).T) for o in range(d.Phi.shape[0])]
-        dGamT = [np.ascontiguousarray(d.dGam[o].reshape(p * n, -1).T) for o in range(d.Phi.shape[0])]
-        mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT[: N - 1])
-        keep = np.arange(n) if rows is None else np.asarray(rows, dtype=int)
-        S = np.zeros((N, len(keep), p))
-        block = min(self.BLOCK, max(N - 1, 1))
-        X = np.empty((block, n, p))
-        s = np.zeros((n, p))
-        for a in range(0, N - 1, block):
-            b = min(a + block, N - 1)
-            ob = ops[a:b]
-            for o in np.unique(ob):
-                sel = np.nonzero(ob == o)[0]
-                Xo = (T[a + sel] @ dPhiT[o] + w[a + sel] @ dGamT[o]).reshape(len(sel), p, n)
-                X[sel] = Xo.swapaxes(1, 2)
-                if loss_theta:  # Γ_P ∂P/∂θ as one product: (n, nl) @ (nl, steps·p)
-                    Dl = np.moveaxis(dPdth[a + sel], 1, 0).reshape(dPdth.shape[1], -1)
-                    X[sel] += (GP[o] @ Dl).reshape(n, len(sel), p).swapaxes(0, 1)
-            if rows is None:
-                for k in range(a, b):
-                    np.matmul(mats[mi[k]], S[k], out=S[k + 1])
-                    S[k + 1] += X[k - a]
-            else:
-                for k in range(a, b):
-                    s = mats[mi[k]] @ s
-                    s += X[k - a]
-                    S[k + 1] = s[keep]
-        return S
+        mats, mi = self._step_matrices(d.Phi, d.Gam[:, :, nb:], ops, dPdT[: N - 1])
+        sens = Sensitivities(d, ops, mats, mi, T, np.concatenate([prep.U, P], axis=1),
+                             self._loss_theta(prep.env, T, widx), nb)
+        env = prep.env
+
+        def loss_at(k: int, temps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            at = {key: (v[k] if np.ndim(v) == 1 and len(v) == N else v) for key, v in env.items()}  # type: ignore[index]
+            return self._loss_terms(at, len(temps), temps)[0], self._loss_theta(at, temps, widx)
+
+        # the closed form over held inputs needs losses affine in temperature
+        return sens.run(held_steps(env, N - 1), None if self.nonaffine else loss_at, rows)
