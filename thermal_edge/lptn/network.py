@@ -161,23 +161,21 @@ class Network:
         KU = np.asarray((self._scatter_K.T @ flat.T).T).reshape(*lead, npt, nb)
         return L, KU
 
-    def _derivatives(self, L: np.ndarray, KU: np.ndarray, dg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _derivatives(self, L: np.ndarray, KU: np.ndarray, dg: np.ndarray, live: np.ndarray,
+                     Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rank-one factors ``Z`` (K, n, e), ``V`` (K, m, e) and ``dg`` (K, p, e) of ``dA``, ``dW``.
 
         The Schur complement's derivative with respect to one conductance is rank one: with
-        ``u`` the edge's incidence vector, ``y = L_QQ⁻¹ u_Q`` and ``z = u_D − L_DQ y``,
-        ``∂A/∂g = −z zᵀ`` and ``∂W/∂g = −z vᵀ`` with ``v = [ũ_U + K_QUᵀ y; M_Qᵀ y]``
-        (``ũ_U`` the edge's incidence on the boundaries). Only edges whose law depends on a
-        chosen parameter take part.
+        ``u`` the edge's incidence vector, ``y = L_QQ⁻¹ u_Q`` (``Y``, solved with ``X``) and
+        ``z = u_D − L_DQ y``, ``∂A/∂g = −z zᵀ`` and ``∂W/∂g = −z vᵀ`` with
+        ``v = [ũ_U + K_QUᵀ y; M_Qᵀ y]`` (``ũ_U`` the edge's incidence on the boundaries). Only the
+        ``live`` edges, whose laws depend on a chosen parameter, take part.
         """
         n = self.n
-        live = np.nonzero(np.any(dg != 0.0, axis=(0, 1)))[0]
         K = dg.shape[0]
         m = self.n_bound + self.n_loss
-        inc = self.inc[live]
-        uD, uQ = inc[:, :n].T, inc[:, n:].T  # (n, e), (q, e)
+        uD = self.inc[live, :n].T
         if self.n_points > n and len(live):
-            Y = np.linalg.solve(L[:, n:, n:], np.broadcast_to(uQ, (K, *uQ.shape)))
             Z = uD - L[:, :n, n:] @ Y
             V = np.concatenate([-self.binc[live].T + np.swapaxes(KU[:, n:], -1, -2) @ Y, self.loss_map[n:].T @ Y], axis=1)
         else:
@@ -223,7 +221,14 @@ class Network:
         D, Q = slice(0, n), slice(n, None)
         LQQ, LQD = L[:, Q, Q], L[:, Q, D]
         has_q = self.n_points > n
-        X = np.linalg.solve(LQQ, LQD) if has_q else np.zeros((K, 0, n))
+        live = np.nonzero(np.any(dg != 0.0, axis=(0, 1)))[0]
+        if has_q:
+            # one factorisation for the elimination and for the derivatives' L_QQ⁻¹ u_Q
+            uQ = np.broadcast_to(self.inc[live, n:].T, (K, self.n_points - n, len(live)))
+            XY = np.linalg.solve(LQQ, np.concatenate([LQD, uQ], axis=-1) if len(wrt) else LQD)
+            X, Y = XY[..., :n], XY[..., n:]
+        else:
+            X, Y = np.zeros((K, 0, n)), np.zeros((K, 0, len(live)))
         Xt = np.swapaxes(X, -1, -2)
         A = -(L[:, D, D] - L[:, D, Q] @ X)
         B = KU[:, D, :] - Xt @ KU[:, Q, :]
@@ -232,6 +237,6 @@ class Network:
         c, dc = self.capacities(theta, wrt)
         cont = Continuous(A=A, W=W, c=c)
         if len(wrt):
-            cont.dZ, cont.dV, cont.dg = self._derivatives(L, KU, dg)
+            cont.dZ, cont.dV, cont.dg = self._derivatives(L, KU, dg, live, Y)
             cont.dc = dc
         return cont
