@@ -27,12 +27,12 @@ from .discretise import Discrete
 #: shortest run of held inputs worth the closed form (its set-up costs about 100 steps)
 MIN_HELD = 64
 #: eigenvalue pairs closer than this keep their divided differences (cancellation otherwise)
-CLOSE = 1e-3
+CLOSE = 1e-6
 BLOCK = 512  # time steps per block of the step-by-step forcing
 
-#: losses (B, nl) and ∂P/∂θ (B, nl, p) at temperatures (B, n) with the inputs of one step
-LossAt = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
-
+#: a function of steps (B,) and temperatures (B, n) with the inputs of those steps: the losses
+#: (B, nl) in W, or ``∂P/∂θ`` (B, nl, p) in W per parameter unit
+AtSteps = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 def divided_powers(x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
     """``DD_k(x, y) = Σ_{i<k} x^(k−1−i) y^i`` for positive ``x``, ``y`` (broadcast), without cancellation.
@@ -64,19 +64,20 @@ class Sensitivities:
         Distinct transition matrices ``M`` and each step's index into them.
     T : ndarray (N, n)
         Simulated temperatures, °C.
-    w : ndarray (N, m)
-        Inputs of ``Γ`` at each sample (boundary temperatures, losses at ``T``).
-    dPdth : ndarray (N, nl, p)
-        ``∂P/∂θ`` along the run, W per parameter unit.
-    nb : int
-        Number of boundary inputs (the first columns of ``w``).
+    U : ndarray (N, nb)
+        Boundary temperatures, °C.
+    P : ndarray (N, nl)
+        Losses along the run, W.
+    losses, loss_theta : callable
+        The losses and ``∂P/∂θ`` at any steps and temperatures (see :data:`AtSteps`).
     """
 
     def __init__(self, disc: Discrete, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
-                 w: np.ndarray, dPdth: np.ndarray, nb: int) -> None:
-        assert disc.dPhit is not None and disc.dGamt is not None and disc.Q is not None and disc.s is not None
+                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps) -> None:
+        assert disc.dPhit is not None and disc.Q is not None and disc.s is not None
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
-        self.T, self.w, self.dPdth, self.nb = T, w, dPdth, nb
+        self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
+        self.losses, self.loss_theta = losses, loss_theta
         self.n, self.p = T.shape[1], disc.dPhit.shape[1]
         self._stacked: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -107,11 +108,11 @@ class Sensitivities:
         return X
 
     # -- runs ---------------------------------------------------------------------------------
-    def run(self, held: np.ndarray, loss_at: LossAt | None, rows: np.ndarray | None) -> np.ndarray:
+    def run(self, held: np.ndarray, closed: bool, rows: np.ndarray | None) -> np.ndarray:
         """``S`` (N, rows, p) (all nodes when ``rows`` is None).
 
         ``held[k]`` is True where the inputs of step ``k`` equal those of step ``k − 1``;
-        ``loss_at`` (None: no closed form) evaluates the losses at any temperatures.
+        ``closed`` allows the closed form over held runs (the losses are affine in temperature).
         """
         N = self.T.shape[0]
         steps = N - 1
@@ -120,17 +121,15 @@ class Sensitivities:
         s = np.zeros((self.n, self.p))
         starts = np.nonzero(~held[:steps])[0] if steps > 0 else np.zeros(0, dtype=int)
         bounds = list(starts) + [steps]
+        runs = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD] if closed else []
         pending = 0  # first step not yet propagated
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            if loss_at is None or b - a < MIN_HELD:
+        for (a, b), form in zip(runs, self._held_runs(runs, keep) if runs else []):
+            if form is None:
                 continue
             if pending < a:
                 s = self._steps(pending, a, s, S, keep)
-                pending = a
-            closed = self._held_run(a, b, s, loss_at, keep)
-            if closed is not None:
-                S[a + 1: b + 1], s = closed
-                pending = b
+            S[a + 1: b + 1], s = form.apply(s)
+            pending = b
         if pending < steps:
             self._steps(pending, steps, s, S, keep)
         return S
@@ -147,7 +146,9 @@ class Sensitivities:
             ob = ops[c:e]
             for o in np.unique(ob):
                 sel = np.nonzero(ob == o)[0]
-                Xt = self.forcing(o, self.T[c + sel], self.w[c + sel], self.dPdth[c + sel])
+                ks = c + sel
+                w = np.concatenate([self.U[ks], self.P[ks]], axis=1)
+                Xt = self.forcing(o, self.T[ks], w, self.loss_theta(ks, self.T[ks]))
                 X[sel] = np.matmul(d.Q[o] / d.s[:, None], Xt)  # back to node coordinates
             for k in range(c, e):
                 s = mats[mi[k]] @ s
@@ -158,66 +159,93 @@ class Sensitivities:
                     S[k + 1] = s[keep]
         return s
 
-    def _held_run(self, a: int, b: int, s0: np.ndarray, loss_at: LossAt,
-                  keep: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """Closed form over the held run of steps ``a .. b−1`` (see the module docstring).
+    def _held_runs(self, runs: list[tuple[int, int]], keep: np.ndarray) -> list[_HeldRun | None]:
+        """The closed form (see the module docstring) of each held run ``(a, b)`` of steps ``a .. b−1``.
 
-        Returns the chosen rows of ``S[a+1 .. b]`` and the full ``S[b]``, or None where the
-        closed form does not apply (transition not symmetrisable, an eigenvalue outside (0, 1)).
+        None where it does not apply: the closed-loop transition is not symmetrisable (a loss law
+        couples nodes) or has an eigenvalue outside (0, 1).
         """
-        d, n = self.d, self.n
+        d, n, p = self.d, self.n, self.p
         assert d.Q is not None and d.s is not None and d.phi is not None
-        o = int(self.ops[a])
-        Q, sv, ph = d.Q[o], d.s, d.phi[o]
-        V, Vi = Q / sv[:, None], Q.T * sv  # modal basis of Φ and its inverse
-        Mt = Vi @ self.mats[self.mi[a]] @ V
-        r = np.sqrt(ph)
-        Sym = Mt * r[None, :] / r[:, None]
-        if np.max(np.abs(Sym - Sym.T)) > 1e-9 * np.max(np.abs(Sym)):
-            return None  # a loss law couples nodes: the closed-loop transition is not symmetric
-        mu, Q2 = np.linalg.eigh((Sym + Sym.T) / 2.0)
-        if mu.min() < -1e-12 or mu.max() >= 1.0:
-            return None
+        a_ = np.array([a for a, _ in runs])
+        o_ = self.ops[a_]
+        sv = d.s
+        V = d.Q[o_] / sv[:, None]  # modal basis of Φ at each run's operating point
+        Vi = np.swapaxes(d.Q[o_], -1, -2) * sv
+        r = np.sqrt(d.phi[o_])
+        M = np.stack([self.mats[self.mi[a]] for a in a_])
+        Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
+        asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
+        mu, Q2 = np.linalg.eigh((Sym + np.swapaxes(Sym, -1, -2)) / 2.0)
+        ok = (asym < 1e-9) & (mu.min(axis=1) > -1e-12) & (mu.max(axis=1) < 1.0)
         # modes far faster than the step (e^(λ dt) below round-off) are zero after one step
         mu = np.maximum(mu, 1e-300)
-        Wt, Wti = r[:, None] * Q2, Q2.T / r[None, :]  # modal -> closed-loop modes ξ, and back
-        Om, Xi = V @ Wt, Wti @ Vi  # ξ -> node temperatures, node temperatures -> ξ
-        # the forcing is affine in T: probe it at T = 0 and at each closed-loop mode
-        probes = np.vstack([np.zeros(n), Om.T])
-        P, dPdth = loss_at(a, probes)
-        wp = np.concatenate([np.broadcast_to(self.w[a, : self.nb], (n + 1, self.nb)), P], axis=1)
-        Xp = np.einsum("ab,kbp->kap", Wti, self.forcing(o, probes, wp, dPdth))
-        bbar = Xp[0]
-        F = np.moveaxis(Xp[1:] - bbar, 0, 1)  # F[a, b, j]: ξ_b -> forcing of mode a
-        # temperatures in ξ: ξ_i = ξ∞ + μ^i δ
-        f = Xi @ (d.Gam[o] @ wp[0])
-        xinf = f / (1.0 - mu)
-        delta = Xi @ self.T[a] - xinf
-        G = np.empty((n, n + 1, self.p))
-        G[:, :n] = F * delta[None, :, None]
-        G[:, n] = np.einsum("abj,b->aj", F, xinf) + bbar  # the constant part, a mode with μ = 1
+        Om = V @ (r[:, :, None] * Q2)  # closed-loop modes ξ -> node temperatures
+        Xi = (np.swapaxes(Q2, -1, -2) / r[:, None, :]) @ Vi  # node temperatures -> ξ
+        # the forcing is affine in T: probe it at T = 0 and at each closed-loop mode, all runs at once
+        probes = np.concatenate([np.zeros((len(runs), 1, n)), np.swapaxes(Om, -1, -2)], axis=1)
+        ks, flat = np.repeat(a_, n + 1), probes.reshape(-1, n)
+        P = self.losses(ks, flat).reshape(len(runs), n + 1, -1)
+        dPdth = self.loss_theta(ks, flat).reshape(len(runs), n + 1, -1, p)
+        out: list[_HeldRun | None] = []
+        for i, (a, b) in enumerate(runs):
+            if not ok[i]:
+                out.append(None)
+                continue
+            o = int(o_[i])
+            wp = np.concatenate([np.broadcast_to(self.U[a], (n + 1, self.nb)), P[i]], axis=1)
+            Xp = (Xi[i] @ V[i]) @ self.forcing(o, probes[i], wp, dPdth[i])
+            F = np.moveaxis(Xp[1:] - Xp[0], 0, 1)  # F[a, b, j]: ξ_b -> forcing of mode a
+            xinf = (Xi[i] @ (d.Gam[o] @ wp[0])) / (1.0 - mu[i])  # ξ_k = ξ∞ + μ^k δ
+            delta = Xi[i] @ self.T[a] - xinf
+            G = np.empty((n, n + 1, p))
+            G[:, :n] = F * delta[None, :, None]
+            G[:, n] = np.einsum("abj,b->aj", F, xinf) + Xp[0]  # the constant forcing: a mode with μ = 1
+            out.append(_HeldRun(mu[i], G, Om[i], Xi[i], keep, b - a))
+        return out
+
+
+class _HeldRun:
+    """One held run in closed form: ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` (``μ_n = 1``).
+
+    Everything that does not depend on the sensitivities at the start of the run is done here;
+    :meth:`apply` adds their part.
+    """
+
+    def __init__(self, mu: np.ndarray, G: np.ndarray, Om: np.ndarray, Xi: np.ndarray, keep: np.ndarray, L: int) -> None:
+        n, p = G.shape[0], G.shape[2]
+        nr = len(keep)
         mue = np.append(mu, 1.0)
-        sig0 = Xi @ s0
         C = Om[keep]  # ξ -> chosen rows
-        nr, p, L = len(keep), self.p, b - a
-        gap = np.abs(mu[:, None] - mue[None, :])
-        close = gap < CLOSE
-        R = np.where(close, 0.0, 1.0 / np.where(close, 1.0, mu[:, None] - mue[None, :]))
-        GR = G * R[:, :, None]
-        coef = np.zeros((n + 1, nr, p))
-        coef[:n] += C.T[:, :, None] * (GR.sum(axis=1) + sig0)[:, None, :]
-        coef -= np.einsum("ca,abj->bcj", C, GR)
         k = np.arange(1, L + 1, dtype=float)[:, None]
         with np.errstate(under="ignore"):
-            out = np.exp(k * np.log(mue)[None, :]) @ coef.reshape(n + 1, nr * p)
+            Pw = np.exp(k * np.log(mue)[None, :])  # μ^k, k = 1 .. L
+        Pprev = np.vstack([np.ones((1, n)), Pw[:-1, :n]])  # μ^(k−1)
+        close = np.abs(mu[:, None] - mue[None, :]) < CLOSE
+        # well-apart pairs: DD_k(μ_a, μ_b) = (μ_a^k − μ_b^k)/(μ_a − μ_b), one power basis
+        GR = G * np.where(close, 0.0, 1.0 / np.where(close, 1.0, mu[:, None] - mue[None, :]))[:, :, None]
+        coef = -np.einsum("ca,abj->bcj", C, GR)
+        coef[:n] += C.T[:, :, None] * GR.sum(axis=1)[:, None, :]
+        base = Pw @ coef.reshape(n + 1, nr * p)
+        # a mode with itself: DD_k = k μ^(k−1); other close pairs: their divided differences
+        dg = np.arange(n)
+        base += (k * Pprev) @ (C.T[:, :, None] * G[dg, dg][:, None, :]).reshape(n, nr * p)
+        close[dg, dg] = False
         ia, ib = np.nonzero(close)
         if len(ia):
-            coefc = C.T[ia][:, :, None] * G[ia, ib][:, None, :]  # (pairs, nr, p)
-            out += divided_powers(mu[ia][None, :], mue[ib][None, :], k) @ coefc.reshape(len(ia), nr * p)
-        # the full state at the end of the run
+            base += divided_powers(mu[ia][None, :], mue[ib][None, :], k) @ (C.T[ia][:, :, None] * G[ia, ib][:, None, :]).reshape(len(ia), nr * p)
+        self.base, self.Pw, self.C, self.Om, self.Xi = base, Pw[:, :n], C, Om, Xi
         with np.errstate(under="ignore"):
-            sigL = mu[:, None] ** L * sig0 + np.einsum("abj,ab->aj", G, divided_powers(mu[:, None], mue[None, :], float(L)))
-        return out.reshape(L, nr, p), Om @ sigL
+            self.muL = mu ** L
+        self.endG = np.einsum("abj,ab->aj", G, divided_powers(mu[:, None], mue[None, :], float(L)))
+        self.shape = (L, nr, p)
+
+    def apply(self, s0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Chosen rows of ``S`` over the run (L, rows, p) and the full ``S`` at its end, from ``S`` (n, p) at its start."""
+        L, nr, p = self.shape
+        sig0 = self.Xi @ s0
+        rows = self.base + self.Pw @ (self.C.T[:, :, None] * sig0[:, None, :]).reshape(-1, nr * p)
+        return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
 
 
 def held_steps(env: dict[str, object], steps: int) -> np.ndarray:

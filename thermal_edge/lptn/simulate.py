@@ -206,7 +206,7 @@ class Simulator:
         P, dPdT = self._loss_terms(prep.env, N, T)
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
-            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows))
+            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), (mats, mi))
         return traj
 
     def _step_matrices(
@@ -255,21 +255,20 @@ class Simulator:
 
         return at
 
-    def _sensitivities(
-        self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int], rows: np.ndarray | None
-    ) -> np.ndarray:
+    def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int],
+                       rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]]) -> np.ndarray:
         d = prep.disc
         N = T.shape[0]
-        nb = prep.U.shape[1]
         ops = prep.ops[: max(N - 1, 0)]
-        mats, mi = self._step_matrices(d.Phi, d.Gam[:, :, nb:], ops, dPdT[: N - 1])
-        sens = Sensitivities(d, ops, mats, mi, T, np.concatenate([prep.U, P], axis=1),
-                             self._loss_theta(prep.env, T, widx), nb)
+        if self.nonaffine:  # the simulation's matrices leave these laws' temperature feedback out
+            steps = self._step_matrices(d.Phi, d.Gam[:, :, prep.U.shape[1]:], ops, dPdT[: N - 1])
         env = prep.env
 
-        def loss_at(k: int, temps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            at = {key: (v[k] if np.ndim(v) == 1 and len(v) == N else v) for key, v in env.items()}  # type: ignore[index]
-            return self._loss_terms(at, len(temps), temps)[0], self._loss_theta(at, temps, widx)
+        def at(k: np.ndarray) -> dict[str, object]:
+            return {key: (v[k] if np.ndim(v) == 1 and len(v) == N else v) for key, v in env.items()}  # type: ignore[index]
 
+        sens = Sensitivities(d, ops, *steps, T, prep.U, P,
+                             losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps)[0],
+                             loss_theta=lambda k, temps: self._loss_theta(at(k), temps, widx))
         # the closed form over held inputs needs losses affine in temperature
-        return sens.run(held_steps(env, N - 1), None if self.nonaffine else loss_at, rows)
+        return sens.run(held_steps(env, N - 1), not self.nonaffine, rows)
