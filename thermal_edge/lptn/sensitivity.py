@@ -79,32 +79,29 @@ class Sensitivities:
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta = losses, loss_theta
         self.n, self.p = T.shape[1], disc.dPhit.shape[1]
-        self._stacked: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
-    def _stack(self, o: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if o not in self._stacked:
-            d, n, p = self.d, self.n, self.p
-            assert d.dPhit is not None and d.Q is not None and d.s is not None
-            GPt = d.Q[o].T @ (d.s[:, None] * d.Gam[o][:, self.nb:])  # V⁻¹ Γ_P
-            self._stacked[o] = (d.dPhit[o].reshape(p * n, n).T, GPt, np.swapaxes(d.Zh[o], 0, 1))
-        return self._stacked[o]
+    def forcing(self, o: np.ndarray, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
+        """``V⁻¹ X`` (R, B, n, p) at operating points ``o`` (R,) for temperatures ``T`` (R, B, n).
 
-    def forcing(self, o: int, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
-        """``V⁻¹ X`` (B, n, p) at operating point ``o`` for temperatures ``T`` (B, n), inputs ``w``.
-
+        ``w`` (R, B, m) are the inputs of ``Γ`` and ``dPdth`` (R, B, nl, p) the loss derivatives;
         ``dΦ T + dΓ w = V (dPhit (V⁻¹ T + Ht w) − phi ∘ Zh (dg ∘ Yt w))`` (see
         :class:`~thermal_edge.lptn.discretise.Discrete`).
         """
-        d = self.d
-        assert d.Q is not None and d.s is not None and d.Ht is not None and d.Yt is not None and d.dg is not None
-        dPhiT, GPt, ZhT = self._stack(o)
-        y = (T * d.s) @ d.Q[o] + w @ d.Ht[o].T
-        X = (y @ dPhiT).reshape(len(T), self.p, self.n)
-        X -= d.phi[o] * (((w @ d.Yt[o].T)[:, None, :] * d.dg[o]) @ ZhT)
-        X = X.swapaxes(1, 2)
+        d, n, p = self.d, self.n, self.p
+        assert d.dPhit is not None and d.Q is not None and d.s is not None and d.phi is not None
+        assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
+        R, B = T.shape[:2]
+        Q = d.Q[o]
+        y = (T * d.s) @ Q + w @ np.swapaxes(d.Ht[o], -1, -2)
+        X = (y @ np.swapaxes(d.dPhit[o].reshape(R, p * n, n), -1, -2)).reshape(R, B, p, n)
+        e = d.dg.shape[-1]
+        low = ((w @ np.swapaxes(d.Yt[o], -1, -2))[:, :, None, :] * d.dg[o][:, None]).reshape(R, B * p, e)
+        X -= d.phi[o][:, None, None, :] * (low @ np.swapaxes(d.Zh[o], -1, -2)).reshape(R, B, p, n)
+        X = X.swapaxes(-1, -2)
         if np.any(dPdth):
-            X += GPt @ dPdth
+            GPt = np.swapaxes(Q, -1, -2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])  # V⁻¹ Γ_P
+            X += GPt[:, None] @ dPdth
         return X
 
     # -- runs ---------------------------------------------------------------------------------
@@ -144,11 +141,11 @@ class Sensitivities:
             e = min(c + BLOCK, b)
             X = np.empty((e - c, self.n, self.p))
             ob = ops[c:e]
+            w = np.concatenate([self.U[c:e], self.P[c:e]], axis=1)
+            dPdth = self.loss_theta(np.arange(c, e), self.T[c:e])
             for o in np.unique(ob):
                 sel = np.nonzero(ob == o)[0]
-                ks = c + sel
-                w = np.concatenate([self.U[ks], self.P[ks]], axis=1)
-                Xt = self.forcing(o, self.T[ks], w, self.loss_theta(ks, self.T[ks]))
+                Xt = self.forcing(np.array([o]), self.T[c + sel][None], w[sel][None], dPdth[sel][None])[0]
                 X[sel] = np.matmul(d.Q[o] / d.s[:, None], Xt)  # back to node coordinates
             for k in range(c, e):
                 s = mats[mi[k]] @ s
@@ -187,20 +184,22 @@ class Sensitivities:
         ks, flat = np.repeat(a_, n + 1), probes.reshape(-1, n)
         P = self.losses(ks, flat).reshape(len(runs), n + 1, -1)
         dPdth = self.loss_theta(ks, flat).reshape(len(runs), n + 1, -1, p)
+        wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), n + 1, self.nb)), P], axis=-1)
+        # in ξ: (R, n, n) @ (R, n, (n+1)·p) as one product per run
+        Xt = np.swapaxes(self.forcing(o_, probes, wp, dPdth), 1, 2).reshape(len(runs), n, (n + 1) * p)
+        Xp = np.swapaxes((Xi @ V @ Xt).reshape(len(runs), n, n + 1, p), 1, 2)  # (R, n+1, n, p)
+        f = np.einsum("rab,rb->ra", Xi, (d.Gam[o_] @ wp[:, 0, :, None])[..., 0])
         out: list[_HeldRun | None] = []
         for i, (a, b) in enumerate(runs):
             if not ok[i]:
                 out.append(None)
                 continue
-            o = int(o_[i])
-            wp = np.concatenate([np.broadcast_to(self.U[a], (n + 1, self.nb)), P[i]], axis=1)
-            Xp = (Xi[i] @ V[i]) @ self.forcing(o, probes[i], wp, dPdth[i])
-            F = np.moveaxis(Xp[1:] - Xp[0], 0, 1)  # F[a, b, j]: ξ_b -> forcing of mode a
-            xinf = (Xi[i] @ (d.Gam[o] @ wp[0])) / (1.0 - mu[i])  # ξ_k = ξ∞ + μ^k δ
+            F = np.moveaxis(Xp[i, 1:] - Xp[i, 0], 0, 1)  # F[a, b, j]: ξ_b -> forcing of mode a
+            xinf = f[i] / (1.0 - mu[i])  # ξ_k = ξ∞ + μ^k δ
             delta = Xi[i] @ self.T[a] - xinf
             G = np.empty((n, n + 1, p))
             G[:, :n] = F * delta[None, :, None]
-            G[:, n] = np.einsum("abj,b->aj", F, xinf) + Xp[0]  # the constant forcing: a mode with μ = 1
+            G[:, n] = np.einsum("abj,b->aj", F, xinf) + Xp[i, 0]  # the constant forcing: a mode with μ = 1
             out.append(_HeldRun(mu[i], G, Om[i], Xi[i], keep, b - a))
         return out
 
@@ -208,8 +207,9 @@ class Sensitivities:
 class _HeldRun:
     """One held run in closed form: ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` (``μ_n = 1``).
 
-    Everything that does not depend on the sensitivities at the start of the run is done here;
-    :meth:`apply` adds their part.
+    The time basis (``μ^k``, ``k μ^(k−1)``, divided differences of close pairs) and the
+    coefficients that do not depend on the sensitivities at the start of the run are prepared
+    here; :meth:`apply` adds their part and evaluates the chosen rows at every step.
     """
 
     def __init__(self, mu: np.ndarray, G: np.ndarray, Om: np.ndarray, Xi: np.ndarray, keep: np.ndarray, L: int) -> None:
@@ -218,23 +218,29 @@ class _HeldRun:
         mue = np.append(mu, 1.0)
         C = Om[keep]  # ξ -> chosen rows
         k = np.arange(1, L + 1, dtype=float)[:, None]
+        # the basis: μ^k (k = 1 .. L) and, for a mode with itself, DD_k(μ, μ) = k μ^(k−1)
+        basis = np.empty((L, 2 * n + 1))
         with np.errstate(under="ignore"):
-            Pw = np.exp(k * np.log(mue)[None, :])  # μ^k, k = 1 .. L
-        Pprev = np.vstack([np.ones((1, n)), Pw[:-1, :n]])  # μ^(k−1)
+            np.exp(k * np.log(mue)[None, :], out=basis[:, : n + 1])
+        basis[0, n + 1:] = 1.0
+        np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
         close = np.abs(mu[:, None] - mue[None, :]) < CLOSE
-        # well-apart pairs: DD_k(μ_a, μ_b) = (μ_a^k − μ_b^k)/(μ_a − μ_b), one power basis
+        # well-apart pairs: DD_k(μ_a, μ_b) = (μ_a^k − μ_b^k)/(μ_a − μ_b), split over the basis
         GR = G * np.where(close, 0.0, 1.0 / np.where(close, 1.0, mu[:, None] - mue[None, :]))[:, :, None]
-        coef = -np.einsum("ca,abj->bcj", C, GR)
+        coef = np.empty((2 * n + 1, nr, p))
+        coef[: n + 1] = -np.einsum("ca,abj->bcj", C, GR)
         coef[:n] += C.T[:, :, None] * GR.sum(axis=1)[:, None, :]
-        base = Pw @ coef.reshape(n + 1, nr * p)
-        # a mode with itself: DD_k = k μ^(k−1); other close pairs: their divided differences
         dg = np.arange(n)
-        base += (k * Pprev) @ (C.T[:, :, None] * G[dg, dg][:, None, :]).reshape(n, nr * p)
+        coef[n + 1:] = C.T[:, :, None] * G[dg, dg][:, None, :]
+        # other close pairs keep their divided differences
         close[dg, dg] = False
         ia, ib = np.nonzero(close)
         if len(ia):
-            base += divided_powers(mu[ia][None, :], mue[ib][None, :], k) @ (C.T[ia][:, :, None] * G[ia, ib][:, None, :]).reshape(len(ia), nr * p)
-        self.base, self.Pw, self.C, self.Om, self.Xi = base, Pw[:, :n], C, Om, Xi
+            basis = np.hstack([basis, divided_powers(mu[ia][None, :], mue[ib][None, :], k)])
+            coef = np.concatenate([coef, C.T[ia][:, :, None] * G[ia, ib][:, None, :]])
+        # modes long decayed are zero, not subnormal: subnormal operands slow the products tenfold
+        basis[np.abs(basis) < 1e-250] = 0.0
+        self.basis, self.coef, self.C, self.Om, self.Xi = basis, coef, C, Om, Xi
         with np.errstate(under="ignore"):
             self.muL = mu ** L
         self.endG = np.einsum("abj,ab->aj", G, divided_powers(mu[:, None], mue[None, :], float(L)))
@@ -244,7 +250,10 @@ class _HeldRun:
         """Chosen rows of ``S`` over the run (L, rows, p) and the full ``S`` at its end, from ``S`` (n, p) at its start."""
         L, nr, p = self.shape
         sig0 = self.Xi @ s0
-        rows = self.base + self.Pw @ (self.C.T[:, :, None] * sig0[:, None, :]).reshape(-1, nr * p)
+        n = len(sig0)
+        coef = self.coef.copy()
+        coef[:n] += self.C.T[:, :, None] * sig0[:, None, :]  # μ^k σ_0
+        rows = self.basis @ coef.reshape(len(coef), nr * p)
         return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
 
 
