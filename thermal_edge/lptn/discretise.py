@@ -190,22 +190,22 @@ def _zoh_modal_derivatives(cont: Continuous, dt: float, lam: np.ndarray, Qm: np.
     small = ad < 1e-10
     ratio = np.where(small, 1.0 - ad / 2.0, -np.expm1(-ad) / np.where(small, 1.0, ad))
     Dd = dt * np.exp(np.maximum(x[:, :, None], x[:, None, :])) * ratio
-    dPhit = np.zeros((K, p, n, n))
+    dPhit = np.empty((K, p, n, n))
     r = cont.dc / (2.0 * cont.c)
+    # a capacity parameter adds R ∘ (μ_a − μ_b − (λ_a + λ_b) D) with R = Qᵀ diag(r) Q
+    Wc = (mu[:, :, None] - mu[:, None, :]) - (lam[:, :, None] + lam[:, None, :]) * Dd if np.any(r) else None
     for j in range(p):
         e = np.nonzero(np.any(cont.dg[:, j] != 0.0, axis=0))[0]  # the few edges of this parameter
         if len(e):
             Zg = Zh[:, :, e] * cont.dg[:, j][:, e][:, None, :]
             np.matmul(-Zg, np.swapaxes(Zh[:, :, e], -1, -2), out=dPhit[:, j])
+            dPhit[:, j] *= Dd
+        else:
+            dPhit[:, j] = 0.0
         nz = np.nonzero(r[j])[0]  # the nodes whose capacity depends on it
         if len(nz):
             Qn = Qm[:, nz, :]
-            R = np.swapaxes(Qn, -1, -2) @ (r[j, nz, None] * Qn)
-            dPhit[:, j] -= R * (lam[:, :, None] + lam[:, None, :])
-            dPhit[:, j] *= Dd
-            dPhit[:, j] += R * (mu[:, :, None] - mu[:, None, :])
-        else:
-            dPhit[:, j] *= Dd
+            dPhit[:, j] += (np.swapaxes(Qn, -1, -2) @ (r[j, nz, None] * Qn)) * Wc
     return dPhit
 
 

@@ -17,6 +17,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from scipy import sparse
+from scipy.sparse.csgraph import connected_components
 
 from .expr import Compiled, Expr
 from .loader import temperature_name
@@ -98,6 +99,15 @@ class Network:
         npt, nb = self.n_points, self.n_bound
         self._scatter_L = sparse.csr_matrix(np.einsum("ea,eb->eab", self.inc, self.inc).reshape(E, npt * npt))
         self._scatter_K = sparse.csr_matrix(np.einsum("ea,eb->eab", self.pinc, self.binc).reshape(E, npt * nb))
+        # L_QQ is block diagonal: the algebraic points fall apart into small groups (the face
+        # points of one T-model element and their neighbours); solve each size of group at once
+        qq = np.abs(self.inc[:, n:]).T @ np.abs(self.inc[:, n:]) > 0
+        _, label = connected_components(sparse.csr_matrix(qq), directed=False)
+        groups: dict[int, list[np.ndarray]] = {}
+        for c in range(label.max() + 1 if len(label) else 0):
+            members = np.nonzero(label == c)[0]
+            groups.setdefault(len(members), []).append(members)
+        self._qq_groups = [np.array(g) for g in groups.values()]  # (groups, size) per size
         self.loss_map = np.zeros((self.n_points, self.n_loss))
         for j, loss in enumerate(model.losses):
             self.loss_map[index[loss.point], j] = 1.0
@@ -161,6 +171,14 @@ class Network:
         KU = np.asarray((self._scatter_K.T @ flat.T).T).reshape(*lead, npt, nb)
         return L, KU
 
+    def solve_qq(self, LQQ: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """``L_QQ⁻¹ rhs`` for ``L_QQ`` (K, q, q) and ``rhs`` (K, q, r), block by block."""
+        out = np.empty(np.broadcast_shapes(rhs.shape, LQQ.shape[:-1] + rhs.shape[-1:]))
+        for g in self._qq_groups:  # g: (groups, size)
+            blocks = LQQ[:, g[:, :, None], g[:, None, :]]  # (K, groups, size, size)
+            out[:, g] = np.linalg.solve(blocks, rhs[:, g])
+        return out
+
     def _derivatives(self, L: np.ndarray, KU: np.ndarray, dg: np.ndarray, live: np.ndarray,
                      Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rank-one factors ``Z`` (K, n, e), ``V`` (K, m, e) and ``dg`` (K, p, e) of ``dA``, ``dW``.
@@ -195,7 +213,7 @@ class Network:
         L, KU = self._assemble(g[0])
         n = self.n
         rhs = self.loss_map[n:] @ P - L[n:, :n] @ T + KU[n:] @ U
-        return np.concatenate([T, np.linalg.solve(L[n:, n:], rhs)]) if self.n_points > n else np.asarray(T, float)
+        return np.concatenate([T, self.solve_qq(L[None, n:, n:], rhs[None, :, None])[0, :, 0]]) if self.n_points > n else np.asarray(T, float)
 
     def continuous(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None = None, K: int = 1, wrt: Sequence[int] = ()
@@ -225,7 +243,7 @@ class Network:
         if has_q:
             # one factorisation for the elimination and for the derivatives' L_QQ⁻¹ u_Q
             uQ = np.broadcast_to(self.inc[live, n:].T, (K, self.n_points - n, len(live)))
-            XY = np.linalg.solve(LQQ, np.concatenate([LQD, uQ], axis=-1) if len(wrt) else LQD)
+            XY = self.solve_qq(LQQ, np.concatenate([LQD, uQ], axis=-1) if len(wrt) else LQD)
             X, Y = XY[..., :n], XY[..., n:]
         else:
             X, Y = np.zeros((K, 0, n)), np.zeros((K, 0, len(live)))

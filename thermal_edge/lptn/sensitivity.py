@@ -28,7 +28,7 @@ from .discretise import Discrete
 MIN_HELD = 64
 #: eigenvalue pairs closer than this keep their divided differences (cancellation otherwise)
 CLOSE = 1e-6
-BLOCK = 512  # time steps per block of the step-by-step forcing
+BLOCK = 256  # time steps per block of the step-by-step forcing
 
 #: a function of steps (B,) and temperatures (B, n) with the inputs of those steps: the losses
 #: (B, nl) in W, or ``∂P/∂θ`` (B, nl, p) in W per parameter unit
@@ -119,20 +119,31 @@ class Sensitivities:
         starts = np.nonzero(~held[:steps])[0] if steps > 0 else np.zeros(0, dtype=int)
         bounds = list(starts) + [steps]
         runs = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD] if closed else []
+        forms = self._held_runs(runs, keep) if runs else []
+        stepped = np.ones(steps, dtype=bool)
+        for (a, b), form in zip(runs, forms):
+            stepped[a:b] &= form is None
+        # ∂P/∂θ where the recursion steps, in one evaluation of the loss laws
+        ks = np.nonzero(stepped)[0]
+        dPdth = self.loss_theta(ks, self.T[ks])
+        pos = np.cumsum(stepped) - 1  # step -> row of dPdth
         pending = 0  # first step not yet propagated
-        for (a, b), form in zip(runs, self._held_runs(runs, keep) if runs else []):
+        for (a, b), form in zip(runs, forms):
             if form is None:
                 continue
             if pending < a:
-                s = self._steps(pending, a, s, S, keep)
+                s = self._steps(pending, a, s, S, keep, dPdth[pos[pending:a]])
             S[a + 1: b + 1], s = form.apply(s)
             pending = b
         if pending < steps:
-            self._steps(pending, steps, s, S, keep)
+            self._steps(pending, steps, s, S, keep, dPdth[pos[pending:steps]])
         return S
 
-    def _steps(self, a: int, b: int, s: np.ndarray, S: np.ndarray, keep: np.ndarray) -> np.ndarray:
-        """Steps ``a .. b−1`` one by one from ``S[a] = s`` (all nodes); fills ``S[a+1 .. b]``."""
+    def _steps(self, a: int, b: int, s: np.ndarray, S: np.ndarray, keep: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
+        """Steps ``a .. b−1`` one by one from ``S[a] = s`` (all nodes); fills ``S[a+1 .. b]``.
+
+        ``dPdth`` (b − a, nl, p) is ``∂P/∂θ`` at those steps.
+        """
         d = self.d
         assert d.Q is not None and d.s is not None
         mats, mi, ops = self.mats, self.mi, self.ops
@@ -142,11 +153,16 @@ class Sensitivities:
             X = np.empty((e - c, self.n, self.p))
             ob = ops[c:e]
             w = np.concatenate([self.U[c:e], self.P[c:e]], axis=1)
-            dPdth = self.loss_theta(np.arange(c, e), self.T[c:e])
-            for o in np.unique(ob):
+            dP = dPdth[c - a: e - a]
+            uniq, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
+            # steps whose operating point occurs once (a ramp): all in one batch
+            one = np.nonzero(count[inv] == 1)[0]
+            if len(one):
+                X[one] = self.forcing(ob[one], self.T[c + one][:, None], w[one][:, None], dP[one][:, None])[:, 0]
+            for o in uniq[count > 1]:
                 sel = np.nonzero(ob == o)[0]
-                Xt = self.forcing(np.array([o]), self.T[c + sel][None], w[sel][None], dPdth[sel][None])[0]
-                X[sel] = np.matmul(d.Q[o] / d.s[:, None], Xt)  # back to node coordinates
+                X[sel] = self.forcing(np.array([o]), self.T[c + sel][None], w[sel][None], dP[sel][None])[0]
+            X = np.matmul(d.Q[ob] / d.s[:, None], X)  # back to node coordinates
             for k in range(c, e):
                 s = mats[mi[k]] @ s
                 s += X[k - c]
@@ -220,8 +236,8 @@ class _HeldRun:
         k = np.arange(1, L + 1, dtype=float)[:, None]
         # the basis: μ^k (k = 1 .. L) and, for a mode with itself, DD_k(μ, μ) = k μ^(k−1)
         basis = np.empty((L, 2 * n + 1))
-        with np.errstate(under="ignore"):
-            np.exp(k * np.log(mue)[None, :], out=basis[:, : n + 1])
+        # exponents floored at −600 (then zeroed below): e^−745 and below would be subnormal
+        np.exp(np.maximum(k * np.log(mue)[None, :], -600.0), out=basis[:, : n + 1])
         basis[0, n + 1:] = 1.0
         np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
         close = np.abs(mu[:, None] - mue[None, :]) < CLOSE
