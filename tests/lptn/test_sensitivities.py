@@ -13,7 +13,7 @@ import pytest
 
 from thermal_edge.lptn import Simulator
 
-from lptn_ref import Assembly, pm10kw_inputs, tiny_inputs
+from lptn_ref import Assembly, pm10kw_inputs, tiny_inputs, tiny_raw
 
 REL_STEP = 1e-4
 REL_TOL = 1e-5
@@ -174,3 +174,86 @@ def test_pm10kw_high_order(pm10kw_model, method):
         m, inputs, dt, T0, m.adaptable, method, sub, stencil="c6", rel_step=2e-2, noise_allowance=True
     )
     print(what, method, "substep", sub, "max rel err", max(report.values()))
+
+
+# ---------------------------------------------------------------------------------------------
+# held inputs: the closed form over runs of held inputs (thermal_edge.lptn.sensitivity)
+
+
+def _closed_form_calls(monkeypatch):
+    """Lengths of the held runs the closed form was applied to during the test."""
+    from thermal_edge.lptn import sensitivity
+
+    calls = []
+    orig = sensitivity._HeldRun.apply
+
+    def apply(self, s0):
+        calls.append(self.shape[0])
+        return orig(self, s0)
+
+    monkeypatch.setattr(sensitivity._HeldRun, "apply", apply)
+    return calls
+
+
+@pytest.mark.parametrize("method", ["zoh", "euler"])
+def test_tiny_model_held_inputs(tiny_model, method, monkeypatch):
+    """Inputs held for 100 steps at a time: the closed form (ZOH) against finite differences."""
+    calls = _closed_form_calls(monkeypatch)
+    inputs = tiny_inputs(N=401, seed=5, hold=100)
+    inputs = {k: inputs[k] for k in tiny_model.inputs}
+    T0 = np.array([45.0, 60.0, 35.0])
+    sub = min(stable_substep(tiny_model, inputs, 10.0), 2.0) if method == "euler" else None
+    finite_difference_check(tiny_model, inputs, 10.0, T0, tiny_model.parameter_names, method, sub)
+    if method == "zoh":
+        assert calls == [100, 100, 100, 100], calls  # 400 steps, inputs held for 100 at a time
+
+
+def test_cross_coupled_loss_is_stepped(monkeypatch):
+    """A loss at one node that depends on another node's temperature makes the closed-loop
+    transition non-symmetrisable: the held runs are stepped instead, and still exact."""
+    from thermal_edge.lptn.loader import build_model
+
+    raw = tiny_raw()
+    raw["losses"][0]["power"] = "3*0.5*i_rms**2 * (1 + alpha*(T.yoke - 20))"
+    m = build_model(raw, fname="tiny_cross.yaml")
+    calls = _closed_form_calls(monkeypatch)
+    inputs = tiny_inputs(N=301, seed=6, hold=100)
+    inputs = {k: inputs[k] for k in m.inputs}
+    finite_difference_check(m, inputs, 10.0, np.array([45.0, 60.0, 35.0]), m.parameter_names, "zoh")
+    assert calls == []
+
+
+@pytest.mark.parametrize("rows", [None, "sensors"])
+def test_pm10kw_closed_form_equals_stepping(pm10kw_model, rows, monkeypatch):
+    """The closed form over held runs and the step-by-step recursion give the same S, all 14
+    parameters, on 3000 s of the drive cycle (all nodes, or the sensor rows only)."""
+    from thermal_edge.lptn import sensitivity, steady_state
+
+    m = pm10kw_model
+    inputs, dt, _ = pm10kw_inputs(m, 3000.0)
+    first = {k: float(v[0]) for k, v in inputs.items()}
+    T0, _ = steady_state(m, first)
+    sim = Simulator(m)
+    keep = list(m.sensors.values()) if rows else None
+    calls = _closed_form_calls(monkeypatch)
+    closed = sim.simulate(m.nominal(), inputs, dt, T0, wrt=m.adaptable, rows=keep)
+    assert sum(calls) > 0.8 * (len(closed.T) - 1), calls  # most of the cycle is held
+    monkeypatch.setattr(sensitivity, "MIN_HELD", 10**9)
+    stepped = sim.simulate(m.nominal(), inputs, dt, T0, wrt=m.adaptable, rows=keep)
+    np.testing.assert_array_equal(closed.T, stepped.T)
+    for j, name in enumerate(m.adaptable):
+        scale = np.abs(stepped.S[:, :, j]).max()
+        err = np.abs(closed.S[:, :, j] - stepped.S[:, :, j]).max()
+        assert err <= 1e-9 * scale, f"{name}: {err:.3g} vs max |S| {scale:.3g}"
+
+
+def test_divided_powers():
+    """DD_k(x, y) = Σ_{i<k} x^(k−1−i) y^i by direct summation, for far, close, equal and tiny arguments."""
+    from thermal_edge.lptn.sensitivity import divided_powers
+
+    pairs = [(0.9, 0.5), (0.99999, 0.99998), (0.7, 0.7), (0.7, 0.7 * (1 + 1e-12)), (1e-14, 0.3), (1.0, 0.999)]
+    for x, y in pairs:
+        for k in (1, 2, 7, 250):
+            direct = sum(x ** (k - 1 - i) * y ** i for i in range(k))
+            got = float(divided_powers(np.array(x), np.array(y), np.array(float(k))))
+            assert abs(got - direct) <= 1e-12 * abs(direct), (x, y, k, got, direct)

@@ -93,12 +93,13 @@ class Sensitivities:
         assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
         R, B = T.shape[:2]
         Q = d.Q[o]
-        y = (T * d.s) @ Q + w @ np.swapaxes(d.Ht[o], -1, -2)
-        X = (y @ np.swapaxes(d.dPhit[o].reshape(R, p * n, n), -1, -2)).reshape(R, B, p, n)
-        e = d.dg.shape[-1]
-        low = ((w @ np.swapaxes(d.Yt[o], -1, -2))[:, :, None, :] * d.dg[o][:, None]).reshape(R, B * p, e)
-        X -= d.phi[o][:, None, None, :] * (low @ np.swapaxes(d.Zh[o], -1, -2)).reshape(R, B, p, n)
-        X = X.swapaxes(-1, -2)
+        # laid out (R, p, n, B): the big operands stay contiguous in the products
+        yT = np.swapaxes((T * d.s) @ Q + w @ np.swapaxes(d.Ht[o], -1, -2), -1, -2)
+        X = (d.dPhit[o].reshape(R, p * n, n) @ yT).reshape(R, p, n, B)
+        u = d.Yt[o] @ np.swapaxes(w, -1, -2)  # (R, e, B)
+        low = d.Zh[o] @ (d.dg[o][:, :, :, None] * u[:, None]).swapaxes(1, 2).reshape(R, -1, p * B)
+        X -= d.phi[o][:, None, :, None] * low.reshape(R, n, p, B).swapaxes(1, 2)
+        X = X.transpose(0, 3, 2, 1)
         if np.any(dPdth):
             GPt = np.swapaxes(Q, -1, -2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])  # V⁻¹ Γ_P
             X += GPt[:, None] @ dPdth
