@@ -81,28 +81,27 @@ class Sensitivities:
         self.n, self.p = T.shape[1], disc.dPhit.shape[1]
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
-    def forcing(self, o: np.ndarray, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
-        """``V⁻¹ X`` (R, B, n, p) at operating points ``o`` (R,) for temperatures ``T`` (R, B, n).
+    def forcing(self, o: int, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
+        """``V⁻¹ X`` (B, n, p) at operating point ``o`` for temperatures ``T`` (B, n).
 
-        ``w`` (R, B, m) are the inputs of ``Γ`` and ``dPdth`` (R, B, nl, p) the loss derivatives;
+        ``w`` (B, m) are the inputs of ``Γ`` and ``dPdth`` (B, nl, p) the loss derivatives;
         ``dΦ T + dΓ w = V (dPhit (V⁻¹ T + Ht w) − phi ∘ Zh (dg ∘ Yt w))`` (see
         :class:`~thermal_edge.lptn.discretise.Discrete`).
         """
         d, n, p = self.d, self.n, self.p
         assert d.dPhit is not None and d.Q is not None and d.s is not None and d.phi is not None
         assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
-        R, B = T.shape[:2]
         Q = d.Q[o]
-        # laid out (R, p, n, B): the big operands stay contiguous in the products
-        yT = np.swapaxes((T * d.s) @ Q + w @ np.swapaxes(d.Ht[o], -1, -2), -1, -2)
-        X = (d.dPhit[o].reshape(R, p * n, n) @ yT).reshape(R, p, n, B)
-        u = d.Yt[o] @ np.swapaxes(w, -1, -2)  # (R, e, B)
-        low = d.Zh[o] @ (d.dg[o][:, :, :, None] * u[:, None]).swapaxes(1, 2).reshape(R, -1, p * B)
-        X -= d.phi[o][:, None, :, None] * low.reshape(R, n, p, B).swapaxes(1, 2)
-        X = X.transpose(0, 3, 2, 1)
-        if np.any(dPdth):
-            GPt = np.swapaxes(Q, -1, -2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])  # V⁻¹ Γ_P
-            X += GPt[:, None] @ dPdth
+        # laid out (p, n, B): the big operand dPhit stays contiguous in the product
+        yT = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T
+        B = len(T)
+        X = (d.dPhit[o].reshape(p * n, n) @ yT).reshape(p, n, B)
+        low = d.dg[o][:, :, None] * (d.Yt[o] @ w.T)  # (p, e, B)
+        X -= d.phi[o][:, None] * (d.Zh[o] @ low.transpose(1, 0, 2).reshape(-1, p * B)).reshape(n, p, B).transpose(1, 0, 2)
+        X = X.transpose(2, 1, 0)
+        if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ
+            GPt = Q.T @ (d.s[:, None] * d.Gam[o][:, self.nb:])
+            X += (GPt @ dPdth.transpose(1, 0, 2).reshape(-1, B * p)).reshape(n, B, p).transpose(1, 0, 2)
         return X
 
     # -- runs ---------------------------------------------------------------------------------
@@ -155,14 +154,9 @@ class Sensitivities:
             ob = ops[c:e]
             w = np.concatenate([self.U[c:e], self.P[c:e]], axis=1)
             dP = dPdth[c - a: e - a]
-            uniq, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
-            # steps whose operating point occurs once (a ramp): all in one batch
-            one = np.nonzero(count[inv] == 1)[0]
-            if len(one):
-                X[one] = self.forcing(ob[one], self.T[c + one][:, None], w[one][:, None], dP[one][:, None])[:, 0]
-            for o in uniq[count > 1]:
+            for o in np.unique(ob):
                 sel = np.nonzero(ob == o)[0]
-                X[sel] = self.forcing(np.array([o]), self.T[c + sel][None], w[sel][None], dP[sel][None])[0]
+                X[sel] = self.forcing(o, self.T[c + sel], w[sel], dP[sel])
             X = np.matmul(d.Q[ob] / d.s[:, None], X)  # back to node coordinates
             for k in range(c, e):
                 s = mats[mi[k]] @ s
@@ -203,65 +197,77 @@ class Sensitivities:
         dPdth = self.loss_theta(ks, flat).reshape(len(runs), n + 1, -1, p)
         wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), n + 1, self.nb)), P], axis=-1)
         # in ξ: (R, n, n) @ (R, n, (n+1)·p) as one product per run
-        Xt = np.swapaxes(self.forcing(o_, probes, wp, dPdth), 1, 2).reshape(len(runs), n, (n + 1) * p)
+        Xt = np.stack([self.forcing(int(o), probes[i], wp[i], dPdth[i]) for i, o in enumerate(o_)])
+        Xt = np.swapaxes(Xt, 1, 2).reshape(len(runs), n, (n + 1) * p)
         Xp = np.swapaxes((Xi @ V @ Xt).reshape(len(runs), n, n + 1, p), 1, 2)  # (R, n+1, n, p)
         f = np.einsum("rab,rb->ra", Xi, (d.Gam[o_] @ wp[:, 0, :, None])[..., 0])
-        out: list[_HeldRun | None] = []
-        for i, (a, b) in enumerate(runs):
-            if not ok[i]:
-                out.append(None)
-                continue
-            F = np.moveaxis(Xp[i, 1:] - Xp[i, 0], 0, 1)  # F[a, b, j]: ξ_b -> forcing of mode a
-            xinf = f[i] / (1.0 - mu[i])  # ξ_k = ξ∞ + μ^k δ
-            delta = Xi[i] @ self.T[a] - xinf
-            G = np.empty((n, n + 1, p))
-            G[:, :n] = F * delta[None, :, None]
-            G[:, n] = np.einsum("abj,b->aj", F, xinf) + Xp[i, 0]  # the constant forcing: a mode with μ = 1
-            out.append(_HeldRun(mu[i], G, Om[i], Xi[i], keep, b - a))
-        return out
+        F = np.swapaxes(Xp[:, 1:] - Xp[:, :1], 1, 2)  # F[r, a, b, j]: ξ_b -> forcing of mode a
+        xinf = f / (1.0 - mu)  # ξ_k = ξ∞ + μ^k δ
+        delta = np.einsum("rab,rb->ra", Xi, self.T[a_]) - xinf
+        G = np.empty((len(runs), n, n + 1, p))
+        G[:, :, :n] = F * delta[:, None, :, None]
+        G[:, :, n] = np.einsum("rabj,rb->raj", F, xinf) + Xp[:, 0]  # the constant forcing: a mode with μ = 1
+        L = np.array([b - a for a, b in runs])
+        forms = _held_forms(mu, G, Om[:, keep], L)
+        return [_HeldRun(*form, Om[i], Xi[i]) if ok[i] else None for i, form in enumerate(forms)]
+
+
+def _held_forms(mu: np.ndarray, G: np.ndarray, C: np.ndarray, L: np.ndarray) -> list[tuple]:
+    """Time basis and coefficients of ``C σ_k`` for runs of lengths ``L`` (R,), ``k = 1 .. L``.
+
+    ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` with ``μ_n = 1``; the basis is ``μ^k`` and, for
+    a mode with itself, ``DD_k(μ, μ) = k μ^(k−1)``; well-apart pairs split as
+    ``(μ_a^k − μ_b^k)/(μ_a − μ_b)`` over it, close pairs keep their divided differences as extra
+    columns. The part of ``σ_0`` is added by :meth:`_HeldRun.apply`.
+    """
+    R, n, _, p = G.shape
+    nr = C.shape[1]
+    mue = np.concatenate([mu, np.ones((R, 1))], axis=1)
+    close = np.abs(mu[:, :, None] - mue[:, None, :]) < CLOSE
+    gap = np.where(close, 1.0, mu[:, :, None] - mue[:, None, :])
+    GR = G * np.where(close, 0.0, 1.0 / gap)[..., None]
+    Ct = np.swapaxes(C, 1, 2)  # (R, n, nr)
+    dg = np.arange(n)
+    coef = np.empty((R, 2 * n + 1, nr, p))
+    coef[:, : n + 1] = -np.einsum("rca,rabj->rbcj", C, GR, optimize=True)
+    coef[:, :n] += Ct[..., None] * GR.sum(axis=2)[:, :, None, :]
+    coef[:, n + 1:] = Ct[..., None] * G[:, dg, dg][:, :, None, :]
+    close[:, dg, dg] = False
+    # all runs' bases as one array: row i of run r is step k = i + 1
+    starts = np.concatenate([[0], np.cumsum(L)])
+    run_of = np.repeat(np.arange(R), L)
+    k = (np.arange(starts[-1]) - starts[run_of] + 1.0)[:, None]
+    basis = np.empty((starts[-1], 2 * n + 1))
+    head = basis[:, : n + 1]
+    np.multiply(k, np.log(mue)[run_of], out=head)
+    # exponents floored at −600 (then zeroed below): e^−745 and below would be subnormal
+    np.maximum(head, -600.0, out=head)
+    np.exp(head, out=head)
+    np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
+    basis[starts[:-1], n + 1:] = 1.0
+    # modes long decayed are zero, not subnormal: subnormal operands slow the products tenfold
+    basis[basis < 1e-250] = 0.0
+    with np.errstate(under="ignore"):
+        muL = mu ** L[:, None]
+        endG = np.einsum("rabj,rab->raj", G, divided_powers(mu[:, :, None], mue[:, None, :], L[:, None, None].astype(float)))
+    forms = []
+    for r in range(R):
+        b_, c_ = basis[starts[r]: starts[r + 1]], coef[r]
+        ia, ib = np.nonzero(close[r])
+        if len(ia):
+            b_ = np.hstack([b_, divided_powers(mu[r, ia][None, :], mue[r, ib][None, :], k[starts[r]: starts[r + 1]])])
+            c_ = np.concatenate([c_, Ct[r, ia][:, :, None] * G[r, ia, ib][:, None, :]])
+        forms.append((b_, c_, C[r], muL[r], endG[r]))
+    return forms
 
 
 class _HeldRun:
-    """One held run in closed form: ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` (``μ_n = 1``).
+    """One held run in closed form (see :func:`_held_forms`)."""
 
-    The time basis (``μ^k``, ``k μ^(k−1)``, divided differences of close pairs) and the
-    coefficients that do not depend on the sensitivities at the start of the run are prepared
-    here; :meth:`apply` adds their part and evaluates the chosen rows at every step.
-    """
-
-    def __init__(self, mu: np.ndarray, G: np.ndarray, Om: np.ndarray, Xi: np.ndarray, keep: np.ndarray, L: int) -> None:
-        n, p = G.shape[0], G.shape[2]
-        nr = len(keep)
-        mue = np.append(mu, 1.0)
-        C = Om[keep]  # ξ -> chosen rows
-        k = np.arange(1, L + 1, dtype=float)[:, None]
-        # the basis: μ^k (k = 1 .. L) and, for a mode with itself, DD_k(μ, μ) = k μ^(k−1)
-        basis = np.empty((L, 2 * n + 1))
-        # exponents floored at −600 (then zeroed below): e^−745 and below would be subnormal
-        np.exp(np.maximum(k * np.log(mue)[None, :], -600.0), out=basis[:, : n + 1])
-        basis[0, n + 1:] = 1.0
-        np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
-        close = np.abs(mu[:, None] - mue[None, :]) < CLOSE
-        # well-apart pairs: DD_k(μ_a, μ_b) = (μ_a^k − μ_b^k)/(μ_a − μ_b), split over the basis
-        GR = G * np.where(close, 0.0, 1.0 / np.where(close, 1.0, mu[:, None] - mue[None, :]))[:, :, None]
-        coef = np.empty((2 * n + 1, nr, p))
-        coef[: n + 1] = -np.einsum("ca,abj->bcj", C, GR)
-        coef[:n] += C.T[:, :, None] * GR.sum(axis=1)[:, None, :]
-        dg = np.arange(n)
-        coef[n + 1:] = C.T[:, :, None] * G[dg, dg][:, None, :]
-        # other close pairs keep their divided differences
-        close[dg, dg] = False
-        ia, ib = np.nonzero(close)
-        if len(ia):
-            basis = np.hstack([basis, divided_powers(mu[ia][None, :], mue[ib][None, :], k)])
-            coef = np.concatenate([coef, C.T[ia][:, :, None] * G[ia, ib][:, None, :]])
-        # modes long decayed are zero, not subnormal: subnormal operands slow the products tenfold
-        basis[np.abs(basis) < 1e-250] = 0.0
-        self.basis, self.coef, self.C, self.Om, self.Xi = basis, coef, C, Om, Xi
-        with np.errstate(under="ignore"):
-            self.muL = mu ** L
-        self.endG = np.einsum("abj,ab->aj", G, divided_powers(mu[:, None], mue[None, :], float(L)))
-        self.shape = (L, nr, p)
+    def __init__(self, basis: np.ndarray, coef: np.ndarray, C: np.ndarray, muL: np.ndarray, endG: np.ndarray,
+                 Om: np.ndarray, Xi: np.ndarray) -> None:
+        self.basis, self.coef, self.C, self.muL, self.endG, self.Om, self.Xi = basis, coef, C, muL, endG, Om, Xi
+        self.shape = (basis.shape[0], C.shape[0], coef.shape[2])
 
     def apply(self, s0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Chosen rows of ``S`` over the run (L, rows, p) and the full ``S`` at its end, from ``S`` (n, p) at its start."""
