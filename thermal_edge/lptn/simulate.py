@@ -71,10 +71,15 @@ class Simulator:
         Default: the model's ``discretisation.method``.
     max_substep : float, optional
         Euler sub-step limit (s); default: the model's.
+    closed_form : bool, optional
+        Sensitivities in closed form over runs of held inputs (default); False steps every
+        sample (the same result to round-off, for checking and for timing the general case).
     """
 
-    def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None) -> None:
+    def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None,
+                 closed_form: bool = True) -> None:
         self.model = model
+        self.closed_form = closed_form
         self.net = Network(model)
         self.method = method or model.discretisation.method
         self.max_substep = max_substep if max_substep is not None else model.discretisation.max_substep_s
@@ -271,4 +276,4 @@ class Simulator:
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps)[0],
                              loss_theta=lambda k, temps: self._loss_theta(at(k), temps, widx))
         # the closed form over held inputs needs losses affine in temperature
-        return sens.run(held_steps(env, N - 1), not self.nonaffine, rows)
+        return sens.run(held_steps(env, N - 1), self.closed_form and not self.nonaffine, rows)
