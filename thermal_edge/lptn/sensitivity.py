@@ -197,87 +197,69 @@ class Sensitivities:
         P = self.losses(ks, flat).reshape(len(runs), n + 1, -1)
         dPdth = self.loss_theta(ks, flat).reshape(len(runs), n + 1, -1, p)
         wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), n + 1, self.nb)), P], axis=-1)
-        # in ξ: (R, n, n) @ (R, n, (n+1)·p) as one product per run
         Xt = np.stack([self.forcing(int(o), probes[i], wp[i], dPdth[i]) for i, o in enumerate(o_)])
-        Xt = np.swapaxes(Xt, 1, 2).reshape(len(runs), n, (n + 1) * p)
-        Xp = np.swapaxes((Xi @ V @ Xt).reshape(len(runs), n, n + 1, p), 1, 2)  # (R, n+1, n, p)
-        f = np.einsum("rab,rb->ra", Xi, (d.Gam[o_] @ wp[:, 0, :, None])[..., 0])
-        F = np.swapaxes(Xp[:, 1:] - Xp[:, :1], 1, 2)  # F[r, a, b, j]: ξ_b -> forcing of mode a
+        Xp = np.matmul((Xi @ V)[:, None], Xt)  # in ξ: Xp[r, b, a, j] is the forcing of mode a at probe b
+        f = (Xi @ (d.Gam[o_] @ wp[:, 0, :, None]))[..., 0]
         xinf = f / (1.0 - mu)  # ξ_k = ξ∞ + μ^k δ
-        delta = np.einsum("rab,rb->ra", Xi, self.T[a_]) - xinf
-        G = np.empty((len(runs), n, n + 1, p))
-        G[:, :, :n] = F * delta[:, None, :, None]
-        G[:, :, n] = np.einsum("rabj,rb->raj", F, xinf) + Xp[:, 0]  # the constant forcing: a mode with μ = 1
-        L = np.array([b - a for a, b in runs])
-        forms = _held_forms(mu, G, Om[:, keep], L)
-        return [_HeldRun(*form, Om[i], Xi[i]) if ok[i] else None for i, form in enumerate(forms)]
-
-
-def _held_forms(mu: np.ndarray, G: np.ndarray, C: np.ndarray, L: np.ndarray) -> list[tuple]:
-    """Time basis and coefficients of ``C σ_k`` for runs of lengths ``L`` (R,), ``k = 1 .. L``.
-
-    ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` with ``μ_n = 1``; the basis is ``μ^k`` and, for
-    a mode with itself, ``DD_k(μ, μ) = k μ^(k−1)``; well-apart pairs split as
-    ``(μ_a^k − μ_b^k)/(μ_a − μ_b)`` over it, close pairs keep their divided differences as extra
-    columns. The part of ``σ_0`` is added by :meth:`_HeldRun.apply`.
-    """
-    R, n, _, p = G.shape
-    nr = C.shape[1]
-    mue = np.concatenate([mu, np.ones((R, 1))], axis=1)
-    close = np.abs(mu[:, :, None] - mue[:, None, :]) < CLOSE
-    gap = np.where(close, 1.0, mu[:, :, None] - mue[:, None, :])
-    GR = G * np.where(close, 0.0, 1.0 / gap)[..., None]
-    Ct = np.swapaxes(C, 1, 2)  # (R, n, nr)
-    dg = np.arange(n)
-    coef = np.empty((R, 2 * n + 1, nr, p))
-    coef[:, : n + 1] = -np.einsum("rca,rabj->rbcj", C, GR, optimize=True)
-    coef[:, :n] += Ct[..., None] * GR.sum(axis=2)[:, :, None, :]
-    coef[:, n + 1:] = Ct[..., None] * G[:, dg, dg][:, :, None, :]
-    close[:, dg, dg] = False
-    # all runs' bases as one array: row i of run r is step k = i + 1
-    starts = np.concatenate([[0], np.cumsum(L)])
-    run_of = np.repeat(np.arange(R), L)
-    k = (np.arange(starts[-1]) - starts[run_of] + 1.0)[:, None]
-    basis = np.empty((starts[-1], 2 * n + 1))
-    head = basis[:, : n + 1]
-    np.multiply(k, np.log(mue)[run_of], out=head)
-    # exponents floored at −600 (then zeroed below): e^−745 and below would be subnormal
-    np.maximum(head, -600.0, out=head)
-    np.exp(head, out=head)
-    np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
-    basis[starts[:-1], n + 1:] = 1.0
-    # modes long decayed are zero, not subnormal: subnormal operands slow the products tenfold
-    basis[basis < 1e-250] = 0.0
-    with np.errstate(under="ignore"):
-        muL = mu ** L[:, None]
-        endG = np.einsum("rabj,rab->raj", G, divided_powers(mu[:, :, None], mue[:, None, :], L[:, None, None].astype(float)))
-    forms = []
-    for r in range(R):
-        b_, c_ = basis[starts[r]: starts[r + 1]], coef[r]
-        ia, ib = np.nonzero(close[r])
-        if len(ia):
-            b_ = np.hstack([b_, divided_powers(mu[r, ia][None, :], mue[r, ib][None, :], k[starts[r]: starts[r + 1]])])
-            c_ = np.concatenate([c_, Ct[r, ia][:, :, None] * G[r, ia, ib][:, None, :]])
-        forms.append((b_, c_, C[r], muL[r], endG[r]))
-    return forms
+        delta = (Xi @ self.T[a_][:, :, None])[..., 0] - xinf
+        # H[r, b, a, j] = G[a, b, j] of the module docstring: F[a, b] δ_b, and the constant forcing
+        # F ξ∞ + X(0) as a mode b = n with μ = 1
+        H = np.empty((len(runs), n + 1, n, p))
+        np.subtract(Xp[:, 1:], Xp[:, :1], out=H[:, :n])
+        H[:, n] = np.einsum("rbaj,rb->raj", H[:, :n], xinf) + Xp[:, 0]
+        H[:, :n] *= delta[:, :, None, None]
+        return [_HeldRun(mu[i], H[i], Om[i], Xi[i], keep, b - a) if ok[i] else None for i, (a, b) in enumerate(runs)]
 
 
 class _HeldRun:
-    """One held run in closed form (see :func:`_held_forms`)."""
+    """One held run in closed form: ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` with ``μ_n = 1``.
 
-    def __init__(self, basis: np.ndarray, coef: np.ndarray, C: np.ndarray, muL: np.ndarray, endG: np.ndarray,
-                 Om: np.ndarray, Xi: np.ndarray) -> None:
-        self.basis, self.coef, self.C, self.muL, self.endG, self.Om, self.Xi = basis, coef, C, muL, endG, Om, Xi
-        self.shape = (basis.shape[0], C.shape[0], coef.shape[2])
+    The rows of ``S`` are evaluated on the time basis ``μ^k`` and, for a mode with itself,
+    ``DD_k(μ, μ) = k μ^(k−1)``: well-apart pairs split as ``(μ_a^k − μ_b^k)/(μ_a − μ_b)`` over it,
+    close pairs keep their divided differences as extra columns. The coefficients that do not
+    depend on the sensitivities at the start of the run are prepared here; :meth:`apply` adds
+    the part of ``σ_0`` and evaluates every step.
+    """
+
+    def __init__(self, mu: np.ndarray, H: np.ndarray, Om: np.ndarray, Xi: np.ndarray, keep: np.ndarray, L: int) -> None:
+        n, p = H.shape[1], H.shape[2]
+        C = Om[keep]  # ξ -> chosen rows
+        nr = len(keep)
+        mue = np.append(mu, 1.0)
+        diff = mu[None, :] - mue[:, None]  # [b, a]: μ_a − μ_b
+        close = np.abs(diff) < CLOSE
+        HR = H * np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))[:, :, None]
+        coef = np.empty((2 * n + 1, nr, p))
+        coef[: n + 1] = -np.matmul(C, HR)  # the μ_b^k terms
+        coef[:n] += C.T[:, :, None] * HR.sum(axis=0)[:, None, :]  # the μ_a^k terms
+        dg = np.arange(n)
+        coef[n + 1:] = C.T[:, :, None] * H[dg, dg][:, None, :]
+        close[dg, dg] = False
+        self.ib, self.ia = np.nonzero(close)
+        self.coef_close = C.T[self.ia][:, :, None] * H[self.ib, self.ia][:, None, :]
+        self.mue, self.coef, self.C, self.Om, self.Xi, self.L = mue, coef, C, Om, Xi, L
+        with np.errstate(under="ignore"):
+            self.muL = mu ** L
+            self.endG = np.einsum("baj,ab->aj", H, divided_powers(mu[:, None], mue[None, :], float(L)))
+        self.shape = (L, nr, p)
 
     def apply(self, s0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Chosen rows of ``S`` over the run (L, rows, p) and the full ``S`` at its end, from ``S`` (n, p) at its start."""
         L, nr, p = self.shape
         sig0 = self.Xi @ s0
         n = len(sig0)
-        coef = self.coef.copy()
-        coef[:n] += self.C.T[:, :, None] * sig0[:, None, :]  # μ^k σ_0
-        rows = self.basis @ coef.reshape(len(coef), nr * p)
+        coef = self.coef.reshape(2 * n + 1, nr * p).copy()
+        coef[:n] += (self.C.T[:, :, None] * sig0[:, None, :]).reshape(n, nr * p)  # μ^k σ_0
+        k = np.arange(1, L + 1, dtype=float)[:, None]
+        # exponents floored at −500: e^−745 and below would be subnormal (and slow every product)
+        Pw = np.exp(np.maximum(k * np.log(self.mue), -500.0))
+        Dg = np.empty((L, n))
+        Dg[0] = 1.0
+        np.multiply(k[1:], Pw[:-1, :n], out=Dg[1:])
+        rows = Pw @ coef[: n + 1] + Dg @ coef[n + 1:]
+        if len(self.ia):
+            DD = divided_powers(self.mue[self.ia][None, :], self.mue[self.ib][None, :], k)
+            rows += DD @ self.coef_close.reshape(len(self.ia), nr * p)
         return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
 
 
