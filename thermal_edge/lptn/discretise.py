@@ -20,7 +20,8 @@ node-coordinate forms on demand.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 
@@ -42,11 +43,12 @@ class Discrete:
 
     The modal basis of operating point ``k`` is ``V_k = diag(1/s) Q_k``: ``Φ = V diag(mu) V⁻¹``
     and ``V⁻¹ (Φ − I) A⁻¹ = diag(phi) Q_kᵀ diag(1/s)`` (``phi = (mu − 1)/λ``, positive).
-    ``dPhit`` (K, p, n, n) is ``V⁻¹ dΦ_j V``. ``V⁻¹ dΓ_j`` is kept factored,
-    ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with ``Ht = V⁻¹ A⁻¹ W`` (K, n, m),
-    ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m) from the rank-one factors of
-    :class:`~thermal_edge.lptn.network.Continuous`: ``dΓ w = V (dPhit (Ht w) − phi ∘ Zh (dg ∘ Yt w))``
-    costs no more than ``dΦ T``.
+    ``V⁻¹ dΦ_j V`` is built per operating point when first needed (:meth:`dphit`);
+    :meth:`dphit_rows` applies it to single vectors without building it (ZOH).
+    ``V⁻¹ dΓ_j`` is kept factored, ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with
+    ``Ht = V⁻¹ A⁻¹ W`` (K, n, m), ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m)
+    from the rank-one factors of :class:`~thermal_edge.lptn.network.Continuous`:
+    ``dΓ w = V (dPhit (Ht w) − phi ∘ Zh (dg ∘ Yt w))`` costs no more than ``dΦ T``.
     """
 
     Phi: np.ndarray
@@ -56,26 +58,73 @@ class Discrete:
     Q: np.ndarray | None = None
     mu: np.ndarray | None = None
     phi: np.ndarray | None = None
-    dPhit: np.ndarray | None = None
     Ht: np.ndarray | None = None
     Zh: np.ndarray | None = None
     Yt: np.ndarray | None = None
     dg: np.ndarray | None = None
+    #: ZOH: divided differences ``D`` of exp (K, n, n), the capacity term ``Wc`` and ``r = dc/2c`` (p, n)
+    Dd: np.ndarray | None = None
+    Wc: np.ndarray | None = None
+    r: np.ndarray | None = None
+    _dense: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def with_derivatives(self) -> bool:
+        return self.dg is not None
+
+    def dphit(self, ops: Sequence[int] | np.ndarray) -> np.ndarray:
+        """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each)."""
+        ops = [int(o) for o in np.atleast_1d(ops)]
+        todo = sorted({o for o in ops if o not in self._dense})
+        if todo:
+            assert self.Dd is not None and self.Zh is not None and self.dg is not None and self.Q is not None
+            t = np.array(todo)
+            built = _zoh_dense(self.Dd[t], None if self.Wc is None else self.Wc[t], self.Zh[t], self.dg[t], self.Q[t], self.r)
+            self._dense.update(zip(todo, built))
+        if not ops:
+            return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
+        return np.stack([self._dense[o] for o in ops])
+
+    def dphit_rows(self, ops: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``V⁻¹ dΦ_j V y_i`` (B, n, p) for one vector ``y_i`` (B, n) per operating point ``ops_i``.
+
+        The Daleckii–Krein form applied edge by edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``, about
+        ``n² (e + nc)`` flops a vector: cheaper than building ``dPhit`` for an operating point
+        that a few steps use (a ramp). Euler: from the dense derivatives.
+        """
+        if self.Dd is None:
+            return np.einsum("bjac,bc->baj", self.dphit(ops), y)
+        assert self.Zh is not None and self.dg is not None and self.Q is not None and self.r is not None
+        Zh = self.Zh[ops]  # (B, n, e)
+        X = (-(Zh * (self.Dd[ops] @ (Zh * y[:, :, None])))) @ np.swapaxes(self.dg[ops], 1, 2)
+        nz = np.nonzero(np.any(self.r != 0.0, axis=0))[0]
+        if len(nz):
+            assert self.Wc is not None
+            Qc = np.swapaxes(self.Q[ops][:, nz, :], 1, 2)  # (B, n, nc)
+            X += (Qc * (self.Wc[ops] @ (Qc * y[:, :, None]))) @ self.r[:, nz].T
+        return X
+
+    @property
+    def dPhit(self) -> np.ndarray | None:
+        """``V⁻¹ ∂Φ/∂θ_j V`` (K, p, n, n) at every operating point."""
+        return self.dphit(np.arange(self.Phi.shape[0])) if self.with_derivatives else None
 
     @property
     def dGamt(self) -> np.ndarray | None:
         """``V⁻¹ ∂Γ/∂θ_j`` (K, p, n, m)."""
-        if self.dPhit is None or self.Ht is None or self.Zh is None or self.Yt is None or self.dg is None:
+        dPhit = self.dPhit
+        if dPhit is None or self.Ht is None or self.Zh is None or self.Yt is None or self.dg is None:
             return None
         low = (self.Zh[:, None] * self.dg[:, :, None, :]) @ self.Yt[:, None]
-        return self.dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
+        return dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
 
     @property
     def dPhi(self) -> np.ndarray | None:
         """``∂Φ/∂θ_j`` (K, p, n, n) in node coordinates."""
-        if self.dPhit is None:
+        dPhit = self.dPhit
+        if dPhit is None:
             return None
-        return sandwich(self.Q / self.s[:, None], self.dPhit, np.swapaxes(self.Q, -1, -2) * self.s)
+        return sandwich(self.Q / self.s[:, None], dPhit, np.swapaxes(self.Q, -1, -2) * self.s)
 
     @property
     def dGam(self) -> np.ndarray | None:
@@ -164,25 +213,17 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
     out.Yt = np.swapaxes(cont.dV, -1, -2) - np.swapaxes(cont.dZ, -1, -2) @ H
     out.dg = cont.dg
     if method == "zoh":
-        out.dPhit = _zoh_modal_derivatives(cont, dt, lam, Qm, mu, out.Zh)
+        out.Dd, out.Wc, out.r = _zoh_divided_differences(cont, dt, lam, mu)
     else:
         Vi = Qt * s  # V⁻¹
-        out.dPhit = sandwich(Vi, _euler_derivatives(cont, Phi1, h, m), Qm / s[:, None])
+        out._dense.update(enumerate(sandwich(Vi, _euler_derivatives(cont, Phi1, h, m), Qm / s[:, None])))
     return out
 
 
-def _zoh_modal_derivatives(cont: Continuous, dt: float, lam: np.ndarray, Qm: np.ndarray, mu: np.ndarray,
-                           Zh: np.ndarray) -> np.ndarray:
-    """``V⁻¹ dΦ_j V`` (K, p, n, n) of the ZOH step, from the rank-one factors of ``dA``.
-
-    In the basis ``Q`` of ``Ã`` the derivative of ``exp(Ã dt)`` is ``(Qᵀ dÃ Q) ∘ D`` with ``D``
-    the divided differences of ``exp`` on the eigenvalues (Daleckii–Krein). With ``r = dc/2c``
-    and ``R = Qᵀ diag(r) Q``: ``Qᵀ dÃ Q = −Zh diag(dg) Zhᵀ − R ∘ (λ_a + λ_b)``, and the
-    similarity ``C^-½`` adds ``R ∘ (μ_a − μ_b)``.
-    """
-    assert cont.dc is not None and cont.dg is not None
-    K, n = lam.shape
-    p = cont.dc.shape[0]
+def _zoh_divided_differences(cont: Continuous, dt: float, lam: np.ndarray,
+                             mu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """``D`` (K, n, n), ``Wc`` (K, n, n) or None, and ``r`` (p, n) of the ZOH derivative (:func:`_zoh_dense`)."""
+    assert cont.dc is not None
     x = lam * dt
     # divided differences of exp(λ dt) w.r.t. λ, (e^a − e^b)/(a − b) · dt, written as
     # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels
@@ -190,20 +231,35 @@ def _zoh_modal_derivatives(cont: Continuous, dt: float, lam: np.ndarray, Qm: np.
     small = ad < 1e-10
     ratio = np.where(small, 1.0 - ad / 2.0, -np.expm1(-ad) / np.where(small, 1.0, ad))
     Dd = dt * np.exp(np.maximum(x[:, :, None], x[:, None, :])) * ratio
-    dPhit = np.empty((K, p, n, n))
     r = cont.dc / (2.0 * cont.c)
-    # a capacity parameter adds R ∘ (μ_a − μ_b − (λ_a + λ_b) D) with R = Qᵀ diag(r) Q
     Wc = (mu[:, :, None] - mu[:, None, :]) - (lam[:, :, None] + lam[:, None, :]) * Dd if np.any(r) else None
+    return Dd, Wc, r
+
+
+def _zoh_dense(Dd: np.ndarray, Wc: np.ndarray | None, Zh: np.ndarray, dg: np.ndarray, Qm: np.ndarray,
+               r: np.ndarray) -> np.ndarray:
+    """``V⁻¹ dΦ_j V`` (K, p, n, n) of the ZOH step, from the rank-one factors of ``dA``.
+
+    In the basis ``Q`` of ``Ã`` the derivative of ``exp(Ã dt)`` is ``(Qᵀ dÃ Q) ∘ D`` with ``D``
+    the divided differences of ``exp`` on the eigenvalues (Daleckii–Krein). With ``r = dc/2c``
+    and ``R = Qᵀ diag(r) Q``: ``Qᵀ dÃ Q = −Zh diag(dg) Zhᵀ − R ∘ (λ_a + λ_b)``, and the
+    similarity ``C^-½`` adds ``R ∘ (μ_a − μ_b)``: a capacity parameter adds ``R ∘ Wc`` with
+    ``Wc = μ_a − μ_b − (λ_a + λ_b) D``.
+    """
+    K, n, _ = Dd.shape
+    p = dg.shape[1]
+    dPhit = np.empty((K, p, n, n))
     for j in range(p):
-        e = np.nonzero(np.any(cont.dg[:, j] != 0.0, axis=0))[0]  # the few edges of this parameter
+        e = np.nonzero(np.any(dg[:, j] != 0.0, axis=0))[0]  # the few edges of this parameter
         if len(e):
-            Zg = Zh[:, :, e] * cont.dg[:, j][:, e][:, None, :]
+            Zg = Zh[:, :, e] * dg[:, j][:, e][:, None, :]
             np.matmul(-Zg, np.swapaxes(Zh[:, :, e], -1, -2), out=dPhit[:, j])
             dPhit[:, j] *= Dd
         else:
             dPhit[:, j] = 0.0
         nz = np.nonzero(r[j])[0]  # the nodes whose capacity depends on it
         if len(nz):
+            assert Wc is not None
             Qn = Qm[:, nz, :]
             dPhit[:, j] += (np.swapaxes(Qn, -1, -2) @ (r[j, nz, None] * Qn)) * Wc
     return dPhit

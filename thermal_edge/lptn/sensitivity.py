@@ -75,34 +75,42 @@ class Sensitivities:
 
     def __init__(self, disc: Discrete, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
                  U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps) -> None:
-        assert disc.dPhit is not None and disc.Q is not None and disc.s is not None
+        assert disc.with_derivatives and disc.Q is not None and disc.s is not None and disc.dg is not None
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta = losses, loss_theta
-        self.n, self.p = T.shape[1], disc.dPhit.shape[1]
+        self.n, self.p = T.shape[1], disc.dg.shape[1]
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
-    def forcing(self, o: int, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
-        """``V⁻¹ X`` (B, n, p) at operating point ``o`` for temperatures ``T`` (B, n).
+    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
+        """``V⁻¹ X`` (B, n, p) for temperatures ``T`` (B, n) at operating point ``o``.
 
-        ``w`` (B, m) are the inputs of ``Γ`` and ``dPdth`` (B, nl, p) the loss derivatives;
+        ``o`` is one operating point for all rows (its dense ``dPhit``, one product for all
+        rows) or one per row (B,) (the Daleckii–Krein form vector by vector, for steps at
+        operating points used once or twice). ``w`` (B, m) are the inputs of ``Γ`` and
+        ``dPdth`` (B, nl, p) the loss derivatives;
         ``dΦ T + dΓ w = V (dPhit (V⁻¹ T + Ht w) − phi ∘ Zh (dg ∘ Yt w))`` (see
         :class:`~thermal_edge.lptn.discretise.Discrete`).
         """
         d, n, p = self.d, self.n, self.p
-        assert d.dPhit is not None and d.Q is not None and d.s is not None and d.phi is not None
+        assert d.Q is not None and d.s is not None and d.phi is not None
         assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
-        Q = d.Q[o]
-        # laid out (p, n, B): the big operand dPhit stays contiguous in the product
-        yT = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T
         B = len(T)
-        X = (d.dPhit[o].reshape(p * n, n) @ yT).reshape(p, n, B)
-        low = d.dg[o][:, :, None] * (d.Yt[o] @ w.T)  # (p, e, B)
-        X -= d.phi[o][:, None] * (d.Zh[o] @ low.transpose(1, 0, 2).reshape(-1, p * B)).reshape(n, p, B).transpose(1, 0, 2)
-        X = X.transpose(2, 1, 0)
-        if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ
+        if np.ndim(o) == 0:
+            Q = d.Q[o]
+            yT = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T  # (n, B)
+            X = (d.dphit([o])[0].reshape(p * n, n) @ yT).reshape(p, n, B).transpose(2, 1, 0)
+            low = ((w @ d.Yt[o].T)[:, None, :] * d.dg[o]).reshape(B * p, -1) @ d.Zh[o].T  # (B p, n)
+            X -= d.phi[o][:, None] * low.reshape(B, p, n).swapaxes(1, 2)
             GPt = Q.T @ (d.s[:, None] * d.Gam[o][:, self.nb:])
-            X += (GPt @ dPdth.transpose(1, 0, 2).reshape(-1, B * p)).reshape(n, B, p).transpose(1, 0, 2)
+        else:
+            Q = d.Q[o]
+            y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
+            X = d.dphit_rows(o, y)
+            X -= d.phi[o][:, :, None] * (d.Zh[o] @ ((d.Yt[o] @ w[:, :, None]) * np.swapaxes(d.dg[o], 1, 2)))
+            GPt = np.swapaxes(Q, 1, 2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])
+        if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ
+            X += GPt @ dPdth
         return X
 
     # -- runs ---------------------------------------------------------------------------------
@@ -127,6 +135,8 @@ class Sensitivities:
         # ∂P/∂θ where the recursion steps, in one evaluation of the loss laws
         ks = np.nonzero(stepped)[0]
         dPdth = self.loss_theta(ks, self.T[ks])
+        uo, count = np.unique(self.ops[ks], return_counts=True)
+        self.d.dphit(uo[count >= 8])  # the dense derivatives the stepping needs, built together
         pos = np.cumsum(stepped) - 1  # step -> row of dPdth
         pending = 0  # first step not yet propagated
         for (a, b), form in zip(runs, forms):
@@ -155,7 +165,11 @@ class Sensitivities:
             ob = ops[c:e]
             w = np.concatenate([self.U[c:e], self.P[c:e]], axis=1)
             dP = dPdth[c - a: e - a]
-            for o in np.unique(ob):
+            uo, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
+            few = np.nonzero(count[inv] < 8)[0]  # operating points used by a few steps (a ramp)
+            if len(few):
+                X[few] = self.forcing(ob[few], self.T[c + few], w[few], dP[few])
+            for o in uo[count >= 8]:
                 sel = np.nonzero(ob == o)[0]
                 X[sel] = self.forcing(o, self.T[c + sel], w[sel], dP[sel])
             X = np.matmul(d.Q[ob] / d.s[:, None], X)  # back to node coordinates
@@ -197,6 +211,7 @@ class Sensitivities:
         P = self.losses(ks, flat).reshape(len(runs), n + 1, -1)
         dPdth = self.loss_theta(ks, flat).reshape(len(runs), n + 1, -1, p)
         wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), n + 1, self.nb)), P], axis=-1)
+        d.dphit(o_)  # dense derivatives at the runs' operating points, built together
         Xt = np.stack([self.forcing(int(o), probes[i], wp[i], dPdth[i]) for i, o in enumerate(o_)])
         Xp = np.matmul((Xi @ V)[:, None], Xt)  # in ξ: Xp[r, b, a, j] is the forcing of mode a at probe b
         f = (Xi @ (d.Gam[o_] @ wp[:, 0, :, None]))[..., 0]
