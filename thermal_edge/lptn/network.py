@@ -172,11 +172,15 @@ class Network:
         return L, KU
 
     def solve_qq(self, LQQ: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-        """``L_QQ⁻¹ rhs`` for ``L_QQ`` (K, q, q) and ``rhs`` (K, q, r), block by block."""
+        """``L_QQ⁻¹ rhs`` for ``L_QQ`` (K, q, q) and ``rhs`` (K, q, r), block by block.
+
+        The blocks (a T-model element's face points and their neighbours, at most a few points)
+        are inverted and multiplied: for many right-hand sides on tiny blocks that is several
+        times faster than LAPACK's solve, and as accurate for these well-conditioned blocks.
+        """
         out = np.empty(np.broadcast_shapes(rhs.shape, LQQ.shape[:-1] + rhs.shape[-1:]))
         for g in self._qq_groups:  # g: (groups, size)
-            blocks = LQQ[:, g[:, :, None], g[:, None, :]]  # (K, groups, size, size)
-            out[:, g] = np.linalg.solve(blocks, rhs[:, g])
+            out[:, g] = np.linalg.inv(LQQ[:, g[:, :, None], g[:, None, :]]) @ rhs[:, g]
         return out
 
     def _derivatives(self, L: np.ndarray, KU: np.ndarray, dg: np.ndarray, live: np.ndarray,
