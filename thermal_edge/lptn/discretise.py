@@ -72,8 +72,12 @@ class Discrete:
     def with_derivatives(self) -> bool:
         return self.dg is not None
 
-    def dphit(self, ops: Sequence[int] | np.ndarray) -> np.ndarray:
-        """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each)."""
+    def dphit(self, ops: int | Sequence[int] | np.ndarray) -> np.ndarray:
+        """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each);
+        (p, n, n) for a single one."""
+        if np.ndim(ops) == 0:
+            o = int(ops)  # type: ignore[arg-type]
+            return self._dense[o] if o in self._dense else self.dphit([o])[0]
         ops = [int(o) for o in np.atleast_1d(ops)]
         todo = sorted({o for o in ops if o not in self._dense})
         if todo:

@@ -80,6 +80,7 @@ class Sensitivities:
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta = losses, loss_theta
         self.n, self.p = T.shape[1], disc.dg.shape[1]
+        self._joint: dict[int, np.ndarray] = {}
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
     def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
@@ -96,21 +97,22 @@ class Sensitivities:
         assert d.Q is not None and d.s is not None and d.phi is not None
         assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
         B = len(T)
+        Q = d.Q[o]
         if np.ndim(o) == 0:
-            Q = d.Q[o]
-            yT = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T  # (n, B)
-            X = (d.dphit([o])[0].reshape(p * n, n) @ yT).reshape(p, n, B).transpose(2, 1, 0)
-            low = ((w @ d.Yt[o].T)[:, None, :] * d.dg[o]).reshape(B * p, -1) @ d.Zh[o].T  # (B p, n)
-            X -= d.phi[o][:, None] * low.reshape(B, p, n).swapaxes(1, 2)
-            GPt = Q.T @ (d.s[:, None] * d.Gam[o][:, self.nb:])
-        else:
-            Q = d.Q[o]
-            y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
-            X = d.dphit_rows(o, y)
-            X -= d.phi[o][:, :, None] * (d.Zh[o] @ ((d.Yt[o] @ w[:, :, None]) * np.swapaxes(d.dg[o], 1, 2)))
-            GPt = np.swapaxes(Q, 1, 2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])
+            if o not in self._joint:  # [dPhit_j, −phi ∘ Zh diag(dg_j)] stacked over j: (p n, n + e)
+                low = -(d.phi[o][:, None] * d.Zh[o])[None] * d.dg[o][:, None, :]
+                self._joint[o] = np.concatenate([d.dphit(o), low], axis=2).reshape(p * n, -1)
+            yu = np.concatenate([Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T, d.Yt[o] @ w.T])  # (n + e, B)
+            X = (self._joint[o] @ yu).reshape(p, n, B).transpose(2, 1, 0)
+            if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ, one product for all rows
+                GPt = Q.T @ (d.s[:, None] * d.Gam[o][:, self.nb:])
+                X += (GPt @ dPdth.transpose(1, 0, 2).reshape(-1, B * p)).reshape(n, B, p).transpose(1, 0, 2)
+            return X
+        y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
+        X = d.dphit_rows(o, y)
+        X -= d.phi[o][:, :, None] * (d.Zh[o] @ ((d.Yt[o] @ w[:, :, None]) * np.swapaxes(d.dg[o], 1, 2)))
         if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ
-            X += GPt @ dPdth
+            X += (np.swapaxes(Q, 1, 2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])) @ dPdth
         return X
 
     # -- runs ---------------------------------------------------------------------------------
