@@ -187,9 +187,9 @@ def _closed_form_calls(monkeypatch):
     calls = []
     orig = sensitivity._HeldRun.apply
 
-    def apply(self, s0):
-        calls.append(self.shape[0])
-        return orig(self, s0)
+    def apply(self, s0, L):
+        calls.append(L)
+        return orig(self, s0, L)
 
     monkeypatch.setattr(sensitivity._HeldRun, "apply", apply)
     return calls

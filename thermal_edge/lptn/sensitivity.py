@@ -146,7 +146,7 @@ class Sensitivities:
                 continue
             if pending < a:
                 s = self._steps(pending, a, s, S, keep, dPdth[pos[pending:a]])
-            S[a + 1: b + 1], s = form.apply(s)
+            S[a + 1: b + 1], s = form.apply(s, b - a)
             pending = b
         if pending < steps:
             self._steps(pending, steps, s, S, keep, dPdth[pos[pending:steps]])
@@ -225,44 +225,51 @@ class Sensitivities:
         np.subtract(Xp[:, 1:], Xp[:, :1], out=H[:, :n])
         H[:, n] = np.einsum("rbaj,rb->raj", H[:, :n], xinf) + Xp[:, 0]
         H[:, :n] *= delta[:, :, None, None]
-        return [_HeldRun(mu[i], H[i], Om[i], Xi[i], keep, b - a) if ok[i] else None for i, (a, b) in enumerate(runs)]
+        L = np.array([b - a for a, b in runs])
+        # the time basis: μ^k and, for a mode with itself, DD_k(μ, μ) = k μ^(k−1); well-apart
+        # pairs split as (μ_a^k − μ_b^k)/(μ_a − μ_b) over it, close pairs keep their divided
+        # differences as extra columns
+        mue = np.concatenate([mu, np.ones((len(runs), 1))], axis=1)
+        diff = mu[:, None, :] - mue[:, :, None]  # [r, b, a]: μ_a − μ_b
+        close = np.abs(diff) < CLOSE
+        HR = H * np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))[..., None]
+        C = Om[:, keep]  # ξ -> chosen rows
+        Ct = np.swapaxes(C, 1, 2)[..., None]
+        dg = np.arange(n)
+        coef = np.empty((len(runs), 2 * n + 1, len(keep), p))
+        coef[:, : n + 1] = -np.matmul(C[:, None], HR)  # the μ_b^k terms
+        coef[:, :n] += Ct * HR.sum(axis=1)[:, :, None, :]  # the μ_a^k terms
+        coef[:, n + 1:] = Ct * H[:, dg, dg][:, :, None, :]
+        close[:, dg, dg] = False
+        with np.errstate(under="ignore"):
+            muL = mu ** L[:, None]
+            DD = divided_powers(mu[:, None, :], mue[:, :, None], L[:, None, None].astype(float))
+        endG = (H * DD[..., None]).sum(axis=1)  # σ_L without the part of σ_0
+        out: list[_HeldRun | None] = []
+        for i in range(len(runs)):
+            ib, ia = np.nonzero(close[i])
+            extra = (ia, ib, C[i].T[ia][:, :, None] * H[i, ib, ia][:, None, :]) if len(ia) else None
+            out.append(_HeldRun(mue[i], coef[i], C[i], Om[i], Xi[i], muL[i], endG[i], extra) if ok[i] else None)
+        return out
 
 
 class _HeldRun:
     """One held run in closed form: ``σ_k = μ^k σ_0 + Σ_b G[:, b] DD_k(μ, μ_b)`` with ``μ_n = 1``.
 
-    The rows of ``S`` are evaluated on the time basis ``μ^k`` and, for a mode with itself,
-    ``DD_k(μ, μ) = k μ^(k−1)``: well-apart pairs split as ``(μ_a^k − μ_b^k)/(μ_a − μ_b)`` over it,
-    close pairs keep their divided differences as extra columns. The coefficients that do not
-    depend on the sensitivities at the start of the run are prepared here; :meth:`apply` adds
-    the part of ``σ_0`` and evaluates every step.
+    ``coef`` (2n+1, rows, p) are the coefficients of the chosen rows on the time basis ``μ^k``
+    (``mue``, n+1 modes) and ``k μ^(k−1)`` without the part of ``σ_0``; ``extra`` holds close
+    pairs with their own divided differences. :meth:`apply` adds the part of ``σ_0`` and
+    evaluates every step.
     """
 
-    def __init__(self, mu: np.ndarray, H: np.ndarray, Om: np.ndarray, Xi: np.ndarray, keep: np.ndarray, L: int) -> None:
-        n, p = H.shape[1], H.shape[2]
-        C = Om[keep]  # ξ -> chosen rows
-        nr = len(keep)
-        mue = np.append(mu, 1.0)
-        diff = mu[None, :] - mue[:, None]  # [b, a]: μ_a − μ_b
-        close = np.abs(diff) < CLOSE
-        HR = H * np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))[:, :, None]
-        coef = np.empty((2 * n + 1, nr, p))
-        coef[: n + 1] = -np.matmul(C, HR)  # the μ_b^k terms
-        coef[:n] += C.T[:, :, None] * HR.sum(axis=0)[:, None, :]  # the μ_a^k terms
-        dg = np.arange(n)
-        coef[n + 1:] = C.T[:, :, None] * H[dg, dg][:, None, :]
-        close[dg, dg] = False
-        self.ib, self.ia = np.nonzero(close)
-        self.coef_close = C.T[self.ia][:, :, None] * H[self.ib, self.ia][:, None, :]
-        self.mue, self.coef, self.C, self.Om, self.Xi, self.L = mue, coef, C, Om, Xi, L
-        with np.errstate(under="ignore"):
-            self.muL = mu ** L
-            self.endG = np.einsum("baj,ab->aj", H, divided_powers(mu[:, None], mue[None, :], float(L)))
-        self.shape = (L, nr, p)
+    def __init__(self, mue: np.ndarray, coef: np.ndarray, C: np.ndarray, Om: np.ndarray, Xi: np.ndarray,
+                 muL: np.ndarray, endG: np.ndarray, extra: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
+        self.mue, self.coef, self.C, self.Om, self.Xi, self.muL, self.endG, self.extra = mue, coef, C, Om, Xi, muL, endG, extra
 
-    def apply(self, s0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Chosen rows of ``S`` over the run (L, rows, p) and the full ``S`` at its end, from ``S`` (n, p) at its start."""
-        L, nr, p = self.shape
+    def apply(self, s0: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
+        """Chosen rows of ``S`` over the run of ``L`` steps (L, rows, p) and the full ``S`` at its
+        end, from ``S`` (n, p) at its start."""
+        nr, p = self.coef.shape[1:]
         sig0 = self.Xi @ s0
         n = len(sig0)
         coef = self.coef.reshape(2 * n + 1, nr * p).copy()
@@ -274,9 +281,9 @@ class _HeldRun:
         Dg[0] = 1.0
         np.multiply(k[1:], Pw[:-1, :n], out=Dg[1:])
         rows = Pw @ coef[: n + 1] + Dg @ coef[n + 1:]
-        if len(self.ia):
-            DD = divided_powers(self.mue[self.ia][None, :], self.mue[self.ib][None, :], k)
-            rows += DD @ self.coef_close.reshape(len(self.ia), nr * p)
+        if self.extra is not None:
+            ia, ib, cc = self.extra
+            rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k) @ cc.reshape(len(ia), nr * p)
         return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
 
 
