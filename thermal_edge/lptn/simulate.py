@@ -93,7 +93,9 @@ class Simulator:
         self.loss_laws = [_Law(loss.power, params) for loss in model.losses]
         self.loss_dT = [[loss.power.diff(t) for t in self.tvn] for loss in model.losses]
         self.affine = [is_affine(loss.power, frozenset(self.tvn)) for loss in model.losses]
-        self.loss_dT_c = [[d.compile() for d in row] for row in self.loss_dT]
+        # ∂P/∂T of each law at the temperatures it reads (index into tv, compiled derivative)
+        self.loss_dT_c = [[(i, self.loss_dT[j][i].compile()) for i, t in enumerate(self.tvn) if t in loss.power.free()]
+                          for j, loss in enumerate(model.losses)]
         self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
 
     # ---------------------------------------------------------------------------------------
@@ -116,8 +118,9 @@ class Simulator:
         U = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()], axis=1) if model.boundaries else np.zeros((N, 0))
         return _Prepared(ops=np.asarray(ops).reshape(-1), disc=disc, U=U, env=env)
 
-    def _loss_terms(self, env: dict[str, object], N: int, T: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """Losses (N, nl) and ∂P/∂T at the loss-temperature nodes (N, nl, ntv).
+    def _loss_terms(self, env: dict[str, object], N: int, T: np.ndarray | None,
+                    slopes: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Losses (N, nl) and, with ``slopes``, ∂P/∂T at the loss-temperature nodes (N, nl, ntv).
 
         With ``T`` None the temperatures are zero: for affine laws that gives the constant part.
         """
@@ -125,12 +128,13 @@ class Simulator:
         for i, t in zip(self.tv, self.tvn):
             e[t] = 0.0 if T is None else T[:, i]
         nl, nt = len(self.loss_laws), len(self.tv)
-        P = np.zeros((N, nl))
-        dPdT = np.zeros((N, nl, nt))
+        P = np.empty((N, nl))
+        dPdT = np.zeros((N, nl, nt)) if slopes else None
         for j, law in enumerate(self.loss_laws):
             P[:, j] = law.f(e)
-            for i, f in enumerate(self.loss_dT_c[j]):
-                dPdT[:, j, i] = f(e)
+            if dPdT is not None:
+                for i, f in self.loss_dT_c[j]:
+                    dPdT[:, j, i] = f(e)
         return P, dPdT
 
     def _loss_theta(self, env: dict[str, object], T: np.ndarray, wrt: Sequence[int]) -> np.ndarray:
@@ -273,7 +277,7 @@ class Simulator:
             return {key: (v[k] if np.ndim(v) == 1 and len(v) == N else v) for key, v in env.items()}  # type: ignore[index]
 
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
-                             losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps)[0],
+                             losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self._loss_theta(at(k), temps, widx))
         # the closed form over held inputs needs losses affine in temperature
         return sens.run(held_steps(env, N - 1), self.closed_form and not self.nonaffine, rows)
