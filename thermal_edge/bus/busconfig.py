@@ -203,7 +203,35 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     bus = can.Bus(**kwargs)
     if kwargs["interface"] == "udp_multicast":
         _assert_hop_limit_zero(bus)
+    elif kwargs["interface"] == "socketcan":
+        _enlarge_receive_queue(bus)
     return bus
+
+
+#: kernel receive queue asked for on SocketCAN, bytes (a CAN frame takes about 1 kB of it)
+RECEIVE_QUEUE_BYTES = 4 << 20
+
+
+def _enlarge_receive_queue(bus: can.BusABC) -> None:
+    """Ask for a receive queue of several seconds of a busy bus (the default, ~200 kB, holds
+    about one second at 200 frames/s), so that a loop busy for a moment loses no frames.
+
+    ``SO_RCVBUFFORCE`` needs CAP_NET_ADMIN; without it ``SO_RCVBUF`` is capped by
+    ``net.core.rmem_max`` (raise that sysctl on the edge computer for the full size).
+    """
+    import socket
+
+    sock = getattr(bus, "socket", None)
+    if sock is None:  # python-can internals changed; keep the default queue
+        return
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+        if opt is None:
+            continue
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, RECEIVE_QUEUE_BYTES)
+            return
+        except OSError:
+            continue
 
 
 def _assert_hop_limit_zero(bus: can.BusABC) -> None:
