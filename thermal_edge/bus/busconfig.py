@@ -204,15 +204,17 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     if kwargs["interface"] == "udp_multicast":
         _assert_hop_limit_zero(bus)
     elif kwargs["interface"] == "socketcan":
-        _enlarge_receive_queue(bus)
+        sock = getattr(bus, "socket", None)
+        if sock is not None:  # None: python-can internals changed; the default queue stays
+            enlarge_receive_queue(sock)
     return bus
 
 
-#: kernel receive queue asked for on SocketCAN, bytes (a CAN frame takes about 1 kB of it)
+#: kernel receive queue asked for, bytes (a CAN frame takes about 1 kB of it on SocketCAN)
 RECEIVE_QUEUE_BYTES = 4 << 20
 
 
-def _enlarge_receive_queue(bus: can.BusABC) -> None:
+def enlarge_receive_queue(sock: "socket.socket", size: int = RECEIVE_QUEUE_BYTES) -> None:
     """Ask for a receive queue of several seconds of a busy bus (the default, ~200 kB, holds
     about one second at 200 frames/s), so that a loop busy for a moment loses no frames.
 
@@ -221,14 +223,11 @@ def _enlarge_receive_queue(bus: can.BusABC) -> None:
     """
     import socket
 
-    sock = getattr(bus, "socket", None)
-    if sock is None:  # python-can internals changed; keep the default queue
-        return
     for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
         if opt is None:
             continue
         try:
-            sock.setsockopt(socket.SOL_SOCKET, opt, RECEIVE_QUEUE_BYTES)
+            sock.setsockopt(socket.SOL_SOCKET, opt, int(size))
             return
         except OSError:
             continue

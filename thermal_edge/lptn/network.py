@@ -45,21 +45,21 @@ class Continuous:
     dV: np.ndarray | None = None
     dg: np.ndarray | None = None
 
+    def _dense(self, right: np.ndarray | None) -> np.ndarray | None:
+        """``−Z diag(dg_j) rightᵀ`` for every parameter ``j``."""
+        if self.dZ is None or self.dg is None or right is None:
+            return None
+        return -((self.dZ[:, None] * self.dg[:, :, None, :]) @ np.swapaxes(right, -1, -2)[:, None])
+
     @property
     def dA(self) -> np.ndarray | None:
         """``∂A/∂θ_j`` (K, p, n, n), W/K per parameter unit."""
-        if self.dZ is None or self.dg is None:
-            return None
-        Zg = self.dZ[:, None] * self.dg[:, :, None, :]
-        return -(Zg @ np.swapaxes(self.dZ, -1, -2)[:, None])
+        return self._dense(self.dZ)
 
     @property
     def dW(self) -> np.ndarray | None:
         """``∂W/∂θ_j`` (K, p, n, m)."""
-        if self.dZ is None or self.dV is None or self.dg is None:
-            return None
-        Zg = self.dZ[:, None] * self.dg[:, :, None, :]
-        return -(Zg @ np.swapaxes(self.dV, -1, -2)[:, None])
+        return self._dense(self.dV)
 
 
 class _Law:

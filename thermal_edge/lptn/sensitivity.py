@@ -30,6 +30,9 @@ MIN_HELD = 64
 #: basis a pair loses about 1e-16/gap of relative accuracy to cancellation
 CLOSE = 1e-6
 BLOCK = 256  # time steps per block of the step-by-step forcing
+#: an operating point used by fewer stepped steps than this gets the Daleckii–Krein form vector by
+#: vector instead of its dense derivative (a ramp: a new speed every step)
+FEW_STEPS = 8
 
 #: a function of steps (B,) and temperatures (B, n) with the inputs of those steps: the losses
 #: (B, nl) in W, or ``∂P/∂θ`` (B, nl, p) in W per parameter unit
@@ -138,7 +141,7 @@ class Sensitivities:
         ks = np.nonzero(stepped)[0]
         dPdth = self.loss_theta(ks, self.T[ks])
         uo, count = np.unique(self.ops[ks], return_counts=True)
-        self.d.dphit(uo[count >= 8])  # the dense derivatives the stepping needs, built together
+        self.d.dphit(uo[count >= FEW_STEPS])  # the dense derivatives the stepping needs, built together
         pos = np.cumsum(stepped) - 1  # step -> row of dPdth
         pending = 0  # first step not yet propagated
         for (a, b), form in zip(runs, forms):
@@ -168,10 +171,10 @@ class Sensitivities:
             w = np.concatenate([self.U[c:e], self.P[c:e]], axis=1)
             dP = dPdth[c - a: e - a]
             uo, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
-            few = np.nonzero(count[inv] < 8)[0]  # operating points used by a few steps (a ramp)
+            few = np.nonzero(count[inv] < FEW_STEPS)[0]  # operating points used by a few steps (a ramp)
             if len(few):
                 X[few] = self.forcing(ob[few], self.T[c + few], w[few], dP[few])
-            for o in uo[count >= 8]:
+            for o in uo[count >= FEW_STEPS]:
                 sel = np.nonzero(ob == o)[0]
                 X[sel] = self.forcing(o, self.T[c + sel], w[sel], dP[sel])
             X = np.matmul(d.Q[ob] / d.s[:, None], X)  # back to node coordinates

@@ -91,11 +91,10 @@ class Simulator:
         self.tv = np.array(used, dtype=int)  # nodes whose temperature enters losses
         self.tvn = [tnames[i] for i in used]
         self.loss_laws = [_Law(loss.power, params) for loss in model.losses]
-        self.loss_dT = [[loss.power.diff(t) for t in self.tvn] for loss in model.losses]
         self.affine = [is_affine(loss.power, frozenset(self.tvn)) for loss in model.losses]
         # ∂P/∂T of each law at the temperatures it reads (index into tv, compiled derivative)
-        self.loss_dT_c = [[(i, self.loss_dT[j][i].compile()) for i, t in enumerate(self.tvn) if t in loss.power.free()]
-                          for j, loss in enumerate(model.losses)]
+        self.loss_dT_c = [[(i, loss.power.diff(t).compile()) for i, t in enumerate(self.tvn) if t in loss.power.free()]
+                          for loss in model.losses]
         self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
 
     # ---------------------------------------------------------------------------------------
@@ -212,7 +211,8 @@ class Simulator:
                 np.matmul(mats[mi[k]], T[k], out=T[k + 1])
                 T[k + 1] += f[k]
                 T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
-        P, dPdT = self._loss_terms(prep.env, N, T)
+        # the slopes along the run only serve the sensitivities of laws not affine in T
+        P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
             traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), (mats, mi))

@@ -12,39 +12,28 @@ log of a replay or an accelerated run is in one time base.)
 from __future__ import annotations
 
 import logging
-import socket
 from typing import Any
 
 import can
 from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.utils import unpack_message
 
-from ..bus.busconfig import BusConfig, _assert_hop_limit_zero, bus_kwargs, create_bus
+from ..bus.busconfig import RECEIVE_QUEUE_BYTES, BusConfig, _assert_hop_limit_zero, bus_kwargs, create_bus, enlarge_receive_queue
 
 __all__ = ["TimestampedUdpMulticastBus", "bus_factory"]
 
 log = logging.getLogger(__name__)
 
-DEFAULT_RCVBUF = 4 * 1024 * 1024
-
-
 class TimestampedUdpMulticastBus(UdpMulticastBus):
     """``udp_multicast`` bus that can keep the sender's message timestamps on reception."""
 
-    def __init__(self, *args: Any, preserve_timestamps: bool = False, rcvbuf_bytes: int = DEFAULT_RCVBUF,
+    def __init__(self, *args: Any, preserve_timestamps: bool = False, rcvbuf_bytes: int = RECEIVE_QUEUE_BYTES,
                  **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.preserve_timestamps = bool(preserve_timestamps)
         sock = getattr(getattr(self, "_multicast", None), "_socket", None)
         if sock is not None and rcvbuf_bytes:
-            for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
-                if opt is None:
-                    continue
-                try:
-                    sock.setsockopt(socket.SOL_SOCKET, opt, int(rcvbuf_bytes))
-                    break
-                except OSError:
-                    continue
+            enlarge_receive_queue(sock, rcvbuf_bytes)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         if not self.preserve_timestamps:
@@ -69,7 +58,7 @@ def bus_factory(config: BusConfig) -> can.BusABC:
     kwargs = bus_kwargs(config)
     kwargs.pop("interface")
     preserve = bool(kwargs.pop("preserve_timestamps", False))
-    rcvbuf = int(kwargs.pop("rcvbuf_bytes", DEFAULT_RCVBUF))
+    rcvbuf = int(kwargs.pop("rcvbuf_bytes", RECEIVE_QUEUE_BYTES))
     bus = TimestampedUdpMulticastBus(preserve_timestamps=preserve, rcvbuf_bytes=rcvbuf, **kwargs)
     _assert_hop_limit_zero(bus)
     return bus
