@@ -329,14 +329,6 @@ class EdgeConfig:
             return over.reason
         return DerateReason.MAGNET if "magnet" in limit.name.lower() else DerateReason.WINDING
 
-    def frame_timeout(self, frame: str) -> float | None:
-        return self.timeouts.get(frame)
-
-    def with_changes(self, **sections: Any) -> "EdgeConfig":
-        """A copy with whole sections replaced (``dataclasses.replace`` on the top level)."""
-        from dataclasses import replace
-
-        return replace(self, **sections)
 
 
 # ------------------------------------------------------------------------------------------

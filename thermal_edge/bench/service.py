@@ -162,7 +162,6 @@ def _sender(port: int, rate: float, seconds: float) -> None:
 
 def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0) -> dict[str, Any]:
     """Highest sustained inbound frame rate the service accepts without loss (udp_multicast, wall clock)."""
-    from ..bus.busconfig import DEFAULT_UDP_MULTICAST_PORT  # noqa: F401  (the module is importable)
     from ..service import EdgeService
 
     results: list[dict[str, Any]] = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ipaddress
 import logging
+import socket
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -214,15 +215,13 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
 RECEIVE_QUEUE_BYTES = 4 << 20
 
 
-def enlarge_receive_queue(sock: "socket.socket", size: int = RECEIVE_QUEUE_BYTES) -> None:
+def enlarge_receive_queue(sock: socket.socket, size: int = RECEIVE_QUEUE_BYTES) -> None:
     """Ask for a receive queue of several seconds of a busy bus (the default, ~200 kB, holds
     about one second at 200 frames/s), so that a loop busy for a moment loses no frames.
 
     ``SO_RCVBUFFORCE`` needs CAP_NET_ADMIN; without it ``SO_RCVBUF`` is capped by
     ``net.core.rmem_max`` (raise that sysctl on the edge computer for the full size).
     """
-    import socket
-
     for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
         if opt is None:
             continue
@@ -235,8 +234,6 @@ def enlarge_receive_queue(sock: "socket.socket", size: int = RECEIVE_QUEUE_BYTES
 
 def _assert_hop_limit_zero(bus: can.BusABC) -> None:
     """Double-check on the socket itself that nothing can leave the host."""
-    import socket
-
     multicast = getattr(bus, "_multicast", None)
     sock = getattr(multicast, "_socket", None)
     if sock is None:  # python-can internals changed; the kwarg was still forced to 0

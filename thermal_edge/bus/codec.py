@@ -249,11 +249,6 @@ class FrameCodec:
         """The cantools database (read only by convention)."""
         return self._db
 
-    @property
-    def frame_names(self) -> tuple[str, ...]:
-        """All frame names, in DBC order."""
-        return tuple(self._by_name)
-
     def _spec(self, frame: FrameRef) -> _FrameSpec:
         spec = self._by_name.get(frame) if isinstance(frame, str) else self._frames.get(frame)
         if spec is None:
@@ -280,14 +275,6 @@ class FrameCodec:
     def frames_sent_by(self, node: str) -> frozenset[int]:
         """Identifiers of the frames whose DBC sender is ``node`` (e.g. ``"TE"``)."""
         return frozenset(fid for fid, s in self._frames.items() if node in s.senders)
-
-    def reset_counters(self, *, rx: bool = True, tx: bool = False) -> None:
-        """Forget the last received counters (and optionally restart transmit counters at 0)."""
-        with self._lock:
-            if rx:
-                self._rx_last.clear()
-            if tx:
-                self._tx_counter.clear()
 
     # ------------------------------------------------------------------ encode
     def _raw_value(self, frame: _FrameSpec, spec: _SignalSpec, value: Any) -> int:

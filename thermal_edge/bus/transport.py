@@ -17,7 +17,6 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
-from pathlib import Path
 from typing import Any
 
 import can
@@ -165,11 +164,6 @@ class CanTransport:
     def recorder(self) -> CandumpRecorder | None:
         """The candump recorder, if recording."""
         return self._recorder
-
-    @property
-    def cyclic_senders(self) -> tuple[CyclicSender, ...]:
-        """Cyclic senders started on this transport."""
-        return tuple(self._cyclic)
 
     async def wait_connected(self, timeout: float | None = None) -> bool:
         """Wait until the bus is open; False on timeout (in s)."""
@@ -487,12 +481,3 @@ class CanTransport:
         self._cyclic.append(sender)
         return sender.start()
 
-    def flush_recording(self) -> None:
-        """Flush the candump recording, if any."""
-        if self._recorder is not None:
-            self._recorder.flush()
-
-    @property
-    def record_path(self) -> Path | None:
-        """Path of the candump recording, if any."""
-        return self._recorder.path if self._recorder is not None else None

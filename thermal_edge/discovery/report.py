@@ -138,7 +138,6 @@ def regime_shift(before: R.SensorResiduals, after: R.SensorResiduals) -> list[tu
 
 
 def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = ()) -> str:
-    d = disc.as_dict()
     data = disc.data
     first = disc.rounds[0]
     lines: list[str] = []

@@ -24,9 +24,8 @@ def first_boundary(t: float, period: float) -> float:
 
 
 class Clock:
-    """Common interface: ``now()`` in seconds since the epoch, ``frame_driven``."""
+    """Common interface: ``now()`` in seconds since the epoch."""
 
-    frame_driven: bool = False
     period: float = 1.0
 
     def now(self) -> float:  # pragma: no cover - interface
@@ -35,8 +34,6 @@ class Clock:
 
 class WallClock(Clock):
     """Wall clock (``time.time``); :meth:`wait_next_tick` sleeps to the next boundary."""
-
-    frame_driven = False
 
     def __init__(self, period: float = 1.0) -> None:
         self.period = float(period)
@@ -76,8 +73,6 @@ class FrameClock(Clock):
     backwards are ignored for the clock (the frame is still used).
     """
 
-    frame_driven = True
-
     def __init__(self, period: float = 1.0) -> None:
         self.period = float(period)
         self._now: float | None = None
@@ -107,8 +102,3 @@ class FrameClock(Clock):
             out.append(self._next)
             self._next += self.period
         return out
-
-    def skip_to(self, ts: float) -> None:
-        """Jump over a gap: the next boundary becomes the first one after ``ts``."""
-        self._now = ts
-        self._next = first_boundary(ts, self.period)

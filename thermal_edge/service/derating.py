@@ -52,7 +52,6 @@ class Limits:
     torque_nm: float
     reason: DerateReason
     active: bool
-    candidate_a: float = math.nan  # before the slew limiter
 
     def signals(self) -> dict[str, float | int]:
         return {
@@ -90,7 +89,7 @@ class DeratingPolicy:
 
     def safe(self, reason: DerateReason) -> Limits:
         """The configured safe limit with a reason (also the TE_Limits fallback)."""
-        return Limits(self.safe_current, self.safe_torque, reason, True, self.safe_current)
+        return Limits(self.safe_current, self.safe_torque, reason, True)
 
     def update(self, bands: Sequence[NodeBand], lookahead_a: float | None, forced: Sequence[DerateReason] = ()) -> Limits:
         """Limits for this tick."""
@@ -128,5 +127,5 @@ class DeratingPolicy:
         torque_cap = self.safe_torque if force is not None else cfg.max_torque_nm
         torque = min(torque_cap, self.kt * self.current)
         active = self.reason != DerateReason.NONE
-        self.last = Limits(self.current, torque, self.reason, active, candidate)
+        self.last = Limits(self.current, torque, self.reason, active)
         return self.last

@@ -121,13 +121,6 @@ class InputAccumulator:
         #: Frames whose signals did not have the expected names/values (counted, ignored).
         self.malformed: int = 0
 
-    @property
-    def frames_of_interest(self) -> frozenset[str]:
-        return frozenset(self._by_frame)
-
-    def last_frame_time(self, frame: str) -> float:
-        return self._last_frame_t.get(frame, -math.inf)
-
     # ------------------------------------------------------------------------------------------
     def add(self, frame: DecodedFrame, t: float) -> None:
         """Accumulate one accepted frame received at clock time ``t``; never raises."""

@@ -33,7 +33,6 @@ __all__ = ["Lookahead", "LookaheadResult"]
 class LookaheadResult:
     current_a: float  # largest RMS current that keeps every limit over the horizon (inf if unbounded)
     time_to_limit_s: float  # at the present load; inf if not within the horizon, 0 if already over
-    binding: str | None  # limit that binds the look-ahead current
 
 
 def _loss_inputs(model: Model) -> set[str]:
@@ -139,9 +138,7 @@ class Lookahead:
         Dk = D[1:]
         with np.errstate(divide="ignore", invalid="ignore"):
             bound = np.where(Dk > 1e-12, room / Dk, np.where(room >= 0, np.inf, -np.inf))
-        flat = np.argmin(bound)
-        i2max = float(bound.flat[flat])
-        binding = self.limits[flat % len(self.limits)][0] if math.isfinite(i2max) else None
+        i2max = float(bound.min())
         current = math.sqrt(i2max) if i2max > 0 else 0.0
         # time to limit at the present load
         i_now = float(inputs.get(self.current_input, 0.0))
@@ -159,4 +156,4 @@ class Lookahead:
                 a, b = over[k - 1], over[k]
                 frac = a / (a - b) if b != a else 1.0
                 ttl = (k - 1 + frac) * self.dt
-        return LookaheadResult(current, ttl, binding)
+        return LookaheadResult(current, ttl)

@@ -115,7 +115,6 @@ class EdgeService:
         self._saved_running = False
         self._stopped = False
         self.on_tick: list[Callable[[TickOutput], Any]] = []
-        self.ticks_sent = 0
         self.max_lateness_s = 0.0
 
     # ------------------------------------------------------------------------------------------
@@ -253,7 +252,6 @@ class EdgeService:
                 tr.send(TE_ESTIMATES, out.estimates_signals())
                 tr.send(TE_FORECAST, out.forecast_signals())
                 tr.send(TE_STATUS, out.status_signals())
-                self.ticks_sent += 1
             accepted = any(r.accepted for r in out.new_results)
             first = out.initialized and not self._saved_running  # the (re)started state, corrected by the readings
             if accepted or first or self._last_save_t is None or t - self._last_save_t >= self.config.state.save_interval_s:
