@@ -25,7 +25,7 @@ from .common import add_model_args, model_from_args
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("replay", help="replay a recorded run through the model", description=__doc__)
-    add_model_args(p, required=False)
+    add_model_args(p, required=False, discretisation=True)
     p.add_argument("--run", required=True, help="recorded run, or a candump -L log with --format candump")
     p.add_argument("--format", default="csv", choices=(*FORMATS, "candump"), help="run file format (default csv)")
     p.add_argument("--config", default=str(config_path("edge.yaml")),

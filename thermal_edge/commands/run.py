@@ -47,8 +47,8 @@ def run(args: argparse.Namespace) -> int:
         from ..service.engine import load_service_model
 
         model = load_service_model(config)
-        config.check_model(model)
-        if args.check:
+        if args.check:  # (the service checks the model itself when it starts)
+            config.check_model(model)
             from ..bus import FrameCodec
             from ..bus.frames import DEFAULT_DBC_PATH
 

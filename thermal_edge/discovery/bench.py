@@ -14,22 +14,18 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from ..data import Run, read_run  # noqa: E402
-from ..sim.cycles import cycle_run, load_cycle  # noqa: E402
-from ..sim.plant import simulate_plant  # noqa: E402
-from . import effects as E  # noqa: E402
-from . import hidden, workflow  # noqa: E402
+from ..data import Run, read_run
+from ..sim.cycles import cycle_run, load_cycle
+from ..sim.plant import simulate_plant
+from . import effects as E
+from . import hidden, workflow
 
 REPO = Path(__file__).resolve().parents[2]
 PM10KW = REPO / "config" / "machines" / "pm10kw.yaml"

@@ -15,12 +15,11 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import yaml
 
 from ..data import Run
 from ..lptn import Model, ModelError
 from ..sim.plant import simulate_plant
-from ..lptn.loader import build_model
+from ..lptn.loader import build_model, read_yaml
 from . import effects as E
 
 
@@ -29,15 +28,9 @@ MIN_GAP_K = 1.0  # K: the smallest gap (RMS, some sensor) a default magnitude mu
 
 def read_document(path: str | os.PathLike[str]) -> dict[str, Any]:
     """The raw YAML mapping of a model file (errors name the file, as the loader's do)."""
-    path = Path(path)
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ModelError(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise ModelError(f"{path.name}: not valid YAML: {exc}") from None
+    raw = read_yaml(path, ModelError)
     if not isinstance(raw, dict):
-        raise ModelError(f"{path.name}: (top): expected a mapping of model sections")
+        raise ModelError(f"{Path(path).name}: (top): expected a mapping of model sections")
     return raw
 
 

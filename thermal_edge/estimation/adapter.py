@@ -136,7 +136,6 @@ class History:
     def __init__(self, model: Model, sensors: Sequence[str], capacity: int) -> None:
         self.inputs = list(model.inputs)
         self.sensors = list(sensors)
-        self.capacity = capacity
         self.ring = _Ring(capacity, 1 + len(self.inputs) + len(self.sensors) + len(model.nodes))
 
     def push(self, t: float, inputs: Mapping[str, float], measured: Mapping[str, float], state: np.ndarray) -> None:
@@ -188,7 +187,6 @@ class OnlineAdapter:
         self.decisions: list[Decision] = []
         self.version = 0
         self.last_decision_t: float | None = None
-        self.uncertainty = None
 
     # -- data --------------------------------------------------------------------------------
     def record(self, t: float, inputs: Mapping[str, float], measured: Mapping[str, float], state: np.ndarray) -> None:
@@ -264,7 +262,6 @@ class OnlineAdapter:
         phi = np.log(self.theta[obj.space.index])
         ev = obj.evaluate(phi)
         unc = estimate_uncertainty(obj, ev, cfg.max_rel_std)
-        self.uncertainty = unc
         sc = screen(obj.space.names, ev.grad, ev.hess, phi, obj.space.lower, obj.space.upper, cfg.coverage,
                     unc.identifiable)
         d.selected = sc.selected
@@ -306,8 +303,7 @@ class OnlineAdapter:
         win = decimate(self._window(-np.inf if since is None else since), cfg.decimate)
         obj = self.objective(win)
         ev = obj.evaluate(np.log(self.theta[obj.space.index]))
-        self.uncertainty = estimate_uncertainty(obj, ev)
-        return self.uncertainty
+        return estimate_uncertainty(obj, ev)
 
     def params_dict(self) -> dict[str, float]:
         """Current values of the adaptable parameters."""

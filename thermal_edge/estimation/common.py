@@ -54,19 +54,11 @@ class ParamSpace:
         th[self.index] = sub
         return th
 
-    def to_log(self, sub: np.ndarray) -> np.ndarray:
-        return np.log(sub)
-
     def from_log(self, phi: np.ndarray) -> np.ndarray:
         return np.exp(phi)
 
     def log_bounds(self) -> list[tuple[float, float]]:
         return list(zip(np.log(self.lower), np.log(self.upper)))
-
-    def subset(self, names: Sequence[str]) -> "ParamSpace":
-        """The same space restricted to ``names`` (prior kept)."""
-        keep = [self.names.index(n) for n in names]
-        return ParamSpace(self.model, tuple(names), self.theta0, self.prior[keep])
 
 
 @dataclass

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..bus.candump import CandumpReader
 from ..bus.codec import FrameCodec
+from ..bus.stats import DROP_REASONS
 from ..bus.frames import DEFAULT_DBC_PATH
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
 from ..lptn import Model
@@ -130,14 +131,14 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
     cfg = load_config(config_path)
     if model_path is not None:
         cfg = replace(cfg, model=ModelConfig(Path(model_path), cfg.model.parameters))
-    res = replay_candump(path, cfg)
-    lim = {name: i for i, name in enumerate(res.nodes)}
     model = load_service_model(cfg)
+    res = replay_candump(path, cfg, model=model)
+    lim = {name: i for i, name in enumerate(res.nodes)}
     out: dict[str, Any] = {
         "log": str(path), "model": model.name, "frames": res.frames, "ticks": int(len(res.t)),
         "malformed_lines": res.malformed_lines,
         "frames_lost": int(res.frame_stats["lost"]),
-        "frames_dropped": {k: int(res.frame_stats[k]) for k in ("crc", "counter_repeat", "unknown_id", "dlc", "decode_error")},
+        "frames_dropped": {k: int(res.frame_stats[k]) for k in DROP_REASONS},
         "adaptations": {"decisions": len(res.decisions), "accepted": sum(1 for d in res.decisions if d.get("accepted"))},
         "parameters": res.parameters,
     }

@@ -88,7 +88,6 @@ class EdgeService:
                  worker_mode: str | None = None, bus_factory_fn: Callable[..., Any] = bus_factory) -> None:
         self.config = config
         self.model = model if model is not None else load_service_model(config)
-        config.check_model(self.model)
         self.codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
         config.check_dbc(self.codec)
         self.store = StateStore(config.state.dir, self.model)
