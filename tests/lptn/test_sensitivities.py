@@ -258,3 +258,78 @@ def test_divided_powers():
             direct = sum(x ** (k - 1 - i) * y ** i for i in range(k))
             got = float(divided_powers(np.array(x), np.array(y), np.array(float(k))))
             assert abs(got - direct) <= 1e-12 * abs(direct), (x, y, k, got, direct)
+
+
+BRANCHES_RAW = {
+    "name": "branches",
+    "inputs": {"i_rms": {}, "ambient_c": {}},
+    "boundaries": {"ambient": "ambient_c"},
+    "constants": {"alpha": 3.93e-3},
+    "parameters": {
+        "g_a": {"value": 4.0, "min": 0.5, "max": 20},
+        "g_b": {"value": 4.0, "min": 0.5, "max": 20},
+        "g_c": {"value": 4.0, "min": 0.5, "max": 20},
+        "R_amb": {"value": 0.5, "min": 0.1, "max": 5},
+        "c_n": {"value": 800, "min": 100, "max": 5000},
+        "g_store": {"value": 0.5, "min": 0.1, "max": 5},
+    },
+    "nodes": [
+        {"name": "a", "capacity": "c_n"},
+        {"name": "b", "capacity": "c_n"},
+        {"name": "c", "capacity": "c_n"},
+        {"name": "hub", "capacity": 3000},
+        {"name": "store", "capacity": 2e8},
+    ],
+    "conductances": [
+        {"between": ["a", "hub"], "g": "g_a"},
+        {"between": ["b", "hub"], "g": "g_b"},
+        {"between": ["a", "ambient"], "r": "R_amb"},
+        {"between": ["b", "ambient"], "r": "R_amb"},
+        {"between": ["c", "hub"], "g": "g_c"},
+        {"between": ["c", "ambient"], "r": "R_amb"},
+        {"between": ["hub", "store"], "g": "g_store"},
+        {"between": ["store", "ambient"], "g": 0.1},
+    ],
+    "losses": [
+        {"node": "a", "power": "0.5*i_rms**2 * (1 + alpha*(T.a - 20))"},
+        {"node": "b", "power": "0.5*i_rms**2 * (1 + alpha*(T.b - 20))"},
+        {"node": "c", "power": "0.5*i_rms**2 * (1 + alpha*(T.c - 20))"},
+    ],
+    "sensors": {"a": {"node": "a"}},
+}
+
+
+def test_close_modes_and_repeated_set_points(monkeypatch):
+    """Three identical branches on a hub (a repeated eigenvalue, coupled by the parameters that
+    break the symmetry), a node whose mode is within 1e-6 of μ = 1 (the constant forcing's), and set points
+    met again at another ambient temperature (runs that share one transition): the closed form
+    takes its close-pair terms and agrees with stepping and with finite differences."""
+    from thermal_edge.lptn import sensitivity
+    from thermal_edge.lptn.loader import build_model
+
+    m = build_model(BRANCHES_RAW, fname="branches.yaml")
+    seen = []
+    orig = sensitivity._HeldRun.apply
+
+    def apply(self, s0, L):
+        seen.append(self.extra)
+        return orig(self, s0, L)
+
+    monkeypatch.setattr(sensitivity._HeldRun, "apply", apply)
+    hold = 100
+    inputs = {
+        "i_rms": np.repeat([6.0, 10.0, 6.0, 0.0, 0.0, 10.0], hold),
+        "ambient_c": np.repeat([20.0, 25.0, 30.0, 22.0, 28.0, 21.0], hold),
+    }
+    inputs = {k: np.append(v, v[-1]) for k, v in inputs.items()}
+    T0 = np.array([40.0, 35.0, 38.0, 30.0, 25.0])
+    traj, _ = finite_difference_check(m, inputs, 10.0, T0, m.parameter_names, "zoh")
+    assert len(seen) == 6
+    pairs = [set(zip(e[0].tolist(), e[1].tolist())) for e in seen if e is not None]
+    assert len(pairs) == 6, "every run has close modes"
+    n = len(m.nodes)
+    assert all(any(b == n for _, b in p) for p in pairs), "the store's mode is close to μ = 1"
+    assert all(any(b < n for _, b in p) for p in pairs), "the branches' modes are close to each other"
+    stepped = Simulator(m, closed_form=False).simulate(m.nominal(), inputs, 10.0, T0, wrt=m.parameter_names)
+    scale = np.abs(stepped.S).max(axis=(0, 1))
+    assert np.all(np.abs(traj.S - stepped.S).max(axis=(0, 1)) <= 1e-9 * scale)

@@ -74,14 +74,16 @@ class Sensitivities:
         Losses along the run, W.
     losses, loss_theta : callable
         The losses and ``∂P/∂θ`` at any steps and temperatures (see :data:`AtSteps`).
+    loss_nodes : ndarray of int
+        The nodes whose temperatures the loss laws read.
     """
 
     def __init__(self, disc: Discrete, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
-                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps) -> None:
+                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray) -> None:
         assert disc.with_derivatives and disc.Q is not None and disc.s is not None and disc.dg is not None
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
-        self.losses, self.loss_theta = losses, loss_theta
+        self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
         self._joint: dict[int, np.ndarray] = {}
 
@@ -197,62 +199,110 @@ class Sensitivities:
         assert d.Q is not None and d.s is not None and d.phi is not None
         a_ = np.array([a for a, _ in runs])
         o_ = self.ops[a_]
+        # runs with the same transition (operating point and current: a set point met again)
+        # share its modes and the part of the forcing that is linear in temperature
+        seen: dict[bytes, int] = {}
+        ui = np.array([seen.setdefault(self.mats[self.mi[a]].tobytes(), len(seen)) for a in a_])
+        rep = np.unique(ui, return_index=True)[1]
+        ou = o_[rep]
         sv = d.s
-        V = d.Q[o_] / sv[:, None]  # modal basis of Φ at each run's operating point
-        Vi = np.swapaxes(d.Q[o_], -1, -2) * sv
-        r = np.sqrt(d.phi[o_])
-        M = np.stack([self.mats[self.mi[a]] for a in a_])
+        V = d.Q[ou] / sv[:, None]  # modal basis of Φ at each transition's operating point
+        Vi = np.swapaxes(d.Q[ou], -1, -2) * sv
+        r = np.sqrt(d.phi[ou])
+        M = np.stack([self.mats[self.mi[a]] for a in a_[rep]])
         Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
         asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
         mu, Q2 = np.linalg.eigh((Sym + np.swapaxes(Sym, -1, -2)) / 2.0)
         ok = (asym < 1e-9) & (mu.min(axis=1) > -1e-12) & (mu.max(axis=1) < 1.0)
         # modes far faster than the step (e^(λ dt) below round-off) are zero after one step
         mu = np.maximum(mu, 1e-300)
-        Om = V @ (r[:, :, None] * Q2)  # closed-loop modes ξ -> node temperatures
-        Xi = (np.swapaxes(Q2, -1, -2) / r[:, None, :]) @ Vi  # node temperatures -> ξ
-        # the forcing is affine in T: probe it at T = 0 and at each closed-loop mode, all runs at once
-        probes = np.concatenate([np.zeros((len(runs), 1, n)), np.swapaxes(Om, -1, -2)], axis=1)
-        ks, flat = np.repeat(a_, n + 1), probes.reshape(-1, n)
-        P = self.losses(ks, flat).reshape(len(runs), n + 1, -1)
-        dPdth = self.loss_theta(ks, flat).reshape(len(runs), n + 1, -1, p)
-        wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), n + 1, self.nb)), P], axis=-1)
+        rQ2 = r[:, :, None] * Q2  # closed-loop modes ξ -> modal basis of Φ
+        Q2r = np.swapaxes(Q2, -1, -2) / r[:, None, :]  # and back
+        Om = V @ rQ2  # ξ -> node temperatures
+        Xi = Q2r @ Vi  # node temperatures -> ξ
+        # The forcing (modal basis of Φ) is affine in T: dΦ̃ V⁻¹ T, plus the losses' part, which
+        # reads T only at the loss nodes: probe that at T = 0 and a unit step at each loss node
+        # (the temperature entering dΦ̃ kept at 0), every run at once.
+        tv = self.loss_nodes
+        nt = 1 + len(tv)
+        probes = np.zeros((len(runs), nt, n))
+        probes[:, np.arange(1, nt), tv] = 1.0
+        ks, flat = np.repeat(a_, nt), probes.reshape(-1, n)
+        P = self.losses(ks, flat).reshape(len(runs), nt, -1)
+        dPdth = self.loss_theta(ks, flat).reshape(len(runs), nt, -1, p)
+        wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), nt, self.nb)), P], axis=-1)
         d.dphit(o_)  # dense derivatives at the runs' operating points, built together
-        Xt = np.stack([self.forcing(int(o), probes[i], wp[i], dPdth[i]) for i, o in enumerate(o_)])
-        Xp = np.matmul((Xi @ V)[:, None], Xt)  # in ξ: Xp[r, b, a, j] is the forcing of mode a at probe b
-        f = (Xi @ (d.Gam[o_] @ wp[:, 0, :, None]))[..., 0]
-        xinf = f / (1.0 - mu)  # ξ_k = ξ∞ + μ^k δ
-        delta = (Xi @ self.T[a_][:, :, None])[..., 0] - xinf
-        # H[r, b, a, j] = G[a, b, j] of the module docstring: F[a, b] δ_b, and the constant forcing
-        # F ξ∞ + X(0) as a mode b = n with μ = 1
-        H = np.empty((len(runs), n + 1, n, p))
-        np.subtract(Xp[:, 1:], Xp[:, :1], out=H[:, :n])
-        H[:, n] = np.einsum("rbaj,rb->raj", H[:, :n], xinf) + Xp[:, 0]
-        H[:, :n] *= delta[:, :, None, None]
+        Xf = np.empty((len(runs), nt, n, p))
+        for o in np.unique(o_):
+            sel = np.nonzero(o_ == o)[0]
+            Xf[sel] = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1),
+                                   dPdth[sel].reshape(len(sel) * nt, -1, p)).reshape(len(sel), nt, n, p)
+        # per run: ξ_k = ξ∞ + μ^k δ
+        mur = mu[ui]
+        f = (Xi[ui] @ (d.Gam[o_] @ wp[:, 0, :, None]))[..., 0]
+        xinf = f / (1.0 - mur)
+        delta = (Xi[ui] @ self.T[a_][:, :, None])[..., 0] - xinf
         L = np.array([b - a for a, b in runs])
-        # the time basis: μ^k and, for a mode with itself, DD_k(μ, μ) = k μ^(k−1); well-apart
-        # pairs split as (μ_a^k − μ_b^k)/(μ_a − μ_b) over it, close pairs keep their divided
-        # differences as extra columns
-        mue = np.concatenate([mu, np.ones((len(runs), 1))], axis=1)
-        diff = mu[:, None, :] - mue[:, :, None]  # [r, b, a]: μ_a − μ_b
-        close = np.abs(diff) < CLOSE
-        HR = H * np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))[..., None]
-        C = Om[:, keep]  # ξ -> chosen rows
-        Ct = np.swapaxes(C, 1, 2)[..., None]
-        dg = np.arange(n)
-        coef = np.empty((len(runs), 2 * n + 1, len(keep), p))
-        coef[:, : n + 1] = -np.matmul(C[:, None], HR)  # the μ_b^k terms
-        coef[:, :n] += Ct * HR.sum(axis=1)[:, :, None, :]  # the μ_a^k terms
-        coef[:, n + 1:] = Ct * H[:, dg, dg][:, :, None, :]
-        close[:, dg, dg] = False
         with np.errstate(under="ignore"):
-            muL = mu ** L[:, None]
-            DD = divided_powers(mu[:, None, :], mue[:, :, None], L[:, None, None].astype(float))
-        endG = (H * DD[..., None]).sum(axis=1)  # σ_L without the part of σ_0
+            muL = mur ** L[:, None]
+            mu1 = mur ** (L[:, None] - 1)
+        # mode pairs (b = n: the constant forcing, μ = 1): R = 1/(μ_a − μ_b) splits a well-apart
+        # pair's divided differences over the power basis; close pairs keep theirs, and a mode
+        # with itself has DD_k(μ, μ) = k μ^(k−1)
+        mue = np.concatenate([mu, np.ones((len(rep), 1))], axis=1)
+        diff = mu[:, :, None] - mue[:, None, :]  # [u, a, b]: μ_a − μ_b
+        close = np.abs(diff) < CLOSE
+        R = np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))
+        dg = np.arange(n)
+        close[:, dg, dg] = False
+        # F_u[j, a, b]: the forcing of parameter j on mode a per unit of mode b; only its products
+        # with the runs' vectors leave the loop (all small arrays: per transition, not per run)
+        nr = len(keep)
+        Fx, g1, g2 = np.empty((len(runs), n, p)), np.empty((len(runs), n, p)), np.empty((len(runs), n, p))
+        CFR, diagF = np.empty((len(rep), p, nr, n)), np.empty((len(rep), n, p))
+        Fcl: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        for u in range(len(rep)):
+            sel = np.nonzero(ui == u)[0]
+            Fu = (d.dphit(int(ou[u])).reshape(p * n, n) @ rQ2[u]).reshape(p, n, n)
+            Fu += (Xf[rep[u], 1:] - Xf[rep[u], :1]).transpose(2, 1, 0) @ Om[u, tv]
+            Fu = Q2r[u] @ Fu
+            diagF[u] = Fu[:, dg, dg].T
+            ia, ib = np.nonzero(close[u, :, :n])
+            Fcl.append((ia, ib, Fu[:, ia, ib]))
+            Fx[sel] = (Fu.reshape(p * n, n) @ xinf[sel].T).reshape(p, n, -1).transpose(2, 1, 0)
+            Fu *= R[u, :, :n]
+            CFR[u] = Om[u, keep] @ Fu
+            G = (Fu.reshape(p * n, n) @ np.concatenate([delta[sel], delta[sel] * muL[sel]]).T).reshape(p, n, -1)
+            g1[sel], g2[sel] = G[:, :, : len(sel)].transpose(2, 1, 0), G[:, :, len(sel):].transpose(2, 1, 0)
+        h = Fx + np.matmul(Q2r[ui], Xf[:, 0])  # the constant forcing of each mode, F ξ∞ + X(0)
+        # coefficients of the chosen rows on the time basis μ_b^k (b ≤ n), k μ_a^(k−1) (a < n)
+        C = Om[ui][:, keep]  # ξ -> chosen rows
+        Ct = np.swapaxes(C, 1, 2)[..., None]  # (r, a, rows, 1)
+        Rn = R[ui][:, :, n]
+        coef = np.empty((len(runs), 2 * n + 1, nr, p))
+        coef[:, :n] = -CFR[ui].transpose(0, 3, 2, 1) * delta[:, :, None, None]  # μ_b^k of F δ_b
+        coef[:, n] = -(C * Rn[:, None, :]) @ h  # μ_n^k = 1 of the constant forcing
+        coef[:, :n] += Ct * (g1 + Rn[:, :, None] * h)[:, :, None, :]  # μ_a^k of both
+        coef[:, n + 1:] = Ct * (diagF[ui] * delta[:, :, None])[:, :, None, :]
+        # σ_L without the part of σ_0, in ξ: the same sums at k = L
+        endG = muL[:, :, None] * g1 - g2 + (L[:, None] * mu1 * delta)[:, :, None] * diagF[ui]
+        with np.errstate(under="ignore"):
+            endG += divided_powers(mur, np.ones_like(mur), L[:, None].astype(float))[:, :, None] * h
         out: list[_HeldRun | None] = []
         for i in range(len(runs)):
-            ib, ia = np.nonzero(close[i])
-            extra = (ia, ib, C[i].T[ia][:, :, None] * H[i, ib, ia][:, None, :]) if len(ia) else None
-            out.append(_HeldRun(mue[i], coef[i], C[i], Om[i], Xi[i], muL[i], endG[i], extra) if ok[i] else None)
+            u = ui[i]
+            if not ok[u]:
+                out.append(None)
+                continue
+            ia, ib, Fab = Fcl[u]
+            cc = (Fab * delta[i, ib]).T  # close pairs b < n (pair, p)
+            with np.errstate(under="ignore"):
+                endG[i, ia] += divided_powers(mur[i, ia], mur[i, ib], float(L[i]))[:, None] * cc
+            an = np.nonzero(close[u, :, n])[0]  # modes close to μ = 1
+            ia, ib = np.concatenate([ia, an]), np.concatenate([ib, np.full(len(an), n)])
+            cc = np.concatenate([cc, h[i, an]])
+            extra = (ia, ib, C[i].T[ia][:, :, None] * cc[:, None, :]) if len(ia) else None
+            out.append(_HeldRun(np.append(mur[i], 1.0), coef[i], C[i], Om[u], Xi[u], muL[i], endG[i], extra))
         return out
 
 
@@ -277,15 +327,18 @@ class _HeldRun:
         n = len(sig0)
         coef = self.coef.reshape(2 * n + 1, nr * p).copy()
         coef[:n] += (self.C.T[:, :, None] * sig0[:, None, :]).reshape(n, nr * p)  # μ^k σ_0
-        k = np.arange(1, L + 1, dtype=float)[:, None]
-        # exponents floored at −500: e^−745 and below would be subnormal (and slow every product)
-        Pw = np.exp(np.maximum(k * np.log(self.mue), -500.0))
-        Dg = np.empty((L, n))
-        Dg[0] = 1.0
-        np.multiply(k[1:], Pw[:-1, :n], out=Dg[1:])
-        rows = Pw @ coef[: n + 1] + Dg @ coef[n + 1:]
+        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L; powers below 1e-250 flushed to zero (a
+        # subnormal would slow the product below it)
+        basis = np.empty((L, 2 * n + 1))
+        Pw = basis[:, : n + 1]
+        np.cumprod(np.broadcast_to(self.mue, (L, n + 1)), axis=0, out=Pw)
+        Pw[Pw < 1e-250] = 0.0
+        basis[0, n + 1:] = 1.0
+        np.multiply(np.arange(2, L + 1, dtype=float)[:, None], Pw[:-1, :n], out=basis[1:, n + 1:])
+        rows = basis @ coef
         if self.extra is not None:
             ia, ib, cc = self.extra
+            k = np.arange(1, L + 1, dtype=float)[:, None]
             rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k) @ cc.reshape(len(ia), nr * p)
         return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
 

@@ -278,6 +278,6 @@ class Simulator:
 
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
-                             loss_theta=lambda k, temps: self._loss_theta(at(k), temps, widx))
+                             loss_theta=lambda k, temps: self._loss_theta(at(k), temps, widx), loss_nodes=self.tv)
         # the closed form over held inputs needs losses affine in temperature
         return sens.run(held_steps(env, N - 1), self.closed_form and not self.nonaffine, rows)
