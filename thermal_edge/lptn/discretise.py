@@ -72,22 +72,26 @@ class Discrete:
     def with_derivatives(self) -> bool:
         return self.dg is not None
 
-    def dphit(self, ops: int | Sequence[int] | np.ndarray) -> np.ndarray:
-        """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each);
-        (p, n, n) for a single one."""
-        if np.ndim(ops) == 0:
-            o = int(ops)  # type: ignore[arg-type]
-            return self._dense[o] if o in self._dense else self.dphit([o])[0]
-        ops = [int(o) for o in np.atleast_1d(ops)]
-        todo = sorted({o for o in ops if o not in self._dense})
+    def build_dphit(self, ops: Sequence[int] | np.ndarray) -> None:
+        """Build ``V⁻¹ dΦ_j V`` at these operating points where not built yet (together: cheaper
+        than one by one)."""
+        todo = sorted({int(o) for o in np.atleast_1d(ops)} - self._dense.keys())
         if todo:
             assert self.Dd is not None and self.Zh is not None and self.dg is not None and self.Q is not None
             t = np.array(todo)
             built = _zoh_dense(self.Dd[t], None if self.Wc is None else self.Wc[t], self.Zh[t], self.dg[t], self.Q[t], self.r)
             self._dense.update(zip(todo, built))
-        if not ops:
+
+    def dphit(self, ops: int | Sequence[int] | np.ndarray) -> np.ndarray:
+        """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each);
+        (p, n, n) for a single one."""
+        self.build_dphit(ops)
+        if np.ndim(ops) == 0:
+            return self._dense[int(ops)]  # type: ignore[arg-type]
+        assert self.dg is not None
+        if not len(ops):  # type: ignore[arg-type]
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
-        return np.stack([self._dense[o] for o in ops])
+        return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
 
     def dphit_rows(self, ops: np.ndarray, y: np.ndarray) -> np.ndarray:
         """``V⁻¹ dΦ_j V y_i`` (B, n, p) for one vector ``y_i`` (B, n) per operating point ``ops_i``.

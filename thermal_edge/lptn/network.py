@@ -95,6 +95,12 @@ class Network:
             else:
                 self.inc[e, index[edge.b]] -= 1.0
         self.pinc = (self.inc > 0) * (self.binc.sum(axis=1, keepdims=True) > 0)  # point side of boundary edges
+        # each edge's (at most two) ends among the algebraic points: index into them and sign (0: none)
+        self._end_q = np.zeros((2, E), dtype=int)
+        self._end_s = np.zeros((2, E))
+        for e in range(E):
+            for k, q in enumerate(np.nonzero(self.inc[e, n:])[0]):
+                self._end_q[k, e], self._end_s[k, e] = q, self.inc[e, n + q]
         # sparse scatter matrices: edge conductances -> flattened Laplacian and point-boundary block
         npt, nb = self.n_points, self.n_bound
         self._scatter_L = sparse.csr_matrix(np.einsum("ea,eb->eab", self.inc, self.inc).reshape(E, npt * npt))
@@ -111,6 +117,7 @@ class Network:
         self.loss_map = np.zeros((self.n_points, self.n_loss))
         for j, loss in enumerate(model.losses):
             self.loss_map[index[loss.point], j] = 1.0
+        self._q_losses = np.nonzero(np.any(self.loss_map[n:] != 0.0, axis=0))[0]  # losses at algebraic points
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         self.cap_laws = [_Law(c, params) for c in model.capacities]
         used: set[str] = set()
@@ -147,19 +154,26 @@ class Network:
         return c, dc
 
     # -- conductances ---------------------------------------------------------------------
+    def live_edges(self, wrt: Sequence[int]) -> np.ndarray:
+        """Edges whose conductance law depends on one of the parameters ``wrt``."""
+        return np.array([e for e, law in enumerate(self.edge_laws) if any(pi in law.d for pi in wrt)], dtype=int)
+
     def conductances(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int, wrt: Sequence[int] = ()
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Edge conductances ``g`` (K, E) in W/K and ``dg`` (K, p, E) at ``K`` operating points."""
+        """Edge conductances ``g`` (K, E) in W/K and ``dg`` (K, p, e) at ``K`` operating points, the
+        latter for the :meth:`live_edges` of ``wrt`` only."""
         env = self.env(theta, op)
-        E = len(self.edge_laws)
-        g = np.empty((K, E))
-        dg = np.zeros((K, len(wrt), E))
+        live = self.live_edges(wrt)
+        g = np.empty((K, len(self.edge_laws)))
         for e, law in enumerate(self.edge_laws):
             g[:, e] = law.f(env)
+        dg = np.zeros((K, len(wrt), len(live)))
+        for i, e in enumerate(live):
+            law = self.edge_laws[e]
             for j, pi in enumerate(wrt):
                 if pi in law.d:
-                    dg[:, j, e] = law.d[pi](env)
+                    dg[:, j, i] = law.d[pi](env)
         return g, dg
 
     def _assemble(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -183,27 +197,36 @@ class Network:
             out[:, g] = np.linalg.inv(LQQ[:, g[:, :, None], g[:, None, :]]) @ rhs[:, g]
         return out
 
-    def _derivatives(self, L: np.ndarray, KU: np.ndarray, dg: np.ndarray, live: np.ndarray,
-                     Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Rank-one factors ``Z`` (K, n, e), ``V`` (K, m, e) and ``dg`` (K, p, e) of ``dA``, ``dW``.
+    def _derivatives(self, X: np.ndarray, HK: np.ndarray, HM: np.ndarray, live: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rank-one factors ``Z`` (K, n, e) and ``V`` (K, m, e) of ``dA``, ``dW`` for the ``live`` edges.
 
         The Schur complement's derivative with respect to one conductance is rank one: with
-        ``u`` the edge's incidence vector, ``y = L_QQ⁻¹ u_Q`` (``Y``, solved with ``X``) and
-        ``z = u_D − L_DQ y``, ``∂A/∂g = −z zᵀ`` and ``∂W/∂g = −z vᵀ`` with
-        ``v = [ũ_U + K_QUᵀ y; M_Qᵀ y]`` (``ũ_U`` the edge's incidence on the boundaries). Only the
-        ``live`` edges, whose laws depend on a chosen parameter, take part.
+        ``u`` the edge's incidence vector, ``y = L_QQ⁻¹ u_Q`` and ``z = u_D − L_DQ y``,
+        ``∂A/∂g = −z zᵀ`` and ``∂W/∂g = −z vᵀ`` with ``v = [ũ_U + K_QUᵀ y; M_Qᵀ y]`` (``ũ_U`` the
+        edge's incidence on the boundaries). ``L_QQ`` is symmetric, so ``L_DQ y = Xᵀ u_Q``,
+        ``K_QUᵀ y = HKᵀ u_Q`` and ``M_Qᵀ y = HMᵀ u_Q`` with ``X``, ``HK``, ``HM`` the solves of
+        ``L_QD``, ``K_QU`` and the losses at algebraic points (K, q, ·), with one factorisation;
+        ``u_Q`` has at most two entries (the edge's ends), so each product is two gathers.
         """
         n = self.n
-        K = dg.shape[0]
-        m = self.n_bound + self.n_loss
+        K = X.shape[0]
         uD = self.inc[live, :n].T
         if self.n_points > n and len(live):
-            Z = uD - L[:, :n, n:] @ Y
-            V = np.concatenate([-self.binc[live].T + np.swapaxes(KU[:, n:], -1, -2) @ Y, self.loss_map[n:].T @ Y], axis=1)
+            ends = [(self._end_q[k][live], self._end_s[k][live]) for k in range(2)]
+
+            def through(H: np.ndarray) -> np.ndarray:  # Hᵀ u_Q (K, c, e)
+                (qa, sa), (qb, sb) = ends
+                return np.swapaxes(H[:, qa] * sa[:, None] + H[:, qb] * sb[:, None], 1, 2)
+
+            Z = uD - through(X)
+            V = np.zeros((K, self.n_bound + self.n_loss, len(live)))
+            V[:, : self.n_bound] = -self.binc[live].T + through(HK)
+            V[:, self.n_bound + self._q_losses] = through(HM)
         else:
             Z = np.broadcast_to(uD, (K, *uD.shape))
-            V = np.broadcast_to(np.concatenate([-self.binc[live].T, np.zeros((self.n_loss, len(live)))]), (K, m, len(live)))
-        return np.ascontiguousarray(Z), np.ascontiguousarray(V), np.ascontiguousarray(dg[:, :, live])
+            V = np.broadcast_to(np.concatenate([-self.binc[live].T, np.zeros((self.n_loss, len(live)))]),
+                                (K, self.n_bound + self.n_loss, len(live)))
+        return np.ascontiguousarray(Z), np.ascontiguousarray(V)
 
     def point_temperatures(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None, T: np.ndarray, U: np.ndarray, P: np.ndarray
@@ -237,20 +260,19 @@ class Network:
         missing = [k for k in self.matrix_inputs if k not in op]
         if missing:
             raise KeyError(f"operating point lacks input(s) {', '.join(missing)}")
-        n = self.n
+        n, nb = self.n, self.n_bound
         g, dg = self.conductances(theta, op, K, wrt)
         L, KU = self._assemble(g)
         D, Q = slice(0, n), slice(n, None)
         LQQ, LQD = L[:, Q, Q], L[:, Q, D]
-        has_q = self.n_points > n
-        live = np.nonzero(np.any(dg != 0.0, axis=(0, 1)))[0]
-        if has_q:
-            # one factorisation for the elimination and for the derivatives' L_QQ⁻¹ u_Q
-            uQ = np.broadcast_to(self.inc[live, n:].T, (K, self.n_points - n, len(live)))
-            XY = self.solve_qq(LQQ, np.concatenate([LQD, uQ], axis=-1) if len(wrt) else LQD)
-            X, Y = XY[..., :n], XY[..., n:]
+        if self.n_points > n:
+            # one factorisation for the elimination and, with derivatives, the solves they need
+            MQ = self.loss_map[Q][:, self._q_losses]
+            rhs = np.concatenate([LQD, KU[:, Q], np.broadcast_to(MQ, (K, *MQ.shape))], axis=-1) if len(wrt) else LQD
+            XH = self.solve_qq(LQQ, rhs)
+            X, HK, HM = XH[..., :n], XH[..., n:n + nb], XH[..., n + nb:]
         else:
-            X, Y = np.zeros((K, 0, n)), np.zeros((K, 0, len(live)))
+            X, HK, HM = np.zeros((K, 0, n)), np.zeros((K, 0, nb)), np.zeros((K, 0, len(self._q_losses)))
         Xt = np.swapaxes(X, -1, -2)
         A = -(L[:, D, D] - L[:, D, Q] @ X)
         B = KU[:, D, :] - Xt @ KU[:, Q, :]
@@ -259,6 +281,6 @@ class Network:
         c, dc = self.capacities(theta, wrt)
         cont = Continuous(A=A, W=W, c=c)
         if len(wrt):
-            cont.dZ, cont.dV, cont.dg = self._derivatives(L, KU, dg, live, Y)
-            cont.dc = dc
+            cont.dZ, cont.dV = self._derivatives(X, HK, HM, self.live_edges(wrt))
+            cont.dg, cont.dc = dg, dc
         return cont

@@ -143,7 +143,7 @@ class Sensitivities:
         ks = np.nonzero(stepped)[0]
         dPdth = self.loss_theta(ks, self.T[ks])
         uo, count = np.unique(self.ops[ks], return_counts=True)
-        self.d.dphit(uo[count >= FEW_STEPS])  # the dense derivatives the stepping needs, built together
+        self.d.build_dphit(uo[count >= FEW_STEPS])  # the dense derivatives the stepping needs, built together
         pos = np.cumsum(stepped) - 1  # step -> row of dPdth
         pending = 0  # first step not yet propagated
         for (a, b), form in zip(runs, forms):
@@ -231,7 +231,7 @@ class Sensitivities:
         P = self.losses(ks, flat).reshape(len(runs), nt, -1)
         dPdth = self.loss_theta(ks, flat).reshape(len(runs), nt, -1, p)
         wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), nt, self.nb)), P], axis=-1)
-        d.dphit(o_)  # dense derivatives at the runs' operating points, built together
+        d.build_dphit(o_)  # dense derivatives at the runs' operating points, built together
         Xf = np.empty((len(runs), nt, n, p))
         for o in np.unique(o_):
             sel = np.nonzero(o_ == o)[0]
@@ -327,18 +327,16 @@ class _HeldRun:
         n = len(sig0)
         coef = self.coef.reshape(2 * n + 1, nr * p).copy()
         coef[:n] += (self.C.T[:, :, None] * sig0[:, None, :]).reshape(n, nr * p)  # μ^k σ_0
-        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L; powers below 1e-250 flushed to zero (a
-        # subnormal would slow the product below it)
+        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L; exponents floored at −500: e^−745 and below
+        # would be subnormal (and slow the product below)
+        k = np.arange(1, L + 1, dtype=float)[:, None]
         basis = np.empty((L, 2 * n + 1))
-        Pw = basis[:, : n + 1]
-        np.cumprod(np.broadcast_to(self.mue, (L, n + 1)), axis=0, out=Pw)
-        Pw[Pw < 1e-250] = 0.0
+        np.exp(np.maximum(k * np.log(self.mue), -500.0), out=basis[:, : n + 1])
         basis[0, n + 1:] = 1.0
-        np.multiply(np.arange(2, L + 1, dtype=float)[:, None], Pw[:-1, :n], out=basis[1:, n + 1:])
+        np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
         rows = basis @ coef
         if self.extra is not None:
             ia, ib, cc = self.extra
-            k = np.arange(1, L + 1, dtype=float)[:, None]
             rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k) @ cc.reshape(len(ia), nr * p)
         return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
 
