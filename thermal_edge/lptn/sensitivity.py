@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .discretise import Discrete
+from .discretise import Discrete, sandwich
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 100 steps)
 MIN_HELD = 64
@@ -85,7 +85,6 @@ class Sensitivities:
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
-        self._joint: dict[int, np.ndarray] = {}
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
     def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
@@ -104,11 +103,10 @@ class Sensitivities:
         B = len(T)
         Q = d.Q[o]
         if np.ndim(o) == 0:
-            if o not in self._joint:  # [dPhit_j, −phi ∘ Zh diag(dg_j)] stacked over j: (p n, n + e)
-                low = -(d.phi[o][:, None] * d.Zh[o])[None] * d.dg[o][:, None, :]
-                self._joint[o] = np.concatenate([d.dphit(o), low], axis=2).reshape(p * n, -1)
-            yu = np.concatenate([Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T, d.Yt[o] @ w.T])  # (n + e, B)
-            X = (self._joint[o] @ yu).reshape(p, n, B).transpose(2, 1, 0)
+            y = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T  # (n, B)
+            X = (d.dphit(o).reshape(p * n, n) @ y).reshape(p, n, B)
+            X -= d.phi[o][:, None] * (d.Zh[o] @ (d.dg[o][:, :, None] * (d.Yt[o] @ w.T)))
+            X = X.transpose(2, 1, 0)
             if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ, one product for all rows
                 GPt = Q.T @ (d.s[:, None] * d.Gam[o][:, self.nb:])
                 X += (GPt @ dPdth.transpose(1, 0, 2).reshape(-1, B * p)).reshape(n, B, p).transpose(1, 0, 2)
@@ -263,9 +261,9 @@ class Sensitivities:
         Fcl: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         for u in range(len(rep)):
             sel = np.nonzero(ui == u)[0]
-            Fu = (d.dphit(int(ou[u])).reshape(p * n, n) @ rQ2[u]).reshape(p, n, n)
-            Fu += (Xf[rep[u], 1:] - Xf[rep[u], :1]).transpose(2, 1, 0) @ Om[u, tv]
-            Fu = Q2r[u] @ Fu
+            # in the modal basis of Φ: dΦ̃ + (the losses' part per unit T at the loss nodes) V[tv]
+            Bu = (Xf[rep[u], 1:] - Xf[rep[u], :1]).transpose(2, 1, 0).reshape(p * n, -1) @ V[u, tv]
+            Fu = sandwich(Q2r[u][None], (d.dphit(int(ou[u])) + Bu.reshape(p, n, n))[None], rQ2[u][None])[0]
             diagF[u] = Fu[:, dg, dg].T
             ia, ib = np.nonzero(close[u, :, :n])
             Fcl.append((ia, ib, Fu[:, ia, ib]))
