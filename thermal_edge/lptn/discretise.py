@@ -44,7 +44,7 @@ class Discrete:
     The modal basis of operating point ``k`` is ``V_k = diag(1/s) Q_k``: ``Φ = V diag(mu) V⁻¹``
     and ``V⁻¹ (Φ − I) A⁻¹ = diag(phi) Q_kᵀ diag(1/s)`` (``phi = (mu − 1)/λ``, positive).
     ``V⁻¹ dΦ_j V`` is built per operating point when first needed (:meth:`dphit`);
-    :meth:`dphit_rows` applies it to single vectors without building it (ZOH).
+    :meth:`forcing_rows` applies it to single vectors without building it (ZOH).
     ``V⁻¹ dΓ_j`` is kept factored, ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with
     ``Ht = V⁻¹ A⁻¹ W`` (K, n, m), ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m)
     from the rank-one factors of :class:`~thermal_edge.lptn.network.Continuous`:
@@ -93,18 +93,22 @@ class Discrete:
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
         return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
 
-    def dphit_rows(self, ops: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """``V⁻¹ dΦ_j V y_i`` (B, n, p) for one vector ``y_i`` (B, n) per operating point ``ops_i``.
+    def forcing_rows(self, ops: np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p), one operating point ``ops_i`` per row, from
+        ``y = V⁻¹ T + Ht w`` (B, n) and ``v = Yt w`` (B, e): ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``.
 
-        The Daleckii–Krein form applied edge by edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``, about
-        ``n² (e + nc)`` flops a vector: cheaper than building ``dPhit`` for an operating point
-        that a few steps use (a ramp). Euler: from the dense derivatives.
+        ZOH: the Daleckii–Krein form applied edge by edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``,
+        joined with the factored ``dΓ`` in one product, about ``n² (e + nc)`` flops a row:
+        cheaper than building ``dPhit`` for an operating point that a few steps use (a ramp).
+        Euler: from the dense derivatives.
         """
-        if self.Dd is None:
-            return np.einsum("bjac,bc->baj", self.dphit(ops), y)
-        assert self.Zh is not None and self.dg is not None and self.Q is not None and self.r is not None
+        assert self.Zh is not None and self.dg is not None and self.Q is not None and self.phi is not None
         Zh = self.Zh[ops]  # (B, n, e)
-        X = (-(Zh * (self.Dd[ops] @ (Zh * y[:, :, None])))) @ np.swapaxes(self.dg[ops], 1, 2)
+        low = self.phi[ops][:, :, None] * v[:, None, :]
+        if self.Dd is None:
+            return np.einsum("bjac,bc->baj", self.dphit(ops), y) - (Zh * low) @ np.swapaxes(self.dg[ops], 1, 2)
+        X = (Zh * -(self.Dd[ops] @ (Zh * y[:, :, None]) + low)) @ np.swapaxes(self.dg[ops], 1, 2)
+        assert self.r is not None
         nz = np.nonzero(np.any(self.r != 0.0, axis=0))[0]
         if len(nz):
             assert self.Wc is not None
@@ -232,13 +236,16 @@ def _zoh_divided_differences(cont: Continuous, dt: float, lam: np.ndarray,
                              mu: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """``D`` (K, n, n), ``Wc`` (K, n, n) or None, and ``r`` (p, n) of the ZOH derivative (:func:`_zoh_dense`)."""
     assert cont.dc is not None
+    # divided differences of exp(λ dt) w.r.t. λ, (e^a − e^b)/(a − b) · dt with a = λ dt, written as
+    # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels (expm1 keeps its
+    # digits for close eigenvalues; equal ones have the limit 1)
     x = lam * dt
-    # divided differences of exp(λ dt) w.r.t. λ, (e^a − e^b)/(a − b) · dt, written as
-    # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels
     ad = np.abs(x[:, :, None] - x[:, None, :])
-    small = ad < 1e-10
-    ratio = np.where(small, 1.0 - ad / 2.0, -np.expm1(-ad) / np.where(small, 1.0, ad))
-    Dd = dt * np.exp(np.maximum(x[:, :, None], x[:, None, :])) * ratio
+    ratio = np.ones_like(ad)
+    np.divide(np.expm1(-ad), -ad, out=ratio, where=ad > 0.0)
+    Dd = np.maximum(mu[:, :, None], mu[:, None, :])
+    Dd *= ratio
+    Dd *= dt
     r = cont.dc / (2.0 * cont.c)
     Wc = (mu[:, :, None] - mu[:, None, :]) - (lam[:, :, None] + lam[:, None, :]) * Dd if np.any(r) else None
     return Dd, Wc, r

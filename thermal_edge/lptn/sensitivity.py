@@ -112,8 +112,7 @@ class Sensitivities:
                 X += (GPt @ dPdth.transpose(1, 0, 2).reshape(-1, B * p)).reshape(n, B, p).transpose(1, 0, 2)
             return X
         y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
-        X = d.dphit_rows(o, y)
-        X -= d.phi[o][:, :, None] * (d.Zh[o] @ ((d.Yt[o] @ w[:, :, None]) * np.swapaxes(d.dg[o], 1, 2)))
+        X = d.forcing_rows(o, y, (d.Yt[o] @ w[:, :, None])[:, :, 0])
         if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ
             X += (np.swapaxes(Q, 1, 2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])) @ dPdth
         return X
