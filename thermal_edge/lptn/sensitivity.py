@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .discretise import Discrete, sandwich
+from .discretise import Discrete
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 100 steps)
 MIN_HELD = 64
@@ -258,11 +258,15 @@ class Sensitivities:
         Fx, g1, g2 = np.empty((len(runs), n, p)), np.empty((len(runs), n, p)), np.empty((len(runs), n, p))
         CFR, diagF = np.empty((len(rep), p, nr, n)), np.empty((len(rep), n, p))
         Fcl: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-        for u in range(len(rep)):
-            sel = np.nonzero(ui == u)[0]
-            # in the modal basis of Φ: dΦ̃ + (the losses' part per unit T at the loss nodes) V[tv]
-            Bu = (Xf[rep[u], 1:] - Xf[rep[u], :1]).transpose(2, 1, 0).reshape(p * n, -1) @ V[u, tv]
-            Fu = sandwich(Q2r[u][None], (d.dphit(int(ou[u])) + Bu.reshape(p, n, n))[None], rQ2[u][None])[0]
+        # the losses' part of the forcing per unit T at each loss node, in the modal basis of Φ (pn, tv)
+        Bl = (Xf[rep, 1:] - Xf[rep, :1]).transpose(0, 3, 2, 1).reshape(len(rep), p * n, len(tv))
+        Omt = Om[:, tv]
+        members = np.split(np.argsort(ui, kind="stable"), np.cumsum(np.bincount(ui))[:-1])
+        for u, sel in enumerate(members):
+            # V⁻¹ X = (dΦ̃ V⁻¹ + Bl E_tv) T, T = V rQ2 ξ: F = Q2r (dΦ̃ rQ2 + Bl Om[tv])
+            Fu = d.dphit(int(ou[u])).reshape(p * n, n) @ rQ2[u]
+            Fu += Bl[u] @ Omt[u]
+            Fu = Q2r[u] @ Fu.reshape(p, n, n)
             diagF[u] = Fu[:, dg, dg].T
             ia, ib = np.nonzero(close[u, :, :n])
             Fcl.append((ia, ib, Fu[:, ia, ib]))
