@@ -187,9 +187,9 @@ def _closed_form_calls(monkeypatch):
     calls = []
     orig = sensitivity._HeldRun.apply
 
-    def apply(self, s0, L):
-        calls.append(L)
-        return orig(self, s0, L)
+    def apply(self, s0, out, work):
+        calls.append(len(out))
+        return orig(self, s0, out, work)
 
     monkeypatch.setattr(sensitivity._HeldRun, "apply", apply)
     return calls
@@ -311,9 +311,9 @@ def test_close_modes_and_repeated_set_points(monkeypatch):
     seen = []
     orig = sensitivity._HeldRun.apply
 
-    def apply(self, s0, L):
+    def apply(self, s0, out, work):
         seen.append(self.extra)
-        return orig(self, s0, L)
+        return orig(self, s0, out, work)
 
     monkeypatch.setattr(sensitivity._HeldRun, "apply", apply)
     hold = 100

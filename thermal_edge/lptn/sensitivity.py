@@ -143,12 +143,13 @@ class Sensitivities:
         self.d.build_dphit(uo[count >= FEW_STEPS])  # the dense derivatives the stepping needs, built together
         pos = np.cumsum(stepped) - 1  # step -> row of dPdth
         pending = 0  # first step not yet propagated
+        work = np.empty((2 * self.n + 1, max((b - a for a, b in runs), default=0)))
         for (a, b), form in zip(runs, forms):
             if form is None:
                 continue
             if pending < a:
                 s = self._steps(pending, a, s, S, keep, dPdth[pos[pending:a]])
-            S[a + 1: b + 1], s = form.apply(s, b - a)
+            s = form.apply(s, S[a + 1: b + 1], work)
             pending = b
         if pending < steps:
             self._steps(pending, steps, s, S, keep, dPdth[pos[pending:steps]])
@@ -319,27 +320,33 @@ class _HeldRun:
     def __init__(self, mue: np.ndarray, coef: np.ndarray, C: np.ndarray, Om: np.ndarray, Xi: np.ndarray,
                  muL: np.ndarray, endG: np.ndarray, extra: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> None:
         self.mue, self.coef, self.C, self.Om, self.Xi, self.muL, self.endG, self.extra = mue, coef, C, Om, Xi, muL, endG, extra
+        self.logmue = np.log(mue)
 
-    def apply(self, s0: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
-        """Chosen rows of ``S`` over the run of ``L`` steps (L, rows, p) and the full ``S`` at its
-        end, from ``S`` (n, p) at its start."""
-        nr, p = self.coef.shape[1:]
+    def apply(self, s0: np.ndarray, out: np.ndarray, work: np.ndarray) -> np.ndarray:
+        """Fill ``out`` (L, rows, p) with the chosen rows of ``S`` over the run of ``L`` steps from
+        ``S`` (n, p) at its start; return the full ``S`` at its end. ``work`` is scratch space of
+        at least (2n+1, L), shared by the runs (fresh memory costs a page fault per 4 KiB)."""
+        L, nr, p = out.shape
         sig0 = self.Xi @ s0
         n = len(sig0)
         coef = self.coef.reshape(2 * n + 1, nr * p).copy()
         coef[:n] += (self.C.T[:, :, None] * sig0[:, None, :]).reshape(n, nr * p)  # μ^k σ_0
-        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L; exponents floored at −500: e^−745 and below
-        # would be subnormal (and slow the product below)
-        k = np.arange(1, L + 1, dtype=float)[:, None]
-        basis = np.empty((L, 2 * n + 1))
-        np.exp(np.maximum(k * np.log(self.mue), -500.0), out=basis[:, : n + 1])
-        basis[0, n + 1:] = 1.0
-        np.multiply(k[1:], basis[:-1, :n], out=basis[1:, n + 1:])
-        rows = basis @ coef
+        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L, in place; exponents floored at −500: e^−745
+        # and below would be subnormal (and slow the product below)
+        k = np.arange(1.0, L + 1.0)
+        basis = work[:, :L]  # one row per function: contiguous passes
+        Pw = basis[: n + 1]
+        np.multiply(self.logmue[:, None], k, out=Pw)
+        np.maximum(Pw, -500.0, out=Pw)
+        np.exp(Pw, out=Pw)
+        basis[n + 1:, 0] = 1.0
+        np.multiply(Pw[:n, :-1], k[1:], out=basis[n + 1:, 1:])
+        rows = out.reshape(L, nr * p)
+        np.matmul(basis.T, coef, out=rows)
         if self.extra is not None:
             ia, ib, cc = self.extra
-            rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k) @ cc.reshape(len(ia), nr * p)
-        return rows.reshape(L, nr, p), self.Om @ (self.muL[:, None] * sig0 + self.endG)
+            rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k[:, None]) @ cc.reshape(len(ia), nr * p)
+        return self.Om @ (self.muL[:, None] * sig0 + self.endG)
 
 
 def held_steps(env: dict[str, object], steps: int) -> np.ndarray:
