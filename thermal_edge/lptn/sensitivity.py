@@ -258,7 +258,8 @@ class Sensitivities:
         nr = len(keep)
         Fx, g1, g2 = np.empty((len(runs), n, p)), np.empty((len(runs), n, p)), np.empty((len(runs), n, p))
         CFR, diagF = np.empty((len(rep), p, nr, n)), np.empty((len(rep), n, p))
-        Fcl: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        Fcl: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        has_close = close.any(axis=(1, 2))
         # the losses' part of the forcing per unit T at each loss node, in the modal basis of Φ (pn, tv)
         Bl = (Xf[rep, 1:] - Xf[rep, :1]).transpose(0, 3, 2, 1).reshape(len(rep), p * n, len(tv))
         Omt = Om[:, tv]
@@ -269,8 +270,9 @@ class Sensitivities:
             Fu += Bl[u] @ Omt[u]
             Fu = Q2r[u] @ Fu.reshape(p, n, n)
             diagF[u] = Fu[:, dg, dg].T
-            ia, ib = np.nonzero(close[u, :, :n])
-            Fcl.append((ia, ib, Fu[:, ia, ib]))
+            if has_close[u]:
+                ia, ib = np.nonzero(close[u, :, :n])
+                Fcl[u] = (ia, ib, Fu[:, ia, ib])
             Fx[sel] = (Fu.reshape(p * n, n) @ xinf[sel].T).reshape(p, n, -1).transpose(2, 1, 0)
             Fu *= R[u, :, :n]
             CFR[u] = Om[u, keep] @ Fu
@@ -290,22 +292,21 @@ class Sensitivities:
         endG = muL[:, :, None] * g1 - g2 + (L[:, None] * mu1 * delta)[:, :, None] * diagF[ui]
         with np.errstate(under="ignore"):
             endG += divided_powers(mur, np.ones_like(mur), L[:, None].astype(float))[:, :, None] * h
-        out: list[_HeldRun | None] = []
-        for i in range(len(runs)):
-            u = ui[i]
-            if not ok[u]:
-                out.append(None)
-                continue
-            ia, ib, Fab = Fcl[u]
-            cc = (Fab * delta[i, ib]).T  # close pairs b < n (pair, p)
-            with np.errstate(under="ignore"):
-                endG[i, ia] += divided_powers(mur[i, ia], mur[i, ib], float(L[i]))[:, None] * cc
+        # close pairs (none in most models): their divided differences at the end of the run, and
+        # as extra terms for every step
+        extra: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = [None] * len(runs)
+        for u, (ia, ib, Fab) in Fcl.items():
             an = np.nonzero(close[u, :, n])[0]  # modes close to μ = 1
-            ia, ib = np.concatenate([ia, an]), np.concatenate([ib, np.full(len(an), n)])
-            cc = np.concatenate([cc, h[i, an]])
-            extra = (ia, ib, C[i].T[ia][:, :, None] * cc[:, None, :]) if len(ia) else None
-            out.append(_HeldRun(np.append(mur[i], 1.0), coef[i], C[i], Om[u], Xi[u], muL[i], endG[i], extra))
-        return out
+            for i in members[u]:
+                cc = (Fab * delta[i, ib]).T  # pairs b < n (pair, p)
+                with np.errstate(under="ignore"):
+                    endG[i, ia] += divided_powers(mur[i, ia], mur[i, ib], float(L[i]))[:, None] * cc
+                pa, pb = np.concatenate([ia, an]), np.concatenate([ib, np.full(len(an), n)])
+                cc = np.concatenate([cc, h[i, an]])
+                extra[i] = (pa, pb, C[i].T[pa][:, :, None] * cc[:, None, :])
+        mue = np.concatenate([mur, np.ones((len(runs), 1))], axis=1)
+        return [_HeldRun(mue[i], coef[i], C[i], Om[u], Xi[u], muL[i], endG[i], extra[i]) if ok[u] else None
+                for i, u in enumerate(ui)]
 
 
 class _HeldRun:
