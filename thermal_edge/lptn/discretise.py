@@ -240,14 +240,23 @@ def _zoh_divided_differences(cont: Continuous, dt: float, lam: np.ndarray,
     # e^max(a,b) · (1 − e^−|a−b|)/|a−b| so that neither overflows nor cancels (expm1 keeps its
     # digits for close eigenvalues; equal ones have the limit 1)
     x = lam * dt
-    ad = np.abs(x[:, :, None] - x[:, None, :])
-    ratio = np.ones_like(ad)
-    np.divide(np.expm1(-ad), -ad, out=ratio, where=ad > 0.0)
+    ad = np.subtract(x[:, :, None], x[:, None, :])
+    np.abs(ad, out=ad)
+    q = np.negative(ad)
+    np.expm1(q, out=q)
+    with np.errstate(invalid="ignore"):
+        q /= ad  # −(1 − e^−|a−b|)/|a−b|
+    q[ad == 0.0] = -1.0
     Dd = np.maximum(mu[:, :, None], mu[:, None, :])
-    Dd *= ratio
-    Dd *= dt
+    Dd *= q
+    Dd *= -dt
     r = cont.dc / (2.0 * cont.c)
-    Wc = (mu[:, :, None] - mu[:, None, :]) - (lam[:, :, None] + lam[:, None, :]) * Dd if np.any(r) else None
+    Wc = None
+    if np.any(r):
+        Wc = np.subtract(mu[:, :, None], mu[:, None, :])
+        q = np.add(lam[:, :, None], lam[:, None, :], out=q)
+        q *= Dd
+        Wc -= q
     return Dd, Wc, r
 
 

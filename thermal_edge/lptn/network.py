@@ -119,6 +119,7 @@ class Network:
             self.loss_map[index[loss.point], j] = 1.0
         self._q_losses = np.nonzero(np.any(self.loss_map[n:] != 0.0, axis=0))[0]  # losses at algebraic points
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
+        self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
         used: set[str] = set()
         for e in model.edges:
@@ -156,7 +157,10 @@ class Network:
     # -- conductances ---------------------------------------------------------------------
     def live_edges(self, wrt: Sequence[int]) -> np.ndarray:
         """Edges whose conductance law depends on one of the parameters ``wrt``."""
-        return np.array([e for e, law in enumerate(self.edge_laws) if any(pi in law.d for pi in wrt)], dtype=int)
+        key = tuple(wrt)
+        if key not in self._live:
+            self._live[key] = np.array([e for e, law in enumerate(self.edge_laws) if any(pi in law.d for pi in wrt)], dtype=int)
+        return self._live[key]
 
     def conductances(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int, wrt: Sequence[int] = ()
