@@ -136,56 +136,61 @@ class Sensitivities:
         stepped = np.ones(steps, dtype=bool)
         for (a, b), form in zip(runs, forms):
             stepped[a:b] &= form is None
-        # ∂P/∂θ where the recursion steps, in one evaluation of the loss laws
+        # the steps the recursion takes one by one, their forcing BLOCK steps at a time (across
+        # the gaps between held runs), consumed in order
         ks = np.nonzero(stepped)[0]
-        dPdth = self.loss_theta(ks, self.T[ks])
         uo, count = np.unique(self.ops[ks], return_counts=True)
         self.d.build_dphit(uo[count >= FEW_STEPS])  # the dense derivatives the stepping needs, built together
-        pos = np.cumsum(stepped) - 1  # step -> row of dPdth
+        blocks = (self._forcing(ks[c: c + BLOCK]) for c in range(0, len(ks), BLOCK))
+        X = np.zeros((0, self.n, self.p))
+        used = 0  # rows of X consumed
+        mats, mi = self.mats, self.mi
+        full = rows is None
+
+        def step(a: int, b: int, s: np.ndarray) -> np.ndarray:
+            """Steps ``a .. b−1`` from ``S[a] = s`` (all nodes); fills ``S[a+1 .. b]``."""
+            nonlocal X, used
+            while a < b:
+                if used == len(X):
+                    X, used = next(blocks), 0
+                m = min(b - a, len(X) - used)
+                Xb = X[used: used + m]  # becomes S[a + 1 .. a + m] in place
+                for i in range(m):
+                    Xb[i] += mats[mi[a + i]] @ s
+                    s = Xb[i]
+                S[a + 1: a + m + 1] = Xb if full else Xb[:, keep]
+                used += m
+                a += m
+            return s
+
         pending = 0  # first step not yet propagated
         work = np.empty((2 * self.n + 1, max((b - a for a, b in runs), default=0)))
         for (a, b), form in zip(runs, forms):
             if form is None:
                 continue
-            if pending < a:
-                s = self._steps(pending, a, s, S, keep, dPdth[pos[pending:a]])
-            s = form.apply(s, S[a + 1: b + 1], work)
+            s = form.apply(step(pending, a, s), S[a + 1: b + 1], work)
             pending = b
-        if pending < steps:
-            self._steps(pending, steps, s, S, keep, dPdth[pos[pending:steps]])
+        step(pending, steps, s)
         return S
 
-    def _steps(self, a: int, b: int, s: np.ndarray, S: np.ndarray, keep: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
-        """Steps ``a .. b−1`` one by one from ``S[a] = s`` (all nodes); fills ``S[a+1 .. b]``.
-
-        ``dPdth`` (b − a, nl, p) is ``∂P/∂θ`` at those steps.
-        """
+    def _forcing(self, ks: np.ndarray) -> np.ndarray:
+        """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""
         d = self.d
         assert d.Q is not None and d.s is not None
-        mats, mi, ops = self.mats, self.mi, self.ops
-        full = len(keep) == self.n and np.array_equal(keep, np.arange(self.n))
-        for c in range(a, b, BLOCK):
-            e = min(c + BLOCK, b)
-            X = np.empty((e - c, self.n, self.p))
-            ob = ops[c:e]
-            w = np.concatenate([self.U[c:e], self.P[c:e]], axis=1)
-            dP = dPdth[c - a: e - a]
-            uo, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
-            few = np.nonzero(count[inv] < FEW_STEPS)[0]  # operating points used by a few steps (a ramp)
-            if len(few):
-                X[few] = self.forcing(ob[few], self.T[c + few], w[few], dP[few])
-            for o in uo[count >= FEW_STEPS]:
-                sel = np.nonzero(ob == o)[0]
-                X[sel] = self.forcing(o, self.T[c + sel], w[sel], dP[sel])
-            X = np.matmul(d.Q[ob] / d.s[:, None], X)  # back to node coordinates
-            for k in range(c, e):
-                s = mats[mi[k]] @ s
-                s += X[k - c]
-                if full:
-                    S[k + 1] = s
-                else:
-                    S[k + 1] = s[keep]
-        return s
+        X = np.empty((len(ks), self.n, self.p))
+        ob = self.ops[ks]
+        w = np.concatenate([self.U[ks], self.P[ks]], axis=1)
+        dP = self.loss_theta(ks, self.T[ks])
+        uo, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
+        few = np.nonzero(count[inv] < FEW_STEPS)[0]  # operating points used by a few steps (a ramp)
+        if len(few):
+            X[few] = self.forcing(ob[few], self.T[ks[few]], w[few], dP[few])
+        for o in uo[count >= FEW_STEPS]:
+            sel = np.nonzero(ob == o)[0]
+            X[sel] = self.forcing(o, self.T[ks[sel]], w[sel], dP[sel])
+        X = np.matmul(d.Q[ob], X)  # back to node coordinates (V = diag(1/s) Q)
+        X /= d.s[:, None]
+        return X
 
     def _held_runs(self, runs: list[tuple[int, int]], keep: np.ndarray) -> list[_HeldRun | None]:
         """The closed form (see the module docstring) of each held run ``(a, b)`` of steps ``a .. b−1``.
