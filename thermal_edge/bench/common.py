@@ -25,6 +25,19 @@ def timed(fn: Callable[[], object], repeat: int) -> tuple[float, list[float], ob
     return statistics.median(times), times, out
 
 
+def timed_together(fns: Sequence[Callable[[], object]], repeat: int) -> list[tuple[float, list[float], object]]:
+    """:func:`timed` for several functions called in turn (round-robin), so that a change in the
+    machine's speed during the run (a shared machine) falls on all of them alike."""
+    times: list[list[float]] = [[] for _ in fns]
+    outs: list[object] = [None] * len(fns)
+    for _ in range(repeat):
+        for i, fn in enumerate(fns):
+            t0 = time.perf_counter()
+            outs[i] = fn()
+            times[i].append(time.perf_counter() - t0)
+    return [(statistics.median(t), t, out) for t, out in zip(times, outs)]
+
+
 def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     """A plain-text table with right-aligned columns."""
     cells = [[str(h) for h in headers]] + [[_fmt(v) for v in r] for r in rows]

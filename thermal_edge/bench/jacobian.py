@@ -1,7 +1,8 @@
 """``bench jacobian``: analytic sensitivities vs the forward-difference Jacobian (p+1 simulations).
 
 The 39-node 10 kW model, its 14 adaptable parameters, 3 h of the varied drive cycle at 1 Hz; the
-output Jacobian at the sensors. Both Jacobians are timed in the same run (median of repeats);
+output Jacobian at the sensors. Both Jacobians are timed in the same run, in turn (median of
+repeats);
 the analytic one is checked against central differences (4p simulations, not timed). The arithmetic limit is the flop count
 of the sensitivity forcing and recursion, ``2·N·n²·p`` twice, at the rate this machine's BLAS
 reaches on a matrix product of the same shape, measured in the same run.
@@ -15,7 +16,7 @@ import numpy as np
 from ..lptn import Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
 from ..sim.cycles import cycle_run, load_cycle
-from .common import config_path, timed
+from .common import config_path, timed, timed_together
 
 
 def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt: float, T0: np.ndarray,
@@ -72,10 +73,8 @@ def run(repeat: int = 3, model_path: str | None = None, cycle_path: str | None =
         return tr.S
 
     sim.simulate(theta, cols, dt, T0, wrt=wrt)  # warm-up (imports, caches of numpy)
-    t_an, times_an, S = timed(analytic, repeat)
-    t_st, _, S_st = timed(analytic_stepped, repeat)
-    t_num, times_num, _ = timed(forward, repeat)
-    t_sim, _, _ = timed(lambda: sim.simulate(theta, cols, dt, T0), repeat)
+    (t_an, times_an, S), (t_st, _, S_st), (t_num, times_num, _), (t_sim, _, _) = timed_together(
+        [analytic, analytic_stepped, forward, lambda: sim.simulate(theta, cols, dt, T0)], repeat)
 
     # accuracy: fourth-order central differences (step 1 % of the value: the simulation's own
     # round-off, ~1e-10 K, swamps smaller steps), relative error on entries above 1 % of that
