@@ -2,10 +2,10 @@
 
 The 39-node 10 kW model, its 14 adaptable parameters, 3 h of the varied drive cycle at 1 Hz; the
 output Jacobian at the sensors. Both Jacobians are timed in the same run, in turn (median of
-repeats);
-the analytic one is checked against central differences (4p simulations, not timed). The arithmetic limit is the flop count
-of the sensitivity forcing and recursion, ``2·N·n²·p`` twice, at the rate this machine's BLAS
-reaches on a matrix product of the same shape, measured in the same run.
+repeats); the analytic one is checked against central differences (4p simulations, not timed).
+The arithmetic limit is the flop count of the sensitivity forcing and recursion, ``2·N·n²·p``
+twice, at the rate this machine's BLAS reaches on a matrix product of the same shape, measured in
+the same run.
 """
 from __future__ import annotations
 
