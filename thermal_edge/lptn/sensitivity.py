@@ -87,35 +87,28 @@ class Sensitivities:
         self.n, self.p = T.shape[1], disc.dg.shape[1]
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
-    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray, dPdth: np.ndarray) -> np.ndarray:
-        """``V⁻¹ X`` (B, n, p) for temperatures ``T`` (B, n) at operating point ``o``.
+    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """``V⁻¹ (dΦ T + dΓ w)`` (B, n, p) for temperatures ``T`` (B, n) and inputs ``w`` (B, m) of
+        ``Γ`` at operating point ``o``, in the modal basis of ``Φ`` there.
 
         ``o`` is one operating point for all rows (its dense ``dPhit``, one product for all
         rows) or one per row (B,) (the Daleckii–Krein form vector by vector, for steps at
-        operating points used once or twice). ``w`` (B, m) are the inputs of ``Γ`` and
-        ``dPdth`` (B, nl, p) the loss derivatives;
+        operating points used once or twice);
         ``dΦ T + dΓ w = V (dPhit (V⁻¹ T + Ht w) − phi ∘ Zh (dg ∘ Yt w))`` (see
-        :class:`~thermal_edge.lptn.discretise.Discrete`).
+        :class:`~thermal_edge.lptn.discretise.Discrete`). The losses' own dependence on θ,
+        ``Γ_P ∂P/∂θ``, is the callers' to add.
         """
         d, n, p = self.d, self.n, self.p
         assert d.Q is not None and d.s is not None and d.phi is not None
         assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
-        B = len(T)
         Q = d.Q[o]
         if np.ndim(o) == 0:
             y = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T  # (n, B)
-            X = (d.dphit(o).reshape(p * n, n) @ y).reshape(p, n, B)
+            X = (d.dphit(o).reshape(p * n, n) @ y).reshape(p, n, len(T))
             X -= d.phi[o][:, None] * (d.Zh[o] @ (d.dg[o][:, :, None] * (d.Yt[o] @ w.T)))
-            X = X.transpose(2, 1, 0)
-            if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ, one product for all rows
-                GPt = Q.T @ (d.s[:, None] * d.Gam[o][:, self.nb:])
-                X += (GPt @ dPdth.transpose(1, 0, 2).reshape(-1, B * p)).reshape(n, B, p).transpose(1, 0, 2)
-            return X
+            return X.transpose(2, 1, 0)
         y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
-        X = d.forcing_rows(o, y, (d.Yt[o] @ w[:, :, None])[:, :, 0])
-        if np.any(dPdth):  # V⁻¹ Γ_P ∂P/∂θ
-            X += (np.swapaxes(Q, 1, 2) @ (d.s[:, None] * d.Gam[o][:, :, self.nb:])) @ dPdth
-        return X
+        return d.forcing_rows(o, y, (d.Yt[o] @ w[:, :, None])[:, :, 0])
 
     # -- runs ---------------------------------------------------------------------------------
     def run(self, held: np.ndarray, closed: bool, rows: np.ndarray | None) -> np.ndarray:
@@ -184,12 +177,14 @@ class Sensitivities:
         uo, inv, count = np.unique(ob, return_inverse=True, return_counts=True)
         few = np.nonzero(count[inv] < FEW_STEPS)[0]  # operating points used by a few steps (a ramp)
         if len(few):
-            X[few] = self.forcing(ob[few], self.T[ks[few]], w[few], dP[few])
+            X[few] = self.forcing(ob[few], self.T[ks[few]], w[few])
         for o in uo[count >= FEW_STEPS]:
             sel = np.nonzero(ob == o)[0]
-            X[sel] = self.forcing(o, self.T[ks[sel]], w[sel], dP[sel])
+            X[sel] = self.forcing(o, self.T[ks[sel]], w[sel])
         X = np.matmul(d.Q[ob], X)  # back to node coordinates (V = diag(1/s) Q)
         X /= d.s[:, None]
+        if np.any(dP):  # Γ_P ∂P/∂θ
+            X += d.Gam[ob][:, :, self.nb:] @ dP
         return X
 
     def _held_runs(self, runs: list[tuple[int, int]], keep: np.ndarray) -> list[_HeldRun | None]:
@@ -238,8 +233,10 @@ class Sensitivities:
         Xf = np.empty((len(runs), nt, n, p))
         for o in np.unique(o_):
             sel = np.nonzero(o_ == o)[0]
-            Xf[sel] = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1),
-                                   dPdth[sel].reshape(len(sel) * nt, -1, p)).reshape(len(sel), nt, n, p)
+            X = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1))
+            GPt = d.Q[o].T @ (d.s[:, None] * d.Gam[o][:, self.nb:])  # V⁻¹ Γ_P
+            X += np.matmul(GPt, dPdth[sel].reshape(len(sel) * nt, -1, p))
+            Xf[sel] = X.reshape(len(sel), nt, n, p)
         # per run: ξ_k = ξ∞ + μ^k δ
         mur = mu[ui]
         f = (Xi[ui] @ (d.Gam[o_] @ wp[:, 0, :, None]))[..., 0]
