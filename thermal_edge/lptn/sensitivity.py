@@ -7,14 +7,18 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chose
   bench's set point) and the losses are affine in temperature, ``M`` is constant and similar to
   a symmetric matrix (``Φ`` is, and the copper-loss feedback adds ``diag(phi) Qᵀ C⁻¹ Δ Q`` in its
   modal basis), so ``M = W diag(μ) W⁻¹`` with real ``μ``. The temperatures follow
-  ``ξ_i = ξ∞ + μ^i δ`` in that basis and the forcing is affine in them, so the whole run has the
-  closed form ``σ_k = μ^k σ_0 + Σ_b G_b DD_k(μ, μ_b)`` with the divided differences
-  ``DD_k(x, y) = Σ_{i<k} x^(k−1−i) y^i = (x^k − y^k)/(x − y)``. Separating the terms of
-  well-apart eigenvalue pairs, the chosen rows of ``S`` at every step of the run are one product
-  of the powers ``μ^k`` with per-mode coefficients: about ``2·n·rows·p`` flops a step instead of
-  the ``4·n²·p`` of forcing and recursion. Close pairs keep their divided differences.
+  ``ξ_i = ξ∞ + μ^i δ`` in that basis and the forcing is affine in them (``dΦ`` acts on every
+  node, the losses' part only on the nodes their laws read, found by probing there), so the
+  whole run has the closed form ``σ_k = μ^k σ_0 + Σ_b G_b DD_k(μ, μ_b)`` with the divided
+  differences ``DD_k(x, y) = Σ_{i<k} x^(k−1−i) y^i = (x^k − y^k)/(x − y)``. Separating the terms
+  of well-apart eigenvalue pairs, the chosen rows of ``S`` at every step of the run are one
+  product of the powers ``μ^k`` with per-mode coefficients: about ``2·n·rows·p`` flops a step
+  instead of the ``4·n²·p`` of forcing and recursion. Close pairs keep their divided
+  differences. Runs that meet a set point again share its eigendecomposition and the forcing's
+  linear part (``p·n²`` numbers); each run adds only matrix-vector products.
 * **Step by step** otherwise: the forcing for a block of steps as products per operating point
-  (in the modal basis of :class:`~thermal_edge.lptn.discretise.Discrete`), then the recursion.
+  (in the modal basis of :class:`~thermal_edge.lptn.discretise.Discrete`; the Daleckii–Krein
+  form row by row at a ramp's operating points), then the recursion.
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ import numpy as np
 
 from .discretise import Discrete
 
-#: shortest run of held inputs worth the closed form (its set-up costs about as much as 100 steps)
+#: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
 #: eigenvalue pairs closer than this keep their divided differences: split over the power
 #: basis a pair loses about 1e-16/gap of relative accuracy to cancellation
