@@ -22,7 +22,7 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chose
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -198,63 +198,28 @@ class Sensitivities:
         couples nodes) or has an eigenvalue outside (0, 1).
         """
         d, n, p = self.d, self.n, self.p
-        assert d.Q is not None and d.s is not None and d.phi is not None
         a_ = np.array([a for a, _ in runs])
         o_ = self.ops[a_]
+        L = np.array([b - a for a, b in runs])
         # runs with the same transition (operating point and current: a set point met again)
         # share its modes and the part of the forcing that is linear in temperature
         seen: dict[bytes, int] = {}
         ui = np.array([seen.setdefault(self.mats[self.mi[a]].tobytes(), len(seen)) for a in a_])
         rep = np.unique(ui, return_index=True)[1]
-        ou = o_[rep]
-        sv = d.s
-        V = d.Q[ou] / sv[:, None]  # modal basis of Φ at each transition's operating point
-        Vi = np.swapaxes(d.Q[ou], -1, -2) * sv
-        r = np.sqrt(d.phi[ou])
-        M = np.stack([self.mats[self.mi[a]] for a in a_[rep]])
-        Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
-        asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
-        mu, Q2 = np.linalg.eigh((Sym + np.swapaxes(Sym, -1, -2)) / 2.0)
-        ok = (asym < 1e-9) & (mu.min(axis=1) > -1e-12) & (mu.max(axis=1) < 1.0)
-        # modes far faster than the step (e^(λ dt) below round-off) are zero after one step
-        mu = np.maximum(mu, 1e-300)
-        rQ2 = r[:, :, None] * Q2  # closed-loop modes ξ -> modal basis of Φ
-        Q2r = np.swapaxes(Q2, -1, -2) / r[:, None, :]  # and back
-        Om = V @ rQ2  # ξ -> node temperatures
-        Xi = Q2r @ Vi  # node temperatures -> ξ
-        # The forcing (modal basis of Φ) is affine in T: dΦ̃ V⁻¹ T, plus the losses' part, which
-        # reads T only at the loss nodes: probe that at T = 0 and a unit step at each loss node
-        # (the temperature entering dΦ̃ kept at 0), every run at once.
-        tv = self.loss_nodes
-        nt = 1 + len(tv)
-        probes = np.zeros((len(runs), nt, n))
-        probes[:, np.arange(1, nt), tv] = 1.0
-        ks, flat = np.repeat(a_, nt), probes.reshape(-1, n)
-        P = self.losses(ks, flat).reshape(len(runs), nt, -1)
-        dPdth = self.loss_theta(ks, flat).reshape(len(runs), nt, -1, p)
-        wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(runs), nt, self.nb)), P], axis=-1)
-        d.build_dphit(o_)  # dense derivatives at the runs' operating points, built together
-        Xf = np.empty((len(runs), nt, n, p))
-        for o in np.unique(o_):
-            sel = np.nonzero(o_ == o)[0]
-            X = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1))
-            GPt = d.Q[o].T @ (d.s[:, None] * d.Gam[o][:, self.nb:])  # V⁻¹ Γ_P
-            X += np.matmul(GPt, dPdth[sel].reshape(len(sel) * nt, -1, p))
-            Xf[sel] = X.reshape(len(sel), nt, n, p)
+        members = np.split(np.argsort(ui, kind="stable"), np.cumsum(np.bincount(ui))[:-1])
+        m = self._modes(o_[rep], np.stack([self.mats[self.mi[a]] for a in a_[rep]]))
+        Xf, w0 = self._probe_forcing(a_, o_)
         # per run: ξ_k = ξ∞ + μ^k δ
-        mur = mu[ui]
-        f = (Xi[ui] @ (d.Gam[o_] @ wp[:, 0, :, None]))[..., 0]
-        xinf = f / (1.0 - mur)
-        delta = (Xi[ui] @ self.T[a_][:, :, None])[..., 0] - xinf
-        L = np.array([b - a for a, b in runs])
+        mur = m.mu[ui]
+        xinf = (m.Xi[ui] @ (d.Gam[o_] @ w0[:, :, None]))[..., 0] / (1.0 - mur)
+        delta = (m.Xi[ui] @ self.T[a_][:, :, None])[..., 0] - xinf
         with np.errstate(under="ignore"):
             muL = mur ** L[:, None]
             mu1 = mur ** (L[:, None] - 1)
         # mode pairs (b = n: the constant forcing, μ = 1): R = 1/(μ_a − μ_b) splits a well-apart
         # pair's divided differences over the power basis; close pairs keep theirs, and a mode
         # with itself has DD_k(μ, μ) = k μ^(k−1)
-        mue = np.concatenate([mu, np.ones((len(rep), 1))], axis=1)
-        diff = mu[:, :, None] - mue[:, None, :]  # [u, a, b]: μ_a − μ_b
+        diff = m.mu[:, :, None] - np.concatenate([m.mu, np.ones((len(rep), 1))], axis=1)[:, None, :]
         close = np.abs(diff) < CLOSE
         R = np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))
         dg = np.arange(n)
@@ -267,26 +232,26 @@ class Sensitivities:
         Fcl: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         has_close = close.any(axis=(1, 2))
         # the losses' part of the forcing per unit T at each loss node, in the modal basis of Φ (pn, tv)
+        tv = self.loss_nodes
         Bl = (Xf[rep, 1:] - Xf[rep, :1]).transpose(0, 3, 2, 1).reshape(len(rep), p * n, len(tv))
-        Omt = Om[:, tv]
-        members = np.split(np.argsort(ui, kind="stable"), np.cumsum(np.bincount(ui))[:-1])
+        Omt = m.Om[:, tv]
         for u, sel in enumerate(members):
             # V⁻¹ X = (dΦ̃ V⁻¹ + Bl E_tv) T, T = V rQ2 ξ: F = Q2r (dΦ̃ rQ2 + Bl Om[tv])
-            Fu = d.dphit(int(ou[u])).reshape(p * n, n) @ rQ2[u]
+            Fu = d.dphit(int(o_[rep[u]])).reshape(p * n, n) @ m.rQ2[u]
             Fu += Bl[u] @ Omt[u]
-            Fu = Q2r[u] @ Fu.reshape(p, n, n)
+            Fu = m.Q2r[u] @ Fu.reshape(p, n, n)
             diagF[u] = Fu[:, dg, dg].T
             if has_close[u]:
                 ia, ib = np.nonzero(close[u, :, :n])
                 Fcl[u] = (ia, ib, Fu[:, ia, ib])
             Fx[sel] = (Fu.reshape(p * n, n) @ xinf[sel].T).reshape(p, n, -1).transpose(2, 1, 0)
             Fu *= R[u, :, :n]
-            CFR[u] = Om[u, keep] @ Fu
+            CFR[u] = m.Om[u, keep] @ Fu
             G = (Fu.reshape(p * n, n) @ np.concatenate([delta[sel], delta[sel] * muL[sel]]).T).reshape(p, n, -1)
             g1[sel], g2[sel] = G[:, :, : len(sel)].transpose(2, 1, 0), G[:, :, len(sel):].transpose(2, 1, 0)
-        h = Fx + np.matmul(Q2r[ui], Xf[:, 0])  # the constant forcing of each mode, F ξ∞ + X(0)
+        h = Fx + np.matmul(m.Q2r[ui], Xf[:, 0])  # the constant forcing of each mode, F ξ∞ + X(0)
         # coefficients of the chosen rows on the time basis μ_b^k (b ≤ n), k μ_a^(k−1) (a < n)
-        C = Om[ui][:, keep]  # ξ -> chosen rows
+        C = m.Om[ui][:, keep]  # ξ -> chosen rows
         Ct = np.swapaxes(C, 1, 2)[..., None]  # (r, a, rows, 1)
         Rn = R[ui][:, :, n]
         coef = np.empty((len(runs), 2 * n + 1, nr, p))
@@ -311,8 +276,64 @@ class Sensitivities:
                 cc = np.concatenate([cc, h[i, an]])
                 extra[i] = (pa, pb, C[i].T[pa][:, :, None] * cc[:, None, :])
         mue = np.concatenate([mur, np.ones((len(runs), 1))], axis=1)
-        return [_HeldRun(mue[i], coef[i], C[i], Om[u], Xi[u], muL[i], endG[i], extra[i]) if ok[u] else None
+        return [_HeldRun(mue[i], coef[i], C[i], m.Om[u], m.Xi[u], muL[i], endG[i], extra[i]) if m.ok[u] else None
                 for i, u in enumerate(ui)]
+
+    def _modes(self, ops: np.ndarray, M: np.ndarray) -> _Modes:
+        """Eigendecomposition of the transitions ``M`` (U, n, n) at operating points ``ops`` (U,):
+        in the modal basis of ``Φ``, ``diag(r)^-1 V⁻¹ M V diag(r)`` with ``r = √phi`` is
+        symmetric (up to round-off) when no loss law couples nodes."""
+        d = self.d
+        assert d.Q is not None and d.s is not None and d.phi is not None
+        V = d.Q[ops] / d.s[:, None]  # modal basis of Φ at each operating point
+        Vi = np.swapaxes(d.Q[ops], -1, -2) * d.s
+        r = np.sqrt(d.phi[ops])
+        Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
+        asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
+        mu, Q2 = np.linalg.eigh((Sym + np.swapaxes(Sym, -1, -2)) / 2.0)
+        ok = (asym < 1e-9) & (mu.min(axis=1) > -1e-12) & (mu.max(axis=1) < 1.0)
+        rQ2 = r[:, :, None] * Q2
+        Q2r = np.swapaxes(Q2, -1, -2) / r[:, None, :]
+        # modes far faster than the step (e^(λ dt) below round-off) are zero after one step
+        return _Modes(mu=np.maximum(mu, 1e-300), ok=ok, rQ2=rQ2, Q2r=Q2r, Om=V @ rQ2, Xi=Q2r @ Vi)
+
+    def _probe_forcing(self, a_: np.ndarray, o_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The forcing ``V⁻¹ X`` (runs, 1 + tv, n, p) of held runs starting at steps ``a_`` (at
+        operating points ``o_``) with T = 0 and with a unit step at each loss node, the
+        temperature entering ``dΦ`` kept at 0: the constant part and the losses' part per kelvin;
+        and the inputs ``w`` (runs, m) of ``Γ`` at T = 0."""
+        d, n, p = self.d, self.n, self.p
+        assert d.Q is not None and d.s is not None
+        tv = self.loss_nodes
+        nt = 1 + len(tv)
+        probes = np.zeros((len(a_), nt, n))
+        probes[:, np.arange(1, nt), tv] = 1.0
+        ks, flat = np.repeat(a_, nt), probes.reshape(-1, n)
+        P = self.losses(ks, flat).reshape(len(a_), nt, -1)
+        dPdth = self.loss_theta(ks, flat).reshape(len(a_), nt, -1, p)
+        wp = np.concatenate([np.broadcast_to(self.U[a_][:, None], (len(a_), nt, self.nb)), P], axis=-1)
+        d.build_dphit(o_)  # dense derivatives at the runs' operating points, built together
+        Xf = np.empty((len(a_), nt, n, p))
+        for o in np.unique(o_):
+            sel = np.nonzero(o_ == o)[0]
+            X = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1))
+            GPt = d.Q[o].T @ (d.s[:, None] * d.Gam[o][:, self.nb:])  # V⁻¹ Γ_P
+            X += np.matmul(GPt, dPdth[sel].reshape(len(sel) * nt, -1, p))
+            Xf[sel] = X.reshape(len(sel), nt, n, p)
+        return Xf, wp[:, 0]
+
+
+class _Modes(NamedTuple):
+    """Closed-loop modes ``ξ`` of transitions (leading axis): eigenvalues ``mu`` and whether the
+    closed form applies (``ok``); ``rQ2``/``Q2r`` map ``ξ`` to the modal basis of ``Φ`` and back,
+    ``Om``/``Xi`` to node temperatures and back."""
+
+    mu: np.ndarray
+    ok: np.ndarray
+    rQ2: np.ndarray
+    Q2r: np.ndarray
+    Om: np.ndarray
+    Xi: np.ndarray
 
 
 class _HeldRun:
