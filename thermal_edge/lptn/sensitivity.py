@@ -108,9 +108,11 @@ class Sensitivities:
         Q = d.Q[o]
         if np.ndim(o) == 0:
             y = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T  # (n, B)
-            X = (d.dphit(o).reshape(p * n, n) @ y).reshape(p, n, len(T))
-            X -= d.phi[o][:, None] * (d.Zh[o] @ (d.dg[o][:, :, None] * (d.Yt[o] @ w.T)))
-            return X.transpose(2, 1, 0)
+            X = (d.dphit(o).reshape(p * n, n) @ y).reshape(p, n, len(T)).transpose(2, 1, 0)
+            # − phi ∘ Zh (dg_j ∘ Yt w) for every j in one product: (n, e) @ (e, B p)
+            v = (d.Yt[o] @ w.T).T[:, :, None] * d.dg[o].T  # (B, e, p)
+            X -= d.phi[o][:, None] * (d.Zh[o] @ v.transpose(1, 0, 2).reshape(-1, len(T) * p)).reshape(n, len(T), p).transpose(1, 0, 2)
+            return X
         y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
         return d.forcing_rows(o, y, (d.Yt[o] @ w[:, :, None])[:, :, 0])
 
@@ -318,7 +320,8 @@ class Sensitivities:
             sel = np.nonzero(o_ == o)[0]
             X = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1))
             GPt = d.Q[o].T @ (d.s[:, None] * d.Gam[o][:, self.nb:])  # V⁻¹ Γ_P
-            X += np.matmul(GPt, dPdth[sel].reshape(len(sel) * nt, -1, p))
+            dP = dPdth[sel].reshape(len(sel) * nt, -1, p)
+            X += (GPt @ dP.transpose(1, 0, 2).reshape(dP.shape[1], -1)).reshape(n, -1, p).transpose(1, 0, 2)
             Xf[sel] = X.reshape(len(sel), nt, n, p)
         return Xf, wp[:, 0]
 
