@@ -180,3 +180,28 @@ def test_non_finite_state_is_a_model_fault(tmp_path, model):
     assert out.limits.reason == DerateReason.MODEL_FAULT and out.state == TeState.FAULT
     assert out.limits.current_a <= SAFE
     assert np.all(np.isfinite(eng.observer.T))  # restarted from the readings
+
+
+def test_model_fault_reports_the_error_that_caused_it(tmp_path, model):
+    """The tick that faults on the open-loop prediction error reports that error (the readings'
+    60 K offset), not the error against the state re-initialised from those readings."""
+    from test_persistence import _engine_config, _feed
+    from thermal_edge.lptn import steady_state
+    from thermal_edge.service.engine import ThermalEngine
+
+    eng = ThermalEngine(_engine_config(tmp_path), model, None, worker_mode="sync")
+    T, _ = steady_state(model, {"speed_rpm": 600.0, "i_rms": 12.0, "torque_nm": 67.0, "ambient_c": 25.0})
+    for k in range(1, 4):
+        out = _feed(eng, model, 100.0 + k, T, i=12.0, speed=600.0)
+    assert out.limits.reason != DerateReason.MODEL_FAULT
+    before = {s: out.prediction[model.node_index(n)] for s, n in model.sensors.items()}
+    hot = T + 60.0  # every reading 60 K above anything the model predicts (limit: 40 K)
+    out = _feed(eng, model, 104.0, hot, i=12.0, speed=600.0)
+    assert out.state == TeState.FAULT and out.limits.reason == DerateReason.MODEL_FAULT
+    for s, n in model.sensors.items():
+        # one more 1 s step from the steady state barely moves the prediction
+        assert out.pred_error[s] == pytest.approx(before[s] - hot[model.node_index(n)], abs=1.0)
+        assert out.pred_error[s] < -55.0
+    # the state was restarted from the readings: the next tick's error is small again
+    out = _feed(eng, model, 105.0, hot, i=12.0, speed=600.0)
+    assert all(abs(e) < 5.0 for e in out.pred_error.values())

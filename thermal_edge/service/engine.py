@@ -410,7 +410,7 @@ class ThermalEngine:
         if t < self.fault_until:
             forced.insert(0, DerateReason.MODEL_FAULT)
         self.prev_sample = (t, dict(y), self.x_ol.copy())
-        return self._finish(t, ti, forced, new_results)
+        return self._finish(t, ti, forced, new_results, pred_error)
 
     def _adaptation(self, t: float) -> list[AdaptationResult]:
         w = self.worker
@@ -487,7 +487,8 @@ class ThermalEngine:
         return [NodeBand(name, float(obs.T[i]), float(obs.T[i] + z * sd[i]), warn, mx, reason)
                 for name, i, warn, mx, reason in self.limit_specs]
 
-    def _finish(self, t: float, ti: TickInputs, forced: list[DerateReason], new_results: list[AdaptationResult]) -> TickOutput:
+    def _finish(self, t: float, ti: TickInputs, forced: list[DerateReason], new_results: list[AdaptationResult],
+                pred_error: dict[str, float] | None = None) -> TickOutput:
         state = TeState.NOMINAL
         if DerateReason.MODEL_FAULT in forced:
             state = TeState.FAULT
@@ -495,11 +496,13 @@ class ThermalEngine:
             state = TeState.DEGRADED
         elif self.worker is not None and self.pending is not None:
             state = TeState.ADAPTING
-        return self._output(t, ti, forced, ti.stale, ti.faults, state, new_results=new_results)
+        return self._output(t, ti, forced, ti.stale, ti.faults, state, new_results=new_results, pred_error=pred_error)
 
     def _output(self, t: float, ti: TickInputs | None, forced: list[DerateReason], stale: list[str],
                 faults: dict[str, str], state: TeState, new_results: list[AdaptationResult] | None = None,
-                error: str | None = None) -> TickOutput:
+                error: str | None = None, pred_error: dict[str, float] | None = None) -> TickOutput:
+        """The tick's output. ``pred_error`` is the open-loop prediction error the tick measured
+        (before a model fault re-initialised the state); without it, the error of the state now."""
         n = len(self.model.nodes)
         la_a, ttl = math.inf, math.inf
         if self.initialized and self.observer is not None:
@@ -525,12 +528,13 @@ class ThermalEngine:
             limits = self.policy.update([], None, forced or [DerateReason.STARTING])
         measured = dict(ti.measured) if ti is not None else {}
         inputs = dict(ti.inputs) if ti is not None else {}
-        pred_error: dict[str, float] = {}
-        if self.initialized and self.x_ol is not None:
-            for s, r in self.sensor_rows.items():
-                v = measured.get(s, math.nan)
-                if math.isfinite(v):
-                    pred_error[s] = float(pred[r] - v)
+        if pred_error is None:
+            pred_error = {}
+            if self.initialized and self.x_ol is not None:
+                for s, r in self.sensor_rows.items():
+                    v = measured.get(s, math.nan)
+                    if math.isfinite(v):
+                        pred_error[s] = float(pred[r] - v)
         rms = math.sqrt(self.err_sum / self.err_n) if self.err_n > 0 and self.err_sum >= 0 else math.nan
         by_name = {b.name: b for b in bands}
         tr = self.config.transmit
