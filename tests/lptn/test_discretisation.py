@@ -324,3 +324,28 @@ def test_every_loss_law_is_evaluated_at_the_step_start(tiny_model, law):
     T = Simulator(m, method="zoh").simulate(m.nominal(), inputs, 10.0, T0).T
     ref = _expm_steps(m, inputs, 10.0, T0)
     np.testing.assert_allclose(T, ref, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["zoh", "euler"])
+def test_forcing_rows_is_the_dense_derivative_applied(tiny_plus_model, method):
+    """``forcing_rows`` (the Daleckii–Krein form row by row, one operating point per row) applied
+    to temperatures and inputs equals ``dΦ_j T + dΓ_j w`` from the dense derivatives (checked
+    against the Fréchet derivative of expm above), mapped to the modal basis."""
+    m = tiny_plus_model
+    inputs = tiny_inputs(N=40, seed=11, hold=1)
+    K = 8  # operating points: the inputs of the first 8 samples
+    op = {c: np.asarray(inputs[c], dtype=float)[:K] for c in m.inputs}
+    assert len(np.unique(op["speed_rpm"])) > 1
+    wrt = list(range(len(m.parameter_names)))
+    d = discretise(Network(m).continuous(m.nominal(), op, K=K, wrt=wrt), 2.0, method, 0.05 if method == "euler" else None)
+    rng = np.random.default_rng(3)
+    ops = rng.integers(0, K, 25)
+    T = rng.uniform(20.0, 120.0, (25, len(m.nodes)))
+    w = rng.uniform(0.0, 50.0, (25, d.Gam.shape[2]))
+    V = d.Q / d.s[:, None]
+    Vi = np.swapaxes(d.Q, 1, 2) * d.s
+    y = (Vi[ops] @ T[:, :, None])[:, :, 0] + (d.Ht[ops] @ w[:, :, None])[:, :, 0]
+    X = V[ops] @ d.forcing_rows(ops, y, (d.Yt[ops] @ w[:, :, None])[:, :, 0])
+    dense = np.einsum("bjac,bc->baj", d.dPhi[ops], T) + np.einsum("bjac,bc->baj", d.dGam[ops], w)
+    assert np.abs(dense).max() > 0
+    np.testing.assert_allclose(X, dense, rtol=0, atol=1e-10 * np.abs(dense).max())
