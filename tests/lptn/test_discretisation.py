@@ -327,10 +327,11 @@ def test_every_loss_law_is_evaluated_at_the_step_start(tiny_model, law):
 
 
 @pytest.mark.parametrize("method", ["zoh", "euler"])
-def test_forcing_rows_is_the_dense_derivative_applied(tiny_plus_model, method):
-    """``forcing_rows`` (the Daleckii–Krein form row by row, one operating point per row) applied
-    to temperatures and inputs equals ``dΦ_j T + dΓ_j w`` from the dense derivatives (checked
-    against the Fréchet derivative of expm above), mapped to the modal basis."""
+def test_forcing_is_the_dense_derivative_applied(tiny_plus_model, method):
+    """``Discrete.forcing`` applied to temperatures and inputs, one operating point per row (the
+    Daleckii–Krein form row by row) and one for all rows (the dense derivative), equals
+    ``dΦ_j T + dΓ_j w`` from the dense derivatives (checked against the Fréchet derivative of
+    expm above), mapped to the modal basis."""
     m = tiny_plus_model
     inputs = tiny_inputs(N=40, seed=11, hold=1)
     K = 8  # operating points: the inputs of the first 8 samples
@@ -342,10 +343,13 @@ def test_forcing_rows_is_the_dense_derivative_applied(tiny_plus_model, method):
     ops = rng.integers(0, K, 25)
     T = rng.uniform(20.0, 120.0, (25, len(m.nodes)))
     w = rng.uniform(0.0, 50.0, (25, d.Gam.shape[2]))
-    V = d.Q / d.s[:, None]
-    Vi = np.swapaxes(d.Q, 1, 2) * d.s
-    y = (Vi[ops] @ T[:, :, None])[:, :, 0] + (d.Ht[ops] @ w[:, :, None])[:, :, 0]
-    X = V[ops] @ d.forcing_rows(ops, y, (d.Yt[ops] @ w[:, :, None])[:, :, 0])
+    V, Vi = d.basis(ops)
+    y = (Vi @ T[:, :, None])[:, :, 0] + (d.Ht[ops] @ w[:, :, None])[:, :, 0]
+    v = (d.Yt[ops] @ w[:, :, None])[:, :, 0]
+    X = V @ d.forcing(ops, y, v)
     dense = np.einsum("bjac,bc->baj", d.dPhi[ops], T) + np.einsum("bjac,bc->baj", d.dGam[ops], w)
     assert np.abs(dense).max() > 0
     np.testing.assert_allclose(X, dense, rtol=0, atol=1e-10 * np.abs(dense).max())
+    o = int(ops[0])  # the same rows, all at one operating point
+    same = ops == o
+    np.testing.assert_allclose(V[same] @ d.forcing(o, y[same], v[same]), dense[same], rtol=0, atol=1e-10 * np.abs(dense).max())

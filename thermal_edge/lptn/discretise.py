@@ -44,7 +44,7 @@ class Discrete:
     The modal basis of operating point ``k`` is ``V_k = diag(1/s) Q_k``: ``Φ = V diag(mu) V⁻¹``
     and ``V⁻¹ (Φ − I) A⁻¹ = diag(phi) Q_kᵀ diag(1/s)`` (``phi = (mu − 1)/λ``, positive).
     ``V⁻¹ dΦ_j V`` is built per operating point when first needed (:meth:`dphit`);
-    :meth:`forcing_rows` applies it to single vectors without building it (ZOH).
+    :meth:`forcing` applies it to vectors, row by row without building it (ZOH).
     ``V⁻¹ dΓ_j`` is kept factored, ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with
     ``Ht = V⁻¹ A⁻¹ W`` (K, n, m), ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m)
     from the rank-one factors of :class:`~thermal_edge.lptn.network.Continuous`:
@@ -93,27 +93,41 @@ class Discrete:
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
         return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
 
-    def forcing_rows(self, ops: np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p), one operating point ``ops_i`` per row, from
-        ``y = V⁻¹ T + Ht w`` (B, n) and ``v = Yt w`` (B, e): ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``.
+    def basis(self, ops: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The modal basis ``V = diag(1/s) Q`` of ``Φ`` at these operating points, and ``V⁻¹``."""
+        assert self.Q is not None and self.s is not None
+        Q = self.Q[ops]
+        return Q / self.s[:, None], np.swapaxes(Q, -1, -2) * self.s
 
-        ZOH: the Daleckii–Krein form applied edge by edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``,
-        joined with the factored ``dΓ`` in one product, about ``n² (e + nc)`` flops a row:
-        cheaper than building ``dPhit`` for an operating point that a few steps use (a ramp).
-        Euler: from the dense derivatives.
+    def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p) from ``y = V⁻¹ T + Ht w`` (B, n) and
+        ``v = Yt w`` (B, e): ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``.
+
+        ``o`` is one operating point for all rows (its dense ``dPhit``: one product for all rows
+        and parameters) or one per row (B,). Per row, ZOH applies the Daleckii–Krein form edge by
+        edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``, joined with the factored ``dΓ`` in one product,
+        about ``n² (e + nc)`` flops a row: cheaper than building ``dPhit`` for an operating point
+        that a few steps use (a ramp). Euler uses its dense derivatives.
         """
         assert self.Zh is not None and self.dg is not None and self.Q is not None and self.phi is not None
-        Zh = self.Zh[ops]  # (B, n, e)
-        low = self.phi[ops][:, :, None] * v[:, None, :]
+        p, B = self.dg.shape[1], len(y)
+        if np.ndim(o) == 0:
+            n = len(self.phi[o])
+            X = (self.dphit(o).reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
+            lowv = (v[:, :, None] * self.dg[o].T).transpose(1, 0, 2).reshape(-1, B * p)  # (e, B p)
+            X -= self.phi[o][:, None] * (self.Zh[o] @ lowv).reshape(n, B, p).transpose(1, 0, 2)
+            return X
+        Zh = self.Zh[o]  # (B, n, e)
+        low = self.phi[o][:, :, None] * v[:, None, :]
         if self.Dd is None:
-            return np.einsum("bjac,bc->baj", self.dphit(ops), y) - (Zh * low) @ np.swapaxes(self.dg[ops], 1, 2)
-        X = (Zh * -(self.Dd[ops] @ (Zh * y[:, :, None]) + low)) @ np.swapaxes(self.dg[ops], 1, 2)
+            return np.einsum("bjac,bc->baj", self.dphit(o), y) - (Zh * low) @ np.swapaxes(self.dg[o], 1, 2)
+        X = (Zh * -(self.Dd[o] @ (Zh * y[:, :, None]) + low)) @ np.swapaxes(self.dg[o], 1, 2)
         assert self.r is not None
         nz = np.nonzero(np.any(self.r != 0.0, axis=0))[0]
         if len(nz):
             assert self.Wc is not None
-            Qc = np.swapaxes(self.Q[ops][:, nz, :], 1, 2)  # (B, n, nc)
-            X += (Qc * (self.Wc[ops] @ (Qc * y[:, :, None]))) @ self.r[:, nz].T
+            Qc = np.swapaxes(self.Q[o][:, nz, :], 1, 2)  # (B, n, nc)
+            X += (Qc * (self.Wc[o] @ (Qc * y[:, :, None]))) @ self.r[:, nz].T
         return X
 
     @property
@@ -136,13 +150,14 @@ class Discrete:
         dPhit = self.dPhit
         if dPhit is None:
             return None
-        return sandwich(self.Q / self.s[:, None], dPhit, np.swapaxes(self.Q, -1, -2) * self.s)
+        V, Vi = self.basis(np.arange(self.Phi.shape[0]))
+        return sandwich(V, dPhit, Vi)
 
     @property
     def dGam(self) -> np.ndarray | None:
         """``∂Γ/∂θ_j`` (K, p, n, m) in node coordinates."""
         dGamt = self.dGamt
-        return None if dGamt is None else (self.Q / self.s[:, None])[:, None] @ dGamt
+        return None if dGamt is None else self.basis(np.arange(self.Phi.shape[0]))[0][:, None] @ dGamt
 
 
 def _eig(cont: Continuous) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

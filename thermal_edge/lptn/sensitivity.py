@@ -93,28 +93,16 @@ class Sensitivities:
     # -- the forcing, in the modal basis of an operating point ------------------------------
     def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``V⁻¹ (dΦ T + dΓ w)`` (B, n, p) for temperatures ``T`` (B, n) and inputs ``w`` (B, m) of
-        ``Γ`` at operating point ``o``, in the modal basis of ``Φ`` there.
-
-        ``o`` is one operating point for all rows (its dense ``dPhit``, one product for all
-        rows) or one per row (B,) (the Daleckii–Krein form vector by vector, for steps at
-        operating points used once or twice);
-        ``dΦ T + dΓ w = V (dPhit (V⁻¹ T + Ht w) − phi ∘ Zh (dg ∘ Yt w))`` (see
-        :class:`~thermal_edge.lptn.discretise.Discrete`). The losses' own dependence on θ,
-        ``Γ_P ∂P/∂θ``, is the callers' to add.
+        ``Γ`` at operating point ``o`` (one for all rows, or one per row), in the modal basis of
+        ``Φ`` there (:meth:`~thermal_edge.lptn.discretise.Discrete.forcing`). The losses' own
+        dependence on θ, ``Γ_P ∂P/∂θ``, is the callers' to add.
         """
-        d, n, p = self.d, self.n, self.p
-        assert d.Q is not None and d.s is not None and d.phi is not None
-        assert d.Ht is not None and d.Zh is not None and d.Yt is not None and d.dg is not None
-        Q = d.Q[o]
-        if np.ndim(o) == 0:
-            y = Q.T @ (d.s[:, None] * T.T) + d.Ht[o] @ w.T  # (n, B)
-            X = (d.dphit(o).reshape(p * n, n) @ y).reshape(p, n, len(T)).transpose(2, 1, 0)
-            # − phi ∘ Zh (dg_j ∘ Yt w) for every j in one product: (n, e) @ (e, B p)
-            v = (d.Yt[o] @ w.T).T[:, :, None] * d.dg[o].T  # (B, e, p)
-            X -= d.phi[o][:, None] * (d.Zh[o] @ v.transpose(1, 0, 2).reshape(-1, len(T) * p)).reshape(n, len(T), p).transpose(1, 0, 2)
-            return X
-        y = (np.swapaxes(Q, 1, 2) @ (d.s * T)[:, :, None] + d.Ht[o] @ w[:, :, None])[:, :, 0]
-        return d.forcing_rows(o, y, (d.Yt[o] @ w[:, :, None])[:, :, 0])
+        d = self.d
+        assert d.Ht is not None and d.Yt is not None
+        _, Vi = d.basis(o)
+        # y = V⁻¹ T + Ht w and v = Yt w, one row per step
+        y = np.einsum("...ac,...c->...a", Vi, T) + np.einsum("...am,...m->...a", d.Ht[o], w)
+        return d.forcing(o, y, np.einsum("...em,...m->...e", d.Yt[o], w))
 
     # -- runs ---------------------------------------------------------------------------------
     def run(self, held: np.ndarray, closed: bool, rows: np.ndarray | None) -> np.ndarray:
@@ -286,9 +274,8 @@ class Sensitivities:
         in the modal basis of ``Φ``, ``diag(r)^-1 V⁻¹ M V diag(r)`` with ``r = √phi`` is
         symmetric (up to round-off) when no loss law couples nodes."""
         d = self.d
-        assert d.Q is not None and d.s is not None and d.phi is not None
-        V = d.Q[ops] / d.s[:, None]  # modal basis of Φ at each operating point
-        Vi = np.swapaxes(d.Q[ops], -1, -2) * d.s
+        assert d.phi is not None
+        V, Vi = d.basis(ops)  # modal basis of Φ at each operating point
         r = np.sqrt(d.phi[ops])
         Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
         asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
