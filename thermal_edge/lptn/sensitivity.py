@@ -306,7 +306,7 @@ class Sensitivities:
         for o in np.unique(o_):
             sel = np.nonzero(o_ == o)[0]
             X = self.forcing(int(o), np.zeros((len(sel) * nt, n)), wp[sel].reshape(len(sel) * nt, -1))
-            GPt = d.Q[o].T @ (d.s[:, None] * d.Gam[o][:, self.nb:])  # V⁻¹ Γ_P
+            GPt = d.basis(int(o))[1] @ d.Gam[o][:, self.nb:]  # V⁻¹ Γ_P
             dP = dPdth[sel].reshape(len(sel) * nt, -1, p)
             X += (GPt @ dP.transpose(1, 0, 2).reshape(dP.shape[1], -1)).reshape(n, -1, p).transpose(1, 0, 2)
             Xf[sel] = X.reshape(len(sel), nt, n, p)
