@@ -280,3 +280,19 @@ def test_initial_state_keeps_readings_and_balances_the_rest():
     nb = len(m.boundaries)
     res = A @ T + W[:, :nb] @ asm.U  # loss-free balance of the unmeasured nodes
     np.testing.assert_allclose(res[1:], 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("cols", [1, 3])
+def test_operating_points_grouped_as_numpy_unique_rows(cols):
+    """The simulation's grouping of samples into operating points (a lexsort) gives what
+    ``np.unique(axis=0)`` gives: the same distinct rows in the same order, the same indices."""
+    from thermal_edge.lptn.simulate import unique_rows
+
+    rng = np.random.default_rng(7)
+    keys = rng.integers(0, 4, size=(500, cols)).astype(float) * 250.0  # many ties, as a drive cycle has
+    keys[::7, 0] = -0.0  # signed zeros are the same operating point
+    uniq, inv = unique_rows(keys)
+    ref, ref_inv = np.unique(keys, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(uniq, ref)
+    np.testing.assert_array_equal(inv, np.asarray(ref_inv).reshape(-1))
+    np.testing.assert_array_equal(uniq[inv], keys)

@@ -31,7 +31,7 @@ every resistance and multiply the capacity.
 >>> from thermal_edge.lptn.expr import Num, evaluate_const
 >>> r = arc_resistances(0.1, 0.2, 0.5, 0.1, Num(1.0), Num(1.0), Num(1.0))
 >>> round(evaluate_const(r["axial"][0]), 4), round(evaluate_const(r["axial"][2]), 4)
-(66.6667, -22.2222)
+(6.6667, -2.2222)
 """
 from __future__ import annotations
 
