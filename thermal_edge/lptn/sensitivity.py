@@ -34,6 +34,13 @@ MIN_HELD = 64
 #: basis a pair loses about 1e-16/gap of relative accuracy to cancellation
 CLOSE = 1e-6
 BLOCK = 256  # time steps per block of the step-by-step forcing
+#: the powers μ^k of a held run are built in blocks of this many steps, ``μ^(jB + i) = μ^(jB) μ^i``:
+#: ``exp`` for one block and the block offsets, one product for the rest
+POW_BLOCK = 64
+#: floor of the exponents of both factors: their product stays above e^−708 (no subnormals, which
+#: would slow the product of the basis with the coefficients), and e^−350 is far below round-off
+#: of any term that matters
+LOG_FLOOR = -350.0
 #: an operating point used by fewer stepped steps than this gets the Daleckii–Krein form vector by
 #: vector instead of its dense derivative (a ramp: a new speed every step)
 FEW_STEPS = 8
@@ -151,7 +158,8 @@ class Sensitivities:
             return s
 
         pending = 0  # first step not yet propagated
-        work = np.empty((2 * self.n + 1, max((b - a for a, b in runs), default=0)))
+        longest = max((b - a for a, b in runs), default=0)
+        work = np.empty((2 * self.n + 1, -(-longest // POW_BLOCK) * POW_BLOCK))
         for (a, b), form in zip(runs, forms):
             if form is None:
                 continue
@@ -343,20 +351,24 @@ class _HeldRun:
     def apply(self, s0: np.ndarray, out: np.ndarray, work: np.ndarray) -> np.ndarray:
         """Fill ``out`` (L, rows, p) with the chosen rows of ``S`` over the run of ``L`` steps from
         ``S`` (n, p) at its start; return the full ``S`` at its end. ``work`` is scratch space of
-        at least (2n+1, L), shared by the runs (fresh memory costs a page fault per 4 KiB)."""
+        at least (2n+1, L rounded up to :data:`POW_BLOCK`), shared by the runs (fresh memory
+        costs a page fault per 4 KiB)."""
         L, nr, p = out.shape
         sig0 = self.Xi @ s0
         n = len(sig0)
         coef = self.coef.reshape(2 * n + 1, nr * p).copy()
         coef[:n] += (self.C.T[:, :, None] * sig0[:, None, :]).reshape(n, nr * p)  # μ^k σ_0
-        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L, in place; exponents floored at −500: e^−745
-        # and below would be subnormal (and slow the product below)
+        # the basis [μ^k, k μ^(k−1)] at k = 1 .. L, in place, one row per function (contiguous
+        # passes); μ^k in blocks: μ^(jB + i) = μ^(jB) μ^i, i = 1 .. B
         k = np.arange(1.0, L + 1.0)
-        basis = work[:, :L]  # one row per function: contiguous passes
+        nb = -(-L // POW_BLOCK)
+        blocks = work[: n + 1, : nb * POW_BLOCK].reshape(n + 1, nb, POW_BLOCK)
+        assert np.may_share_memory(blocks, work)  # a view: the product below fills work
+        first = np.exp(np.maximum(self.logmue[:, None] * np.arange(1.0, POW_BLOCK + 1.0), LOG_FLOOR))
+        offset = np.exp(np.maximum(self.logmue[:, None] * (POW_BLOCK * np.arange(nb)), LOG_FLOOR))
+        np.multiply(offset[:, :, None], first[:, None, :], out=blocks)
+        basis = work[:, :L]
         Pw = basis[: n + 1]
-        np.multiply(self.logmue[:, None], k, out=Pw)
-        np.maximum(Pw, -500.0, out=Pw)
-        np.exp(Pw, out=Pw)
         basis[n + 1:, 0] = 1.0
         np.multiply(Pw[:n, :-1], k[1:], out=basis[n + 1:, 1:])
         rows = out.reshape(L, nr * p)
