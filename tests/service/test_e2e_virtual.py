@@ -88,7 +88,9 @@ def test_closed_loop_keeps_the_true_hot_spot_below_its_maximum(run):
     warn, mx = run.cfg.limit_band(next(lim for lim in _model().limits if lim.name == "hot_spot"))
     closed = run.summary.true_max_c["hot_spot"]
     open_ = open_loop_true_max("end_winding_2")
-    print(f"true hot spot max: closed loop {closed:.1f} degC, open loop {open_:.1f} degC (max {mx:g})")
+    print(f"true hot spot max: closed loop {closed:.1f} degC, open loop {open_:.1f} degC (max {mx:g}); "
+          f"emulator flow waits {run.summary.flow_waits} ({run.summary.flow_wait_wall_s:.1f} s), "
+          f"given up {run.summary.flow_timeouts}; run {run.wall_s:.1f} s")
     assert closed < mx < open_
     _, mmax = run.cfg.limit_band(next(lim for lim in _model().limits if lim.name == "magnet"))
     assert run.summary.true_max_c["magnet"] < mmax

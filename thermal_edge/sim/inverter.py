@@ -170,6 +170,8 @@ class EmulatorSummary:
     limited_s: float = 0.0  # simulated time the demand was clamped
     flow_waits: int = 0
     flow_wait_wall_s: float = 0.0
+    #: waits given up after ``flow_timeout_s`` of the service's silence (the emulator then runs on)
+    flow_timeouts: int = 0
     true_max_c: dict[str, float] = field(default_factory=dict)  # per limited node of the model
     true_max_t: dict[str, float] = field(default_factory=dict)
     closed_loop: bool = True
@@ -484,6 +486,7 @@ class InverterEmulator:
                                 await asyncio.sleep(0.0005)
                             if time.monotonic() - self.last_status_wall >= cfg.flow_timeout_s:  # type: ignore[operator]
                                 synced = False  # the service is gone or lost frames: resync later
+                                self.summary.flow_timeouts += 1
                                 break
                         self.summary.flow_wait_wall_s += time.monotonic() - w0
                         if not synced:
