@@ -2,12 +2,14 @@
 ambient drift, sensor noise and quantisation."""
 from __future__ import annotations
 
+import asyncio
 import math
+import time
 
 import numpy as np
 import pytest
 
-from svc_testlib import CYCLES, MODEL
+from svc_testlib import CYCLES, DBC, MODEL
 from thermal_edge.bus import DecodedFrame
 from thermal_edge.lptn import load_model
 from thermal_edge.sim.cycles import cycle_run, load_cycle
@@ -15,11 +17,11 @@ from thermal_edge.sim.inverter import TABLE4_VARIATIONS, EmulatorConfig, Inverte
 from thermal_edge.sim.plant import simulate_plant
 
 
-def emulator(**kw) -> InverterEmulator:
+def emulator(bus: dict | None = None, **kw) -> InverterEmulator:
     base = dict(model_path=MODEL, cycle_path=CYCLES / "varied_drive.yaml", t0=0.0, current_period_s=0.1,
                 temperature_period_s=1.0, plant_dt_s=0.5, duration_s=1200.0)
     base.update(kw)
-    return InverterEmulator(EmulatorConfig(**base))
+    return InverterEmulator(EmulatorConfig(**base), bus)
 
 
 def run_offline(emu: InverterEmulator, seconds: float) -> list:
@@ -90,3 +92,67 @@ def test_table4_variations():
     p = table4_parameters(m)
     nominal = dict(zip(m.parameter_names, m.nominal()))
     assert {k: p[k] - nominal[k] for k in p} == pytest.approx(TABLE4_VARIATIONS)
+
+
+class _LateTicker:
+    """A stand-in for the frame-clock service on the ``virtual`` bus: silent for ``delay_s`` of wall
+    time after the emulator starts (a busy process), then one ``TE_Status`` per tick boundary its
+    frames cross, the way the service ticks. It notes how far (simulated s) the emulator's newest
+    frame is ahead of each frame it handles."""
+
+    def __init__(self, channel: str, delay_s: float) -> None:
+        import can
+
+        from thermal_edge.bus import FrameCodec
+        from thermal_edge.service.clock import FrameClock
+
+        self.bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+        self.codec = FrameCodec(DBC)
+        self.clock = FrameClock(1.0)
+        self.delay_s = delay_s
+        self.ticks = 0
+        self.max_lead_s = 0.0
+
+    async def run(self, emu: InverterEmulator, done: asyncio.Event) -> None:
+        import can
+
+        await asyncio.sleep(self.delay_s)
+        status = self.codec.frame_id("TE_Status")
+        while not done.is_set():
+            msg = self.bus.recv(0)
+            if msg is None:
+                await asyncio.sleep(0.0005)
+                continue
+            self.max_lead_s = max(self.max_lead_s, emu._ts - msg.timestamp)
+            for _ in self.clock.observe(msg.timestamp):
+                self.ticks += 1
+                data = self.codec.encode("TE_Status", {"TE_State": 1, "TE_PredErrRms": 0.0, "TE_AdaptCount": 0, "TE_ParamVersion": 0})
+                self.bus.send(can.Message(timestamp=msg.timestamp, arbitration_id=status, data=data, is_extended_id=False))
+        self.bus.shutdown()
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.5])
+def test_flow_control_keeps_the_lead_from_the_start(delay_s):
+    """The emulator stays within ``max_lead_s`` of the service's ticks however late the first tick
+    is (it once took the lead at the first TE_Status as zero: a slow first tick made the service
+    lag by hundreds of ticks for a whole run)."""
+    channel = f"te-flow-{time.monotonic_ns()}"
+    emu = emulator({"interface": "virtual", "channel": channel, "preserve_timestamps": True}, cycle_path=CYCLES / "overload.yaml",
+                   duration_s=600.0, speed=1000.0, max_lead_s=10.0, flow_timeout_s=5.0)
+    ticker = _LateTicker(channel, delay_s)
+
+    async def main() -> None:
+        done = asyncio.Event()
+        task = asyncio.create_task(ticker.run(emu, done))
+        await emu.run()
+        done.set()
+        await task
+
+    asyncio.run(main())
+    s = emu.summary
+    print(f"delay {delay_s} s: lead up to {ticker.max_lead_s:.1f} s, {ticker.ticks} ticks, {s.flow_waits} waits "
+          f"({s.flow_wait_wall_s:.2f} s), {s.flow_timeouts} given up")
+    assert s.flow_timeouts == 0 and (s.flow_waits > 0 or not delay_s)  # a late ticker is waited for
+    # the ticker sees every frame after its boundary's frame: a lead of max_lead_s plus the frames of one tick
+    assert ticker.max_lead_s <= 10.0 + 2.0
+    assert s.frames_received["TE_Status"] >= 600 - 12

@@ -17,9 +17,11 @@ Time: simulated time advances ``speed`` times faster than the wall clock (1: rea
 frame's timestamp is its simulated time (an absolute epoch time starting at ``t0``). Sends are
 paced per plant step; with ``flow_control`` the emulator also stays at most ``max_lead_s`` of
 simulated time ahead of the service's ticks (it counts the service's ``TE_Status`` frames, one
-per tick with the frame clock), so a receiver that falls behind (e.g. while adapting) is waited
-for instead of having its ``udp_multicast`` socket overflow. If the service goes silent for
-``flow_timeout_s`` the emulator runs on at ``speed``.
+per tick with the frame clock, against the tick boundaries its own frames cross since its run
+began, so the service must be listening by then), so a receiver that falls behind (e.g. while
+adapting) is waited for instead of having its ``udp_multicast`` socket overflow. If no
+``TE_Status`` arrives for ``flow_timeout_s`` (from the run's start for the first) the emulator
+runs on at ``speed`` and counts again from the next ``TE_Status``.
 
 The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
 ``trace_every_s``) for tests.
@@ -461,8 +463,11 @@ class InverterEmulator:
         t_start = wall0
         sim0 = self.elapsed
         self.summary.sim_start = self.sim_time
-        synced = False
-        base_ticks = base_status = 0
+        # the service is expected to listen from the start: its ticks are counted from ours at once.
+        # Syncing at its first TE_Status instead took the lead at that moment as zero, and a
+        # service slow to tick first (busy process) then lagged by hundreds of ticks for the run
+        synced = cfg.flow_control
+        base_ticks, base_status = 0, self.status_count
         tick = cfg.service_tick_s
         ticks_sent = 0
         max_lead = max(1, int(round(cfg.max_lead_s / tick)))
@@ -473,8 +478,8 @@ class InverterEmulator:
                 # flow control: stay at most max_lead ticks ahead of the service
                 if cfg.flow_control:
                     now = time.monotonic()
-                    alive = self.last_status_wall is not None and now - self.last_status_wall < cfg.flow_timeout_s
-                    if alive and not synced:
+                    alive = now - self._last_heard(t_start) < cfg.flow_timeout_s
+                    if alive and not synced:  # TE_Status again after a timeout
                         synced, base_ticks, base_status = True, ticks_sent, self.status_count
                     elif not alive:
                         synced = False
@@ -484,7 +489,7 @@ class InverterEmulator:
                         while (ticks_sent - base_ticks) - (self.status_count - base_status) > max_lead:
                             if drain() == 0:
                                 await asyncio.sleep(0.0005)
-                            if time.monotonic() - self.last_status_wall >= cfg.flow_timeout_s:  # type: ignore[operator]
+                            if time.monotonic() - self._last_heard(t_start) >= cfg.flow_timeout_s:
                                 synced = False  # the service is gone or lost frames: resync later
                                 self.summary.flow_timeouts += 1
                                 break
@@ -529,6 +534,10 @@ class InverterEmulator:
                 pass
             self._finish()
         return self.summary
+
+    def _last_heard(self, run_start: float) -> float:
+        """Wall time (monotonic) of the last TE_Status, or of the run's start before the first."""
+        return self.last_status_wall if self.last_status_wall is not None and self.last_status_wall > run_start else run_start
 
     def inject(self, arbitration_id: int, data: bytes, *, extended: bool = False, remote: bool = False,
                timestamp: float | None = None) -> None:
