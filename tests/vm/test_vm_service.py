@@ -151,10 +151,11 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
         assert metric(a1, "thermal_edge_frames_dropped_total", reason=reason) == 0, reason
     assert msum(a1, "thermal_edge_frames_lost_all_total") == 0
     # counter_resync counts frames of one ID arriving > 8 cycles (80 ms for INV_Currents) after the
-    # previous one: scheduling stalls of the emulated machine, not loss (received == sent above).
-    # The counters are judged without timestamps on the host below instead. Under TCG (no KVM)
-    # the stalls vary with the host's load: 82 and 180 of 13,200 frames measured in two runs.
-    assert msum(a1, "thermal_edge_counter_resync_total") <= 0.03 * sum(sent.values())
+    # previous one. The emulator sends each frame at its cycle, so only a scheduling stall of the
+    # emulated machine makes one (0 measured under TCG). When it sent a plant step's ten frames in
+    # one burst, every ~90 ms hole counted: 82-810 of 13,200 frames, with the host's load. The
+    # counters are also judged without timestamps on the host below.
+    assert msum(a1, "thermal_edge_counter_resync_total") <= 0.01 * sum(sent.values())
     assert summary["rx_lost"] == 0 and sum(summary["rx_dropped"].values()) == 0 and summary["send_failures"] == 0
     assert summary["frames_received"].get("TE_Limits", 0) > 0 and summary["frames_received"].get("TE_Status", 0) > 0
     # TE_Limits at its cycle (0.1 s) during phase A, from the capture of the bus

@@ -14,14 +14,16 @@ counts as absent after ``limits_timeout_sim_s`` of simulated time (300 ms of wal
 minutes of machine time). Open loop it ignores them.
 
 Time: simulated time advances ``speed`` times faster than the wall clock (1: real time) and every
-frame's timestamp is its simulated time (an absolute epoch time starting at ``t0``). Sends are
-paced per plant step; with ``flow_control`` the emulator also stays at most ``max_lead_s`` of
-simulated time ahead of the service's ticks (it counts the service's ``TE_Status`` frames, one
-per tick with the frame clock, against the tick boundaries its own frames cross since its run
-began, so the service must be listening by then), so a receiver that falls behind (e.g. while
-adapting) is waited for instead of having its ``udp_multicast`` socket overflow. If no
-``TE_Status`` arrives for ``flow_timeout_s`` (from the run's start for the first) the emulator
-runs on at ``speed`` and counts again from the next ``TE_Status``.
+frame's timestamp is its simulated time (an absolute epoch time starting at ``t0``). Each frame
+is sent at its own time (scaled by ``speed``; frames due within 1 ms go at once), so in real time
+``INV_Currents`` comes every 10 ms as from the inverter, not a plant step's frames in a burst.
+With ``flow_control`` the emulator also stays at most ``max_lead_s`` of simulated time ahead of
+the service's ticks: it counts the service's ``TE_Status`` frames (one per tick with the frame
+clock) against the tick boundaries its own frames cross since its run began, so the service
+must be listening by then. A receiver that falls behind (e.g. while adapting) is thus waited for
+instead of having its ``udp_multicast`` socket overflow. If no ``TE_Status`` arrives for
+``flow_timeout_s`` (from the run's start for the first) the emulator runs on at ``speed`` and
+counts again from the next ``TE_Status``.
 
 The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
 ``trace_every_s``) for tests.
@@ -56,6 +58,9 @@ __all__ = ["EmulatorConfig", "InverterEmulator", "Plant", "TABLE4_VARIATIONS", "
 log = logging.getLogger(__name__)
 
 ROOT = Path(__file__).resolve().parents[2]
+#: frames due sooner than this are sent at once (accelerated runs: a sleep per frame would only add
+#: event-loop turns); later ones are slept for, so a real-time run sends at the DBC's cycle
+PACE_MIN_SLEEP_S = 0.001
 
 #: The paper's Table 4 parameter variations (additive, in the parameters' units).
 TABLE4_VARIATIONS: dict[str, float] = {"k_r_sw": 4.0, "k_c_sw": 1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
@@ -500,6 +505,11 @@ class InverterEmulator:
                 for ts, name, signals in frames:
                     if name in self.paused:
                         continue
+                    if cfg.speed > 0:  # each frame at its own time, not the step's frames in a burst
+                        delay = wall0 + (ts - self.t0 - sim0) / cfg.speed - time.monotonic()
+                        if delay > PACE_MIN_SLEEP_S:
+                            await asyncio.sleep(delay)
+                            drain()
                     if math.floor(ts / tick) != math.floor(self._ts / tick):
                         ticks_sent += 1
                     self._ts = ts
