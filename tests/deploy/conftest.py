@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
-if str(Path(__file__).parent) not in sys.path:  # deploylib importable under any --import-mode
-    sys.path.insert(0, str(Path(__file__).parent))
+for _dir in (Path(__file__).parent, Path(__file__).parents[1] / "vm"):  # deploylib, vmrun (apt_install)
+    if str(_dir) not in sys.path:  # importable under any --import-mode
+        sys.path.insert(0, str(_dir))
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 import deploylib as dl
+from vmrun import apt_install  # tests/vm is on sys.path (conftest.py)
 
 UNIT = dl.DEPLOY / "systemd" / "thermal-edge.service"
 VCAN = dl.DEPLOY / "systemd" / "vcan.service"
@@ -55,17 +56,10 @@ def seconds(v: str) -> float:
     return total
 
 
-def apt_install(*packages: str) -> None:
-    """Install Debian packages where we may (root with apt-get); the callers check what arrived."""
-    if os.geteuid() == 0 and shutil.which("apt-get"):
-        subprocess.run(["apt-get", "install", "-y", "--no-install-recommends", *packages], capture_output=True,
-                       timeout=600, env={**os.environ, "DEBIAN_FRONTEND": "noninteractive"})
-
-
 def systemd_analyze() -> str:
     exe = shutil.which("systemd-analyze")
     if exe is None:
-        apt_install("systemd")
+        apt_install(["systemd"], 600)
         exe = shutil.which("systemd-analyze")
     if exe is None:
         pytest.skip("systemd-analyze not available (apt-get install systemd)")
@@ -80,7 +74,7 @@ UNIT_COMMANDS = {Path("/sbin/modprobe"): "kmod", Path("/sbin/ip"): "iproute2"}
 def unit_commands_present() -> None:
     missing = [pkg for cmd, pkg in UNIT_COMMANDS.items() if not os.access(cmd, os.X_OK)]
     if missing:
-        apt_install(*missing)
+        apt_install(missing, 600)
     still = [str(cmd) for cmd in UNIT_COMMANDS if not os.access(cmd, os.X_OK)]
     if still:
         pytest.skip(f"{', '.join(still)} not on this machine (apt-get install {' '.join(UNIT_COMMANDS.values())}): "

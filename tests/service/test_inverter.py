@@ -6,12 +6,14 @@ import asyncio
 import math
 import time
 
+import can
 import numpy as np
 import pytest
 
 from svc_testlib import CYCLES, DBC, MODEL
-from thermal_edge.bus import DecodedFrame
+from thermal_edge.bus import DecodedFrame, FrameCodec
 from thermal_edge.lptn import load_model
+from thermal_edge.service.clock import FrameClock
 from thermal_edge.sim.cycles import cycle_run, load_cycle
 from thermal_edge.sim.inverter import TABLE4_VARIATIONS, EmulatorConfig, InverterEmulator, table4_parameters
 from thermal_edge.sim.plant import simulate_plant
@@ -101,11 +103,6 @@ class _LateTicker:
     frame is ahead of each frame it handles."""
 
     def __init__(self, channel: str, delay_s: float) -> None:
-        import can
-
-        from thermal_edge.bus import FrameCodec
-        from thermal_edge.service.clock import FrameClock
-
         self.bus = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
         self.codec = FrameCodec(DBC)
         self.clock = FrameClock(1.0)
@@ -114,8 +111,6 @@ class _LateTicker:
         self.max_lead_s = 0.0
 
     async def run(self, emu: InverterEmulator, done: asyncio.Event) -> None:
-        import can
-
         await asyncio.sleep(self.delay_s)
         status = self.codec.frame_id("TE_Status")
         while not done.is_set():
@@ -162,8 +157,6 @@ def test_real_time_frames_come_at_their_cycle_not_in_bursts():
     """At speed 1 ``INV_Currents`` leaves every 10 ms, as from the inverter: a plant step's ten
     frames sent in one burst left ~90 ms holes, longer than the 8 cycles after which a receiver
     stops judging the alive counter (the SocketCAN VM test counted them as resyncs)."""
-    import can
-
     channel = f"te-pace-{time.monotonic_ns()}"
     emu = emulator({"interface": "virtual", "channel": channel}, current_period_s=0.01, temperature_period_s=0.1,
                    plant_dt_s=0.1, duration_s=3.0, speed=1.0, flow_control=False, closed_loop=False)

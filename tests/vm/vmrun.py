@@ -335,20 +335,14 @@ def _apt_get(args: list[str], timeout: float) -> subprocess.CompletedProcess:
     )
 
 
-def ensure_tools(install: bool = True, timeout: float = 1200.0) -> None:
-    """Make qemu, a CAN-capable kernel, static busybox and can-utils available, or raise VMUnavailable."""
-    missing = _missing_tools()
-    if not missing:
-        return
-    what = "; ".join(f"{pkg} ({desc})" for pkg, desc in missing.items())
-    if not install or os.environ.get("THERMAL_EDGE_VM_NO_INSTALL") == "1":
-        raise VMUnavailable(f"missing and not installing (THERMAL_EDGE_VM_NO_INSTALL): {what}")
+def apt_install(pkgs: list[str], timeout: float = 1200.0) -> str | None:
+    """``apt-get install`` the Debian packages ``pkgs`` (after a failure: ``apt-get update`` and once
+    more); None when done, else why not. The callers check that what they need arrived."""
     if not _is_root():
-        raise VMUnavailable(f"not root, cannot apt-get install the missing: {what}")
+        return f"not root, cannot apt-get install {' '.join(pkgs)}"
     if shutil.which("apt-get") is None:
-        raise VMUnavailable(f"no apt-get to install the missing: {what}")
-    pkgs = sorted(missing)
-    _log(f"apt-get install {' '.join(pkgs)} (missing: {what})")
+        return f"no apt-get to install {' '.join(pkgs)}"
+    _log(f"apt-get install {' '.join(pkgs)}")
     t0 = time.monotonic()
     install_args = ["install", "--no-install-recommends", *pkgs]
     try:
@@ -359,10 +353,24 @@ def ensure_tools(install: bool = True, timeout: float = 1200.0) -> None:
             proc = _apt_get(install_args, timeout)
             if proc.returncode != 0:
                 tail = "\n".join((upd.stdout + proc.stdout).splitlines()[-15:])
-                raise VMUnavailable(f"apt-get install {' '.join(pkgs)} failed:\n{tail}")
+                return f"apt-get install {' '.join(pkgs)} failed:\n{tail}"
     except subprocess.TimeoutExpired as exc:
-        raise VMUnavailable(f"apt-get install {' '.join(pkgs)} timed out after {exc.timeout:.0f} s") from exc
+        return f"apt-get install {' '.join(pkgs)} timed out after {exc.timeout:.0f} s"
     _log(f"apt-get done in {time.monotonic() - t0:.0f} s")
+    return None
+
+
+def ensure_tools(install: bool = True, timeout: float = 1200.0) -> None:
+    """Make qemu, a CAN-capable kernel, static busybox and can-utils available, or raise VMUnavailable."""
+    missing = _missing_tools()
+    if not missing:
+        return
+    what = "; ".join(f"{pkg} ({desc})" for pkg, desc in missing.items())
+    if not install or os.environ.get("THERMAL_EDGE_VM_NO_INSTALL") == "1":
+        raise VMUnavailable(f"missing and not installing (THERMAL_EDGE_VM_NO_INSTALL): {what}")
+    why = apt_install(sorted(missing), timeout)
+    if why is not None:
+        raise VMUnavailable(f"{why} (missing: {what})")
     still = _missing_tools()
     if still:
         raise VMUnavailable("still missing after apt-get: " + "; ".join(f"{p} ({d})" for p, d in still.items()))
