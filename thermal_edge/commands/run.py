@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 import os
 import sys
 
-LOG_LEVELS = ("debug", "info", "warning", "error")
+LOG_LEVELS = ("debug", "info", "notice", "warning", "error")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -24,19 +23,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=run)
 
 
-def setup_logging(level: str) -> None:
-    # under systemd the journal adds the time; elsewhere keep it
-    fmt = "%(levelname)s %(name)s: %(message)s" if os.environ.get("INVOCATION_ID") else \
-        "%(asctime)s %(levelname)s %(name)s: %(message)s"
-    logging.basicConfig(level=getattr(logging, level.upper()), format=fmt, stream=sys.stderr)
-
-
 def fail(msg: str) -> int:
     print(f"thermal-edge run: error: {msg}", file=sys.stderr)
     return 2
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..service.journal import setup_logging
+
     setup_logging(args.log_level)
     from ..bus import BusConfigError, DbcError
     from ..config import ConfigError, load_config

@@ -1,0 +1,143 @@
+"""Log lines for the journal: syslog priorities and a rate limit against flooding.
+
+Under systemd the service's stderr goes to the journal, which reads a ``<N>`` prefix as the
+line's priority (``SyslogLevelPrefix=``, on by default), so ``journalctl -p warning`` shows the
+safety events. The prefix is written only when stderr *is* the journal stream (systemd sets
+``JOURNAL_STREAM`` to its ``device:inode``), so a terminal sees plain lines.
+
+Python's levels map to syslog priorities: CRITICAL 2 (crit), ERROR 3 (err), WARNING 4
+(warning), NOTICE 5 (notice: a normal but significant event, such as a change of derate
+reason), INFO 6, DEBUG 7.
+
+Rate limiting lives here, once, for every logger of the package: a flapping input must not flood
+the journal. The limiter counts lines per call site (logger, level, message template); after
+``burst`` lines within ``window_s`` it drops further lines of that site until the window ends,
+then reports how many it dropped on the next line it lets through. Callers log every event and
+never rate-limit themselves.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from typing import IO, Any
+
+__all__ = ["NOTICE", "PRIORITY", "JournalFormatter", "RateLimit", "notice", "priority", "setup_logging",
+           "stream_is_journal"]
+
+#: Python level for syslog's "notice" (5): between INFO (20) and WARNING (30).
+NOTICE = 25
+logging.addLevelName(NOTICE, "NOTICE")
+
+#: Python level -> syslog priority.
+PRIORITY = {logging.CRITICAL: 2, logging.ERROR: 3, logging.WARNING: 4, NOTICE: 5, logging.INFO: 6, logging.DEBUG: 7}
+
+
+def priority(levelno: int) -> int:
+    """Syslog priority (0-7) of a Python log level: the priority of the nearest level at or below it."""
+    best = 7
+    for lvl, prio in sorted(PRIORITY.items()):
+        if levelno >= lvl:
+            best = prio
+    return best
+
+
+def notice(logger: logging.Logger, msg: str, *args: Any) -> None:
+    """Log ``msg % args`` at NOTICE (syslog priority 5)."""
+    logger.log(NOTICE, msg, *args)
+
+
+def stream_is_journal(stream: IO[str], environ: dict[str, str] | None = None) -> bool:
+    """True if ``stream`` is the journal's stream (``JOURNAL_STREAM`` names its device:inode)."""
+    env = os.environ if environ is None else environ
+    js = env.get("JOURNAL_STREAM", "")
+    try:
+        dev, ino = (int(x) for x in js.split(":"))
+        st = os.fstat(stream.fileno())
+    except (ValueError, OSError, AttributeError):
+        return False
+    return st.st_dev == dev and st.st_ino == ino
+
+
+class JournalFormatter(logging.Formatter):
+    """Prefixes each line of a record with ``<N>``, its syslog priority."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        prefix = f"<{priority(record.levelno)}>"
+        return "\n".join(prefix + line for line in text.splitlines() or [""])
+
+
+class RateLimit(logging.Filter):
+    """Lets at most ``burst`` lines per call site through in each window of ``window_s`` seconds.
+
+    Parameters
+    ----------
+    burst : int
+        Lines of one call site allowed per window.
+    window_s : float
+        Window length in s (monotonic clock).
+    clock : callable, optional
+        Time source in s (tests).
+    """
+
+    def __init__(self, burst: int = 5, window_s: float = 60.0, clock: Any = time.monotonic) -> None:
+        super().__init__()
+        self.burst = int(burst)
+        self.window_s = float(window_s)
+        self._clock = clock
+        #: call site -> [window start, lines let through in it, lines dropped since the last one let through]
+        self._sites: dict[tuple[str, int, str], list[float]] = {}
+        self.dropped_total = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        key = (record.name, record.levelno, str(record.msg))
+        now = self._clock()
+        site = self._sites.get(key)
+        if site is None or now - site[0] >= self.window_s:
+            dropped = int(site[2]) if site is not None else 0
+            self._sites[key] = [now, 1, 0]
+            if len(self._sites) > 4096:  # bounded: forget windows that have ended
+                self._sites = {k: v for k, v in self._sites.items() if now - v[0] < self.window_s}
+            if dropped:
+                record.msg = f"{record.msg} [{dropped} similar line(s) suppressed]"
+            return True
+        if site[1] < self.burst:
+            site[1] += 1
+            return True
+        site[2] += 1
+        self.dropped_total += 1
+        return False
+
+
+def setup_logging(level: str | int, stream: IO[str] | None = None) -> logging.Handler:
+    """Configure the root logger for the service: priorities for the journal, rate limit, level.
+
+    Parameters
+    ----------
+    level : str or int
+        Lowest level logged ("debug", "info", "notice", "warning", "error" or a number).
+    stream : file, optional
+        Where lines go (default stderr).
+
+    Returns
+    -------
+    logging.Handler
+        The installed handler (its filter is the :class:`RateLimit`).
+    """
+    stream = stream if stream is not None else sys.stderr
+    journal = stream_is_journal(stream)
+    if journal:  # the journal adds the time
+        formatter: logging.Formatter = JournalFormatter("%(levelname)s %(name)s: %(message)s")
+    else:
+        formatter = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(formatter)
+    handler.addFilter(RateLimit())
+    root = logging.getLogger()
+    for h in list(root.handlers):
+        root.removeHandler(h)
+    root.addHandler(handler)
+    root.setLevel(level if isinstance(level, int) else logging.getLevelName(level.upper()))
+    return handler
