@@ -108,6 +108,26 @@ async def test_open_circuit_and_implausible_sensors_force_the_safe_limit(tmp_pat
 
 
 @pytest.mark.async_timeout(60)
+async def test_stator_sensors_not_fitted_force_the_safe_limit(tmp_path, channel):
+    async with running(tmp_path, channel, metrics=True) as (svc, emu):
+        await sim_until(emu, 120)
+        for sensor in ("slot_winding", "end_winding", "housing"):
+            emu.sensor_status[sensor] = int(SensorStatus.NOT_FITTED)
+        t_fault = emu.elapsed
+        await sim_until(emu, t_fault + 10)
+        seen = reasons_since(emu, t_fault + 3)
+        assert seen and all(r == DerateReason.SENSOR_FAULT and cur <= SAFE for _, cur, r in seen)
+        m = scrape(svc.metrics.port)
+        for sensor in ("slot_winding", "end_winding", "housing"):
+            assert m[f'thermal_edge_sensor_fault{{kind="not_fitted",sensor="{sensor}"}}'] == 1.0
+        assert m['thermal_edge_bad_readings_total{kind="not_fitted"}'] == 3  # one per sensor entering the fault
+        emu.sensor_status.clear()
+        t_ok = emu.elapsed
+        await sim_until(emu, t_ok + 60)
+        assert emu.last_reason != DerateReason.SENSOR_FAULT and emu.current_limit > SAFE
+
+
+@pytest.mark.async_timeout(60)
 async def test_stale_temperatures_force_the_safe_limit(tmp_path, channel):
     async with running(tmp_path, channel) as (svc, emu):
         await sim_until(emu, 200)

@@ -88,10 +88,33 @@ def test_sensor_faults_are_flagged_and_counted(acc):
     assert ti.faults["slot_winding"] == "short_circuit" and ti.faults["housing"] == "out_of_range"
     assert "end_winding" not in ti.faults  # it reported a valid value again
     assert acc.bad_readings == {"open_circuit": 1, "short_circuit": 1, "out_of_range": 1}
-    # a sensor "not fitted" is no fault, just not measured
+    # a required sensor "not fitted" is a fault: the model must not run blind on it
     acc.add(stator(2.1, s_hous=int(SensorStatus.NOT_FITTED), hous=math.nan), 2.1)
     ti = acc.take(3.0)
-    assert "housing" not in ti.faults and math.isnan(ti.measured["housing"])
+    assert ti.faults == {"housing": "not_fitted"} and math.isnan(ti.measured["housing"])
+    assert acc.bad_readings["not_fitted"] == 1
+
+
+def test_not_fitted_is_a_fault_only_for_a_required_sensor(tmp_path):
+    import yaml
+
+    from svc_testlib import REPO, write_yaml
+
+    raw = yaml.safe_load(EDGE_YAML.read_text())
+    raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
+    raw["codec"]["dbc"] = str(REPO / "dbc" / "thermal_edge.dbc")
+    raw["signals"]["sensors"]["housing"]["required"] = False
+    acc = InputAccumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    nf = int(SensorStatus.NOT_FITTED)
+    acc.add(ambient(0.1), 0.1)
+    acc.add(stator(0.1, s_hous=nf, hous=math.nan), 0.1)
+    ti = acc.take(1.0)
+    assert not ti.faults and math.isnan(ti.measured["housing"]) and ti.measured["slot_winding"] == 60.0
+    # all three stator sensors "not fitted": the two required ones are faults
+    acc.add(stator(1.1, s_slot=nf, s_end=nf, s_hous=nf, slot=math.nan, end=math.nan, hous=math.nan), 1.1)
+    ti = acc.take(2.0)
+    assert ti.faults == {"slot_winding": "not_fitted", "end_winding": "not_fitted"}
+    assert all(math.isnan(v) for v in ti.measured.values())
 
 
 def test_stale_sensor_values_are_not_used(acc):

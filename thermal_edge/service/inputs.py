@@ -10,7 +10,8 @@ Per tick (the frames of ``[t - period, t)``):
 - ``latest`` inputs (ambient) and the sensors: the latest valid reading, with its age and status.
 
 A frame type that has not arrived for longer than its timeout makes its inputs *stale*; a sensor
-reporting open/short circuit, or a value outside the plausible range, is *faulty*. An input with
+reporting open/short circuit or "not fitted", or a value outside the plausible range, is *faulty*
+(a sensor marked ``required: false`` is then only unmeasured). An input with
 no fresh value keeps its last value (the model must keep running) and is flagged. Bad readings
 are counted by kind in :attr:`InputAccumulator.bad_readings`.
 """
@@ -25,7 +26,7 @@ from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus
 from ..config import EdgeConfig, InputSignal, SensorSignal
 
-__all__ = ["InputAccumulator", "TickInputs"]
+__all__ = ["FAULT_KINDS", "InputAccumulator", "TickInputs"]
 
 
 @dataclass
@@ -40,7 +41,7 @@ class TickInputs:
         Model input name -> value (held from earlier ticks when nothing fresh arrived; NaN if
         never received).
     measured : dict
-        Sensor name -> reading in degC, NaN when not usable (invalid, stale, not fitted).
+        Sensor name -> reading in degC, NaN when not usable (faulty, stale, not fitted).
     ages : dict
         Sensor/input name -> seconds since its last valid value (inf if never).
     status : dict
@@ -48,8 +49,8 @@ class TickInputs:
     stale : list of str
         Frames (by name) missing for longer than their timeout.
     faults : dict
-        Sensor/input name -> fault kind (``open_circuit``, ``short_circuit``, ``out_of_range``,
-        ``no_value``) for the required ones.
+        Sensor/input name -> fault kind (``open_circuit``, ``short_circuit``, ``not_fitted``,
+        ``out_of_range``, ``no_value``) for the required ones.
     frames : Counter
         Accepted frames of the tick per frame name.
     fresh : set of str
@@ -83,7 +84,14 @@ class _Latest:
         self.tick_fault: str | None = None  # any fault seen during the current tick (reported with it)
 
 
-_STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatus.SHORT_CIRCUIT): "short_circuit"}
+# "not fitted" on a sensor the configuration maps is a fault too: the model would run blind on it.
+# A sensor the machine may lack is marked ``required: false`` and then only goes unmeasured.
+_STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatus.SHORT_CIRCUIT): "short_circuit",
+                 int(SensorStatus.NOT_FITTED): "not_fitted"}
+
+
+#: Every kind of rejected reading, in the order metrics list them.
+FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value")
 
 
 class InputAccumulator:
@@ -116,7 +124,8 @@ class InputAccumulator:
         self._last_frame_t: dict[str, float] = {}
         self._frames: Counter[str] = Counter()
         self.started_t: float | None = None
-        #: Readings rejected, by kind (``open_circuit``, ``short_circuit``, ``out_of_range``, ``no_value``).
+        #: Readings rejected, by kind (``open_circuit``, ``short_circuit``, ``not_fitted``, ``out_of_range``,
+        #: ``no_value``), counted when a sensor enters the fault.
         self.bad_readings: Counter[str] = Counter()
         #: Frames whose signals did not have the expected names/values (counted, ignored).
         self.malformed: int = 0
@@ -166,10 +175,6 @@ class InputAccumulator:
         fault: str | None = None
         if status is not None and status in _STATUS_FAULT:
             fault = _STATUS_FAULT[status]
-        elif status == int(SensorStatus.NOT_FITTED):
-            slot.fault = None
-            slot.value = math.nan
-            return
         elif not math.isfinite(value):
             fault = "no_value"
         elif not self.lo <= value <= self.hi:

@@ -22,6 +22,7 @@ from prometheus_client.registry import Collector
 from .. import __version__
 from ..bus.frames import DerateReason, TeState
 from ..bus.stats import DROP_REASONS
+from .inputs import FAULT_KINDS
 
 if TYPE_CHECKING:  # pragma: no cover
     from .engine import ThermalEngine, TickOutput
@@ -163,7 +164,7 @@ class _LiveCollector(Collector):
                 yield CounterMetricFamily(P + name, doc, value=value)
             acc = eng.accumulator
             bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=["kind"])
-            for kind in ("open_circuit", "short_circuit", "out_of_range", "no_value"):
+            for kind in FAULT_KINDS:
                 bad.add_metric([kind], acc.bad_readings.get(kind, 0))
             yield bad
             yield CounterMetricFamily(P + "malformed_frames", "Accepted frames whose signals could not be used",
