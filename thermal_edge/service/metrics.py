@@ -12,7 +12,6 @@ from __future__ import annotations
 import logging
 import math
 import platform
-import threading
 from typing import TYPE_CHECKING, Any, Callable, Iterable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info
@@ -23,6 +22,7 @@ from .. import __version__
 from ..bus.frames import DerateReason, TeState
 from ..bus.stats import DROP_REASONS
 from .inputs import FAULT_KINDS
+from .metrics_server import MetricsServer
 
 if TYPE_CHECKING:  # pragma: no cover
     from .engine import ThermalEngine, TickOutput
@@ -205,6 +205,11 @@ class _LiveCollector(Collector):
                                       value=store.load_errors)
             yield CounterMetricFamily(P + "state_save_errors", "State saves that failed", value=store.save_errors)
             yield CounterMetricFamily(P + "state_saves", "State saves", value=store.saves)
+        server = m._server
+        if server is not None:
+            yield CounterMetricFamily(P + "metrics_connections_rejected",
+                                      "Connections to this endpoint closed on arrival (too many at once)",
+                                      value=server.rejected)
         for name, fn, doc in m.extra:
             try:
                 yield GaugeMetricFamily(P + name, doc, value=float(fn()))
@@ -239,8 +244,7 @@ class ServiceMetrics:
         self.info = Info(P + "build", "Build information", registry=r)
         self.up = Gauge(P + "up", "1 while the service runs", registry=r)
         r.register(_LiveCollector(self))
-        self._server: Any = None
-        self._thread: threading.Thread | None = None
+        self._server: MetricsServer | None = None
 
     def attach(self, engine: "ThermalEngine", codec: Any = None, transport_stats: Any = None, store: Any = None) -> None:
         self.engine, self.codec, self.transport_stats, self.store = engine, codec, transport_stats, store
@@ -259,18 +263,15 @@ class ServiceMetrics:
             self.adapt_duration.observe(res.wall_s)
 
     def serve(self, address: str, port: int) -> tuple[str, int]:
-        """Start the HTTP endpoint in a daemon thread; returns the bound (address, port)."""
-        from prometheus_client import start_http_server
-
-        server, thread = start_http_server(port, addr=address, registry=self.registry)
-        self._server, self._thread = server, thread
-        host, bound = server.server_address[:2]
-        log.info("metrics on http://%s:%d/metrics", host if ":" not in str(host) else f"[{host}]", bound)
-        return str(host), int(bound)
+        """Start the HTTP endpoint (bounded threads, idle timeout) in a daemon thread; returns the bound (address, port)."""
+        self._server = MetricsServer(self.registry, address, port)
+        host, bound = self._server.address
+        log.info("metrics on http://%s:%d/metrics", host if ":" not in host else f"[{host}]", bound)
+        return host, bound
 
     @property
     def port(self) -> int | None:
-        return int(self._server.server_address[1]) if self._server is not None else None
+        return self._server.address[1] if self._server is not None else None
 
     def text(self) -> str:
         from prometheus_client import generate_latest
@@ -280,8 +281,7 @@ class ServiceMetrics:
     def close(self) -> None:
         if self._server is not None:
             try:
-                self._server.shutdown()
-                self._server.server_close()
+                self._server.close()
             except Exception:
                 pass
             self._server = None
