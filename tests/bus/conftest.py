@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import inspect
 import itertools
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -16,7 +18,7 @@ from thermal_edge.bus import FrameCodec
 if str(Path(__file__).parent) not in sys.path:  # bus_testlib importable under any --import-mode
     sys.path.insert(0, str(Path(__file__).parent))
 
-from bus_testlib import DBC_PATH, MATRIX_PATH, MatrixSignal, parse_can_matrix
+from bus_testlib import DBC_PATH, MATRIX_PATH, REPO, MatrixSignal, parse_can_matrix
 
 _channel_ids = itertools.count()
 
@@ -27,7 +29,9 @@ def matrix() -> list[MatrixSignal]:
         pytest.skip(f"CAN matrix {MATRIX_PATH} not present: cannot cross-check the DBC against it")
     rows = parse_can_matrix(MATRIX_PATH.read_text(encoding="utf-8"))
     assert len(rows) >= 20, "CAN matrix tables could not be parsed"
-    return rows
+    # enumeration values the project appends to the shared matrix (docs/can-matrix-additions.md)
+    added = re.findall(r"^\| (\w+) \| (\d+) \| (\w+) \|", (REPO / "docs" / "can-matrix-additions.md").read_text(), re.M)
+    return [dataclasses.replace(r, unit=r.unit + "".join(f", {v} {n}" for s, v, n in added if s == r.name)) for r in rows]
 
 
 @pytest.fixture

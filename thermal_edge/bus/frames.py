@@ -76,6 +76,9 @@ class DerateReason(enum.IntEnum):
     STALE_INPUT = 5
     MODEL_FAULT = 6
     STARTING = 7
+    #: the limit climbs back (rise rate) after a reduction whose cause has gone; appended to the
+    #: shared CAN matrix's 0-7 (documented in docs/can-matrix-additions.md)
+    RECOVERING = 8
 
 
 class TeState(enum.IntEnum):
