@@ -48,11 +48,17 @@ CURRENT_MAX_SIGNAL = 3276.75
 
 
 def load_service_model(config: EdgeConfig) -> Model:
-    """The machine model of the configuration, with its offline parameter values applied."""
+    """The machine model of the configuration, with its offline parameter values applied.
+
+    Raises
+    ------
+    ConfigError
+        A configured parameter unknown to the model file or outside its bounds (checked on the
+        model as the file defines it: only the model file can widen a bound).
+    """
     model = load_model(config.model.path)
-    if config.model.parameters:
-        model = model.with_parameters(config.model.parameters)
-    return model
+    config.check_parameters(model)
+    return model.with_parameters(config.model.parameters) if config.model.parameters else model
 
 
 @dataclass
