@@ -199,15 +199,71 @@ def test_counter_gap_counts_lost_frames_with_wraparound():
 
 
 def test_counter_resync_after_long_silence():
-    tx, rx = _fresh_pair()
+    tx = FrameCodec(DBC_PATH)
+    rx = FrameCodec(DBC_PATH, resync_after_cycles=8)
     assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=4), timestamp=100.0)
-    # same counter 0.5 s later = 50 cycles of 10 ms: the 4-bit counter cannot judge, accept and resync
+    # same counter 0.5 s later = 50 cycles of 10 ms, beyond 8: a silent sender, accept and resync
     frame = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=4), timestamp=100.5)
     assert frame is not None and frame.lost_before == 0 and frame.timestamp == 100.5
-    assert rx.stats.counter_resync == 1 and rx.stats.counter_repeat == 0
+    assert rx.stats.counter_resync == 1 and rx.stats.counter_repeat == 0 and rx.stats.lost == 0
     # ... but within a few cycles a repeat is a repeat
     assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=4), timestamp=100.51) is None
     assert rx.stats.counter_repeat == 1
+
+
+# holes of every kind: single frames, a 4-bit wrap exactly (16), the issue's 17 / 40 / 100
+HOLES = {5: 1, 30: 2, 60: 15, 100: 16, 150: 17, 200: 40, 300: 100, 450: 33, 520: 3}
+
+
+def _sequence_with_holes(n: int, holes: dict[int, int]) -> tuple[list[int], int]:
+    """Indices of the frames that reach the receiver, and the number dropped (independent count)."""
+    dropped: set[int] = set()
+    for first, length in holes.items():
+        dropped.update(range(first, first + length))
+    return [i for i in range(n) if i not in dropped], len(dropped)
+
+
+@pytest.mark.parametrize("jitter_cycles", [0.0, 0.3, 3.0])
+def test_lost_frames_counted_exactly_across_long_holes(jitter_cycles):
+    """A frame sequence at its DBC cycle with known holes: the lost count equals the number
+    dropped, holes of 16 and more included (a 4-bit counter alone sees 17 as 1, 100 as 4),
+    also with timing jitter (arrival time off by up to a few cycles)."""
+    tx, rx = _fresh_pair()
+    cycle = tx.cycle_time_s("INV_Currents")
+    kept, n_dropped = _sequence_with_holes(700, HOLES)
+    rng = random.Random(11)
+    frames = [tx.encode("INV_Currents", _currents(i * 0.05)) for i in range(700)]  # counter i % 16
+    lost_before = {}
+    for i in kept:
+        t = 1000.0 + i * cycle + rng.uniform(-jitter_cycles, jitter_cycles) * cycle
+        frame = rx.decode(0x0A0, frames[i], timestamp=t)
+        assert frame is not None and frame.counter == i % 16
+        lost_before[i] = frame.lost_before
+    assert rx.stats.lost == n_dropped == sum(HOLES.values())
+    for first, length in HOLES.items():
+        assert lost_before[first + length] == length, (first, length)
+    assert rx.stats.counter_resync == 0 and rx.stats.dropped_total == 0
+
+
+def test_lost_frames_without_time_stamps_fall_back_to_the_counter():
+    tx, rx = _fresh_pair()
+    kept, _ = _sequence_with_holes(200, {10: 3, 50: 17})
+    frames = [tx.encode("INV_Currents", _currents(0)) for _ in range(200)]
+    for i in kept:
+        assert rx.decode(0x0A0, frames[i]) is not None
+    assert rx.stats.lost == 3 + 1  # 17 is one wrap plus one: the counter alone cannot tell
+
+
+def test_burst_arrival_does_not_invent_or_hide_losses():
+    """Frames sent at their cycle but received in bursts (time stamps bunched): the counter
+    step decides, time stamps add no wraps they cannot justify."""
+    tx, rx = _fresh_pair()
+    frames = [tx.encode("INV_Currents", _currents(0)) for _ in range(100)]
+    kept = [i for i in range(100) if i not in (20, 21, 22, 61)]
+    for k, i in enumerate(kept):
+        t = 50.0 + (k // 10) * 0.1  # ten frames per time stamp, 100 ms apart
+        assert rx.decode(0x0A0, frames[i], timestamp=t) is not None
+    assert rx.stats.lost == 4 and rx.stats.counter_repeat == 0
 
 
 def test_unknown_id_short_dlc_and_garbage_never_raise():

@@ -47,8 +47,7 @@ async def test_two_processes_over_udp_multicast(udp_port):
     queue: asyncio.Queue = asyncio.Queue()
     te = CanTransport({"interface": "udp_multicast", "port": udp_port, "node": "TE"}, FrameCodec(DBC_PATH), queue=queue)
     async with te:
-        sock = te.bus._multicast._socket
-        assert sock.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS) == 0
+        assert te.bus.socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 0
         te.start_cyclic("TE_Limits", lambda: LIMITS, period_s=0.02)
         env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
         proc = await asyncio.create_subprocess_exec(

@@ -23,7 +23,7 @@ async def main(port: int, n_frames: int) -> dict:
     async with inv:
         import socket
 
-        hops = inv.bus._multicast._socket.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS)
+        hops = inv.bus.socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL)
         for i in range(n_frames):
             inv.send("INV_Currents", dict(INV_Id=i * 0.05, INV_Iq=-i * 0.05, INV_IphRms=i * 0.1))
             await asyncio.sleep(0.001)  # pace: UDP drops frames when a receiver falls behind

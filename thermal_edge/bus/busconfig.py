@@ -1,49 +1,109 @@
 """Bus configuration and construction of the python-can bus.
 
-``udp_multicast`` always gets ``hop_limit=0`` (IPv6 hop limit / IPv4 TTL),
-whatever the configuration says: with it the kernel loops every datagram back
-to the sockets of this host and sends nothing out of any interface. The channel
-must be a multicast group, so a unicast address off this machine can never be
-configured.
+``udp_multicast`` is opened as :class:`~thermal_edge.bus.udp.LocalUdpMulticastBus`: hop limit 0,
+bound to the group, joined and sent on the loopback interface only, so nothing leaves this host
+and nothing from beyond it is received. The channel must be a multicast group.
+
+A configuration is checked completely before anything is opened: an unknown key (named with
+the closest valid one), an interface python-can does not offer, a wrong type. The python-can
+keyword arguments of the chosen interface's bus class (``port``, ``fd``, ``preserve_timestamps``
+...) may be given next to the known keys; anything else goes under ``options:``, passed to
+``can.Bus`` unchecked.
 """
 
 from __future__ import annotations
 
+import difflib
+import functools
+import importlib
+import inspect
 import ipaddress
 import logging
 import socket
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import can
+import can.interfaces
+
+from .udp import RECEIVE_QUEUE_BYTES, LocalUdpMulticastBus, enlarge_receive_queue
 
 __all__ = [
     "DEFAULT_UDP_MULTICAST_GROUP",
     "DEFAULT_UDP_MULTICAST_PORT",
     "DEFAULT_VIRTUAL_CHANNEL",
+    "RECEIVE_QUEUE_BYTES",
     "BusConfig",
     "BusConfigError",
     "bus_kwargs",
     "create_bus",
+    "enlarge_receive_queue",
+    "interface_keywords",
 ]
 
 log = logging.getLogger(__name__)
 
-#: python-can's default group for ``udp_multicast`` (IPv6, site-local scope
-#: ff15::/16, not link-local); with hop limit 0 it stays on this host.
-DEFAULT_UDP_MULTICAST_GROUP = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
+#: python-can's default IPv4 group for ``udp_multicast`` (administratively scoped 239/8); an
+#: IPv4 group because Linux's loopback interface carries IPv4 multicast but has no IPv6
+#: multicast route (see :mod:`thermal_edge.bus.udp`).
+DEFAULT_UDP_MULTICAST_GROUP = can.interfaces.udp_multicast.UdpMulticastBus.DEFAULT_GROUP_IPv4
 #: python-can's default UDP port for ``udp_multicast``.
 DEFAULT_UDP_MULTICAST_PORT = 43113
 #: Channel name used for the in-process ``virtual`` interface when none is given.
 DEFAULT_VIRTUAL_CHANNEL = "thermal_edge"
 
 _NO_BITRATE_INTERFACES = frozenset({"virtual", "udp_multicast"})
+#: Bus classes of this package that replace python-can's for an interface name.
+_OWN_BUS_CLASSES: dict[str, type[can.BusABC]] = {"udp_multicast": LocalUdpMulticastBus}
 
 
 class BusConfigError(ValueError):
-    """The bus configuration is invalid (names the offending key)."""
+    """The bus configuration is invalid.
+
+    Attributes
+    ----------
+    key : str
+        Dotted path of the offending key (``"bus.chanel"``), for a loader to prefix its file name.
+    """
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(f"{key}: {message}")
+        self.key = key
+
+
+def _did_you_mean(word: str, candidates: Iterable[str]) -> str:
+    close = difflib.get_close_matches(word, sorted(candidates), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+@functools.lru_cache(maxsize=None)
+def interface_keywords(interface: str) -> frozenset[str]:
+    """Named keyword arguments of the bus class of a python-can interface.
+
+    Parameters
+    ----------
+    interface : str
+        python-can interface name (``"socketcan"``, ``"udp_multicast"`` ...).
+
+    Returns
+    -------
+    frozenset of str
+        Parameter names of the class's ``__init__`` (``**kwargs`` excluded); empty if the
+        class cannot be imported here (a vendor driver missing): then only ``options:`` passes
+        arguments to it.
+    """
+    cls = _OWN_BUS_CLASSES.get(interface)
+    if cls is None:
+        try:
+            module, name = can.interfaces.BACKENDS[interface]
+            cls = getattr(importlib.import_module(module), name)
+        except Exception:
+            return frozenset()
+    params = inspect.signature(cls.__init__).parameters.values()
+    return frozenset(p.name for p in params
+                     if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL))
 
 
 @dataclass
@@ -53,8 +113,9 @@ class BusConfig:
     Attributes
     ----------
     interface : str
-        python-can interface: ``"socketcan"`` on the drive, ``"virtual"`` (one
-        process) or ``"udp_multicast"`` (several processes on this host) in tests.
+        python-can interface (one of ``can.interfaces.VALID_INTERFACES``): ``"socketcan"``
+        on the drive, ``"virtual"`` (one process) or ``"udp_multicast"`` (several processes
+        on this host) in tests.
     channel : str or int or None
         Interface channel (``"can0"``, a virtual bus name, a multicast group).
         None picks a default per interface.
@@ -63,7 +124,9 @@ class BusConfig:
     node : str or None
         This node's name in the DBC (``"TE"`` for the service, ``"INV"`` for an
         inverter emulator). Received frames that this node itself transmits are
-        ignored as own echoes (``udp_multicast`` loops them back). None: keep all.
+        ignored as own echoes (``udp_multicast`` loops them back), and on interfaces that
+        filter in the kernel (SocketCAN) only the frames this node receives are let in.
+        None: keep all.
     record_path : str or Path or None
         If set, all RX and TX traffic is recorded to this ``candump -L`` file.
     record_channel : str
@@ -73,7 +136,8 @@ class BusConfig:
     reconnect_min_s, reconnect_max_s : float
         Backoff between reconnection attempts, in s (doubles up to the maximum).
     options : dict
-        Further keyword arguments for ``can.Bus`` (e.g. ``port``, ``fd``).
+        Further keyword arguments for ``can.Bus``: the interface's own ones given next to the
+        known keys, plus everything under ``options:`` (passed unchecked).
     """
 
     interface: str = "virtual"
@@ -89,38 +153,63 @@ class BusConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.interface, str) or not self.interface:
-            raise BusConfigError(f"bus.interface: expected a python-can interface name, got {self.interface!r}")
-        if self.bitrate is not None and (not isinstance(self.bitrate, int) or self.bitrate <= 0):
-            raise BusConfigError(f"bus.bitrate: expected a positive integer (bit/s), got {self.bitrate!r}")
+            raise BusConfigError("bus.interface", f"expected a python-can interface name, got {self.interface!r}")
+        if self.interface not in can.interfaces.VALID_INTERFACES:
+            raise BusConfigError(
+                "bus.interface",
+                f"unknown python-can interface {self.interface!r}"
+                f"{_did_you_mean(self.interface, can.interfaces.VALID_INTERFACES)}; python-can offers "
+                + ", ".join(sorted(can.interfaces.VALID_INTERFACES)),
+            )
+        if self.bitrate is not None and (
+            isinstance(self.bitrate, bool) or not isinstance(self.bitrate, int) or self.bitrate <= 0
+        ):
+            raise BusConfigError("bus.bitrate", f"expected a positive integer (bit/s), got {self.bitrate!r}")
         for name in ("send_timeout_s", "reconnect_min_s", "reconnect_max_s"):
             value = getattr(self, name)
-            if not isinstance(value, (int, float)) or value <= 0:
-                raise BusConfigError(f"bus.{name}: expected a positive number of seconds, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
+                raise BusConfigError(f"bus.{name}", f"expected a positive number of seconds, got {value!r}")
         if self.reconnect_max_s < self.reconnect_min_s:
-            raise BusConfigError("bus.reconnect_max_s: must not be below bus.reconnect_min_s")
+            raise BusConfigError("bus.reconnect_max_s", "must not be below bus.reconnect_min_s")
         if not isinstance(self.options, Mapping):
-            raise BusConfigError(f"bus.options: expected a mapping, got {type(self.options).__name__}")
+            raise BusConfigError("bus.options", f"expected a mapping, got {type(self.options).__name__}")
         self.options = dict(self.options)
 
     @classmethod
     def from_mapping(cls, mapping: Mapping[str, Any]) -> BusConfig:
         """Build from a configuration mapping (e.g. the ``bus:`` section of a YAML file).
 
-        Known keys fill the fields; ``options`` (or ``kwargs``) and every
-        unknown key go to :attr:`options` for ``can.Bus``.
+        Known keys fill the fields; the named keyword arguments of the interface's bus class
+        (see :func:`interface_keywords`) and the entries of ``options`` go to :attr:`options`.
+
+        Raises
+        ------
+        BusConfigError
+            Any other key (named, with the closest valid key), or an invalid value.
         """
         if not isinstance(mapping, Mapping):
-            raise BusConfigError(f"bus: expected a mapping, got {type(mapping).__name__}")
+            raise BusConfigError("bus", f"expected a mapping, got {type(mapping).__name__}")
         known = {f.name for f in fields(cls)} - {"options"}
-        values = {k: v for k, v in mapping.items() if k in known}
-        options: dict[str, Any] = {}
-        for key in ("options", "kwargs"):
-            extra = mapping.get(key) or {}
-            if not isinstance(extra, Mapping):
-                raise BusConfigError(f"bus.{key}: expected a mapping, got {type(extra).__name__}")
-            options.update(extra)
-        options.update({k: v for k, v in mapping.items() if k not in known and k not in ("options", "kwargs")})
-        return cls(**values, options=options)
+        interface = mapping.get("interface", cls.interface)
+        if isinstance(interface, str) and interface not in can.interfaces.VALID_INTERFACES:
+            cls(interface=interface)  # raises the interface error before any key error
+        shorthand = interface_keywords(interface) - known if isinstance(interface, str) else frozenset()
+        for key in mapping:
+            if key not in known and key not in shorthand and key != "options":
+                raise BusConfigError(
+                    f"bus.{key}",
+                    f"unknown key '{key}' under bus:{_did_you_mean(str(key), known | shorthand | {'options'})}"
+                    " (keyword arguments of other python-can interfaces go under bus.options)",
+                )
+        extra = mapping.get("options") or {}
+        if not isinstance(extra, Mapping):
+            raise BusConfigError("bus.options", f"expected a mapping, got {type(extra).__name__}")
+        options = {k: v for k, v in mapping.items() if k in shorthand}
+        clash = set(options) & set(extra)
+        if clash:
+            key = sorted(clash)[0]
+            raise BusConfigError(f"bus.options.{key}", f"given twice, under bus: and under bus.options:")
+        return cls(**{k: v for k, v in mapping.items() if k in known}, options={**options, **extra})
 
     @classmethod
     def coerce(cls, config: BusConfig | Mapping[str, Any]) -> BusConfig:
@@ -132,10 +221,10 @@ def _check_multicast_group(channel: Any) -> str:
     try:
         address = ipaddress.ip_address(str(channel))
     except ValueError:
-        raise BusConfigError(f"bus.channel: {channel!r} is not an IP multicast group address") from None
+        raise BusConfigError("bus.channel", f"{channel!r} is not an IP multicast group address") from None
     if not address.is_multicast:
         raise BusConfigError(
-            f"bus.channel: {channel} is not a multicast group (udp_multicast only sends to groups on this host)"
+            "bus.channel", f"{channel} is not a multicast group (udp_multicast only sends to groups on this host)"
         )
     return str(address)
 
@@ -153,7 +242,8 @@ def bus_kwargs(config: BusConfig | Mapping[str, Any]) -> dict[str, Any]:
     dict
         ``interface``, ``channel``, ``bitrate`` (where meaningful) and the
         options. For ``udp_multicast``: ``hop_limit`` is always 0, the channel is
-        checked to be a multicast group, ``port`` defaults to python-can's.
+        checked to be a multicast group (default :data:`DEFAULT_UDP_MULTICAST_GROUP`),
+        ``port`` defaults to python-can's.
 
     Raises
     ------
@@ -191,7 +281,8 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     Returns
     -------
     can.BusABC
-        The open bus; the caller shuts it down.
+        The open bus; the caller shuts it down. ``udp_multicast`` is a
+        :class:`~thermal_edge.bus.udp.LocalUdpMulticastBus` (this host only).
 
     Raises
     ------
@@ -201,7 +292,11 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
         The interface could not be opened.
     """
     kwargs = bus_kwargs(config)
-    bus = can.Bus(**kwargs)
+    own = _OWN_BUS_CLASSES.get(kwargs["interface"])
+    if own is not None:
+        bus: can.BusABC = own(**{k: v for k, v in kwargs.items() if k != "interface"})
+    else:
+        bus = can.Bus(**kwargs)
     if kwargs["interface"] == "udp_multicast":
         _assert_hop_limit_zero(bus)
     elif kwargs["interface"] == "socketcan":
@@ -211,33 +306,9 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     return bus
 
 
-#: kernel receive queue asked for, bytes (a CAN frame takes about 1 kB of it on SocketCAN)
-RECEIVE_QUEUE_BYTES = 4 << 20
-
-
-def enlarge_receive_queue(sock: socket.socket, size: int = RECEIVE_QUEUE_BYTES) -> None:
-    """Ask for a receive queue of several seconds of a busy bus (the default, ~200 kB, holds
-    about one second at 200 frames/s), so that a loop busy for a moment loses no frames.
-
-    ``SO_RCVBUFFORCE`` needs CAP_NET_ADMIN; without it ``SO_RCVBUF`` is capped by
-    ``net.core.rmem_max`` (raise that sysctl on the edge computer for the full size).
-    """
-    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
-        if opt is None:
-            continue
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, opt, int(size))
-            return
-        except OSError:
-            continue
-
-
 def _assert_hop_limit_zero(bus: can.BusABC) -> None:
     """Double-check on the socket itself that nothing can leave the host."""
-    multicast = getattr(bus, "_multicast", None)
-    sock = getattr(multicast, "_socket", None)
-    if sock is None:  # python-can internals changed; the kwarg was still forced to 0
-        return
+    sock = bus.socket  # type: ignore[attr-defined]  # LocalUdpMulticastBus
     if sock.family == socket.AF_INET6:
         hops = sock.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS)
     else:

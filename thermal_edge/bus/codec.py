@@ -20,13 +20,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import cantools
 from cantools.database.can import Message as _DbcMessage
 from cantools.database.can import Signal as _DbcSignal
 
-from .crc import frame_crc
+from .crc import frame_crc, frame_crc_function
 from .frames import COUNTER_SUFFIX, CRC_SUFFIX, DEFAULT_DBC_PATH
 from .stats import FrameStats
 
@@ -45,6 +45,9 @@ COUNTER_START_BIT, COUNTER_BITS = 48, 4
 CRC_START_BIT, CRC_BITS = 56, 8
 _NO_VALUE_ATTRIBUTE = "NoValueRaw"
 _CYCLE_ATTRIBUTE = "GenMsgCycleTime"
+#: Frame periods between two frames of an identifier from which their time stamps decide how
+#: often the 4-bit counter wrapped (3/4 of a wrap: bursts of up to 11 frames keep their count).
+_WRAP_FROM_PERIODS = 12.0
 
 
 class DbcError(ValueError):
@@ -109,6 +112,12 @@ class _SignalSpec:
     no_value_raw: int | None
     identity: bool  # factor 1, offset 0: physical value is the raw integer
     decimals: int  # decimals of factor and offset: decoded values are rounded to them
+    # decoding without cantools (every signal of the matrix is little-endian, checked at load)
+    start: int
+    mask: int
+    sign_bit: int  # 1 << (length - 1) for signed signals, 0 for unsigned
+    scale: float
+    offset: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +131,7 @@ class _FrameSpec:
     crc_name: str
     cycle_time_s: float | None
     senders: frozenset[str]
+    crc: Callable[[bytes], int]
     by_name: dict[str, _SignalSpec] = field(default_factory=dict)
 
 
@@ -149,7 +159,9 @@ def _signal_spec(sig: _DbcSignal) -> _SignalSpec:
     raw_min, raw_max = _raw_limits(sig)
     identity = float(sig.scale) == 1.0 and float(sig.offset) == 0.0
     decimals = max(0, *(-int(Decimal(str(v)).normalize().as_tuple().exponent) for v in (sig.scale, sig.offset)))
-    return _SignalSpec(sig.name, sig, raw_min, raw_max, no_value, identity, decimals)
+    return _SignalSpec(sig.name, sig, raw_min, raw_max, no_value, identity, decimals, sig.start,
+                       (1 << sig.length) - 1, (1 << (sig.length - 1)) if sig.is_signed else 0,
+                       float(sig.scale), float(sig.offset))
 
 
 def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
@@ -166,6 +178,9 @@ def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
             raise DbcError(f"{where}: signal {name} missing") from None
         if (sig.start, sig.length, sig.byte_order, sig.is_signed) != (start, bits, "little_endian", False):
             raise DbcError(f"{where}: signal {name} must be unsigned little-endian at bit {start}, {bits} bits")
+    for sig in msg.signals:
+        if sig.byte_order != "little_endian":
+            raise DbcError(f"{where}: signal {sig.name} is big-endian; the CAN matrix uses little-endian only")
     cycle = msg.cycle_time
     if cycle is None and msg.dbc is not None and _CYCLE_ATTRIBUTE in msg.dbc.attributes:
         cycle = msg.dbc.attributes[_CYCLE_ATTRIBUTE].value
@@ -180,6 +195,7 @@ def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
         crc_name=crc_name,
         cycle_time_s=float(cycle) / 1000.0 if cycle else None,
         senders=frozenset(msg.senders or ()),
+        crc=frame_crc_function(msg.frame_id),
         by_name={s.name: s for s in specs},
     )
 
@@ -196,9 +212,11 @@ class FrameCodec:
         Where to count frames; a new one by default (see :attr:`stats`).
     resync_after_cycles : float, optional
         If two accepted frames of one identifier are more than this many cycle
-        times apart (timestamps known), the counter of the second is not judged
-        (a 4-bit counter cannot tell how many frames were missed); counted as
-        ``counter_resync``. Default 8.
+        times apart (timestamps known), the sender is taken to have been silent or
+        restarted: the gap is not counted as lost frames and the counter of the
+        second is not judged (``counter_resync``). Below it, frames missing in
+        between are counted as ``lost`` from the time stamps and the counter
+        together (see :meth:`decode`). Default 1000.
 
     Raises
     ------
@@ -217,7 +235,7 @@ class FrameCodec:
         dbc_path: str | Path = DEFAULT_DBC_PATH,
         *,
         stats: FrameStats | None = None,
-        resync_after_cycles: float = 8.0,
+        resync_after_cycles: float = 1000.0,
     ) -> None:
         self._path = Path(dbc_path)
         try:
@@ -271,6 +289,10 @@ class FrameCodec:
     def signal_names(self, frame: FrameRef) -> tuple[str, ...]:
         """Application signals of a frame (counter and CRC excluded), in DBC order."""
         return tuple(s.name for s in self._spec(frame).signals)
+
+    def frame_ids(self) -> frozenset[int]:
+        """Identifiers of all frames of the DBC."""
+        return frozenset(self._frames)
 
     def frames_sent_by(self, node: str) -> frozenset[int]:
         """Identifiers of the frames whose DBC sender is ``node`` (e.g. ``"TE"``)."""
@@ -396,7 +418,19 @@ class FrameCodec:
         DecodedFrame or None
             None if the frame was dropped: unknown identifier, wrong length,
             wrong CRC, repeated counter or undecodable. Each drop is counted in
-            :attr:`stats`; a counter jump counts the missing frames as ``lost``.
+            :attr:`stats`; frames missing before this one are counted as ``lost``.
+
+        Notes
+        -----
+        Lost frames: with the time stamps of this and the previous accepted frame of the
+        identifier and its DBC cycle time ``T``, about ``dt / T`` frame periods have passed;
+        the 4-bit counter fixes their number ``n`` modulo 16, so ``n`` is the counter step
+        plus the whole number of counter wraps that brings it nearest to ``dt / T`` (exact
+        while the timing jitter stays below 8 cycles), and ``n - 1`` frames are lost. A
+        counter alone hides every multiple of 16 (a hole of 17 frames looks like one of 1).
+        Time stamps only add wraps, and only once they span 12 periods or more: frames that
+        arrive in bursts, or without time stamps, are judged by the counter step alone. A
+        step of 0 within 12 periods is a repeated frame.
         """
         try:
             return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
@@ -416,7 +450,9 @@ class FrameCodec:
             with self._lock:
                 self.stats.count_drop("unknown_id")
             return None
-        if data is None or isinstance(data, str):
+        if type(data) is bytes or type(data) is bytearray:  # the usual case: no copy, no checks
+            payload = data
+        elif data is None or isinstance(data, str):
             payload = None
         else:
             try:
@@ -431,47 +467,46 @@ class FrameCodec:
             with self._lock:
                 self.stats.count_drop("dlc", spec.name)
             return None
-        if payload[7] != frame_crc(spec.frame_id, payload):
+        if payload[7] != spec.crc(payload):
             with self._lock:
                 self.stats.count_drop("crc", spec.name)
             return None
-        try:
-            raw = spec.message.decode(payload, decode_choices=False, scaling=False)
-            values: dict[str, float] = {}
-            for s in spec.signals:
-                r = int(raw[s.name])
-                if s.no_value_raw is not None and r == s.no_value_raw:
-                    values[s.name] = math.nan
-                elif s.identity:
-                    values[s.name] = r
-                else:
-                    values[s.name] = round(r * float(s.signal.scale) + float(s.signal.offset), s.decimals)
-            counter = int(raw[spec.counter_name])
-        except Exception:
-            log.debug("cannot decode %s data=%s", spec.name, payload.hex(), exc_info=True)
-            with self._lock:
-                self.stats.count_drop("decode_error", spec.name)
-            return None
+        word = int.from_bytes(payload, "little")
+        values: dict[str, float] = {}
+        for s in spec.signals:
+            r = (word >> s.start) & s.mask
+            if s.sign_bit and r & s.sign_bit:
+                r -= s.sign_bit << 1
+            if r == s.no_value_raw:
+                values[s.name] = math.nan
+            elif s.identity:
+                values[s.name] = r
+            else:
+                values[s.name] = round(r * s.scale + s.offset, s.decimals)
+        counter = (word >> COUNTER_START_BIT) & 0xF
         ts = float(timestamp) if timestamp is not None else None
         with self._lock:
             lost = 0
             last = self._rx_last.get(spec.frame_id)
             if last is not None:
                 last_counter, last_ts = last
-                cycle = spec.cycle_time_s
-                if (
-                    ts is not None
-                    and last_ts is not None
-                    and cycle
-                    and abs(ts - last_ts) > self._resync_after * cycle
-                ):
+                step = (counter - last_counter) % 16
+                periods = 0.0  # frame periods since the last one, from the time stamps (0: unknown)
+                if ts is not None and last_ts is not None and spec.cycle_time_s:
+                    periods = (ts - last_ts) / spec.cycle_time_s
+                if abs(periods) > self._resync_after:
                     self.stats.counter_resync += 1
                 else:
-                    step = (counter - last_counter) % 16
-                    if step == 0:
+                    # periods since the last frame: the counter step plus the whole counter wraps
+                    # that bring it nearest to the time stamps, once these span most of a wrap;
+                    # below that the step alone (frames that came in a burst stay counted right)
+                    n = step
+                    if periods >= _WRAP_FROM_PERIODS:
+                        n += 16 * max(0, round((periods - step) / 16))
+                    if n == 0:
                         self.stats.count_drop("counter_repeat", spec.name)
                         return None
-                    lost = step - 1
+                    lost = n - 1
                     if lost:
                         self.stats.lost += lost
                         self.stats.lost_by_frame[spec.name] += lost

@@ -8,7 +8,7 @@ byte, then its high byte, then payload bytes 0-6. The data ID is
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 __all__ = [
     "CRC8_SAE_J1850_CHECK",
@@ -19,6 +19,7 @@ __all__ = [
     "crc8_sae_j1850",
     "data_id",
     "frame_crc",
+    "frame_crc_function",
 ]
 
 #: Generator polynomial x^8 + x^4 + x^3 + x^2 + 1 (normal form, top bit implicit).
@@ -82,6 +83,31 @@ def data_id(can_id: int) -> int:
     if not 0 <= can_id <= 0x7FF:
         raise ValueError(f"CAN identifier 0x{can_id:X} is not an 11-bit identifier")
     return DATA_ID_BASE + can_id
+
+
+def frame_crc_function(can_id: int) -> Callable[[bytes], int]:
+    """The frame CRC of one identifier as a function of the payload, the data ID pre-computed.
+
+    Parameters
+    ----------
+    can_id : int
+        11-bit CAN identifier of the frame.
+
+    Returns
+    -------
+    callable(bytes) -> int
+        ``f(payload)`` equals :func:`frame_crc` ``(can_id, payload)`` for a payload of at least
+        7 bytes (not checked: the receive path calls it once per frame after its length check).
+    """
+    did = data_id(can_id)
+    t = _TABLE
+    seed = t[t[CRC8_SAE_J1850_INIT ^ (did & 0xFF)] ^ (did >> 8)]
+    xorout = CRC8_SAE_J1850_XOROUT
+
+    def crc(p: bytes) -> int:
+        return t[t[t[t[t[t[t[seed ^ p[0]] ^ p[1]] ^ p[2]] ^ p[3]] ^ p[4]] ^ p[5]] ^ p[6]] ^ xorout
+
+    return crc
 
 
 def frame_crc(can_id: int, payload: bytes | bytearray | memoryview) -> int:

@@ -2,8 +2,11 @@
 
 The sender keeps its cadence whatever happens around it: a provider that raises
 (or returns nothing usable) is replaced by the fallback values, a bus that is
-down only makes single sends fail, and a late event loop skips missed periods
+down only makes single sends fail, and a late schedule skips missed periods
 instead of bursting. This is what keeps ``TE_Limits`` on the bus.
+
+It runs as an asyncio task, or (``thread=True``) in a daemon thread of its own on a
+``time.monotonic`` fixed-rate schedule, which a blocked or busy event loop cannot delay.
 """
 
 from __future__ import annotations
@@ -11,6 +14,8 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
+import threading
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -50,6 +55,11 @@ class CyclicSender:
         "model fault"). Without a fallback such a period sends nothing.
     stats : TransportStats, optional
         Where ``provider_errors``, ``fallback_sent`` and ``cyclic_overruns`` are counted.
+    thread : bool, optional
+        Run in a daemon thread of its own instead of an asyncio task. The provider (and a
+        callable fallback) is then called in that thread: a plain function, thread-safe,
+        returning at once (e.g. reading values the model published). The sink must be
+        thread-safe (``CanTransport.send_raw`` is).
     """
 
     def __init__(
@@ -62,7 +72,10 @@ class CyclicSender:
         period_s: float | None = None,
         fallback: Fallback | None = None,
         stats: TransportStats | None = None,
+        thread: bool = False,
     ) -> None:
+        if thread and inspect.iscoroutinefunction(provider):
+            raise TypeError(f"{frame}: a threaded cyclic sender needs a plain provider function, not a coroutine")
         self.codec = codec
         self.frame_name = codec.frame_name(frame)
         self.frame_id = codec.frame_id(frame)
@@ -78,22 +91,37 @@ class CyclicSender:
         self.attempts = 0
         self.sent = 0
         self._failing = False
+        self.threaded = bool(thread)
         self._task: asyncio.Task[None] | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
 
     @property
     def running(self) -> bool:
-        """True while the periodic task runs."""
+        """True while the periodic task or thread runs."""
+        if self._thread is not None:
+            return self._thread.is_alive()
         return self._task is not None and not self._task.done()
 
     def start(self) -> CyclicSender:
-        """Start the periodic task on the running event loop (first frame immediately)."""
-        if not self.running:
+        """Start sending (first frame immediately): a task on the running event loop, or the thread."""
+        if self.running:
+            return self
+        if self.threaded:
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._run_thread, name=f"cyclic {self.frame_name}", daemon=True)
+            self._thread.start()
+        else:
             self._task = asyncio.get_running_loop().create_task(self._run(), name=f"cyclic {self.frame_name}")
         return self
 
     async def stop(self) -> None:
-        """Stop the periodic task and wait for it to end."""
+        """Stop sending and wait for the task or thread to end."""
         task, self._task = self._task, None
+        thread, self._thread = self._thread, None
+        self._stop.set()
+        if thread is not None:
+            await asyncio.to_thread(thread.join, 2.0 + self.period_s)
         if task is not None:
             task.cancel()
             try:
@@ -105,20 +133,39 @@ class CyclicSender:
         values = self._provider()
         if inspect.isawaitable(values):
             values = await asyncio.wait_for(values, timeout=self.period_s / 2)
-        if values is None:
-            raise ValueError("provider returned None")
         return values
 
     async def send_once(self) -> bool:
-        """Build and send one frame now; True if the sink accepted it."""
+        """Build and send one frame now (asyncio mode); True if the sink accepted it."""
+        try:
+            values: Any = await self._values()
+            error: Exception | None = None
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            values, error = None, exc
+        return self._send(values, error)
+
+    def send_once_sync(self) -> bool:
+        """Build and send one frame now from a plain provider (thread mode); True if sent."""
+        try:
+            values: Any = self._provider()
+            error: Exception | None = None
+        except Exception as exc:
+            values, error = None, exc
+        return self._send(values, error)
+
+    def _send(self, values: Any, error: Exception | None) -> bool:
         data: bytes | None = None
         try:
-            data = self.codec.encode(self.frame_name, await self._values())
+            if error is not None:
+                raise error
+            if values is None:
+                raise ValueError("provider returned None")
+            data = self.codec.encode(self.frame_name, values)
             if self._failing:
                 self._failing = False
                 log.info("%s provider recovered", self.frame_name)
-        except asyncio.CancelledError:
-            raise
         except Exception as exc:
             self.stats.provider_errors += 1
             if not self._failing:
@@ -157,3 +204,20 @@ class CyclicSender:
                 next_t += missed * self.period_s
                 delay = next_t - loop.time()
             await asyncio.sleep(max(0.0, delay))
+
+    def _run_thread(self) -> None:
+        next_t = time.monotonic()
+        stop = self._stop
+        while not stop.is_set():
+            try:
+                self.send_once_sync()
+            except Exception:  # belt and braces: the cadence must survive anything
+                log.exception("%s cyclic send failed", self.frame_name)
+            next_t += self.period_s
+            delay = next_t - time.monotonic()
+            if delay < -self.period_s:
+                missed = int(-delay // self.period_s)
+                self.stats.cyclic_overruns += missed
+                next_t += missed * self.period_s
+                delay = next_t - time.monotonic()
+            stop.wait(max(0.0, delay))

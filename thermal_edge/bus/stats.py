@@ -32,11 +32,11 @@ class FrameStats:
         remote or error frame); data length not the DBC's; anything else that
         could not be decoded (bad input types included).
     lost : int
-        Frames missing according to the alive counter (a jump of ``n > 1``
-        counts ``n - 1``).
+        Frames missing before an accepted one, from its time stamp, cycle time and
+        alive counter together (see :meth:`FrameCodec.decode`).
     counter_resync : int
         Accepted frames whose counter was not judged because the previous one
-        of that frame was too long ago (more than 8 cycle times).
+        of that frame was too long ago (``resync_after_cycles`` cycle times).
     clamped : int
         Signal values saturated to the DBC range when encoding.
     received, sent : collections.Counter
@@ -110,6 +110,9 @@ class TransportStats:
     rx_messages : int
         Raw messages received from the bus (before integrity checks, own echoes
         excluded).
+    rx_undecodable : int
+        Received messages the bus could not turn into a CAN message (a datagram that is not
+        python-can's format, a malformed frame); each is skipped, the bus stays open.
     own_echo : int
         Received messages ignored because this node transmits that identifier
         (``udp_multicast`` loops a sender's own frames back).
@@ -118,7 +121,7 @@ class TransportStats:
     fallback_sent : int
         Cyclic frames sent from the fallback values instead of the provider's.
     cyclic_overruns : int
-        Cyclic periods missed because the loop was late by more than a period.
+        Cyclic periods missed because the sender (loop or thread) was late by more than a period.
     callback_errors : int
         Frame callbacks that raised.
     queue_overflow : int
@@ -130,6 +133,7 @@ class TransportStats:
     tx_frames: int = 0
     tx_failed: int = 0
     rx_messages: int = 0
+    rx_undecodable: int = 0
     own_echo: int = 0
     provider_errors: int = 0
     fallback_sent: int = 0

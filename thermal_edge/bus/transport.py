@@ -1,22 +1,34 @@
 """asyncio CAN transport: one bus, decoded reception, transmission, recording, reconnection.
 
-:class:`CanTransport` opens the bus of a :class:`~thermal_edge.bus.busconfig.BusConfig`,
-receives through ``can.Notifier`` + ``can.AsyncBufferedReader`` on the running
-event loop, checks and decodes every frame with a
-:class:`~thermal_edge.bus.codec.FrameCodec`, and hands accepted frames to a
-callback and/or an ``asyncio.Queue``. Sends never raise: a bus that fails (closed,
-down, send error) is logged, counted in ``stats.bus_errors``, torn down and
-reopened with exponential backoff, while cyclic senders keep their cadence.
+:class:`CanTransport` opens the bus of a :class:`~thermal_edge.bus.busconfig.BusConfig` and
+reads it in batches: from the event loop when the bus has a file descriptor (SocketCAN,
+``udp_multicast``: every readiness drains what is waiting), else from a reader thread that
+hands whole batches to the loop (``virtual``). Every message is checked and decoded with a
+:class:`~thermal_edge.bus.codec.FrameCodec`; accepted frames go to a callback and/or an
+``asyncio.Queue``.
+
+A receive error on one message (a datagram python-can cannot unpack, a malformed frame) is
+counted in ``stats.rx_undecodable``, logged at most every few seconds, and reading goes on.
+Only a bus that is really gone (shut down, a socket error, :data:`RX_ERROR_RUN_LIMIT` errors in
+a row) is torn down and reopened with exponential backoff. Sends never raise; cyclic senders
+keep their cadence meanwhile, and can run in their own thread (``start_cyclic(thread=True)``),
+independent of the event loop.
+
+On interfaces that filter in the kernel (SocketCAN) only the identifiers this node receives are
+let in (``can_filters``), so a full bus of foreign traffic costs no CPU. Elsewhere the filtering
+happens in Python either way, and the codec's identifier lookup is that filter: it also counts
+what it rejects (``unknown_id``), which python-can's software filter would drop uncounted.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import inspect
 import logging
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
 import can
@@ -27,58 +39,37 @@ from .codec import DecodedFrame, FrameCodec
 from .cyclic import CyclicSender, Fallback, SignalProvider
 from .stats import TransportStats
 
-__all__ = ["CanTransport", "FrameCallback"]
+__all__ = ["RX_ERROR_RUN_LIMIT", "CanTransport", "FrameCallback"]
 
 log = logging.getLogger(__name__)
 
 #: Called with every accepted frame; may return an awaitable, which is awaited.
 FrameCallback = Callable[[DecodedFrame], Any]
 
-
-class _GuardedNotifier(can.Notifier):
-    """``can.Notifier`` whose receive errors always reach the listeners' ``on_error``.
-
-    python-can reports errors of its reader thread through ``on_error`` (on the
-    loop) but then lets the thread die with a traceback, and errors of the
-    file-descriptor path (``loop.add_reader``) go to the loop's exception
-    handler only. Both are routed to ``on_error`` here, quietly.
-    """
-
-    def _rx_thread(self, bus: can.BusABC) -> None:
-        try:
-            super()._rx_thread(bus)
-        except Exception:  # already handed to on_error via the loop
-            pass
-
-    def _on_message_available(self, bus: can.BusABC) -> None:
-        try:
-            super()._on_message_available(bus)
-        except Exception as exc:
-            self.exception = exc
-            if self._loop is not None:
-                for reader in list(self._readers):
-                    if isinstance(reader, int):
-                        try:
-                            self._loop.remove_reader(reader)
-                        except Exception:
-                            pass
-            self._on_error(exc)
+#: Receive errors in a row (no good message between them) after which the bus counts as dead.
+RX_ERROR_RUN_LIMIT = 50
+#: Messages read per readiness of the bus before the loop gets control back.
+RX_BATCH_MAX = 512
+#: Messages handled in a row before the consumer yields to the loop (cyclic senders, ticks).
+RX_HANDLE_SLICE = 256
+#: Received messages waiting to be handled above which reading pauses (the kernel queue waits).
+RX_PENDING_MAX = 20_000
+#: Least time between two warnings about undecodable messages, s (the count is exact).
+RX_WARN_INTERVAL_S = 10.0
+#: Time a reader thread blocks in one receive, s (how fast it notices a stop).
+RX_THREAD_POLL_S = 0.1
 
 
-class _ErrorWatch(can.Listener):
-    """Listener that forwards bus errors to a callback."""
+def _bus_gone(bus: can.BusABC, exc: BaseException) -> bool:
+    """True if a receive error means the bus itself is gone, not one bad message."""
+    return bool(getattr(bus, "_is_shutdown", False)) or isinstance(exc, OSError) or isinstance(exc.__cause__, OSError)
 
-    def __init__(self, callback: Callable[[BaseException], None]) -> None:
-        self._callback = callback
 
-    def on_message_received(self, msg: can.Message) -> None:
-        pass
-
-    def on_error(self, exc: Exception) -> None:
-        self._callback(exc)
-
-    def stop(self) -> None:
-        pass
+def _fileno(bus: can.BusABC) -> int:
+    try:
+        return int(bus.fileno())
+    except (NotImplementedError, AttributeError, ValueError, OSError):
+        return -1
 
 
 class CanTransport:
@@ -110,7 +101,7 @@ class CanTransport:
     >>> async def main():                                      # doctest: +SKIP
     ...     async with CanTransport({"interface": "virtual", "channel": "demo"},
     ...                             on_frame=print) as bus:
-    ...         bus.start_cyclic("TE_Limits", current_limits, fallback=SAFE_LIMITS)
+    ...         bus.start_cyclic("TE_Limits", current_limits, fallback=SAFE_LIMITS, thread=True)
     ...         await asyncio.sleep(10)
     """
 
@@ -132,9 +123,21 @@ class CanTransport:
         self.queue = queue
         self._bus_factory = bus_factory
         self._own_ids = self.codec.frames_sent_by(self.config.node) if self.config.node else frozenset()
+        #: identifiers let in by kernel filters (frames of the DBC this node does not send)
+        self._rx_ids = (
+            frozenset(self.codec.frame_ids()) - self._own_ids if self.config.node else frozenset()
+        )
         self._bus: can.BusABC | None = None
-        self._notifier: _GuardedNotifier | None = None
-        self._reader: can.AsyncBufferedReader | None = None
+        self._bus_lock = threading.Lock()  # bus and generation read together by sending threads
+        self._pending: collections.deque[can.Message] = collections.deque()
+        self._wake: asyncio.Event | None = None
+        self._rx_fd = -1
+        self._rx_paused = False
+        self._rx_thread: threading.Thread | None = None
+        self._rx_stop = threading.Event()
+        self._rx_error_run = 0
+        self._rx_warned_at = -float("inf")
+        self._rx_unreported = 0
         self._consumer: asyncio.Task[None] | None = None
         self._supervisor: asyncio.Task[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -147,7 +150,6 @@ class CanTransport:
         self._opened_at = 0.0
         self._cyclic: list[CyclicSender] = []
         self._recorder: CandumpRecorder | None = None
-        self._thread_lock = threading.Lock()
 
     # ----------------------------------------------------------------- status
     @property
@@ -192,6 +194,7 @@ class CanTransport:
         if self._supervisor is not None:
             return
         self._loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
         self._failed = asyncio.Event()
         self._connected = asyncio.Event()
         self._stopping = False
@@ -238,22 +241,29 @@ class CanTransport:
         assert self._loop is not None and self._connected is not None
         bus = self._bus_factory(self.config)
         generation = self._generation + 1
-
-        def on_error(exc: BaseException) -> None:
-            if generation == self._generation:
-                self._on_bus_error(exc, "receive")
-
         try:
-            reader = can.AsyncBufferedReader()
-            notifier = _GuardedNotifier(bus, [reader, _ErrorWatch(on_error)], timeout=0.1, loop=self._loop)
+            self._apply_filters(bus)
+            fd = _fileno(bus)
+            if fd >= 0:
+                self._loop.add_reader(fd, self._read_ready, bus, generation)
         except Exception:
             bus.shutdown()
             raise
-        self._generation = generation
+        self._rx_fd = fd
+        self._rx_paused = False
+        self._rx_error_run = 0
+        if fd < 0:
+            self._rx_stop = threading.Event()
+            self._rx_thread = threading.Thread(
+                target=self._read_thread, args=(bus, generation, self._rx_stop), name="can reader", daemon=True
+            )
+            self._rx_thread.start()
+        with self._bus_lock:
+            self._generation = generation
+            self._bus = bus
+            self._failed_flag = False
         self._opened_at = self._loop.time()
-        self._bus, self._reader, self._notifier = bus, reader, notifier
-        self._failed_flag = False
-        self._consumer = self._loop.create_task(self._consume(reader), name="can receiver")
+        self._consumer = self._loop.create_task(self._consume(), name="can receiver")
         if self._opened_once:
             self.stats.reconnects += 1
             log.warning("CAN bus %s reconnected", self._describe())
@@ -262,22 +272,32 @@ class CanTransport:
         self._opened_once = True
         self._connected.set()
 
+    def _apply_filters(self, bus: can.BusABC) -> None:
+        """Kernel filters for the identifiers this node receives, where the interface has them.
+
+        python-can's software filtering (every other interface) is not kept: it would drop
+        foreign identifiers before the codec counts them as ``unknown_id``, and saves nothing
+        over the codec's own lookup.
+        """
+        if not self._rx_ids:
+            return
+        bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in sorted(self._rx_ids)])
+        if not getattr(bus, "_is_filtered", False):
+            bus.set_filters(None)
+
     def _describe(self) -> str:
         return f"{self.config.interface}:{self.config.channel if self.config.channel is not None else 'default'}"
 
     async def _teardown(self) -> None:
         if self._connected is not None:
             self._connected.clear()
-        notifier, self._notifier = self._notifier, None
-        reader, self._reader = self._reader, None
+        with self._bus_lock:
+            bus, self._bus = self._bus, None
         consumer, self._consumer = self._consumer, None
-        bus, self._bus = self._bus, None
+        thread, self._rx_thread = self._rx_thread, None
         # synchronous part first: even if this coroutine is cancelled later, the bus is closed
-        if notifier is not None:
-            try:
-                notifier.stop(timeout=1.0)
-            except Exception as exc:
-                log.debug("notifier stop: %s", exc)
+        self._stop_reading()
+        self._rx_stop.set()
         if bus is not None:
             try:
                 bus.shutdown()
@@ -291,9 +311,9 @@ class CanTransport:
                 pass
             except Exception:
                 log.exception("CAN receiver ended with an error")
-        if reader is not None:  # frames that arrived before the stop
-            while not reader.buffer.empty():
-                await self._handle(reader.buffer.get_nowait())
+        if thread is not None:
+            await asyncio.to_thread(thread.join, 2 * RX_THREAD_POLL_S + 1.0)
+        await self._handle_pending(slice_=None)  # frames that arrived before the stop
 
     def _note_bus_error(self, exc: BaseException, where: str) -> None:
         self.stats.bus_errors += 1
@@ -301,7 +321,7 @@ class CanTransport:
 
     def _on_bus_error(self, exc: BaseException, where: str = "receive") -> None:
         """Mark the bus failed (any thread); the supervisor reconnects."""
-        with self._thread_lock:
+        with self._bus_lock:
             if self._failed_flag or self._stopping:
                 return
             self._failed_flag = True
@@ -347,15 +367,119 @@ class CanTransport:
             delay = min(delay * 2, self.config.reconnect_max_s)
 
     # --------------------------------------------------------------- receive
-    async def _consume(self, reader: can.AsyncBufferedReader) -> None:
-        while True:
-            msg = await reader.get_message()
-            await self._handle(msg)
+    def _stop_reading(self) -> None:
+        if self._rx_fd >= 0 and self._loop is not None:
+            try:
+                self._loop.remove_reader(self._rx_fd)
+            except Exception as exc:  # loop closing
+                log.debug("remove_reader: %s", exc)
+        self._rx_fd = -1
 
-    async def _handle(self, msg: can.Message) -> None:
-        if not msg.is_extended_id and msg.arbitration_id in self._own_ids:
+    def _read_ready(self, bus: can.BusABC, generation: int) -> None:
+        """The bus's descriptor is readable: read what is waiting, up to a batch (on the loop)."""
+        pending = self._pending
+        n = 0
+        while n < RX_BATCH_MAX:
+            try:
+                msg = bus.recv(0)
+            except Exception as exc:
+                if self._receive_error(bus, generation, exc):
+                    self._stop_reading()
+                    break
+                continue
+            if msg is None:
+                break
+            pending.append(msg)
+            n += 1
+        if n:
+            self._rx_error_run = 0
+            assert self._wake is not None
+            self._wake.set()
+        if len(pending) > RX_PENDING_MAX and self._rx_fd >= 0 and self._loop is not None:
+            self._loop.remove_reader(self._rx_fd)  # the kernel queue holds the rest meanwhile
+            self._rx_paused = True
+
+    def _read_thread(self, bus: can.BusABC, generation: int, stop: threading.Event) -> None:
+        """Reader of a bus without a descriptor: blocks in ``recv``, hands batches to the loop."""
+        loop = self._loop
+        assert loop is not None
+        while not stop.is_set():
+            batch: list[can.Message] = []
+            try:
+                msg = bus.recv(RX_THREAD_POLL_S)
+                while msg is not None:
+                    batch.append(msg)
+                    if len(batch) >= RX_BATCH_MAX:
+                        break
+                    msg = bus.recv(0)
+                error: Exception | None = None
+            except Exception as exc:
+                error = exc
+            if batch:
+                self._rx_error_run = 0
+                try:
+                    loop.call_soon_threadsafe(self._deliver, batch)
+                except RuntimeError:  # loop closed
+                    return
+            if error is not None and self._receive_error(bus, generation, error):
+                return
+
+    def _deliver(self, batch: list[can.Message]) -> None:
+        self._pending.extend(batch)
+        if self._wake is not None:
+            self._wake.set()
+
+    def _receive_error(self, bus: can.BusABC, generation: int, exc: BaseException) -> bool:
+        """Count one receive error; True (and a reconnect) if the bus is gone (any thread)."""
+        if generation != self._generation or self._stopping:
+            return True
+        self._rx_error_run += 1
+        if _bus_gone(bus, exc) or self._rx_error_run >= RX_ERROR_RUN_LIMIT:
+            if self._rx_error_run >= RX_ERROR_RUN_LIMIT:
+                log.warning("CAN bus %s: %d receive errors in a row", self._describe(), self._rx_error_run)
+            self._on_bus_error(exc, "receive")
+            return True
+        self.stats.rx_undecodable += 1
+        self._rx_unreported += 1
+        now = time.monotonic()
+        if now - self._rx_warned_at >= RX_WARN_INTERVAL_S:
+            log.warning("CAN bus %s: %d undecodable message(s) ignored, bus kept open (last: %s: %s)",
+                        self._describe(), self._rx_unreported, type(exc).__name__, exc)
+            self._rx_warned_at, self._rx_unreported = now, 0
+        return False
+
+    async def _consume(self) -> None:
+        assert self._wake is not None
+        while True:
+            await self._wake.wait()
+            self._wake.clear()
+            await self._handle_pending(slice_=RX_HANDLE_SLICE)
+            if self._rx_paused and self._rx_fd >= 0 and self._bus is not None and self._loop is not None:
+                self._rx_paused = False
+                self._loop.add_reader(self._rx_fd, self._read_ready, self._bus, self._generation)
+
+    async def _handle_pending(self, slice_: int | None) -> None:
+        """Handle the waiting messages in order, yielding to the loop every ``slice_`` of them."""
+        pending, n = self._pending, 0
+        while pending:
+            result = self._handle(pending.popleft())
+            if result is not None:
+                try:
+                    await result
+                except asyncio.CancelledError:
+                    raise
+                except Exception:
+                    self.stats.callback_errors += 1
+                    log.exception("frame callback failed")
+            n += 1
+            if slice_ is not None and n % slice_ == 0:
+                await asyncio.sleep(0)
+
+    def _handle(self, msg: can.Message) -> Awaitable[Any] | None:
+        """Check, record and decode one message; the callback's awaitable, if it returned one."""
+        if msg.arbitration_id in self._own_ids and not msg.is_extended_id:
             self.stats.own_echo += 1
-            return
+            return None
         self.stats.rx_messages += 1
         if self._recorder is not None:
             # received by us, whatever the interface says: SocketCAN reports frames from another
@@ -364,7 +488,7 @@ class CanTransport:
             self._recorder.write(msg)
         frame = self.codec.decode_message(msg)
         if frame is None:
-            return
+            return None
         if self.queue is not None:
             try:
                 self.queue.put_nowait(frame)
@@ -373,13 +497,13 @@ class CanTransport:
         if self.on_frame is not None:
             try:
                 result = self.on_frame(frame)
-                if inspect.isawaitable(result):
-                    await result
-            except asyncio.CancelledError:
-                raise
             except Exception:
                 self.stats.callback_errors += 1
                 log.exception("frame callback failed on %s", frame.name)
+                return None
+            if inspect.isawaitable(result):
+                return result
+        return None
 
     # -------------------------------------------------------------- transmit
     def send_raw(self, arbitration_id: int, data: bytes) -> bool:
@@ -399,8 +523,9 @@ class CanTransport:
             send failed (counted in ``stats.tx_failed``; a bus error also
             triggers a reconnect, a send timeout does not).
         """
-        bus = self._bus
-        if bus is None or self._failed_flag:
+        with self._bus_lock:  # a sender thread may run while the loop reconnects
+            bus, generation, failed = self._bus, self._generation, self._failed_flag
+        if bus is None or failed:
             self.stats.tx_failed += 1
             return False
         try:
@@ -416,7 +541,8 @@ class CanTransport:
             return False
         except Exception as exc:  # CanError, OSError, closed bus ...
             self.stats.tx_failed += 1
-            self._on_bus_error(exc, "send")
+            if generation == self._generation:  # not a bus already replaced by a reconnect
+                self._on_bus_error(exc, "send")
             return False
         self.stats.tx_frames += 1
         if self._recorder is not None:
@@ -456,6 +582,7 @@ class CanTransport:
         *,
         period_s: float | None = None,
         fallback: Fallback | None = None,
+        thread: bool = False,
     ) -> CyclicSender:
         """Send ``frame`` every period from ``provider`` until :meth:`stop`.
 
@@ -469,6 +596,10 @@ class CanTransport:
             Period in s, default the DBC cycle time.
         fallback : mapping or callable, optional
             Values sent when the provider fails.
+        thread : bool, optional
+            Send from a daemon thread of its own on a monotonic fixed-rate schedule, so that
+            nothing on the event loop can delay the frame (``TE_Limits``); the provider is
+            then called in that thread and must be a plain, thread-safe function.
 
         Returns
         -------
@@ -476,7 +607,8 @@ class CanTransport:
             The running sender (``stop()`` it to end early).
         """
         sender = CyclicSender(
-            self.codec, self.send_raw, frame, provider, period_s=period_s, fallback=fallback, stats=self.stats
+            self.codec, self.send_raw, frame, provider, period_s=period_s, fallback=fallback, stats=self.stats,
+            thread=thread,
         )
         self._cyclic.append(sender)
         return sender.start()

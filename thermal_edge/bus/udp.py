@@ -1,0 +1,271 @@
+"""``udp_multicast`` kept on this host: python-can's wire format on a loopback-only socket.
+
+python-can's ``UdpMulticastBus`` binds its socket to the wildcard address and joins the group
+on the default interface (eth0), so unicast datagrams to 127.0.0.1 or to the host's own
+address, and multicasts from the network, are all taken as CAN frames. :class:`LocalUdpMulticastBus`
+speaks the same datagrams (msgpack, see ``can.interfaces.udp_multicast.utils``) but
+
+- binds to the group address itself: a unicast datagram to any address of the host never
+  reaches it;
+- joins the group on the loopback interface only and turns ``IP_MULTICAST_ALL`` off, so the
+  kernel hands it only multicasts that came in on ``lo``, i.e. from this host;
+- sends through ``lo`` with hop limit (TTL) 0 and multicast loop on: nothing leaves the host.
+
+Another interface is used only if the configuration names it (``multicast_interface``).
+IPv6 groups need a multicast route on that interface; Linux's ``lo`` has none by default,
+so the default group is python-can's IPv4 one and an IPv6 group on ``lo`` is refused at open
+with the reason.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import ipaddress
+import logging
+import select
+import socket
+import struct
+import time
+from typing import Any
+
+import can
+from can.interfaces.udp_multicast import UdpMulticastBus
+from can.interfaces.udp_multicast.utils import is_msgpack_installed, unpack_message
+
+__all__ = ["LOOPBACK_INTERFACE", "RECEIVE_QUEUE_BYTES", "LocalUdpMulticastBus", "UndecodableDatagram",
+           "enlarge_receive_queue"]
+
+log = logging.getLogger(__name__)
+
+#: Interface the group is joined on and sent through unless configured otherwise.
+LOOPBACK_INTERFACE = "lo"
+#: Largest datagram read (python-can's own buffer size); longer ones are truncated and undecodable.
+MAX_DATAGRAM_BYTES = 4096
+# Linux socket options missing from Python's socket module
+_IP_MULTICAST_ALL = 49
+_IPV6_MULTICAST_ALL = 29
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@ll")
+
+
+#: kernel receive queue asked for, bytes (a CAN frame takes about 1 kB of it on SocketCAN)
+RECEIVE_QUEUE_BYTES = 4 << 20
+
+
+def enlarge_receive_queue(sock: socket.socket, size: int = RECEIVE_QUEUE_BYTES) -> None:
+    """Ask for a receive queue of several seconds of a busy bus (the default, ~200 kB, holds
+    about one second at 200 frames/s), so that a loop busy for a moment loses no frames.
+
+    ``SO_RCVBUFFORCE`` needs CAP_NET_ADMIN; without it ``SO_RCVBUF`` is capped by
+    ``net.core.rmem_max`` (raise that sysctl on the edge computer for the full size).
+    """
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+        if opt is None:
+            continue
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, opt, int(size))
+            return
+        except OSError:
+            continue
+
+
+class UndecodableDatagram(can.CanOperationError):
+    """One received datagram is not a python-can message; the socket itself is fine."""
+
+
+class _LoopbackMulticastSocket:
+    """The socket of one :class:`LocalUdpMulticastBus` (send and receive, kernel timestamps)."""
+
+    def __init__(self, group: str, port: int, interface: str, rcvbuf_bytes: int) -> None:
+        address = ipaddress.ip_address(group)
+        self.group, self.port = str(address), int(port)
+        family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+        sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+            sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            if rcvbuf_bytes:
+                enlarge_receive_queue(sock, rcvbuf_bytes)
+            group_bin = socket.inet_pton(family, self.group)
+            if family == socket.AF_INET:
+                if_addr = _ipv4_of_interface(interface)
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(if_addr))
+                sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
+                sock.bind((self.group, self.port))
+                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, group_bin + socket.inet_aton(if_addr))
+                self._destination: tuple[Any, ...] = (self.group, self.port)
+            else:
+                index = socket.if_nametoindex(interface)
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, 0)
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, index)
+                sock.setsockopt(socket.IPPROTO_IPV6, _IPV6_MULTICAST_ALL, 0)
+                sock.bind((self.group, self.port, 0, index))
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, group_bin + struct.pack("@I", index))
+                self._destination = (self.group, self.port, 0, index)
+                _check_route(family, self._destination, index, interface)
+            sock.setblocking(False)
+        except OSError as exc:
+            sock.close()
+            raise can.CanInitializationError(
+                f"udp_multicast: cannot open group {self.group} port {self.port} on {interface}: {exc}"
+            ) from exc
+        self.family = family
+        self.sock = sock
+        self._ancillary = socket.CMSG_SPACE(_TIMESPEC.size)
+
+    def send(self, data: bytes, timeout: float | None) -> None:
+        try:
+            sent = self.sock.sendto(data, self._destination)
+        except BlockingIOError:
+            raise can.CanTimeoutError("udp_multicast send queue full") from None
+        except OSError as exc:
+            raise can.CanOperationError(f"udp_multicast send failed: {exc}") from exc
+        if sent < len(data):
+            raise can.CanTimeoutError("udp_multicast datagram sent in part")
+
+    def recv(self) -> tuple[bytes, float] | None:
+        """One datagram and its kernel receive time (s), None if none is waiting (never blocks)."""
+        try:
+            data, ancillary, _flags, _addr = self.sock.recvmsg(MAX_DATAGRAM_BYTES, self._ancillary)
+        except (BlockingIOError, InterruptedError):
+            return None
+        for level, kind, payload in ancillary:
+            if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(payload)
+                return data, sec + nsec * 1e-9
+        return data, time.time()
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError as exc:
+            log.debug("udp_multicast close: %s", exc)
+
+
+def _ipv4_of_interface(name: str) -> str:
+    """IPv4 address of a network interface (127.0.0.1 for ``lo``)."""
+    if name == LOOPBACK_INTERFACE:
+        return "127.0.0.1"
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            packed = fcntl.ioctl(s.fileno(), 0x8915, struct.pack("256s", name.encode()[:15]))  # SIOCGIFADDR
+        except OSError as exc:
+            raise OSError(exc.errno, f"interface {name!r} has no IPv4 address") from None
+    return socket.inet_ntoa(packed[20:24])
+
+
+def _check_route(family: int, destination: tuple[Any, ...], index: int, interface: str) -> None:
+    """Fail at open, not at every send, if the group cannot be reached through the interface
+    (``connect`` looks the route up and sends nothing)."""
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, index)
+        try:
+            probe.connect(destination)
+        except OSError as exc:
+            if exc.errno in (errno.ENETUNREACH, errno.EHOSTUNREACH, errno.EADDRNOTAVAIL):
+                raise OSError(exc.errno, f"no IPv6 multicast route through {interface} (use an IPv4 group, "
+                              f"e.g. {UdpMulticastBus.DEFAULT_GROUP_IPv4})") from None
+            raise
+
+
+class LocalUdpMulticastBus(UdpMulticastBus):
+    """python-can ``udp_multicast`` that only talks to processes of this host.
+
+    Parameters
+    ----------
+    channel : str
+        Multicast group (IPv4 ``224.0.0.0/4`` or IPv6 ``ff00::/8``).
+    port : int
+        UDP port.
+    hop_limit : int
+        Must be 0 (accepted for python-can compatibility; anything else is refused).
+    fd : bool
+        Accept CAN FD messages (python-can's meaning).
+    preserve_timestamps : bool
+        Keep the sender's message timestamp (simulated time travels with the frames);
+        otherwise the kernel's receive time (s, POSIX) is the timestamp.
+    rcvbuf_bytes : int
+        Kernel receive queue asked for, bytes (0 keeps the system default).
+    multicast_interface : str
+        Interface the group is joined on and sent through (default ``lo``: this host only).
+    **kwargs
+        Passed to ``can.BusABC`` (``can_filters`` ...).
+
+    Notes
+    -----
+    A datagram that is not a python-can message raises :class:`UndecodableDatagram` from
+    ``recv`` (the datagram is consumed; the next ``recv`` goes on); errors of the socket itself
+    raise ``can.CanOperationError`` with the ``OSError`` as cause.
+    """
+
+    def __init__(
+        self,
+        channel: str = UdpMulticastBus.DEFAULT_GROUP_IPv4,
+        port: int = 43113,
+        hop_limit: int = 0,
+        receive_own_messages: bool = False,
+        fd: bool = True,
+        *,
+        preserve_timestamps: bool = False,
+        rcvbuf_bytes: int = RECEIVE_QUEUE_BYTES,
+        multicast_interface: str = LOOPBACK_INTERFACE,
+        **kwargs: Any,
+    ) -> None:
+        is_msgpack_installed()
+        if receive_own_messages:
+            raise can.CanInterfaceNotImplementedError("receiving own messages is not implemented")
+        if hop_limit != 0:
+            raise can.CanInitializationError(f"udp_multicast: hop_limit {hop_limit} refused, only 0 (this host)")
+        # the socket first: a bus whose socket cannot open never was a bus (no shutdown warning)
+        self._multicast = _LoopbackMulticastSocket(str(channel), port, multicast_interface, rcvbuf_bytes)
+        try:
+            can.BusABC.__init__(self, channel, **kwargs)
+        except Exception:
+            self._multicast.close()
+            raise
+        self._can_protocol = can.CanProtocol.CAN_FD if fd else can.CanProtocol.CAN_20
+        self.preserve_timestamps = bool(preserve_timestamps)
+        self.multicast_interface = multicast_interface
+        self.channel_info = f"udp_multicast {self._multicast.group}:{port} on {multicast_interface}"
+
+    @property
+    def socket(self) -> socket.socket:
+        """The UDP socket (for checks of its options)."""
+        return self._multicast.sock
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if timeout is None or timeout > 0:
+            try:
+                ready, _, _ = select.select([self._multicast.sock], [], [], timeout)
+            except (OSError, ValueError) as exc:  # closed socket (fd -1) or interface gone
+                raise can.CanOperationError(f"udp_multicast wait failed: {exc}") from OSError(str(exc))
+            if not ready:
+                return None, False
+        try:
+            got = self._multicast.recv()
+        except OSError as exc:
+            raise can.CanOperationError(f"udp_multicast receive failed: {exc}") from exc
+        if got is None:
+            return None, False
+        data, kernel_ts = got
+        try:
+            msg = unpack_message(data, check=True)
+        except Exception as exc:
+            raise UndecodableDatagram(f"undecodable datagram ({len(data)} bytes): {type(exc).__name__}: {exc}") from None
+        if not (self.preserve_timestamps and msg.timestamp):
+            msg.timestamp = kernel_ts
+        if self._can_protocol is not can.CanProtocol.CAN_FD and msg.is_fd:
+            return None, False
+        return msg, False
+
+    def fileno(self) -> int:
+        return self._multicast.sock.fileno()
+
+    def shutdown(self) -> None:
+        can.BusABC.shutdown(self)
+        self._multicast.close()
