@@ -4,7 +4,6 @@ TE_Limits). One process, python-can ``virtual`` bus, frame clock, accelerated.""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import time
 
@@ -12,40 +11,10 @@ import can
 import numpy as np
 import pytest
 
-from svc_testlib import async_wait_until, edge_raw, emulator_config, scrape, write_yaml
+from svc_testlib import MAX_LEAD_S, running, scrape, sim_until
 from thermal_edge.bus import DerateReason, FrameCodec, SensorStatus, TeState
-from thermal_edge.config import load_config
-from thermal_edge.service import EdgeService
-from thermal_edge.sim.inverter import InverterEmulator
 
 SAFE = 10.0
-MAX_LEAD_S = 2.0
-
-
-@contextlib.asynccontextmanager
-async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=False, **sections):
-    raw = edge_raw(tmp_path / "state", {"interface": "virtual", "channel": channel}, table4=False, adapt=False,
-                   metrics_port=0 if metrics else None, **sections)
-    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
-    svc = EdgeService(cfg)
-    await svc.start()
-    # the emulator logs TE_Limits at its own simulated time, up to max_lead_s ahead of the service's ticks:
-    # a short lead keeps "within N s of the fault" a statement about the service, also on a busy host
-    emu = InverterEmulator(emulator_config(duration_s=duration, speed=speed, max_lead_s=MAX_LEAD_S, cycle_path=cfg.model.path.parents[1] / "cycles" / "rated_heat_cool.yaml"),
-                           {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
-    task = asyncio.get_running_loop().create_task(emu.run())
-    try:
-        assert await async_wait_until(lambda: emu.elapsed > 0 and emu.bus is not None, 10)
-        yield svc, emu
-    finally:
-        emu.stop()
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(task, 10)
-        await svc.stop()
-
-
-async def sim_until(emu, t_rel: float, timeout: float = 20.0) -> None:
-    assert await async_wait_until(lambda: emu.elapsed >= t_rel, timeout), f"emulator stuck at {emu.elapsed}"
 
 
 def reasons_since(emu, t_rel: float) -> list[tuple[float, float, int]]:

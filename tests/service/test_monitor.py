@@ -1,0 +1,97 @@
+"""``thermal-edge monitor`` against a running service: its screen agrees with an independent
+scrape of the metrics and with the frames an independent receiver takes off the bus."""
+from __future__ import annotations
+
+import asyncio
+import math
+import sys
+
+import can
+import cantools
+import pytest
+
+from svc_testlib import DBC, env, running, scrape, sim_until
+from thermal_edge.bus import DerateReason, FrameCodec, TeState
+from thermal_edge.monitor.snapshot import FrameWatch, from_metrics
+from thermal_edge.monitor.view import render
+
+
+@pytest.mark.async_timeout(90)
+async def test_metrics_snapshot_and_the_command_show_what_the_service_serves(tmp_path, channel):
+    async with running(tmp_path, channel, metrics=True) as (svc, emu):
+        await sim_until(emu, 120)
+        port = svc.metrics.port
+        text = svc.metrics.text()
+        snap = from_metrics(text, "test")
+        m = scrape(port)  # parsed independently (svc_testlib's own reading of the exposition)
+        # what did not change between the two reads at a standstill of the test's checks
+        assert snap.state == TeState(int(m["thermal_edge_state_code"])).name.lower()
+        assert snap.reason == DerateReason(int(m["thermal_edge_derate_reason_code"])).name.lower()
+        assert 0 < snap.current_limit_a <= 40.0
+        names = {n.name for n in snap.nodes}
+        assert names == {k.split('limit="')[1].split('"')[0] for k in m if k.startswith("thermal_edge_limited_node_celsius")}
+        for n in snap.nodes:
+            assert n.estimate_c <= n.upper_c and n.warn_c < n.max_c
+        assert {s.name for s in snap.sensors} == {"slot_winding", "end_winding", "housing"}
+        assert all(math.isfinite(s.measured_c) and s.age_s < 5 for s in snap.sensors)
+        assert snap.stale == []
+        screen = render(snap)
+        for part in ("state nominal", "reason", "hot_spot", "magnet", "look-ahead", "slot_winding", "stale inputs: none"):
+            assert part in screen
+        # the command itself, in its own process, against the live endpoint
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "thermal_edge.cli", "monitor", "--once", "--metrics", f"http://127.0.0.1:{port}/metrics",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, env=env())
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+        assert proc.returncode == 0, err.decode()
+        lines = out.decode().splitlines()
+        assert lines[0].startswith(f"thermal-edge monitor  http://127.0.0.1:{port}/metrics")
+        assert any(line.startswith("state nominal") and " A " in line for line in lines)
+        assert sum(line.startswith(("hot_spot", "magnet")) for line in lines) == 2
+
+
+@pytest.mark.async_timeout(90)
+async def test_bus_view_shows_the_frames_an_independent_receiver_decodes(tmp_path, channel):
+    db = cantools.database.load_file(str(DBC))
+    watch = FrameWatch("test", {"TE_Limits": 0.1})
+    codec = FrameCodec()
+    async with running(tmp_path, channel) as (svc, emu):
+        listener = can.Bus(interface="virtual", channel=channel, receive_own_messages=False)
+        try:
+            await sim_until(emu, 60)
+            seen: dict[str, dict[str, float]] = {}
+            for _ in range(2000):
+                msg = listener.recv(timeout=0.01)
+                if msg is None:
+                    await asyncio.sleep(0.01)
+                    continue
+                frame = codec.decode_message(msg)
+                if frame is None:
+                    continue
+                watch.add(frame)
+                if frame.name.startswith("TE_"):
+                    seen[frame.name] = db.decode_message(msg.arbitration_id, msg.data, decode_choices=False)
+                if len(seen) == 4:
+                    break
+        finally:
+            listener.shutdown()
+    assert set(seen) == {"TE_Limits", "TE_Estimates", "TE_Forecast", "TE_Status"}
+    snap = watch.current()
+    assert snap.current_limit_a == pytest.approx(seen["TE_Limits"]["TE_CurrentLimit"], abs=0.05)
+    assert snap.reason == DerateReason(seen["TE_Limits"]["TE_DerateReason"]).name.lower()
+    assert snap.state == TeState(seen["TE_Status"]["TE_State"]).name.lower()
+    assert snap.nodes[0].estimate_c == pytest.approx(seen["TE_Estimates"]["TE_T_HotSpot"], abs=0.1)
+    assert {"TE_Limits", "INV_Currents"} <= set(snap.frame_ages)
+    assert "frame" in render(snap)
+
+
+def test_monitor_says_in_one_line_when_the_service_cannot_be_reached(tmp_path):
+    import subprocess
+
+    from svc_testlib import free_tcp_port
+
+    port = free_tcp_port()
+    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "monitor", "--once", "--metrics",
+                        f"http://127.0.0.1:{port}/metrics"], capture_output=True, text=True, env=env(), timeout=60)
+    assert r.returncode == 2 and r.stdout == ""
+    assert len(r.stderr.strip().splitlines()) == 1 and f"127.0.0.1:{port}" in r.stderr
