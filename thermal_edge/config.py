@@ -140,6 +140,9 @@ class DeratingConfig:
     rise_rate_a_per_s: float = 0.5
     hysteresis_a: float = 0.5
     faults: FaultConfig = field(default_factory=FaultConfig)
+    #: how long the present limit must keep every limited node's upper band below its max
+    #: (thermal_edge.service.derating explains the choice)
+    reaction_time_s: float = 10.0
 
 
 @dataclass(frozen=True)
@@ -603,6 +606,7 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
         rise_rate_a_per_s=s.number("rise_rate_a_per_s", 0.5, positive=True),
         hysteresis_a=s.number("hysteresis_a", 0.5, min_=0.0),
         faults=faults,
+        reaction_time_s=s.number("reaction_time_s", DeratingConfig.reaction_time_s, positive=True, max_=600.0),
     )
     s.done()
 
