@@ -11,14 +11,15 @@ import re
 import sys
 from pathlib import Path
 
+import can
 import pytest
 
-from thermal_edge.bus import FrameCodec
+from thermal_edge.bus import FrameCodec, create_bus
 
 if str(Path(__file__).parent) not in sys.path:  # bus_testlib importable under any --import-mode
     sys.path.insert(0, str(Path(__file__).parent))
 
-from bus_testlib import DBC_PATH, MATRIX_PATH, REPO, MatrixSignal, parse_can_matrix
+from bus_testlib import DBC_PATH, MATRIX_PATH, REPO, MatrixSignal, free_udp_port, parse_can_matrix
 
 _channel_ids = itertools.count()
 
@@ -43,6 +44,28 @@ def codec() -> FrameCodec:
 def virtual_channel() -> str:
     """A virtual bus name unique to the test (python-can virtual buses are process-global)."""
     return f"te-test-{os.getpid()}-{next(_channel_ids)}"
+
+
+@pytest.fixture
+def udp_port() -> int:
+    """A free port on which multicast loopback works, else skip with the reason."""
+    port = free_udp_port()
+    try:
+        a = create_bus({"interface": "udp_multicast", "port": port})
+    except Exception as exc:  # no multicast on loopback / msgpack missing ...
+        pytest.skip(f"udp_multicast unavailable on this machine: {type(exc).__name__}: {exc}")
+    try:
+        b = create_bus({"interface": "udp_multicast", "port": port})
+        try:
+            a.send(can.Message(arbitration_id=0x7FF, data=b"probe", is_extended_id=False))
+            msg = b.recv(1.0)
+        finally:
+            b.shutdown()
+    finally:
+        a.shutdown()
+    if msg is None or msg.arbitration_id != 0x7FF:
+        pytest.skip("udp_multicast unavailable on this machine: loopback probe not received")
+    return port
 
 
 ASYNC_TEST_TIMEOUT_S = 20.0

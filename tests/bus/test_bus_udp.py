@@ -14,33 +14,11 @@ import pytest
 
 from thermal_edge.bus import CanTransport, DerateReason, FrameCodec, create_bus
 
-from bus_testlib import DBC_PATH, REPO, free_udp_port
+from bus_testlib import DBC_PATH, REPO
 
 PEER = Path(__file__).with_name("udp_peer.py")
 N_FRAMES = 200
 LIMITS = dict(TE_TorqueLimit=99.9, TE_CurrentLimit=123.45, TE_DerateActive=1, TE_DerateReason=DerateReason.MAGNET)
-
-
-@pytest.fixture
-def udp_port() -> int:
-    """A free port on which multicast loopback works, else skip with the reason."""
-    port = free_udp_port()
-    try:
-        a = create_bus({"interface": "udp_multicast", "port": port})
-    except Exception as exc:  # no IPv6 / no multicast route / msgpack missing ...
-        pytest.skip(f"udp_multicast unavailable on this machine: {type(exc).__name__}: {exc}")
-    try:
-        b = create_bus({"interface": "udp_multicast", "port": port})
-        try:
-            a.send(can.Message(arbitration_id=0x7FF, data=b"probe", is_extended_id=False))
-            msg = b.recv(1.0)
-        finally:
-            b.shutdown()
-    finally:
-        a.shutdown()
-    if msg is None or msg.arbitration_id != 0x7FF:
-        pytest.skip("udp_multicast unavailable on this machine: loopback probe not received")
-    return port
 
 
 async def test_two_processes_over_udp_multicast(udp_port):
