@@ -7,7 +7,8 @@
 - the tick runs at 1 Hz of the configured clock: with the wall clock from a timer task, with the
   frame clock whenever a frame's timestamp crosses a tick boundary (replays, accelerated
   simulation);
-- ``TE_Limits`` is sent every 100 ms by the transport's cyclic sender from the last tick's limits;
+- ``TE_Limits`` is sent every 100 ms by the transport's cyclic sender, in a thread of its own, from the
+  last tick's limits;
   if that fails, the fallback is the safe limit (reason "model fault"); if the inverter goes silent
   the limit drops to the safe limit with reason "stale input" even between ticks (and with the
   frame clock, where ticks stop with the frames). The 1 s frames (estimates, forecast, status) go
@@ -129,8 +130,10 @@ class EdgeService:
             except OSError as exc:  # the service runs on without the endpoint
                 log.error("cannot serve metrics on %s:%d: %s", cfg.metrics.address, cfg.metrics.port, exc)
         tr = self.transport
+        # TE_Limits from a thread of its own: a slow tick, a burst of frames or of metrics connections on the
+        # event loop must not delay it past the inverter's 300 ms timeout
         tr.start_cyclic(TE_LIMITS, self._limits_signals, period_s=cfg.transmit.limits_period_s,
-                        fallback=lambda: self.engine.policy.safe(DerateReason.MODEL_FAULT).signals())
+                        fallback=lambda: self.engine.policy.safe(DerateReason.MODEL_FAULT).signals(), thread=True)
         loop = asyncio.get_running_loop()
         if not self.frame_mode:
             tr.start_cyclic(TE_ESTIMATES, lambda: self._last_or_start().estimates_signals(), period_s=cfg.transmit.status_period_s)
@@ -269,6 +272,7 @@ class EdgeService:
         return out if out is not None else self.engine.placeholder(self.clock.now())
 
     def _limits_signals(self) -> dict[str, float | int]:
+        # called in the TE_Limits sender thread: reads only references and numbers the loop replaces whole
         policy = self.engine.policy
         now = time.monotonic()
         silence = self.config.transmit.bus_silence_s
