@@ -50,3 +50,42 @@ async def test_real_time_service_on_the_wall_clock(tmp_path, channel):
     msgs = list(notify.messages)
     assert msgs[0].startswith("READY=1") and msgs.count("WATCHDOG=1") >= 10  # every 0.3 s while ticking
     assert msgs[-1].startswith("STOPPING=1")
+
+
+@pytest.mark.async_timeout(40)
+async def test_te_limits_keep_their_cadence_while_the_event_loop_is_blocked(tmp_path, channel):
+    """A tick that blocks the loop for 1 s (a slow adaptation step, a stuck callback): TE_Limits,
+    received by an independent python-can bus and timed by its receive stamps, never pauses."""
+    import can
+
+    raw = edge_raw(tmp_path / "state", {"interface": "virtual", "channel": channel}, table4=False, adapt=False,
+                   clock={"mode": "wall"})
+    svc = EdgeService(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    blocked = []
+
+    def block(out):  # runs on the event loop, inside the tick
+        if len(blocked) < 2:
+            t0 = time.monotonic()
+            time.sleep(1.0)
+            blocked.append(time.monotonic() - t0)
+
+    svc.on_tick.append(block)
+    rx = can.Bus(interface="virtual", channel=channel)
+    stamps: list[float] = []
+
+    def receive(seconds: float) -> None:  # in a thread of the test: the service's loop runs meanwhile
+        t_end = time.monotonic() + seconds
+        while time.monotonic() < t_end:
+            msg = rx.recv(timeout=0.05)
+            if msg is not None and msg.arbitration_id == 0x2A0:
+                stamps.append(msg.timestamp)
+
+    await svc.start()
+    try:
+        await asyncio.get_running_loop().run_in_executor(None, receive, 4.5)
+    finally:
+        await svc.stop()
+        rx.shutdown()
+    assert len(blocked) == 2 and min(blocked) >= 1.0  # the loop really was blocked, twice
+    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    assert len(stamps) >= 30 and max(gaps) < 0.15, f"largest TE_Limits gap {max(gaps):.3f} s"
