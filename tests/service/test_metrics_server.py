@@ -62,3 +62,35 @@ def test_a_client_that_never_finishes_its_request_is_cut_off():
         s.close()
     finally:
         server.close()
+
+
+def test_the_default_endpoint_cannot_be_reached_from_beyond_the_host():
+    """Bound to 127.0.0.1 as configured by default: a connection to the host's own network address
+    (as a client on the network would make) is refused, one to loopback is served."""
+    import pytest
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("198.51.100.1", 9))  # route lookup only, nothing is sent
+            own = s.getsockname()[0]
+        except OSError:
+            own = "127.0.0.1"
+    if own.startswith("127."):
+        pytest.skip("this host has no non-loopback IPv4 address to connect to")
+    from thermal_edge.config import load_config
+    from svc_testlib import EDGE_YAML
+
+    address = load_config(EDGE_YAML).metrics.address
+    assert address == "127.0.0.1"
+    server = MetricsServer(CollectorRegistry(), address, 0)
+    try:
+        port = server.address[1]
+        try:
+            socket.create_connection((own, port), timeout=3).close()
+            reached = True
+        except OSError:  # ConnectionRefusedError
+            reached = False
+        assert not reached, f"{own}:{port} accepted a connection"
+        assert _scrape(port) == ""  # an empty registry, but served on loopback
+    finally:
+        server.close()
