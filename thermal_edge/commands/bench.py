@@ -24,6 +24,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
+    fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
+    fl.add_argument("--machines", type=int, default=200, help="simulated machines (default 200)")
+    fl.add_argument("--speed-machines", type=int, default=40, help="machines timed with 1 and with 2 workers (default 40)")
+    fl.add_argument("--json", action="store_true", help="print one JSON object")
+    fl.set_defaults(func=run_fleet)
 
 
 def run_jacobian(args: argparse.Namespace) -> int:
@@ -116,4 +121,20 @@ def run_service(args: argparse.Namespace) -> int:
         ],
     ))
     print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r["rss_samples"]))
+    return 0
+
+
+def run_fleet(args: argparse.Namespace) -> int:
+    from ..bench import fleet
+    from ..fleet import MissingExtra
+
+    try:
+        r = fleet.run(machines=args.machines, speed_machines=args.speed_machines)
+    except MissingExtra as exc:
+        print(f"thermal-edge bench fleet: error: {exc}")
+        return 2
+    if args.json:
+        print(json.dumps(r, indent=2, default=float))
+        return 0
+    print(fleet.format_result(r))
     return 0

@@ -19,6 +19,7 @@ from ..sim.cycles import cycle_run, load_cycle
 from ..sim.inverter import write_candump
 from ..sim.plant import simulate_plant
 from .common import add_model_args
+from .fleet import add_simulate_args, simulate_fleet
 
 
 def _effects_help() -> str:
@@ -64,6 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--noise", type=float, default=0.1, help="PT100 noise sigma, K (default 0.1)")
     p.add_argument("--resolution", type=float, default=0.1, help="PT100 quantisation, K (default 0.1)")
     p.add_argument("--seed", type=int, default=0)
+    add_simulate_args(p)
     p.add_argument("--all-nodes", action="store_true", help="also write every node's true temperature (T_<node>)")
     p.set_defaults(func=run)
 
@@ -82,6 +84,8 @@ def parse_params(items: list[str]) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.fleet is not None:
+        return simulate_fleet(args)
     if args.format == "candump":
         return run_candump(args)
     raw = hidden.read_document(args.model)

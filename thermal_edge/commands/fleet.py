@@ -1,0 +1,235 @@
+"""``thermal-edge fleet``: calibrate, evaluate and screen a fleet's recorded runs on Dask.
+
+RUNS are files, directories or globs: a directory is one machine (its ``*.csv`` runs), a file is
+one machine's run with the machine id from its name (or from ``--id-column``). Every machine is
+one Dask task, on a local cluster of one worker process per core (``--workers``), or on a running
+cluster (``--scheduler tcp://HOST:8786``; the model and run paths must be readable by its
+workers). Results: one Parquet table (``--out``, a row per machine and parameter or sensor) and
+a Markdown report with plots (``--report``, default next to the table).
+
+  calibrate  each machine's parameters from its own runs, with their uncertainty
+  evaluate   a model (or with --calibrated, each machine's own) replayed over every run: errors per sensor
+  screen     calibrate (or --table), then the fleet's distribution and the machines that stand out
+
+Needs the ``fleet`` extra: pip install thermal-edge[fleet] (plots: thermal-edge[report]).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..data import FORMATS
+from .common import add_model_args
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from ..fleet.calibrate import DECIMATE, GENERATIONS, POPSIZE
+    from ..fleet.screen import THRESHOLD
+
+    p = sub.add_parser("fleet", help="calibrate, evaluate and screen many machines' runs on Dask", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    which = p.add_subparsers(dest="fleet", required=True, metavar="JOB")
+
+    def common(q: argparse.ArgumentParser, model_required: bool = True) -> None:
+        add_model_args(q, required=model_required)
+        q.add_argument("runs", nargs="*", metavar="RUNS", help="run files, machine directories or globs")
+        q.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
+        q.add_argument("--id-column", help="take the machine id from this column (default: file or directory name)")
+        q.add_argument("--out", required=True, help="result table to write (Parquet)")
+        q.add_argument("--report", help="Markdown report to write (default: the table's name with .md)")
+        q.add_argument("--workers", type=int, help="local worker processes (default: one per core); with "
+                       "--scheduler, wait for this many workers")
+        q.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
+        q.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+
+    def fit(q: argparse.ArgumentParser) -> None:
+        q.add_argument("--params", help="comma-separated parameters to fit (default: the adaptable ones)")
+        q.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
+        q.add_argument("--decimate", type=int, default=DECIMATE, help=f"samples per optimiser step (default {DECIMATE})")
+        q.add_argument("--generations", type=int, default=GENERATIONS,
+                       help=f"differential-evolution generations (default {GENERATIONS})")
+        q.add_argument("--popsize", type=int, default=POPSIZE, help=f"population multiplier (default {POPSIZE})")
+        q.add_argument("--seed", type=int, default=0)
+
+    c = which.add_parser("calibrate", help="each machine's parameters from its own runs, with their uncertainty")
+    common(c)
+    fit(c)
+    c.set_defaults(func=run_calibrate)
+    e = which.add_parser("evaluate", help="replay a model over every machine's runs: errors per sensor")
+    common(e)
+    e.add_argument("--calibrated", help="a fleet calibrate/screen table: replay each machine with its own parameters")
+    e.set_defaults(func=run_evaluate)
+    s = which.add_parser("screen", help="the fleet's parameter distribution and the machines that stand out")
+    common(s, model_required=False)
+    fit(s)
+    s.add_argument("--table", help="screen this fleet calibrate table instead of calibrating RUNS")
+    s.add_argument("--threshold", type=float, default=THRESHOLD, help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
+    s.set_defaults(func=run_screen)
+
+
+def _names(arg: str | None) -> list[str] | None:
+    return [x.strip() for x in arg.split(",") if x.strip()] if arg else None
+
+
+def _abs(path: str | None) -> str | None:
+    """Absolute paths: the workers may run elsewhere (another directory, another host's mount)."""
+    return str(Path(path).resolve()) if path else None
+
+
+def _machines(args: argparse.Namespace) -> list[Any]:
+    from ..fleet.runs import find_machines
+
+    if not args.runs:
+        raise KeyError("no RUNS given (files, machine directories or globs)")
+    return find_machines([_abs(r) or r for r in args.runs], args.id_column)
+
+
+def _guard(job: Any) -> Any:
+    """Run a fleet job; a missing extra or an unreachable scheduler is one line and status 2."""
+
+    def wrapped(args: argparse.Namespace) -> int:
+        from ..fleet import MissingExtra
+
+        try:
+            return int(job(args))
+        except (MissingExtra, OSError) as exc:
+            if isinstance(exc, FileNotFoundError):
+                raise
+            print(f"thermal-edge fleet {args.fleet}: error: {exc}", file=sys.stderr)
+            return 2
+
+    return wrapped
+
+
+def _calibrate_rows(args: argparse.Namespace, client: Any, machines: list[Any]) -> list[dict[str, Any]]:
+    from ..fleet.calibrate import calibrate_machine
+    from ..fleet.cluster import map_machines
+
+    per = map_machines(client, calibrate_machine, machines, progress=args.progress, desc="calibrate",
+                       model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
+                       id_column=args.id_column, params=_names(args.params), sensors=_names(args.sensors),
+                       decimation=args.decimate, generations=args.generations, popsize=args.popsize, seed=args.seed)
+    return [r for rows in per for r in rows]
+
+
+def _finish(args: argparse.Namespace, title: str, rows: list[dict[str, Any]], intro: list[str], **screen: Any) -> int:
+    from ..fleet.report import summary_text, write_report
+    from ..fleet.results import write_table
+
+    write_table(args.out, rows)
+    report = Path(args.report) if args.report else Path(args.out).with_suffix(".md")
+    write_report(report, title, rows, intro, **screen)
+    print(summary_text(rows, screen.get("spreads", ()), screen.get("outliers")))
+    print(f"wrote {args.out} ({len(rows)} rows) and {report}")
+    return 0
+
+
+def _intro(args: argparse.Namespace, machines: list[Any], job: str) -> list[str]:
+    return [f"`thermal-edge fleet {job}` with model `{args.model}` on {len(machines)} machines "
+            f"({sum(len(m.runs) for m in machines)} run files)."]
+
+
+@_guard
+def run_calibrate(args: argparse.Namespace) -> int:
+    from ..fleet import require_fleet_extra
+    from ..fleet.cluster import connect
+    from ..fleet.screen import screen
+
+    require_fleet_extra()
+    machines = _machines(args)
+    with connect(args.scheduler, args.workers) as client:
+        rows = _calibrate_rows(args, client, machines)
+    spreads, _ = screen(rows)
+    for r in rows:  # calibrate reports the distribution only; z and outliers are the screen's
+        r["z"] = r["outlier"] = None
+    return _finish(args, "Fleet calibration", rows, _intro(args, machines, "calibrate"), spreads=spreads)
+
+
+@_guard
+def run_evaluate(args: argparse.Namespace) -> int:
+    from ..fleet import require_fleet_extra
+    from ..fleet.cluster import connect, map_machines
+    from ..fleet.evaluate import evaluate_machine
+    from ..fleet.results import read_table
+
+    require_fleet_extra()
+    machines = _machines(args)
+    params: list[dict[str, float] | None] = [None] * len(machines)
+    if args.calibrated:
+        fitted: dict[str, dict[str, float]] = {}
+        for r in read_table(args.calibrated):
+            if r["kind"] == "parameter":
+                fitted.setdefault(r["machine"], {})[r["name"]] = r["value"]
+        missing = [m.id for m in machines if m.id not in fitted]
+        if missing:
+            raise KeyError(f"{args.calibrated}: no parameters for machine(s) {', '.join(missing[:5])}")
+        params = [fitted[m.id] for m in machines]
+    with connect(args.scheduler, args.workers) as client:
+        per = map_machines(client, evaluate_machine, machines, params, progress=args.progress, desc="evaluate",
+                           model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
+                           id_column=args.id_column)
+    rows = [r for rs in per for r in rs]
+    intro = _intro(args, machines, "evaluate") + [
+        f"Each machine replayed with its own parameters from `{args.calibrated}`." if args.calibrated
+        else "Every machine replayed with the model's own parameters."]
+    return _finish(args, "Fleet evaluation", rows, intro)
+
+
+@_guard
+def run_screen(args: argparse.Namespace) -> int:
+    from ..fleet import require_fleet_extra
+    from ..fleet.cluster import connect
+    from ..fleet.results import read_table
+    from ..fleet.screen import screen
+
+    require_fleet_extra()
+    if args.table:
+        if args.runs:
+            raise KeyError("give either RUNS or --table, not both")
+        rows = [r for r in read_table(args.table) if r["kind"] in ("parameter", "error")]
+        intro = [f"`thermal-edge fleet screen` of the calibration table `{args.table}`."]
+    else:
+        if not args.model:
+            raise KeyError("--model is required to calibrate RUNS (or screen a calibration with --table)")
+        machines = _machines(args)
+        with connect(args.scheduler, args.workers) as client:
+            rows = _calibrate_rows(args, client, machines)
+        intro = _intro(args, machines, "screen")
+    spreads, outliers = screen(rows, args.threshold)
+    intro.append(f"Outlier threshold |z| > {args.threshold:g}.")
+    return _finish(args, "Fleet screen", rows, intro, spreads=spreads, outliers=outliers, threshold=args.threshold)
+
+
+def add_simulate_args(p: argparse.ArgumentParser) -> None:
+    """``simulate --fleet N --faulty K``: the options ``thermal-edge simulate`` takes for a fleet."""
+    from ..sim.fleet import FAULTY
+
+    p.add_argument("--fleet", type=int, metavar="N",
+                   help="simulate a fleet of N machines of the model, one run CSV each, into the directory --out "
+                        "(with manifest.json of their true parameters and faults; --seed seeds the fleet)")
+    p.add_argument("--faulty", type=int, default=FAULTY, help=f"--fleet: machines with a fault (default {FAULTY})")
+
+
+def simulate_fleet(args: argparse.Namespace) -> int:
+    """``thermal-edge simulate --fleet N --out DIR``: write the simulated fleet."""
+    from ..lptn import load_model
+    from ..sim.cycles import load_cycle
+    from ..sim.fleet import plan_fleet, write_machine, write_manifest
+
+    if args.format != "csv" or args.effect or args.param:
+        raise KeyError("--fleet writes run CSVs of the model's design: no --format candump, --effect or --param")
+    model = load_model(args.model, data_dir=args.data_dir)
+    cycle = load_cycle(args.cycle)
+    duration = args.duration if args.duration is not None else cycle.duration_s
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    specs = plan_fleet(model, args.fleet, args.faulty, args.seed)
+    for spec in specs:
+        write_machine(model, cycle, spec, out, duration, args.noise, args.resolution)
+    write_manifest(out, args.model, args.cycle, specs, duration, args.seed)
+    bad = [f"{s.id} ({s.fault['kind']})" for s in specs if s.fault]
+    print(f"wrote {len(specs)} machines of {model.name} to {out}/ ({duration:g} s of {cycle.name} each); "
+          f"faulty: {', '.join(bad) or 'none'} (manifest.json)")
+    return 0

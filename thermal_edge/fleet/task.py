@@ -1,0 +1,58 @@
+"""What every fleet task does on its worker: load the model once per process, read one machine's
+runs, and stamp the machine's rows with its wall time and the worker's peak memory.
+
+A machine that cannot be processed (a broken run, a failed fit) gives one ``error`` row naming
+the machine, its files and the error, instead of failing the whole fleet's job.
+"""
+from __future__ import annotations
+
+import functools
+import resource
+import time
+from typing import Any, Callable
+
+from ..data import Run, read_run
+from ..lptn import Model, load_model
+from .results import row
+from .runs import Machine, format_id
+
+
+@functools.lru_cache(maxsize=4)
+def cached_model(model_path: str, data_dir: str | None) -> Model:
+    """The machine model, loaded once per worker process."""
+    return load_model(model_path, data_dir=data_dir)
+
+
+def warm(model_path: str, data_dir: str | None) -> str:
+    """Load the model into this worker's cache (``client.run``) so timing starts warm; its name."""
+    return cached_model(model_path, data_dir).name
+
+
+def read_machine_runs(machine: Machine, fmt: str, id_column: str | None) -> list[Run]:
+    """The machine's runs; with ``id_column`` every row must carry the machine's id."""
+    runs = [read_run(p, fmt) for p in machine.runs]
+    if id_column:
+        for r in runs:
+            ids = {format_id(v) for v in r.column(id_column)}
+            if ids != {machine.id}:
+                raise KeyError(f"{r.source}: column {id_column} holds {', '.join(sorted(ids))}, expected only {machine.id}")
+    return runs
+
+
+def peak_mb() -> float:
+    """Peak resident memory of this process so far, MB (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_machine(job: Callable[[], list[dict[str, Any]]], machine: Machine) -> list[dict[str, Any]]:
+    """Run one machine's job; every row gets the task's wall time and the worker's peak memory."""
+    t0 = time.perf_counter()
+    try:
+        rows = job()
+    except Exception as exc:  # one machine's failure must not end the fleet's job; it is reported
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        rows = [row(machine=machine.id, kind="error", name=type(exc).__name__, message=msg, runs=";".join(machine.runs))]
+    wall, mb = time.perf_counter() - t0, peak_mb()
+    for r in rows:
+        r["wall_s"], r["worker_peak_mb"] = wall, mb
+    return rows
