@@ -1,11 +1,15 @@
 """Receive-path benchmark of CanTransport on udp_multicast (a script, not collected by pytest).
 
-Usage: python tests/bus/bench_rx.py [RATE_FPS] [SECONDS] [--profile]
+Usage: python tests/bus/bench_rx.py [RATE_FPS] [SECONDS] [mixed|own] [--profile]
 
-A sender process puts INV_Currents and INV_Mechanics (half each, valid counters and CRCs) on
-the bus at RATE frames/s, paced in 1 ms slices; this process receives them through a
-CanTransport and prints one JSON line: frames sent, received, lost by the codec's count, the
-receiver's CPU seconds and CPU s per 10,000 frames. ``--profile`` prints the top functions of
+A sender process puts RATE frames/s on the bus, paced in 1 ms slices, in one of two modes:
+``mixed`` (a full bus as on a drive: INV_Currents and INV_Mechanics at their 10 ms cycle,
+foreign identifiers for the rest) or ``own`` (every frame INV_Currents or INV_Mechanics, at the
+full rate: the dearest case for the decoder). This process receives them through a
+CanTransport and prints one JSON line: our frames sent, received, lost by the codec's count, the
+receiver's CPU seconds and CPU s per 10,000 frames on the bus; ``missing_uncounted`` is the number of
+frames missing up to the last one received of each identifier that the codec did not count
+as lost (0 when the lost count is exact). ``--profile`` prints the top functions of
 a cProfile of the receiving process as well.
 """
 
@@ -27,26 +31,43 @@ SENDER = r"""
 import sys, time
 from thermal_edge.bus import FrameCodec, create_bus
 import can
-port, rate, seconds = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3])
+port, rate, seconds, mode = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
 codec = FrameCodec()
 bus = create_bus({"interface": "udp_multicast", "port": port, "node": "INV"})
 n = int(rate * seconds)
-names = ("INV_Currents", "INV_Mechanics")
-values = ({"INV_Id": 1.0, "INV_Iq": 2.0, "INV_IphRms": 3.0}, {"INV_Speed": 1000.0, "INV_Torque": 10.0, "INV_Udc": 600.0})
+# frame k of each inverter identifier carries k (IphRms in 0.05 A, Udc in 0.1 V steps)
+currents = lambda k: ("INV_Currents", {"INV_Id": 1.0, "INV_Iq": 2.0, "INV_IphRms": k * 0.05})
+mechanics = lambda k: ("INV_Mechanics", {"INV_Speed": 1000.0, "INV_Torque": 10.0, "INV_Udc": k * 0.1})
+plan = []  # (due time from the start in s, message)
+if mode == "own":  # every frame is one of ours, alternating, at the full rate (far above their cycle)
+    for i in range(n):
+        name, values = (currents if i % 2 == 0 else mechanics)(i // 2)
+        plan.append((i / rate, name, values))
+else:  # "mixed": ours at their DBC cycle (10 ms), foreign identifiers fill the bus up to the rate
+    cycle = codec.cycle_time_s("INV_Currents")
+    for k in range(int(seconds / cycle)):
+        plan.append((k * cycle, *currents(k)))
+        plan.append((k * cycle + cycle / 2, *mechanics(k)))
+    filler = n - len(plan)
+    for j in range(filler):
+        plan.append((j * seconds / filler, 0x100 + j % 0x80, bytes(8)))
+    plan.sort(key=lambda p: p[0])
 msgs = []
-for i in range(n):
-    k = i % 2
-    msgs.append(can.Message(arbitration_id=codec.frame_id(names[k]), data=codec.encode(names[k], values[k]), is_extended_id=False))
+for due, name, values in plan:
+    if isinstance(name, str):
+        msgs.append((due, can.Message(arbitration_id=codec.frame_id(name), data=codec.encode(name, values),
+                                      is_extended_id=False)))
+    else:
+        msgs.append((due, can.Message(arbitration_id=name, data=values, is_extended_id=False)))
 time.sleep(0.5)
 t0 = time.monotonic()
-for i, msg in enumerate(msgs):
-    due = t0 + i / rate
-    while time.monotonic() < due - 0.001:
+for due, msg in msgs:
+    while time.monotonic() < t0 + due - 0.001:
         time.sleep(0.0005)
     msg.timestamp = time.time()
     bus.send(msg)
 bus.shutdown()
-print(n)
+print(sum(isinstance(p[1], str) for p in plan), len(plan))
 """
 
 
@@ -56,40 +77,49 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-async def main(rate: float, seconds: float, profile: bool) -> dict:
+async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0, mode: str = "mixed") -> dict:
+    """Run the benchmark; ``stall_s`` blocks this event loop once, mid-run, for that long (s)."""
     port = free_port()
     count = 0
+    last = {"INV_Currents": -1, "INV_Mechanics": -1}  # highest frame index received per frame
 
     def on_frame(frame) -> None:
         nonlocal count
         count += 1
+        k = round(frame.signals["INV_IphRms"] / 0.05 if frame.name == "INV_Currents" else frame.signals["INV_Udc"] / 0.1)
+        last[frame.name] = max(last[frame.name], k)
 
     tr = CanTransport({"interface": "udp_multicast", "port": port, "node": "TE"}, FrameCodec(), on_frame=on_frame)
     prof = cProfile.Profile() if profile else None
     async with tr:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-c", SENDER, str(port), str(rate), str(seconds), stdout=asyncio.subprocess.PIPE,
+            sys.executable, "-c", SENDER, str(port), str(rate), str(seconds), mode, stdout=asyncio.subprocess.PIPE,
             env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
         cpu0 = time.process_time()
         if prof:
             prof.enable()
+        if stall_s:
+            await asyncio.sleep(0.5 + seconds / 2)
+            time.sleep(stall_s)  # the kernel queue overflows: real drops
         out, _ = await proc.communicate()
         await asyncio.sleep(0.3)
         if prof:
             prof.disable()
         cpu = time.process_time() - cpu0
-    sent = int(out.decode().split()[-1])
+    sent, total = (int(x) for x in out.decode().split()[-2:])
     st = tr.codec.stats
     if prof:
         pstats.Stats(prof, stream=sys.stderr).sort_stats("tottime").print_stats(15)
-    return {"rate_fps": rate, "seconds": seconds, "sent": sent, "received": count, "lost_counted": st.lost,
-            "missing": sent - count, "cpu_s": round(cpu, 2),
-            "cpu_s_per_10k": round(cpu / max(count, 1) * 10_000, 3),
-            "rx_fps": round(count / seconds)}
+    expected = sum(k + 1 for k in last.values())  # frames sent up to the last one received of each ID
+    return {"mode": mode, "rate_fps": rate, "seconds": seconds, "bus_frames": total, "rx_messages": tr.stats.rx_messages,
+            "unknown_id": st.unknown_id, "sent": sent, "received": count, "lost_counted": st.lost,
+            "missing": sent - count, "missing_uncounted": expected - count - st.lost, "cpu_s": round(cpu, 2),
+            "cpu_s_per_10k": round(cpu / max(tr.stats.rx_messages, 1) * 10_000, 3),
+            "rx_fps": round(tr.stats.rx_messages / seconds)}
 
 
 if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
     result = asyncio.run(main(float(args[0]) if args else 8000.0, float(args[1]) if len(args) > 1 else 10.0,
-                              "--profile" in sys.argv))
+                              "--profile" in sys.argv, mode=args[2] if len(args) > 2 else "mixed"))
     print(json.dumps(result))

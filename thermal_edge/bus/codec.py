@@ -254,7 +254,7 @@ class FrameCodec:
         self._resync_after = float(resync_after_cycles)
         self._lock = threading.Lock()
         self._tx_counter: dict[int, int] = {}
-        self._rx_last: dict[int, tuple[int, float | None]] = {}
+        self._rx_last: dict[int, tuple[int, float | None]] = {}  # last accepted counter and time stamp (s)
 
     # ------------------------------------------------------------------ lookup
     @property
@@ -430,7 +430,9 @@ class FrameCodec:
         counter alone hides every multiple of 16 (a hole of 17 frames looks like one of 1).
         Time stamps only add wraps, and only once they span 12 periods or more: frames that
         arrive in bursts, or without time stamps, are judged by the counter step alone. A
-        step of 0 within 12 periods is a repeated frame.
+        step of 0 within 12 periods is a repeated frame. A sender much faster than its DBC
+        cycle (timing jitter of 8 of its periods or more) cannot be judged this way: its holes
+        are counted modulo 16, as by the counter alone.
         """
         try:
             return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
@@ -491,15 +493,15 @@ class FrameCodec:
             if last is not None:
                 last_counter, last_ts = last
                 step = (counter - last_counter) % 16
-                periods = 0.0  # frame periods since the last one, from the time stamps (0: unknown)
+                periods = 0.0  # DBC cycles since the last frame, from the time stamps (0: unknown)
                 if ts is not None and last_ts is not None and spec.cycle_time_s:
                     periods = (ts - last_ts) / spec.cycle_time_s
                 if abs(periods) > self._resync_after:
                     self.stats.counter_resync += 1
                 else:
-                    # periods since the last frame: the counter step plus the whole counter wraps
-                    # that bring it nearest to the time stamps, once these span most of a wrap;
-                    # below that the step alone (frames that came in a burst stay counted right)
+                    # frame periods since the last one: the counter step plus the whole counter
+                    # wraps that bring it nearest to the time stamps, once these span most of a
+                    # wrap; below that the step alone (frames that came in a burst keep their count)
                     n = step
                     if periods >= _WRAP_FROM_PERIODS:
                         n += 16 * max(0, round((periods - step) / 16))
