@@ -15,6 +15,7 @@ import csv
 import math
 import os
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -69,39 +70,87 @@ class Run:
         return Run(self.t[start:stop], {k: v[start:stop] for k, v in self.columns.items()}, self.source, dict(self.meta))
 
 
+#: Bytes looked at to tell a binary file from a CSV.
+SNIFF_BYTES = 8192
+#: Encodings tried in turn: UTF-8 (a BOM is dropped), then Windows-1252, the usual test-bench
+#: export with "°C" or "Prüfstand" (it decodes every Latin-1 text byte the same way).
+ENCODINGS = ("utf-8-sig", "cp1252")
+
+
+def _text(path: Path) -> str:
+    try:
+        raw = path.read_bytes()
+    except IsADirectoryError:
+        raise RunError(f"{path}: is a directory, not a run file") from None
+    except OSError as exc:
+        raise RunError(f"{path}: cannot read: {exc.strerror}") from None
+    if b"\x00" in raw[:SNIFF_BYTES]:
+        raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads those with --candump)")
+    for enc in ENCODINGS:
+        try:
+            return raw.decode(enc)
+        except UnicodeDecodeError:
+            continue
+    raise RunError(f"{path}: neither UTF-8 nor Windows-1252/Latin-1 text")
+
+
+def _number(v: str, path: Path, line: int, column: str) -> float:
+    v = v.strip()
+    if v in ("", "nan", "NaN", "NA"):
+        return math.nan
+    try:
+        x = float(v)
+    except ValueError:
+        raise RunError(f"{path}: line {line}, column {column!r}: not a number: {v!r}") from None
+    if math.isinf(x):
+        raise RunError(f"{path}: line {line}, column {column!r}: infinite value {v!r}")
+    return x
+
+
 def read_run(path: str | os.PathLike[str], fmt: str = "csv") -> Run:
     """Read a run file.
 
     Parameters
     ----------
     path : path-like
-        CSV file.
+        CSV file (UTF-8 or Windows-1252/Latin-1; ``#`` lines are comments).
     fmt : {"csv", "paderborn"}
         ``csv``: our run format (needs a ``t`` column). ``paderborn``: the Paderborn data set.
+
+    Raises
+    ------
+    RunError
+        The file cannot be used; the message names the file, and the line and column where one
+        is at fault.
     """
     path = Path(path)
     if fmt not in FORMATS:
         raise RunError(f"{path}: unknown format {fmt!r} (known: {', '.join(FORMATS)})")
-    try:
-        with open(path, newline="") as fh:
-            rows = [r for r in csv.reader(line for line in fh if not line.startswith("#")) if r]
-    except OSError as exc:
-        raise RunError(f"{path}: cannot read: {exc.strerror}") from None
+    numbered = [(k, line) for k, line in enumerate(_text(path).splitlines(), start=1)
+                if line.strip() and not line.startswith("#")]
+    rows = list(zip((k for k, _ in numbered), csv.reader(line for _, line in numbered)))
+    if not rows:
+        raise RunError(f"{path}: empty: no header and no data rows")
     if len(rows) < 2:
-        raise RunError(f"{path}: no data rows")
-    header = [h.strip() for h in rows[0]]
-    try:
-        data = np.array([[float(v) if v.strip() not in ("", "nan", "NaN") else math.nan for v in r] for r in rows[1:]])
-    except ValueError as exc:
-        raise RunError(f"{path}: not a number: {exc}") from None
-    if data.ndim != 2 or data.shape[1] != len(header):
-        raise RunError(f"{path}: rows do not all have {len(header)} columns")
+        raise RunError(f"{path}: a header but no data rows")
+    header = [h.strip() for h in rows[0][1]]
+    dupes = sorted({h for h in header if header.count(h) > 1})
+    if dupes:
+        raise RunError(f"{path}: line {rows[0][0]}: column(s) {', '.join(map(repr, dupes))} appear more than once")
+    data = np.empty((len(rows) - 1, len(header)))
+    for i, (line, r) in enumerate(rows[1:]):
+        if len(r) != len(header):
+            raise RunError(f"{path}: line {line}: {len(r)} values, the header has {len(header)} columns")
+        data[i] = [_number(v, path, line, header[j]) for j, v in enumerate(r)]
     cols = {h: data[:, i].copy() for i, h in enumerate(header)}
     if fmt == "paderborn":
         return _paderborn(cols, str(path))
     if "t" not in cols:
         raise RunError(f"{path}: no column 't' (seconds); for the Paderborn data use --format paderborn")
     t = cols.pop("t")
+    bad = np.flatnonzero(~np.isfinite(t) | (np.diff(t, prepend=-np.inf) <= 0))
+    if bad.size:
+        raise RunError(f"{path}: line {rows[1 + int(bad[0])][0]}, column 't': time must be finite and increasing")
     return Run(t, cols, str(path))
 
 
@@ -112,6 +161,71 @@ def _paderborn(cols: dict[str, np.ndarray], source: str) -> Run:
     if "i_d" in out and "i_q" in out:
         out["i_rms"] = np.hypot(out["i_d"], out["i_q"]) / math.sqrt(2.0)  # amplitude -> RMS
     return Run(t, out, source, {"format": "paderborn"})
+
+
+#: Plausible temperatures of a machine and its surroundings, degC; outside: a unit or sensor error.
+TEMPERATURE_RANGE_C = (-60.0, 300.0)
+#: Longest plausible sample period of a thermal run, s (a 1 Hz model; a longer one is time in ms).
+MAX_SAMPLE_PERIOD_S = 60.0
+
+
+def check_run(run: Run, temperatures: Sequence[str]) -> None:
+    """Refuse a run whose units cannot be right before anything is fitted to it.
+
+    Parameters
+    ----------
+    run : Run
+    temperatures : sequence of str
+        The run's columns that hold temperatures in degC (the model's sensors, ``*_c`` inputs).
+
+    Raises
+    ------
+    RunError
+        Time not in seconds (a sample period above :data:`MAX_SAMPLE_PERIOD_S`), a temperature
+        column in kelvin (every value above 200 and some above the plausible maximum) or outside
+        :data:`TEMPERATURE_RANGE_C`; the message names the file, the column and the line.
+    """
+    if len(run) < 2:
+        raise RunError(f"{run.source}: {len(run)} sample(s): a run needs at least two")
+    dt = float(np.median(np.diff(run.t)))
+    if dt > MAX_SAMPLE_PERIOD_S:
+        raise RunError(f"{run.source}: column 't': sample period {dt:g} s; is the time in milliseconds? "
+                       "(t must be in seconds)")
+    lo, hi = TEMPERATURE_RANGE_C
+    for name in temperatures:
+        x = run.columns.get(name)
+        if x is None or not np.isfinite(x).any():
+            continue
+        finite = x[np.isfinite(x)]
+        if finite.min() > 200.0 and finite.max() > hi:
+            raise RunError(f"{run.source}: column {name!r}: {finite.min():.1f} to {finite.max():.1f}; "
+                           "kelvin? (temperatures must be in degC)")
+        out = np.flatnonzero(np.isfinite(x) & ((x < lo) | (x > hi)))
+        if out.size:
+            k = int(out[0])
+            raise RunError(f"{run.source}: column {name!r}, sample {k + 1} (t = {run.t[k]:g} s): {x[k]:g} degC is "
+                           f"outside the plausible {lo:g} to {hi:g} degC")
+
+
+def describe(run: Run, used: Sequence[str]) -> str:
+    """A summary to print before any fit: samples, period, duration, columns used and ignored, ranges.
+
+    Parameters
+    ----------
+    run : Run
+    used : sequence of str
+        The columns the command takes (inputs and sensors).
+    """
+    dur = float(run.t[-1] - run.t[0]) if len(run) else 0.0
+    dt = float(np.median(np.diff(run.t))) if len(run) > 1 else math.nan
+    ranges = []
+    for name in used:
+        x = run.columns.get(name)
+        if x is not None and np.isfinite(x).any():
+            ranges.append(f"{name} {np.nanmin(x):.4g}..{np.nanmax(x):.4g}")
+    ignored = [k for k in run.columns if k not in used]
+    return (f"{run.source}: {len(run)} samples every {dt:g} s ({dur / 3600:.2f} h); "
+            f"used: {', '.join(ranges) or 'none'}; ignored: {', '.join(ignored) or 'none'}")
 
 
 def write_run(path: str | os.PathLike[str], run: Run, comment: str = "") -> None:
