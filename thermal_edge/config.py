@@ -11,6 +11,7 @@ the configuration file.
 """
 from __future__ import annotations
 
+import difflib
 import math
 import os
 from dataclasses import dataclass, field, fields
@@ -50,6 +51,13 @@ CLOCK_MODES = ("wall", "frame")
 WORKERS = ("thread", "sync")
 REASON_NAMES = {"winding": DerateReason.WINDING, "magnet": DerateReason.MAGNET}
 WEIGHTINGS = ("paper", "forgetting", "uniform")
+#: The inverter treats TE_Limits as absent after this long without a valid frame, s (can-matrix.md).
+INVERTER_LIMITS_TIMEOUT_S = 0.3
+#: Longest TE_Limits period accepted, s: half the timeout, so that one lost or late frame still
+#: leaves the next one inside it.
+MAX_LIMITS_PERIOD_S = INVERTER_LIMITS_TIMEOUT_S / 2
+#: Most adapter decisions kept in the state file (bounds its size below persistence.MAX_BYTES).
+MAX_DECISIONS = 5000
 
 
 class ConfigError(ValueError):
@@ -271,24 +279,66 @@ class EdgeConfig:
             v = getattr(self.transmit, key)
             if v and v not in limit_names:
                 raise self.error(f"transmit.{key}", f"model {model.name} has no limited node {v!r}")
+        self.check_parameters(model)
         names = set(model.parameter_names)
-        for p in self.model.parameters:
-            if p not in names:
-                raise self.error(f"model.parameters.{p}", f"model {model.name} has no parameter {p!r}")
-        lo, hi = model.bounds()
-        for p, v in self.model.parameters.items():
-            i = model.parameter_names.index(p)
-            if not lo[i] <= v <= hi[i]:
-                raise self.error(f"model.parameters.{p}", f"{v:g} is outside the model's bounds [{lo[i]:g}, {hi[i]:g}]")
         ad = self.adaptation.adapter
         for p in ad.params or ():
             if p not in names:
-                raise self.error("adaptation.params", f"model {model.name} has no parameter {p!r}")
+                raise self.error("adaptation.params", f"model {model.name} has no parameter {p!r}{_did_you_mean(p, names)}")
         for s in ad.sensors or ():
             if s not in model.sensors:
                 raise self.error("adaptation.sensors", f"model {model.name} has no sensor {s!r}")
         if self.kt(model) is None:
             raise self.error("derating.kt_nm_per_arms", f"model {model.name} has no drive.kt_nm_per_arms: give it here")
+
+    def check_parameters(self, model: Any) -> None:
+        """Check ``model.parameters`` against the model file: known names, values within its bounds.
+
+        Run on the model as loaded from its file, before the values are applied (only the model
+        file can widen a bound).
+
+        Raises
+        ------
+        ConfigError
+            ``<file>: model.parameters.<name>: <value> is outside the model's bounds [lo, hi] ...``
+            or, for an unknown name, the closest known one.
+        """
+        from .lptn import ParameterError  # (the model package is only needed once a model is loaded)
+
+        for name, value in self.model.parameters.items():
+            try:
+                model.check_parameters({name: value})
+            except ParameterError as exc:
+                where = f" (bounds of {Path(model.path).name})" if exc.bounds is not None and model.path else ""
+                raise self.error(f"model.parameters.{name}", f"{exc.problem}{where}") from None
+
+    def check_state_dir(self, create: bool) -> None:
+        """Check that ``state.dir`` is, or can be made, a directory; with ``create`` make it and
+        check that this user can write it.
+
+        Without ``create`` (``run --check``, perhaps as another user than the service's) only what
+        no user could fix is an error: the path is a file, or lies under one.
+
+        Raises
+        ------
+        ConfigError
+            ``<file>: state.dir: ...``.
+        """
+        d = self.state.dir
+        probe = d
+        while not os.path.lexists(probe) and probe != probe.parent:
+            probe = probe.parent
+        if not probe.is_dir():
+            msg = f"{d} is not a directory" if probe == d else f"{d} cannot be created: {probe} is not a directory"
+            raise self.error("state.dir", msg)
+        if not create:
+            return
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
+        if not os.access(d, os.W_OK | os.X_OK):
+            raise self.error("state.dir", f"{d} is not writable by this user")
 
     def check_dbc(self, codec: Any) -> None:
         """Check that every mapped frame and signal exists in the DBC."""
@@ -429,9 +479,24 @@ class _Section:
     def done(self, allow_extra: bool = False) -> None:
         if allow_extra:
             return
-        extra = sorted(set(self.raw) - self.used)
+        extra = sorted(set(self.raw) - self.used, key=str)
         if extra:
-            raise self.fail(extra[0], "unknown key")
+            raise self.fail(str(extra[0]), f"unknown key{_did_you_mean(str(extra[0]), self.used)}")
+
+
+def _did_you_mean(name: str, known: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest of ``known``, else empty."""
+    close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _limits_period(sec: _Section) -> float:
+    v = sec.number("limits_period_s", 0.1, positive=True)
+    if v > MAX_LIMITS_PERIOD_S:
+        raise sec.fail("limits_period_s", f"must be at most {MAX_LIMITS_PERIOD_S:g} s (the inverter drops TE_Limits after "
+                                          f"{INVERTER_LIMITS_TIMEOUT_S * 1000:.0f} ms; one lost frame must not trip it), "
+                                          f"got {v:g}")
+    return v
 
 
 def _str_list(sec: _Section, k: str) -> tuple[str, ...] | None:
@@ -534,10 +599,9 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
         raise ConfigError(f"{fname}: bus: expected a mapping, got {type(bus_raw).__name__}")
     try:
         bus = BusConfig.from_mapping({"node": "TE", **bus_raw})
-    except BusConfigError as exc:
-        raise ConfigError(f"{fname}: {exc}") from None
-    except TypeError as exc:
-        raise ConfigError(f"{fname}: bus: {exc}") from None
+    except (BusConfigError, TypeError, ValueError) as exc:  # BusConfigError names the key ("bus.chanel: ...")
+        msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ConfigError(f"{fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
 
     s = top.sub("codec")
     codec = CodecConfig(s.path("dbc", base), s.number("resync_after_cycles", 8.0, positive=True))
@@ -638,7 +702,7 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     default_dir = os.environ.get("STATE_DIRECTORY", "").split(":")[0] or None
     sdir = s.path("dir", base, default_dir, required=default_dir is None)
     state = StateConfig(sdir, s.number("save_interval_s", 60.0, positive=True),  # type: ignore[arg-type]
-                        s.integer("max_decisions", 500, min_=0), s.number("max_downtime_s", 7 * 86400.0, positive=True))
+                        s.integer("max_decisions", 500, min_=0, max_=MAX_DECISIONS), s.number("max_downtime_s", 7 * 86400.0, positive=True))
     s.done()
 
     s = top.sub("recording")
@@ -647,7 +711,7 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
 
     s = top.sub("transmit")
     transmit = TransmitConfig(s.string("hot_spot_limit", "hot_spot"), s.string("magnet_limit", "magnet"),
-                              s.number("limits_period_s", 0.1, positive=True), s.number("status_period_s", 1.0, positive=True),
+                              _limits_period(s), s.number("status_period_s", 1.0, positive=True),
                               s.number("bus_silence_s", 1.0, positive=True))
     s.done()
     top.used.add("bus")

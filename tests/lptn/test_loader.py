@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from thermal_edge.lptn import ModelError, load_model
+from thermal_edge.lptn import ModelError, ParameterError, load_model
 from thermal_edge.lptn.expr import evaluate_const
 
 from lptn_ref import tiny_plus_raw, tiny_raw
@@ -287,12 +287,39 @@ def test_with_parameters_replaces_nominal_values(tiny_model):
     assert dict(zip(m2.parameter_names, m2.nominal())) == {"R_amb": 1.5, "k_cu": 2.0, "c_w": 400.0, "h_gap": 30.0}
     lo, hi = m2.bounds()
     assert list(lo) == [0.1, 0.5, 100, 1] and list(hi) == [5, 10, 1000, 100]
-    with pytest.raises(KeyError, match="R_x"):
+    with pytest.raises(ParameterError, match="R_x"):
         tiny_model.with_parameters({"R_x": 1.0})
 
 
-def test_with_parameters_out_of_bounds_widens_the_bounds_as_documented(tiny_model):
-    m2 = tiny_model.with_parameters({"R_amb": 10.0})
+def test_with_parameters_refuses_a_value_outside_the_bounds_unless_widening_is_explicit(tiny_model):
+    with pytest.raises(ParameterError) as ei:
+        tiny_model.with_parameters({"R_amb": 10.0})
+    assert "R_amb" in str(ei.value) and "10" in str(ei.value) and "[0.1, 5]" in str(ei.value)
+    assert ei.value.bounds == (0.1, 5.0) and ei.value.value == 10.0
+    m2 = tiny_model.with_parameters({"R_amb": 10.0}, widen_bounds=True)  # a simulated plant only
     p = m2.parameters[0]
     assert (p.lower, p.upper) == (0.1, 10.0)
     assert p.value == 10.0
+    with pytest.raises(ParameterError, match="R_x"):
+        tiny_model.with_parameters({"R_x": 1.0}, widen_bounds=True)
+
+
+def test_check_parameters_names_value_bounds_and_a_close_match(tiny_model):
+    tiny_model.check_parameters({"R_amb": 0.1, "k_cu": 10.0})  # the bounds themselves are inside
+    for bad in ({"R_amb": 5.000001}, {"c_w": float("nan")}, {"c_w": "400"}, {"c_w": True}):
+        with pytest.raises(ParameterError) as ei:
+            tiny_model.check_parameters(bad)
+        assert str(ei.value).startswith(f"parameter {next(iter(bad))}: ")
+    with pytest.raises(ParameterError) as ei:
+        tiny_model.check_parameters({"R_ambb": 1.0})
+    assert ei.value.suggestion == "R_amb" and "did you mean 'R_amb'" in str(ei.value)
+    with pytest.raises(ParameterError) as ei:
+        tiny_model.check_parameters({"zzz": 1.0})
+    assert ei.value.suggestion is None and "did you mean" not in str(ei.value)
+
+
+def test_snap_to_bounds_moves_only_round_off_onto_a_bound(tiny_model):
+    below = float(np.exp(np.log(0.1)) * (1 - 1e-15))
+    snapped = tiny_model.snap_to_bounds({"R_amb": below, "k_cu": 10.0 * (1 + 2e-10), "c_w": 99.0, "h_gap": 50.0})
+    assert snapped == {"R_amb": 0.1, "k_cu": 10.0, "c_w": 99.0, "h_gap": 50.0}
+    tiny_model.check_parameters({k: v for k, v in snapped.items() if k != "c_w"})

@@ -4,6 +4,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from dataclasses import fields
+from pathlib import Path
 
 import pytest
 import yaml
@@ -88,7 +89,8 @@ def test_broken_config_names_file_and_key(tmp_path, edit, key, words):
          "signals.sensors.rotor", "has no sensor"),
         (lambda r: r["derating"]["limits"].__setitem__("bearing", {"warn_c": 80, "max_c": 90}), "derating.limits.bearing",
          "no limited node"),
-        (lambda r: r["model"]["parameters"].__setitem__("R_e_hous", 1000.0), "model.parameters.R_e_hous", "outside"),
+        (lambda r: r["model"]["parameters"].__setitem__("R_e_hous", 1000.0), "model.parameters.R_e_hous",
+         "1000 is outside the model's bounds [3, 30] K/W (bounds of pm10kw.yaml)"),
     ],
 )
 def test_config_checked_against_the_model(tmp_path, edit, key, words):
@@ -96,14 +98,8 @@ def test_config_checked_against_the_model(tmp_path, edit, key, words):
     edit(raw)
     cfg = config_from_mapping(raw, tmp_path / "edge.yaml")
     with pytest.raises(ConfigError) as err:
-        cfg.check_model(load_service_model(cfg) if key != "model.parameters.R_e_hous" else _nominal_model(cfg))
+        cfg.check_model(load_service_model(cfg))
     assert str(err.value).startswith(f"edge.yaml: {key}:") and words in str(err.value)
-
-
-def _nominal_model(cfg):
-    from thermal_edge.lptn import load_model
-
-    return load_model(cfg.model.path)
 
 
 def test_config_checked_against_the_dbc(tmp_path):
@@ -147,3 +143,99 @@ def test_run_command_rejects_a_broken_config_with_one_line(tmp_path):
     assert proc.returncode == 2
     lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
     assert lines == ["thermal-edge run: error: edge.yaml: derating.safe_current_a: must be positive, got -3"], proc.stderr
+
+
+def _set(path: str, value):  # type: ignore[no-untyped-def]
+    """An edit of the raw configuration: set the dotted ``path`` (creating sections) to ``value``."""
+    def edit(raw: dict, tmp: Path) -> None:
+        *parents, last = path.split(".")
+        d = raw
+        for k in parents:
+            d = d.setdefault(k, {})
+        d[last] = value(tmp) if callable(value) else value
+    return edit
+
+
+def _a_file(tmp: Path) -> str:
+    (tmp / "a_file").write_text("x")
+    return str(tmp / "a_file")
+
+
+def _rename(section: str, old: str, new: str):  # type: ignore[no-untyped-def]
+    def edit(raw: dict, tmp: Path) -> None:
+        d = raw[section] if section else raw
+        d[new] = d.pop(old)
+    return edit
+
+
+# (case, edit, key, words): each gives exit 2 and exactly one line on stderr, naming the file and the key
+BROKEN = [
+    ("limits period above the inverter timeout", _set("transmit.limits_period_s", 0.5), "transmit.limits_period_s",
+     "must be at most 0.15 s (the inverter drops TE_Limits after 300 ms"),
+    ("limits period at the inverter timeout", _set("transmit.limits_period_s", 0.3), "transmit.limits_period_s", "at most 0.15 s"),
+    ("state.dir is a file", _set("state.dir", _a_file), "state.dir", "is not a directory"),
+    ("state.dir under a file", _set("state.dir", lambda t: _a_file(t) + "/state"), "state.dir", "cannot be created"),
+    ("parameter below its bound", _set("model.parameters", {"R_e_hous": 0.91}), "model.parameters.R_e_hous",
+     "0.91 is outside the model's bounds [3, 30] K/W"),
+    ("parameter a round-off below its bound", _set("model.parameters", {"c_p_ew": 299.99999999999994}),
+     "model.parameters.c_p_ew", "outside the model's bounds [300, 900]"),
+    ("unknown parameter", _set("model.parameters", {"R_e_house": 9.1}), "model.parameters.R_e_house",
+     "has no parameter 'R_e_house' (did you mean 'R_e_hous'?)"),
+    ("parameter not a number", _set("model.parameters", {"c_p_ew": "hot"}), "model.parameters.c_p_ew", "expected a number"),
+    ("parameters a list", _set("model.parameters", [1, 2]), "model.parameters", "expected a mapping"),
+    ("typo under bus", _rename("bus", "channel", "chanel"), "bus.chanel", "did you mean 'channel'"),
+    ("typo under state", _rename("state", "save_interval_s", "save_intervall_s"), "state.save_intervall_s",
+     "unknown key (did you mean 'save_interval_s'?)"),
+    ("typo of a section", _rename("", "transmit", "transmitt"), "transmitt", "unknown key (did you mean 'transmit'?)"),
+    ("negative safe current", _set("derating.safe_current_a", -3), "derating.safe_current_a", "must be positive"),
+    ("port out of range", _set("metrics.port", 70000), "metrics.port", "at most 65535"),
+    ("unknown clock mode", _set("clock.mode", "sundial"), "clock.mode", "must be one of"),
+    ("unknown reduction", _set("signals.inputs.i_rms.reduce", "median"), "signals.inputs.i_rms.reduce", "must be one of"),
+    ("model file missing", _set("model.path", "/nonexistent/pm10kw.yaml"), "model.path", "cannot read"),
+    ("model file not a model", _set("model.path", str(EDGE_YAML)), "model.path", "unknown section"),
+    ("DBC missing", _set("codec.dbc", "/nonexistent/te.dbc"), "codec.dbc", "cannot load DBC"),
+    ("unknown adaptable parameter", _set("adaptation.params", ["R_e_house"]), "adaptation.params", "did you mean 'R_e_hous'"),
+    ("unknown sensor", _set("signals.sensors.rotor", {"frame": "INV_StatorTemps", "signal": "INV_T_Housing"}),
+     "signals.sensors.rotor", "has no sensor"),
+    ("warn above max", _set("derating.limits.hot_spot.max_c", 100), "derating.limits.hot_spot.max_c", "must be above warn_c"),
+    ("too many decisions kept", _set("state.max_decisions", 100000), "state.max_decisions", "at most 5000"),
+    ("zero timeout", _set("timeouts.INV_Currents", 0), "timeouts.INV_Currents", "must be positive"),
+    ("boolean noise", _set("observer.q_k", True), "observer.q_k", "expected a number"),
+    ("frame not in the DBC", _set("signals.inputs.i_rms.frame", "INV_Nothing"), "signals.inputs.i_rms.frame", "no frame"),
+    ("transmitted limit unknown", _set("transmit.hot_spot_limit", "nowhere"), "transmit.hot_spot_limit", "no limited node"),
+    ("bitrate negative", _set("bus.bitrate", -5), "bus.bitrate", "positive integer"),
+]
+# the checks that need more than the file also hold when the service starts (not only with --check)
+AT_START = {"limits period above the inverter timeout", "state.dir is a file", "state.dir under a file",
+            "parameter below its bound", "unknown parameter", "typo under bus"}
+
+
+def _run(path: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "thermal_edge.cli", "run", *extra, "--config", str(path)],
+                          capture_output=True, text=True, env=env(), cwd=str(REPO), timeout=120)
+
+
+CASES = [(*b, "--check") for b in BROKEN] + [(*b, "start") for b in BROKEN if b[0] in AT_START]
+
+
+@pytest.mark.parametrize("case, edit, key, words, mode", CASES, ids=[f"{c[0]} ({c[4]})" for c in CASES])
+def test_broken_config_exits_2_with_one_line_naming_file_and_key(tmp_path, case, edit, key, words, mode):
+    raw = shipped()
+    raw["state"]["dir"] = str(tmp_path / "state")
+    edit(raw, tmp_path)
+    path = write_yaml(tmp_path / "broken.yaml", raw)
+    proc = _run(path, *(["--check"] if mode == "--check" else []))
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith(f"thermal-edge run: error: broken.yaml: {key}: "), lines[0]
+    assert words in lines[0], lines[0]
+    assert not (tmp_path / "state" / "state.json").exists()
+
+
+def test_check_accepts_the_shipped_file_with_a_state_dir_still_to_create(tmp_path):
+    raw = shipped()
+    raw["state"]["dir"] = str(tmp_path / "not" / "yet")
+    proc = _run(write_yaml(tmp_path / "edge.yaml", raw), "--check")
+    assert proc.returncode == 0 and proc.stdout.startswith("edge.yaml: ok"), proc.stderr
+    assert not (tmp_path / "not").exists()  # --check creates nothing

@@ -5,6 +5,7 @@ import json
 import logging
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from thermal_edge.bus import DecodedFrame
 from thermal_edge.config import config_from_mapping
 from thermal_edge.lptn import Simulator, steady_state
 from thermal_edge.service.engine import ThermalEngine
-from thermal_edge.service.persistence import PersistedState, StateStore, cool_down
+from thermal_edge.service.persistence import KEEP_CORRUPT, PersistedState, StateStore, cool_down
 
 
 def state_for(model, T=None) -> PersistedState:
@@ -50,36 +51,344 @@ def test_a_failed_write_keeps_the_old_file(tmp_path, model, monkeypatch):
     assert not [p for p in tmp_path.iterdir() if p.name != "state.json"]
 
 
-@pytest.mark.parametrize("content, why", [
-    (b"{not json", "not valid JSON"),
-    (b"\xff\xfe\x00garbage", "cannot read"),
-    (json.dumps({"format": "thermal_edge.state", "version": 1, "model": "other", "saved_at": 1}).encode(), "model 'other'"),
-    (json.dumps({"format": "thermal_edge.state", "version": 99}).encode(), "version 99"),
-    (b"[]", "not a JSON object"),
-])
-def test_corrupt_state_is_reported_counted_and_moved_aside(tmp_path, model, caplog, content, why):
-    (tmp_path / "state.json").write_bytes(content)
+def valid_raw(model) -> dict:
+    return state_for(model).as_json()
+
+
+def edited(m, **fields) -> bytes:
+    raw = valid_raw(m)
+    raw.update(fields)
+    return json.dumps(raw).encode()
+
+
+def deep_decisions(model, depth: int) -> bytes:
+    raw = valid_raw(model)
+    raw["decisions"] = [{"x": json.loads("[" * depth + "]" * depth)}]
+    return json.dumps(raw).encode()
+
+
+def with_p(model, P) -> bytes:
+    raw = valid_raw(model)
+    raw["P"] = P
+    return json.dumps(raw).encode()
+
+
+def other_nodes(model) -> bytes:
+    raw = valid_raw(model)
+    raw["nodes"] = list(reversed(raw["nodes"]))
+    return json.dumps(raw).encode()
+
+
+def nan_literal(model) -> bytes:
+    raw = valid_raw(model)
+    raw["T"][3] = 1.5
+    return json.dumps(raw).encode().replace(b"1.5", b"NaN", 1)
+
+
+# (case, content builder, words of the log line); every one: one log line naming the file, a
+# count, the file moved aside unchanged, a fresh start -- never an exception
+CORRUPT_STATE = [
+    ("100,000 nested [", lambda m: b"[" * 100_000, "nested 100000 deep"),
+    ("8 MiB of nested [ (at the cap)", lambda m: b"[" * (8 * 1024 * 1024), "nested"),
+    ("nesting 20 deep inside a decision", lambda m: deep_decisions(m, 20), "nested"),
+    ("5,000-digit number", lambda m: edited(m).replace(b'"saved_at": 1000.0', b'"saved_at": ' + b"9" * 5000), "5000 digits"),
+    ("5,000-digit float", lambda m: edited(m).replace(b'"saved_at": 1000.0', b'"saved_at": 0.' + b"1" * 5000), "characters"),
+    ("1e999 (overflows to inf)", lambda m: edited(m).replace(b'"saved_at": 1000.0', b'"saved_at": 1e999'), "out of range"),
+    ("NaN literal", nan_literal, "NaN is not a number"),
+    ('decisions: "abc"', lambda m: edited(m, decisions="abc"), "decisions: expected a list"),
+    ("decisions: [1, 2]", lambda m: edited(m, decisions=[1, 2]), "decisions[0]: expected an object"),
+    ("parameter as a string", lambda m: edited(m, parameters={"R_e_hous": "8.5"}), "parameters.R_e_hous: expected a number"),
+    ("parameter outside its bounds", lambda m: edited(m, parameters={"R_e_hous": 1e6}), "outside the model's bounds"),
+    ("unknown parameter", lambda m: edited(m, parameters={"R_e_house": 8.5}), "did you mean 'R_e_hous'"),
+    ("param_version true", lambda m: edited(m, param_version=True), "param_version: expected a non-negative integer"),
+    ("adapt_runs -1", lambda m: edited(m, adapt_runs=-1), "adapt_runs"),
+    ("T holds null", lambda m: edited(m, T=[None] * len(m.nodes)), "T[0]: expected a number"),
+    ("T is an object", lambda m: edited(m, T={"a": 1}), "T: expected a list"),
+    ("temperatures of 900 degC", lambda m: edited(m, T=[900.0] * len(m.nodes)), "temperatures outside"),
+    ("P of the wrong shape", lambda m: with_p(m, [[1.0]]), "P is not"),
+    ("P rows not lists", lambda m: with_p(m, [1.0] * len(m.nodes)), "P[0]: expected a list"),
+    ("node list of another order", other_nodes, "node list differs"),
+    ("inputs a list", lambda m: edited(m, inputs=[25.0]), "inputs: expected an object"),
+    ("unknown field", lambda m: edited(m, extra_field=1), "unknown field 'extra_field'"),
+    ("saved_at missing", lambda m: json.dumps({k: v for k, v in valid_raw(m).items() if k != "saved_at"}).encode(),
+     "missing field 'saved_at'"),
+    ("another model", lambda m: edited(m, model="other"), "model 'other'"),
+    ("version 99", lambda m: edited(m, version=99), "version 99"),
+    ("foreign JSON document", lambda m: b'{"name": "left-pad", "version": "1.3.0", "dependencies": {}}', "not a state file"),
+    ("a JSON list", lambda m: b"[]", "not a state file: a JSON list"),
+    ("a JSON string", lambda m: b'"' + b'\\"' * 100_000 + b'"', "not a state file: a JSON str"),
+    ("300,000 values", lambda m: b'{"a": [' + b"1," * 300_000 + b"1]}", "values (at most"),
+    ("truncated", lambda m: edited(m)[: len(edited(m)) // 2], "not valid JSON"),
+    ("binary", lambda m: b"\xff\xfe\x00garbage\x00\x01", "not UTF-8"),
+    ("empty", lambda m: b"", "empty file"),
+    ("whitespace only", lambda m: b" \n\t\n", "empty file"),
+]
+
+
+def check_refused(tmp_path, store, caplog, why):
+    assert store.load_errors == 1
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert len(lines) == 1, lines
+    assert why in lines[0] and str(tmp_path / "state.json") in lines[0], lines[0]
+    assert not (tmp_path / "state.json").exists()
+    aside = [p for p in tmp_path.iterdir() if p.name.startswith("state.json.corrupt-")]
+    assert len(aside) == 1 and aside == store.quarantined
+    return aside[0]
+
+
+@pytest.mark.parametrize("case, content, why", CORRUPT_STATE, ids=[c[0] for c in CORRUPT_STATE])
+def test_corrupt_state_is_reported_counted_and_moved_aside(tmp_path, model, caplog, case, content, why):
+    data = content(model)
+    (tmp_path / "state.json").write_bytes(data)
     store = StateStore(tmp_path, model)
     with caplog.at_level(logging.ERROR):
         assert store.load() is None
-    assert store.load_errors == 1
-    assert why in caplog.text and "state.json" in caplog.text
-    aside = [p for p in tmp_path.iterdir() if p.name.startswith("state.json.corrupt-")]
-    assert len(aside) == 1 and aside[0].read_bytes() == content
-    assert not (tmp_path / "state.json").exists()
+    assert check_refused(tmp_path, store, caplog, why).read_bytes() == data  # kept for forensics
+    assert store.save(state_for(model)) and StateStore(tmp_path, model).load() is not None  # and it starts afresh
 
 
-def test_non_finite_or_out_of_bounds_values_are_rejected(tmp_path, model):
-    st = state_for(model)
-    raw = st.as_json()
-    raw["T"][3] = None
-    (tmp_path / "state.json").write_text(json.dumps(raw))
-    assert StateStore(tmp_path, model).load() is None
-    raw = state_for(model).as_json()
-    raw["parameters"]["R_e_hous"] = 1e6
-    (tmp_path / "state.json").write_text(json.dumps(raw))
+def test_a_256_mib_file_is_refused_without_reading_it(tmp_path, model, caplog):
+    with open(tmp_path / "state.json", "wb") as f:  # sparse: no disk used
+        f.write(b'{"format": "thermal_edge.state", "decisions": [')
+        f.truncate(256 * 1024 * 1024)
     store = StateStore(tmp_path, model)
-    assert store.load() is None and "outside its bounds" in (store.last_error or "")
+    with caplog.at_level(logging.ERROR):
+        assert store.load() is None
+    aside = check_refused(tmp_path, store, caplog, "268435456 bytes, larger than 8 MiB (not read)")
+    assert aside.stat().st_size == 256 * 1024 * 1024
+
+
+@pytest.mark.parametrize("kind", ["directory", "fifo", "dangling symlink"])
+def test_something_else_than_a_file_is_moved_aside(tmp_path, model, caplog, kind):
+    path = tmp_path / "state.json"
+    if kind == "directory":
+        path.mkdir()
+        (path / "inside").write_text("x")
+    elif kind == "fifo":
+        os.mkfifo(path)  # opening it would block the start for good
+    else:
+        path.symlink_to(tmp_path / "nowhere")
+    store = StateStore(tmp_path, model)
+    with caplog.at_level(logging.ERROR):
+        assert store.load() is None
+    why = {"directory": "a directory, not a file", "fifo": "not a regular file", "dangling symlink": "a symbolic link to nothing"}[kind]
+    check_refused(tmp_path, store, caplog, why)
+    assert store.save(state_for(model)) and StateStore(tmp_path, model).load() is not None
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads a file whatever its mode")
+def test_an_unreadable_file_is_moved_aside(tmp_path, model, caplog):
+    (tmp_path / "state.json").write_bytes(json.dumps(valid_raw(model)).encode())
+    os.chmod(tmp_path / "state.json", 0)
+    store = StateStore(tmp_path, model)
+    with caplog.at_level(logging.ERROR):
+        assert store.load() is None
+    check_refused(tmp_path, store, caplog, "cannot read")
+
+
+def test_only_the_newest_corrupt_files_are_kept(tmp_path, model):
+    for k in range(KEEP_CORRUPT + 3):
+        (tmp_path / "state.json").write_bytes(b"corrupt %d" % k)
+        assert StateStore(tmp_path, model).load() is None
+    kept = sorted(p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("state.json.corrupt-"))
+    assert kept == [b"corrupt %d" % k for k in range(3, KEEP_CORRUPT + 3)]
+
+
+def test_temporary_files_of_an_interrupted_save_are_removed_at_start(tmp_path, model, caplog):
+    store = StateStore(tmp_path, model)
+    assert store.save(state_for(model))
+    (tmp_path / "state.json.tmp-4242").write_bytes(b'{"format": "thermal_')  # killed mid-write
+    (tmp_path / ".state.json.77.tmp").write_bytes(b"")  # the earlier naming
+    (tmp_path / "state.json.tmpfoo").write_bytes(b"x")
+    (tmp_path / "unrelated.tmp").write_bytes(b"x")
+    store = StateStore(tmp_path, model)
+    with caplog.at_level(logging.WARNING):
+        assert store.load() is not None
+    assert store.temp_removed == 3 and caplog.text.count("left by an interrupted save") == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json", "unrelated.tmp"]
+
+
+SAVER = r"""
+import sys, numpy as np
+sys.path.insert(0, sys.argv[2])
+from test_persistence import state_for
+from thermal_edge.lptn import load_model
+from thermal_edge.service.persistence import StateStore
+model = load_model(sys.argv[3])
+store = StateStore(sys.argv[1], model)
+k = 0
+print("saving", flush=True)
+while True:
+    k += 1
+    st = state_for(model, np.full(len(model.nodes), 20.0 + k % 100))
+    st.decisions = [{"k": k, "pad": "x" * 200}] * 300  # a larger file: a longer write to be killed in
+    store.save(st)
+"""
+
+
+def test_sigkill_during_saves_always_leaves_a_loadable_state(tmp_path, model):
+    """12 SIGKILLs at random moments of a process saving in a loop: the next load always gets a
+    complete state and removes what the killed save left."""
+    import random
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from svc_testlib import MODEL, env
+
+    rng = random.Random(1)
+    removed = 0
+    for trial in range(12):
+        proc = subprocess.Popen([sys.executable, "-c", SAVER, str(tmp_path), str(Path(__file__).parent), str(MODEL)],
+                                env=env(), stdout=subprocess.PIPE)
+        assert proc.stdout.readline() == b"saving\n"
+        time.sleep(rng.uniform(0.0, 0.3))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        store = StateStore(tmp_path, model)
+        back = store.load()
+        assert back is not None and store.load_errors == 0, store.last_error
+        assert len(back.decisions) == 300 and len(set(back.T)) == 1
+        removed += store.temp_removed
+        assert [p.name for p in tmp_path.iterdir()] == ["state.json"]
+    print(f"12 SIGKILLs during saves: every state loadable; {removed} temporary files of interrupted saves removed")
+
+
+RSS = r"""
+import resource, sys
+from thermal_edge.lptn import load_model
+from thermal_edge.service.persistence import StateStore
+store = StateStore(sys.argv[1], load_model(sys.argv[2]))
+assert store.load() is None and store.load_errors == int(sys.argv[3])
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+"""
+
+
+def test_refusing_a_huge_or_hostile_file_costs_little_memory(tmp_path, model):
+    """Peak RSS of a process that loads the model and refuses the file, against the same process
+    with no state file (ru_maxrss is the process's high-water mark: what a memory cap sees)."""
+    import subprocess
+    import sys
+
+    from svc_testlib import MODEL, env
+
+    cap = 8 * 1024 * 1024
+    cases = {
+        "no state file (baseline)": b"",
+        "256 MiB (sparse)": None,
+        "8 MiB of [": b"[" * cap,
+        "8 MiB of escaped quotes": b'"' + b'\\"' * (cap // 2 - 1) + b'"',
+        "8 MiB of numbers": b"[" + b"1.5," * (cap // 4 - 1) + b"1]",
+        "8 MiB string": b'{"format": "' + b"x" * (cap - 20) + b'"}',
+    }
+    rows = []
+    for name, data in cases.items():
+        d = tmp_path / str(len(rows))
+        d.mkdir()
+        if data != b"":
+            with open(d / "state.json", "wb") as f:
+                if data is None:
+                    f.truncate(256 * 1024 * 1024)
+                else:
+                    f.write(data)
+        out = subprocess.run([sys.executable, "-c", RSS, str(d), str(MODEL), "0" if data == b"" else "1"], env=env(),
+                             capture_output=True, check=True)
+        rows.append((name, float(out.stdout.decode().strip())))
+    base = rows[0][1]
+    print("\n| state file | peak RSS (MiB) | above baseline (MiB) |\n|---|---|---|")
+    for name, mib in rows:
+        print(f"| {name} | {mib:.1f} | {mib - base:+.1f} |")
+    assert rows[1][1] - base < 4.0  # never read
+    assert max(mib for _, mib in rows) - base < 64.0  # a few copies of an 8 MiB file at most
+
+
+def test_a_parameter_adapted_onto_its_bound_saves_and_loads_back(tmp_path, model, caplog):
+    """Defect 4: exp(log(300)) = 299.99999999999994 below c_p_ew's bound 300 must not lose the state."""
+    at_bound = float(np.exp(np.log(300.0)))
+    assert at_bound < 300.0
+    st = state_for(model)
+    st.parameters = {"c_p_ew": at_bound, "R_e_hous": float(np.exp(np.log(30.0))), "r_ins_sw": 0.013}
+    store = StateStore(tmp_path, model)
+    assert store.save(st) and store.save_refused == 0
+    back = StateStore(tmp_path, model).load()
+    assert back is not None
+    assert back.parameters == {"c_p_ew": 300.0, "R_e_hous": 30.0, "r_ins_sw": 0.013}
+    assert back.T == st.T and back.P == st.P and back.sigma == st.sigma and back.decisions == st.decisions
+    # a file written with the round-off (before this fix) loads too
+    raw = st.as_json()
+    (tmp_path / "state.json").write_text(json.dumps(raw))
+    assert repr(at_bound) in (tmp_path / "state.json").read_text()
+    back = StateStore(tmp_path, model).load()
+    assert back is not None and back.parameters["c_p_ew"] == 300.0 and back.T == st.T
+
+
+@pytest.mark.parametrize("spoil, why", [
+    (lambda st: st.parameters.__setitem__("c_p_ew", 299.0), "outside the model's bounds"),
+    (lambda st: st.T.__setitem__(0, 900.0), "temperatures outside"),
+    (lambda st: st.T.__setitem__(0, math.nan), "T[0]: not finite"),
+    (lambda st: st.__setattr__("nodes", st.nodes[:-1]), "node list differs"),
+    (lambda st: st.decisions.append({"x": json.loads("[" * 30 + "]" * 30)}), "nested"),
+])
+def test_a_state_that_would_not_load_is_not_saved(tmp_path, model, caplog, spoil, why):
+    store = StateStore(tmp_path, model)
+    assert store.save(state_for(model))
+    before = (tmp_path / "state.json").read_bytes()
+    bad = state_for(model)
+    spoil(bad)
+    with caplog.at_level(logging.ERROR):
+        assert store.save(bad) is False
+    assert store.save_refused == 1 and store.save_errors == 1 and store.saves == 1
+    assert why in caplog.text and "state.json" in caplog.text and "keeping the previous file" in caplog.text
+    assert (tmp_path / "state.json").read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["state.json"]
+
+
+def test_save_then_load_is_the_identity_for_any_state_within_the_bounds(tmp_path, model):
+    """Property: 300 random states (parameters log-uniform within the bounds, on them, a round-off
+    off them; random temperatures, covariances, decisions) save, load back equal (parameters
+    within 1e-12 relative of the value clipped into its bounds, the rest exactly), and no save is
+    refused."""
+    rng = np.random.default_rng(20261124)
+    lo, hi = model.bounds()
+    names = model.parameter_names
+    n = len(model.nodes)
+    store = StateStore(tmp_path, model)
+    for trial in range(300):
+        params = {}
+        for i in rng.choice(len(names), size=rng.integers(0, len(names) + 1), replace=False):
+            kind = rng.integers(4)
+            if kind == 0:
+                v = float(np.exp(rng.uniform(np.log(lo[i]), np.log(hi[i]))))
+            elif kind == 1:
+                v = float(np.exp(np.log(lo[i] if rng.random() < 0.5 else hi[i])))  # a bound through the log space
+            elif kind == 2:
+                b = lo[i] if rng.random() < 0.5 else hi[i]
+                v = float(b * (1 + (-1 if b == lo[i] else 1) * rng.uniform(0, 1e-10)))  # round-off beyond it
+            else:
+                v = float(lo[i] if rng.random() < 0.5 else hi[i])
+            params[names[i]] = v
+        A = rng.normal(size=(n, n))
+        T = rng.uniform(-40.0, 250.0, n)
+        st = PersistedState(model=model.name, saved_at=float(rng.uniform(0, 2e9)), parameters=params,
+                            param_version=int(rng.integers(0, 1000)), adapt_runs=int(rng.integers(0, 10**6)),
+                            decisions=[{"t": float(rng.normal()), "accepted": bool(rng.random() < 0.5), "why": "é\"\\[{",
+                                        "params": {"c_p_ew": float(rng.uniform(300, 900))}, "none": None}] * int(rng.integers(0, 5)),
+                            nodes=list(model.nodes), T=T.tolist(), sigma=rng.uniform(0, 5, n).tolist(),
+                            T_pred=(T + rng.normal(size=n)).tolist(), P=(A @ A.T).tolist(),
+                            inputs={"ambient_c": float(rng.uniform(-40, 60))}, saved_wall=float(rng.uniform(0, 2e9)))
+        assert store.save(st), store.last_error
+        back = StateStore(tmp_path, model).load()
+        assert back is not None, trial
+        assert back.parameters.keys() == params.keys()
+        for k, v in params.items():
+            i = names.index(k)
+            assert back.parameters[k] == pytest.approx(min(max(v, lo[i]), hi[i]), rel=1e-12, abs=0)
+            assert lo[i] <= back.parameters[k] <= hi[i]
+        for f in ("saved_at", "param_version", "adapt_runs", "decisions", "nodes", "T", "sigma", "T_pred", "P",
+                  "inputs", "saved_wall"):
+            assert getattr(back, f) == getattr(st, f), f
+    assert store.save_refused == 0 and store.save_errors == 0
 
 
 def test_cool_down_matches_a_fine_step_simulation(model):

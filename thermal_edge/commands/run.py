@@ -34,24 +34,36 @@ def run(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     from ..bus import BusConfigError, DbcError
     from ..config import ConfigError, load_config
+    from ..lptn import ModelError
+
+    def line(exc: BaseException) -> str:
+        return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
     try:
         config = load_config(args.config)
         from ..service import EdgeService
         from ..service.engine import load_service_model
 
-        model = load_service_model(config)
-        if args.check:  # (the service checks the model itself when it starts)
-            config.check_model(model)
-            from ..bus import FrameCodec
-            from ..bus.frames import DEFAULT_DBC_PATH
+        try:
+            model = load_service_model(config)
+        except (ModelError, OSError) as exc:  # the model file's message names that file and its key
+            raise ConfigError(f"{config.fname}: model.path: {line(exc)}") from None
+        # a state directory that cannot hold the state is an error, not a service without persistence
+        config.check_state_dir(create=not args.check)
+        try:
+            if args.check:  # (the service checks the model itself when it starts)
+                config.check_model(model)
+                from ..bus import FrameCodec
+                from ..bus.frames import DEFAULT_DBC_PATH
 
-            config.check_dbc(FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH))
-            print(f"{config.fname}: ok (model {model.name}, {len(model.nodes)} nodes, bus {config.bus.interface})")
-            return 0
-        service = EdgeService(config, model=model)
-    except (ConfigError, DbcError, BusConfigError) as exc:
-        return fail(str(exc).strip().splitlines()[0])
+                config.check_dbc(FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH))
+                print(f"{config.fname}: ok (model {model.name}, {len(model.nodes)} nodes, bus {config.bus.interface})")
+                return 0
+            service = EdgeService(config, model=model)
+        except DbcError as exc:
+            raise ConfigError(f"{config.fname}: codec.dbc: {line(exc)}") from None
+    except (ConfigError, DbcError, BusConfigError, ModelError) as exc:
+        return fail(line(exc))
     except OSError as exc:
         return fail(f"{getattr(exc, 'filename', None) or ''}: {exc.strerror or exc}".lstrip(": "))
     try:

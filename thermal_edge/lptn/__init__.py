@@ -9,7 +9,7 @@ Load a machine model, simulate it, and get exact parameter sensitivities::
 from .discretise import Discrete, NotPassive, UnstableDiscretisation, discretise
 from .expr import ExprError, parse
 from .loader import load_model
-from .model import Limit, Model, ModelError, Parameter
+from .model import Limit, Model, ModelError, Parameter, ParameterError
 from .network import Continuous, Network
 from .simulate import Simulator, Trajectory
 from .steady import initial_state, steady_state
@@ -17,6 +17,7 @@ from .stepper import Stepper
 
 __all__ = [
     "Continuous", "Discrete", "ExprError", "Limit", "Model", "ModelError", "Network", "NotPassive", "Parameter",
+    "ParameterError",
     "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "discretise", "initial_state", "load_model", "parse",
     "steady_state",
 ]

@@ -5,8 +5,11 @@ constants are inlined. Everything numeric downstream (:mod:`.network`) works fro
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import difflib
+import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Mapping
 
 import numpy as np
 
@@ -17,9 +20,46 @@ class ModelError(ValueError):
     """A machine model file that is invalid; the message names the file and the key."""
 
 
+#: Relative distance from a bound within which a value counts as on it: ``exp(log(300))`` is
+#: 299.99999999999994, and a parameter adapted onto its bound must stay usable.
+BOUND_ROUNDOFF_REL = 1e-9
+
+
+class ParameterError(ValueError):
+    """A parameter value outside its bounds, not a finite number, or an unknown parameter name.
+
+    The message names the parameter, the value and the bounds (or, for an unknown name, the
+    closest known name); the attributes carry the same facts for callers that add a file and key.
+
+    Attributes
+    ----------
+    name : str
+        The parameter as given.
+    value : float or None
+        The offending value (None for an unknown name).
+    bounds : tuple of float or None
+        ``(lower, upper)`` of a known parameter.
+    suggestion : str or None
+        The closest known parameter name for an unknown one.
+    problem : str
+        The message without the leading ``parameter NAME``: what a caller puts after its own key.
+    """
+
+    def __init__(self, name: str, problem: str, *, value: float | None = None,
+                 bounds: tuple[float, float] | None = None, suggestion: str | None = None) -> None:
+        super().__init__(f"parameter {name}: {problem}")
+        self.name, self.problem, self.value, self.bounds, self.suggestion = name, problem, value, bounds, suggestion
+
+
+#: Relative spread (σ of log θ) of a parameter whose model file states none: offline values of
+#: LPTN parameters are rarely known better than about 10 %.
+DEFAULT_SPREAD = 0.1
+
+
 @dataclass(frozen=True)
 class Parameter:
-    """A named thermal parameter with its nominal value, bounds and unit."""
+    """A named thermal parameter with its nominal value, bounds, unit and relative spread
+    ``spread`` (σ of ``log θ``: how far the machine at hand may differ from the nominal value)."""
 
     name: str
     value: float
@@ -28,6 +68,7 @@ class Parameter:
     unit: str = ""
     adaptable: bool = False
     doc: str = ""
+    spread: float = DEFAULT_SPREAD
 
 
 @dataclass(frozen=True)
@@ -134,19 +175,81 @@ class Model:
         except ValueError:
             raise KeyError(f"unknown node {node!r} in model {self.name}") from None
 
-    def with_parameters(self, values: dict[str, float]) -> "Model":
-        """A copy whose nominal values are replaced; a value outside the bounds widens them (a
-        simulated plant may lie outside what the estimator is allowed to search)."""
+    def check_parameters(self, values: Mapping[str, object]) -> None:
+        """Check parameter values against the model: known names, finite numbers within the bounds.
+
+        Pure (no I/O); the bounds are the model file's, and only the model file can widen them.
+
+        Parameters
+        ----------
+        values : mapping
+            Parameter name -> value, in the parameter's unit (see :class:`Parameter`).
+
+        Raises
+        ------
+        ParameterError
+            For the first offending entry (in the order given): unknown name (with the closest
+            known name), a value that is not a finite number, or one outside ``[lower, upper]``.
+        """
+        by_name = {p.name: p for p in self.parameters}
+        for name, v in values.items():
+            p = by_name.get(name)
+            if p is None:
+                close = difflib.get_close_matches(str(name), list(by_name), n=1, cutoff=0.6)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise ParameterError(str(name), f"model {self.name} has no parameter {name!r}{hint}",
+                                     suggestion=close[0] if close else None)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
+                raise ParameterError(name, f"expected a finite number, got {v!r}", bounds=(p.lower, p.upper))
+            if not p.lower <= float(v) <= p.upper:
+                raise ParameterError(name, f"{float(v):g} is outside the model's bounds [{p.lower:g}, {p.upper:g}]"
+                                           f"{f' {p.unit}' if p.unit else ''}",
+                                     value=float(v), bounds=(p.lower, p.upper))
+
+    def snap_to_bounds(self, values: Mapping[str, float], rel: float = BOUND_ROUNDOFF_REL) -> dict[str, float]:
+        """``values`` with every known parameter within ``rel`` (relative) outside a bound set onto it.
+
+        Round-off of a bound (``exp(log(L))`` a few ulp below ``L``) is not a departure from it;
+        anything further out is left as it is for :meth:`check_parameters` to refuse.
+        """
+        by_name = {p.name: p for p in self.parameters}
+        out = dict(values)
+        for name, v in values.items():
+            p = by_name.get(name)
+            if p is None or isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                continue
+            for bound in (p.lower, p.upper):
+                if abs(v - bound) <= rel * max(abs(bound), np.finfo(float).tiny):
+                    out[name] = float(bound)
+        return out
+
+    def with_parameters(self, values: Mapping[str, float], *, widen_bounds: bool = False) -> "Model":
+        """A copy whose nominal values are replaced.
+
+        Parameters
+        ----------
+        values : mapping
+            Parameter name -> new nominal value.
+        widen_bounds : bool, optional
+            Only for a simulated *plant* (which may lie outside what the estimator may search):
+            a value outside the bounds widens them. Default False: such a value is refused.
+
+        Raises
+        ------
+        ParameterError
+            An unknown name, or (unless ``widen_bounds``) a value outside the bounds.
+        """
+        if widen_bounds:
+            unknown = [n for n in values if n not in self.parameter_names]
+            if unknown:
+                self.check_parameters({unknown[0]: values[unknown[0]]})
+        else:
+            self.check_parameters(values)
         ps = []
         for p in self.parameters:
             if p.name in values:
                 v = float(values[p.name])
-                ps.append(Parameter(p.name, v, min(p.lower, v), max(p.upper, v), p.unit, p.adaptable, p.doc))
+                ps.append(replace(p, value=v, lower=min(p.lower, v), upper=max(p.upper, v)))
             else:
                 ps.append(p)
-        unknown = set(values) - {p.name for p in self.parameters}
-        if unknown:
-            raise KeyError(f"unknown parameter(s) {', '.join(sorted(unknown))} in model {self.name}")
-        from dataclasses import replace
-
         return replace(self, parameters=tuple(ps))

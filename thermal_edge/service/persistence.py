@@ -1,13 +1,25 @@
 """Persistence of parameters, their history and the thermal state.
 
-One JSON file, ``state.json`` in the state directory, written atomically: a temporary file in
-the same directory, ``fsync``, ``rename`` over the old file, ``fsync`` of the directory. A reader
-therefore sees the old or the new file, never a torn one, even after a power cut.
+One JSON file, ``state.json`` in the state directory, written atomically: a temporary file
+``state.json.tmp-<pid>`` in the same directory, ``fsync``, ``rename`` over the old file,
+``fsync`` of the directory. A reader therefore sees the old or the new file, never a torn one,
+even after a power cut; a temporary file left by a kill during a save is removed at the next start.
 
-Loading never crashes the service: a missing file starts from the defaults; an unreadable or
-inconsistent one (bad JSON, another model, wrong node list, non-finite values, parameters outside
-their bounds) is logged with the reason, counted (:attr:`StateStore.load_errors`), moved aside
-to ``state.json.corrupt-<time>`` and the service starts from the defaults.
+Loading is bounded and total: whatever is at the path (a directory, a FIFO, a 256 MiB file, 100,000
+nested brackets, a 5,000-digit number, binary, another program's JSON, wrong types anywhere), the
+result is a validated :class:`PersistedState` or None -- never an exception. The file is ``stat``-ed
+first and never read beyond :data:`MAX_BYTES`; the JSON is parsed only after a bracket-depth scan
+(:data:`MAX_DEPTH`) and with hooks that refuse numbers longer than :data:`MAX_NUMBER_CHARS`
+characters and ``NaN``/``Infinity``; then every field is type-checked into the dataclass. An
+unusable file is logged with its name and the reason, counted (:attr:`StateStore.load_errors`),
+moved aside to ``state.json.corrupt-<time>-<pid>`` (the newest :data:`KEEP_CORRUPT` are kept for
+forensics) and the service starts from the defaults.
+
+Saved state is loadable by construction: :meth:`StateStore.save` encodes the state and runs the
+very same :func:`decode` on the bytes it is about to write; a state that would not load is refused
+(logged, counted, the previous file kept). Parameter values within a relative
+:data:`~thermal_edge.lptn.model.BOUND_ROUNDOFF_REL` of a bound (round-off of an adaptation that
+reached it) are set onto the bound, on save and on load alike.
 
 On start the thermal state is **cooled over the downtime** with the model (zero current and
 speed, at the last ambient; one zero-order-hold step is exact for held inputs), then corrected by
@@ -19,26 +31,173 @@ import json
 import logging
 import math
 import os
+import re
+import shutil
+import stat
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..lptn import Model, Stepper
+from ..lptn import Model, ParameterError, Stepper
 
-__all__ = ["PersistedState", "StateError", "StateStore", "cool_down"]
+__all__ = ["PersistedState", "StateError", "StateStore", "cool_down", "decode"]
 
 log = logging.getLogger(__name__)
 
 FORMAT = "thermal_edge.state"
 VERSION = 1
 FILENAME = "state.json"
+#: Largest state file read, bytes. A full one (500 decisions, a 40-node covariance) is < 1 MiB;
+#: refusing a larger one costs at most about five times this in memory, beyond it nothing.
+MAX_BYTES = 8 * 1024 * 1024
+#: Deepest nesting of arrays/objects accepted (the format needs 4: state -> decisions -> decision -> params).
+MAX_DEPTH = 16
+#: Most values (numbers, strings, ...) accepted: bounds the memory of the parsed document
+#: (a full file holds ~20,000).
+MAX_VALUES = 250_000
+#: Longest number literal accepted, characters (``repr`` of a float is at most 24).
+MAX_NUMBER_CHARS = 40
+#: Corrupt files kept (moved aside) for forensics; older ones are deleted.
+KEEP_CORRUPT = 3
+#: Temperatures a saved state may hold, degC (beyond them the file is not a machine's state).
+T_RANGE_C = (-100.0, 500.0)
+
+_CORRUPT_PREFIX = f"{FILENAME}.corrupt-"
+# what a save in progress leaves when killed: this module's temporary name and the earlier ``.state.json.<pid>.tmp``
+_TEMP_RE = re.compile(rf"^(?:{re.escape(FILENAME)}\.tmp.*|\.{re.escape(FILENAME)}\.\d+\.tmp)$")
+_QUOTE, _OPEN, _CLOSE, _SEPARATORS = ord('"'), b"[{", b"]}", b",:"
 
 
 class StateError(ValueError):
     """A state file that cannot be used (the message says why)."""
+
+
+# ------------------------------------------------------------------------------------------
+# bounded parsing
+def _structure(data: bytes) -> tuple[int, int]:
+    """Deepest ``[``/``{`` nesting and number of values of a JSON text, without parsing it.
+
+    Escaped backslashes and quotes are removed (``bytes.replace``, in C), then one vectorised pass
+    in 1 MiB chunks marks what lies inside strings (parity of the quotes so far) and sums the
+    brackets and separators outside them: no recursion, and the memory stays one copy of the
+    file plus a few chunk-sized arrays whatever the file holds.
+    """
+    plain = data.replace(b"\\\\", b"").replace(b'\\"', b"")
+    depth = deepest = values = quotes_so_far = 0
+    chunk = 1 << 20
+    for k in range(0, len(plain), chunk):
+        b = np.frombuffer(plain, dtype=np.uint8, count=min(chunk, len(plain) - k), offset=k)
+        quotes = np.cumsum(b == _QUOTE, dtype=np.int64) + quotes_so_far
+        quotes_so_far = int(quotes[-1])
+        outside = (quotes & 1) == 0
+        opens = outside & ((b == _OPEN[0]) | (b == _OPEN[1]))
+        closes = outside & ((b == _CLOSE[0]) | (b == _CLOSE[1]))
+        run = np.cumsum(opens.astype(np.int64) - closes, dtype=np.int64) + depth
+        deepest = max(deepest, int(run.max()))
+        depth = int(run[-1])
+        values += int(np.count_nonzero(outside & ((b == _SEPARATORS[0]) | (b == _SEPARATORS[1]))))
+    return deepest, values + 1
+
+
+def _parse_int(text: str) -> int:
+    if len(text) > MAX_NUMBER_CHARS:
+        raise StateError(f"a number of {len(text)} digits")
+    return int(text)
+
+
+def _parse_float(text: str) -> float:
+    if len(text) > MAX_NUMBER_CHARS:
+        raise StateError(f"a number of {len(text)} characters")
+    v = float(text)
+    if not math.isfinite(v):
+        raise StateError(f"a number out of range ({text[:20]})")
+    return v
+
+
+def _parse_constant(text: str) -> Any:
+    raise StateError(f"{text} is not a number")
+
+
+def decode(data: bytes, model: Model) -> "PersistedState":
+    """Bytes of a state file -> a validated state for ``model``; the one check of load and save.
+
+    Raises
+    ------
+    StateError
+        Anything that makes the bytes unusable (the message says what, for a log line).
+    """
+    if len(data) > MAX_BYTES:
+        raise StateError(f"larger than {MAX_BYTES // (1024 * 1024)} MiB")
+    if not data.strip():
+        raise StateError("empty file")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise StateError(f"not UTF-8 text (byte {exc.start})") from None
+    depth, values = _structure(data)
+    if depth > MAX_DEPTH:
+        raise StateError(f"nested {depth} deep (at most {MAX_DEPTH})")
+    if values > MAX_VALUES:
+        raise StateError(f"about {values} values (at most {MAX_VALUES})")
+    try:
+        raw = json.loads(text, parse_int=_parse_int, parse_float=_parse_float, parse_constant=_parse_constant)
+    except json.JSONDecodeError as exc:
+        raise StateError(f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except (RecursionError, MemoryError, ValueError) as exc:  # StateError from the hooks included
+        raise StateError(f"not usable JSON: {exc}") from None
+    return PersistedState.from_json(raw, model)
+
+
+# ------------------------------------------------------------------------------------------
+# typed fields
+def _short(v: Any) -> str:
+    """``repr`` of a value from the file, cut for a log line (the value may be megabytes)."""
+    if isinstance(v, (dict, list)):
+        return f"a JSON {'object' if isinstance(v, dict) else 'list'}"
+    r = repr(v[:40] if isinstance(v, str) else v)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+def _number(v: Any, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise StateError(f"{what}: expected a number, got {type(v).__name__}")
+    x = float(v)
+    if not math.isfinite(x):
+        raise StateError(f"{what}: not finite")
+    return x
+
+
+def _count(v: Any, what: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise StateError(f"{what}: expected a non-negative integer, got {_short(v)}")
+    return int(v)
+
+
+def _list(v: Any, what: str, item: Callable[[Any, str], Any]) -> list[Any]:
+    if not isinstance(v, list):
+        raise StateError(f"{what}: expected a list, got {type(v).__name__}")
+    return [item(x, f"{what}[{i}]") for i, x in enumerate(v)]
+
+
+def _mapping(v: Any, what: str, item: Callable[[Any, str], Any]) -> dict[str, Any]:
+    if not isinstance(v, dict):
+        raise StateError(f"{what}: expected an object, got {type(v).__name__}")
+    return {k: item(x, f"{what}.{k}") for k, x in v.items()}
+
+
+def _string(v: Any, what: str) -> str:
+    if not isinstance(v, str):
+        raise StateError(f"{what}: expected a string, got {type(v).__name__}")
+    return v
+
+
+def _decision(v: Any, what: str) -> dict[str, Any]:
+    if not isinstance(v, dict):
+        raise StateError(f"{what}: expected an object, got {type(v).__name__}")
+    return dict(v)  # its values are whatever the adapter recorded (JSON, depth-bounded by the parser)
 
 
 @dataclass
@@ -64,66 +223,83 @@ class PersistedState:
 
     @classmethod
     def from_json(cls, raw: Any, model: Model) -> "PersistedState":
+        """Validate a parsed state file into a state for ``model``.
+
+        Every field is type-checked; parameters are checked against the model's bounds after
+        round-off at a bound is set onto it (:meth:`Model.snap_to_bounds`).
+
+        Raises
+        ------
+        StateError
+            The first problem found.
+        """
         if not isinstance(raw, dict):
-            raise StateError("not a JSON object")
+            raise StateError(f"not a state file: a JSON {type(raw).__name__}, not an object")
         if raw.get("format") != FORMAT:
-            raise StateError(f"format is {raw.get('format')!r}, expected {FORMAT!r}")
+            raise StateError(f"not a state file: format is {_short(raw.get('format'))}, expected {FORMAT!r}")
         if raw.get("version") != VERSION:
-            raise StateError(f"version {raw.get('version')!r} is not supported (expected {VERSION})")
+            raise StateError(f"version {_short(raw.get('version'))} is not supported (expected {VERSION})")
         if raw.get("model") != model.name:
-            raise StateError(f"it belongs to model {raw.get('model')!r}, the service runs {model.name!r}")
+            raise StateError(f"it belongs to model {_short(raw.get('model'))}, the service runs {model.name!r}")
+        known = {f.name for f in fields(cls)} | {"format", "version"}
+        extra = sorted(set(raw) - known)
+        if extra:
+            raise StateError(f"unknown field {_short(extra[0])}")
+        for k in ("saved_at", "parameters"):
+            if k not in raw:
+                raise StateError(f"missing field {k!r}")
+        params = _mapping(raw["parameters"], "parameters", _number)
         try:
-            st = cls(
-                model=str(raw["model"]),
-                saved_at=float(raw["saved_at"]),
-                parameters={str(k): float(v) for k, v in dict(raw["parameters"]).items()},
-                param_version=int(raw.get("param_version", 0)),
-                adapt_runs=int(raw.get("adapt_runs", 0)),
-                decisions=list(raw.get("decisions", [])),
-                nodes=[str(x) for x in raw.get("nodes", [])],
-                T=[float(x) for x in raw.get("T", [])],
-                sigma=[float(x) for x in raw.get("sigma", [])],
-                T_pred=[float(x) for x in raw.get("T_pred", [])],
-                P=[[float(x) for x in row] for row in raw.get("P", [])],
-                inputs={str(k): float(v) for k, v in dict(raw.get("inputs", {})).items()},
-                saved_wall=float(raw.get("saved_wall", 0.0)),
-            )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"missing or malformed field: {exc}") from None
-        if not math.isfinite(st.saved_at):
-            raise StateError("saved_at is not finite")
-        names = model.parameter_names
-        lo, hi = model.bounds()
-        for k, v in st.parameters.items():
-            if k not in names:
-                raise StateError(f"unknown parameter {k!r}")
-            i = names.index(k)
-            if not (math.isfinite(v) and lo[i] <= v <= hi[i]):
-                raise StateError(f"parameter {k} = {v!r} outside its bounds [{lo[i]:g}, {hi[i]:g}]")
-        if st.T:
+            params = model.snap_to_bounds(params)
+            model.check_parameters(params)
+        except ParameterError as exc:
+            raise StateError(str(exc)) from None
+        st = cls(
+            model=model.name,
+            saved_at=_number(raw["saved_at"], "saved_at"),
+            parameters=params,
+            param_version=_count(raw.get("param_version", 0), "param_version"),
+            adapt_runs=_count(raw.get("adapt_runs", 0), "adapt_runs"),
+            decisions=_list(raw.get("decisions", []), "decisions", _decision),
+            nodes=_list(raw.get("nodes", []), "nodes", _string),
+            T=_list(raw.get("T", []), "T", _number),
+            sigma=_list(raw.get("sigma", []), "sigma", _number),
+            T_pred=_list(raw.get("T_pred", []), "T_pred", _number),
+            P=_list(raw.get("P", []), "P", lambda row, w: _list(row, w, _number)),
+            inputs=_mapping(raw.get("inputs", {}), "inputs", _number),
+            saved_wall=_number(raw.get("saved_wall", 0.0), "saved_wall"),
+        )
+        n = len(model.nodes)
+        if st.T or st.sigma or st.T_pred or st.P or st.nodes:
             if st.nodes != list(model.nodes):
                 raise StateError("its node list differs from the model's")
-            for arr, what in ((st.T, "T"), (st.sigma, "sigma"), (st.T_pred, "T_pred")):
-                if arr and (len(arr) != len(model.nodes) or not all(math.isfinite(x) for x in arr)):
-                    raise StateError(f"{what} has the wrong length or non-finite values")
-            n = len(model.nodes)
-            if st.P and (len(st.P) != n or any(len(r) != n for r in st.P)
-                         or not all(math.isfinite(x) for r in st.P for x in r)):
-                raise StateError("P has the wrong shape or non-finite values")
-            if not all(-100.0 < x < 500.0 for x in st.T):
-                raise StateError("temperatures outside -100..500 degC")
+            if len(st.T) != n:
+                raise StateError(f"T has {len(st.T)} values for {n} nodes")
+            for arr, what in ((st.sigma, "sigma"), (st.T_pred, "T_pred")):
+                if arr and len(arr) != n:
+                    raise StateError(f"{what} has {len(arr)} values for {n} nodes")
+            if any(x < 0 for x in st.sigma):
+                raise StateError("sigma has a negative value")
+            if st.P and (len(st.P) != n or any(len(r) != n for r in st.P)):
+                raise StateError(f"P is not {n} x {n}")
+            if st.P and any(st.P[i][i] < 0 for i in range(n)):
+                raise StateError("P has a negative variance")
+            lo, hi = T_RANGE_C
+            if not all(lo < x < hi for x in st.T + st.T_pred):
+                raise StateError(f"temperatures outside {lo:g}..{hi:g} degC")
         return st
 
 
+# ------------------------------------------------------------------------------------------
 class StateStore:
     """Load and save :class:`PersistedState` in a directory.
 
     Parameters
     ----------
     directory : path
-        The state directory (created if needed).
+        The state directory (created on the first save if needed).
     model : Model
-        The machine model (for validation on load).
+        The machine model (for validation on load and save).
     """
 
     def __init__(self, directory: str | os.PathLike[str], model: Model) -> None:
@@ -132,49 +308,131 @@ class StateStore:
         self.path = self.dir / FILENAME
         #: Files that could not be used on load (each moved aside).
         self.load_errors = 0
-        #: Saves that failed (disk full, read-only, ...).
+        #: Saves that failed (disk full, read-only, a state that would not load, ...).
         self.save_errors = 0
+        #: Of :attr:`save_errors`: states refused because they would not load (the old file kept).
+        self.save_refused = 0
+        #: Temporary files of interrupted saves removed at start.
+        self.temp_removed = 0
         self.saves = 0
         self.last_error: str | None = None
         self.quarantined: list[Path] = []
 
     def load(self) -> PersistedState | None:
-        """The saved state, or None (missing or unusable: then logged, counted, moved aside)."""
+        """The saved state, or None (missing or unusable: then logged, counted, moved aside).
+
+        Never raises; reads at most :data:`MAX_BYTES`. Removes temporary files of interrupted saves first.
+        """
+        self._remove_temp_files()
         try:
-            text = self.path.read_text(encoding="utf-8")
+            st = os.stat(self.path)
         except FileNotFoundError:
+            if os.path.lexists(self.path):
+                return self._bad("a symbolic link to nothing")
             log.info("no saved state in %s: starting from the model's parameters", self.dir)
             return None
-        except (OSError, UnicodeDecodeError) as exc:
-            return self._bad(f"cannot read: {exc}")
+        except OSError as exc:
+            return self._bad(f"cannot stat: {exc.strerror or exc}")
+        if stat.S_ISDIR(st.st_mode):
+            return self._bad("a directory, not a file")
+        if not stat.S_ISREG(st.st_mode):
+            return self._bad("not a regular file")
+        if st.st_size > MAX_BYTES:
+            return self._bad(f"{st.st_size} bytes, larger than {MAX_BYTES // (1024 * 1024)} MiB (not read)")
         try:
-            raw = json.loads(text)
-        except json.JSONDecodeError as exc:
-            return self._bad(f"not valid JSON ({exc.msg} at line {exc.lineno})")
+            with open(self.path, "rb") as f:
+                data = f.read(MAX_BYTES + 1)  # the file may have grown since the stat
+        except OSError as exc:
+            return self._bad(f"cannot read: {exc.strerror or exc}")
         try:
-            return PersistedState.from_json(raw, self.model)
+            return decode(data, self.model)
         except StateError as exc:
             return self._bad(str(exc))
+
+    def _remove_temp_files(self) -> None:
+        try:
+            names = [e.name for e in os.scandir(self.dir) if _TEMP_RE.match(e.name)]
+        except OSError:
+            return
+        for name in names:
+            try:
+                os.unlink(self.dir / name)
+            except OSError as exc:
+                log.warning("cannot remove %s left by an interrupted save: %s", self.dir / name, exc.strerror or exc)
+                continue
+            self.temp_removed += 1
+            log.warning("removed %s left by an interrupted save", self.dir / name)
 
     def _bad(self, why: str) -> None:
         self.load_errors += 1
         self.last_error = why
-        aside = self.path.with_name(f"{FILENAME}.corrupt-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}")
+        stamp = f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}"
+        aside = self.path.with_name(f"{_CORRUPT_PREFIX}{stamp}")
+        n = 1
+        while os.path.lexists(aside):  # two in one second (never overwrite the evidence)
+            n += 1
+            aside = self.path.with_name(f"{_CORRUPT_PREFIX}{stamp}-{n}")
         try:
             os.replace(self.path, aside)
             self.quarantined.append(aside)
             where = f"moved aside to {aside.name}"
         except OSError as exc:
-            where = f"could not move it aside: {exc}"
+            where = f"could not move it aside: {exc.strerror or exc}"
         log.error("state file %s is unusable: %s; %s; starting from the model's parameters", self.path, why, where)
+        self._prune_corrupt()
         return None
 
+    def _prune_corrupt(self) -> None:
+        """Keep only the newest :data:`KEEP_CORRUPT` files moved aside (a crash loop must not fill the disk)."""
+        try:
+            aside = sorted((e for e in os.scandir(self.dir) if e.name.startswith(_CORRUPT_PREFIX)),
+                           key=lambda e: e.stat(follow_symlinks=False).st_mtime_ns)
+        except OSError:
+            return
+        for e in aside[:-KEEP_CORRUPT]:
+            try:
+                if e.is_dir(follow_symlinks=False):
+                    shutil.rmtree(e.path)
+                else:
+                    os.unlink(e.path)
+            except OSError as exc:
+                log.warning("cannot remove old corrupt state %s: %s", e.path, exc.strerror or exc)
+
+    def encode(self, state: PersistedState) -> bytes:
+        """The bytes :meth:`save` would write, checked by :func:`decode` (parameters snapped onto bounds).
+
+        Raises
+        ------
+        StateError
+            The state would not load at the next start.
+        """
+        try:
+            checked = PersistedState.from_json(state.as_json(), self.model)
+            data = json.dumps(checked.as_json(), separators=(",", ":"), allow_nan=False).encode()
+        except (TypeError, ValueError) as exc:  # StateError included; non-finite floats, numpy leftovers
+            raise StateError(str(exc)) from None
+        decode(data, self.model)
+        return data
+
     def save(self, state: PersistedState) -> bool:
-        """Write atomically; False (logged, counted) on failure. Never raises."""
-        tmp = self.path.with_name(f".{FILENAME}.{os.getpid()}.tmp")
+        """Write atomically; False (logged, counted) on failure. Never raises.
+
+        The state is first run through the load path's validation; one that would not load is
+        refused and the previous file kept.
+        """
+        try:
+            data = self.encode(state)
+        except StateError as exc:
+            self.save_errors += 1
+            self.save_refused += 1
+            self.last_error = str(exc)
+            if self.save_refused == 1 or self.save_refused % 100 == 0:
+                log.error("refusing to save state to %s: it would not load (%s); keeping the previous file "
+                          "(refused so far: %d)", self.path, exc, self.save_refused)
+            return False
+        tmp = self.path.with_name(f"{FILENAME}.tmp-{os.getpid()}")
         try:
             self.dir.mkdir(parents=True, exist_ok=True)
-            data = json.dumps(state.as_json(), separators=(",", ":"), allow_nan=False).encode()
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
             try:
                 view = memoryview(data)
@@ -193,7 +451,7 @@ class StateStore:
                     os.close(dfd)
             except OSError:
                 pass
-        except (OSError, ValueError, TypeError) as exc:
+        except OSError as exc:
             self.save_errors += 1
             self.last_error = str(exc)
             if self.save_errors == 1 or self.save_errors % 100 == 0:

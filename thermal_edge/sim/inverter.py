@@ -123,7 +123,7 @@ class Plant:
 
     def __init__(self, model: Model, params: Mapping[str, float], dt: float, aging: Mapping[str, float] | None = None,
                  T0: np.ndarray | None = None, ambient_c: float = 25.0) -> None:
-        self.base = model.with_parameters(dict(params))
+        self.base = model.with_parameters(dict(params), widen_bounds=True)  # a plant may lie outside the search bounds
         self.model = self.base
         self.theta0 = self.base.nominal()
         self.aging = dict(aging or {})

@@ -43,7 +43,7 @@ def simulate_plant(
     all_nodes : bool
         Also write every node's true temperature as a ``T_<node>`` column.
     """
-    plant = model.with_parameters(dict(params or {}))
+    plant = model.with_parameters(dict(params or {}), widen_bounds=True)  # a plant may lie outside the search bounds
     cols = {c: inputs.columns[c] for c in model.inputs}
     if T0 is None:
         first = {c: float(v[0]) for c, v in cols.items()}
