@@ -275,7 +275,7 @@ class OnlineAdapter:
         else:
             res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical" if cfg.method == "numerical" else "analytic")
         cand = self.theta.copy()
-        cand[sub.space.index] = res.values
+        cand[sub.space.index] = np.clip(res.values, sub.space.lower, sub.space.upper)  # exp(log(bound)) rounds past it
         d.iterations, d.evaluations = res.iterations, res.evaluations
         d.params = dict(zip(sc.selected, map(float, res.values)))
         d.current_error_k, cur = self._rms(self.theta, coarse, t - cfg.validate_s)
