@@ -9,6 +9,7 @@ import subprocess
 import time
 
 import numpy as np
+import pytest
 
 from svc_testlib import (MODEL, REPO, T0, NotifySocket, edge_raw, emulator_cmd, env, start_service, wait_until,
                          write_yaml)
@@ -87,3 +88,104 @@ def test_restart_after_sigkill_starts_from_the_cooled_saved_state(tmp_path, udp_
     kk = int(np.argmin(np.abs(trace["t"] - est_t[j])))
     assert abs(trace["est_hot_spot"][j] - trace["T"][kk][hs]) < 2.0
     assert abs(trace["est_magnet"][j] - trace["T"][kk][model.node_index("magnet_2")]) < 2.0
+
+
+def _corrupt(kind: str, state, model) -> bytes | None:
+    """Put a broken state where the service keeps its state; returns the bytes written (if a file)."""
+    state.mkdir(parents=True, exist_ok=True)
+    path = state / "state.json"
+    if kind == "directory":
+        path.mkdir()
+        return None
+    if kind == "256 MiB":
+        with open(path, "wb") as f:  # sparse
+            f.write(b'{"format": "thermal_edge.state", "decisions": [')
+            f.truncate(256 * 1024 * 1024)
+        return None
+    data = {
+        "100,000 nested [": b"[" * 100_000,
+        "5,000-digit number": b'{"format": "thermal_edge.state", "version": 1, "model": "pm10kw", "saved_at": '
+                              + b"9" * 5000 + b', "parameters": {}}',
+        'decisions: "abc"': json.dumps({"format": "thermal_edge.state", "version": 1, "model": model.name, "saved_at": 1.0,
+                                        "parameters": {}, "decisions": "abc"}).encode(),
+    }[kind]
+    path.write_bytes(data)
+    return data
+
+
+@pytest.mark.parametrize("kind", ["100,000 nested [", "5,000-digit number", 'decisions: "abc"', "directory", "256 MiB"])
+def test_the_service_starts_fresh_on_a_corrupt_state_file(tmp_path, kind):
+    """Defect 2 at the level of the process: ready, one log line naming the file, the file moved
+    aside, a clean stop that saves a loadable state; never a traceback, never exit 1."""
+    from thermal_edge.lptn import load_model
+    from thermal_edge.service.persistence import StateStore
+
+    model = load_model(MODEL)
+    state = tmp_path / "state"
+    data = _corrupt(kind, state, model)
+    (state / "state.json.tmp-999").write_bytes(b'{"format"')  # and a save killed half-way
+    cfg = write_yaml(tmp_path / "edge.yaml", edge_raw(state, {"interface": "virtual", "channel": "t"}, table4=False, adapt=False))
+    notify = NotifySocket(tmp_path / "notify")
+    notify.start_thread()
+    svc = start_service(cfg, notify, log=tmp_path / "svc.log")
+    try:
+        ready = notify.wait_for("READY=1", 60)
+        svc.send_signal(signal.SIGTERM)
+        rc = svc.wait(30)
+    finally:
+        if svc.poll() is None:
+            svc.kill()
+            svc.wait()
+        notify.close()
+    log = (tmp_path / "svc.log").read_text()
+    assert ready and rc == 0, log
+    assert "Traceback" not in log
+    unusable = [ln for ln in log.splitlines() if "is unusable" in ln]
+    assert len(unusable) == 1 and str(state / "state.json") in unusable[0], log
+    assert "left by an interrupted save" in log and not (state / "state.json.tmp-999").exists()
+    aside = [p for p in state.iterdir() if p.name.startswith("state.json.corrupt-")]
+    assert len(aside) == 1
+    if data is not None:
+        assert aside[0].read_bytes() == data
+    store = StateStore(state, model)
+    assert store.load() is not None and store.load_errors == 0  # the stop saved a state that loads
+
+
+def test_a_state_saved_with_round_off_below_a_bound_is_restored(tmp_path):
+    """Defect 4 at the level of the process: a file written by the earlier release with
+    c_p_ew = exp(log(300)) = 299.99999999999994 (bounds [300, 900]) keeps every learned parameter
+    and the thermal state; the next save holds the bound itself."""
+    from thermal_edge.lptn import load_model, steady_state
+
+    model = load_model(MODEL)
+    state = tmp_path / "state"
+    state.mkdir()
+    T, _ = steady_state(model, {"speed_rpm": 900.0, "i_rms": 20.0, "torque_nm": 112.0, "ambient_c": 25.0})
+    learned = {"c_p_ew": float(np.exp(np.log(300.0))), "R_e_hous": 7.25, "k_r_sw": 4.5}
+    saved = {"format": "thermal_edge.state", "version": 1, "model": model.name, "saved_at": 5000.0, "parameters": learned,
+             "param_version": 4, "adapt_runs": 9, "decisions": [{"t": 4000.0, "accepted": True}],
+             "nodes": list(model.nodes), "T": [float(x) for x in T], "sigma": [0.4] * len(T),
+             "T_pred": [float(x) for x in T], "P": (np.eye(len(T)) * 0.16).tolist(), "inputs": {"ambient_c": 25.0},
+             "saved_wall": time.time()}
+    (state / "state.json").write_text(json.dumps(saved))
+    assert "299.99999999999994" in (state / "state.json").read_text()
+    cfg = write_yaml(tmp_path / "edge.yaml", edge_raw(state, {"interface": "virtual", "channel": "t"}, table4=False, adapt=False))
+    notify = NotifySocket(tmp_path / "notify")
+    notify.start_thread()
+    svc = start_service(cfg, notify, log=tmp_path / "svc.log")
+    try:
+        ready = notify.wait_for("READY=1", 60)
+        svc.send_signal(signal.SIGTERM)
+        rc = svc.wait(30)
+    finally:
+        if svc.poll() is None:
+            svc.kill()
+            svc.wait()
+        notify.close()
+    log = (tmp_path / "svc.log").read_text()
+    assert ready and rc == 0 and "is unusable" not in log, log
+    back = json.loads((state / "state.json").read_text())
+    assert back["parameters"] == {**learned, "c_p_ew": 300.0}
+    assert back["param_version"] == 4 and back["adapt_runs"] == 9 and back["decisions"] == saved["decisions"]
+    assert back["T"] == saved["T"] and back["P"] == saved["P"]  # not yet running: the loaded state kept as it was
+    assert not [p for p in state.iterdir() if p.name != "state.json"]
