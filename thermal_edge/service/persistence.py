@@ -406,11 +406,13 @@ class StateStore:
         StateError
             The state would not load at the next start.
         """
+        raw = state.as_json()
+        if isinstance(raw["parameters"], dict):
+            raw["parameters"] = self.model.snap_to_bounds(raw["parameters"])
         try:
-            checked = PersistedState.from_json(state.as_json(), self.model)
-            data = json.dumps(checked.as_json(), separators=(",", ":"), allow_nan=False).encode()
-        except (TypeError, ValueError) as exc:  # StateError included; non-finite floats, numpy leftovers
-            raise StateError(str(exc)) from None
+            data = json.dumps(raw, separators=(",", ":"), allow_nan=False).encode()
+        except (TypeError, ValueError) as exc:  # non-finite floats, numpy leftovers
+            raise StateError(f"cannot be written as JSON: {exc}") from None
         decode(data, self.model)
         return data
 
