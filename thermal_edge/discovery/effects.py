@@ -56,7 +56,7 @@ import copy
 import math
 import re
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, ClassVar, Mapping, Sequence
 
 import numpy as np
 
@@ -103,6 +103,10 @@ class EffectParam:
 
 @dataclass(frozen=True)
 class Effect:
+    """One catalogue effect: its parameters, what it acts on (:meth:`targets`) and how it changes
+    a model document (:meth:`change`). One subclass per effect; the catalogue holds one instance
+    of each."""
+
     name: str
     abbr: str
     target_kind: str  # none | group | edge | sensor | boundary
@@ -110,6 +114,22 @@ class Effect:
     explains: str  # the operating variable the effect follows (residual analysis key)
     doc: str
     scale_by_target: bool = False  # parameter bounds/default scale with the target's nominal resistance
+    #: the edit reads laws from the built model (its document must be built before it is applied)
+    reads_built_model: ClassVar[bool] = False
+    #: the edit moves a sensor onto a new node (the score test gives it a model of its own)
+    moves_sensor: ClassVar[bool] = False
+    #: the added law is not affine in the node temperatures (simulated step by step)
+    nonaffine: ClassVar[bool] = False
+
+    def targets(self, ctx: Context) -> list[str | None]:
+        """Every target in the model (``[None]`` when the effect applies and takes none, ``[]``
+        when the model has nothing it can act on)."""
+        raise NotImplementedError
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        """Edit ``ed.raw`` (through ``ed``) so that it has the effect; ``P`` maps the parameters'
+        short names to their model parameter names."""
+        raise NotImplementedError
 
 
 @dataclass
@@ -151,43 +171,195 @@ def _p(short, unit, doc, nominal, lower, upper, default, null=0.0, primary=True,
     return EffectParam(short, unit, doc, null, nominal, lower, upper, default, primary, two_sided)
 
 
+class CopperTemperature(Effect):
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [None] if _loss_nodes(ctx.raw, WINDING_RE) else []
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        # X + a (T - t_ref) X(T = t_ref): the loss X rises by a per kelvin above t_ref. Written
+        # with X taken at t_ref the law stays affine in T when X is (fast simulation).
+        for i in _loss_nodes(ctx.raw, WINDING_RE):
+            spec = dict(ed.raw["losses"][i])
+            node = spec["node"]
+            if node not in ctx.model.nodes:
+                continue
+            law = _law_str(spec["power"])
+            at_ref = re.sub(r"\bT\.[A-Za-z_][\w]*(?![\w.])", P["t_ref"], law)
+            spec["power"] = f"{law} + ({P['k100']} - 1) / 100 * (T.{node} - {P['t_ref']}) * ({at_ref})"
+            ed.replace("losses", i, spec)
+
+
+class SpeedConvection(Effect):
+    def targets(self, ctx: Context) -> list[str | None]:
+        return list(ctx.groups) if ctx.speed else []
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        if target not in ctx.groups:
+            raise EffectError(f"speed_convection: unknown conductance group {target!r} (known: {', '.join(ctx.groups)})")
+        fac = f"(1 + {P['k']} * ({_speed_law(ctx)}) ** {P['m']})"
+        for i in ctx.groups[target]:
+            spec = dict(ed.raw["conductances"][i])
+            if "g" in spec:
+                spec["g"] = f"({_law_str(spec['g'])}) * {fac}"
+            else:
+                spec["r"] = f"({_law_str(spec['r'])}) / {fac}"
+            ed.replace("conductances", i, spec)
+
+
+class IronLossFrequency(Effect):
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [None] if ctx.speed and _iron_losses(ctx) else []
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        fac = f"(1 + {P['k']} * ({_speed_law(ctx)}) ** {P['m']})"
+        for i in _iron_losses(ctx):
+            spec = dict(ed.raw["losses"][i])
+            spec["power"] = f"({_law_str(spec['power'])}) * {fac}"
+            ed.replace("losses", i, spec)
+
+
+class MagnetEddyLoss(Effect):
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [None] if ctx.speed and ctx.current and _nodes_matching(ctx.model, MAGNET_RE) else []
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        nodes = _nodes_matching(ctx.model, MAGNET_RE)
+        x = f"abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])} * {ctx.current} / {_fmt(ctx.refs['i_ref'])}"
+        for node in nodes:
+            ed.add_loss(node, f"{P['p']} / {len(nodes)} * ({x}) ** 2")
+
+
+class BearingLoss(Effect):
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [None] if ctx.speed and _nodes_matching(ctx.model, BEARING_RE) else []
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        nodes = _nodes_matching(ctx.model, BEARING_RE)
+        for node in nodes:
+            ed.add_loss(node, f"{P['p']} / {len(nodes)} * abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}")
+
+
+class _FrameHeatOut(Effect):
+    """Heat leaving the frame nodes to ambient by a law not linear in the temperature rise."""
+
+    nonaffine: ClassVar[bool] = True
+
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [None] if _frame_nodes(ctx) else []
+
+    def law(self, node: str, share: float, ambient: str, P: Mapping[str, str]) -> str:
+        raise NotImplementedError
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        amb = next((b for b in ctx.model.boundaries if "amb" in b.lower()), next(iter(ctx.model.boundaries)))
+        for node, w in _frame_nodes(ctx):
+            ed.add_loss(node, self.law(node, w, ctx.model.boundaries[amb], P))
+
+
+class HousingRadiation(_FrameHeatOut):
+    def law(self, node: str, share: float, ambient: str, P: Mapping[str, str]) -> str:
+        return f"-{P['eps_a']} * {_fmt(share)} * {SIGMA_SB:.6g} * ((T.{node} + 273.15) ** 4 - ({ambient} + 273.15) ** 4)"
+
+
+class NaturalConvection(_FrameHeatOut):
+    def law(self, node: str, share: float, ambient: str, P: Mapping[str, str]) -> str:
+        return f"-{P['h']} * {_fmt(share)} * max(T.{node} - {ambient}, 0) ** 1.25"
+
+
+class SensorLag(Effect):
+    moves_sensor: ClassVar[bool] = True
+
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [s for s, node in ctx.model.sensors.items() if not node.endswith("_probe")]
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        sensors = ed.raw.get("sensors") or {}
+        if target not in sensors:
+            raise EffectError(f"sensor_lag: unknown sensor {target!r} (known: {', '.join(sensors)})")
+        node = sensors[target]["node"]
+        probe = f"{_sanitize(target)}_probe"
+        k = 2
+        while probe in ctx.model.nodes or probe in (ctx.model.points or ()):
+            probe = f"{_sanitize(target)}_probe{k}"
+            k += 1
+        ed.add("nodes", {"name": probe, "capacity": f"{P['tau']} * {PROBE_G:g}"})
+        ed.add("conductances", {"between": [node, probe], "g": PROBE_G})
+        sspec = dict(sensors[target])
+        sspec["node"] = probe
+        ed.raw["sensors"][target] = sspec
+        ed.edits.append(Edit("map_replace", "sensors", target, sspec, ed.label))
+
+
+class AmbientOffset(Effect):
+    reads_built_model: ClassVar[bool] = True
+
+    def targets(self, ctx: Context) -> list[str | None]:
+        return list(ctx.model.boundaries)
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        if target not in ctx.model.boundaries:
+            raise EffectError(f"ambient_offset: unknown boundary {target!r} (known: {', '.join(ctx.model.boundaries)})")
+        by_key = {e.key: e for e in ctx.model.edges}
+        for i in _boundary_edges(ctx, target):
+            edge = by_key[f"conductances[{i}]"]
+            ed.add_loss(edge.a, f"{P['dT']} * ({edge.g})")
+
+
+class ContactResistance(Effect):
+    def targets(self, ctx: Context) -> list[str | None]:
+        return [n for n, i in ctx.edges.items() if np.isfinite(ctx.edge_r_nominal.get(i, float("nan")))]
+
+    def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
+        if target not in ctx.edges:
+            raise EffectError(f"contact_resistance: unknown conductance {target!r}")
+        i = ctx.edges[target]
+        spec = dict(ed.raw["conductances"][i])
+        if "r" in spec:
+            spec["r"] = f"{_law_str(spec.pop('r'))} + {P['R']}"
+        elif "g" in spec:
+            spec["r"] = f"1 / ({_law_str(spec.pop('g'))}) + {P['R']}"
+        else:
+            spec["r"] = P["R"]
+        ed.replace("conductances", i, spec)
+
+
 CATALOGUE: dict[str, Effect] = {
     e.name: e
     for e in (
-        Effect("copper_temperature", "cuT", "none",
+        CopperTemperature("copper_temperature", "cuT", "none",
                (_p("k100", "1", "winding loss factor 100 K above t_ref (1: no temperature dependence; below 1 "
                    "when eddy/AC copper loss, which falls with temperature, dominates)", 1.0, 0.3, 3.0, 1.4, null=1.0,
                    two_sided=True),
                 _p("t_ref", "degC", "winding temperature at which the modelled loss is right", 20.0, 1.0, 150.0, 20.0,
                    null=20.0, primary=False)),
                "temperature", "winding loss rises with winding temperature"),
-        Effect("speed_convection", "sc", "group",
+        SpeedConvection("speed_convection", "sc", "group",
                (_p("k", "1", "relative rise of the conductance at the reference speed", 1e-4, 1e-5, 30.0, 1.0),
                 _p("m", "1", "speed exponent", 1.0, 0.2, 3.0, 1.0, null=1.0, primary=False)),
                "speed", "a conductance grows with speed (fan, air gap, rotating surfaces)"),
-        Effect("iron_loss_frequency", "feF", "none",
+        IronLossFrequency("iron_loss_frequency", "feF", "none",
                (_p("k", "1", "relative rise of the iron loss at the reference speed", 1e-4, 1e-5, 20.0, 1.0),
                 _p("m", "1", "speed exponent of the rise", 1.0, 0.2, 3.0, 1.0, null=1.0, primary=False)),
                "speed", "iron loss grows faster with speed than modelled"),
-        Effect("magnet_eddy_loss", "pmE", "none",
+        MagnetEddyLoss("magnet_eddy_loss", "pmE", "none",
                (_p("p", "W", "magnet eddy loss at the reference speed and current", 1e-3, 1e-4, 1e4, 100.0),),
                "speed_current2", "rotor/magnet loss proportional to (speed x current)^2"),
-        Effect("bearing_loss", "brg", "none",
+        BearingLoss("bearing_loss", "brg", "none",
                (_p("p", "W", "extra mechanical loss at the reference speed", 1e-3, 1e-4, 1e4, 60.0),),
                "speed", "mechanical (bearing, seal) loss at the shaft and end caps proportional to speed"),
-        Effect("housing_radiation", "rad", "none",
+        HousingRadiation("housing_radiation", "rad", "none",
                (_p("eps_a", "m^2", "emissivity x radiating area of the frame", 1e-4, 1e-5, 20.0, 0.8),),
                "rise", "radiation from the frame, proportional to T^4 - T_amb^4"),
-        Effect("natural_convection", "nc", "none",
+        NaturalConvection("natural_convection", "nc", "none",
                (_p("h", "W/K^1.25", "natural-convection coefficient x area of the frame", 1e-4, 1e-5, 100.0, 1.0),),
                "rise", "frame-to-ambient conductance grows with the temperature rise as dT^0.25"),
-        Effect("sensor_lag", "lag", "sensor",
+        SensorLag("sensor_lag", "lag", "sensor",
                (_p("tau", "s", "first-order time constant of the sensor", 5.0, 1.0, 3600.0, 300.0, null=1.0),),
                "dTdt", "first-order lag of a sensor (probe node of small capacity)"),
-        Effect("ambient_offset", "amb", "boundary",
+        AmbientOffset("ambient_offset", "amb", "boundary",
                (_p("dT", "K", "air at the machine warmer than the boundary input", 0.1, 1e-3, 40.0, 4.0),),
                "ambient", "the air at the machine is warmer than the ambient sensor"),
-        Effect("contact_resistance", "cr", "edge",
+        ContactResistance("contact_resistance", "cr", "edge",
                (_p("R", "K/W", "extra series resistance (aged insulation, loose fit)", 1e-3, 1e-4, 100.0, 2.0),),
                "current2", "an extra series resistance on one conductance path", scale_by_target=True),
     )
@@ -344,27 +516,7 @@ def _iron_losses(ctx: Context) -> list[int]:
 def targets(ctx: Context, effect: Effect) -> list[str | None]:
     """Every target of ``effect`` in the model (``[None]`` for an applicable effect without one,
     ``[]`` when the model has nothing the effect can act on)."""
-    m = ctx.model
-    name = effect.name
-    if name == "copper_temperature":
-        return [None] if _loss_nodes(ctx.raw, WINDING_RE) else []
-    if name == "speed_convection":
-        return list(ctx.groups) if ctx.speed else []
-    if name == "iron_loss_frequency":
-        return [None] if ctx.speed and _iron_losses(ctx) else []
-    if name == "magnet_eddy_loss":
-        return [None] if ctx.speed and ctx.current and _nodes_matching(m, MAGNET_RE) else []
-    if name == "bearing_loss":
-        return [None] if ctx.speed and _nodes_matching(m, BEARING_RE) else []
-    if name in ("housing_radiation", "natural_convection"):
-        return [None] if _frame_nodes(ctx) else []
-    if name == "sensor_lag":
-        return [s for s, node in m.sensors.items() if not node.endswith("_probe")]
-    if name == "ambient_offset":
-        return list(m.boundaries)
-    if name == "contact_resistance":
-        return [n for n, i in ctx.edges.items() if np.isfinite(ctx.edge_r_nominal.get(i, float("nan")))]
-    raise EffectError(f"unknown effect {name!r}")
+    return effect.targets(ctx)
 
 
 def applicable(ctx: Context, names: Sequence[str] | None = None) -> list[Candidate]:
@@ -451,6 +603,28 @@ def _speed_law(ctx: Context) -> str:
     return f"max(abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}, 1e-6)"
 
 
+class _Editor:
+    """Changes of one document by one candidate, each recorded as an :class:`Edit`."""
+
+    def __init__(self, raw: dict[str, Any], label: str) -> None:
+        self.raw = raw
+        self.label = label
+        self.edits: list[Edit] = []
+
+    def add(self, section: str, entry: dict[str, Any]) -> None:
+        if self.raw.get(section) is None:
+            self.raw[section] = []
+        self.raw[section].append(entry)
+        self.edits.append(Edit("list_add", section, None, entry, self.label))
+
+    def add_loss(self, node: str, law: str) -> None:
+        self.add("losses", {"node": node, "power": law})
+
+    def replace(self, section: str, i: int, entry: dict[str, Any]) -> None:
+        self.raw[section][i] = entry
+        self.edits.append(Edit("list_replace", section, i, entry, self.label))
+
+
 def apply(ctx: Context, cand: Candidate, values: Mapping[str, float] | None = None,
           inplace: bool = False) -> tuple[dict[str, Any], list[str], list[Edit]]:
     """Add one candidate to ``ctx.raw`` (a copy is returned and ``ctx`` is left alone, unless ``inplace``).
@@ -459,120 +633,16 @@ def apply(ctx: Context, cand: Candidate, values: Mapping[str, float] | None = No
     ``values`` sets parameters by short name (default: the zero-effect nominal values).
     """
     raw = ctx.raw if inplace else copy.deepcopy(ctx.raw)
-    edits: list[Edit] = []
+    ed = _Editor(raw, cand.label)
     names = param_names(ctx, cand)
     specs = param_specs(ctx, cand, values)
-    raw.setdefault("parameters", {})
-    if raw["parameters"] is None:
+    if raw.get("parameters") is None:
         raw["parameters"] = {}
     for n, spec in zip(names, specs):
         raw["parameters"][n] = spec
-        edits.append(Edit("map_add", "parameters", n, spec, cand.label))
-    P = dict(zip((p.short for p in cand.effect.params), names))
-    eff, tgt = cand.effect.name, cand.target
-    label = cand.label
-
-    def add_loss(node: str, law: str) -> None:
-        entry = {"node": node, "power": law}
-        raw.setdefault("losses", [])
-        raw["losses"].append(entry)
-        edits.append(Edit("list_add", "losses", None, entry, label))
-
-    def replace(section: str, i: int, entry: dict[str, Any]) -> None:
-        raw[section][i] = entry
-        edits.append(Edit("list_replace", section, i, entry, label))
-
-    if eff == "copper_temperature":
-        # X + a (T - t_ref) X(T = t_ref): the loss X rises by a per kelvin above t_ref. Written
-        # with X taken at t_ref the law stays affine in T when X is (fast simulation).
-        for i in _loss_nodes(ctx.raw, WINDING_RE):
-            spec = dict(raw["losses"][i])
-            node = spec["node"]
-            if node not in ctx.model.nodes:
-                continue
-            law = _law_str(spec["power"])
-            at_ref = re.sub(r"\bT\.[A-Za-z_][\w]*(?![\w.])", P["t_ref"], law)
-            spec["power"] = f"{law} + ({P['k100']} - 1) / 100 * (T.{node} - {P['t_ref']}) * ({at_ref})"
-            replace("losses", i, spec)
-    elif eff == "speed_convection":
-        if tgt not in ctx.groups:
-            raise EffectError(f"speed_convection: unknown conductance group {tgt!r} (known: {', '.join(ctx.groups)})")
-        fac = f"(1 + {P['k']} * ({_speed_law(ctx)}) ** {P['m']})"
-        for i in ctx.groups[tgt]:
-            spec = dict(raw["conductances"][i])
-            if "g" in spec:
-                spec["g"] = f"({_law_str(spec['g'])}) * {fac}"
-            else:
-                spec["r"] = f"({_law_str(spec['r'])}) / {fac}"
-            replace("conductances", i, spec)
-    elif eff == "iron_loss_frequency":
-        fac = f"(1 + {P['k']} * ({_speed_law(ctx)}) ** {P['m']})"
-        for i in _iron_losses(ctx):
-            spec = dict(raw["losses"][i])
-            spec["power"] = f"({_law_str(spec['power'])}) * {fac}"
-            replace("losses", i, spec)
-    elif eff == "magnet_eddy_loss":
-        nodes = _nodes_matching(ctx.model, MAGNET_RE)
-        x = f"abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])} * {ctx.current} / {_fmt(ctx.refs['i_ref'])}"
-        for node in nodes:
-            add_loss(node, f"{P['p']} / {len(nodes)} * ({x}) ** 2")
-    elif eff == "bearing_loss":
-        nodes = _nodes_matching(ctx.model, BEARING_RE)
-        for node in nodes:
-            add_loss(node, f"{P['p']} / {len(nodes)} * abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}")
-    elif eff in ("housing_radiation", "natural_convection"):
-        amb = next((b for b in ctx.model.boundaries if "amb" in b.lower()), next(iter(ctx.model.boundaries)))
-        ta = ctx.model.boundaries[amb]
-        for node, w in _frame_nodes(ctx):
-            if eff == "housing_radiation":
-                law = (f"-{P['eps_a']} * {_fmt(w)} * {SIGMA_SB:.6g} * ((T.{node} + 273.15) ** 4 - ({ta} + 273.15) ** 4)")
-            else:
-                law = f"-{P['h']} * {_fmt(w)} * max(T.{node} - {ta}, 0) ** 1.25"
-            add_loss(node, law)
-    elif eff == "sensor_lag":
-        sensors = raw.get("sensors") or {}
-        if tgt not in sensors:
-            raise EffectError(f"sensor_lag: unknown sensor {tgt!r} (known: {', '.join(sensors)})")
-        node = sensors[tgt]["node"]
-        probe = f"{_sanitize(tgt)}_probe"
-        k = 2
-        while probe in ctx.model.nodes or probe in (ctx.model.points or ()):
-            probe = f"{_sanitize(tgt)}_probe{k}"
-            k += 1
-        entry = {"name": probe, "capacity": f"{P['tau']} * {PROBE_G:g}"}
-        raw.setdefault("nodes", [])
-        raw["nodes"].append(entry)
-        edits.append(Edit("list_add", "nodes", None, entry, label))
-        cond = {"between": [node, probe], "g": PROBE_G}
-        raw.setdefault("conductances", [])
-        raw["conductances"].append(cond)
-        edits.append(Edit("list_add", "conductances", None, cond, label))
-        sspec = dict(sensors[tgt])
-        sspec["node"] = probe
-        raw["sensors"][tgt] = sspec
-        edits.append(Edit("map_replace", "sensors", tgt, sspec, label))
-    elif eff == "ambient_offset":
-        if tgt not in ctx.model.boundaries:
-            raise EffectError(f"ambient_offset: unknown boundary {tgt!r} (known: {', '.join(ctx.model.boundaries)})")
-        by_key = {e.key: e for e in ctx.model.edges}
-        for i in _boundary_edges(ctx, tgt):
-            edge = by_key[f"conductances[{i}]"]
-            add_loss(edge.a, f"{P['dT']} * ({edge.g})")
-    elif eff == "contact_resistance":
-        if tgt not in ctx.edges:
-            raise EffectError(f"contact_resistance: unknown conductance {tgt!r}")
-        i = ctx.edges[tgt]
-        spec = dict(raw["conductances"][i])
-        if "r" in spec:
-            spec["r"] = f"{_law_str(spec.pop('r'))} + {P['R']}"
-        elif "g" in spec:
-            spec["r"] = f"1 / ({_law_str(spec.pop('g'))}) + {P['R']}"
-        else:
-            spec["r"] = P["R"]
-        replace("conductances", i, spec)
-    else:  # pragma: no cover - get() already refused
-        raise EffectError(f"unknown effect {eff!r}")
-    return raw, names, edits
+        ed.edits.append(Edit("map_add", "parameters", n, spec, cand.label))
+    cand.effect.change(ctx, cand.target, dict(zip((p.short for p in cand.effect.params), names)), ed)
+    return raw, names, ed.edits
 
 
 def _law_str(law: Any) -> str:
@@ -594,7 +664,7 @@ def augment(raw: Mapping[str, Any], cands: Sequence[tuple[Candidate, Mapping[str
     for cand, values in cands:
         # targets are resolved on the original document (later edits rename groups); the
         # built model is refreshed only where an effect reads laws from it (ambient_offset)
-        if cand.effect.name == "ambient_offset" and built != version:
+        if cand.effect.reads_built_model and built != version:
             model, built = build(doc), version
         ctx = Context(doc, model, dict(refs), original.groups, original.edges, original.edge_r_nominal)
         doc, pn, ed = apply(ctx, cand, values, inplace=True)

@@ -238,14 +238,12 @@ def _solve_bounded(g: np.ndarray, I: np.ndarray, lo: np.ndarray, hi: np.ndarray,
 
 
 def _chunks(cands: Sequence[E.Candidate], size: int) -> list[list[E.Candidate]]:
-    # ambient offsets read laws from the built model: first in every chunk; sensor lags move
-    # sensors onto probe nodes: a chunk of their own
-    # laws not affine in T (radiation, natural convection) are simulated step by step: a chunk of their own
-    special = ("sensor_lag",), ("housing_radiation", "natural_convection")
-    lags = [c for c in cands if c.effect.name in special[0]]
-    nonaffine = [c for c in cands if c.effect.name in special[1]]
-    rest = sorted((c for c in cands if c.effect.name not in special[0] + special[1]),
-                  key=lambda c: c.effect.name != "ambient_offset")
+    # effects that read laws from the built model come first in every chunk; effects that move
+    # a sensor onto a new node, and laws not affine in T (simulated step by step), get chunks of their own
+    lags = [c for c in cands if c.effect.moves_sensor]
+    nonaffine = [c for c in cands if c.effect.nonaffine and not c.effect.moves_sensor]
+    rest = sorted((c for c in cands if not (c.effect.moves_sensor or c.effect.nonaffine)),
+                  key=lambda c: not c.effect.reads_built_model)
     out: list[list[E.Candidate]] = []
     for group in (rest, lags, nonaffine):
         cur: list[E.Candidate] = []
