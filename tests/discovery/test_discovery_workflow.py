@@ -2,9 +2,10 @@
 
 Normal suite: two hidden effects in simulated 10 kW data (different cycles and seeds) must be
 named first with the held-out gap at least 60 % smaller, data with no hidden effect must end
-with "no missing effect found", and the two Paderborn cases (real data, reduced models) must
-name the removed effect with a smaller gap. The sweep over the effects (3 h cycles) is ``slow``;
-``python -m thermal_edge.discovery.bench`` prints the same cases as a table.
+with "no missing effect found: no gap", and the score test must rank a hidden effect first. The
+sweep over the whole catalogue on both cycles, and clean data on both, is ``slow``; ``python -m
+thermal_edge.discovery.bench`` prints the same cases as a table. The real-data cases are in
+``test_discovery_paderborn.py``, confusable effects in ``test_discovery_ambiguous.py``.
 """
 from __future__ import annotations
 
@@ -43,7 +44,8 @@ def test_no_hidden_effect_names_none():
     assert expected is None
     disc = workflow.discover(raw, run, bench.hidden.builder(bench.PM10KW))
     d = disc.as_dict()
-    assert d["named_effect"] is None and d["verdict"] == "no missing effect found", d["rounds"]
+    assert d["named_effect"] is None and d["verdict"].startswith("no missing effect found: no gap"), d["rounds"]
+    assert d["gap_status"] == "none" and d["ambiguous"] is False and d["gap_noise_floor"] == disc.noise_k
     assert d["gap_after"] == d["gap_before"]
     # the refitted model is at the noise floor: nothing structural is left
     assert disc.gap_before < 2 * disc.noise_k + 0.05
@@ -73,33 +75,25 @@ def test_score_test_and_fit_recover_a_hidden_value():
     assert fit.gap < base.gap
 
 
-@pytest.mark.parametrize("which", ["copper", "speed"])
-def test_paderborn_removed_effect_is_named(which, paderborn_run_path):
-    row = bench.run_paderborn(which, run_path=paderborn_run_path)
-    assert row["named"] == bench.PADERBORN_EXPECTED[which], row
-    assert row["gap_after"] < row["gap_before"] * 0.95, row
-
-
-def test_paderborn_published_model_needs_nothing(paderborn_run_path):
-    """The published 4-node model on its own run: no catalogue effect helps."""
-    raw = bench.hidden.read_document(bench.PADERBORN_MODEL)
-    build = bench.hidden.builder(bench.PADERBORN_MODEL, paderborn_run_path.parent)
-    disc = workflow.discover(raw, bench.read_run(paderborn_run_path, "paderborn"), build)
-    assert disc.named is None, [(r.fit.label, r.improvement) for r in disc.rounds[0].ranked]
-    assert math.isfinite(disc.gap_before) and np.isclose(disc.gap_after, disc.gap_before)
-
-
-#: the effects the workflow is held to (named first, >= 60 % shrink); housing_radiation and
-#: natural_convection are mostly absorbed by the refit of R_e_hous on these cycles (see the bench)
-NAMED = ("copper_temperature", "speed_convection:R_e_hous", "iron_loss_frequency", "magnet_eddy_loss",
-         "bearing_loss", "sensor_lag:end_winding", "ambient_offset")
+@pytest.mark.slow
+@pytest.mark.parametrize("cycle,seed", [("varied_drive", 31), ("heldout_drive", 32)])
+def test_sweep_clean_data_names_nothing(cycle, seed):
+    """No hidden effect, 3 h of each cycle: no candidate of the whole catalogue is named."""
+    row = bench.run_case(None, cycle, seed)
+    assert row["named"] is None and row["gap_status"] == "none", row
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("i,spec", list(enumerate(NAMED)))
-def test_sweep_hidden_effects(i, spec):
-    """Each effect hidden in 3 h of 1 Hz data (cycles and seeds alternate), named first, gap -60 %."""
-    cycle, seed = (("varied_drive", 11 + i), ("heldout_drive", 21 + i))[i % 2]
+@pytest.mark.parametrize("spec", bench.EFFECTS)
+@pytest.mark.parametrize("k,cycle", list(enumerate(bench.CYCLES)))
+def test_sweep_hidden_effects(spec, k, cycle):
+    """Each catalogue effect hidden in 3 h of 1 Hz data on both cycles (seeds differ): named
+    first with the held-out gap at least 60 % below the refit's, or named as one of two the run
+    cannot separate, with the separating condition."""
+    seed = 11 + 10 * k + bench.EFFECTS.index(spec)
     row = bench.run_case(spec, cycle, seed)
-    _check_named(row, row["expected"])
-    assert row["wall_s"] < 120  # the 60 s budget, with room for a busy shared machine
+    assert row["pass"], row
+    if row["named_in_pair"] and not row["named_first"]:
+        assert row["ambiguous"] and row["expected"] in (row["named"], row["runner_up"]), row
+    else:
+        _check_named(row, row["expected"])

@@ -5,14 +5,18 @@ drive cycles with one catalogue effect hidden in the plant (PT100 noise on, seed
 :func:`~thermal_edge.discovery.workflow.discover` with the plain model, and prints per case:
 whether the hidden effect (and target) was named first, the held-out gap before/after, the
 shrink and the wall time. Cases with no hidden effect must end with "no missing effect found".
-``--paderborn`` adds the two real-data cases: ``paderborn4.yaml`` with the copper temperature
-dependence removed, and with the speed dependence of the tooth–magnet resistance removed, run
-against ``run_a.csv`` (skipped, with a note, when the data are absent).
+A case passes when the hidden effect is named first with the held-out gap at least 60 % smaller
+than the refit's, or when it is one of two effects the run cannot separate (the report says so
+and names the separating condition). ``--paderborn`` adds the real-data cases: the published
+``paderborn4.yaml`` on ``run_a.csv`` (nothing to add, but a gap the catalogue does not explain),
+and the two reduced models of ``tests/discovery/models/`` (the copper temperature coefficient
+removed; the speed dependence of the tooth–magnet resistance removed), whose gap shrink is also
+given against the gap the removal opened (reduced model's refit gap minus the published
+model's); skipped, with a note, when the data are absent.
 """
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import sys
 import time
@@ -35,6 +39,7 @@ PADERBORN_RUN = REPO.parent / "shared" / "data" / "paderborn" / "run_a.csv"
 #: the hidden effects of the sweep (spec, expected label)
 EFFECTS = (
     "copper_temperature",
+    "contact_resistance:housing_6-yoke_1",
     "speed_convection:R_e_hous",
     "iron_loss_frequency",
     "magnet_eddy_loss",
@@ -46,8 +51,8 @@ EFFECTS = (
 )
 CYCLES = ("varied_drive", "heldout_drive")
 
-COPPER_FACTOR = "(1 + 0.002 * (T.sw - 70))"
-TOOTH_MAGNET_SPEED = "exp(-n / 0.1573)"
+#: the reduced Paderborn models (the published model with one effect removed), by case
+PADERBORN_REDUCED = {w: REPO / "tests" / "discovery" / "models" / f"paderborn4-no-{w}.yaml" for w in ("copper", "speed")}
 
 
 def simulated_run(spec: str | None, cycle: str, seed: int, model_path: Path = PM10KW,
@@ -56,7 +61,8 @@ def simulated_run(spec: str | None, cycle: str, seed: int, model_path: Path = PM
     raw = hidden.read_document(model_path)
     build = hidden.builder(model_path)
     model = build(raw)
-    inputs = cycle_run(load_cycle(REPO / "config" / "cycles" / f"{cycle}.yaml"), model.drive["kt_nm_per_arms"], duration_s)
+    cycle_path = Path(cycle) if cycle.endswith(".yaml") else REPO / "config" / "cycles" / f"{cycle}.yaml"
+    inputs = cycle_run(load_cycle(cycle_path), model.drive["kt_nm_per_arms"], duration_s)
     expected = None
     plant = model
     if spec:
@@ -65,7 +71,7 @@ def simulated_run(spec: str | None, cycle: str, seed: int, model_path: Path = PM
         plant = build(doc)
         expected = resolved[0][0].label
     res = simulate_plant(plant, inputs, noise_k=noise_k, resolution_k=0.1 if noise_k > 0 else 0.0, seed=seed)
-    res.run.source = f"{cycle} seed {seed}" + (f" + hidden {expected}" if expected else "")
+    res.run.source = f"{Path(cycle).stem} seed {seed}" + (f" + hidden {expected}" if expected else "")
     return raw, res.run, expected
 
 
@@ -78,50 +84,39 @@ def run_case(spec: str | None, cycle: str = "varied_drive", seed: int = 1, optio
     wall = time.perf_counter() - t0
     if out:
         _write(disc, out, PM10KW)
-    return _row(disc, expected, wall, f"pm10kw / {cycle} / seed {seed}", spec or "none")
-
-
-def paderborn_reduced(raw: dict[str, Any], which: str) -> dict[str, Any]:
-    """``paderborn4.yaml`` without the copper temperature factor (``copper``) or without the
-    speed dependence of the tooth–magnet resistance (``speed``: the law at standstill, the
-    constant ``1.7275 + 0.3039`` K/W; a *fitted* constant could not be told apart on run_a,
-    which holds 5500 rpm after its first seconds)."""
-    doc = copy.deepcopy(raw)
-    if which == "copper":
-        n = 0
-        for loss in doc["losses"]:
-            if COPPER_FACTOR in str(loss["power"]):
-                loss["power"] = str(loss["power"]).replace(COPPER_FACTOR, "(1)")
-                n += 1
-        assert n, "copper factor not found in paderborn4.yaml"
-    elif which == "speed":
-        n = 0
-        for c in doc["conductances"]:
-            if sorted(c["between"]) == ["pm", "st"] and TOOTH_MAGNET_SPEED in str(c.get("r", "")):
-                c["r"] = str(c["r"]).replace(TOOTH_MAGNET_SPEED, "1")
-                n += 1
-        assert n, "tooth-magnet law not found in paderborn4.yaml"
-    else:
-        raise ValueError(which)
-    doc["name"] = f"paderborn4-no-{which}"
-    return doc
+    return _row(disc, expected, wall, f"pm10kw / {Path(cycle).stem} / seed {seed}", spec or "none")
 
 
 PADERBORN_EXPECTED = {"copper": "copper_temperature", "speed": "speed_convection:st-pm"}
 
 
-def run_paderborn(which: str, options: workflow.Options | None = None, out: str | None = None,
-                  run_path: Path = PADERBORN_RUN) -> dict[str, Any]:
-    raw = hidden.read_document(PADERBORN_MODEL)
-    doc = paderborn_reduced(raw, which)
-    build = hidden.builder(PADERBORN_MODEL, run_path.parent)
+def run_paderborn(which: str | None, options: workflow.Options | None = None, out: str | None = None,
+                  run_path: Path = PADERBORN_RUN, published_gap: float | None = None) -> dict[str, Any]:
+    """One Paderborn case: the published model (``which`` None) or a reduced one on ``run_a.csv``.
+
+    ``published_gap`` (the published model's refitted held-out gap, K) adds ``excess_shrink``:
+    the share of the gap the removal opened that discovery closes.
+    """
+    path = PADERBORN_MODEL if which is None else PADERBORN_REDUCED[which]
+    doc = hidden.read_document(path)
+    build = hidden.builder(path, run_path.parent)
     run = read_run(run_path, "paderborn")
     t0 = time.perf_counter()
     disc = workflow.discover(doc, run, build, options)
     wall = time.perf_counter() - t0
     if out:
-        _write(disc, out, PADERBORN_MODEL)  # a reduced document: written as a dump, data_dir re-pointed
-    return _row(disc, PADERBORN_EXPECTED[which], wall, "paderborn4 / run_a", f"removed {which}")
+        _write(disc, out, path)
+    row = _row(disc, None if which is None else PADERBORN_EXPECTED[which], wall, "paderborn4 / run_a",
+               "published" if which is None else f"removed {which}")
+    row["gap_status"] = disc.gap.status if disc.gap else None
+    if published_gap is not None and which is not None:
+        opened = disc.gap_before - published_gap
+        row["gap_published"] = published_gap
+        row["excess_shrink"] = (disc.gap_before - disc.gap_after) / opened if opened > 0 else float("nan")
+        row["pass"] = bool(row["named_first"] and row["excess_shrink"] >= 0.6)
+    elif which is None:
+        row["pass"] = bool(disc.named is None and row["gap_status"] == "unexplained")
+    return row
 
 
 def _write(disc: workflow.Discovery, out: str, model_path: Path | None) -> None:
@@ -135,22 +130,29 @@ def _write(disc: workflow.Discovery, out: str, model_path: Path | None) -> None:
 
 def _row(disc: workflow.Discovery, expected: str | None, wall: float, case: str, hidden_label: str) -> dict[str, Any]:
     named = disc.named.fit.label if disc.named else None
+    runner_up = disc.runner_up.fit.label if disc.runner_up else None
     ok = named == expected
+    # one of two the run cannot separate, with the operating point that would
+    pair = bool(expected and disc.ambiguous and expected in (named, runner_up) and disc.rounds[0].point is not None)
     shrink = 1 - disc.gap_after / disc.gap_before if disc.gap_before > 0 else 0.0
     return {
         "case": case, "hidden": hidden_label, "expected": expected, "named": named, "named_first": ok,
+        "runner_up": runner_up, "ambiguous": disc.ambiguous, "named_in_pair": pair,
         "added": [r.fit.label for r in disc.added], "gap_nominal": disc.nominal.gap, "gap_before": disc.gap_before,
         "gap_after": disc.gap_after, "shrink": shrink, "noise_k": disc.noise_k, "wall_s": wall,
-        "pass": bool(ok and (expected is None or shrink >= 0.6)),
+        "gap_status": disc.gap.status if disc.gap else None,
+        "pass": bool(expected is None and named is None) or bool(expected and ((ok and shrink >= 0.6) or pair)),
     }
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = f"{'case':<36}{'hidden':<28}{'named first':<30}{'ok':>4}{'before K':>10}{'after K':>9}{'shrink':>8}{'wall s':>8}"
+    head = (f"{'case':<36}{'hidden':<28}{'named first':<30}{'runner-up':<30}{'amb.':>5}{'pass':>5}{'before K':>10}"
+            f"{'after K':>9}{'shrink':>8}{'noise K':>8}{'wall s':>8}")
     out = [head, "-" * len(head)]
     for r in rows:
-        out.append(f"{r['case']:<36}{r['hidden']:<28}{str(r['named'] or 'none'):<30}{'yes' if r['named_first'] else 'NO':>4}"
-                   f"{r['gap_before']:>10.3f}{r['gap_after']:>9.3f}{r['shrink']:>8.0%}{r['wall_s']:>8.1f}")
+        out.append(f"{r['case']:<36}{r['hidden']:<28}{str(r['named'] or 'none'):<30}{str(r['runner_up'] or '-'):<30}"
+                   f"{'yes' if r['ambiguous'] else 'no':>5}{'yes' if r['pass'] else 'NO':>5}"
+                   f"{r['gap_before']:>10.3f}{r['gap_after']:>9.3f}{r['shrink']:>8.0%}{r['noise_k']:>8.3f}{r['wall_s']:>8.1f}")
     return "\n".join(out)
 
 
@@ -159,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--effects", default=";".join(EFFECTS),
                     help="hidden effects as --effect specs, separated by ';' ('none' for no effect)")
-    ap.add_argument("--cycles", default=",".join(CYCLES))
+    ap.add_argument("--cycles", default=",".join(CYCLES), help="cycle names of config/cycles or paths to cycle files")
     ap.add_argument("--seeds", default="1", help="comma-separated seeds")
     ap.add_argument("--vary-seeds", action="store_true", help="add the case number to the seed")
     ap.add_argument("--no-none", action="store_true", help="skip the cases without a hidden effect")
@@ -188,16 +190,22 @@ def main(argv: list[str] | None = None) -> int:
         if not PADERBORN_RUN.exists():
             print(f"Paderborn cases skipped: {PADERBORN_RUN} not found")
         else:
+            pub = run_paderborn(None)
+            rows.append(pub)
+            print(table([pub]).splitlines()[-1], flush=True)
             for which in ("copper", "speed"):
-                r = run_paderborn(which)
+                r = run_paderborn(which, published_gap=pub["gap_before"])
                 rows.append(r)
                 print(table([r]).splitlines()[-1], flush=True)
+                print(f"    removal opened {r['gap_before'] - r['gap_published']:.3f} K over the published model's "
+                      f"{r['gap_published']:.3f} K; closed {r['excess_shrink']:.0%} of it", flush=True)
     print()
     print(table(rows))
     sim = [r for r in rows if r["case"].startswith("pm10kw")]
     if sim:
         eff = [r for r in sim if r["expected"]]
-        print(f"\nsimulated: {sum(r['pass'] for r in eff)}/{len(eff)} hidden-effect cases named first with >= 60 % shrink; "
+        print(f"\nsimulated: {sum(r['pass'] for r in eff)}/{len(eff)} hidden-effect cases named first with >= 60 % shrink "
+              f"(or named in a pair the run cannot separate: {sum(r['named_in_pair'] and not r['named_first'] for r in eff)}); "
               f"{sum(r['pass'] for r in sim if not r['expected'])}/{len(sim) - len(eff)} no-effect cases name none; "
               f"wall max {max(r['wall_s'] for r in sim):.1f} s, median {float(np.median([r['wall_s'] for r in sim])):.1f} s")
     if args.json:

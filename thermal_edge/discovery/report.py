@@ -9,6 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from . import effects as E
+from . import judge as J
 from . import residuals as R
 from . import yamlpatch
 from .workflow import Discovery
@@ -118,16 +119,96 @@ def figures(disc: Discovery, out: Path) -> dict[str, str]:
     fig.savefig(out / files["var"], dpi=110)
     plt.close(fig)
 
-    sc = [s for s in disc.rounds[0].scores if s.fraction > 0][:12]
+    fig = _temperature_figure(disc, plt, t_h, step)
+    files["temperature"] = "temperature_time.png"
+    fig.savefig(out / files["temperature"], dpi=110)
+    plt.close(fig)
+
+    first = disc.rounds[0]
+    win = first.winner.fit.label if first.winner else None
+    ru = first.runner_up.fit.label if first.runner_up else None
+    sc = [s for s in first.scores if s.fraction > 0][:12]
+    labels = [s.cand.label for s in sc]
+    for lab in (win, ru):  # winner and runner-up are shown even when the screen, not the test, found them
+        if lab and lab not in labels:
+            hit = next((s for s in first.scores if s.cand.label == lab), None)
+            sc.append(hit if hit is not None else next((s for s in first.screen if s.cand.label == lab), sc[0] if sc else None))
+            labels.append(lab)
     if sc:
-        fig, ax = plt.subplots(figsize=(8, 0.32 * len(sc) + 1.0))
-        ax.barh([s.cand.label for s in sc][::-1], [s.fraction for s in sc][::-1], color="tab:gray")
-        ax.set_xlabel("score test: share of the training residual a joint step would remove")
+        fig, ax = plt.subplots(figsize=(9, 0.34 * len(sc) + 1.4))
+        colors = ["tab:green" if lab == win else "tab:orange" if lab == ru else "tab:gray" for lab in labels]
+        ax.barh(labels[::-1], [s.fraction for s in sc][::-1], color=colors[::-1])
+        for lab, s in zip(labels, sc):
+            tag = "winner" if lab == win else ("runner-up" if win else "nearest (not accepted)") if lab == ru else ""
+            if tag:
+                ax.annotate(f" {tag}", (s.fraction, labels[::-1].index(lab)), va="center", fontsize=8)
+        ax.set_xlabel("score test: share of the training residual\na joint step (effect + adaptable parameters) would remove")
+        ax.set_xlim(0, max(1e-3, max(s.fraction for s in sc)) * 1.25)
+        ax.set_title("candidates (green: named by the held-out fits; orange: " + ("runner-up)" if win else
+                     "the nearest by held-out gap, not accepted)"), fontsize=9)
         fig.tight_layout()
         files["scores"] = "scores.png"
         fig.savefig(out / files["scores"], dpi=110)
         plt.close(fig)
+    if first.comparison is not None and first.evidence:
+        fig, axes = plt.subplots(1, len(first.evidence), figsize=(3.3 * len(first.evidence) + 0.6, 3.2), squeeze=False)
+        for ax, ev in zip(axes[0], first.evidence):
+            ax.plot(ev.centers, ev.a, "-o", ms=3, color="tab:green", label=first.comparison.a)
+            ax.plot(ev.centers, ev.b, "-s", ms=3, color="tab:orange", label=first.comparison.b)
+            ax.axhline(0.0, color="grey", lw=0.5)
+            ax.set_xlabel(ev.variable)
+            ax.grid(alpha=0.3)
+        axes[0, 0].set_ylabel(f"predicted residual of\n{first.evidence[0].sensor} (K)")
+        axes[0, 0].legend(fontsize=7, loc="best")
+        fig.suptitle("what each effect says the refitted model gets wrong (refit − fit, binned means)", fontsize=9)
+        fig.tight_layout()
+        files["evidence"] = "winner_vs_runner_up.png"
+        fig.savefig(out / files["evidence"], dpi=110)
+        plt.close(fig)
     return files
+
+
+def _temperature_figure(disc: Discovery, plt, t_h: np.ndarray, step: int):  # type: ignore[no-untyped-def]
+    """Measured against predicted temperature per sensor (refitted model, and with the effects
+    added), the operating point (speed, current, ambient) below."""
+    data = disc.data
+    run = data.run
+    ns = len(data.sensors)
+    before, after = disc.rounds[0].base, disc.final
+    fig, axes = plt.subplots(ns + 1, 1, figsize=(9, 1.9 * ns + 2.4), sharex=True, squeeze=False,
+                             gridspec_kw={"height_ratios": [2] * ns + [1.4]})
+    name_after = " + ".join(r.fit.label for r in disc.added)
+    for j, s in enumerate(data.sensors):
+        ax = axes[j, 0]
+        ax.plot(t_h[::step], run.columns[s][::step], lw=1.4, color="k", label="measured")
+        assert before.traj_T is not None
+        ax.plot(t_h[::step], before.traj_T[::step, j], lw=0.9, color="tab:red", label="refitted model (before)")
+        if disc.added and after.traj_T is not None:
+            ax.plot(t_h[::step], after.traj_T[::step, j], lw=0.9, color="tab:blue", ls="--", label=f"with {name_after} (after)")
+        ax.axvline(t_h[data.split], color="k", ls=":", lw=0.8)
+        ax.set_ylabel(f"{s}\n(°C)")
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_title("measured and predicted temperature (open loop from the first sample); "
+                         "dotted: start of the held-out part", fontsize=9)
+    axes[0, 0].legend(fontsize=7, loc="best")
+    ax = axes[ns, 0]
+    cols = run.columns
+    if "speed_rpm" in cols:
+        ax.plot(t_h[::step], np.abs(cols["speed_rpm"][::step]), lw=0.8, color="tab:purple", label="speed (rpm)")
+        ax.set_ylabel("speed (rpm)", color="tab:purple")
+    if "i_rms" in cols:
+        ax2 = ax.twinx()
+        ax2.plot(t_h[::step], cols["i_rms"][::step], lw=0.8, color="tab:olive")
+        ax2.set_ylabel("current (A)", color="tab:olive")
+    amb = next((c for b, c in disc.final.model.boundaries.items() if "amb" in b.lower()), None)
+    if amb and amb in cols:
+        ax.text(0.01, 0.9, f"ambient {np.nanmin(cols[amb]):.0f}–{np.nanmax(cols[amb]):.0f} °C", transform=ax.transAxes,
+                fontsize=7, va="top")
+    ax.axvline(t_h[data.split], color="k", ls=":", lw=0.8)
+    ax.set_xlabel("time since start (h)")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
 
 
 def regime_shift(before: R.SensorResiduals, after: R.SensorResiduals) -> list[tuple[str, str, float, float]]:
@@ -137,6 +218,9 @@ def regime_shift(before: R.SensorResiduals, after: R.SensorResiduals) -> list[tu
     return sorted(out, key=lambda x: -(x[2] - x[3]))
 
 
+NO_GAP_TEXT = "the noise floor × 2 + the smallest accepted gain"
+
+
 def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = ()) -> str:
     data = disc.data
     first = disc.rounds[0]
@@ -144,16 +228,35 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     add = lines.append
     add(f"# Model-gap discovery: `{disc.model_name}` on `{os.path.basename(disc.source)}`")
     add("")
+    g = disc.gap
     if disc.named:
         add(f"**Verdict: missing effect `{disc.named.fit.label}`** — "
             f"{_effect_of(disc.named.fit.label).doc}. Held-out gap {disc.gap_before:.3f} K → {disc.gap_after:.3f} K "
             f"({1 - disc.gap_after / disc.gap_before:.0%} smaller).")
+        if disc.ambiguous and disc.runner_up is not None:
+            c = first.comparison
+            assert c is not None
+            add("")
+            add(f"**Not sure between two:** `{c.b}` explains the residual nearly as well (held-out gap "
+                f"{c.gap_b:.3f} K against {c.gap_a:.3f} K, difference {c.gap_b - c.gap_a:+.3f} ± {c.se_diff:.3f} K; "
+                f"it explains {c.share:.0%} of what the winner explains). This run cannot separate them; "
+                + (f"a test run at **{first.point.describe()}** would ({first.point.sensor}: {first.point.t_a:.1f} °C "
+                   f"against {first.point.t_b:.1f} °C). " if first.point is not None else "")
+                + "See section 6.")
         if len(disc.added) > 1:
             add(f"Further effects added in later rounds: {', '.join(r.fit.label for r in disc.added[1:])}.")
+        if g is not None and g.status == "partly explained":
+            add("")
+            add(f"A gap of {g.gap_k:.3f} K remains ({g.ratio:.0f}× the noise floor {g.noise_k:.3f} K) that the "
+                "catalogue does not explain (section 7).")
+    elif g is not None and g.status == "unexplained":
+        add(f"**Verdict: a gap the catalogue does not explain.** The refitted model misses the held-out data by "
+            f"{g.gap_k:.3f} K, {g.ratio:.0f}× the sensor noise floor ({g.noise_k:.3f} K), and no catalogue effect "
+            f"lowers it by the required {100 * disc.options.min_improvement:.0f} % and {disc.options.min_gain_k:.2f} K "
+            "(section 7: where and when, nearest candidates).")
     else:
-        add(f"**Verdict: no missing effect found.** After refitting, no catalogue effect lowers the held-out gap "
-            f"({disc.gap_before:.3f} K) by the required {100 * disc.options.min_improvement:.0f} % "
-            f"and {disc.options.min_gain_k:.2f} K.")
+        add(f"**Verdict: no gap.** The refitted model predicts the held-out data to {disc.gap_before:.3f} K, within "
+            f"the sensor noise floor ({disc.noise_k:.3f} K; no gap below {NO_GAP_TEXT}); no missing effect found.")
     add("")
     add(_table(["", "value"], [
         ["run", f"{len(data.run)} samples at {data.dt:g} s ({(data.run.t[-1] - data.run.t[0]) / 3600:.2f} h)"],
@@ -209,6 +312,9 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     add(f"The gap is carried mostly by **{worst.sensor}** (held-out RMS {worst.rms_heldout:.2f} K); "
         f"its residual follows {R.label(worst.drivers[0][0])} most (η² = {worst.drivers[0][1]:.2f}).")
     add("")
+    if "temperature" in files:
+        add(f"![measured and predicted temperature, operating point below]({files['temperature']})")
+        add("")
     if "time" in files:
         add(f"![residual over time]({files['time']})")
         add("")
@@ -298,6 +404,8 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     elif "var" in files:
         add(f"![residual against the strongest variable]({files['var']})")
         add("")
+    _comparison_section(disc, files, add)
+    _gap_section(disc, add)
     if commands:
         add("## Reproduce")
         add("")
@@ -306,6 +414,69 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
         add("```")
         add("")
     return "\n".join(lines)
+
+
+def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  # type: ignore[no-untyped-def]
+    rd = disc.rounds[0]
+    c = rd.comparison
+    if c is None:
+        return
+    add("## 6. Winner and runner-up")
+    add("")
+    state = ("**cannot be separated on this run**" if c.ambiguous else
+             f"decided by held-out data from an operating region the training part lacks ({c.decided_by})"
+             if c.decided_by else "separated by the held-out gap")
+    add(f"Both explain the residual; {state}. Held-out gap with the standard error of the difference from "
+        f"{J.N_BLOCKS} contiguous blocks of the held-out part (residuals are correlated over minutes):")
+    add("")
+    rows = [["held-out gap K", _f(c.gap_a), _f(c.gap_b)],
+            ["difference (runner-up − winner) K", "", f"{c.gap_b - c.gap_a:+.3f} ± {c.se_diff:.3f} ({c.z:.1f} SE)"],
+            ["share of the winner's explained MSE", "100%", f"{c.share:.0%}"]]
+    if np.isfinite(c.novel_gap_a):
+        rows.append(["held-out gap in the region the training lacks K", _f(c.novel_gap_a), _f(c.novel_gap_b)])
+    add(_table(["", f"winner `{c.a}`", f"runner-up `{c.b}`"], rows))
+    add("")
+    if rd.evidence:
+        add(f"What each predicts the refitted model gets wrong (its prediction minus the refit's, on "
+            f"{rd.evidence[0].sensor}, binned means): where the two differ most along each operating variable.")
+        add("")
+        rows = []
+        for ev in rd.evidence:
+            x, d = ev.max_diff
+            i = ev.centers.index(x) if ev.centers else 0
+            rows.append([ev.variable, f"{x:.4g}", _f(ev.a[i]), _f(ev.b[i]), _f(d)])
+        add(_table(["variable", "at", "winner K", "runner-up K", "|difference| K"], rows))
+        add("")
+    if rd.point is not None:
+        p = rd.point
+        add(f"**Separating condition:** {p.describe()} — the two fitted models differ most there at steady state "
+            f"({p.sensor}: {p.t_a:.1f} °C with `{c.a}`, {p.t_b:.1f} °C with `{c.b}`, {p.diff:.1f} K apart); "
+            + ("the run held such a point." if p.in_run else "the run never held it: a next test run should."))
+        add("")
+    if "evidence" in files:
+        add(f"![winner and runner-up against speed, current, ambient, time]({files['evidence']})")
+        add("")
+
+
+def _gap_section(disc: Discovery, add) -> None:  # type: ignore[no-untyped-def]
+    g = disc.gap
+    if g is None or g.status in ("none", "explained"):
+        return
+    add("## 7. The gap the catalogue does not explain")
+    add("")
+    add(f"Held-out gap {g.gap_k:.3f} K against a noise floor of {g.noise_k:.3f} K ({g.ratio:.0f}×; below "
+        f"{g.threshold_k:.3f} K it would count as no gap). It is largest on **{g.worst_sensor}** "
+        f"(held-out RMS {g.worst_rms_k:.2f} K).")
+    add("")
+    add("Where (regimes of the whole run, worst sensor): " + "; ".join(g.where) + ".")
+    add("")
+    add(f"When (held-out part): {g.when}.")
+    add("")
+    if g.nearest:
+        add("Nearest candidates (full fits, held-out):")
+        add("")
+        add(_table(["candidate", "held-out gap K", "improvement"], [[f"`{n}`", _f(v), _pct(i)] for n, v, i in g.nearest]))
+        add("")
 
 
 def write(disc: Discovery, out: str | os.PathLike[str], commands: Sequence[str] = ()) -> str:

@@ -40,6 +40,7 @@ from ..data import Run
 from ..lptn import Model
 from . import effects as E
 from . import fitting as F
+from . import judge as J
 from . import residuals as R
 from . import yamlpatch
 
@@ -84,6 +85,10 @@ class Round:
     n_eff: float
     winner: Ranked | None = None
     wall_s: float = 0.0
+    runner_up: Ranked | None = None  # the best other candidate by held-out gap
+    comparison: J.Comparison | None = None  # winner against runner-up (both must explain something)
+    evidence: list[J.Evidence] = field(default_factory=list)
+    point: J.Point | None = None  # steady operating point that separates winner and runner-up
 
 
 @dataclass
@@ -102,6 +107,31 @@ class Discovery:
     noise_k: float = 0.0
     final_analysis: R.Analysis | None = None
     options: Options = field(default_factory=Options)
+    gap: J.GapStatus | None = None
+
+    @property
+    def runner_up(self) -> Ranked | None:
+        return self.rounds[0].runner_up if self.rounds else None
+
+    @property
+    def ambiguous(self) -> bool:
+        c = self.rounds[0].comparison if self.rounds else None
+        return bool(self.named is not None and c is not None and c.ambiguous)
+
+    @property
+    def verdict(self) -> str:
+        named, g = self.named, self.gap
+        if named is not None:
+            v = f"missing effect: {named.fit.label}"
+            if self.ambiguous and self.runner_up is not None:
+                v += f" or {self.runner_up.fit.label} (this run cannot separate them)"
+            if g is not None and g.status == "partly explained":
+                v += f"; a gap of {g.gap_k:.3f} K remains that the catalogue does not explain"
+            return v
+        if g is not None and g.status == "unexplained":
+            return (f"no missing effect found: a gap of {g.gap_k:.3f} K ({g.ratio:.0f}x the noise floor) "
+                    "that the catalogue does not explain")
+        return "no missing effect found: no gap (within the noise floor)"
 
     @property
     def added(self) -> list[Ranked]:
@@ -144,7 +174,13 @@ class Discovery:
             "target": tg,
             "effects_added": [{"effect": r.fit.label, "params": self.final.values(r.fit.effect_params),
                                "gap_k": r.fit.gap, "improvement": r.improvement} for r in self.added],
-            "verdict": (f"missing effect: {named.fit.label}" if named else "no missing effect found"),
+            "verdict": self.verdict,
+            "runner_up": self.runner_up.fit.label if self.runner_up else None,
+            "ambiguous": self.ambiguous,
+            "gap_noise_floor": self.noise_k,
+            "gap_status": self.gap.status if self.gap else None,
+            "gap_detail": self._gap_dict(),
+            "comparison": self._comparison_dict(),
             "gap_before": self.gap_before,
             "gap_after": self.gap_after,
             "gap_nominal": self.nominal.gap,
@@ -166,6 +202,32 @@ class Discovery:
             "report": self.report,
             "wall_s": self.wall_s,
             "notes": self.notes,
+        }
+
+
+    def _gap_dict(self) -> dict[str, object] | None:
+        g = self.gap
+        if g is None:
+            return None
+        return {"gap_k": g.gap_k, "noise_floor_k": g.noise_k, "threshold_k": g.threshold_k, "ratio": g.ratio,
+                "worst_sensor": g.worst_sensor or None, "where": g.where, "when": g.when or None,
+                "nearest": [{"effect": n, "heldout_gap_k": v, "improvement": i} for n, v, i in g.nearest]}
+
+    def _comparison_dict(self) -> dict[str, object] | None:
+        rd = self.rounds[0] if self.rounds else None
+        c = rd.comparison if rd else None
+        if rd is None or c is None:
+            return None
+        p = rd.point
+        return {
+            "winner": c.a, "runner_up": c.b, "gap_winner_k": c.gap_a, "gap_runner_up_k": c.gap_b,
+            "se_diff_k": c.se_diff, "share_explained": c.share, "ambiguous": c.ambiguous,
+            "decided_by": c.decided_by or None,
+            "evidence": [{"variable": e.variable, "sensor": e.sensor, "centers": e.centers, "winner": e.a,
+                          "runner_up": e.b} for e in rd.evidence],
+            "separating_condition": None if p is None else {
+                "point": p.describe(), "inputs": p.inputs, "sensor": p.sensor, "winner_c": p.t_a,
+                "runner_up_c": p.t_b, "in_run": p.in_run},
         }
 
 
@@ -268,6 +330,7 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
         ranked.sort(key=lambda r: (not r.accepted, r.criterion))
         rd = Round(k, base, analysis, scores, screen, ranked, ref_gap, n_eff)
         best = ranked[0] if ranked and ranked[0].accepted else None
+        best = _runner_up(rd, best, data, opt, say)
         rd.winner = best
         rd.wall_s = time.perf_counter() - tr
         rounds.append(rd)
@@ -287,8 +350,50 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
     disc.noise_k = noise_floor(run, data.sensors, data.split)
     assert final.traj_T is not None
     disc.final_analysis = R.analyse(run, data.sensors, final.traj_T, data.split, final.model.boundaries, data.refs)
+    last = rounds[-1]
+    nearest = [(r.fit.label, r.fit.gap, r.improvement) for r in sorted(
+        (r for r in last.ranked if r.source != "control" and np.isfinite(r.fit.gap)), key=lambda r: r.fit.gap)[:3]]
+    disc.gap = J.gap_status(final.gap, disc.noise_k, opt.min_gain_k, disc.named is not None,
+                            disc.final_analysis.residual[data.split:], (run.t[data.split:] - run.t[0]) / 3600.0,
+                            disc.final_analysis.sensors, nearest)
+    say(f"verdict: {disc.verdict}")
     disc.wall_s = time.perf_counter() - t0
     return disc
+
+
+def _runner_up(rd: Round, best: Ranked | None, data: F.Data, opt: Options,
+               say: Callable[[str], None]) -> Ranked | None:
+    """Name the runner-up of a round; when both explain the residual, compare them (held-out gap
+    with its uncertainty, then held-out data from an operating region the training part lacks,
+    which may swap them), and gather the evidence that separates them. Returns the winner."""
+    fits = sorted((r for r in rd.ranked if r.source != "control" and np.isfinite(r.fit.gap) and not r.fit.message),
+                  key=lambda r: r.fit.gap)
+    if best is None:
+        rd.runner_up = fits[0] if fits else None
+        return None
+    others = [r for r in fits if r.fit.label != best.fit.label]
+    ru = others[0] if others else None
+    rd.runner_up = ru
+    if ru is None or ru.improvement < opt.min_improvement:
+        return best
+    bounds = dict(rd.base.model.boundaries)
+    cmp = J.compare(best.fit, ru.fit, rd.reference_gap, data)
+    if cmp.ambiguous:
+        cmp = J.decide_novel(cmp, best.fit, ru.fit, data, bounds)
+        if cmp.swapped and ru.accepted:
+            decided = cmp.decided_by
+            best, ru = ru, best
+            rd.runner_up = ru
+            cmp = J.compare(best.fit, ru.fit, rd.reference_gap, data)
+            cmp.decided_by, cmp.ambiguous = decided, False
+    rd.comparison = cmp
+    rd.evidence = J.evidence(rd.base, best.fit, ru.fit, data, bounds)
+    rd.point = J.separating_point(best.fit, ru.fit, data)
+    say(f"round {rd.index}: runner-up {ru.fit.label} (held-out gap {ru.fit.gap:.3f} K vs {best.fit.gap:.3f} K, "
+        f"difference {cmp.gap_b - cmp.gap_a:.3f} ± {cmp.se_diff:.3f} K)" +
+        ("; cannot be separated on this run" if cmp.ambiguous else "") +
+        (f"; decided by held-out data at {cmp.decided_by}" if cmp.decided_by else ""))
+    return best
 
 
 def _polish(fit: F.Fit, names: Sequence[str], data: F.Data, opt: Options, prior: dict[str, float]) -> F.Fit:

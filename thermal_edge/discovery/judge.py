@@ -1,0 +1,324 @@
+"""How sure the verdict is: winner against runner-up, and a gap nobody explains against no gap.
+
+Three questions the ranking by held-out gap alone does not answer:
+
+* **Is the runner-up nearly as good?** The held-out gaps of two fits come with an uncertainty:
+  the per-sample squared error (mean over the sensors) is averaged over ``N_BLOCKS`` contiguous
+  blocks of the held-out part (thermal residuals are correlated over minutes, single samples are
+  not independent), and the spread of the block means of the *difference* between the two fits
+  gives the standard error of that difference (:func:`compare`). Two effects are *confusable*
+  when the runner-up explains at least ``CLOSE_SHARE`` of the held-out mean squared error the
+  winner explains, or the two gaps differ by less than ``Z_SEPARATE`` standard errors.
+* **Can data decide?** Where the held-out part reaches an operating region the training part
+  never saw (speed, current or ambient outside the training range), the two fits are compared
+  there alone: that is data neither was fitted to, in conditions where their forms disagree. A
+  difference beyond ``Z_SEPARATE`` standard errors decides (:func:`novel_region`).
+* **What would tell them apart?** Each fit's *predicted residual* (its prediction minus the
+  refitted model's: what the effect says the refit got wrong) is set against speed, current,
+  ambient and time (:func:`evidence`); and both fitted models are run to steady state on a grid
+  of operating points beyond the run's (:func:`separating_point`): the point where their sensor
+  temperatures differ most is the test to run next.
+
+The gap itself is judged against the sensor noise floor (:func:`gap_status`): within
+``NO_GAP_FACTOR`` noise floors (plus the smallest gain discovery accepts) there is nothing to
+explain; above it, a gap no catalogue effect removes is reported with its size, where and when
+it occurs and the nearest candidates.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from ..data import Run
+from ..lptn import steady_state
+from . import fitting as F
+
+N_BLOCKS = 10  # contiguous blocks of the held-out part for the standard errors
+CLOSE_SHARE = 0.9  # runner-up explains this share of what the winner explains: confusable
+Z_SEPARATE = 2.0  # standard errors that separate two gaps
+NO_GAP_FACTOR = 2.0  # a gap within this many noise floors (+ min gain) is no gap
+NOVEL_MIN = 30  # held-out samples outside the training range needed to decide by them
+
+
+def sample_loss(fit: F.Fit, data: F.Data) -> np.ndarray:
+    """Squared error per sample, mean over the sensors (K², NaN where no sensor reads)."""
+    assert fit.traj_T is not None
+    Y = np.column_stack([data.run.columns[s] for s in data.sensors])
+    e2 = (fit.traj_T - Y) ** 2
+    with np.errstate(invalid="ignore"):
+        return np.nanmean(np.where(np.isfinite(e2), e2, np.nan), axis=1)
+
+
+def _block_means(x: np.ndarray, n_blocks: int) -> np.ndarray:
+    parts = [p[np.isfinite(p)] for p in np.array_split(x, n_blocks) if np.isfinite(p).any()]
+    return np.array([p.mean() for p in parts])
+
+
+def gap_se(fit: F.Fit, data: F.Data) -> float:
+    """Standard error (K) of a fit's held-out gap, from block means of its squared error."""
+    b = _block_means(sample_loss(fit, data)[data.split:], N_BLOCKS)
+    if len(b) < 2 or not np.isfinite(fit.gap) or fit.gap <= 0:
+        return float("nan")
+    return float(np.std(b, ddof=1) / math.sqrt(len(b)) / (2 * fit.gap))
+
+
+@dataclass
+class Comparison:
+    """Winner A against runner-up B on the held-out part."""
+
+    a: str
+    b: str
+    gap_a: float
+    gap_b: float
+    se_diff: float  # K: standard error of gap_b - gap_a
+    share: float  # of the held-out MSE the winner explains, the share the runner-up explains
+    ambiguous: bool
+    decided_by: str = ""  # the operating region that decided, when one did
+    novel_gap_a: float = float("nan")
+    novel_gap_b: float = float("nan")
+    novel_se: float = float("nan")
+    swapped: bool = False  # the runner-up by the full held-out gap won the novel region
+
+    @property
+    def z(self) -> float:
+        d = self.gap_b - self.gap_a
+        return d / self.se_diff if self.se_diff > 0 else float("inf")
+
+
+def _diff_se(la: np.ndarray, lb: np.ndarray) -> tuple[float, float]:
+    """(gap_b - gap_a, its standard error) from the per-sample losses of the compared samples."""
+    bm = _block_means(lb - la, N_BLOCKS)
+    ga, gb = math.sqrt(np.nanmean(la)), math.sqrt(np.nanmean(lb))
+    se = float(np.std(bm, ddof=1) / math.sqrt(len(bm)) / max(ga + gb, 1e-12)) if len(bm) >= 2 else float("nan")
+    return gb - ga, se
+
+
+def compare(a: F.Fit, b: F.Fit, reference_gap: float, data: F.Data) -> Comparison:
+    """Compare two fits on the held-out part (see the module docstring for the rule)."""
+    la, lb = sample_loss(a, data)[data.split:], sample_loss(b, data)[data.split:]
+    d, se = _diff_se(la, lb)
+    ea, eb = reference_gap**2 - a.gap**2, reference_gap**2 - b.gap**2
+    share = eb / ea if ea > 0 else 0.0
+    close = share >= CLOSE_SHARE or (np.isfinite(se) and d < Z_SEPARATE * se)
+    return Comparison(a.label, b.label, a.gap, b.gap, se, share, bool(close))
+
+
+def novel_region(data: F.Data, boundaries: dict[str, str]) -> tuple[np.ndarray, str]:
+    """Held-out samples outside the training range of speed, current or a boundary temperature
+    (beyond 5 % of the training span), and a description of that region."""
+    run, split = data.run, data.split
+    cols = {"speed (rpm)": np.abs(run.columns["speed_rpm"]) if "speed_rpm" in run.columns else None,
+            "current (A)": run.columns.get("i_rms")}
+    for b, c in boundaries.items():
+        cols[f"{b} (°C)"] = run.columns.get(c)
+    mask = np.zeros(len(run) - split, bool)
+    parts = []
+    for name, x in cols.items():
+        if x is None:
+            continue
+        tr, ho = x[:split], x[split:]
+        lo, hi = float(np.nanmin(tr)), float(np.nanmax(tr))
+        tol = 0.05 * max(hi - lo, 1e-9)
+        above, below = ho > hi + tol, ho < lo - tol
+        if above.any():
+            parts.append(f"{name} above {hi:.4g} (up to {float(np.nanmax(ho)):.4g})")
+        if below.any():
+            parts.append(f"{name} below {lo:.4g} (down to {float(np.nanmin(ho)):.4g})")
+        mask |= above | below
+    return mask, "; ".join(parts)
+
+
+def decide_novel(cmp: Comparison, a: F.Fit, b: F.Fit, data: F.Data, boundaries: dict[str, str]) -> Comparison:
+    """Let held-out data from an operating region the training part lacks decide a confusable pair."""
+    mask, desc = novel_region(data, boundaries)
+    if mask.sum() < NOVEL_MIN:
+        return cmp
+    la, lb = sample_loss(a, data)[data.split:][mask], sample_loss(b, data)[data.split:][mask]
+    d, se = _diff_se(la, lb)
+    cmp.novel_gap_a, cmp.novel_gap_b, cmp.novel_se = math.sqrt(np.nanmean(la)), math.sqrt(np.nanmean(lb)), se
+    if np.isfinite(se) and abs(d) > Z_SEPARATE * se:
+        cmp.decided_by = desc
+        cmp.ambiguous = False
+        cmp.swapped = d < 0
+    return cmp
+
+
+@dataclass
+class Evidence:
+    """The predicted residuals of two fits against one operating variable (binned means, K)."""
+
+    variable: str
+    centers: list[float]
+    a: list[float]
+    b: list[float]
+    sensor: str
+
+    @property
+    def max_diff(self) -> tuple[float, float]:
+        """(bin centre, |a − b|) where the two differ most."""
+        if not self.centers:
+            return float("nan"), 0.0
+        d = np.abs(np.array(self.a) - np.array(self.b))
+        i = int(np.argmax(d))
+        return self.centers[i], float(d[i])
+
+
+EVIDENCE_VARS = ("speed (rpm)", "current (A)", "ambient (°C)", "time (h)")
+
+
+def evidence(base: F.Fit, a: F.Fit, b: F.Fit, data: F.Data, boundaries: dict[str, str], bins: int = 10) -> list[Evidence]:
+    """Each fit's predicted residual (refit prediction minus the fit's) against speed, current,
+    ambient and time, in quantile bins, on the sensor where the two differ most."""
+    assert base.traj_T is not None and a.traj_T is not None and b.traj_T is not None
+    pa, pb = base.traj_T - a.traj_T, base.traj_T - b.traj_T
+    j = int(np.nanargmax(np.nanmean((pa - pb) ** 2, axis=0)))
+    run = data.run
+    amb = next((c for n, c in boundaries.items() if "amb" in n.lower()), next(iter(boundaries.values()), None))
+    xs = {"speed (rpm)": np.abs(run.columns["speed_rpm"]) if "speed_rpm" in run.columns else None,
+          "current (A)": run.columns.get("i_rms"),
+          "ambient (°C)": run.columns.get(amb) if amb else None,
+          "time (h)": (run.t - run.t[0]) / 3600.0}
+    out = []
+    for name in EVIDENCE_VARS:
+        x = xs[name]
+        if x is None:
+            continue
+        ok = np.isfinite(x) & np.isfinite(pa[:, j]) & np.isfinite(pb[:, j])
+        edges = np.unique(np.quantile(x[ok], np.linspace(0, 1, bins + 1)))
+        if len(edges) < 2:
+            continue
+        idx = np.clip(np.searchsorted(edges, x[ok], side="right") - 1, 0, len(edges) - 2)
+        c, ya, yb = [], [], []
+        for k in range(len(edges) - 1):
+            sel = idx == k
+            if sel.any():
+                c.append(float(x[ok][sel].mean()))
+                ya.append(float(pa[ok, j][sel].mean()))
+                yb.append(float(pb[ok, j][sel].mean()))
+        out.append(Evidence(name, c, ya, yb, data.sensors[j]))
+    return out
+
+
+@dataclass
+class Point:
+    """A steady operating point where two fitted models disagree most."""
+
+    inputs: dict[str, float]
+    sensor: str
+    t_a: float
+    t_b: float
+    in_run: bool  # the run held steady near this point
+
+    @property
+    def diff(self) -> float:
+        return abs(self.t_a - self.t_b)
+
+    def describe(self) -> str:
+        parts = []
+        if "speed_rpm" in self.inputs:
+            parts.append(f"{self.inputs['speed_rpm']:.0f} rpm")
+        if "i_rms" in self.inputs:
+            parts.append(f"{self.inputs['i_rms']:.0f} A")
+        parts += [f"{k.removesuffix('_c')} {v:.0f} °C" for k, v in self.inputs.items() if k.endswith("_c")]
+        return "steady " + ", ".join(parts)
+
+
+def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
+    """Steady operating point (grid over speed, current and ambient, up to beyond the run's
+    range) where the two fitted models' sensor temperatures differ most."""
+    run, model = data.run, a.model
+    cols = run.columns
+    med = {c: float(np.nanmedian(cols[c])) for c in model.inputs if c in cols}
+    speeds = [0.0]
+    if "speed_rpm" in model.inputs:
+        top = float(np.nanmax(np.abs(cols["speed_rpm"])))
+        speeds = sorted({0.0, round(top / 2, -1), round(top, -1)})
+    currents = [0.0]
+    if "i_rms" in model.inputs:
+        top = float(np.nanmax(np.abs(cols["i_rms"])))
+        currents = sorted({0.0, round(top / 2, 1), round(top, 1)})
+    ratio = 0.0
+    if "torque_nm" in model.inputs and "i_rms" in cols and "torque_nm" in cols:
+        i, tq = np.abs(cols["i_rms"]), cols["torque_nm"]
+        ok = i > 0.2 * max(float(np.nanmax(i)), 1e-9)
+        ratio = float(np.nanmedian(tq[ok] / i[ok])) if ok.any() else 0.0
+    amb_c = next((c for n, c in model.boundaries.items() if "amb" in n.lower()), None)
+    ambients = [med.get(amb_c, 25.0)] if amb_c else [0.0]
+    if amb_c and amb_c in cols:
+        ambients = sorted({round(float(np.nanmin(cols[amb_c]))), round(float(np.nanmax(cols[amb_c]))) + 15})
+    best: Point | None = None
+    for n in speeds:
+        for i in currents:
+            for ta in ambients:
+                inp = dict(med)
+                inp.update({"speed_rpm": n, "i_rms": i, "torque_nm": ratio * i})
+                if amb_c:
+                    inp[amb_c] = ta
+                inp = {k: v for k, v in inp.items() if k in model.inputs}
+                try:
+                    Ta, _ = steady_state(a.model, inp, a.theta)
+                    Tb, _ = steady_state(b.model, inp, b.theta)
+                except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+                    continue
+                for s in data.sensors:
+                    va = float(Ta[a.model.node_index(a.model.sensors[s])])
+                    vb = float(Tb[b.model.node_index(b.model.sensors[s])])
+                    if np.isfinite(va) and np.isfinite(vb) and (best is None or abs(va - vb) > best.diff):
+                        best = Point(inp, s, va, vb, _near(run, inp))
+    return best
+
+
+def _near(run: Run, inp: dict[str, float]) -> bool:
+    """The run spent at least 10 minutes within 10 % of the point's speed and current."""
+    ok = np.ones(len(run), bool)
+    for c in ("speed_rpm", "i_rms"):
+        if c in inp and c in run.columns:
+            x = np.abs(run.columns[c])
+            ok &= np.abs(x - inp[c]) <= 0.1 * max(float(np.nanmax(x)), 1e-9)
+    return bool(ok.sum() * run.dt >= 600.0)
+
+
+@dataclass
+class GapStatus:
+    """The gap judged against the noise floor: ``none`` (nothing to explain), ``explained``,
+    ``partly explained`` (effects added, a gap remains) or ``unexplained``."""
+
+    status: str
+    gap_k: float
+    noise_k: float
+    threshold_k: float
+    worst_sensor: str = ""
+    worst_rms_k: float = float("nan")
+    where: list[str] = field(default_factory=list)  # regimes with the largest residual
+    when: str = ""  # the stretch of the run with the largest residual
+    nearest: list[tuple[str, float, float]] = field(default_factory=list)  # (candidate, gap K, improvement)
+
+    @property
+    def ratio(self) -> float:
+        return self.gap_k / self.noise_k if self.noise_k > 0 else float("inf")
+
+
+def gap_status(gap_k: float, noise_k: float, min_gain_k: float, named: bool, residual: np.ndarray, t_h: np.ndarray,
+               analysis_sensors: Sequence[object], nearest: Sequence[tuple[str, float, float]]) -> GapStatus:
+    """Judge the final held-out gap against the noise floor and locate what remains.
+
+    ``residual`` (N, ns) and ``t_h`` (hours since the start of the run) cover the held-out part.
+    """
+    thr = NO_GAP_FACTOR * noise_k + min_gain_k
+    if gap_k <= thr:
+        return GapStatus("explained" if named else "none", gap_k, noise_k, thr)
+    st = GapStatus("partly explained" if named else "unexplained", gap_k, noise_k, thr, nearest=list(nearest))
+    worst = max(analysis_sensors, key=lambda s: s.rms_heldout if np.isfinite(s.rms_heldout) else -1)  # type: ignore[attr-defined]
+    st.worst_sensor, st.worst_rms_k = worst.sensor, worst.rms_heldout  # type: ignore[attr-defined]
+    regs = sorted(worst.regimes, key=lambda r: -r[4])  # type: ignore[attr-defined]
+    st.where = [f"{rg} ({ax}, {sh:.0%} of the run): RMS {rm:.2f} K, bias {b:+.2f} K" for ax, rg, sh, b, rm in regs[:3]]
+    e2 = np.nanmean(residual**2, axis=1)
+    w = max(1, len(e2) // 10)
+    roll = np.convolve(np.nan_to_num(e2), np.ones(w) / w, mode="valid")
+    k = int(np.argmax(roll))
+    h0, h1 = t_h[k], t_h[k + w - 1]
+    st.when = f"{h0:.2f}–{h1:.2f} h after the start (RMS {math.sqrt(roll[k]):.2f} K over the sensors)"
+    return st
