@@ -258,3 +258,68 @@ async def test_invalid_interface_raises_clearly(virtual_channel):
     with pytest.raises(BusConfigError, match=r"bus.interface: unknown python-can interface 'socketcann' "
                                              r"\(did you mean 'socketcan'\?\)"):
         CanTransport({"interface": "socketcann"}, FrameCodec(DBC_PATH))
+
+
+# ----------------------------------------------------------------------- ID filters
+class _KernelFilteredBus(can.BusABC):
+    """A virtual bus that filters "in the kernel" as SocketCAN does (``_is_filtered`` after
+    ``set_filters``); SocketCAN itself cannot run on this machine."""
+
+    def __init__(self, channel: str) -> None:
+        self._inner = can.Bus(interface="virtual", channel=channel)
+        self.applied = []
+        super().__init__(channel=channel)
+
+    def _apply_filters(self, filters):
+        self.applied.append(filters)
+        self._is_filtered = filters is not None
+
+    def send(self, msg, timeout=None):
+        self._inner.send(msg, timeout)
+
+    def _recv_internal(self, timeout):
+        msg = self._inner.recv(timeout)
+        if msg is not None and self._is_filtered and not self._matches_filters(msg):
+            return None, True  # dropped "in the kernel": never seen above
+        return msg, self._is_filtered
+
+    def shutdown(self):
+        super().shutdown()
+        self._inner.shutdown()
+
+
+async def test_kernel_filters_let_in_only_the_frames_this_node_receives(virtual_channel):
+    buses = []
+    te = CanTransport(_cfg(virtual_channel, "TE"), FrameCodec(DBC_PATH),
+                      bus_factory=lambda cfg: buses.append(_KernelFilteredBus(cfg.channel)) or buses[-1])
+    async with te:
+        assert await te.wait_connected(2.0)
+        filters = buses[0].applied[-1]
+        codec = te.codec
+        assert {f["can_id"] for f in filters} == codec.frames_sent_by("INV") == {0x0A0, 0x0A1, 0x0B0, 0x0B1}
+        assert all(f["can_mask"] == 0x7FF and f["extended"] is False for f in filters)
+        peer = can.Bus(interface="virtual", channel=virtual_channel)
+        try:
+            peer.send(can.Message(arbitration_id=0x123, data=bytes(8), is_extended_id=False))  # foreign
+            peer.send(can.Message(arbitration_id=0x0A0, data=FrameCodec(DBC_PATH).encode(
+                "INV_Currents", dict(INV_Id=1.0, INV_Iq=2.0, INV_IphRms=3.0)), is_extended_id=False))
+            assert await _until(lambda: te.codec.stats.received["INV_Currents"] == 1)
+        finally:
+            peer.shutdown()
+    assert te.stats.rx_messages == 1 and te.codec.stats.unknown_id == 0  # the foreign frame never came up
+
+
+async def test_software_filtering_interfaces_count_unknown_ids(virtual_channel):
+    """Where filters would only run in Python (virtual, udp_multicast) none are kept: the codec's
+    lookup is the filter and counts what it rejects."""
+    te = CanTransport(_cfg(virtual_channel, "TE"), FrameCodec(DBC_PATH))
+    async with te:
+        assert te.bus.filters is None
+        peer = can.Bus(interface="virtual", channel=virtual_channel)
+        try:
+            for fid in (0x123, 0x124, 0x7FF):
+                peer.send(can.Message(arbitration_id=fid, data=bytes(8), is_extended_id=False))
+            assert await _until(lambda: te.codec.stats.unknown_id == 3)
+        finally:
+            peer.shutdown()
+    assert te.stats.rx_messages == 3

@@ -4,10 +4,14 @@ Knows ``dbc/thermal_edge.dbc`` and nothing of the thermal model.
 
 - :class:`FrameCodec` -- encode (counter + CRC filled) / decode (DLC, CRC, counter
   checked; drops counted in :class:`FrameStats`; never raises).
-- :class:`CanTransport` -- asyncio receive/transmit/record on one bus, reconnecting.
-- :class:`CyclicSender` -- periodic frame from a provider, with fallback values.
-- :class:`BusConfig`, :func:`create_bus` -- python-can bus from configuration
-  (``udp_multicast`` always with ``hop_limit=0``).
+- :class:`CanTransport` -- asyncio receive (batched; a bad message is counted, not a dead
+  bus)/transmit/record on one bus, reconnecting.
+- :class:`CyclicSender` -- periodic frame from a provider, with fallback values, as an
+  asyncio task or in its own thread.
+- :class:`BusConfig`, :func:`create_bus` -- python-can bus from a checked configuration
+  (unknown keys and interfaces named with the closest valid one).
+- :class:`LocalUdpMulticastBus` -- ``udp_multicast`` on loopback only, hop limit 0: nothing
+  leaves this host, nothing from beyond it is received.
 - :class:`CandumpRecorder`, :class:`CandumpReader`, :func:`read_candump` -- ``candump -L`` logs.
 - :func:`crc8_sae_j1850`, :func:`frame_crc`, :func:`data_id` -- the frame CRC.
 """
@@ -43,6 +47,7 @@ from .frames import (
 )
 from .stats import DROP_REASONS, FrameStats, TransportStats
 from .transport import CanTransport
+from .udp import LocalUdpMulticastBus, UndecodableDatagram
 
 __all__ = [
     "DEFAULT_DBC_PATH",
@@ -73,9 +78,11 @@ __all__ = [
     "FrameCodec",
     "FrameEncodeError",
     "FrameStats",
+    "LocalUdpMulticastBus",
     "SensorStatus",
     "TeState",
     "TransportStats",
+    "UndecodableDatagram",
     "bus_kwargs",
     "crc8_sae_j1850",
     "create_bus",
