@@ -27,41 +27,44 @@ def bands(hot_upper: float, mag_upper: float) -> list[NodeBand]:
             NodeBand("magnet", mag_upper - 2, mag_upper, 100.0, 120.0, M)]
 
 
-def test_linear_band_derate_on_the_upper_band():
-    p = policy()
-    for hot in (130.0, 140.0, 143.0, 147.5, 154.0, 155.0, 170.0):
-        p = policy()
-        lim = p.update(bands(hot, 50.0), None)
-        expected = 40.0 * min(1.0, max(0.0, (155.0 - hot) / 15.0))
-        assert lim.current_a == pytest.approx(expected)
-        assert lim.torque_nm == pytest.approx(min(220.0, 5.6 * expected))
-        assert lim.reason == (W if expected < 40.0 else DerateReason.NONE)
-        assert lim.active == (expected < 40.0)
-    # the magnet binds when it is relatively closer to its maximum
-    lim = policy().update(bands(145.0, 112.0), None)
-    assert lim.reason == M and lim.current_a == pytest.approx(40.0 * 8.0 / 20.0)
+def test_full_current_while_the_reaction_current_allows_it():
+    """The reaction-time current at or above the maximum: full current, no reason, whatever the
+    temperature (a hot machine that can still take 40 A for the reaction time gets it)."""
+    for react in (40.0, 55.0, math.inf):
+        lim = policy().update(bands(150.0, 110.0), (react, W))
+        assert lim.current_a == 40.0 and lim.torque_nm == 220.0
+        assert lim.reason == DerateReason.NONE and not lim.active
 
 
-def test_lookahead_binds_when_lower():
-    lim = policy().update(bands(142.0, 50.0), 25.0)
-    assert lim.current_a == 25.0 and lim.reason == DerateReason.LOOK_AHEAD
+def test_reaction_current_binds_with_the_node_that_sets_it():
+    lim = policy().update(bands(154.0, 50.0), (25.0, W))
+    assert lim.current_a == 25.0 and lim.torque_nm == pytest.approx(5.6 * 25.0)
+    assert lim.reason == W and lim.active
+    lim = policy().update(bands(120.0, 119.0), (12.5, M))
+    assert lim.current_a == 12.5 and lim.reason == M
+    # at or past the max: zero
+    assert policy().update(bands(156.0, 50.0), (0.0, W)).current_a == 0.0
 
 
-def test_limits_fall_at_once_and_rise_slowly_with_hysteresis():
+def test_limits_fall_at_once_and_rise_slowly_with_hysteresis_reason_recovering():
     p = policy(rise_rate_a_per_s=0.5, hysteresis_a=1.0)
-    assert p.update(bands(150.0, 50.0), None).current_a == pytest.approx(40 / 3)  # falls at once
-    # cooler: the candidate is 40 A again; the limit climbs 0.5 A per tick
-    seq = [p.update(bands(130.0, 50.0), None).current_a for _ in range(4)]
-    assert seq == pytest.approx([40 / 3 + 0.5 * k for k in range(1, 5)])
-    assert p.last.reason == W  # still derated by what caused it
-    # a candidate within the hysteresis does not move the limit up
+    assert p.update(bands(150.0, 50.0), (20.0, W)).current_a == 20.0  # falls at once
+    # cooler: the candidate is the maximum again; the limit climbs 0.5 A per tick, reason recovering
+    seq = [p.update(bands(130.0, 50.0), (60.0, W)) for _ in range(4)]
+    assert [x.current_a for x in seq] == pytest.approx([20.0 + 0.5 * k for k in range(1, 5)])
+    assert all(x.reason == DerateReason.RECOVERING and x.active for x in seq)
+    # a candidate within the hysteresis does not move the limit up; the binding node is the reason
     p2 = policy(rise_rate_a_per_s=0.5, hysteresis_a=1.0)
-    p2.update(bands(149.0, 50.0), None)
-    held = p2.last.current_a
-    assert p2.update(bands(148.9, 50.0), None).current_a == held
+    p2.update(bands(149.0, 50.0), (20.0, W))
+    lim = p2.update(bands(148.9, 50.0), (20.8, W))
+    assert lim.current_a == 20.0 and lim.reason == W
+    # a candidate that rose past the hysteresis but still binds: recovering while climbing to it,
+    # then the node again once there
+    reasons = [p2.update(bands(148.0, 50.0), (23.0, W)).reason for _ in range(8)]
+    assert reasons[0] == DerateReason.RECOVERING and reasons[-1] == W
     # it reaches the full current and the reason clears
     for _ in range(200):
-        lim = p.update(bands(130.0, 50.0), None)
+        lim = p.update(bands(130.0, 50.0), (60.0, W))
     assert lim.current_a == 40.0 and lim.reason == DerateReason.NONE and not lim.active
 
 
@@ -69,14 +72,32 @@ def test_forced_safe_limit_and_precedence():
     for forced, reason in (([DerateReason.STALE_INPUT], DerateReason.STALE_INPUT),
                            ([DerateReason.SENSOR_FAULT, DerateReason.STALE_INPUT], DerateReason.STALE_INPUT),
                            ([DerateReason.SENSOR_FAULT, DerateReason.MODEL_FAULT], DerateReason.MODEL_FAULT)):
-        lim = policy().update(bands(120.0, 50.0), None, forced)
+        lim = policy().update(bands(120.0, 50.0), (60.0, W), forced)
         assert lim.current_a == 10.0 and lim.torque_nm == pytest.approx(56.0) and lim.reason == reason and lim.active
     # a hotter machine keeps the lower thermal limit under a forced one
-    lim = policy().update(bands(153.5, 50.0), None, [DerateReason.SENSOR_FAULT])
+    lim = policy().update(bands(153.5, 50.0), (4.0, W), [DerateReason.SENSOR_FAULT])
     assert lim.current_a == pytest.approx(4.0) and lim.reason == DerateReason.SENSOR_FAULT
-    # non-finite band -> zero factor, model fault
-    lim = policy().update([NodeBand("hot_spot", math.nan, math.nan, 140, 155, W)], None)
-    assert lim.current_a == 0.0
+    # non-finite band or reaction current -> zero... the safe limit, reason model fault
+    lim = policy().update([NodeBand("hot_spot", math.nan, math.nan, 140, 155, W)], (60.0, W))
+    assert lim.current_a == 10.0 and lim.reason == DerateReason.MODEL_FAULT
+    lim = policy().update(bands(100.0, 50.0), (math.nan, W))
+    assert lim.current_a == 10.0 and lim.reason == DerateReason.MODEL_FAULT
+
+
+def test_forced_limit_never_above_the_band_at_the_measured_temperature():
+    """Issue 14, defect 9: 10 A was sent with the measured end winding at 151-155 degC. Forced, the
+    limit is min(safe, band at the reading): 40 A x (155 - T) / 15 below 10 A from 151.25 degC."""
+    for reading in (120.0, 145.0, 151.0, 152.0, 153.0, 154.9, 155.0, 160.0):
+        measured = [NodeBand("hot_spot", reading, reading, 140.0, 155.0, W)]
+        expected = min(10.0, 40.0 * min(1.0, max(0.0, (155.0 - reading) / 15.0)))
+        for forced in (DerateReason.MODEL_FAULT, DerateReason.STALE_INPUT, DerateReason.SENSOR_FAULT, DerateReason.STARTING):
+            p = policy()
+            lim = p.update([], None, [forced], measured)
+            assert lim.current_a == pytest.approx(expected) and lim.reason == forced
+            assert lim.torque_nm == pytest.approx(min(56.0, 5.6 * expected))
+    # trusted, the readings do not limit (the model's upper band, which the readings correct, does)
+    lim = policy().update(bands(150.0, 50.0), (60.0, W), [], [NodeBand("hot_spot", 152.0, 152.0, 140.0, 155.0, W)])
+    assert lim.current_a == 40.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -147,3 +168,21 @@ def test_lookahead_is_conservative_against_the_real_temperature_dependent_losses
         x, _ = st.step(x, {**u, "i_rms": i})
         worst = max(worst, max(x[k] - m for _, k, m in limits))
     assert worst < 0
+
+
+def test_lookahead_names_the_binding_limit(model):
+    """The limit that sets the look-ahead current: the magnet at high speed from a magnet-hot state,
+    the winding at low speed from a winding-hot state (independently: which node's bound is lower
+    when each is computed alone)."""
+    limits = [(lim.name, model.node_index(lim.node), lim.max_c) for lim in model.limits]
+    bindings = []
+    for speed, i_pre in ((600.0, 22.0), (1800.0, 16.0)):
+        u = {"speed_rpm": speed, "i_rms": 10.0, "torque_nm": 56.0, "ambient_c": 25.0}
+        T0, _ = steady_state(model, {**u, "i_rms": i_pre})
+        r = Lookahead(model, model.nominal(), limits, horizon_s=60.0, steps=6).compute(T0, u)
+        loss_t = max(m for *_, m in limits)  # the same conservative copper temperature
+        alone = [Lookahead(model, model.nominal(), [lim], horizon_s=60.0, steps=6, loss_temperature_c=loss_t).compute(T0, u).current_a
+                 for lim in limits]
+        bindings.append(r.binding)
+        assert r.binding == int(np.argmin(alone)) and r.current_a == pytest.approx(min(alone))
+    assert bindings == [0, 1]  # winding, then magnet

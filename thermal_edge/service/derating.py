@@ -1,15 +1,62 @@
-"""Derating policy: node estimates -> current and torque limits with a reason.
+"""Derating policy: node estimates -> current and torque limits, with the reason that limits now.
 
-1. **Band derate** per limited node (model ``limits``, thresholds overridable in ``edge.yaml``):
-   the upper band of the estimate ``T + z σ`` (z = 1.96: 95 %) gives a factor falling linearly
-   from 1 at the warning temperature to 0 at the maximum; the current limit is that factor times
-   the maximum current. The node with the lowest factor names the reason (winding, magnet).
-2. **Look-ahead**: the largest RMS current that keeps every limited node under its maximum over
-   the horizon (:mod:`.lookahead`); when it is the lower one the reason is ``LOOK_AHEAD``.
-3. **Forced safe limit**: starting, a model fault, stale input or a faulty sensor force the
-   limit to at most the configured safe current, with that reason (in this order of precedence).
-4. **Slew**: a limit falls at once; it rises at most ``rise_rate_a_per_s`` and only once the
+How drives protect a machine, and what this policy takes from each:
+
+* **Fixed thermistor derate** (open drive firmware, e.g. VESC's motor temperature start/end): the
+  current falls linearly from full at a start temperature to zero at an end temperature of the
+  *measured* winding. Simple and safe only as far as the sensor is the hottest point; the start
+  temperature must sit far below the max because the hot spot and the magnet are not measured.
+* **I²t / thermal image** (IEC 60947-4-1 overload classes, the motor thermal model of industrial
+  drives): a first-order image of the winding heated by ``I²`` and set to the continuous rating;
+  full overload current while the image is cool, the continuous current once it is "full". It
+  gives short-time overload but knows neither the machine's real state nor its cooling.
+* **Thermal-model protection** (what this service is): a network model, corrected by the PT100s,
+  estimates every limited node with a 95 % band; the limit is what that model says the machine can
+  take *now*.
+
+The policy, per tick (1 s):
+
+1. **Reaction-time current** ``I_react``: the largest RMS current that, held for
+   ``derating.reaction_time_s`` from the present upper-band state (estimate + z σ, z = 1.96), keeps
+   every limited node below its max (:class:`.lookahead.Lookahead` over that short horizon, the
+   copper losses at the highest max, so never underestimated). While it is at least the rated
+   maximum, the machine gets the **full maximum current**: a cold or warm machine has its whole
+   short-time overload capacity. As a node's upper band approaches its max, ``I_react`` falls
+   continuously to the current that holds the upper band just below the max: the limit follows
+   the machine's own heat balance, and whatever happens within the reaction time (the service
+   stops, an input goes stale), the present limit cannot take the upper band past the max. The
+   reason is the node that binds (``winding``, ``magnet``). A fixed linear derate from the warning
+   temperature on the estimate (the thermistor rule) is *not* applied: it would give away the
+   headroom between warn and max that the model's prediction makes usable, which is the point of
+   the model (``thermal-edge bench protection`` measures the difference).
+2. **Forced safe limit**: starting, a model fault, stale input or a faulty sensor force the limit
+   to at most ``derating.safe_current_a`` (in this order of precedence), and the reason is the
+   cause. The model is then not trusted, so the limit is also held to the **band derate at the
+   measured temperatures** (issue 14, defect 9): the readings of the sensors that bound a limited
+   node from below (a sensor whose node is never hotter than the limited node in the model's steady
+   states, :func:`.engine.bounding_sensors`; the end-winding PT100 for the end-winding hot spot)
+   with that node's band, full current at ``warn_c`` falling linearly to zero at ``max_c`` (the
+   thermistor rule, what is left when the model is not trusted): ``min(safe, band at measured)``.
+3. **Slew**: a limit falls at once; it rises at most ``rise_rate_a_per_s`` and only once the
    candidate exceeds the present limit by more than ``hysteresis_a``.
+
+The 30 min look-ahead (the current that could be held for the whole horizon and the time to limit)
+is advice for the vehicle or plant controller in ``TE_Forecast``: it never limits by itself. It is
+a limit only where holding the present limit would reach a max within the reaction time, which is
+exactly step 1.
+
+**The reason names what limits now**: the forced cause; else the candidate's cause when the limit
+sits at its candidate (within the hysteresis); ``recovering`` while the limit climbs back at the
+rise rate after a reduction whose cause has gone (not the past cause: after a 1 s dropout the
+reason is ``stale_input`` for that second, then ``recovering``); ``none`` at the maximum.
+
+**Choice of the reaction time** (``derating.reaction_time_s``, default 10 s): the time in which the
+present limit must stay valid, because nothing can lower the current sooner: one tick until the
+service recomputes (1 s), the inverter's fallback after a lost ``TE_Limits`` (0.3 s), an input going
+stale before the safe limit is forced (the input timeouts, 0.5–1 s), and a restart of the service
+by the systemd watchdog during which the inverter runs on its own protection (a few seconds). 10 s
+covers these with a margin; longer times cost overload capacity near the max (at 40 A the hot spot
+rises ~1 K/s), shorter ones leave no margin. ``thermal-edge bench protection`` measures the effect.
 
 The torque limit follows the current limit through the torque constant, capped at the maximum
 torque (safe torque when forced).
@@ -25,10 +72,13 @@ from ..config import DeratingConfig
 
 __all__ = ["DeratingPolicy", "Limits", "NodeBand"]
 
+#: reasons that force the safe limit, in order of precedence
+FORCED_ORDER = (DerateReason.STARTING, DerateReason.MODEL_FAULT, DerateReason.STALE_INPUT, DerateReason.SENSOR_FAULT)
+
 
 @dataclass(frozen=True)
 class NodeBand:
-    """A limited node's estimate and band for one tick."""
+    """A limited node's estimate and band for one tick (°C)."""
 
     name: str
     estimate_c: float
@@ -39,6 +89,7 @@ class NodeBand:
 
     @property
     def factor(self) -> float:
+        """Linear band derate factor on ``upper_c``: 1 at or below warn, 0 at or above max."""
         if not math.isfinite(self.upper_c):
             return 0.0
         return min(1.0, max(0.0, (self.max_c - self.upper_c) / (self.max_c - self.warn_c)))
@@ -46,7 +97,7 @@ class NodeBand:
 
 @dataclass(frozen=True)
 class Limits:
-    """Limits sent in TE_Limits."""
+    """Limits sent in TE_Limits (A rms, Nm)."""
 
     current_a: float
     torque_nm: float
@@ -63,7 +114,7 @@ class Limits:
 
 
 class DeratingPolicy:
-    """Turns bands, look-ahead and health into limits, one tick at a time.
+    """Turns the reaction-time current, readings and health into limits, one tick at a time.
 
     Parameters
     ----------
@@ -74,7 +125,7 @@ class DeratingPolicy:
         Tick period (s), for the rise rate.
     """
 
-    FORCED_ORDER = (DerateReason.STARTING, DerateReason.MODEL_FAULT, DerateReason.STALE_INPUT, DerateReason.SENSOR_FAULT)
+    FORCED_ORDER = FORCED_ORDER
 
     def __init__(self, config: DeratingConfig, kt_nm_per_arms: float, tick_s: float = 1.0) -> None:
         self.config = config
@@ -91,41 +142,60 @@ class DeratingPolicy:
         """The configured safe limit with a reason (also the TE_Limits fallback)."""
         return Limits(self.safe_current, self.safe_torque, reason, True)
 
-    def update(self, bands: Sequence[NodeBand], lookahead_a: float | None, forced: Sequence[DerateReason] = ()) -> Limits:
-        """Limits for this tick."""
+    def candidate(self, bands: Sequence[NodeBand], reaction: tuple[float, DerateReason] | None,
+                  forced: Sequence[DerateReason] = (), measured: Sequence[NodeBand] = ()
+                  ) -> tuple[float, DerateReason, DerateReason | None]:
+        """The limit before the slew (A rms), its cause, and the forcing reason (None if not forced).
+
+        Parameters
+        ----------
+        bands : sequence of NodeBand
+            Limited nodes' estimates with their upper bands (a non-finite one is a model fault).
+        reaction : (float, DerateReason) or None
+            Reaction-time current and the reason of the node that sets it (None: no estimate, e.g.
+            not initialised; a NaN current: it could not be computed, a model fault).
+        forced : sequence of DerateReason
+            Health reasons that force the safe limit.
+        measured : sequence of NodeBand
+            Readings of sensors bounding a limited node from below, with that node's band.
+        """
+        imax = self.config.max_current_a
+        forced = list(forced)
+        cand, reason = imax, DerateReason.NONE
+        if any(not math.isfinite(b.upper_c) for b in bands) or (reaction is not None and math.isnan(reaction[0])):
+            forced.append(DerateReason.MODEL_FAULT)
+        elif reaction is not None and reaction[0] < cand:
+            cand, reason = max(0.0, reaction[0]), reaction[1]
+        force = next((r for r in FORCED_ORDER if r in forced), None)
+        if force is not None:
+            cand = min(cand, self.safe_current)
+            for b in measured:  # the model is not trusted: the band at the measured temperatures
+                cand = min(cand, b.factor * imax)
+        return cand, reason, force
+
+    def update(self, bands: Sequence[NodeBand], reaction: tuple[float, DerateReason] | None,
+               forced: Sequence[DerateReason] = (), measured: Sequence[NodeBand] = ()) -> Limits:
+        """Limits for this tick (see the module docstring and :meth:`candidate`)."""
         cfg = self.config
         imax = cfg.max_current_a
-        candidate, reason = imax, DerateReason.NONE
-        for b in bands:
-            i = b.factor * imax
-            if i < candidate:
-                candidate, reason = i, b.reason
-        if lookahead_a is not None and math.isfinite(lookahead_a) and lookahead_a < candidate:
-            candidate, reason = max(0.0, lookahead_a), DerateReason.LOOK_AHEAD
-        if not math.isfinite(candidate):
-            candidate, forced = 0.0, [*forced, DerateReason.MODEL_FAULT]
-        force = next((r for r in self.FORCED_ORDER if r in forced), None)
-        if force is not None:
-            candidate, reason = min(candidate, self.safe_current), force
-        # slew: fall at once; rise slowly and with hysteresis
+        candidate, reason, force = self.candidate(bands, reaction, forced, measured)
+        # slew: fall at once; rise at the rise rate, and only past the hysteresis
         if candidate <= self.current:
             self.current = candidate
-            self.reason = reason
         elif candidate > self.current + cfg.hysteresis_a or (candidate >= imax and self.current < imax):
             self.current = min(candidate, self.current + cfg.rise_rate_a_per_s * self.tick_s)
         # else: within the hysteresis, hold
+        # the reason: what limits now
+        eps = 1e-9
         if force is not None:
             self.reason = force
-        elif self.current >= imax - 1e-9:
+        elif self.current >= imax - eps:
             self.reason = DerateReason.NONE
-        elif self.current >= candidate - cfg.hysteresis_a - 1e-9:  # at the candidate: its cause
-            if reason != DerateReason.NONE:
-                self.reason = reason
-            elif self.reason in (DerateReason.NONE, *self.FORCED_ORDER):
-                self.reason = DerateReason.LOOK_AHEAD
-        # else: still rising after a reduction: the reason that caused it stays
+        elif self.current >= candidate - cfg.hysteresis_a - eps and reason != DerateReason.NONE:
+            self.reason = reason  # at (or held within the hysteresis below) the candidate: its cause
+        else:
+            self.reason = DerateReason.RECOVERING  # only the rise rate holds it down
         torque_cap = self.safe_torque if force is not None else cfg.max_torque_nm
         torque = min(torque_cap, self.kt * self.current)
-        active = self.reason != DerateReason.NONE
-        self.last = Limits(self.current, torque, self.reason, active)
+        self.last = Limits(self.current, torque, self.reason, self.reason != DerateReason.NONE)
         return self.last

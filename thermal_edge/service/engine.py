@@ -9,7 +9,16 @@ Per tick ``t`` (the frames of ``[t - Δt, t)`` accumulated by :class:`.inputs.In
    the best estimate of every node and its σ;
 4. accepted parameters of a finished adaptation go to the model, observer and look-ahead (and
    the open-loop state is re-derived with them); a due decision is requested from the worker;
-5. **derating** from the upper band, the look-ahead and the health of the inputs and model.
+5. **derating** (:mod:`.derating`) from the upper band, the reaction-time current (a short look-ahead
+   over ``derating.reaction_time_s``), the readings of the sensors that bound a limited node from
+   below, and the health of the inputs and model; the 30 min look-ahead goes to ``TE_Forecast``
+   as advice.
+
+Safety events go to the log with their journald priority (:mod:`.journal`): every change of the
+state and of the derate reason (NOTICE; WARNING when a fault forces the safe limit), inputs going
+stale and coming back, sensor faults and their end, model faults (ERROR), adaptations. Each event
+is logged once when it happens; the journal module's rate limit keeps a flapping input from
+flooding the journal.
 
 The same engine runs live (:mod:`.service`) and over a recorded log (:mod:`.replay`); given the
 same frames in the same order it produces the same estimates. In frame-clock mode a decision's
@@ -35,10 +44,11 @@ from ..lptn import Model, Stepper, initial_state, load_model
 from .adaptation import AdaptationResult, AdaptationWorker
 from .derating import DeratingPolicy, Limits, NodeBand
 from .inputs import InputAccumulator, TickInputs
+from .journal import NOTICE, notice
 from .lookahead import Lookahead
 from .persistence import PersistedState, cool_down
 
-__all__ = ["ThermalEngine", "TickOutput", "load_service_model"]
+__all__ = ["ThermalEngine", "TickOutput", "bounding_sensors", "load_service_model"]
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +71,59 @@ def load_service_model(config: EdgeConfig) -> Model:
     return model.with_parameters(config.model.parameters) if config.model.parameters else model
 
 
+def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], limits: dict[str, int],
+                     max_current_a: float, kt_nm_per_arms: float, current_input: str = "i_rms",
+                     rated_speed_rpm: float = 1000.0) -> dict[str, list[str]]:
+    """Sensors whose reading is a lower bound of a limited node's temperature.
+
+    A sensor bounds a limited node if, in the model's steady states over a grid of operating points
+    (speeds 0, ½, 1 and 2 times ``rated_speed_rpm``; currents ¼, ½ and 1 times the maximum; 25 °C),
+    its node is never hotter than the limited node: then a reading at or above the node's warning
+    temperature means the limited node is at least that hot, whatever the model's state (the
+    end-winding PT100 for the end-winding hot spot; not for the magnet, which is cooler than the
+    winding at low speed).
+
+    Parameters
+    ----------
+    model : Model
+    theta : ndarray
+        Parameters of the steady states.
+    sensors, limits : dict of str to int
+        Sensor name -> node row, limit name -> node row.
+    max_current_a : float
+        Maximum current, A rms.
+    kt_nm_per_arms : float
+        Torque constant (for a ``torque_nm`` input).
+
+    Returns
+    -------
+    dict of str to list of str
+        Limit name -> the sensors that bound it from below (only limits with at least one).
+    """
+    from ..lptn import steady_state
+
+    bounds = set(model.boundaries.values())
+    ok = {(lim, s): True for lim in limits for s in sensors}
+    for speed in (0.0, 0.5 * rated_speed_rpm, rated_speed_rpm, 2.0 * rated_speed_rpm):
+        for frac in (0.25, 0.5, 1.0):
+            i = frac * max_current_a
+            u = {k: (25.0 if k in bounds else 0.0) for k in model.inputs}
+            u.update({k: v for k, v in (("speed_rpm", speed), ("torque_nm", kt_nm_per_arms * i), (current_input, i))
+                      if k in u})
+            try:
+                T, _ = steady_state(model, u, theta)
+            except Exception:  # no steady state at this point: decide on the others
+                continue
+            for (lim, s) in ok:
+                if T[sensors[s]] > T[limits[lim]] + 1e-6:
+                    ok[(lim, s)] = False
+    out: dict[str, list[str]] = {}
+    for (lim, s), v in ok.items():
+        if v:
+            out.setdefault(lim, []).append(s)
+    return out
+
+
 @dataclass
 class TickOutput:
     """Everything one tick produced (for the bus, the metrics and the tests)."""
@@ -77,7 +140,7 @@ class TickOutput:
     pred_error: dict[str, float]
     pred_err_rms: float
     bands: list[NodeBand]
-    lookahead_a: float
+    lookahead_a: float  # 30 min look-ahead current (advice, TE_Forecast)
     time_to_limit_s: float
     horizon_s: float
     adapt_runs: int
@@ -91,6 +154,7 @@ class TickOutput:
     compute_s: float = 0.0
     hot_spot: NodeBand | None = None
     magnet: NodeBand | None = None
+    reaction_a: float = math.inf  # largest current keeping every upper band below max over the reaction time
 
     # -- frame contents ---------------------------------------------------------------------------
     def estimates_signals(self) -> dict[str, float]:
@@ -171,6 +235,17 @@ class ThermalEngine:
         la = config.lookahead
         self.lookahead = Lookahead(m, self.theta, [(n, i, mx) for n, i, _, mx, _ in self.limit_specs], la.horizon_s,
                                    la.steps, self.current_input) if la.enabled else None
+        # the reaction-time current: the same look-ahead over derating.reaction_time_s, one tick a step
+        react_s = config.derating.reaction_time_s
+        self.reaction = Lookahead(m, self.theta, [(n, i, mx) for n, i, _, mx, _ in self.limit_specs], react_s,
+                                  max(1, math.ceil(react_s / self.dt - 1e-9)), self.current_input)
+        # the sensors whose readings bound a limited node from below (the band on them is a floor
+        # that holds when the model is not trusted)
+        rated = float(m.drive.get("rated_speed_rpm", 1000.0)) if getattr(m, "drive", None) else 1000.0
+        bound_by = bounding_sensors(m, self.theta, self.sensor_rows, {n: i for n, i, *_ in self.limit_specs},
+                                    config.derating.max_current_a, self.kt, self.current_input, rated)
+        self.measured_specs = [(s, name, warn, mx, reason) for name, _, warn, mx, reason in self.limit_specs
+                               for s in bound_by.get(name, [])]
         ad = config.adaptation
         self.worker = AdaptationWorker(m, ad.adapter, self.dt, self.theta, self.offline_theta,
                                        worker_mode or ad.worker, ad.bands) if ad.enabled else None
@@ -197,6 +272,11 @@ class ThermalEngine:
         self.last: TickOutput | None = None
         self.ticks = 0
         self.gaps = 0
+        # what was last logged (safety events are logged when they change)
+        self._logged_reason: DerateReason | None = None
+        self._logged_state: TeState | None = None
+        self._logged_stale: frozenset[str] = frozenset()
+        self._logged_faults: dict[str, str] = {}
 
     # ------------------------------------------------------------------------------------------
     def add_frame(self, frame: DecodedFrame, t: float) -> None:
@@ -474,6 +554,7 @@ class ThermalEngine:
         self.observer.set_parameters(self.theta)
         if self.lookahead is not None:
             self.lookahead.set_parameters(self.theta)
+        self.reaction.set_parameters(self.theta)
         if res.state is not None and res.state_t is not None:
             x = res.state.copy()
             for ts, u in self.recent_inputs:
@@ -510,29 +591,39 @@ class ThermalEngine:
         """The tick's output. ``pred_error`` is the open-loop prediction error the tick measured
         (before a model fault re-initialised the state); without it, the error of the state now."""
         n = len(self.model.nodes)
-        la_a, ttl = math.inf, math.inf
+        la_a, ttl, react_a = math.inf, math.inf, math.inf
+        react_reason = DerateReason.NONE
+        measured = dict(ti.measured) if ti is not None else {}
+        floor = [NodeBand(name, measured[s], measured[s], warn, mx, reason) for s, name, warn, mx, reason in self.measured_specs
+                 if math.isfinite(measured.get(s, math.nan))]
         if self.initialized and self.observer is not None:
             est = self.observer.T.copy()
             sigma = self.observer.std()
             pred = self.x_ol.copy() if self.x_ol is not None else np.full(n, math.nan)
             bands = self._bands()
+            upper = est + self.config.derating.band_z * sigma
+            u = {k: (v if math.isfinite(v) else self.last_inputs.get(k, 0.0)) for k, v in (ti.inputs if ti else self.last_inputs).items()}
+            try:
+                rr = self.reaction.compute(upper, u)
+                react_a, react_reason = rr.current_a, self.limit_specs[rr.binding][4]
+            except Exception as exc:
+                log.error("reaction-time look-ahead failed: %s", exc)
+                react_a = math.nan  # the policy treats it as a model fault
             if self.lookahead is not None and ti is not None:
                 try:
-                    u = {k: (v if math.isfinite(v) else self.last_inputs.get(k, 0.0)) for k, v in ti.inputs.items()}
-                    z = self.config.derating.band_z
-                    r = self.lookahead.compute(est + z * sigma, u)
+                    r = self.lookahead.compute(upper, u)
                     la_a, ttl = r.current_a, r.time_to_limit_s
                 except Exception as exc:
                     log.warning("look-ahead failed: %s", exc)
                     la_a = math.nan
-            limits = self.policy.update(bands, la_a if math.isfinite(la_a) else None, forced)
+            limits = self.policy.update(bands, (react_a, react_reason), forced, floor)
         else:
             est = np.full(n, math.nan)
             sigma = np.full(n, math.nan)
             pred = np.full(n, math.nan)
             bands = []
-            limits = self.policy.update([], None, forced or [DerateReason.STARTING])
-        measured = dict(ti.measured) if ti is not None else {}
+            limits = self.policy.update([], None, forced or [DerateReason.STARTING], floor)
+        self._log_events(t, state, limits, stale, faults)
         inputs = dict(ti.inputs) if ti is not None else {}
         if pred_error is None:
             pred_error = {}
@@ -551,8 +642,39 @@ class ThermalEngine:
             horizon_s=self.config.lookahead.horizon_s, adapt_runs=self.adapt_runs, adapt_accepted=self.adapt_accepted,
             adapt_rejected=self.adapt_rejected, param_version=self.param_version, forced=list(forced),
             stale=list(stale), faults=dict(faults), new_results=list(new_results or []),
-            hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit),
+            hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit), reaction_a=react_a,
         )
+
+    def _log_events(self, t: float, state: TeState, limits: Limits, stale: list[str], faults: dict[str, str]) -> None:
+        """Log the safety events of this tick: changes of stale inputs, sensor faults, state and reason."""
+        now_stale = frozenset(stale)
+        if now_stale - self._logged_stale:
+            log.warning("input(s) stale: %s (no valid frame within the timeout); safe limit",
+                        ", ".join(sorted(now_stale - self._logged_stale)))
+        if self._logged_stale - now_stale:
+            notice(log, "input(s) back: %s", ", ".join(sorted(self._logged_stale - now_stale)))
+        self._logged_stale = now_stale
+        new = {k: v for k, v in faults.items() if self._logged_faults.get(k) != v}
+        if new:
+            log.warning("sensor fault: %s; safe limit", ", ".join(f"{k} ({v})" for k, v in sorted(new.items())))
+        gone = sorted(set(self._logged_faults) - set(faults))
+        if gone:
+            notice(log, "sensor fault cleared: %s", ", ".join(gone))
+        self._logged_faults = dict(faults)
+        if state != self._logged_state:
+            level = logging.WARNING if state in (TeState.DEGRADED, TeState.FAULT) else (
+                logging.INFO if state == TeState.ADAPTING or self._logged_state == TeState.ADAPTING else NOTICE)
+            log.log(level, "state %s -> %s", self._logged_state.name.lower() if self._logged_state is not None else "-",
+                    state.name.lower())
+            self._logged_state = state
+        if limits.reason != self._logged_reason:
+            r = limits.reason
+            level = (logging.WARNING if r in (DerateReason.MODEL_FAULT, DerateReason.STALE_INPUT, DerateReason.SENSOR_FAULT)
+                     else logging.INFO if r == DerateReason.STARTING else NOTICE)
+            log.log(level, "derate reason %s -> %s: current limit %.1f A, torque limit %.1f Nm",
+                    self._logged_reason.name.lower() if self._logged_reason is not None else "-", r.name.lower(),
+                    limits.current_a, limits.torque_nm)
+            self._logged_reason = r
 
     def placeholder(self, t: float) -> TickOutput:
         """An output for before the first tick (starting, safe limit, no estimates)."""

@@ -13,7 +13,7 @@ checkpoint ``k`` of the horizon is
 where ``c_k`` follows from the present (upper-band) state with the current-independent losses and
 ``d_k`` from the loss per ampere² starting at zero. Each limited node ``l`` then allows
 ``i² <= (max_l - c_k,l) / d_k,l`` at every checkpoint: the look-ahead current is the square root
-of the smallest bound. No search. The time to limit at the present ``i²`` is the first checkpoint
+of the smallest bound (and the limit it belongs to binds). No search. The time to limit at the present ``i²`` is the first checkpoint
 where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
 """
 from __future__ import annotations
@@ -33,6 +33,7 @@ __all__ = ["Lookahead", "LookaheadResult"]
 class LookaheadResult:
     current_a: float  # largest RMS current that keeps every limit over the horizon (inf if unbounded)
     time_to_limit_s: float  # at the present load; inf if not within the horizon, 0 if already over
+    binding: int = 0  # index (in ``limits``) of the limit that sets ``current_a``
 
 
 def _loss_inputs(model: Model) -> set[str]:
@@ -138,7 +139,9 @@ class Lookahead:
         Dk = D[1:]
         with np.errstate(divide="ignore", invalid="ignore"):
             bound = np.where(Dk > 1e-12, room / Dk, np.where(room >= 0, np.inf, -np.inf))
-        i2max = float(bound.min())
+        per_limit = bound.min(axis=0)
+        binding = int(np.argmin(per_limit))
+        i2max = float(per_limit[binding])
         current = math.sqrt(i2max) if i2max > 0 else 0.0
         # time to limit at the present load
         i_now = float(inputs.get(self.current_input, 0.0))
@@ -156,4 +159,4 @@ class Lookahead:
                 a, b = over[k - 1], over[k]
                 frac = a / (a - b) if b != a else 1.0
                 ttl = (k - 1 + frac) * self.dt
-        return LookaheadResult(current, ttl)
+        return LookaheadResult(current, ttl, binding)

@@ -99,6 +99,7 @@ class EmulatorConfig:
     noise_k: float = 0.1
     resolution_k: float = 0.1
     ambient_drift_k: float = 0.0  # amplitude of a sinusoidal ambient drift, K
+    ambient_offset_k: float = 0.0  # added to the cycle's ambient (and coolant), K (e.g. a hot day)
     ambient_drift_period_s: float = 7200.0
     current_ripple: float = 0.0  # relative ripple of the current over successive frames
     udc_v: float = 560.0
@@ -220,6 +221,9 @@ class InverterEmulator:
         self.cycle = cycle
         self.duration = float(cfg.duration_s if cfg.duration_s is not None else cycle.duration_s)
         self.run_inputs = cycle_run(cycle, self.kt, self.duration)
+        if cfg.ambient_offset_k:
+            for c in ("ambient_c", "coolant_c"):
+                self.run_inputs.columns[c] = self.run_inputs.columns[c] + cfg.ambient_offset_k
         self.cycle_dt = cycle.dt_s
         amb0 = float(self.run_inputs.columns["ambient_c"][0])
         self.plant = Plant(self.model, cfg.params, cfg.plant_dt_s, cfg.aging, ambient_c=amb0)

@@ -2,6 +2,7 @@
 inputs, observed through PT100-like sensors."""
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -9,6 +10,7 @@ import numpy as np
 
 from ..data import Run
 from ..lptn import Model, Simulator, Trajectory, steady_state
+from ..lptn.loader import ModelError, build_model, read_yaml
 from .sensors import pt100
 
 
@@ -58,3 +60,48 @@ def simulate_plant(
         for i, node in enumerate(model.nodes):
             out[f"T_{node}"] = traj.T[:, i]
     return PlantResult(Run(inputs.t, out, inputs.source), traj)
+
+
+def plant_model(model: Model, changes: Mapping[str, float]) -> Model:
+    """The machine built differently from ``model``: parameters and constants set to new values.
+
+    A parameter (the model's ``parameters``) gets a new nominal value; a constant (``constants``,
+    e.g. ``R20_phase``, the winding resistance, so a winding conductivity) is replaced in the model
+    file's text and the model rebuilt, so everything derived from it follows.
+
+    Parameters
+    ----------
+    model : Model
+        The model as the service knows it (loaded from a file).
+    changes : mapping
+        Name -> absolute value.
+
+    Raises
+    ------
+    ModelError
+        A name that is neither a parameter nor a constant of the model file (naming the bounds
+        is the model's job: a parameter outside its bounds is refused by ``with_parameters``).
+    """
+    params = {k: float(v) for k, v in changes.items() if k in model.parameter_names}
+    consts = {k: float(v) for k, v in changes.items() if k not in params}
+    if consts:
+        if model.path is None:
+            raise ModelError(f"{model.name}: constants {sorted(consts)} can only be changed in a model loaded from a file")
+        raw = copy.deepcopy(read_yaml(model.path, ModelError))
+        known = raw.get("constants") or {}
+        unknown = sorted(set(consts) - set(known))
+        if unknown:
+            raise ModelError(f"{model.path.name}: {unknown[0]}: neither a parameter nor a constant of the model")
+        raw["constants"] = {**known, **consts}
+        model = build_model(raw, fname=model.path.name, path=model.path)
+    return model.with_parameters(params, widen_bounds=True) if params else model
+
+
+def nominal_values(model: Model) -> dict[str, float]:
+    """Every parameter's nominal value and every numeric constant of the model file, by name."""
+    out = dict(zip(model.parameter_names, (float(v) for v in model.nominal())))
+    if model.path is not None:
+        for k, v in (read_yaml(model.path, ModelError).get("constants") or {}).items():
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                out.setdefault(k, float(v))
+    return out
