@@ -415,27 +415,96 @@ def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float) -> dic
     return {"T": T, "state": state}
 
 
+def _run_case_args(args: tuple[Case, tuple[str, ...], Path | None, float | None, Path | None]) -> dict[str, dict[str, Any]]:
+    return run_case(*args)
+
+
 def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, cycle: Path | None = None,
-        duration_s: float | None = None, config_file: Path | None = None,
+        duration_s: float | None = None, config_file: Path | None = None, jobs: int = 1,
         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Every case, every policy; the figures and, for ``thermal_edge``, the worst share and total overheat."""
+    """Every case, every policy; the figures and, for ``thermal_edge``, the worst share of the
+    oracle and the total time over max.
+
+    Parameters
+    ----------
+    cases : list of Case, optional
+        Default: all of :data:`CASES`.
+    jobs : int
+        Cases run in this many processes at once (each case is one process's work).
+    progress : callable, optional
+        Called with a line per finished case (default: printed to stderr).
+    """
     cases = cases if cases is not None else list(CASES.values())
     say = progress if progress is not None else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    res: dict[str, Any] = {"cycle": str(cycle or config_path("cycles", "protection.yaml")), "duration_s": duration_s,
-                           "policies": list(policies), "cases": {}, "case_docs": {}}
-    for k, case in enumerate(cases, 1):
-        w0 = time.perf_counter()
-        r = run_case(case, policies, cycle, duration_s, config_file)
+    cycle = cycle if cycle is not None else config_path("cycles", "protection.yaml")
+    with tempfile.TemporaryDirectory(prefix="te-bench-protection-") as tmp:
+        cfg = edge_config(Path(tmp), config_file)
+    res: dict[str, Any] = {"cycle": str(cycle), "duration_s": duration_s, "policies": list(policies),
+                           "reaction_time_s": cfg.derating.reaction_time_s, "max_c": {}, "cases": {}, "case_docs": {}}
+    from ..service.engine import load_service_model
+
+    for lim in load_service_model(cfg).limits:
+        res["max_c"][lim.name] = cfg.limit_band(lim)[1]
+    w0 = time.perf_counter()
+    done = 0
+
+    def report(case: Case, r: dict[str, dict[str, Any]]) -> None:
+        nonlocal done
+        done += 1
         res["cases"][case.name] = r
         res["case_docs"][case.name] = case.doc
         te = r.get("thermal_edge")
-        te_txt = (f"thermal_edge {te['oracle_share_pct']:.1f} % of oracle, {te['seconds_over_max']:g} s over max"
-                  if te else "")
-        say(f"bench protection: case {k}/{len(cases)} {case.name}: {te_txt} ({time.perf_counter() - w0:.0f} s)")
+        te_txt = f": thermal_edge {te['oracle_share_pct']:.1f} % of the oracle, {te['seconds_over_max']:g} s over max" if te else ""
+        say(f"bench protection: case {done}/{len(cases)} {case.name}{te_txt} ({time.perf_counter() - w0:.0f} s)")
+
+    work = [(c, policies, cycle, duration_s, config_file) for c in cases]
+    if jobs > 1 and len(cases) > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(min(jobs, len(cases))) as pool:
+            for case, r in zip(cases, pool.imap(_run_case_args, work)):
+                report(case, r)
+    else:
+        for args in work:
+            report(args[0], _run_case_args(args))
+    res["cases"] = {c.name: res["cases"][c.name] for c in cases}  # in the order asked
     te_all = [c["thermal_edge"] for c in res["cases"].values() if "thermal_edge" in c]
     if te_all:
         res["min_oracle_share_pct"] = min(f["oracle_share_pct"] for f in te_all)
         res["total_seconds_over_max"] = sum(f["seconds_over_max"] for f in te_all)
     res["totals"] = {p: {"seconds_over_max": sum(c[p]["seconds_over_max"] for c in res["cases"].values() if p in c)}
                      for p in policies}
+    res["wall_s"] = time.perf_counter() - w0
     return res
+
+
+TABLE_HEADERS = ["case", "policy", "headroom %", "of oracle %", "peak hot spot °C", "peak magnet °C", "s over max"]
+
+
+def table_rows(res: dict[str, Any]) -> list[list[Any]]:
+    """Rows of the bench's table: one per case and policy."""
+    rows: list[list[Any]] = []
+    for case, by_policy in res["cases"].items():
+        for p, f in by_policy.items():
+            rows.append([case, p, round(f["headroom_pct"], 1), round(f["oracle_share_pct"], 1), round(f["peak_hot_spot_c"], 1),
+                         round(f["peak_magnet_c"], 1), f["seconds_over_max"]])
+    return rows
+
+
+def verdicts(res: dict[str, Any]) -> list[str]:
+    """Plain sentences: where a baseline overheats, and whether thermal_edge delivers more than each
+    baseline that does not."""
+    out = []
+    for case, by_policy in res["cases"].items():
+        te = by_policy.get("thermal_edge")
+        for p in ("pt100_linear", "i2t", "oracle"):
+            f = by_policy.get(p)
+            if f is None:
+                continue
+            if f["seconds_over_max"] > 0:
+                out.append(f"{case}: {p} overheats ({f['seconds_over_max']:g} s over max; peaks {f['peak_hot_spot_c']:.1f} / "
+                           f"{f['peak_magnet_c']:.1f} degC)")
+            elif te is not None and p != "oracle":
+                more = te["delivered_as"] - f["delivered_as"]
+                out.append(f"{case}: thermal_edge delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below max)")
+    return out

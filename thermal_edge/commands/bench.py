@@ -24,6 +24,19 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
+    pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
+                                             "thermal_edge, a PT100 derate, I2t and the oracle, per plant case")
+    pr.add_argument("--case", action="append", default=None, metavar="NAME",
+                    help="run only this plant case (repeatable; default all: nominal, r_hous_plus30, sigma_cu_minus25, "
+                         "h_sh1_minus30, ambient_40, warm_restart)")
+    pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
+                    help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
+                         "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
+    pr.add_argument("--duration", type=float, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
+    pr.add_argument("--cycle", default=None, help="drive cycle file (default config/cycles/protection.yaml)")
+    pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
+    pr.add_argument("--json", action="store_true", help="print one JSON object")
+    pr.set_defaults(func=run_protection)
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
     fl.add_argument("--machines", type=int, default=200, help="simulated machines (default 200)")
     fl.add_argument("--speed-machines", type=int, default=40, help="machines timed with 1 and with 2 workers (default 40)")
@@ -137,4 +150,40 @@ def run_fleet(args: argparse.Namespace) -> int:
         print(json.dumps(r, indent=2, default=float))
         return 0
     print(fleet.format_result(r))
+    return 0
+
+
+def run_protection(args: argparse.Namespace) -> int:
+    import sys
+    from pathlib import Path
+
+    from ..bench import protection
+
+    try:
+        cases = [protection.CASES[c] for c in (args.case or ([] if args.plant else list(protection.CASES)))]
+        if args.plant:
+            cases.append(protection.parse_plant_changes(args.plant))
+    except KeyError as exc:
+        print(f"thermal-edge bench protection: error: unknown case {exc} (known: {', '.join(protection.CASES)})", file=sys.stderr)
+        return 2
+    except ValueError as exc:
+        print(f"thermal-edge bench protection: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        r = protection.run(cases, cycle=Path(args.cycle) if args.cycle else None, duration_s=args.duration, jobs=args.jobs)
+    except ValueError as exc:  # a --plant name the model does not have, a bad cycle
+        print(f"thermal-edge bench protection: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(r, indent=2, default=float))
+        return 0
+    dur = "" if r["duration_s"] is None else f" (first {r['duration_s']:g} s)"
+    mx = ", ".join(f"{k} {v:g} degC" for k, v in r["max_c"].items())
+    print(f"closed loop on the simulated machine, cycle {Path(r['cycle']).stem}{dur}; "
+          f"reaction time {r['reaction_time_s']:g} s; max: {mx}")
+    print(table(protection.TABLE_HEADERS, protection.table_rows(r)))
+    print(f"thermal_edge: min share of the oracle {r['min_oracle_share_pct']:.1f} % (target >= 90), "
+          f"seconds over max {r['total_seconds_over_max']:g} (target 0)")
+    for line in protection.verdicts(r):
+        print(line)
     return 0
