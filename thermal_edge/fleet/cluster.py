@@ -61,9 +61,11 @@ def connect(scheduler: str | None = None, workers: int | None = None, log: TextI
     bokeh = importlib.util.find_spec("bokeh") is not None
     n = workers or default_workers()
     # A task is one machine's numpy work: one thread per worker process; no memory limit, as the
-    # worker's spilling and pausing are for large data, not for a few rows per machine.
+    # worker's spilling and pausing are for large data, not for a few rows per machine. The
+    # scheduler's HTTP server (the dashboard with bokeh, else only health and metrics) listens on
+    # a free port of 127.0.0.1, never on all interfaces.
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0" if bokeh else None, memory_limit=0) as cluster, \
+                      dashboard_address="127.0.0.1:0", memory_limit=0) as cluster, \
             Client(cluster) as client:
         dash = client.dashboard_link if bokeh else "off (pip install bokeh to get it)"
         log.write(f"fleet: LocalCluster of {n} worker processes at {cluster.scheduler_address}; dashboard {dash}\n")
