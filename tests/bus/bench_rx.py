@@ -21,11 +21,10 @@ import json
 import os
 import pstats
 import socket
-import subprocess
 import sys
 import time
 
-from thermal_edge.bus import CanTransport, FrameCodec, create_bus
+from thermal_edge.bus import CanTransport, FrameCodec
 
 SENDER = r"""
 import sys, time

@@ -254,6 +254,23 @@ def test_lost_frames_without_time_stamps_fall_back_to_the_counter():
     assert rx.stats.lost == 3 + 1  # 17 is one wrap plus one: the counter alone cannot tell
 
 
+@pytest.mark.parametrize("cycles_per_frame", [10.0, 1 / 40])
+def test_sender_at_another_rate_is_judged_by_its_counter(cycles_per_frame):
+    """An accelerated emulator sends INV_Currents every 10 DBC cycles (sim time), with gaps of
+    up to 15 now and then; a load test sends 40 per cycle with jitter of several of its periods.
+    Neither keeps its DBC cycle, so its time stamps count no wraps: no loss is invented."""
+    tx, rx = _fresh_pair()
+    cycle = tx.cycle_time_s("INV_Currents")
+    rng = random.Random(5)
+    t = 0.0
+    for i in range(2000):
+        frame = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0)), timestamp=t)
+        assert frame is not None
+        stretch = rng.choice([1.0] * 9 + [1.5]) if cycles_per_frame > 1 else rng.uniform(0.0, 12.0)
+        t += cycles_per_frame * cycle * stretch
+    assert rx.stats.lost == 0 and rx.stats.counter_repeat == 0
+
+
 def test_burst_arrival_does_not_invent_or_hide_losses():
     """Frames sent at their cycle but received in bursts (time stamps bunched): the counter
     step decides, time stamps add no wraps they cannot justify."""

@@ -17,7 +17,7 @@ import can
 import msgpack
 import pytest
 
-from thermal_edge.bus import DEFAULT_UDP_MULTICAST_GROUP, CanTransport, DerateReason, FrameCodec, create_bus
+from thermal_edge.bus import DEFAULT_UDP_MULTICAST_GROUP, CanTransport, DerateReason, FrameCodec
 from thermal_edge.bus.transport import RX_ERROR_RUN_LIMIT
 
 from bus_testlib import DBC_PATH

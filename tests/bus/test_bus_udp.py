@@ -9,10 +9,9 @@ import socket
 import sys
 from pathlib import Path
 
-import can
 import pytest
 
-from thermal_edge.bus import CanTransport, DerateReason, FrameCodec, create_bus
+from thermal_edge.bus import CanTransport, DerateReason, FrameCodec
 
 from bus_testlib import DBC_PATH, REPO
 

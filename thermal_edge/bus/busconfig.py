@@ -78,7 +78,7 @@ def _did_you_mean(word: str, candidates: Iterable[str]) -> str:
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def interface_keywords(interface: str) -> frozenset[str]:
     """Named keyword arguments of the bus class of a python-can interface.
 
@@ -208,7 +208,7 @@ class BusConfig:
         clash = set(options) & set(extra)
         if clash:
             key = sorted(clash)[0]
-            raise BusConfigError(f"bus.options.{key}", f"given twice, under bus: and under bus.options:")
+            raise BusConfigError(f"bus.options.{key}", "given twice, under bus: and under bus.options:")
         return cls(**{k: v for k, v in mapping.items() if k in known}, options={**options, **extra})
 
     @classmethod

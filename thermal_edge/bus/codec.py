@@ -16,11 +16,11 @@ import logging
 import math
 import numbers
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from decimal import Decimal
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import cantools
 from cantools.database.can import Message as _DbcMessage
@@ -48,6 +48,21 @@ _CYCLE_ATTRIBUTE = "GenMsgCycleTime"
 #: Frame periods between two frames of an identifier from which their time stamps decide how
 #: often the 4-bit counter wrapped (3/4 of a wrap: bursts of up to 11 frames keep their count).
 _WRAP_FROM_PERIODS = 12.0
+#: Frames over which a sender's time per frame is averaged (plain mean up to then, then running).
+_PACE_FRAMES = 64
+#: Gaps seen before the pace is trusted, and the band around the DBC cycle it must lie in.
+_PACE_MIN_GAPS = 8
+_PACE_BAND = (0.5, 2.0)
+
+
+def _keeps_cycle(pace: tuple[float, int] | None, cycle: float) -> bool:
+    """True if a sender's running mean time per frame is near its DBC cycle.
+
+    Time stamps can count counter wraps only for a sender that keeps its cycle; one that sends
+    at another rate (an accelerated emulator at 10x the cycle, a load test at 1/40 of it) would
+    have every ordinary gap taken for a hole (or a hole for an ordinary gap).
+    """
+    return pace is not None and pace[1] >= _PACE_MIN_GAPS and _PACE_BAND[0] <= pace[0] / cycle <= _PACE_BAND[1]
 
 
 class DbcError(ValueError):
@@ -254,7 +269,8 @@ class FrameCodec:
         self._resync_after = float(resync_after_cycles)
         self._lock = threading.Lock()
         self._tx_counter: dict[int, int] = {}
-        self._rx_last: dict[int, tuple[int, float | None]] = {}  # last accepted counter and time stamp (s)
+        # last accepted counter, its time stamp (s) and the sender's pace (see _keeps_cycle)
+        self._rx_last: dict[int, tuple[int, float | None, tuple[float, int] | None]] = {}
 
     # ------------------------------------------------------------------ lookup
     @property
@@ -428,11 +444,11 @@ class FrameCodec:
         plus the whole number of counter wraps that brings it nearest to ``dt / T`` (exact
         while the timing jitter stays below 8 cycles), and ``n - 1`` frames are lost. A
         counter alone hides every multiple of 16 (a hole of 17 frames looks like one of 1).
-        Time stamps only add wraps, and only once they span 12 periods or more: frames that
-        arrive in bursts, or without time stamps, are judged by the counter step alone. A
-        step of 0 within 12 periods is a repeated frame. A sender much faster than its DBC
-        cycle (timing jitter of 8 of its periods or more) cannot be judged this way: its holes
-        are counted modulo 16, as by the counter alone.
+        Time stamps only add wraps, only once they span 12 periods or more, and only for a
+        sender whose mean time per frame (over about 64 frames, at least 8) lies within half
+        and twice its DBC cycle: frames that arrive in bursts, without time stamps, or from a
+        sender at another rate (an accelerated emulator, a load test) are judged by the
+        counter step alone, which counts holes modulo 16. A step of 0 is a repeated frame.
         """
         try:
             return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
@@ -490,21 +506,22 @@ class FrameCodec:
         with self._lock:
             lost = 0
             last = self._rx_last.get(spec.frame_id)
+            pace = None  # running mean of the time per frame (s) and how many gaps it has seen
             if last is not None:
-                last_counter, last_ts = last
+                last_counter, last_ts, pace = last
                 step = (counter - last_counter) % 16
-                periods = 0.0  # DBC cycles since the last frame, from the time stamps (0: unknown)
-                if ts is not None and last_ts is not None and spec.cycle_time_s:
-                    periods = (ts - last_ts) / spec.cycle_time_s
-                if abs(periods) > self._resync_after:
+                cycle = spec.cycle_time_s
+                dt = ts - last_ts if ts is not None and last_ts is not None else None
+                if dt is not None and cycle and abs(dt) > self._resync_after * cycle:
                     self.stats.counter_resync += 1
+                    pace = None
                 else:
                     # frame periods since the last one: the counter step plus the whole counter
                     # wraps that bring it nearest to the time stamps, once these span most of a
-                    # wrap; below that the step alone (frames that came in a burst keep their count)
+                    # wrap and the sender is seen to keep its DBC cycle; else the step alone
                     n = step
-                    if periods >= _WRAP_FROM_PERIODS:
-                        n += 16 * max(0, round((periods - step) / 16))
+                    if dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS and _keeps_cycle(pace, cycle):
+                        n += 16 * max(0, round((dt / cycle - step) / 16))
                     if n == 0:
                         self.stats.count_drop("counter_repeat", spec.name)
                         return None
@@ -512,7 +529,11 @@ class FrameCodec:
                     if lost:
                         self.stats.lost += lost
                         self.stats.lost_by_frame[spec.name] += lost
-            self._rx_last[spec.frame_id] = (counter, ts)
+                    if dt is not None:  # signed: jitter that reorders time stamps averages out
+                        gaps = 0 if pace is None else pace[1]
+                        mean = 0.0 if pace is None else pace[0]
+                        pace = (mean + (dt / n - mean) / min(gaps + 1, _PACE_FRAMES), gaps + 1)
+            self._rx_last[spec.frame_id] = (counter, ts, pace)
             self.stats.received[spec.name] += 1
         return DecodedFrame(spec.name, spec.frame_id, values, counter, ts, lost, bool(is_rx))
 
