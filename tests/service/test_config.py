@@ -178,7 +178,7 @@ BROKEN = [
     ("parameter below its bound", _set("model.parameters", {"R_e_hous": 0.91}), "model.parameters.R_e_hous",
      "0.91 is outside the model's bounds [3, 30] K/W"),
     ("parameter a round-off below its bound", _set("model.parameters", {"c_p_ew": 299.99999999999994}),
-     "model.parameters.c_p_ew", "outside the model's bounds [300, 900]"),
+     "model.parameters.c_p_ew", "299.99999999999994 is outside the model's bounds [300, 900]"),
     ("unknown parameter", _set("model.parameters", {"R_e_house": 9.1}), "model.parameters.R_e_house",
      "has no parameter 'R_e_house' (did you mean 'R_e_hous'?)"),
     ("parameter not a number", _set("model.parameters", {"c_p_ew": "hot"}), "model.parameters.c_p_ew", "expected a number"),

@@ -202,7 +202,8 @@ class Model:
             if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
                 raise ParameterError(name, f"expected a finite number, got {v!r}", bounds=(p.lower, p.upper))
             if not p.lower <= float(v) <= p.upper:
-                raise ParameterError(name, f"{float(v):g} is outside the model's bounds [{p.lower:g}, {p.upper:g}]"
+                shown = f"{float(v):g}" if float(f"{float(v):g}") == v else repr(float(v))  # 299.99999999999994, not 300
+                raise ParameterError(name, f"{shown} is outside the model's bounds [{p.lower:g}, {p.upper:g}]"
                                            f"{f' {p.unit}' if p.unit else ''}",
                                      value=float(v), bounds=(p.lower, p.upper))
 
