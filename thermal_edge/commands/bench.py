@@ -37,9 +37,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
+    from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
+
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
-    fl.add_argument("--machines", type=int, default=200, help="simulated machines (default 200)")
-    fl.add_argument("--speed-machines", type=int, default=40, help="machines timed with 1 and with 2 workers (default 40)")
+    fl.add_argument("--machines", type=int, default=MACHINES, help=f"simulated machines (default {MACHINES})")
+    fl.add_argument("--speed-machines", type=int, default=SPEED_MACHINES,
+                    help=f"machines timed with 1 and with 2 workers (default {SPEED_MACHINES})")
+    fl.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=run_fleet)
 
@@ -142,7 +146,7 @@ def run_fleet(args: argparse.Namespace) -> int:
     from ..fleet import MissingExtra
 
     try:
-        r = fleet.run(machines=args.machines, speed_machines=args.speed_machines)
+        r = fleet.run(machines=args.machines, speed_machines=args.speed_machines, rounds=args.rounds)
     except MissingExtra as exc:
         print(f"thermal-edge bench fleet: error: {exc}")
         return 2

@@ -25,6 +25,7 @@ COLUMNS: dict[str, str] = {
     "samples": "int64",  # samples of the machine's runs
     "runs": "string",  # the machine's run files, ';'-separated
     "wall_s": "float64",  # wall time of the machine's task, s
+    "cpu_s": "float64",  # CPU time of the machine's task, s (the cost on a core of its own)
     "worker_peak_mb": "float64",  # peak RSS of the worker process after the task, MB
     "z": "float64",  # screen: robust distance from the fleet's centre
     "outlier": "bool",  # screen: the machine stands out on this parameter
