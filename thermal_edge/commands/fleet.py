@@ -135,16 +135,13 @@ def _intro(args: argparse.Namespace, machines: list[Any], job: str) -> list[str]
 def run_calibrate(args: argparse.Namespace) -> int:
     from ..fleet import require_fleet_extra
     from ..fleet.cluster import connect
-    from ..fleet.screen import screen
+    from ..fleet.screen import distribution
 
     require_fleet_extra()
     machines = _machines(args)
     with connect(args.scheduler, args.workers) as client:
         rows = _calibrate_rows(args, client, machines)
-    spreads, _ = screen(rows)
-    for r in rows:  # calibrate reports the distribution only; z and outliers are the screen's
-        r["z"] = r["outlier"] = None
-    return _finish(args, "Fleet calibration", rows, _intro(args, machines, "calibrate"), spreads=spreads)
+    return _finish(args, "Fleet calibration", rows, _intro(args, machines, "calibrate"), spreads=distribution(rows))
 
 
 @_guard

@@ -76,7 +76,7 @@ def _plot_parameter(plt: Any, rows: Sequence[dict[str, Any]], sp: Spread, thresh
                 label="machine ±1σ")
     med = sp.median / ref
     ax.axhline(med, color="C0", lw=1, label="fleet median")
-    if sp.spread_rel > 0:
+    if sp.spread_rel > 0 and threshold > 0:
         ax.axhspan(med * math.exp(-threshold * sp.spread_rel), med * math.exp(threshold * sp.spread_rel), color="C0",
                    alpha=0.1, label=f"|z| ≤ {threshold:g} (own σ = 0)")
     if out.any():

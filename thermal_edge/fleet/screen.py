@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -72,30 +72,48 @@ def robust_z(log_values: np.ndarray, log_std: np.ndarray) -> tuple[np.ndarray, f
     return z, m, s
 
 
+def _groups(rows: Sequence[dict[str, Any]]) -> Iterator[tuple[str, list[dict[str, Any]], np.ndarray, np.ndarray]]:
+    """Per parameter: its rows, log values and σ of log values (unknown σ: infinite)."""
+    params = [r for r in rows if r["kind"] == "parameter" and r["value"] is not None and r["value"] > 0]
+    for name in dict.fromkeys(r["name"] for r in params):
+        group = [r for r in params if r["name"] == name]
+        sd = np.array([math.inf if r["rel_std"] is None else r["rel_std"] for r in group], dtype=float)
+        yield name, group, np.log([r["value"] for r in group]), sd
+
+
+def _spread(name: str, group: list[dict[str, Any]], x: np.ndarray, m: float, s: float) -> Spread:
+    vals = np.exp(x)
+    nominal = group[0]["nominal"]
+    return Spread(name, len(group), math.nan if nominal is None else float(nominal), float(np.exp(m)), s,
+                  float(np.percentile(vals, 5)), float(np.percentile(vals, 95)), sum(bool(r["identifiable"]) for r in group))
+
+
+def distribution(rows: Sequence[dict[str, Any]]) -> list[Spread]:
+    """The fleet's distribution of every parameter in calibration rows (``kind = parameter``)."""
+    out = []
+    for name, group, x, sd in _groups(rows):
+        _, m, s = robust_z(x, sd)
+        out.append(_spread(name, group, x, m, s))
+    return out
+
+
 def screen(rows: Sequence[dict[str, Any]], threshold: float = THRESHOLD) -> tuple[list[Spread], list[Outlier]]:
     """Screen calibration rows (``kind = parameter``): set their ``z`` and ``outlier`` in place.
 
     Returns the fleet's distribution per parameter and the outliers (one per machine, by
     decreasing ``|z|``).
     """
-    params = [r for r in rows if r["kind"] == "parameter" and r["value"] is not None and r["value"] > 0]
     spreads: list[Spread] = []
     best: dict[str, tuple[float, dict[str, Any]]] = {}
-    for name in dict.fromkeys(r["name"] for r in params):
-        group = [r for r in params if r["name"] == name]
-        x = np.log([r["value"] for r in group])
-        sd = np.array([math.inf if r["rel_std"] is None else r["rel_std"] for r in group], dtype=float)
+    for name, group, x, sd in _groups(rows):
         z, m, s = robust_z(x, sd)
         for r, zi in zip(group, z):
             r["z"], r["outlier"] = float(zi), bool(abs(zi) > threshold)
             if abs(zi) > threshold and abs(zi) > best.get(r["machine"], (0.0, r))[0]:
                 best[r["machine"]] = (abs(float(zi)), r)
-        vals = np.exp(x)
-        spreads.append(Spread(name, len(group), float(group[0]["nominal"] or math.nan), float(np.exp(m)), s,
-                              float(np.percentile(vals, 5)), float(np.percentile(vals, 95)),
-                              sum(bool(r["identifiable"]) for r in group)))
+        spreads.append(_spread(name, group, x, m, s))
     med = {sp.parameter: sp.median for sp in spreads}
-    outliers = [Outlier(r["machine"], r["name"], float(r["z"]), float(r["value"]), med[r["name"]], float(r["rel_std"] or math.nan))
-                for _, r in best.values()]
+    outliers = [Outlier(r["machine"], r["name"], float(r["z"]), float(r["value"]), med[r["name"]],
+                        math.nan if r["rel_std"] is None else float(r["rel_std"])) for _, r in best.values()]
     outliers.sort(key=lambda o: -abs(o.z))
     return spreads, outliers
