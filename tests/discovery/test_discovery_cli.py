@@ -48,6 +48,12 @@ def test_simulate_then_discover(tmp_path, capsys):
     assert d["named_effect"] == "sensor_lag" and d["target"] == "end_winding", d["rounds"]
     assert d["gap_after"] < 0.4 * d["gap_before"]
     assert {"name", "target", "score", "improvement"} <= set(d["candidates"][0])
+    # the judgement: the runner-up (named, with the comparison when it explains the residual
+    # too), whether the two are confusable, the noise floor the gap is judged against
+    assert {"runner_up", "ambiguous", "gap_noise_floor", "gap_status", "comparison"} <= set(d)
+    assert isinstance(d["ambiguous"], bool) and d["gap_noise_floor"] == d["noise_floor_k"] > 0
+    assert d["runner_up"] and d["runner_up"] != "sensor_lag:end_winding"
+    assert d["gap_status"] in ("explained", "partly explained")
     model_out = out / "pm10kw+sensor_lag-end_winding.yaml"
     assert d["model_out"] == str(model_out) and model_out.exists()
     assert (out / "report.md").exists()

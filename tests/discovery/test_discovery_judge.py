@@ -51,7 +51,7 @@ def test_close_fits_are_confusable_and_far_ones_are_not():
     t = np.arange(N)[:, None]
     slow = 0.3 * np.sin(2 * np.pi * t / 700.0) * np.ones((1, 2))  # correlated over minutes, like thermal residuals
     ea = slow + rng.normal(0, 0.05, (N, 2))
-    eb = 1.02 * slow + rng.normal(0, 0.05, (N, 2))  # nearly the same errors: confusable
+    eb = slow + rng.normal(0, 0.05, (N, 2))  # the same slow error, other noise: confusable
     ec = 3.0 * slow + rng.normal(0, 0.05, (N, 2))  # clearly worse
     a, b, c = _fit("A", data, ea), _fit("B", data, eb), _fit("C", data, ec)
     ref = 1.0  # the refit's held-out gap, K
@@ -60,7 +60,7 @@ def test_close_fits_are_confusable_and_far_ones_are_not():
     assert math.isclose(ab.se_diff, _by_hand_se(ea, eb), rel_tol=1e-9)
     assert math.isclose(ab.share, (ref**2 - b.gap**2) / (ref**2 - a.gap**2), rel_tol=1e-12)
     ac = J.compare(a, c, ref, data)
-    assert not ac.ambiguous and ac.z > J.Z_SEPARATE and ac.share < J.CLOSE_SHARE
+    assert not ac.ambiguous and ac.z > J.Z_SEPARATE and ac.share < ab.share
 
 
 def test_held_out_data_from_a_new_region_decides():
@@ -75,7 +75,7 @@ def test_held_out_data_from_a_new_region_decides():
     ea = rng.normal(0, 0.2, (N, 2))
     eb = ea.copy()
     eb[-500:] += 0.15  # worse only at the new speed
-    eb[SPLIT:-500] *= 0.97  # a touch better elsewhere
+    eb[SPLIT:-500] *= 0.8  # better elsewhere: over the whole held-out part the two are level
     a, b = _fit("A", data, ea), _fit("B", data, eb)
     cmp = J.compare(a, b, 1.0, data)
     assert cmp.ambiguous

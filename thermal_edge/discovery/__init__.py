@@ -17,8 +17,14 @@ operating conditions in a way no parameter value removes. :func:`discover` takes
    0.05 K (``Options``);
 5. adds the winner to the model (a few lines of YAML: :func:`.workflow.write_model` patches
    them into the original file), refits, and repeats until no candidate is accepted. With no
-   winner in the first round the verdict is "no missing effect found". :mod:`.report` writes a
-   Markdown report with PNG figures (matplotlib, the ``report`` extra).
+   winner in the first round the verdict is "no missing effect found";
+6. judges the verdict (:mod:`.judge`): the runner-up's held-out gap against the winner's with
+   its uncertainty (confusable effects are reported as a pair, with the evidence that separates
+   them and the steady operating point that would; held-out data from an operating region the
+   training part lacks decides where the run has one), and the gap against the sensor noise
+   floor ("no gap" against "a gap the catalogue does not explain": its size, where and when,
+   the nearest candidates). :mod:`.report` writes a Markdown report with PNG figures
+   (matplotlib, the ``report`` extra).
 
 Effects (``NAME[:TARGET][=PARAM=VALUE,...]``, the syntax of ``thermal-edge simulate --effect``;
 ``s = |speed_rpm| / n_ref``, ``n_ref``/``i_ref`` the run's 95th-percentile speed/current):

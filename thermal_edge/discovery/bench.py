@@ -6,7 +6,7 @@ drive cycles with one catalogue effect hidden in the plant (PT100 noise on, seed
 whether the hidden effect (and target) was named first, the held-out gap before/after, the
 shrink and the wall time. Cases with no hidden effect must end with "no missing effect found".
 A case passes when the hidden effect is named first with the held-out gap at least 60 % smaller
-than the refit's, or when it is one of two effects the run cannot separate (the report says so
+than the refit's (the whole gap, or its part above the sensor noise floor), or when it is one of two effects the run cannot separate (the report says so
 and names the separating condition). ``--paderborn`` adds the real-data cases: the published
 ``paderborn4.yaml`` on ``run_a.csv`` (nothing to add, but a gap the catalogue does not explain),
 and the two reduced models of ``tests/discovery/models/`` (the copper temperature coefficient
@@ -30,6 +30,7 @@ from ..sim.cycles import cycle_run, load_cycle
 from ..sim.plant import simulate_plant
 from . import effects as E
 from . import hidden, workflow
+from . import judge as J
 
 REPO = Path(__file__).resolve().parents[2]
 PM10KW = REPO / "config" / "machines" / "pm10kw.yaml"
@@ -39,7 +40,7 @@ PADERBORN_RUN = REPO.parent / "shared" / "data" / "paderborn" / "run_a.csv"
 #: the hidden effects of the sweep (spec, expected label)
 EFFECTS = (
     "copper_temperature",
-    "contact_resistance:housing_6-yoke_1",
+    "contact_resistance:housing_1-end_cap_1",
     "speed_convection:R_e_hous",
     "iron_loss_frequency",
     "magnet_eddy_loss",
@@ -135,24 +136,28 @@ def _row(disc: workflow.Discovery, expected: str | None, wall: float, case: str,
     # one of two the run cannot separate, with the operating point that would
     pair = bool(expected and disc.ambiguous and expected in (named, runner_up) and disc.rounds[0].point is not None)
     shrink = 1 - disc.gap_after / disc.gap_before if disc.gap_before > 0 else 0.0
+    above = J.above_noise(disc.gap_before, disc.noise_k)
+    shrink_n = 1 - J.above_noise(disc.gap_after, disc.noise_k) / above if above > 0 else 0.0
     return {
         "case": case, "hidden": hidden_label, "expected": expected, "named": named, "named_first": ok,
         "runner_up": runner_up, "ambiguous": disc.ambiguous, "named_in_pair": pair,
         "added": [r.fit.label for r in disc.added], "gap_nominal": disc.nominal.gap, "gap_before": disc.gap_before,
-        "gap_after": disc.gap_after, "shrink": shrink, "noise_k": disc.noise_k, "wall_s": wall,
-        "gap_status": disc.gap.status if disc.gap else None,
-        "pass": bool(expected is None and named is None) or bool(expected and ((ok and shrink >= 0.6) or pair)),
+        "gap_after": disc.gap_after, "shrink": shrink, "shrink_above_noise": shrink_n, "noise_k": disc.noise_k,
+        "wall_s": wall, "gap_status": disc.gap.status if disc.gap else None,
+        "pass": bool(expected is None and named is None) or
+                bool(expected and ((ok and max(shrink, shrink_n) >= 0.6) or pair)),
     }
 
 
 def table(rows: list[dict[str, Any]]) -> str:
     head = (f"{'case':<36}{'hidden':<28}{'named first':<30}{'runner-up':<30}{'amb.':>5}{'pass':>5}{'before K':>10}"
-            f"{'after K':>9}{'shrink':>8}{'noise K':>8}{'wall s':>8}")
+            f"{'after K':>9}{'shrink':>8}{'>noise':>8}{'noise K':>8}{'wall s':>8}")
     out = [head, "-" * len(head)]
     for r in rows:
         out.append(f"{r['case']:<36}{r['hidden']:<28}{str(r['named'] or 'none'):<30}{str(r['runner_up'] or '-'):<30}"
                    f"{'yes' if r['ambiguous'] else 'no':>5}{'yes' if r['pass'] else 'NO':>5}"
-                   f"{r['gap_before']:>10.3f}{r['gap_after']:>9.3f}{r['shrink']:>8.0%}{r['noise_k']:>8.3f}{r['wall_s']:>8.1f}")
+                   f"{r['gap_before']:>10.3f}{r['gap_after']:>9.3f}{r['shrink']:>8.0%}{r['shrink_above_noise']:>8.0%}"
+                   f"{r['noise_k']:>8.3f}{r['wall_s']:>8.1f}")
     return "\n".join(out)
 
 

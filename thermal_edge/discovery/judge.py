@@ -7,8 +7,8 @@ Three questions the ranking by held-out gap alone does not answer:
   blocks of the held-out part (thermal residuals are correlated over minutes, single samples are
   not independent), and the spread of the block means of the *difference* between the two fits
   gives the standard error of that difference (:func:`compare`). Two effects are *confusable*
-  when the runner-up explains at least ``CLOSE_SHARE`` of the held-out mean squared error the
-  winner explains, or the two gaps differ by less than ``Z_SEPARATE`` standard errors.
+  when their held-out gaps differ by less than ``Z_SEPARATE`` standard errors (the share of the
+  winner's explained mean squared error the runner-up explains is reported alongside).
 * **Can data decide?** Where the held-out part reaches an operating region the training part
   never saw (speed, current or ambient outside the training range), the two fits are compared
   there alone: that is data neither was fitted to, in conditions where their forms disagree. A
@@ -16,8 +16,9 @@ Three questions the ranking by held-out gap alone does not answer:
 * **What would tell them apart?** Each fit's *predicted residual* (its prediction minus the
   refitted model's: what the effect says the refit got wrong) is set against speed, current,
   ambient and time (:func:`evidence`); and both fitted models are run to steady state on a grid
-  of operating points beyond the run's (:func:`separating_point`): the point where their sensor
-  temperatures differ most is the test to run next.
+  of operating points up to and beyond the run's (:func:`separating_point`): the point where
+  their sensor temperatures differ most, with both models keeping every limited node below its
+  warning temperature (a run one can do without derating), is the test to run next.
 
 The gap itself is judged against the sensor noise floor (:func:`gap_status`): within
 ``NO_GAP_FACTOR`` noise floors (plus the smallest gain discovery accepts) there is nothing to
@@ -33,14 +34,19 @@ from typing import Sequence
 import numpy as np
 
 from ..data import Run
-from ..lptn import steady_state
+from ..lptn import Model, steady_state
 from . import fitting as F
 
 N_BLOCKS = 10  # contiguous blocks of the held-out part for the standard errors
-CLOSE_SHARE = 0.9  # runner-up explains this share of what the winner explains: confusable
 Z_SEPARATE = 2.0  # standard errors that separate two gaps
 NO_GAP_FACTOR = 2.0  # a gap within this many noise floors (+ min gain) is no gap
 NOVEL_MIN = 30  # held-out samples outside the training range needed to decide by them
+
+
+def above_noise(gap_k: float, noise_k: float) -> float:
+    """The part of a held-out gap above the sensor noise floor, K: ``sqrt(max(gap² − noise², 0))``
+    (noise adds to the squared gap; no model removes it)."""
+    return math.sqrt(max(gap_k**2 - noise_k**2, 0.0)) if np.isfinite(gap_k) else float("nan")
 
 
 def sample_loss(fit: F.Fit, data: F.Data) -> np.ndarray:
@@ -102,8 +108,8 @@ def compare(a: F.Fit, b: F.Fit, reference_gap: float, data: F.Data) -> Compariso
     d, se = _diff_se(la, lb)
     ea, eb = reference_gap**2 - a.gap**2, reference_gap**2 - b.gap**2
     share = eb / ea if ea > 0 else 0.0
-    close = share >= CLOSE_SHARE or (np.isfinite(se) and d < Z_SEPARATE * se)
-    return Comparison(a.label, b.label, a.gap, b.gap, se, share, bool(close))
+    close = bool(np.isfinite(se) and d < Z_SEPARATE * se)
+    return Comparison(a.label, b.label, a.gap, b.gap, se, share, close)
 
 
 def novel_region(data: F.Data, boundaries: dict[str, str]) -> tuple[np.ndarray, str]:
@@ -239,7 +245,7 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     currents = [0.0]
     if "i_rms" in model.inputs:
         top = float(np.nanmax(np.abs(cols["i_rms"])))
-        currents = sorted({0.0, round(top / 2, 1), round(top, 1)})
+        currents = sorted({round(top * f, 1) for f in (0.0, 0.25, 0.5, 0.75, 1.0)})
     ratio = 0.0
     if "torque_nm" in model.inputs and "i_rms" in cols and "torque_nm" in cols:
         i, tq = np.abs(cols["i_rms"]), cols["torque_nm"]
@@ -263,12 +269,21 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
                     Tb, _ = steady_state(b.model, inp, b.theta)
                 except (ValueError, ArithmeticError, np.linalg.LinAlgError):
                     continue
+                if not (_admissible(a.model, Ta) and _admissible(b.model, Tb)):
+                    continue
                 for s in data.sensors:
                     va = float(Ta[a.model.node_index(a.model.sensors[s])])
                     vb = float(Tb[b.model.node_index(b.model.sensors[s])])
                     if np.isfinite(va) and np.isfinite(vb) and (best is None or abs(va - vb) > best.diff):
                         best = Point(inp, s, va, vb, _near(run, inp))
     return best
+
+
+def _admissible(model: Model, T: np.ndarray) -> bool:
+    """Every limited node below its warning temperature (and every node finite)."""
+    if not np.all(np.isfinite(T)):
+        return False
+    return all(float(T[model.node_index(lim.node)]) < lim.warn_c for lim in model.limits)
 
 
 def _near(run: Run, inp: dict[str, float]) -> bool:

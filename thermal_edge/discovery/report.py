@@ -267,6 +267,8 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
         ["held-out gap, refitted (before)", f"{disc.gap_before:.3f} K"],
         ["held-out gap, with the effect(s) (after)", f"{disc.gap_after:.3f} K"],
         ["sensor noise floor (from the data)", f"{disc.noise_k:.3f} K"],
+        ["gap above the noise floor, before → after",
+         f"{J.above_noise(disc.gap_before, disc.noise_k):.3f} K → {J.above_noise(disc.gap_after, disc.noise_k):.3f} K"],
         ["wall time", f"{disc.wall_s:.1f} s"],
     ]))
     add("")
@@ -343,15 +345,18 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     add("")
     add(f"Each fit adds the candidate to the model and refits it with the adaptable parameters on the training part; "
         f"it is judged on the held-out part. Accepted: held-out gap at least {100 * disc.options.min_improvement:.0f} % "
-        f"and {disc.options.min_gain_k:.2f} K smaller than the refitted model's (or its continued refit, the control) "
+        f"and {disc.options.min_gain_k:.2f} K smaller than the refitted model's (or its continued refit, the control), "
+        f"or the gap above the noise floor (√(gap² − noise²)) at least {100 * disc.options.min_share_above_noise:.0f} % "
+        f"and {disc.options.min_gain_k:.2f} K smaller, "
         f"and a lower BIC N·ln(MSE) + k·ln(N) (N = {first.n_eff:.0f} held-out samples on the fitting grid, "
         f"k the effect's parameters).")
     add("")
     for rd in disc.rounds:
         add(f"Round {rd.index} (reference gap {rd.reference_gap:.3f} K):")
         add("")
-        add(_table(["candidate", "from", "held-out gap K", "improvement", "ΔBIC", "fitted", "accepted"], [
-            [f"`{x.fit.label}`", x.source, _f(x.fit.gap), _pct(x.improvement), f"{x.delta_criterion:+.1f}",
+        add(_table(["candidate", "from", "held-out gap K", "improvement", "above noise", "ΔBIC", "fitted", "accepted"], [
+            [f"`{x.fit.label}`", x.source, _f(x.fit.gap), _pct(x.improvement), _pct(x.improvement_above_noise),
+             f"{x.delta_criterion:+.1f}",
              ", ".join(f"{k}={v:.4g}" for k, v in x.fit.values(x.fit.effect_params).items()),
              "**yes**" if x is rd.winner else ("yes" if x.accepted else "no")]
             for x in rd.ranked
@@ -447,7 +452,13 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
             rows.append([ev.variable, f"{x:.4g}", _f(ev.a[i]), _f(ev.b[i]), _f(d)])
         add(_table(["variable", "at", "winner K", "runner-up K", "|difference| K"], rows))
         add("")
-    if rd.point is not None:
+    if rd.point is not None and rd.point.diff < 3 * disc.noise_k:
+        p = rd.point
+        add(f"**Separating condition:** no steady operating point separates them by more than {p.diff:.2f} K "
+            f"(at most 3× the noise floor; largest at {p.describe()}): they differ in transients, so a next test "
+            "run should change load and speed quickly where the time evidence above shows them apart.")
+        add("")
+    elif rd.point is not None:
         p = rd.point
         add(f"**Separating condition:** {p.describe()} — the two fitted models differ most there at steady state "
             f"({p.sensor}: {p.t_a:.1f} °C with `{c.a}`, {p.t_b:.1f} °C with `{c.b}`, {p.diff:.1f} K apart); "

@@ -18,12 +18,21 @@ One *round* on the current model:
    effect's parameters), which prefers the simpler of two candidates that predict alike. A
    candidate is accepted when it lowers the BIC and the held-out gap by at least
    ``min_improvement`` (default 10 %) and ``min_gain_k`` (default 0.05 K) against the better of
-   refit and control. (Thermal residuals are strongly correlated in time, so no sample-count
+   refit and control, or removes ``min_share_above_noise`` (50 %) and ``min_gain_k`` of the
+   gap above the sensor noise floor (``sqrt(gap² − noise²)``: where the refit imitates the
+   effect, little is left above the noise, and 10 % of the whole gap may be more than that).
+   (Thermal residuals are strongly correlated in time, so no sample-count
    based test is honest about significance; the two thresholds are the practical guard, and
    data without a missing effect must end with "no missing effect found".)
-6. The winner is added (its fitted parameters become model parameters) and the next round
+6. The winner is compared with the runner-up (:mod:`.judge`): when the runner-up explains the
+   held-out residual nearly as well (within the uncertainty of the held-out gap), held-out
+   samples from an operating region the training part lacks decide where there are enough,
+   and may swap the two; otherwise the pair is reported as confusable, with the evidence that
+   separates them and the steady operating point that would.
+7. The winner is added (its fitted parameters become model parameters) and the next round
    starts from it, until no candidate is accepted or ``max_rounds`` is reached. With no
-   winner in the first round the verdict is "no missing effect found".
+   winner in the first round the verdict is "no missing effect found", and the gap is judged
+   against the sensor noise floor: "no gap" or "a gap the catalogue does not explain".
 """
 from __future__ import annotations
 
@@ -55,6 +64,10 @@ class Options:
     n_screen: int = 2
     min_improvement: float = 0.10
     min_gain_k: float = 0.05
+    #: or: the share of the gap above the noise floor a candidate removes (with ``min_gain_k`` of it);
+    #: a refit that imitates an effect leaves a gap near the noise floor, where 10 % of the whole gap
+    #: can be more than there is to remove
+    min_share_above_noise: float = 0.5
     effects: Sequence[str] | None = None
     prior_weight: float = 0.0
     refit_iter: int = 20
@@ -71,6 +84,7 @@ class Ranked:
     delta_criterion: float
     accepted: bool
     k: int
+    improvement_above_noise: float = float("nan")  # relative reduction of the gap above the noise floor
 
 
 @dataclass
@@ -185,6 +199,8 @@ class Discovery:
             "gap_after": self.gap_after,
             "gap_nominal": self.nominal.gap,
             "noise_floor_k": self.noise_k,
+            "gap_above_noise_before": J.above_noise(self.gap_before, self.noise_k),
+            "gap_above_noise_after": J.above_noise(self.gap_after, self.noise_k),
             "shrink": 1.0 - self.gap_after / self.gap_before if self.gap_before > 0 else 0.0,
             "per_sensor_before": {s: math.sqrt(v) for s, v in first.base.heldout_mse.items()},
             "per_sensor_after": {s: math.sqrt(v) for s, v in self.final.heldout_mse.items()},
@@ -227,7 +243,7 @@ class Discovery:
                           "runner_up": e.b} for e in rd.evidence],
             "separating_condition": None if p is None else {
                 "point": p.describe(), "inputs": p.inputs, "sensor": p.sensor, "winner_c": p.t_a,
-                "runner_up_c": p.t_b, "in_run": p.in_run},
+                "runner_up_c": p.t_b, "diff_k": p.diff, "in_run": p.in_run},
         }
 
 
@@ -265,6 +281,7 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
         f"first {data.split} samples at {data.dt * data.factor:g} s, held out the last {len(run) - data.split}")
     nominal = F.Fit("nominal", raw, model0, model0.nominal(), ())
     nominal.train_mse, nominal.heldout_mse, nominal.traj_T = F.heldout(model0, nominal.theta, data)
+    noise = noise_floor(run, data.sensors, data.split)
     fit_names = list(model0.adaptable)
     prior = {n: float(v) for n, v in zip(model0.parameter_names, model0.nominal())}
     theta = F.refit(model0, model0.nominal(), fit_names, data, max_iter=opt.refit_iter, prior=prior,
@@ -316,8 +333,11 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
             kpar = len(s.cand.effect.params)
             crit = _criterion(f.gap, kpar, n_eff)
             imp = 1 - f.gap / ref_gap if ref_gap > 0 and np.isfinite(f.gap) else float("nan")
-            ok = bool(np.isfinite(imp) and imp >= opt.min_improvement and ref_gap - f.gap >= opt.min_gain_k
-                      and crit < ref_crit and not f.message)
+            s_ref, s_fit = J.above_noise(ref_gap, noise), J.above_noise(f.gap, noise)
+            imp_n = 1 - s_fit / s_ref if s_ref > 0 and np.isfinite(s_fit) else float("nan")
+            whole = bool(np.isfinite(imp) and imp >= opt.min_improvement and ref_gap - f.gap >= opt.min_gain_k)
+            above = bool(np.isfinite(imp_n) and imp_n >= opt.min_share_above_noise and s_ref - s_fit >= opt.min_gain_k)
+            ok = bool((whole or above) and crit < ref_crit and not f.message)
             say(f"  {s.cand.label:<42} ({src}) held-out gap {f.gap:.3f} K ({imp:+.0%})" + ("  accepted" if ok else "") +
                 (f"  [{f.message}]" if f.message else ""))
             twin = next((r for r in ranked if r.fit.label == f.label), None)
@@ -326,7 +346,7 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
                     ranked.remove(twin)
                 else:
                     continue
-            ranked.append(Ranked(f, src, s.fraction, imp, crit, crit - ref_crit, ok, kpar))
+            ranked.append(Ranked(f, src, s.fraction, imp, crit, crit - ref_crit, ok, kpar, imp_n))
         ranked.sort(key=lambda r: (not r.accepted, r.criterion))
         rd = Round(k, base, analysis, scores, screen, ranked, ref_gap, n_eff)
         best = ranked[0] if ranked and ranked[0].accepted else None
@@ -347,7 +367,7 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
         cur_nominal = F.Fit("nominal", cur_raw, base.model, base.model.nominal(), ())
     final = base
     disc = Discovery(model0.name, run.source, data, nominal, rounds, final, raw, options=opt)
-    disc.noise_k = noise_floor(run, data.sensors, data.split)
+    disc.noise_k = noise
     assert final.traj_T is not None
     disc.final_analysis = R.analyse(run, data.sensors, final.traj_T, data.split, final.model.boundaries, data.refs)
     last = rounds[-1]
@@ -374,8 +394,8 @@ def _runner_up(rd: Round, best: Ranked | None, data: F.Data, opt: Options,
     others = [r for r in fits if r.fit.label != best.fit.label]
     ru = others[0] if others else None
     rd.runner_up = ru
-    if ru is None or ru.improvement < opt.min_improvement:
-        return best
+    if ru is None or not (ru.improvement >= opt.min_improvement or ru.improvement_above_noise >= opt.min_share_above_noise):
+        return best  # the runner-up does not explain the residual: nothing to confuse
     bounds = dict(rd.base.model.boundaries)
     cmp = J.compare(best.fit, ru.fit, rd.reference_gap, data)
     if cmp.ambiguous:
