@@ -130,6 +130,20 @@ def run(args: argparse.Namespace) -> int:
     for r in disc.added:
         vals = ", ".join(f"{k} = {v:.4g}" for k, v in disc.final.values(r.fit.effect_params).items())
         print(f"added {r.fit.label}: {vals}")
+    cmp = d["comparison"]
+    if cmp:
+        print(f"runner-up {cmp['runner_up']}: held-out gap {cmp['gap_runner_up_k']:.3f} K against {cmp['gap_winner_k']:.3f} K"
+              f" (difference {cmp['gap_runner_up_k'] - cmp['gap_winner_k']:+.3f} ± {cmp['se_diff_k']:.3f} K)"
+              + ("; this run cannot separate them" if cmp["ambiguous"] else "")
+              + (f"; decided by held-out data at {cmp['decided_by']}" if cmp["decided_by"] else ""))
+        if cmp["separating_condition"]:
+            sep = cmp["separating_condition"]
+            print(f"separating condition: {sep['point']} ({sep['sensor']}: {sep['winner_c']:.1f} vs {sep['runner_up_c']:.1f} °C)")
+    g = d["gap_detail"]
+    if g and g["worst_sensor"]:
+        print(f"unexplained gap {g['gap_k']:.3f} K ({g['ratio']:.0f}x the noise floor), largest on {g['worst_sensor']}; "
+              f"when: {g['when']}; nearest candidates: "
+              + (", ".join(f"{n['effect']} ({n['heldout_gap_k']:.3f} K)" for n in g["nearest"]) or "none"))
     if disc.model_out:
         print(f"wrote {disc.model_out}")
     if disc.report:
