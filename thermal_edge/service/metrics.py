@@ -205,6 +205,11 @@ class _LiveCollector(Collector):
                                       value=store.load_errors)
             yield CounterMetricFamily(P + "state_save_errors", "State saves that failed", value=store.save_errors)
             yield CounterMetricFamily(P + "state_saves", "State saves", value=store.saves)
+            yield CounterMetricFamily(P + "state_save_refused", "State saves refused because the file would not load "
+                                      "back (the previous file kept; also counted in state_save_errors)",
+                                      value=store.save_refused)
+            yield CounterMetricFamily(P + "state_temp_files_removed", "Temporary files of interrupted saves removed at start",
+                                      value=store.temp_removed)
         server = m._server
         if server is not None:
             yield CounterMetricFamily(P + "metrics_connections_rejected",
