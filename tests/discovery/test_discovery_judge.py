@@ -58,9 +58,9 @@ def test_close_fits_are_confusable_and_far_ones_are_not():
     ab = J.compare(a, b, ref, data)
     assert ab.ambiguous
     assert math.isclose(ab.se_diff, _by_hand_se(ea, eb), rel_tol=1e-9)
-    assert math.isclose(ab.share, (ref**2 - b.gap**2) / (ref**2 - a.gap**2), rel_tol=1e-12)
+    assert math.isclose(ab.share, (ref - b.gap) / (ref - a.gap), rel_tol=1e-12)
     ac = J.compare(a, c, ref, data)
-    assert not ac.ambiguous and ac.z > J.Z_SEPARATE and ac.share < ab.share
+    assert not ac.ambiguous and ac.z > J.Z_SEPARATE and ac.share < J.CLOSE_SHARE
 
 
 def test_held_out_data_from_a_new_region_decides():

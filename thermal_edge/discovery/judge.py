@@ -7,8 +7,9 @@ Three questions the ranking by held-out gap alone does not answer:
   blocks of the held-out part (thermal residuals are correlated over minutes, single samples are
   not independent), and the spread of the block means of the *difference* between the two fits
   gives the standard error of that difference (:func:`compare`). Two effects are *confusable*
-  when their held-out gaps differ by less than ``Z_SEPARATE`` standard errors (the share of the
-  winner's explained mean squared error the runner-up explains is reported alongside).
+  when their held-out gaps differ by less than ``Z_SEPARATE`` standard errors, or when the
+  runner-up achieves at least ``CLOSE_SHARE`` of the winner's reduction of the gap (two
+  predictions so alike that even a "significant" difference is far below what matters).
 * **Can data decide?** Where the held-out part reaches an operating region the training part
   never saw (speed, current or ambient outside the training range), the two fits are compared
   there alone: that is data neither was fitted to, in conditions where their forms disagree. A
@@ -39,6 +40,7 @@ from . import fitting as F
 
 N_BLOCKS = 10  # contiguous blocks of the held-out part for the standard errors
 Z_SEPARATE = 2.0  # standard errors that separate two gaps
+CLOSE_SHARE = 0.9  # the runner-up achieves this share of the winner's gap reduction: confusable
 NO_GAP_FACTOR = 2.0  # a gap within this many noise floors (+ min gain) is no gap
 NOVEL_MIN = 30  # held-out samples outside the training range needed to decide by them
 
@@ -80,7 +82,7 @@ class Comparison:
     gap_a: float
     gap_b: float
     se_diff: float  # K: standard error of gap_b - gap_a
-    share: float  # of the held-out MSE the winner explains, the share the runner-up explains
+    share: float  # of the winner's reduction of the held-out gap, the share the runner-up achieves
     ambiguous: bool
     decided_by: str = ""  # the operating region that decided, when one did
     novel_gap_a: float = float("nan")
@@ -106,9 +108,9 @@ def compare(a: F.Fit, b: F.Fit, reference_gap: float, data: F.Data) -> Compariso
     """Compare two fits on the held-out part (see the module docstring for the rule)."""
     la, lb = sample_loss(a, data)[data.split:], sample_loss(b, data)[data.split:]
     d, se = _diff_se(la, lb)
-    ea, eb = reference_gap**2 - a.gap**2, reference_gap**2 - b.gap**2
-    share = eb / ea if ea > 0 else 0.0
-    close = bool(np.isfinite(se) and d < Z_SEPARATE * se)
+    ra, rb = reference_gap - a.gap, reference_gap - b.gap
+    share = rb / ra if ra > 0 else 0.0
+    close = bool((np.isfinite(se) and d < Z_SEPARATE * se) or share >= CLOSE_SHARE)
     return Comparison(a.label, b.label, a.gap, b.gap, se, share, close)
 
 

@@ -238,8 +238,8 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
             assert c is not None
             add("")
             add(f"**Not sure between two:** `{c.b}` explains the residual nearly as well (held-out gap "
-                f"{c.gap_b:.3f} K against {c.gap_a:.3f} K, difference {c.gap_b - c.gap_a:+.3f} ± {c.se_diff:.3f} K; "
-                f"it explains {c.share:.0%} of what the winner explains). This run cannot separate them; "
+                f"{c.gap_b:.3f} K against {c.gap_a:.3f} K, difference {c.gap_b - c.gap_a:+.4f} ± {c.se_diff:.4f} K; "
+                f"it achieves {c.share:.0%} of the winner's reduction of the gap). This run cannot separate them; "
                 + (f"a test run at **{first.point.describe()}** would ({first.point.sensor}: {first.point.t_a:.1f} °C "
                    f"against {first.point.t_b:.1f} °C). " if first.point is not None else "")
                 + "See section 6.")
@@ -435,8 +435,8 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
         f"{J.N_BLOCKS} contiguous blocks of the held-out part (residuals are correlated over minutes):")
     add("")
     rows = [["held-out gap K", _f(c.gap_a), _f(c.gap_b)],
-            ["difference (runner-up − winner) K", "", f"{c.gap_b - c.gap_a:+.3f} ± {c.se_diff:.3f} ({c.z:.1f} SE)"],
-            ["share of the winner's explained MSE", "100%", f"{c.share:.0%}"]]
+            ["difference (runner-up − winner) K", "", f"{c.gap_b - c.gap_a:+.4f} ± {c.se_diff:.4f} ({c.z:.1f} SE)"],
+            ["share of the winner's gap reduction", "100%", f"{c.share:.0%}"]]
     if np.isfinite(c.novel_gap_a):
         rows.append(["held-out gap in the region the training lacks K", _f(c.novel_gap_a), _f(c.novel_gap_b)])
     add(_table(["", f"winner `{c.a}`", f"runner-up `{c.b}`"], rows))

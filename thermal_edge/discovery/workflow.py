@@ -237,7 +237,7 @@ class Discovery:
         p = rd.point
         return {
             "winner": c.a, "runner_up": c.b, "gap_winner_k": c.gap_a, "gap_runner_up_k": c.gap_b,
-            "se_diff_k": c.se_diff, "share_explained": c.share, "ambiguous": c.ambiguous,
+            "se_diff_k": c.se_diff, "share_of_reduction": c.share, "ambiguous": c.ambiguous,
             "decided_by": c.decided_by or None,
             "evidence": [{"variable": e.variable, "sensor": e.sensor, "centers": e.centers, "winner": e.a,
                           "runner_up": e.b} for e in rd.evidence],
