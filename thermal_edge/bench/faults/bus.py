@@ -1,0 +1,426 @@
+"""Fault cases on the bus side: bad frames, floods and a full bus, stale and faulty inputs, the
+derating band at the measured temperature, bus silence, and the security of every listening socket
+(issue 14 and the issue that built the service)."""
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Iterator
+
+from ..common import ROOT
+from . import wire
+from .harness import (GAP_S, SAFE_A, TICK_S, TIMEOUTS_S, Bed, Case, Check, bed, common_checks, env, histogram_quantile,
+                      metric, min_current, reasons_in, received)
+
+SETTLE_S = 0.4  # after a case, before its counters are read: the last frames in flight
+
+
+def _counts(b: Bed) -> tuple[dict[str, int], dict[str, float]]:
+    """Frames the inverter sent and the service's metrics, read while the inverter holds."""
+    assert b.inverter is not None
+    with b.inverter.held() as sent:
+        m = b.service.metrics()
+    return sent, m
+
+
+def _lost(sent0: dict[str, int], m0: dict[str, float], sent1: dict[str, int], m1: dict[str, float]) -> int:
+    """Valid inverter frames sent but not accepted between two readings."""
+    r0, r1 = received(m0), received(m1)
+    return int(sum(max(0, (sent1[n] - sent0[n]) - (r1[n] - r0[n])) for n in wire.INPUT_FRAMES)) if m0 and m1 else -1
+
+
+def _dropped_delta(m0: dict[str, float], m1: dict[str, float]) -> dict[str, int]:
+    out = {}
+    for k, v in m1.items():
+        if k.startswith("thermal_edge_frames_dropped_total{"):
+            d = int(v - m0.get(k, 0.0))
+            if d:
+                out[k.split('reason="')[1].rstrip('"}')] = d
+    return out
+
+
+def _settled(b: Bed, seconds: float = 3.0) -> None:
+    """Let the service leave its start-up state (limits from live inputs)."""
+    time.sleep(seconds)
+
+
+# ----------------------------------------------------------------------------------------------
+def bad_frames(full: bool) -> Iterator[Case]:
+    """Each malformed kind injected between valid traffic; then counter repeats and counter jumps."""
+    n = 50 if full else 5
+    with bed("bad-frames") as b:
+        assert b.inverter is not None
+        _settled(b)
+        for kind in wire.BAD_KINDS:
+            sent0, m0 = _counts(b)
+            t0 = time.time()
+            for k in range(n):
+                b.inverter.inject(wire.bad_frame(kind, k))
+                time.sleep(0.15)
+            time.sleep(SETTLE_S)
+            t1 = time.time()
+            sent1, m1 = _counts(b)
+            dropped = _dropped_delta(m0, m1)
+            did = ("dropped " + ", ".join(f"{v} as {k}" for k, v in sorted(dropped.items())) if dropped else "ignored")
+            did += f"; limits {reasons_in(b.monitor.read(), t0, t1)}"
+            yield Case.of(kind, "bad frames", n, did, common_checks(b, t0, t1), _lost(sent0, m0, sent1, m1))
+        # a repeated counter (a duplicate frame) is dropped; a jump is counted as lost frames
+        sent0, m0 = _counts(b)
+        t0 = time.time()
+        for _ in range(n):
+            b.inverter.repeat_last("INV_Currents")
+            time.sleep(0.15)
+        time.sleep(SETTLE_S)
+        sent1, m1 = _counts(b)
+        dropped = _dropped_delta(m0, m1)
+        yield Case.of("counter_repeated", "bad frames", n, f"dropped {dropped or 'nothing'}",
+                      common_checks(b, t0, time.time()), _lost(sent0, m0, sent1, m1))
+        skip = 5
+        sent0, m0 = _counts(b)
+        t0 = time.time()
+        for _ in range(n):
+            b.inverter.skip("INV_Mechanics", skip)
+            time.sleep(0.2)
+        time.sleep(SETTLE_S)
+        sent1, m1 = _counts(b)
+        counted = int(metric(m1, "thermal_edge_frames_lost_all_total") - metric(m0, "thermal_edge_frames_lost_all_total"))
+        real = skip * n
+        yield Case.of("counter_jump", "bad frames", n, f"{real} frames left out, {counted} counted lost",
+                      common_checks(b, t0, time.time()), abs(real - counted) + max(0, _lost(sent0, m0, sent1, m1)))
+
+
+def floods(full: bool) -> Iterator[Case]:
+    """3,000 bad frames/s of one kind (10 s full, 3 s short) on top of the valid traffic."""
+    seconds = 10.0 if full else 3.0
+    with bed("floods") as b:
+        _settled(b)
+        for kind in ("bad_crc", "unknown_id", "short_dlc", "not_msgpack", "classic_12_bytes", "std_id_0x800"):
+            sent0, m0 = _counts(b)
+            t0 = time.time()
+            rep = _flood(b, kind, 3000, seconds)
+            time.sleep(SETTLE_S)
+            t1 = time.time()
+            sent1, m1 = _counts(b)
+            dropped = _dropped_delta(m0, m1)
+            did = (f"{rep['sent'][kind]} sent in {rep['seconds']:.1f} s; dropped {sum(dropped.values())}"
+                   f"; limits {reasons_in(b.monitor.read(), t0, t1)}")
+            yield Case.of(f"flood_3000fps_{kind}", "floods", rep["sent"][kind], did,
+                          common_checks(b, t0, t1), _lost(sent0, m0, sent1, m1))
+
+
+def _flood(b: Bed, kind: str, rate: float, seconds: float) -> dict:
+    out = subprocess.run([sys.executable, "-m", "thermal_edge.bench.faults.wire", "flood", "--group", b.group, "--port",
+                          str(b.port), "--kind", kind, "--rate", str(rate), "--seconds", str(seconds)],
+                         env=env(), cwd=str(ROOT), capture_output=True, text=True, timeout=seconds + 60)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def full_bus(full: bool) -> Iterator[Case]:
+    """8,000 valid frames/s (a full 1 Mbit/s bus) for 60 s (10 s short): frames lost against the
+    service's own count, false stale inputs, tick p99 and the largest TE_Limits gap (target 150 ms)."""
+    seconds = 60.0 if full else 10.0
+    with bed("full-bus", inverter=False) as b:
+        time.sleep(1.0)
+        m0 = b.service.metrics()
+        t0 = time.time()
+        rss0 = b.service.rss()
+        rep = _flood(b, "valid", 8000, seconds)
+        t_end = time.time()
+        time.sleep(1.0)
+        m1 = b.service.metrics()
+        sent = sum(rep["sent"].values())
+        got = int(sum(received(m1).values()) - sum(received(m0).values()))
+        counted = int(metric(m1, "thermal_edge_frames_lost_all_total") - metric(m0, "thermal_edge_frames_lost_all_total"))
+        lim = b.monitor.read()
+        # the flood starts on a service with no inputs (stale): judge from 1.5 s into it
+        judged = (t0 + max(TIMEOUTS_S.values()) + TICK_S, t_end)
+        stale = sum(1 for t, r in zip(lim.t, lim.reason) if judged[0] <= t <= judged[1] and r == 5)
+        p99 = histogram_quantile(m1, "thermal_edge_tick_duration_seconds", 0.99) * 1e3
+        ts = [t for t in lim.t if t0 <= t <= t_end]
+        max_gap = max((y - x for x, y in zip(ts, ts[1:])), default=float("nan")) * 1e3
+        c = common_checks(b, t0, t_end, gap_limit_s=0.15)
+        c.add(1 if stale else 0, f"{stale} TE_Limits with a false stale input")
+        did = (f"{sent} sent at {sent / rep['seconds']:.0f}/s, {got} accepted, {sent - got} lost in transit, {counted} counted "
+               f"lost; tick p99 <= {p99:.0f} ms (target 20); max gap {max_gap:.0f} ms; RSS {rss0 / 2**20:.0f} -> "
+               f"{b.service.rss() / 2**20:.0f} MiB")
+        yield Case.of(f"full_bus_8000fps_{seconds:.0f}s", "load", sent, did, c, abs((sent - got) - counted))
+
+
+# ----------------------------------------------------------------------------------------------
+def _recovery(b: Bed, t_clear: float, timeout: float = 8.0) -> str:
+    """How long after ``t_clear`` the limit rose above the safe limit again."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        lim = b.monitor.read()
+        t = next((t for t, c in zip(lim.t, lim.current) if t > t_clear and c > SAFE_A + 0.05), None)
+        if t is not None:
+            return f"recovered after {t - t_clear:.1f} s"
+        time.sleep(0.1)
+    return f"not recovered within {timeout:.0f} s"
+
+
+def _safe_after(b: Bed, t_fault: float, t_end: float, delay_s: float) -> str:
+    """When the limit first came down to the safe limit after the fault."""
+    lim = b.monitor.read()
+    t = next((t for t, c in zip(lim.t, lim.current) if t_fault <= t <= t_end and c <= SAFE_A + 0.05), None)
+    return "never at the safe limit" if t is None else f"safe limit after {t - t_fault:.2f} s (allowed {delay_s:.1f} s)"
+
+
+def stale_inputs(full: bool) -> Iterator[Case]:
+    """Each input frame stopped, then all of them: safe limit within the timeout and one tick."""
+    hold = 4.0 if full else 2.0
+    with bed("stale") as b:
+        inv = b.inverter
+        assert inv is not None
+        _settled(b)
+        for frames in [[f] for f in wire.INPUT_FRAMES] + [list(wire.INPUT_FRAMES)]:
+            name = frames[0] if len(frames) == 1 else "all_inputs"
+            timeout = min(TIMEOUTS_S[f] for f in frames)
+            delay = timeout + TICK_S + 0.3  # one tick to notice, margin for the frame cycle
+            t0 = time.time()
+            inv.paused.update(frames)
+            time.sleep(timeout + hold)
+            t_clear = time.time()
+            inv.paused.clear()
+            did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; "
+            did += _recovery(b, t_clear)
+            yield Case.of(f"stale_{name}", "stale inputs", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
+
+
+SENSORS = {"slot_winding": ("INV_T_WindingSlot", "INV_S_WindingSlot"), "end_winding": ("INV_T_EndWinding", "INV_S_EndWinding"),
+           "housing": ("INV_T_Housing", "INV_S_Housing")}
+#: sensor faults: a status, or a value (the raw 0xFFF "no value", and readings outside the valid range)
+SENSOR_FAULTS = {"open_circuit": ("status", 1), "short_circuit": ("status", 2), "not_fitted": ("status", 3),
+                 "raw_4095": ("value", 359.5), "over_range_300c": ("value", 300.0), "under_range_minus45c": ("value", -45.0)}
+
+
+def sensor_faults(full: bool) -> Iterator[Case]:
+    """Every fault kind on each required stator sensor and on all three at once."""
+    hold = 4.0 if full else 2.5
+    delay = 0.1 + TICK_S + 0.3  # one frame cycle, one tick, margin
+    with bed("sensors") as b:
+        inv = b.inverter
+        assert inv is not None
+        _settled(b)
+        normal = dict(inv.signals["INV_StatorTemps"])
+        for which in list(SENSORS) + ["all_three"]:
+            targets = list(SENSORS) if which == "all_three" else [which]
+            for fault, (field, value) in SENSOR_FAULTS.items():
+                sig = dict(normal)
+                for s in targets:
+                    sig[SENSORS[s][1 if field == "status" else 0]] = value
+                t0 = time.time()
+                with inv.lock:
+                    inv.signals["INV_StatorTemps"] = sig
+                time.sleep(hold)
+                t_clear = time.time()
+                with inv.lock:
+                    inv.signals["INV_StatorTemps"] = dict(normal)
+                did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; {_recovery(b, t_clear)}"
+                yield Case.of(f"{which}_{fault}", "faulty sensors", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
+
+
+def band(full: bool) -> Iterator[Case]:
+    """The limit at a hot measured winding: never above the band at the measured temperature, also
+    when the model faults there (issue 14 defect 9)."""
+    hold = 20.0 if full else 8.0
+
+    def hot(temp_c: float) -> dict[str, float]:
+        return {"INV_T_WindingSlot": temp_c, "INV_T_EndWinding": temp_c, "INV_T_Housing": 40.0,
+                "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0, "INV_S_Housing": 0}
+
+    for start_c, hot_c, name in ((150.0, 150.0, "measured_winding_150c"), (80.0, 153.0, "model_fault_at_measured_153c")):
+        with bed(name) as b:
+            inv = b.inverter
+            assert inv is not None
+            with inv.lock:
+                inv.signals["INV_StatorTemps"] = hot(start_c)
+            _settled(b, 4.0)
+            t0 = time.time()
+            with inv.lock:
+                inv.signals["INV_StatorTemps"] = hot(hot_c)
+            time.sleep(hold)
+            t1 = time.time()
+            lim = b.monitor.read()
+            judge = t0 + 0.1 + TICK_S + 0.3
+            did = f"limits {reasons_in(lim, t0, t1)}; lowest {min_current(lim, judge, t1):.2f} A, highest " \
+                  f"{max((c for t, c in zip(lim.t, lim.current) if judge <= t <= t1), default=float('nan')):.2f} A"
+            c = common_checks(b, judge, t1, band_c=hot_c)
+            yield Case.of(name, "band", 1, did, c)
+
+
+def bus_silence(full: bool) -> Iterator[Case]:
+    """The inverter goes silent (the bus goes away for the service) and comes back; and comes back
+    with its counters restarted (an inverter reset)."""
+    silences = (2.0, 10.0, 30.0) if full else (2.0, 6.0)
+    with bed("bus-silence") as b:
+        inv = b.inverter
+        assert inv is not None
+        _settled(b)
+        from .harness import EDGE
+
+        silence_s = float(EDGE["transmit"]["bus_silence_s"])
+        for s in silences:
+            t0 = time.time()
+            inv.paused.update(wire.INPUT_FRAMES)
+            time.sleep(s)
+            t_clear = time.time()
+            inv.paused.clear()
+            delay = min(silence_s, min(TIMEOUTS_S.values())) + TICK_S + 0.3
+            did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; {_recovery(b, t_clear)}"
+            yield Case.of(f"bus_silent_{s:.0f}s", "bus faults", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
+        # inverter reset: silent 1 s, then counters from 0
+        sent0, m0 = _counts(b)
+        t0 = time.time()
+        inv.paused.update(wire.INPUT_FRAMES)
+        time.sleep(1.0)
+        with inv.lock:
+            inv.counters = dict.fromkeys(wire.INPUT_FRAMES, 0)
+        inv.paused.clear()
+        rec = _recovery(b, time.time())
+        time.sleep(SETTLE_S)
+        sent1, m1 = _counts(b)
+        dropped = _dropped_delta(m0, m1)
+        yield Case.of("inverter_reset_counters", "bus faults", 1, f"dropped {dropped or 'nothing'}; {rec}",
+                      common_checks(b, t0, time.time()), _lost(sent0, m0, sent1, m1))
+
+
+# ----------------------------------------------------------------------------------------------
+def _sockets(pid: int) -> list[tuple[str, str, int, str]]:
+    """(protocol, local address, port, state) of every inet socket of the process (/proc)."""
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = fd.readlink().as_posix()
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out = []
+    for proto in ("tcp", "tcp6", "udp", "udp6"):
+        try:
+            lines = Path(f"/proc/{pid}/net/{proto}").read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            p = line.split()
+            if p[9] not in inodes:
+                continue
+            addr_hex, port_hex = p[1].split(":")
+            raw = bytes.fromhex(addr_hex)
+            if len(raw) == 4:
+                addr = socket.inet_ntop(socket.AF_INET, raw[::-1])
+            else:  # four host-order 32-bit words
+                addr = socket.inet_ntop(socket.AF_INET6, b"".join(raw[i:i + 4][::-1] for i in range(0, 16, 4)))
+            state = {"0A": "LISTEN", "07": "UNCONN", "01": "ESTABLISHED"}.get(p[3], p[3])
+            out.append((proto, addr, int(port_hex, 16), state))
+    return out
+
+
+def _host_addresses() -> list[str]:
+    """This host's own non-loopback addresses (``ip -o addr``)."""
+    try:
+        text = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True, timeout=5).stdout
+    except OSError:
+        return []
+    out = []
+    for line in text.splitlines():
+        p = line.split()
+        if len(p) > 3 and p[2] in ("inet", "inet6") and "scope global" in line:
+            out.append(p[3].split("/")[0])
+    return out
+
+
+def _loopback(addr: str) -> bool:
+    return addr.startswith("127.") or addr in ("::1", "::ffff:127.0.0.1")
+
+
+def security(full: bool) -> Iterator[Case]:
+    """Every listening socket of the service; unicast datagrams to the bus port from loopback and
+    to the host's own addresses must not be taken as CAN frames."""
+    n = 100 if full else 20
+    with bed("security") as b:
+        _settled(b, 2.0)
+        socks = _sockets(b.service.pid)
+        tcp = [s for s in socks if s[0].startswith("tcp") and s[3] == "LISTEN"]
+        udp = [s for s in socks if s[0].startswith("udp")]
+        c = Check()
+        c.add(sum(not _loopback(a) for _, a, _, _ in tcp), "a TCP listener beyond loopback")
+        yield Case.of("tcp_listeners_loopback_only", "security", len(tcp),
+                      "listening: " + (", ".join(f"{a}:{p}" for _, a, p, _ in tcp) or "none"), c)
+        c = Check()
+        others = [s for s in tcp if s[2] != b.service.metrics_port]
+        c.add(len(others), "a TCP listener that is not the metrics server")
+        yield Case.of("no_command_listener", "security", len(tcp),
+                      f"TCP listeners other than metrics: {len(others)}; UDP: " + ", ".join(f"[{a}]:{p}" for _, a, p, _ in udp), c)
+        targets = [("127.0.0.1", socket.AF_INET), ("::1", socket.AF_INET6)]
+        targets += [(a, socket.AF_INET6 if ":" in a else socket.AF_INET) for a in _host_addresses()]
+        for addr, family in targets:
+            _, m0 = _counts(b)
+            t0 = time.time()
+            with socket.socket(family, socket.SOCK_DGRAM) as s:
+                for k in range(n):
+                    try:
+                        s.sendto(wire.bad_frame("unknown_id", k), (addr, b.port))
+                    except OSError:
+                        pass
+                    time.sleep(0.005)
+            time.sleep(SETTLE_S)
+            _, m1 = _counts(b)
+            taken = int(metric(m1, "thermal_edge_frames_dropped_total") - metric(m0, "thermal_edge_frames_dropped_total"))
+            c = common_checks(b, t0, time.time())
+            c.add(1 if taken else 0, f"{taken} unicast datagrams taken as CAN frames")
+            kind = "loopback" if _loopback(addr) else "host address"
+            yield Case.of(f"unicast_to_{addr}", "security", n, f"{taken} of {n} taken as frames ({kind})", c)
+
+
+def metrics_abuse(full: bool) -> Iterator[Case]:
+    """200 idle connections to /metrics opened and closed at once; 200 half-sent requests; a scrape
+    storm: no TE_Limits gap over 300 ms."""
+    n = 200
+    with bed("metrics-abuse") as b:
+        _settled(b, 2.0)
+        port = b.service.metrics_port
+        assert port is not None
+        for name, payload in (("idle_connections", b""), ("half_sent_requests", b"GET /metrics HTTP/1.1\r\nHost: x\r\n")):
+            t0 = time.time()
+            conns = []
+            for _ in range(n):  # all at once: non-blocking connects (a full backlog must not stall the bench)
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                s.setblocking(False)
+                s.connect_ex(("127.0.0.1", port))
+                conns.append(s)
+            time.sleep(0.5)
+            connected = 0
+            for s in conns:
+                try:
+                    s.getpeername()
+                    connected += 1
+                    if payload:
+                        s.send(payload)
+                except OSError:
+                    pass
+            time.sleep(3.0 if full else 1.5)
+            for s in conns:
+                s.close()
+            time.sleep(1.5)
+            t1 = time.time()
+            ok = bool(b.service.metrics())
+            did = f"{connected} of {n} connected; limits {reasons_in(b.monitor.read(), t0, t1)}; metrics {'served' if ok else 'NOT served'} after"
+            yield Case.of(f"metrics_{n}_{name}", "metrics abuse", n, did, common_checks(b, t0, t1))
+        t0 = time.time()
+        done = 0
+        while time.time() - t0 < (10.0 if full else 3.0):
+            done += bool(b.service.metrics())
+        t1 = time.time()
+        yield Case.of("metrics_scrape_storm", "metrics abuse", done, f"{done / (t1 - t0):.0f} scrapes/s served",
+                      common_checks(b, t0, t1))
+
+
+GROUPS = {"bad_frames": bad_frames, "floods": floods, "load": full_bus, "stale": stale_inputs, "sensors": sensor_faults,
+          "band": band, "bus": bus_silence, "security": security, "metrics": metrics_abuse}
+__all__ = ["GROUPS", "GAP_S"]

@@ -1,0 +1,501 @@
+"""Fault cases on the persistence and configuration side: SIGKILL at random moments (also during
+saves) and SIGTERM with learned parameters, corrupt or foreign state files, broken configurations,
+and an accelerated soak with adaptation while bad frames arrive (issue 14 and the issue that built
+the service)."""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import yaml
+
+from ..common import ROOT
+from . import wire
+from .harness import (HOT_SPOT_BAND, START_TIMEOUT_S, Bed, Case, Check, Inverter, Monitor, Service, common_checks, edge_config, env, free_port, gaps,
+                      metric, service_config_path, thermal_edge_cmd, unique_group, unit_memory_max_bytes)
+
+STATE = "state.json"
+LEARNED_SCALE = 1.2  # learned parameters: the nominal value moved by this factor (inside the bounds)
+
+
+def _model_parameters() -> dict[str, dict[str, Any]]:
+    """The adaptable parameters of the service's model file with their value and bounds."""
+    raw = yaml.safe_load(service_config_path("machines", "pm10kw.yaml").read_text())
+    return {k: v for k, v in raw["parameters"].items() if isinstance(v, dict) and v.get("adaptable")}
+
+
+def learned_parameters() -> dict[str, float]:
+    """Three adapted parameters as the service would persist them: moved off nominal, in bounds."""
+    p = _model_parameters()
+    return {k: min(float(p[k]["max"]), float(p[k]["value"]) * LEARNED_SCALE) for k in ("k_a_ew", "c_p_ew", "k_r_ew")}
+
+
+def parameter_metrics(m: dict[str, float]) -> dict[str, float]:
+    """``thermal_edge_parameter_value`` by parameter name."""
+    out = {}
+    for k, v in m.items():
+        if k.startswith("thermal_edge_parameter_value{"):
+            out[k.split('parameter="')[1].split('"')[0]] = v
+    return out
+
+
+def params_lost(expected: dict[str, float], got: dict[str, float], rel: float = 1e-9) -> int:
+    """Parameters of ``expected`` missing from ``got`` or different (relative ``rel``)."""
+    return sum(1 for k, v in expected.items() if k not in got or not math.isclose(got[k], v, rel_tol=rel, abs_tol=1e-12))
+
+
+def _bed(svc: Service, mon: Monitor, group: str, port: int, workdir: Path) -> Bed:
+    """A service and its monitor as the common checks take them."""
+    return Bed(workdir, group, port, svc, mon, None, None)
+
+
+class Rig:
+    """One group/port with the monitor and the inverter; services started on it one after another."""
+
+    def __init__(self, name: str) -> None:
+        self.workdir = Path(tempfile.mkdtemp(prefix=f"te-faults-{name}-"))
+        self.group, self.port = unique_group(), free_port()
+        self.monitor = Monitor(self.group, self.port, self.workdir)
+        self.inverter = Inverter(self.group, self.port).start()
+        self.n = 0
+
+    def config(self, state_dir: Path, **sections: Any) -> dict[str, Any]:
+        return edge_config(state_dir, self.group, self.port, **sections)
+
+    def start(self, raw: dict[str, Any], timeout: float = START_TIMEOUT_S) -> tuple[Service, float | None]:
+        """A service started on this rig and the time from spawn to its first TE_Limits (s; None
+        if none within ``timeout``)."""
+        self.n += 1
+        svc = Service(raw, self.workdir, f"svc{self.n}")
+        svc.start()
+        first = self.monitor.first_after(svc.started, timeout)
+        svc.wait_metrics(3)
+        return svc, None if first is None else first - svc.started
+
+    def close(self) -> None:
+        self.inverter.close()
+        self.monitor.close()
+        shutil.rmtree(self.workdir, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def rig(name: str) -> Iterator[Rig]:
+    r = Rig(name)
+    try:
+        yield r
+    finally:
+        r.close()
+
+
+def _seed(r: Rig, state_dir: Path) -> tuple[dict[str, Any], float]:
+    """A state file written by the service itself (thermal state included), then given learned
+    parameters; and the time from spawn to the first TE_Limits of a clean start (s)."""
+    svc, first = r.start(r.config(state_dir))
+    time.sleep(3.0)
+    svc.stop()
+    st = json.loads((state_dir / STATE).read_text())
+    st["parameters"] = {**st.get("parameters", {}), **learned_parameters()}
+    st["param_version"] = int(st.get("param_version", 0)) + 1
+    (state_dir / STATE).write_text(json.dumps(st))
+    if first is None:
+        raise RuntimeError(f"the service sent no TE_Limits within {START_TIMEOUT_S:g} s of a clean start:\n"
+                           + svc.log_text()[-2000:])
+    return st, first
+
+
+def _state_check(state_dir: Path, learned: dict[str, float]) -> tuple[int, str]:
+    """Items of the persisted state lost: the learned parameters, and the thermal state."""
+    try:
+        st = json.loads((state_dir / STATE).read_text())
+    except (OSError, ValueError) as exc:
+        return len(learned) + 1, f"state.json unreadable ({type(exc).__name__})"
+    lost = params_lost(learned, {k: float(v) for k, v in st.get("parameters", {}).items()})
+    lost += 0 if st.get("T") else 1
+    return lost, ""
+
+
+# ----------------------------------------------------------------------------------------------
+def crash_safety(full: bool) -> Iterator[Case]:
+    """SIGKILL at random moments (saves every 0.2 s, so many kills fall into one) and SIGTERM; after
+    each the state file must hold the learned parameters and the thermal state, and the next start
+    must load it (nothing moved aside)."""
+    kills = 200 if full else 10
+    terms = 20 if full else 3
+    rng = random.Random(14)
+    with rig("crash") as r:
+        sd = r.workdir / "state"
+        _, clean_s = _seed(r, sd)
+        learned = learned_parameters()
+        raw = r.config(sd, state={"save_interval_s": 0.2})
+        lost = 0
+        during_save = 0
+        starts: list[float] = []
+        c = Check()
+        notes: list[str] = []
+        for k in range(kills):
+            svc, first = r.start(raw)
+            if first is None:
+                c.add(1, f"kill {k}: no TE_Limits within {START_TIMEOUT_S:g} s of the start")
+            else:
+                starts.append(first)
+            if k == 0 or k == kills - 1:  # the loaded parameters as the service reports them
+                lost += params_lost(learned, parameter_metrics(svc.metrics()), rel=1e-6)
+            if k % 2:  # at a random moment
+                time.sleep(rng.uniform(0.0, 1.5))
+            else:  # the moment a save's temporary file appears (polled every ~0.2 ms)
+                deadline = time.monotonic() + 3.0
+                while time.monotonic() < deadline and not any(".tmp" in p.name for p in sd.iterdir()):
+                    time.sleep(0.0002)
+            t_kill = time.time()
+            svc.kill(signal.SIGKILL)
+            assert svc.proc is not None
+            svc.proc.wait()
+            if first is not None:  # TE_Limits while this run lived
+                g = gaps(r.monitor.read(), svc.started + first, t_kill)
+                c.add(len(g), f"kill {k}: TE_Limits gap(s) of {', '.join(f'{x * 1e3:.0f}' for x in g)} ms while up")
+            during_save += any(p.name.startswith(STATE + ".tmp") or p.name.endswith(".tmp") for p in sd.iterdir())
+            n, why = _state_check(sd, learned)
+            lost += n
+            if why:
+                notes.append(why)
+            c.add(svc.tracebacks(), f"kill {k}: traceback")
+        aside = len(list(sd.glob(STATE + ".corrupt-*")))
+        lost += aside
+        did = (f"{kills} SIGKILLs, {during_save} left a temp file (killed in a save); {aside} state files moved aside; "
+               f"start to first TE_Limits {min(starts, default=math.nan):.1f}-{max(starts, default=math.nan):.1f} s "
+               f"(clean start {clean_s:.1f} s)" + (f"; {notes[0]}" if notes else ""))
+        yield Case.of("sigkill_random_moments", "crash safety", kills, did, c, lost)
+        # SIGTERM: exit 0 and a saved state with everything learned
+        c = Check()
+        lost = 0
+        codes = []
+        for _ in range(terms):
+            svc, first = r.start(raw)
+            time.sleep(rng.uniform(0.5, 2.0))
+            before = (sd / STATE).stat().st_mtime_ns
+            code = svc.stop()
+            codes.append(code)
+            c.add(int(code != 0), f"SIGTERM exit {code}")
+            c.add(svc.tracebacks(), "traceback")
+            n, _ = _state_check(sd, learned)
+            lost += n + int((sd / STATE).stat().st_mtime_ns == before)
+        yield Case.of("sigterm_saves", "crash safety", terms, f"exit codes {sorted(set(codes), key=str)}; state saved each time",
+                      c, lost)
+
+
+# ----------------------------------------------------------------------------------------------
+def _valid_state(seed: dict[str, Any]) -> bytes:
+    return json.dumps(seed).encode()
+
+
+def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callable[[Path], None], bool]]:
+    """Corrupt or foreign state files: name -> (write it into a state dir, whether it is usable and
+    must be kept with its parameters)."""
+
+    def write(data: bytes) -> Callable[[Path], None]:
+        return lambda d: (d.mkdir(parents=True, exist_ok=True), (d / STATE).write_bytes(data))  # type: ignore[func-returns-value]
+
+    def with_(**kw: Any) -> Callable[[Path], None]:
+        return write(json.dumps({**seed, **kw}).encode())
+
+    def big(d: Path) -> None:  # 256 MiB of valid JSON numbers
+        d.mkdir(parents=True, exist_ok=True)
+        head = json.dumps({**seed, "T": []})[:-1].replace('"T": []', '"T": [')
+        with open(d / STATE, "wb") as fh:
+            fh.write(head.encode())
+            chunk = b"25.0," * (1 << 20)
+            for _ in range(256 // 5 + 1):
+                fh.write(chunk)
+            fh.write(b"25.0]}")
+
+    def temp_left(d: Path) -> None:
+        write(_valid_state(seed))(d)
+        (d / f"{STATE}.tmp-99999").write_bytes(_valid_state(seed)[:100])
+
+    def directory(d: Path) -> None:
+        (d / STATE).mkdir(parents=True)
+
+    def symlink(target: str) -> Callable[[Path], None]:
+        return lambda d: (d.mkdir(parents=True, exist_ok=True), os.symlink(target, d / STATE))  # type: ignore[func-returns-value]
+
+    def fifo(d: Path) -> None:
+        d.mkdir(parents=True, exist_ok=True)
+        os.mkfifo(d / STATE)
+
+    valid = _valid_state(seed)
+    digits = b'{"format": "thermal_edge.state", "version": 1, "model": "pm10kw", "saved_at": 1' + b"0" * 5000 + b', "parameters": {}}'
+    roundoff = dict(seed["parameters"], c_p_ew=299.99999999999994)
+    return {
+        "nested_brackets_100k": (write(b"[" * 100_000), False),
+        "nested_objects_100k": (write(b'{"a":' * 100_000), False),
+        "number_5000_digits": (write(digits), False),
+        "file_256mib": (big, False),
+        "decisions_abc": (with_(decisions="abc"), False),
+        "truncated": (write(valid[: len(valid) // 2]), False),
+        "binary_garbage": (write(random.Random(2).randbytes(4096)), False),
+        "empty": (write(b""), False),
+        "json_null": (write(b"null"), False),
+        "foreign_format": (with_(format="something.else"), False),
+        "other_model": (with_(model="pm99kw"), False),
+        "version_99": (with_(version=99), False),
+        "nan_in_T": (write(_valid_state(seed).replace(b'"T": [', b'"T": [NaN, ', 1)), False),
+        "parameters_a_list": (with_(parameters=[1, 2]), False),
+        "T_wrong_length": (with_(T=seed["T"][:5]), False),
+        "parameter_out_of_bounds": (with_(parameters=dict(seed["parameters"], c_p_ew=5000.0)), False),
+        "utf16_encoded": (write(json.dumps(seed).encode("utf-16")), False),
+        "huge_model_name_50mb": (with_(model="x" * (50 << 20)), False),
+        "state_is_a_directory": (directory, False),
+        "symlink_to_dev_zero": (symlink("/dev/zero"), False),
+        "fifo": (fifo, False),
+        "temp_file_left_over": (temp_left, True),
+        "parameter_at_bound_roundoff": (with_(parameters=roundoff), True),
+    }
+
+
+def corrupt_states(full: bool) -> Iterator[Case]:
+    """Each corrupt or foreign state file: the service starts, sends TE_Limits within 1 s of a clean
+    start's time, moves the file aside (or, if usable, keeps its parameters), stays below the unit's
+    MemoryMax; and a usable file survives a SIGTERM and the next start."""
+    cap = unit_memory_max_bytes()
+    with rig("states") as r:
+        seed_dir = r.workdir / "seed"
+        seed, clean_s = _seed(r, seed_dir)
+        for name, (prepare, usable) in _state_variants(seed, full).items():
+            sd = r.workdir / f"state-{name}"
+            prepare(sd)
+            svc, first = r.start(r.config(sd), timeout=clean_s + 5.0)
+            t0 = time.time()
+            time.sleep(1.5)
+            m = svc.metrics()
+            peak = svc.peak_rss
+            c = common_checks(_bed(svc, r.monitor, r.group, r.port, r.workdir), t0, time.time())
+            c.add(int(first is None or first > clean_s + 1.0),
+                  f"first TE_Limits {first if first is None else round(first, 2)} s after spawn (clean start {clean_s:.2f} s)")
+            c.add(int(peak > cap), f"peak RSS {peak / 2**20:.0f} MiB above MemoryMax {cap / 2**20:.0f} MiB")
+            aside = list(sd.glob(STATE + ".corrupt-*"))
+            temps = [p.name for p in sd.iterdir() if ".tmp" in p.name]
+            lost = 0
+            if usable:
+                expected = dict(learned_parameters())
+                if name == "parameter_at_bound_roundoff":
+                    expected["c_p_ew"] = 300.0
+                lost = params_lost(expected, parameter_metrics(m), rel=1e-6) + len(aside)
+                c.add(len(temps), f"temp file(s) left: {temps}")
+            else:
+                c.add(int(not aside), "the file was not moved aside (the next start meets it again)")
+            code = svc.stop()
+            if usable:  # the state it saves on SIGTERM loads again with the same parameters
+                svc2, first2 = r.start(r.config(sd))
+                time.sleep(1.0)
+                lost += params_lost(expected, parameter_metrics(svc2.metrics()), rel=1e-6)
+                lost += len(list(sd.glob(STATE + ".corrupt-*"))) - len(aside)
+                c.add(svc2.tracebacks(), "traceback on the restart")
+                svc2.stop()
+            did = (f"first TE_Limits {'none' if first is None else f'{first:.1f} s'}; "
+                   f"{'moved aside' if aside else 'kept'}; load errors {metric(m, 'thermal_edge_state_load_errors_total'):.0f}; "
+                   f"peak RSS {peak / 2**20:.0f} MiB; exit {code}")
+            yield Case.of(f"state_{name}", "corrupt state", 1, did, c, lost)
+            shutil.rmtree(sd, ignore_errors=True)
+
+
+# ----------------------------------------------------------------------------------------------
+def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
+    """Broken configurations: name -> the YAML mapping, or raw bytes, or None (no file at all)."""
+
+    def set_(path: str, value: Any) -> dict[str, Any]:
+        raw = json.loads(json.dumps(base))
+        *parents, key = path.split(".")
+        node = raw
+        for p in parents:
+            node = node[p]
+        if value is _DELETE:
+            del node[key]
+        else:
+            node[key] = value
+        return raw
+
+    a_file = workdir / "a-file"
+    a_file.write_text("not a directory\n")
+    return {
+        "limits_period_0.5s": set_("transmit.limits_period_s", 0.5),
+        "bus_key_typo_chanel": set_("bus.chanel", "ff15::1"),
+        "state_dir_is_a_file": set_("state.dir", str(a_file)),
+        "state_dir_cannot_be_created": set_("state.dir", "/proc/te-faults/state"),
+        "unknown_model_parameter": set_("model.parameters", {"R_bogus": 1.0}),
+        "unknown_top_level_key": set_("bogus", 1),
+        "negative_safe_current": set_("derating.safe_current_a", -3),
+        "safe_current_above_max": set_("derating.safe_current_a", 50.0),
+        "negative_timeout": set_("timeouts.INV_Currents", -1.0),
+        "unknown_frame_in_timeouts": set_("timeouts.INV_Bogus", 1.0),
+        "clock_mode_sundial": set_("clock.mode", "sundial"),
+        "tick_zero": set_("clock.tick_s", 0),
+        "model_file_missing": set_("model.path", "/nonexistent/pm10kw.yaml"),
+        "dbc_file_missing": set_("codec.dbc", "/nonexistent/thermal_edge.dbc"),
+        "input_not_mapped": set_("signals.inputs", {k: v for k, v in base["signals"]["inputs"].items() if k != "i_rms"}),
+        "sensor_signal_unknown": set_("signals.sensors", {**base["signals"]["sensors"],
+                                                          "housing": {"frame": "INV_StatorTemps", "signal": "INV_T_Bogus"}}),
+        "valid_range_reversed": set_("signals.valid_range_c", [250, -40]),
+        "band_warn_above_max": set_("derating.limits", {**base["derating"]["limits"],
+                                                        "hot_spot": {"warn_c": 160, "max_c": 155, "reason": "winding"}}),
+        "max_current_a_string": set_("derating.max_current_a", "forty"),
+        "max_current_a_nan": set_("derating.max_current_a", float("nan")),
+        "metrics_port_70000": set_("metrics.port", 70000),
+        "metrics_address_not_an_address": set_("metrics.address", "not an address"),
+        "bus_interface_unknown": set_("bus.interface", "nonexistent_interface"),
+        "udp_channel_unicast_address": set_("bus.channel", "192.0.2.1"),
+        "adaptation_method_unknown": set_("adaptation.method", "guessing"),
+        "yaml_syntax_error": b"bus: [unclosed\n",
+        "empty_file": b"",
+        "yaml_a_list": b"- 1\n- 2\n",
+        "binary_garbage": bytes(range(256)) * 4,
+        "config_file_missing": None,
+    }
+
+
+_DELETE = object()
+
+
+def broken_configs(full: bool) -> Iterator[Case]:
+    """Each broken configuration through ``run --check`` (and, full, a real start too): exit 2, one
+    line naming the file (the configuration, or the file it names that cannot be read), no traceback."""
+    workdir = Path(tempfile.mkdtemp(prefix="te-faults-configs-"))
+    try:
+        base = edge_config(workdir / "state", unique_group(), free_port())
+        for name, variant in _config_variants(base, workdir).items():
+            path = workdir / f"edge-{name}.yaml"
+            if isinstance(variant, dict):
+                path.write_text(yaml.safe_dump(variant, sort_keys=False))
+            elif isinstance(variant, bytes):
+                path.write_bytes(variant)
+            c = Check()
+            seen = []
+            msg = ""
+            for how in (["--check"], []) if full else (["--check"],):
+                code, err = _run_config(path, how)
+                lines = [ln for ln in err.splitlines() if ln.strip()]
+                what = "check" if how else "start"
+                c.add(int(code != 2), f"{what}: exit {code}")
+                c.add(int("Traceback" in err), f"{what}: traceback")
+                c.add(int(code == 2 and len(lines) != 1), f"{what}: {len(lines)} lines on stderr")
+                seen.append(f"{what} exit {code}")
+                msg = lines[-1] if code == 2 and lines else msg
+            if msg and name != "config_file_missing":
+                c.add(int(path.name not in msg and "/nonexistent/" not in msg), "the line does not name the file")
+            did = ", ".join(seen) + (f": {msg[:110]}" if msg else "")
+            yield Case.of(f"config_{name}", "broken configs", len(seen), did, c)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+def _run_config(path: Path, extra: list[str], start_timeout: float = 10.0) -> tuple[int | None, str]:
+    """Exit code and stderr of ``thermal-edge run --config path`` (+ ``extra``); a service still
+    running after ``start_timeout`` s accepted the configuration: it is stopped, exit code None."""
+    proc = subprocess.Popen(thermal_edge_cmd() + ["run", "--config", str(path)] + extra, cwd=str(path.parent),
+                            env=env(service=True), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        _, err = proc.communicate(timeout=start_timeout)
+        return proc.returncode, err.decode(errors="replace")
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            _, err = proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+        return None, err.decode(errors="replace")
+
+
+# ----------------------------------------------------------------------------------------------
+def soak(full: bool) -> Iterator[Case]:
+    """An accelerated closed-loop run (frame clock, the project's inverter emulator as the normal
+    traffic, the model off by the paper's Table 4, adaptation on with a short period) while bad
+    frames arrive all along: 7 days full, 2 h short. TE_Limits, the true hot spot (a failure to
+    derate), frames lost, RSS, and the adapted state loadable at the end."""
+    hours = 168.0 if full else 2.0
+    workdir = Path(tempfile.mkdtemp(prefix="te-faults-soak-"))
+    group, port = unique_group(), free_port()
+    mon = Monitor(group, port, workdir)
+    try:
+        from ..sim.inverter import table4_parameters
+        from ..lptn import load_model
+
+        model = load_model(service_config_path("machines", "pm10kw.yaml"))
+        raw = edge_config(workdir / "state", group, port, clock="frame", adapt=True,
+                          model={"parameters": table4_parameters(model)},
+                          timeouts={"INV_Currents": 2.0, "INV_Mechanics": 2.0, "INV_StatorTemps": 3.0, "INV_AmbientTemps": 3.0},
+                          transmit={"bus_silence_s": 5.0},
+                          adaptation={"period_s": 60, "min_window_s": 600},
+                          codec={"resync_after_cycles": 1000})
+        svc = Service(raw, workdir)
+        svc.start()
+        first = mon.first_after(svc.started, START_TIMEOUT_S)
+        svc.wait_metrics(5)
+        rss0 = svc.rss()
+        summary = workdir / "summary.json"
+        cmd = [sys.executable, "-m", "thermal_edge.sim.inverter", "--interface", "udp_multicast", "--channel", group,
+               "--port", str(port), "--model", str(service_config_path("machines", "pm10kw.yaml")),
+               "--cycle", str(service_config_path("cycles", "varied_drive.yaml")), "--duration", str(hours * 3600),
+               "--speed", "0", "--t0", "1700000000", "--current-period", "0.1", "--temperature-period", "1.0",
+               "--plant-dt", "0.5", "--summary", str(summary), "--flow-timeout", "2.0"]
+        t0 = time.time()
+        emu = subprocess.Popen(cmd, env=env(), cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        sock = wire.sender_socket(group)
+        bad = 0
+        kinds = ("bad_crc", "unknown_id", "not_msgpack", "classic_12_bytes")
+        while emu.poll() is None:  # bad frames all along, 20 a second
+            sock.sendto(wire.bad_frame(kinds[bad % len(kinds)], bad), (group, port))
+            bad += 1
+            time.sleep(0.05)
+            t1 = time.time()
+        sock.close()
+        err = emu.stderr.read().decode(errors="replace") if emu.stderr else ""
+        time.sleep(1.0)
+        m = svc.metrics()
+        rss1 = svc.rss()
+        c = common_checks(_bed(svc, mon, group, port, workdir), t0, t1)
+        s = json.loads(summary.read_text()) if summary.exists() else {}
+        sent = sum(s.get("frames_sent", {}).values())
+        got = int(sum(m.get(f'thermal_edge_frames_received_total{{frame="{n}"}}', 0.0) for n in wire.INPUT_FRAMES))
+        hot = s.get("true_max_c", {}).get("hot_spot", math.nan)
+        c.add(int(not hot < HOT_SPOT_BAND[1]), f"true hot spot {hot:.1f} degC reached the maximum {HOT_SPOT_BAND[1]:g}")
+        c.add(int(emu.returncode != 0), f"emulator exit {emu.returncode}: {err[-200:]}")
+        did = (f"{s.get('sim_seconds', 0) / 3600:.1f} h simulated in {t1 - t0:.0f} s; true hot spot max {hot:.1f} degC; "
+               f"{bad} bad frames; RSS {rss0 / 2**20:.0f} -> {rss1 / 2**20:.0f} MiB; first TE_Limits "
+               f"{'none' if first is None else f'{first - svc.started:.1f} s'}")
+        yield Case.of(f"soak_{hours:g}h_accelerated", "soak", int(s.get("sim_seconds", 0)), did, c, max(0, sent - got))
+        # adaptation under bad frames: accepted sets, parameters in bounds, the state loads again
+        accepted = int(metric(m, "thermal_edge_adaptation_accepted_total"))
+        svc.stop()
+        c = Check()
+        c.add(svc.tracebacks(), "traceback")
+        bounds = _model_parameters()
+        params = parameter_metrics(m)
+        out = sum(1 for k, v in params.items() if k in bounds and not float(bounds[k]["min"]) <= v <= float(bounds[k]["max"]))
+        c.add(out, f"{out} parameter(s) outside their bounds")
+        svc2 = Service(raw, workdir, "svc-restart")
+        svc2.start()
+        svc2.wait_metrics(START_TIMEOUT_S)
+        time.sleep(1.0)
+        after = parameter_metrics(svc2.metrics())
+        lost = params_lost(params, after, rel=1e-6) + len(list((workdir / "state").glob(STATE + ".corrupt-*")))
+        svc2.stop()
+        yield Case.of("adaptation_under_bad_frames", "adaptation", accepted,
+                      f"{accepted} parameter sets accepted, {len(params)} parameters reported, all reloaded after restart: "
+                      f"{'yes' if not lost else 'no'}", c, lost)
+    finally:
+        mon.close()
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+GROUPS = {"crash": crash_safety, "states": corrupt_states, "configs": broken_configs, "soak": soak}
