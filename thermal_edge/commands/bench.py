@@ -6,6 +6,7 @@ import json
 
 from ..bench import jacobian, paper
 from ..bench.common import table
+from .common import add_set_arg, split_sets
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -44,6 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
+    rl = which.add_parser("real", help="online adaptation on the real Paderborn machine from the published and wrong starts")
+    rl.add_argument("--json", action="store_true", help="print one JSON object")
+    add_set_arg(rl)
+    rl.set_defaults(func=run_real)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
@@ -161,6 +166,36 @@ def run_fleet(args: argparse.Namespace) -> int:
         print(json.dumps(r, indent=2, default=float))
         return 0
     print(fleet.format_result(r))
+    return 0
+
+
+def run_real(args: argparse.Namespace) -> int:
+    from ..bench import real
+
+    r = real.run(sets=split_sets(args.set))
+    if args.json:
+        print(json.dumps(r, indent=2, default=float))
+        return 0
+    if "skipped" in r:
+        print(f"bench real skipped: {r['skipped']}")
+        return 0
+    print(f"Paderborn {r['run']}, adapted from {' + '.join(r['adapted_from'])} only; MSE K² per target "
+          "(trace: each period predicted open loop from the observer's state; fixed: the same, parameters never "
+          "changed; observer: live estimate; coverage: readings inside its 95 % band; EKF: its final parameters open loop)")
+    for name, st in r["starts"].items():
+        f = ", ".join(f"{k} x{v:g}" for k, v in st["factors"].items()) or "published parameters"
+        print(f"\n{name} ({f}): {st['promoted']} challengers promoted; adaptation step median "
+              f"{st['adapt_step_median_s']:.3f} s")
+        targets = [k for k, v in st.items() if isinstance(v, dict) and "mse" in v]
+        print(table(
+            ["target", "seen", "fixed", "trace", "observer", "fixed observer", "coverage", "EKF open loop"],
+            [[t, "yes" if st[t]["seen"] else "no", st[t]["fixed_mse"], st[t]["mse"], st[t]["observer_mse"],
+              st[t]["fixed_observer_mse"], st[t]["band_coverage"], st[t]["ekf_open_loop_mse"]] for t in targets]
+            + [["mean", "", st["mean"]["fixed_mse"], st["mean"]["mse"], st["mean"]["observer_mse"],
+                st["mean"]["fixed_observer_mse"], "", ""]],
+        ))
+        print("final vs published: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["final_vs_published_pct"].items())
+              + "; EKF: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["ekf_params_vs_published_pct"].items()))
     return 0
 
 

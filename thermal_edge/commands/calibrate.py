@@ -8,7 +8,7 @@ import numpy as np
 from ..bench.common import table
 from ..data import FORMATS, read_run
 from ..estimation.calibrate import calibrate, progress_bar, write_calibrated
-from .common import add_model_args, model_from_args
+from .common import add_model_args, add_set_arg, model_from_args, parse_sets
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -23,6 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--generations", type=int, default=30, help="differential-evolution generations")
     p.add_argument("--popsize", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    add_set_arg(p)
     p.set_defaults(func=run)
 
 
@@ -32,11 +33,13 @@ def _names(arg: str | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     model = model_from_args(args)
+    sets = parse_sets(model, args.set)  # the starting values; written to --out with the fitted ones
+    model = model.with_parameters(sets) if sets else model
     runs = [read_run(r, args.format) for r in args.run]
     res = calibrate(model, runs, _names(args.params), _names(args.sensors), args.decimate, args.generations,
                     args.popsize, args.seed, progress=progress_bar())
     values = dict(zip(res.names, map(float, res.values)))
-    write_calibrated(args.model, values, args.out, note=", ".join(args.run))
+    write_calibrated(args.model, {**sets, **values}, args.out, note=", ".join(args.run))
     lo, hi = model.bounds()
     idx = model.parameter_index(res.names)
     unc = res.uncertainty

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from ..data import FORMATS, read_run
+from .common import add_set_arg, parse_sets
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -39,6 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--no-report", action="store_true", help="with --out: write the model only, no report")
     p.add_argument("--list-effects", action="store_true", help="list the effect catalogue and the model's targets")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_set_arg(p)
     p.set_defaults(func=run)
 
 
@@ -81,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
 
     raw = hidden.read_document(args.model)
     build = hidden.builder(args.model, args.data_dir)
+    for k, v in parse_sets(build(raw), args.set).items():  # as if the model file said so
+        raw["parameters"][k]["value"] = v
     rec = read_run(args.run, args.format)
     opt = workflow.Options(
         sensors=[s.strip() for s in args.sensors.split(",") if s.strip()] if args.sensors else None,

@@ -18,7 +18,7 @@ from ..discovery import hidden
 from ..sim.cycles import cycle_run, load_cycle
 from ..sim.inverter import write_candump
 from ..sim.plant import simulate_plant
-from .common import add_model_args
+from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
 
 
@@ -59,7 +59,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                    help="candump: INV_StatorTemps/INV_AmbientTemps period, s (default 0.1)")
     p.add_argument("--t0", type=float, default=1.7e9, help="candump: timestamp of the first frame, s since the epoch")
     p.add_argument("--duration", type=float, help="override the cycle's duration, s")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="plant parameter (repeatable)")
+    add_set_arg(p, "--param")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:TARGET][=PARAM=VALUE,...]",
                    help="hide a catalogue effect in the plant (repeatable; list below)")
     p.add_argument("--noise", type=float, default=0.1, help="PT100 noise sigma, K (default 0.1)")
@@ -68,19 +68,6 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_simulate_args(p)
     p.add_argument("--all-nodes", action="store_true", help="also write every node's true temperature (T_<node>)")
     p.set_defaults(func=run)
-
-
-def parse_params(items: list[str]) -> dict[str, float]:
-    out = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise KeyError(f"--param {item!r}: expected NAME=VALUE")
-        try:
-            out[name.strip()] = float(value)
-        except ValueError:
-            raise KeyError(f"--param {item!r}: {value!r} is not a number") from None
-    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -99,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
     cmd = ["thermal-edge", "simulate", "--model", args.model, "--cycle", args.cycle]
     for e in args.effect:
         cmd += ["--effect", e]
-    for item in args.param:
-        cmd += ["--param", item]
+    for item in args.set:
+        cmd += ["--set", item]
     if args.duration is not None:
         cmd += ["--duration", f"{args.duration:g}"]
     if args.noise != 0.1:
@@ -117,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
         desc = hidden.describe(resolved, refs)
         comment += f"\n{desc}"
         print(desc)
-    res = simulate_plant(plant, inputs, parse_params(args.param), noise_k=args.noise, resolution_k=args.resolution,
+    res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
                          seed=args.seed, all_nodes=args.all_nodes)
     write_run(args.out, res.run, comment=comment)
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
@@ -130,7 +117,10 @@ def run_candump(args: argparse.Namespace) -> int:
     """The inverter's frames of a simulated run (open loop: no service answers) as a candump log."""
     if args.effect:
         raise KeyError("--effect is not supported with --format candump (the emulator plays the model file)")
-    st = write_candump(args.model, args.cycle, args.out, params=parse_params(args.param), duration_s=args.duration,
+    from ..lptn import load_model
+
+    sets = parse_sets(load_model(args.model, data_dir=args.data_dir), args.set)
+    st = write_candump(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
                        noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
                        current_period_s=args.current_period, temperature_period_s=args.temperature_period)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())

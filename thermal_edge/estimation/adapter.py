@@ -1,7 +1,18 @@
 """The online adapter (paper Fig. 7): every ``period_s`` compare prediction and measurement over the
 last period; above a threshold, screen and optimise the adaptable parameters on the history
-window, then accept the candidate only if it predicts recent data no worse than the current
-parameters (else roll back). Every decision is recorded.
+window. The optimised candidate does not replace the parameters in use (the *champion*) at once:
+it becomes a *challenger*, judged only on data it was not fitted to. At the following decisions
+both predict every sample recorded since, period by period open loop from the recorded state at
+each period's start (as the online trace is scored); the challenger is promoted when its squared error over the seen sensors is lower
+by more than a margin that accounts for the sensor noise and the length of the evidence
+(:func:`judge`), dropped when it is worse by that margin or when ``validate_s`` of evidence has
+not decided it. A candidate judged on its own window would pass by fitting noise and the present
+operating point (``reference/findings.md`` §6). Every decision is recorded with its evidence.
+
+Optimisation starts when the window can identify something: at least one adaptable parameter
+pinned down to ``max_rel_std`` by the window's Fisher information, and no less than
+``min_window_s`` of history (a floor: the Fisher information of a few minutes at one operating
+point is computed from residuals correlated in time and overstates what they separate).
 
 Only data up to the decision time is used: the history holds samples recorded so far, and a
 decision at time ``t`` reads nothing newer than ``t``.
@@ -43,8 +54,9 @@ class AdapterConfig:
     window_s : float
         History window used for estimation, s.
     min_window_s : float
-        No optimisation before this much history (s): minutes of data from one operating point
-        cannot separate capacities from resistances, and a fit on them extrapolates badly.
+        Floor on the history before optimising (s); above it the window's Fisher information
+        decides (``max_rel_std``). Minutes at one operating point cannot separate capacities from
+        resistances, whatever their (time-correlated) residuals suggest.
     decimate : int
         Samples per optimiser step (20 at 1 Hz: 20 s steps, short against the machine's thermal
         time constants; ZOH on the coarse grid is exact for inputs held over each step).
@@ -58,9 +70,16 @@ class AdapterConfig:
     prior_weight : float
         MAP weight toward the offline values (0 = least squares), K².
     validate_s : float
-        Recent data (s) on which candidate and current parameters are compared: a candidate is
-        accepted only if its RMS error over all sensors is no worse and no single sensor's RMS
-        error grows by more than ``sensor_tolerance_k`` (K).
+        Most evidence (s, recorded after the fit) a challenger is judged on; undecided by then, it
+        is dropped. It is promoted only if, besides the margin, no single sensor's RMS error over
+        the evidence grows by more than ``sensor_tolerance_k`` (K).
+    noise_k : float
+        Sensor noise σ (K) assumed in the promotion margin.
+    promote_z : float
+        Noise margin in standard errors of the mean squared-error difference.
+    min_gain : float
+        Share of the champion's error above the noise (MSE − ``noise_k``²) that the challenger
+        must remove over the evidence to be promoted (:func:`judge`).
     method : {"sqp", "gauss_newton", "numerical"}
     params : tuple of str, optional
         Adaptable parameters; default: the model's ``adaptable: true`` ones.
@@ -74,7 +93,7 @@ class AdapterConfig:
     period_s: float = 180.0
     threshold_k: float = 0.25
     window_s: float = 10800.0
-    min_window_s: float = 1800.0
+    min_window_s: float = 600.0
     decimate: int = 20
     max_iter: int = 3
     coverage: float = 0.98
@@ -83,6 +102,9 @@ class AdapterConfig:
     prior_weight: float = 1e-4
     validate_s: float = 1800.0
     sensor_tolerance_k: float = 0.02
+    noise_k: float = 0.15
+    promote_z: float = 2.0
+    min_gain: float = 0.5
     method: str = "sqp"
     params: tuple[str, ...] | None = None
     sensors: tuple[str, ...] | None = None
@@ -91,14 +113,20 @@ class AdapterConfig:
 
 @dataclass
 class Decision:
-    """One adapter decision."""
+    """One adapter decision, with its evidence.
+
+    ``candidate_error_k`` and ``current_error_k`` are the RMS errors (K, seen sensors) of the
+    challenger and the champion over the evidence recorded after the challenger's fit (NaN when
+    no challenger was judged). ``params`` holds the promoted values when ``accepted``;
+    ``challenger`` the values of a candidate fitted at this decision, to be judged later.
+    """
 
     t: float
     error_before_k: float  # RMS over the last period with the current parameters
     triggered: bool
     accepted: bool = False
-    candidate_error_k: float = float("nan")  # validation RMS of the candidate
-    current_error_k: float = float("nan")  # validation RMS of the current parameters
+    candidate_error_k: float = float("nan")
+    current_error_k: float = float("nan")
     selected: tuple[str, ...] = ()
     unidentifiable: tuple[str, ...] = ()
     params: dict[str, float] = field(default_factory=dict)
@@ -106,9 +134,81 @@ class Decision:
     evaluations: int = 0
     duration_s: float = 0.0
     reason: str = ""
+    challenger: dict[str, float] = field(default_factory=dict)
+    challenger_t: float = float("nan")  # when the judged challenger was fitted, s
+    evidence_s: float = 0.0  # length of the evidence it was judged on, s
+    improvement_k2: float = float("nan")  # champion MSE − challenger MSE over the evidence, K²
+    margin_k2: float = float("nan")  # what the improvement had to exceed, K²
 
     def as_dict(self) -> dict[str, object]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class Verdict:
+    """A challenger judged against the champion on evidence neither was fitted to."""
+
+    outcome: str  # "promote", "drop" or "wait"
+    improvement_k2: float
+    margin_k2: float
+    champion_rms: dict[str, float]
+    challenger_rms: dict[str, float]
+    samples: int
+
+
+def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarray], noise_k: float, z: float,
+          min_gain: float, tolerance_k: float, share: float) -> Verdict:
+    """Compare two open-loop predictions' errors (K) per sensor over the same evidence samples.
+
+    The statistic is the mean over the evidence of ``d_k``, the champion's minus the challenger's
+    squared error averaged over the sensors reporting at sample ``k`` (K²). Two margins:
+
+    * sensor noise: white noise of σ ``noise_k`` alone moves the mean by a standard error of
+      ``2 σ rms(Δp) / √n`` (``d_k = Δp_k (p_k + p'_k − 2 y_k)`` with ``Δp`` the difference of the
+      predictions, over all ``n`` readings); the improvement must exceed ``z`` of them;
+    * structure: the improvement must remove a share of the champion's error above the noise
+      (``MSE − σ²``) that falls linearly from all of it, with no evidence, to ``min_gain`` when the
+      full evidence is in (``share`` = evidence / full evidence = 1): a model that is not the
+      machine has parameters that suit one operating point better than another, and gains on
+      the next minutes are undone later unless they are overwhelming or persist.
+
+    Promoted when both margins are met and no sensor's RMS error grows by more than
+    ``tolerance_k``; dropped as soon as the challenger is worse by the noise margin, or when the
+    full evidence is in and it is not promoted; otherwise the verdict waits for more evidence.
+    """
+    final = share >= 1.0
+    names = [s for s in champion if s in challenger]
+    a = np.column_stack([champion[s] for s in names]) if names else np.zeros((0, 0))
+    b = np.column_stack([challenger[s] for s in names]) if names else np.zeros((0, 0))
+    ok = np.isfinite(a) & np.isfinite(b)
+    a2, b2 = np.where(ok, a, 0.0) ** 2, np.where(ok, b, 0.0) ** 2
+    rms = {}
+    for j, s in enumerate(names):
+        m = ok[:, j]
+        rms[s] = (float(np.sqrt(np.mean(a2[m, j]))) if m.any() else float("nan"),
+                  float(np.sqrt(np.mean(b2[m, j]))) if m.any() else float("nan"))
+    cnt = ok.sum(axis=1) if a.size else np.zeros(0, dtype=int)
+    rows = cnt > 0
+    n = int(ok.sum())
+    champ = {s: v[0] for s, v in rms.items()}
+    chal = {s: v[1] for s, v in rms.items()}
+    if rows.sum() < 3:
+        return Verdict("drop" if final else "wait", float("nan"), float("nan"), champ, chal, int(rows.sum()))
+    d = (a2 - b2).sum(axis=1)[rows] / cnt[rows]
+    mean = float(d.mean())
+    mse = float(np.mean(a2[ok]))
+    dp = (a - b)[ok]
+    noise = z * 2.0 * noise_k * float(np.sqrt(np.mean(dp**2) / n))
+    gain = 1.0 - (1.0 - min_gain) * min(share, 1.0)
+    margin = max(noise, gain * max(mse - noise_k**2, 0.0))
+    worse = any(v[1] > v[0] + tolerance_k for v in rms.values())
+    if mean > margin and not worse:
+        outcome = "promote"
+    elif mean < -noise or final:
+        outcome = "drop"
+    else:
+        outcome = "wait"
+    return Verdict(outcome, mean, margin, champ, chal, int(rows.sum()))
 
 
 class _Ring:
@@ -187,6 +287,7 @@ class OnlineAdapter:
         self.decisions: list[Decision] = []
         self.version = 0
         self.last_decision_t: float | None = None
+        self.challenger: tuple[float, np.ndarray] | None = None  # (fitted at, full parameters)
 
     # -- data --------------------------------------------------------------------------------
     def record(self, t: float, inputs: Mapping[str, float], measured: Mapping[str, float], state: np.ndarray) -> None:
@@ -211,28 +312,31 @@ class OnlineAdapter:
                 T0[self.model.node_index(self.model.sensors[s])] = y
         return Window(inputs, meas, T0, self.dt, t)
 
-    def _rms(self, theta: np.ndarray, window: Window, since: float = -np.inf) -> tuple[float, dict[str, float]]:
-        """RMS error of the open-loop prediction over the window, scored from ``since`` on: all
-        sensors together, and per sensor (K). The prediction runs from the window's start, as
-        the model's state is derived after a decision."""
-        traj = self.sim.simulate(theta, window.inputs, window.dt, window.T0)
-        scored = window.t >= since
-        errs = {}
-        for s in self.sensors:
-            e = (traj.node(self.model.sensors[s]) - window.measured[s])[scored]
-            errs[s] = e[np.isfinite(e)]
-        e = np.concatenate(list(errs.values())) if errs else np.zeros(0)
-        per = {s: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan") for s, v in errs.items()}
-        return (float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")), per
+    def _errors(self, theta: np.ndarray, since: float, until: float = np.inf) -> dict[str, np.ndarray]:
+        """Per-sensor errors (K, NaN where not read) of the open-loop prediction from the recorded
+        state at ``since`` (measured nodes at their readings) at the samples in ``(since, until]``."""
+        win = self._window(since)
+        keep = win.t <= until
+        traj = self.sim.simulate(theta, {c: v[keep] for c, v in win.inputs.items()}, win.dt, win.T0)
+        t = win.t[keep]
+        scored = t > t[0]
+        return {s: (traj.node(self.model.sensors[s]) - win.measured[s][keep])[scored] for s in self.sensors}
+
+    def _period_errors(self, theta: np.ndarray, since: float, until: float) -> dict[str, np.ndarray]:
+        """:meth:`_errors` period by period over ``(since, until]``: each ``period_s`` predicted
+        open loop from the recorded state at its start, as the online trace is scored."""
+        parts: list[dict[str, np.ndarray]] = []
+        a = since
+        while a < until - 1e-9:
+            b = min(a + self.config.period_s, until)
+            parts.append(self._errors(theta, a, b))
+            a = b
+        return {s: np.concatenate([p[s] for p in parts]) if parts else np.zeros(0) for s in self.sensors}
 
     def recent_error(self, since: float) -> float:
-        """RMS (K) of the recorded predictions against the readings since ``since``."""
-        _, _, meas, states = self.history.arrays(since)
-        errs = []
-        for s in self.sensors:
-            e = states[:, self.model.node_index(self.model.sensors[s])] - meas[s]
-            errs.append(e[np.isfinite(e)])
-        e = np.concatenate(errs) if errs else np.zeros(0)
+        """RMS (K) over the seen sensors of the current parameters' open-loop prediction from the
+        recorded state at ``since`` (measured nodes at their readings) against the readings after it."""
+        e = np.concatenate([v[np.isfinite(v)] for v in self._errors(self.theta, since).values()])
         return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
     def objective(self, window: Window, names: Sequence[str] | None = None) -> Objective:
@@ -243,54 +347,95 @@ class OnlineAdapter:
 
     # -- the decision ------------------------------------------------------------------------
     def decide(self, t: float) -> Decision:
-        """Check the last period at time ``t`` and adapt if the error is above the threshold."""
+        """Judge a pending challenger on the data recorded since its fit, then, if none is
+        pending and the last period's error is above the threshold, fit a new challenger."""
         cfg = self.config
         t0 = time.perf_counter()
         self.last_decision_t = t
         err = self.recent_error(t - cfg.period_s)
         d = Decision(t=t, error_before_k=err, triggered=bool(err > cfg.threshold_k))
-        if not d.triggered:
-            d.reason = "error below threshold" if np.isfinite(err) else "no readings in the last period"
+        if self.challenger is not None:
+            d.triggered = True
+            self._judge(d, t)
+            if self.challenger is not None:
+                return self._done(d, t0)
+        if not err > cfg.threshold_k:
+            if not d.reason:
+                d.reason = "error below threshold" if np.isfinite(err) else "no readings in the last period"
             return self._done(d, t0)
         t_hist = self.history.arrays()[0]
         if t - t_hist[0] < cfg.min_window_s:
-            d.reason = f"waiting for {cfg.min_window_s:g} s of history before adapting"
+            d.reason = self._also(d, f"waiting for {cfg.min_window_s:g} s of history before adapting")
             return self._done(d, t0)
-        full = self._window(t - cfg.window_s)
-        coarse = decimate(full, cfg.decimate)
+        coarse = decimate(self._window(t - cfg.window_s), cfg.decimate)
         obj = self.objective(coarse)
         phi = np.log(self.theta[obj.space.index])
         ev = obj.evaluate(phi)
         unc = estimate_uncertainty(obj, ev, cfg.max_rel_std)
+        d.unidentifiable = tuple(n for n, ok in zip(obj.space.names, unc.identifiable) if not ok)
+        if not unc.identifiable.any():
+            d.reason = self._also(d, "the window identifies no adaptable parameter yet (Fisher information)")
+            return self._done(d, t0)
         sc = screen(obj.space.names, ev.grad, ev.hess, phi, obj.space.lower, obj.space.upper, cfg.coverage,
                     unc.identifiable)
         d.selected = sc.selected
-        d.unidentifiable = tuple(n for n, ok in zip(obj.space.names, unc.identifiable) if not ok)
         if not sc.selected:
-            d.reason = "no identifiable parameter can reduce the error within its bounds"
+            d.reason = self._also(d, "no identifiable parameter can reduce the error within its bounds")
             return self._done(d, t0)
         sub = self.objective(coarse, sc.selected)
         if cfg.method == "gauss_newton":
             res = fit_gauss_newton(sub, max_iter=cfg.max_iter + 1)
         else:
             res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical" if cfg.method == "numerical" else "analytic")
+        d.iterations, d.evaluations = res.iterations, d.evaluations + res.evaluations
         cand = self.theta.copy()
         cand[sub.space.index] = np.clip(res.values, sub.space.lower, sub.space.upper)  # exp(log(bound)) rounds past it
-        d.iterations, d.evaluations = res.iterations, res.evaluations
-        d.params = dict(zip(sc.selected, map(float, res.values)))
-        d.current_error_k, cur = self._rms(self.theta, coarse, t - cfg.validate_s)
-        d.candidate_error_k, new = self._rms(cand, coarse, t - cfg.validate_s)
-        worse = [s for s in self.sensors if new[s] > cur[s] + cfg.sensor_tolerance_k]
-        if d.candidate_error_k <= d.current_error_k and not worse:
-            d.accepted = True
-            d.reason = "candidate predicts recent data better"
+        if np.array_equal(cand, self.theta):
+            d.reason = self._also(d, "the optimiser found no better parameters on the window")
+            return self._done(d, t0)
+        d.challenger = dict(zip(sc.selected, map(float, res.values)))
+        self.challenger = (t, cand)
+        d.reason = self._also(d, "challenger fitted; it is judged on the data that follows")
+        return self._done(d, t0)
+
+    @staticmethod
+    def _also(d: Decision, why: str) -> str:
+        return f"{d.reason}; {why}" if d.reason else why
+
+    def _judge(self, d: Decision, t: float) -> None:
+        """Judge the pending challenger on the samples recorded after its fit (both predictions
+        open loop from the same recorded state at the time of the fit)."""
+        cfg = self.config
+        assert self.challenger is not None
+        t_fit, cand = self.challenger
+        t_last = float(self.history.arrays(t_fit)[0][-1])
+        d.challenger_t, d.evidence_s = t_fit, t_last - t_fit
+        champ, chal = self._period_errors(self.theta, t_fit, t_last), self._period_errors(cand, t_fit, t_last)
+        d.evaluations += 2
+        v = judge(champ, chal, cfg.noise_k, cfg.promote_z, cfg.min_gain, cfg.sensor_tolerance_k,
+                  share=d.evidence_s / cfg.validate_s + 1e-9)
+        d.improvement_k2, d.margin_k2 = v.improvement_k2, v.margin_k2
+        e_cur = np.concatenate([e[np.isfinite(e)] for e in champ.values()]) if champ else np.zeros(0)
+        e_new = np.concatenate([e[np.isfinite(e)] for e in chal.values()]) if chal else np.zeros(0)
+        d.current_error_k = float(np.sqrt(np.mean(e_cur**2))) if len(e_cur) else float("nan")
+        d.candidate_error_k = float(np.sqrt(np.mean(e_new**2))) if len(e_new) else float("nan")
+        names = self.params
+        vals = dict(zip(names, map(float, cand[self.model.parameter_index(names)])))
+        ev = f"{d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs margin {v.margin_k2:.3g} K²"
+        if v.outcome == "promote":
             self.theta = cand
             self.version += 1
-        elif worse:
-            d.reason = f"rolled back: candidate predicts {', '.join(worse)} worse"
+            self.challenger = None
+            d.accepted = True
+            d.params = vals
+            d.reason = f"challenger promoted: better on the {ev}"
+        elif v.outcome == "drop":
+            self.challenger = None
+            worse = [s for s in v.champion_rms if v.challenger_rms[s] > v.champion_rms[s] + cfg.sensor_tolerance_k]
+            why = f"predicts {', '.join(worse)} worse" if worse else "not better"
+            d.reason = f"challenger dropped ({why}) on the {ev}"
         else:
-            d.reason = "rolled back: candidate predicts recent data worse"
-        return self._done(d, t0)
+            d.reason = f"challenger undecided on the {ev}"
 
     def _done(self, d: Decision, t0: float) -> Decision:
         d.duration_s = time.perf_counter() - t0

@@ -69,7 +69,8 @@ class Objective:
     weighting : {"paper", "forgetting", "uniform"}
     prior_weight : float
         ``ρ`` relative to the data term at unit residual: the penalty is
-        ``ρ · Σ ((φ − φ⁰)/σ)²`` with ``σ = (log U − log L)/4``. 0 = plain least squares.
+        ``ρ · Σ ((φ − φ⁰)/σ)²`` with ``σ`` the parameter's declared ``spread`` (a quarter of its
+        log range if it declares none). 0 = plain least squares.
     """
 
     def __init__(self, sim: Simulator, space: ParamSpace, window: Window, sensors: list[str] | None = None,
@@ -83,7 +84,8 @@ class Objective:
         self.Y0 = np.where(self.mask, self.Y, 0.0)
         self.w = weights(window.t, weighting, tau_s=tau_s)[:, None] * self.mask
         self.prior_weight = prior_weight
-        self.sigma = (np.log(space.upper) - np.log(space.lower)) / 4.0
+        spread = np.array([space.model.parameters[i].spread for i in space.index], dtype=float)
+        self.sigma = np.where(spread > 0, spread, (np.log(space.upper) - np.log(space.lower)) / 4.0)
         self.evaluations = 0
         self._last: tuple[bytes, Evaluation, bool] | None = None
 

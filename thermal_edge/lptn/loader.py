@@ -14,7 +14,7 @@ import yaml
 
 from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
 from .expr import Expr, ExprError, Num, evaluate_const, parse
-from .model import Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
+from .model import DEFAULT_SPREAD, Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
 from .tables import Lookup, load_table
 
 TEMP_PREFIX = "T."
@@ -166,7 +166,7 @@ def build_model(
     params: list[Parameter] = []
     for k, spec in _mapping(ctx, raw.get("parameters"), "parameters").items():
         key = f"parameters.{k}"
-        _only(ctx, spec, key, ("value", "min", "max", "unit", "adaptable", "doc"))
+        _only(ctx, spec, key, ("value", "min", "max", "unit", "adaptable", "doc", "spread"))
         if k in inputs or k in derived or k in ctx.constants:
             raise ctx.fail(key, "name already used by an input, derived input or constant")
         value = ctx.number(f"{key}.value", _req(ctx, spec, "value", key))
@@ -174,8 +174,12 @@ def build_model(
         hi = ctx.number(f"{key}.max", _req(ctx, spec, "max", key))
         if not lo <= value <= hi:
             raise ctx.fail(key, f"value {value} outside [min, max] = [{lo}, {hi}]")
+        spread = ctx.number(f"{key}.spread", spec["spread"]) if "spread" in spec else DEFAULT_SPREAD
+        if spread < 0:
+            raise ctx.fail(f"{key}.spread", f"must be >= 0 (relative σ of the value), got {spread}")
         params.append(
-            Parameter(k, value, lo, hi, str(spec.get("unit", "")), bool(spec.get("adaptable", False)), str(spec.get("doc", "")))
+            Parameter(k, value, lo, hi, str(spec.get("unit", "")), bool(spec.get("adaptable", False)), str(spec.get("doc", "")),
+                      spread)
         )
     pnames = {p.name for p in params}
     op_names = set(inputs) | set(derived)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -119,9 +119,11 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
 
 
 def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
-                   model_path: str | os.PathLike[str] | None = None) -> dict[str, Any]:
+                   model_path: str | os.PathLike[str] | None = None,
+                   sets: Mapping[str, float] | None = None) -> dict[str, Any]:
     """``thermal-edge replay --format candump``: replay a log with a service configuration and
-    summarise it (JSON-serialisable). ``model_path`` overrides the configuration's model.
+    summarise it (JSON-serialisable). ``model_path`` overrides the configuration's model, ``sets``
+    (``--set``, checked against the model's bounds) is merged into its ``model.parameters``.
 
     Raises ``thermal_edge.config.ConfigError``, ``FileNotFoundError`` or
     ``thermal_edge.bus.CandumpFormatError`` with one-line messages.
@@ -131,6 +133,8 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
     cfg = load_config(config_path)
     if model_path is not None:
         cfg = replace(cfg, model=ModelConfig(Path(model_path), cfg.model.parameters))
+    if sets:
+        cfg = replace(cfg, model=ModelConfig(cfg.model.path, {**cfg.model.parameters, **sets}))
     model = load_service_model(cfg)
     res = replay_candump(path, cfg, model=model)
     lim = {name: i for i, name in enumerate(res.nodes)}
