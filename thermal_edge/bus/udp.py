@@ -108,7 +108,6 @@ class _LoopbackMulticastSocket:
                 sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, group_bin + struct.pack("@I", index))
                 self._destination = (self.group, self.port, 0, index)
                 _check_route(family, self._destination, index, interface)
-            sock.setblocking(False)
         except OSError as exc:
             sock.close()
             raise can.CanInitializationError(
@@ -119,19 +118,27 @@ class _LoopbackMulticastSocket:
         self._ancillary = socket.CMSG_SPACE(_TIMESPEC.size)
 
     def send(self, data: bytes, timeout: float | None) -> None:
-        try:
-            sent = self.sock.sendto(data, self._destination)
-        except BlockingIOError:
-            raise can.CanTimeoutError("udp_multicast send queue full") from None
-        except OSError as exc:
-            raise can.CanOperationError(f"udp_multicast send failed: {exc}") from exc
+        """Send one datagram, waiting up to ``timeout`` s (None: as long as it takes) while the
+        socket's send buffer is full (a burst on loopback fills it until the kernel delivers)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                sent = self.sock.sendto(data, socket.MSG_DONTWAIT, self._destination)
+                break
+            except BlockingIOError:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    raise can.CanTimeoutError("udp_multicast send buffer full") from None
+                select.select([], [self.sock], [], left)
+            except OSError as exc:
+                raise can.CanOperationError(f"udp_multicast send failed: {exc}") from exc
         if sent < len(data):
             raise can.CanTimeoutError("udp_multicast datagram sent in part")
 
     def recv(self) -> tuple[bytes, float] | None:
         """One datagram and its kernel receive time (s), None if none is waiting (never blocks)."""
         try:
-            data, ancillary, _flags, _addr = self.sock.recvmsg(MAX_DATAGRAM_BYTES, self._ancillary)
+            data, ancillary, _flags, _addr = self.sock.recvmsg(MAX_DATAGRAM_BYTES, self._ancillary, socket.MSG_DONTWAIT)
         except (BlockingIOError, InterruptedError):
             return None
         for level, kind, payload in ancillary:
