@@ -93,3 +93,46 @@ def test_a_flapping_call_site_is_limited_and_the_suppressed_lines_are_reported(b
     assert lines[-2] == "another call site"
     assert lines[-1] == f"input INV_Currents stale [{dropped_in_last} similar line(s) suppressed]" if dropped_in_last \
         else lines[-1] == "input INV_Currents stale"
+
+
+@pytest.mark.async_timeout(90)
+async def test_safety_events_reach_the_journal_with_their_priorities(tmp_path, channel, monkeypatch):
+    """The service's own log lines, on a stream the journal would read, during a sensor fault and its
+    recovery: each event once, with the priority ``journalctl -p`` filters on."""
+    from svc_testlib import running, sim_until
+    from thermal_edge.bus import SensorStatus
+
+    path = tmp_path / "stderr"
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    with open(path, "w") as f:
+        st = os.fstat(f.fileno())
+        monkeypatch.setenv("JOURNAL_STREAM", f"{st.st_dev}:{st.st_ino}")
+        setup_logging("info", f)
+        try:
+            async with running(tmp_path, channel) as (svc, emu):
+                await sim_until(emu, 120)
+                emu.sensor_status["end_winding"] = int(SensorStatus.OPEN_CIRCUIT)
+                t = emu.elapsed
+                await sim_until(emu, t + 20)
+                emu.sensor_status.clear()
+                t = emu.elapsed
+                await sim_until(emu, t + 20)
+        finally:
+            f.flush()
+            root.handlers[:] = saved[0]
+            root.setLevel(saved[1])
+    lines = path.read_text().splitlines()
+    assert lines and all(re.match(r"<[0-7]>", line) for line in lines)
+    prio = {}
+    for line in lines:
+        m = re.match(r"<(\d)>(\w+) ([\w.]+): (.*)", line)
+        assert m, line
+        assert int(m.group(1)) == SYSLOG[m.group(2)]
+        prio.setdefault(m.group(4).split(":")[0], []).append(int(m.group(1)))
+    fault = [p for msg, p in prio.items() if msg.startswith("sensor fault") and "cleared" not in msg]
+    cleared = [p for msg, p in prio.items() if msg.startswith("sensor fault cleared")]
+    assert fault == [[4]], prio  # warning, once
+    assert cleared == [[5]], prio  # notice, once
+    reasons = [line for line in lines if "derate reason" in line and "sensor_fault" in line.split("->")[1]]
+    assert len(reasons) == 1 and reasons[0].startswith("<4>"), reasons
