@@ -245,6 +245,17 @@ def test_lost_frames_counted_exactly_across_long_holes(jitter_cycles):
     assert rx.stats.counter_resync == 0 and rx.stats.dropped_total == 0
 
 
+def test_wraps_from_time_can_be_turned_off():
+    """A receiver of frames that may pause without loss counts by the counter alone."""
+    tx = FrameCodec(DBC_PATH)
+    rx = FrameCodec(DBC_PATH, wraps_from_time=False)
+    kept, _ = _sequence_with_holes(300, {100: 40})
+    frames = [tx.encode("INV_Currents", _currents(0)) for _ in range(300)]
+    for i in kept:
+        assert rx.decode(0x0A0, frames[i], timestamp=i * 0.01) is not None
+    assert rx.stats.lost == 40 % 16
+
+
 def test_lost_frames_without_time_stamps_fall_back_to_the_counter():
     tx, rx = _fresh_pair()
     kept, _ = _sequence_with_holes(200, {10: 3, 50: 17})

@@ -232,6 +232,11 @@ class FrameCodec:
         second is not judged (``counter_resync``). Below it, frames missing in
         between are counted as ``lost`` from the time stamps and the counter
         together (see :meth:`decode`). Default 1000.
+    wraps_from_time : bool, optional
+        Let time stamps count the counter wraps of a long hole (default). Only right for a
+        sender that transmits every cycle while alive (the inverter's frames); a receiver of
+        frames that may pause without being lost (a service in simulated time bridging ticks)
+        passes False and counts by the counter alone.
 
     Raises
     ------
@@ -251,6 +256,7 @@ class FrameCodec:
         *,
         stats: FrameStats | None = None,
         resync_after_cycles: float = 1000.0,
+        wraps_from_time: bool = True,
     ) -> None:
         self._path = Path(dbc_path)
         try:
@@ -267,6 +273,7 @@ class FrameCodec:
             self._by_name[spec.name] = spec
         self.stats: FrameStats = stats if stats is not None else FrameStats()
         self._resync_after = float(resync_after_cycles)
+        self._wraps_from_time = bool(wraps_from_time)
         self._lock = threading.Lock()
         self._tx_counter: dict[int, int] = {}
         # last accepted counter, its time stamp (s) and the sender's pace (see _keeps_cycle)
@@ -520,7 +527,8 @@ class FrameCodec:
                     # wraps that bring it nearest to the time stamps, once these span most of a
                     # wrap and the sender is seen to keep its DBC cycle; else the step alone
                     n = step
-                    if dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS and _keeps_cycle(pace, cycle):
+                    if (self._wraps_from_time and dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS
+                            and _keeps_cycle(pace, cycle)):
                         n += 16 * max(0, round((dt / cycle - step) / 16))
                     if n == 0:
                         self.stats.count_drop("counter_repeat", spec.name)
