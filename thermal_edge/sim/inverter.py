@@ -203,7 +203,9 @@ class InverterEmulator:
                  codec: FrameCodec | None = None, model: Model | None = None) -> None:
         self.config = cfg = config
         self.model = model if model is not None else load_model(cfg.model_path)
-        self.codec = codec if codec is not None else FrameCodec(DEFAULT_DBC_PATH, resync_after_cycles=1e9)
+        # the service's frames pause while it bridges ticks in simulated time: counter alone
+        self.codec = codec if codec is not None else FrameCodec(DEFAULT_DBC_PATH, resync_after_cycles=1e9,
+                                                                wraps_from_time=False)
         if bus is not None:
             b = dict(bus.__dict__) if isinstance(bus, BusConfig) else dict(bus)
             if isinstance(bus, BusConfig):
