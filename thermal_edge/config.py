@@ -151,6 +151,10 @@ class DeratingConfig:
     #: how long the present limit must keep every limited node's upper band below its max
     #: (thermal_edge.service.derating explains the choice)
     reaction_time_s: float = 10.0
+    #: kept below each max by the reaction-time current, K: the model error the band does not cover
+    margin_k: float = 1.5
+    #: the limit falls linearly over this many K below (max - margin) on the upper band, K
+    approach_k: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -671,6 +675,8 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
         hysteresis_a=s.number("hysteresis_a", 0.5, min_=0.0),
         faults=faults,
         reaction_time_s=s.number("reaction_time_s", DeratingConfig.reaction_time_s, positive=True, max_=600.0),
+        margin_k=s.number("margin_k", DeratingConfig.margin_k, min_=0.0, max_=50.0),
+        approach_k=s.number("approach_k", DeratingConfig.approach_k, positive=True, max_=100.0),
     )
     s.done()
 

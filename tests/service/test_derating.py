@@ -37,13 +37,27 @@ def test_full_current_while_the_reaction_current_allows_it():
 
 
 def test_reaction_current_binds_with_the_node_that_sets_it():
-    lim = policy().update(bands(154.0, 50.0), (25.0, W))
+    lim = policy().update(bands(146.0, 50.0), (25.0, W))
     assert lim.current_a == 25.0 and lim.torque_nm == pytest.approx(5.6 * 25.0)
     assert lim.reason == W and lim.active
-    lim = policy().update(bands(120.0, 119.0), (12.5, M))
+    lim = policy().update(bands(120.0, 110.0), (12.5, M))
     assert lim.current_a == 12.5 and lim.reason == M
     # at or past the max: zero
     assert policy().update(bands(156.0, 50.0), (0.0, W)).current_a == 0.0
+
+
+def test_approach_falls_linearly_below_max_less_the_margin():
+    """Full current up to (max - margin - approach) on the upper band, zero at (max - margin), linear
+    between (margin 1.5 K, approach 3 K: 150.5-153.5 degC for the hot spot, 115.5-118.5 for the magnet)."""
+    for hot in (140.0, 150.5, 151.0, 152.0, 153.0, 153.5, 154.0, 160.0):
+        lim = policy().update(bands(hot, 50.0), (math.inf, W))
+        expected = 40.0 * min(1.0, max(0.0, (155.0 - 1.5 - hot) / 3.0))
+        assert lim.current_a == pytest.approx(expected)
+        assert lim.reason == (W if expected < 40.0 else DerateReason.NONE)
+    lim = policy().update(bands(151.0, 117.0), (math.inf, W))
+    assert lim.reason == M and lim.current_a == pytest.approx(40.0 * 1.5 / 3.0)  # the magnet is closer
+    lim = policy(margin_k=0.0, approach_k=5.0).update(bands(152.0, 50.0), (math.inf, W))
+    assert lim.current_a == pytest.approx(40.0 * 3.0 / 5.0)
 
 
 def test_limits_fall_at_once_and_rise_slowly_with_hysteresis_reason_recovering():
@@ -75,7 +89,7 @@ def test_forced_safe_limit_and_precedence():
         lim = policy().update(bands(120.0, 50.0), (60.0, W), forced)
         assert lim.current_a == 10.0 and lim.torque_nm == pytest.approx(56.0) and lim.reason == reason and lim.active
     # a hotter machine keeps the lower thermal limit under a forced one
-    lim = policy().update(bands(153.5, 50.0), (4.0, W), [DerateReason.SENSOR_FAULT])
+    lim = policy().update(bands(145.0, 50.0), (4.0, W), [DerateReason.SENSOR_FAULT])
     assert lim.current_a == pytest.approx(4.0) and lim.reason == DerateReason.SENSOR_FAULT
     # non-finite band or reaction current -> zero... the safe limit, reason model fault
     lim = policy().update([NodeBand("hot_spot", math.nan, math.nan, 140, 155, W)], (60.0, W))

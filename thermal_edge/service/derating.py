@@ -18,8 +18,10 @@ The policy, per tick (1 s):
 
 1. **Reaction-time current** ``I_react``: the largest RMS current that, held for
    ``derating.reaction_time_s`` from the present upper-band state (estimate + z σ, z = 1.96), keeps
-   every limited node below its max (:class:`.lookahead.Lookahead` over that short horizon, the
-   copper losses at the highest max, so never underestimated). While it is at least the rated
+   every limited node below its max less ``derating.margin_k`` (:class:`.lookahead.Lookahead` over
+   that short horizon, the copper losses at the highest max, so never underestimated). A limited
+   node's upper band is never taken below the reading of a sensor that bounds it from below (see
+   step 3). While it is at least the rated
    maximum, the machine gets the **full maximum current**: a cold or warm machine has its whole
    short-time overload capacity. As a node's upper band approaches its max, ``I_react`` falls
    continuously to the current that holds the upper band just below the max: the limit follows
@@ -29,7 +31,14 @@ The policy, per tick (1 s):
    temperature on the estimate (the thermistor rule) is *not* applied: it would give away the
    headroom between warn and max that the model's prediction makes usable, which is the point of
    the model (``thermal-edge bench protection`` measures the difference).
-2. **Forced safe limit**: starting, a model fault, stale input or a faulty sensor force the limit
+2. **Approach**: the limit also falls linearly from full to zero over the last
+   ``derating.approach_k`` (3 K) below ``max - margin_k`` on each node's upper band. The
+   reaction-time current alone is a deadbeat law (it allows whatever reaches the max exactly at the
+   end of the reaction time, so 0.3 K change its value from 30 A to 0); with the slow rise rate it
+   limit-cycles between zero and the maximum. The approach is a proportional law (13 A per K at
+   40 A over 3 K) that settles at the holding current a little below ``max - margin``; the
+   reaction-time current stays the net for fast heating.
+3. **Forced safe limit**: starting, a model fault, stale input or a faulty sensor force the limit
    to at most ``derating.safe_current_a`` (in this order of precedence), and the reason is the
    cause. The model is then not trusted, so the limit is also held to the **band derate at the
    measured temperatures** (issue 14, defect 9): the readings of the sensors that bound a limited
@@ -37,13 +46,20 @@ The policy, per tick (1 s):
    states, :func:`.engine.bounding_sensors`; the end-winding PT100 for the end-winding hot spot)
    with that node's band, full current at ``warn_c`` falling linearly to zero at ``max_c`` (the
    thermistor rule, what is left when the model is not trusted): ``min(safe, band at measured)``.
-3. **Slew**: a limit falls at once; it rises at most ``rise_rate_a_per_s`` and only once the
+4. **Slew**: a limit falls at once; it rises at most ``rise_rate_a_per_s`` and only once the
    candidate exceeds the present limit by more than ``hysteresis_a``.
 
 The 30 min look-ahead (the current that could be held for the whole horizon and the time to limit)
 is advice for the vehicle or plant controller in ``TE_Forecast``: it never limits by itself. It is
 a limit only where holding the present limit would reach a max within the reaction time, which is
 exactly step 1.
+
+**The margin** (``derating.margin_k``, default 1.5 K): the 95 % band is the estimator's own
+uncertainty *given the model* (σ of the end-winding hot spot ~0.15 K: it sits next to a PT100). It
+does not cover a model that is wrong before the adapter has corrected it (the adapter needs 30 min
+of history): with the winding conductivity 25 % lower than modelled (copper losses +33 %) the
+unmeasured hot spot's estimate trailed the truth by up to 1.5 K. The margin covers that, and costs
+~1 % of the current held at the max; the readings of the bounding sensors are the second line.
 
 **The reason names what limits now**: the forced cause; else the candidate's cause when the limit
 sits at its candidate (within the hysteresis); ``recovering`` while the limit climbs back at the
@@ -159,13 +175,19 @@ class DeratingPolicy:
         measured : sequence of NodeBand
             Readings of sensors bounding a limited node from below, with that node's band.
         """
-        imax = self.config.max_current_a
+        cfg = self.config
+        imax = cfg.max_current_a
         forced = list(forced)
         cand, reason = imax, DerateReason.NONE
         if any(not math.isfinite(b.upper_c) for b in bands) or (reaction is not None and math.isnan(reaction[0])):
             forced.append(DerateReason.MODEL_FAULT)
-        elif reaction is not None and reaction[0] < cand:
-            cand, reason = max(0.0, reaction[0]), reaction[1]
+        else:
+            for b in bands:  # the approach: linear over approach_k below max - margin
+                i = imax * min(1.0, max(0.0, (b.max_c - cfg.margin_k - b.upper_c) / cfg.approach_k))
+                if i < cand:
+                    cand, reason = i, b.reason
+            if reaction is not None and reaction[0] < cand:
+                cand, reason = max(0.0, reaction[0]), reaction[1]
         force = next((r for r in FORCED_ORDER if r in forced), None)
         if force is not None:
             cand = min(cand, self.safe_current)
