@@ -20,8 +20,8 @@ from thermal_edge.bench.faults import harness, wire
 KNOWN_DEFECTS: dict[str, str] = {}
 
 #: groups within the ~3 min budget of the suite; the rest are marked slow
-FAST = ("bad_frames", "floods", "stale", "bus", "security", "metrics", "band")
-SLOW = ("sensors", "configs", "states", "crash", "load", "soak")
+FAST = ("bad_frames", "floods", "stale", "bus", "security", "metrics")
+SLOW = ("sensors", "band", "configs", "states", "crash", "load", "soak")
 
 
 def _check_group(group: str) -> None:

@@ -96,14 +96,15 @@ def thermal_edge_cmd() -> list[str]:
 
 
 def free_port() -> int:
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
 def unique_group() -> str:
-    """A site-local IPv6 multicast group of this run (hop limit 0 keeps it on the host)."""
-    return f"ff15::7465:{os.getpid() & 0xFFFF:x}:{random.getrandbits(16):x}:{random.getrandbits(16):x}"
+    """An administratively scoped IPv4 multicast group of this run (239/8; Linux's loopback carries
+    IPv4 multicast, and hop limit 0 keeps it on the host)."""
+    return f"239.{random.randint(1, 254)}.{random.randint(0, 255)}.{random.randint(1, 254)}"
 
 
 def edge_config(state_dir: Path, group: str, port: int, *, clock: str = "wall", adapt: bool = False,
@@ -205,6 +206,7 @@ class Service:
         self.metrics_port: int | None = None
         self.peak_rss = 0  # bytes, sampled every 20 ms while it runs
         self.oom_killed = False
+        self.cpu_samples: list[tuple[float, float]] = []  # (wall time, CPU time used), every 20 ms
 
     def start(self) -> None:
         """Spawn the service; a thread samples its resident memory every 20 ms and kills it above
@@ -219,6 +221,7 @@ class Service:
         threading.Thread(target=self._watch_memory, args=(self.proc, unit_memory_max_bytes()), daemon=True).start()
 
     def _watch_memory(self, proc: subprocess.Popen[bytes], cap: int) -> None:
+        tick = os.sysconf("SC_CLK_TCK")
         while proc.poll() is None:
             rss = self.rss()
             self.peak_rss = max(self.peak_rss, rss)
@@ -226,7 +229,15 @@ class Service:
                 self.oom_killed = True
                 proc.kill()
                 return
+            with contextlib.suppress(OSError, ValueError, IndexError):
+                fields = Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+                self.cpu_samples.append((time.time(), (int(fields[11]) + int(fields[12])) / tick))
             time.sleep(0.02)
+
+    def cpu_at(self, t: float) -> float:
+        """CPU time (user + system, s) the service had used at wall time ``t``: a start-up measure
+        that other processes on a shared machine barely disturb, unlike wall time."""
+        return max((c for w, c in self.cpu_samples if w <= t), default=0.0)
 
     @property
     def pid(self) -> int:
@@ -301,10 +312,12 @@ def metric(m: dict[str, float], name: str) -> float:
     return sum(v for k, v in m.items() if k == name or k.startswith(name + "{"))
 
 
-def histogram_quantile(m: dict[str, float], name: str, q: float) -> float:
-    """Quantile ``q`` of a Prometheus histogram from its buckets (upper bound of the bucket holding it), s."""
-    buckets = sorted((float(re.search(r'le="([^"]+)"', k).group(1)), v) for k, v in m.items()  # type: ignore[union-attr]
-                     if k.startswith(name + "_bucket{"))
+def histogram_quantile(m: dict[str, float], name: str, q: float, since: dict[str, float] | None = None) -> float:
+    """Quantile ``q`` of a Prometheus histogram from its buckets (upper bound of the bucket holding
+    it), of the observations after the scrape ``since`` if given; s."""
+    base = since or {}
+    buckets = sorted((float(re.search(r'le="([^"]+)"', k).group(1)), v - base.get(k, 0.0))  # type: ignore[union-attr]
+                     for k, v in m.items() if k.startswith(name + "_bucket{"))
     if not buckets or buckets[-1][1] == 0:
         return float("nan")
     want = q * buckets[-1][1]
@@ -492,13 +505,14 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
 
 
 def reasons_in(lim: Limits, t0: float, t1: float) -> str:
-    names = {0: "none", 1: "winding", 2: "magnet", 3: "look-ahead", 4: "sensor fault", 5: "stale input", 6: "model fault",
-             7: "starting"}
+    """The derate reasons ``TE_Limits`` gave in [t0, t1], in order (names from the DBC's value table)."""
+    names = {int(k): str(v) for k, v in wire.dbc().get_message_by_frame_id(wire.TE_LIMITS_ID)
+             .get_signal_by_name("TE_DerateReason").choices.items()}
     seen: list[int] = []
     for t, r in zip(lim.t, lim.reason):
         if t0 <= t <= t1 and (not seen or seen[-1] != r):
             seen.append(r)
-    return " > ".join(names.get(r, str(r)) for r in seen[:6])
+    return " > ".join(names.get(r, str(r)) for r in seen[:6]) or "none received"
 
 
 def min_current(lim: Limits, t0: float, t1: float) -> float:

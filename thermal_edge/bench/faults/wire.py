@@ -1,6 +1,6 @@
 """The fault bench's own side of the bus, built from the CAN matrix alone (``dbc/thermal_edge.dbc``
-through cantools, its own CRC-8/SAE-J1850, raw IPv6 multicast sockets and msgpack in python-can's
-``udp_multicast`` datagram layout), so that what it measures does not rest on the project's codec
+through cantools, its own CRC-8/SAE-J1850, raw multicast sockets on the loopback interface and
+msgpack in python-can's ``udp_multicast`` datagram layout), so that what it measures does not rest on the project's codec
 or transport.
 
 Run as a module it is one of two helper processes of the bench:
@@ -86,24 +86,35 @@ def datagram(arbitration_id: int, data: bytes, *, extended: bool = False, remote
 
 
 def sender_socket(group: str) -> socket.socket:
-    """A UDP socket sending to the IPv6 group on this host only (hop limit 0, loopback on)."""
-    s = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
-    s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, 0)
-    s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
+    """A UDP socket sending to the group on this host only: hop limit 0, loopback copies on, sent
+    on the loopback interface (where the service joins its group)."""
+    if ":" in group:
+        s = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+        s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, 0)
+        s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
+    else:
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
     s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
     return s
 
 
 def receiver_socket(group: str, port: int) -> socket.socket:
-    """A UDP socket joined to the IPv6 group (interface chosen by the kernel, as python-can does),
-    with kernel receive stamps and a receive buffer of several seconds of a full bus."""
-    s = socket.socket(socket.AF_INET6, socket.SOCK_DGRAM)
+    """A UDP socket bound to the group and joined to it on the loopback interface, with kernel
+    receive stamps and a receive buffer of several seconds of a full bus."""
+    family = socket.AF_INET6 if ":" in group else socket.AF_INET
+    s = socket.socket(family, socket.SOCK_DGRAM)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16 << 20)
     s.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
     s.bind((group, port))
-    mreq = socket.inet_pton(socket.AF_INET6, group) + struct.pack("@I", 0)
-    s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, mreq)
+    if family == socket.AF_INET6:
+        mreq = socket.inet_pton(socket.AF_INET6, group) + struct.pack("@I", 0)
+        s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, mreq)
+    else:
+        s.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, socket.inet_aton(group) + socket.inet_aton("127.0.0.1"))
     return s
 
 
