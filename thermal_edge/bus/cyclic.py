@@ -60,6 +60,10 @@ class CyclicSender:
         callable fallback) is then called in that thread: a plain function, thread-safe,
         returning at once (e.g. reading values the model published). The sink must be
         thread-safe (``CanTransport.send_raw`` is).
+    send_lock : threading.Lock, optional
+        Held while a frame is encoded and handed to the sink, so that frames of one identifier
+        leave in counter order whoever sends them (``CanTransport`` shares one with its
+        :meth:`~thermal_edge.bus.transport.CanTransport.send`).
     """
 
     def __init__(
@@ -73,6 +77,7 @@ class CyclicSender:
         fallback: Fallback | None = None,
         stats: TransportStats | None = None,
         thread: bool = False,
+        send_lock: threading.Lock | None = None,
     ) -> None:
         if thread and inspect.iscoroutinefunction(provider):
             raise TypeError(f"{frame}: a threaded cyclic sender needs a plain provider function, not a coroutine")
@@ -95,6 +100,7 @@ class CyclicSender:
         self._task: asyncio.Task[None] | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._send_lock = send_lock if send_lock is not None else threading.Lock()
 
     @property
     def running(self) -> bool:
@@ -156,6 +162,18 @@ class CyclicSender:
         return self._send(values, error)
 
     def _send(self, values: Any, error: Exception | None) -> bool:
+        # encode (which takes the next alive counter) and hand over in one step: another sender
+        # of this frame in another thread (an immediate send from the loop) cannot overtake it
+        with self._send_lock:
+            data = self._encode(values, error)
+            if data is None:
+                return False
+            self.attempts += 1
+            ok = bool(self._sink(self.frame_id, data))
+        self.sent += ok
+        return ok
+
+    def _encode(self, values: Any, error: Exception | None) -> bytes | None:
         data: bytes | None = None
         try:
             if error is not None:
@@ -179,12 +197,7 @@ class CyclicSender:
                     self.stats.fallback_sent += 1
                 except Exception:
                     log.exception("%s fallback values cannot be encoded", self.frame_name)
-        if data is None:
-            return False
-        self.attempts += 1
-        ok = bool(self._sink(self.frame_id, data))
-        self.sent += ok
-        return ok
+        return data
 
     async def _run(self) -> None:
         loop = asyncio.get_running_loop()

@@ -129,6 +129,7 @@ class CanTransport:
         )
         self._bus: can.BusABC | None = None
         self._bus_lock = threading.Lock()  # bus and generation read together by sending threads
+        self._send_lock = threading.Lock()  # encode + send of one frame, whichever thread sends
         self._pending: collections.deque[can.Message] = collections.deque()
         self._wake: asyncio.Event | None = None
         self._rx_fd = -1
@@ -572,8 +573,9 @@ class CanTransport:
             Unknown frame or signals that do not fit it (programming errors);
             bus problems never raise.
         """
-        data = self.codec.encode(frame, signals, counter=counter)
-        return self.send_raw(self.codec.frame_id(frame), data)
+        with self._send_lock:  # counter order on the bus, with a cyclic sender in its own thread
+            data = self.codec.encode(frame, signals, counter=counter)
+            return self.send_raw(self.codec.frame_id(frame), data)
 
     def start_cyclic(
         self,
@@ -608,7 +610,7 @@ class CanTransport:
         """
         sender = CyclicSender(
             self.codec, self.send_raw, frame, provider, period_s=period_s, fallback=fallback, stats=self.stats,
-            thread=thread,
+            thread=thread, send_lock=self._send_lock,
         )
         self._cyclic.append(sender)
         return sender.start()
