@@ -348,11 +348,14 @@ class Inverter:
 
     def _send(self, name: str) -> None:
         with self.lock:
-            k = self.counters[name]
-            self.counters[name] = (k + 1) % 16
-            data = wire.encode(name, self.signals[name], k)
-            self.sock.sendto(wire.datagram(self.ids[name], data), (self.group, self.port))
-            self.sent[name] += 1
+            self._send_locked(name)
+
+    def _send_locked(self, name: str) -> None:
+        k = self.counters[name]
+        self.counters[name] = (k + 1) % 16
+        data = wire.encode(name, self.signals[name], k)
+        self.sock.sendto(wire.datagram(self.ids[name], data), (self.group, self.port))
+        self.sent[name] += 1
 
     def _loop(self) -> None:
         t0 = time.monotonic()
@@ -366,9 +369,13 @@ class Inverter:
             time.sleep(max(0.0, t0 + n * 0.01 - time.monotonic()))
 
     def skip(self, name: str, count: int) -> None:
-        """Leave out ``count`` frames of ``name`` (a real loss the receiver can count)."""
+        """Leave out ``count`` frames of ``name`` (a real loss the receiver can count): a frame, the
+        hole, the next frame at once, so that the hole is judged by the counter and not taken for
+        a long pause (the thread may be late on a busy machine)."""
         with self.lock:
+            self._send_locked(name)
             self.counters[name] = (self.counters[name] + count) % 16
+            self._send_locked(name)
 
     def repeat_last(self, name: str) -> None:
         """Send the last frame of ``name`` again, counter unchanged."""
