@@ -48,6 +48,9 @@ _CYCLE_ATTRIBUTE = "GenMsgCycleTime"
 #: Frame periods between two frames of an identifier from which their time stamps decide how
 #: often the 4-bit counter wrapped (3/4 of a wrap: bursts of up to 11 frames keep their count).
 _WRAP_FROM_PERIODS = 12.0
+#: A frame this many cycles or less after one that ended a long gap shows a burst: the sender
+#: was late and catches up, and the wraps counted for that gap are taken back.
+_BURST_CYCLES = 0.25
 #: Frames over which a sender's time per frame is averaged (plain mean up to then, then running).
 _PACE_FRAMES = 64
 #: Gaps seen before the pace is trusted, and the band around the DBC cycle it must lie in.
@@ -276,8 +279,9 @@ class FrameCodec:
         self._wraps_from_time = bool(wraps_from_time)
         self._lock = threading.Lock()
         self._tx_counter: dict[int, int] = {}
-        # last accepted counter, its time stamp (s) and the sender's pace (see _keeps_cycle)
-        self._rx_last: dict[int, tuple[int, float | None, tuple[float, int] | None]] = {}
+        # last accepted counter, its time stamp (s), the sender's pace (see _keeps_cycle) and the
+        # frames its time stamp added to the counter step
+        self._rx_last: dict[int, tuple[int, float | None, tuple[float, int] | None, int]] = {}
 
     # ------------------------------------------------------------------ lookup
     @property
@@ -449,13 +453,16 @@ class FrameCodec:
         identifier and its DBC cycle time ``T``, about ``dt / T`` frame periods have passed;
         the 4-bit counter fixes their number ``n`` modulo 16, so ``n`` is the counter step
         plus the whole number of counter wraps that brings it nearest to ``dt / T`` (exact
-        while the timing jitter stays below 8 cycles), and ``n - 1`` frames are lost. A
+        while the timing jitter stays below 3/8 of a cycle), and ``n - 1`` frames are lost. A
         counter alone hides every multiple of 16 (a hole of 17 frames looks like one of 1).
         Time stamps only add wraps, only once they span 12 periods or more, and only for a
         sender whose mean time per frame (over about 64 frames, at least 8) lies within half
         and twice its DBC cycle: frames that arrive in bursts, without time stamps, or from a
         sender at another rate (an accelerated emulator, a load test) are judged by the
-        counter step alone, which counts holes modulo 16. A step of 0 is a repeated frame.
+        counter step alone, which counts holes modulo 16. If the frame after such a gap follows
+        within a quarter cycle, the sender was late and is catching up in a burst: the wraps
+        counted for the gap are taken back from ``stats.lost`` (the ``lost_before`` already
+        returned stays). A step of 0 is a repeated frame.
         """
         try:
             return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
@@ -514,11 +521,17 @@ class FrameCodec:
             lost = 0
             last = self._rx_last.get(spec.frame_id)
             pace = None  # running mean of the time per frame (s) and how many gaps it has seen
+            wraps = 0  # frames this frame's time stamp added to its counter step
             if last is not None:
-                last_counter, last_ts, pace = last
+                last_counter, last_ts, pace, last_wraps = last
                 step = (counter - last_counter) % 16
                 cycle = spec.cycle_time_s
                 dt = ts - last_ts if ts is not None and last_ts is not None else None
+                if last_wraps and dt is not None and cycle and dt < _BURST_CYCLES * cycle:
+                    # the frames after that long gap come in a burst: the sender was late and is
+                    # catching up, the gap held no lost frames beyond the counter step
+                    self.stats.lost -= last_wraps
+                    self.stats.lost_by_frame[spec.name] -= last_wraps
                 if dt is not None and cycle and abs(dt) > self._resync_after * cycle:
                     self.stats.counter_resync += 1
                     pace = None
@@ -529,7 +542,8 @@ class FrameCodec:
                     n = step
                     if (self._wraps_from_time and dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS
                             and _keeps_cycle(pace, cycle)):
-                        n += 16 * max(0, round((dt / cycle - step) / 16))
+                        wraps = 16 * max(0, round((dt / cycle - step) / 16))
+                        n += wraps
                     if n == 0:
                         self.stats.count_drop("counter_repeat", spec.name)
                         return None
@@ -541,7 +555,7 @@ class FrameCodec:
                         gaps = 0 if pace is None else pace[1]
                         mean = 0.0 if pace is None else pace[0]
                         pace = (mean + (dt / n - mean) / min(gaps + 1, _PACE_FRAMES), gaps + 1)
-            self._rx_last[spec.frame_id] = (counter, ts, pace)
+            self._rx_last[spec.frame_id] = (counter, ts, pace, wraps)
             self.stats.received[spec.name] += 1
         return DecodedFrame(spec.name, spec.frame_id, values, counter, ts, lost, bool(is_rx))
 

@@ -33,7 +33,8 @@ class FrameStats:
         could not be decoded (bad input types included).
     lost : int
         Frames missing before an accepted one, from its time stamp, cycle time and
-        alive counter together (see :meth:`FrameCodec.decode`).
+        alive counter together (see :meth:`FrameCodec.decode`); a gap that turns out to
+        be a late sender catching up is taken back.
     counter_resync : int
         Accepted frames whose counter was not judged because the previous one
         of that frame was too long ago (``resync_after_cycles`` cycle times).
