@@ -1,4 +1,4 @@
-"""The online adapter: no future data, rollback of worse candidates, convergence, bounded history."""
+"""The online adapter: no future data, worse challengers dropped, convergence, bounded history."""
 from __future__ import annotations
 
 import numpy as np
@@ -19,7 +19,8 @@ def e1_run(pm10kw, make_run):
 def test_converges_to_the_plant_value(pm10kw, e1_run):
     start = pm10kw.with_parameters({"R_e_hous": 6.1})
     out = run_online(start, e1_run.run, AdapterConfig(params=("R_e_hous",)), T0=e1_run.truth.T[0])
-    assert out.param_trace["R_e_hous"][-1] == pytest.approx(9.1, rel=0.02)
+    # a challenger is promoted only on the data after its fit: 1.5 h end within 3 % (−2.0 % measured)
+    assert out.param_trace["R_e_hous"][-1] == pytest.approx(9.1, rel=0.03)
     assert any(d.accepted for d in out.decisions)
     # every decision was recorded with its timing and outcome
     assert all(d.t > 0 and d.duration_s >= 0 and d.reason for d in out.decisions)
@@ -51,7 +52,7 @@ def test_decisions_never_read_future_samples(pm10kw, e1_run):
     assert [d.params for d in b.decisions if d.t > t_star] != [d.params for d in a.decisions if d.t > t_star]
 
 
-def test_worse_candidate_is_rolled_back(pm10kw, e1_run, monkeypatch):
+def test_worse_candidate_is_dropped(pm10kw, e1_run, monkeypatch):
     start = pm10kw.with_parameters({"R_e_hous": 8.5})
 
     def bad_fit(obj, max_iter=3, gradient="analytic", method_name=None):
@@ -62,12 +63,19 @@ def test_worse_candidate_is_rolled_back(pm10kw, e1_run, monkeypatch):
     ad = OnlineAdapter(start, AdapterConfig(params=("R_e_hous",), threshold_k=0.0, min_window_s=600), 1.0)
     run = e1_run.run
     before = ad.theta.copy()
-    for k in range(1200):
-        ad.record(float(run.t[k]), {c: float(run.columns[c][k]) for c in start.inputs},
-                  {s: float(run.columns[s][k]) for s in start.sensors}, e1_run.truth.T[k])
+
+    def record(ks):
+        for k in ks:
+            ad.record(float(run.t[k]), {c: float(run.columns[c][k]) for c in start.inputs},
+                      {s: float(run.columns[s][k]) for s in start.sensors}, e1_run.truth.T[k])
+
+    record(range(1200))
     d = ad.decide(float(run.t[1199]))
-    assert d.triggered and not d.accepted and "rolled back" in d.reason
-    assert d.candidate_error_k > d.current_error_k
+    assert d.triggered and not d.accepted and d.challenger and "judged on the data that follows" in d.reason
+    record(range(1200, 1380))
+    d = ad.decide(float(run.t[1379]))
+    assert not d.accepted and "dropped" in d.reason and d.evidence_s == pytest.approx(180.0)
+    assert d.candidate_error_k > d.current_error_k and d.improvement_k2 < 0
     assert np.array_equal(ad.theta, before) and ad.version == 0
 
 

@@ -66,10 +66,14 @@ def test_a_candidate_that_fits_the_window_but_mispredicts_the_next_data_is_refus
 def test_a_candidate_the_next_data_confirms_is_promoted(pm10kw, two_plants):
     _, other = two_plants
     ad, d = _fit_on_the_other_plant(pm10kw, other)
-    _record(ad, pm10kw, other, range(T_FIT + 1, T_FIT + 181))
-    dd = ad.decide(float(other.run.t[T_FIT + 180]))
+    for k1 in range(T_FIT + 180, T_FIT + 1801, 180):
+        _record(ad, pm10kw, other, range(k1 - 179, k1 + 1))
+        dd = ad.decide(float(other.run.t[k1]))
+        assert "dropped" not in dd.reason
+        if dd.accepted:
+            break
     assert dd.accepted and "promoted" in dd.reason and ad.version == 1
-    assert dd.evidence_s == pytest.approx(180.0) and dd.improvement_k2 > dd.margin_k2 > 0
+    assert 0 < dd.evidence_s <= 1800.0 and dd.improvement_k2 > dd.margin_k2 > 0
     assert ad.theta[pm10kw.parameter_index(["R_e_hous"])[0]] == pytest.approx(d.challenger["R_e_hous"])
 
 
@@ -77,16 +81,15 @@ def test_judge_margins_by_hand():
     rng = np.random.default_rng(0)
     y = rng.normal(0, 0.15, 200)
     champ = {"a": 0.30 + y}
-    # half the champion's error above the noise removed: enough only with the full evidence
-    excess = np.mean(champ["a"] ** 2) - 0.15**2
-    target = np.mean(champ["a"] ** 2) - 0.6 * excess
+    # 60 % of the champion's squared error removed: enough only with the full evidence
+    target = 0.4 * np.mean(champ["a"] ** 2)
     off = np.sqrt(max(target - np.mean(y**2), 0.0))  # constant error giving that MSE (approx.)
     chal = {"a": off + y}
     early = judge(champ, chal, 0.15, 2.0, 0.5, 0.02, share=0.1)
     full = judge(champ, chal, 0.15, 2.0, 0.5, 0.02, share=1.0)
     mse_c = np.mean(champ["a"] ** 2)
-    assert early.margin_k2 == pytest.approx((1 - 0.5 * 0.1) * (mse_c - 0.15**2))
-    assert full.margin_k2 == pytest.approx(0.5 * (mse_c - 0.15**2))
+    assert early.margin_k2 == pytest.approx((1 - 0.5 * 0.1) * mse_c)
+    assert full.margin_k2 == pytest.approx(0.5 * mse_c)
     assert early.outcome == "wait" and full.outcome == "promote"
     assert judge(chal, champ, 0.15, 2.0, 0.5, 0.02, share=0.1).outcome == "drop"
     # identical predictions: no improvement, dropped at the end of the evidence
@@ -102,7 +105,7 @@ def test_band_coverage_against_an_independent_count(rng):
     z = norm.ppf(0.975)
     inside = total = 0
     for e, s, m in zip(est, sig, meas):
-        if m == m:  # not NaN
+        if not np.isnan(m):
             total += 1
             inside += int(e - z * s <= m <= e + z * s)
     assert band_coverage(est, sig, meas) == pytest.approx(inside / total, abs=1e-12)

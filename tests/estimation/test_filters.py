@@ -20,14 +20,17 @@ def test_ekf_recovers_a_housing_resistance(pm10kw, varied_1h):
 
 def test_observer_converges_on_every_node(pm10kw, varied_1h):
     truth, run = varied_1h.truth, varied_1h.run
-    ob = Observer(pm10kw, truth.T[0] + 5.0)
-    errs = []
-    for k in range(len(run)):
-        ob.update({s: float(run.columns[s][k]) for s in pm10kw.sensors})
-        errs.append(np.abs(ob.T - truth.T[k]).max())
-        ob.predict({c: float(run.columns[c][k]) for c in pm10kw.inputs})
-    assert errs[0] > 4.0
-    assert errs[-1] < 0.5
+    for spread, bound in (({}, 0.5), (None, 0.75)):
+        # state noise only; and with the parameters' declared spread (the gain then also allows for
+        # the adaptable parameters being off, which costs a little on a plant that has them exact)
+        ob = Observer(pm10kw, truth.T[0] + 5.0, spread=spread)
+        errs = []
+        for k in range(len(run)):
+            ob.update({s: float(run.columns[s][k]) for s in pm10kw.sensors})
+            errs.append(np.abs(ob.T - truth.T[k]).max())
+            ob.predict({c: float(run.columns[c][k]) for c in pm10kw.inputs})
+        assert errs[0] > 4.0
+        assert errs[-1] < bound
     # measured nodes are pulled in within the first minute
     n = pm10kw.node_index(pm10kw.sensors["slot_winding"])
     ob2 = Observer(pm10kw, truth.T[0] + 5.0)

@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     _, final = open_loop(model, rec, theta=res.theta, method=args.method, max_substep=args.max_substep)
     out.update({
         "adapted_from": list(res.adapter.sensors),
+        "mse": {t: v["mse"] for t, v in rep["targets"].items()},  # the online trace, as before per target
         "targets": rep["targets"],
         "mean": rep["mean"],
         "final_params": rep["final_params"],

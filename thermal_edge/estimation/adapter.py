@@ -78,8 +78,8 @@ class AdapterConfig:
     promote_z : float
         Noise margin in standard errors of the mean squared-error difference.
     min_gain : float
-        Share of the champion's error above the noise (MSE − ``noise_k``²) that the challenger
-        must remove over the evidence to be promoted (:func:`judge`).
+        Share of the champion's mean squared error the challenger must remove over the full
+        evidence to be promoted (more on less evidence: :func:`judge`).
     method : {"sqp", "gauss_newton", "numerical"}
     params : tuple of str, optional
         Adaptable parameters; default: the model's ``adaptable: true`` ones.
@@ -101,7 +101,7 @@ class AdapterConfig:
     tau_s: float = 3600.0
     prior_weight: float = 1e-4
     validate_s: float = 1800.0
-    sensor_tolerance_k: float = 0.02
+    sensor_tolerance_k: float = 0.1
     noise_k: float = 0.15
     promote_z: float = 2.0
     min_gain: float = 0.5
@@ -166,11 +166,12 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
     * sensor noise: white noise of σ ``noise_k`` alone moves the mean by a standard error of
       ``2 σ rms(Δp) / √n`` (``d_k = Δp_k (p_k + p'_k − 2 y_k)`` with ``Δp`` the difference of the
       predictions, over all ``n`` readings); the improvement must exceed ``z`` of them;
-    * structure: the improvement must remove a share of the champion's error above the noise
-      (``MSE − σ²``) that falls linearly from all of it, with no evidence, to ``min_gain`` when the
-      full evidence is in (``share`` = evidence / full evidence = 1): a model that is not the
-      machine has parameters that suit one operating point better than another, and gains on
-      the next minutes are undone later unless they are overwhelming or persist.
+    * structure: the improvement must remove a share of the champion's mean squared error that
+      falls linearly from all of it, with no evidence, to ``min_gain`` when the full evidence is
+      in (``share`` = evidence / full evidence = 1): a model that is not the machine has
+      parameters that suit one operating point better than another, and gains on the next
+      minutes are undone later unless they are overwhelming or persist. (The share is of the
+      whole error, noise included: the sensors' noise is rarely known well enough to subtract.)
 
     Promoted when both margins are met and no sensor's RMS error grows by more than
     ``tolerance_k``; dropped as soon as the challenger is worse by the noise margin, or when the
@@ -200,7 +201,7 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
     dp = (a - b)[ok]
     noise = z * 2.0 * noise_k * float(np.sqrt(np.mean(dp**2) / n))
     gain = 1.0 - (1.0 - min_gain) * min(share, 1.0)
-    margin = max(noise, gain * max(mse - noise_k**2, 0.0))
+    margin = max(noise, gain * mse)
     worse = any(v[1] > v[0] + tolerance_k for v in rms.values())
     if mean > margin and not worse:
         outcome = "promote"
