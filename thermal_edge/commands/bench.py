@@ -186,7 +186,7 @@ def run_real(args: argparse.Namespace) -> int:
         f = ", ".join(f"{k} x{v:g}" for k, v in st["factors"].items()) or "published parameters"
         print(f"\n{name} ({f}): {st['promoted']} challengers promoted; adaptation step median "
               f"{st['adapt_step_median_s']:.3f} s")
-        targets = [k for k, v in st.items() if isinstance(v, dict) and "mse" in v]
+        targets = [k for k, v in st.items() if isinstance(v, dict) and "seen" in v]
         print(table(
             ["target", "seen", "fixed", "trace", "observer", "fixed observer", "coverage", "EKF open loop"],
             [[t, "yes" if st[t]["seen"] else "no", st[t]["fixed_mse"], st[t]["mse"], st[t]["observer_mse"],
