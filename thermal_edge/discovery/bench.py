@@ -143,6 +143,7 @@ def _row(disc: workflow.Discovery, expected: str | None, wall: float, case: str,
         "runner_up": runner_up, "ambiguous": disc.ambiguous, "named_in_pair": pair,
         "added": [r.fit.label for r in disc.added], "gap_nominal": disc.nominal.gap, "gap_before": disc.gap_before,
         "gap_after": disc.gap_after, "shrink": shrink, "shrink_above_noise": shrink_n, "noise_k": disc.noise_k,
+        "gap_above_noise_before": above,
         "wall_s": wall, "gap_status": disc.gap.status if disc.gap else None,
         "pass": bool(expected is None and named is None) or
                 bool(expected and ((ok and max(shrink, shrink_n) >= 0.6) or pair)),

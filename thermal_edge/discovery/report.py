@@ -240,8 +240,7 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
             add(f"**Not sure between two:** `{c.b}` explains the residual nearly as well (held-out gap "
                 f"{c.gap_b:.3f} K against {c.gap_a:.3f} K, difference {c.gap_b - c.gap_a:+.4f} ± {c.se_diff:.4f} K; "
                 f"it achieves {c.share:.0%} of the winner's reduction of the gap). This run cannot separate them; "
-                + (f"a test run at **{first.point.describe()}** would ({first.point.sensor}: {first.point.t_a:.1f} °C "
-                   f"against {first.point.t_b:.1f} °C). " if first.point is not None else "")
+                + _separating_sentence(disc)
                 + "See section 6.")
         if len(disc.added) > 1:
             add(f"Further effects added in later rounds: {', '.join(r.fit.label for r in disc.added[1:])}.")
@@ -453,10 +452,7 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
         add(_table(["variable", "at", "winner K", "runner-up K", "|difference| K"], rows))
         add("")
     if rd.point is not None and rd.point.diff < 3 * disc.noise_k:
-        p = rd.point
-        add(f"**Separating condition:** no steady operating point separates them by more than {p.diff:.2f} K "
-            f"(at most 3× the noise floor; largest at {p.describe()}): they differ in transients, so a next test "
-            "run should change load and speed quickly where the time evidence above shows them apart.")
+        add(f"**Separating condition:** {_separating_sentence(disc)}")
         add("")
     elif rd.point is not None:
         p = rd.point
@@ -467,6 +463,21 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
     if "evidence" in files:
         add(f"![winner and runner-up against speed, current, ambient, time]({files['evidence']})")
         add("")
+
+
+def _separating_sentence(disc: Discovery) -> str:
+    """The operating condition that would tell winner and runner-up apart, in one sentence."""
+    rd = disc.rounds[0]
+    p = rd.point
+    if p is None:
+        return ""
+    if p.diff >= 3 * disc.noise_k:
+        return (f"a test run at **{p.describe()}** would ({p.sensor}: {p.t_a:.1f} °C against {p.t_b:.1f} °C). ")
+    trans = max((ev.max_diff[1] for ev in rd.evidence), default=0.0)
+    return (f"no steady operating point separates them at these sensors by more than {p.diff:.2f} K (largest at "
+            f"{p.describe()}), and over the run their predictions differ by at most {trans:.3f} K, both below 3× "
+            f"the noise floor ({disc.noise_k:.3f} K): no test run with these sensors tells them apart; a sensor "
+            "closer to one of them would. ")
 
 
 def _gap_section(disc: Discovery, add) -> None:  # type: ignore[no-untyped-def]
