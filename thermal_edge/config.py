@@ -21,6 +21,7 @@ from typing import Any, Iterable, Mapping
 import yaml
 
 from .bus.busconfig import BusConfig, BusConfigError
+from .bus.codec import DEFAULT_RESYNC_AFTER_CYCLES
 from .bus.frames import DerateReason
 from .estimation.adapter import METHODS, AdapterConfig
 
@@ -79,7 +80,7 @@ class CodecConfig:
     """``codec:`` -- the DBC and the alive-counter resynchronisation gap (in cycle times)."""
 
     dbc: Path | None = None
-    resync_after_cycles: float = 8.0
+    resync_after_cycles: float = DEFAULT_RESYNC_AFTER_CYCLES
 
 
 @dataclass(frozen=True)
@@ -597,7 +598,7 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     base = p.resolve().parent if p is not None else Path.cwd()
     top = _Section(fname, "", raw)
 
-    # bus (python-can); unknown keys go to can.Bus as options, as BusConfig defines
+    # bus (python-can): BusConfig checks its keys (the interface's own keyword arguments, or options:)
     bus_raw = top.get("bus", {})
     if not isinstance(bus_raw, Mapping):
         raise ConfigError(f"{fname}: bus: expected a mapping, got {type(bus_raw).__name__}")
@@ -608,7 +609,7 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
         raise ConfigError(f"{fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
 
     s = top.sub("codec")
-    codec = CodecConfig(s.path("dbc", base), s.number("resync_after_cycles", 8.0, positive=True))
+    codec = CodecConfig(s.path("dbc", base), s.number("resync_after_cycles", CodecConfig.resync_after_cycles, positive=True))
     s.done()
 
     s = top.sub("model")

@@ -54,7 +54,7 @@ def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt
 
     raw = yaml.safe_load(config_path("edge.yaml").read_text())
     raw["bus"] = {**bus, "preserve_timestamps": True}
-    raw["codec"] = {"dbc": str(ROOT / "dbc" / "thermal_edge.dbc"), "resync_after_cycles": 1000}
+    raw["codec"] = {"dbc": str(ROOT / "dbc" / "thermal_edge.dbc")}
     model = load_model(config_path("machines", "pm10kw.yaml"))
     raw["model"] = {"path": str(config_path("machines", "pm10kw.yaml")),
                     "parameters": table4_parameters(model) if table4 else {}}
@@ -174,8 +174,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0) -> di
             s.bind(("::", 0))
             port = s.getsockname()[1]
         with tempfile.TemporaryDirectory() as tmp:
-            cfg = _config(Path(tmp), {"interface": "udp_multicast", "port": port}, clock="wall", adapt=False,
-                          codec={"resync_after_cycles": 8})
+            cfg = _config(Path(tmp), {"interface": "udp_multicast", "port": port}, clock="wall", adapt=False)
 
             async def one() -> dict[str, Any]:
                 svc = EdgeService(cfg, serve_metrics=False)

@@ -218,6 +218,11 @@ def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
     )
 
 
+#: Cycle times after which a silent sender is taken to have restarted (its counter not judged): long
+#: enough that a real hole is counted as lost frames (from the time stamps), not forgiven.
+DEFAULT_RESYNC_AFTER_CYCLES = 1000.0
+
+
 class FrameCodec:
     """DBC-based encoder/decoder with alive counter and CRC handling.
 
@@ -234,7 +239,7 @@ class FrameCodec:
         restarted: the gap is not counted as lost frames and the counter of the
         second is not judged (``counter_resync``). Below it, frames missing in
         between are counted as ``lost`` from the time stamps and the counter
-        together (see :meth:`decode`). Default 1000.
+        together (see :meth:`decode`). Default :data:`DEFAULT_RESYNC_AFTER_CYCLES`.
     wraps_from_time : bool, optional
         Let time stamps count the counter wraps of a long hole (default). Only right for a
         sender that transmits every cycle while alive (the inverter's frames); a receiver of
@@ -258,7 +263,7 @@ class FrameCodec:
         dbc_path: str | Path = DEFAULT_DBC_PATH,
         *,
         stats: FrameStats | None = None,
-        resync_after_cycles: float = 1000.0,
+        resync_after_cycles: float = DEFAULT_RESYNC_AFTER_CYCLES,
         wraps_from_time: bool = True,
     ) -> None:
         self._path = Path(dbc_path)
