@@ -53,13 +53,13 @@ def _check_group(group: str) -> None:
 
 
 @pytest.mark.parametrize("group", FAST)
-def test_fault_group_short(group: str, udp_ok: None) -> None:  # noqa: ARG001
+def test_fault_group_short(group: str, udp_ok: None) -> None:
     _check_group(group)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("group", SLOW)
-def test_fault_group_short_slow(group: str, udp_ok: None) -> None:  # noqa: ARG001
+def test_fault_group_short_slow(group: str, udp_ok: None) -> None:
     _check_group(group)
 
 
@@ -106,7 +106,7 @@ def test_gaps_count_the_silence_at_both_ends() -> None:
                                              crc_ok=[1] * 4), 0, 5, 10.0) == 2
 
 
-def test_monitor_stamps_te_limits_from_an_independent_socket(udp_ok: None, tmp_path) -> None:  # noqa: ARG001
+def test_monitor_stamps_te_limits_from_an_independent_socket(udp_ok: None, tmp_path) -> None:
     """The monitor process decodes TE_Limits sent by hand (and skips an undecodable datagram)."""
     group, port = harness.unique_group(), harness.free_port()
     mon = harness.Monitor(group, port, tmp_path)

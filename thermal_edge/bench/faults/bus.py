@@ -8,13 +8,27 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from ..common import ROOT
 from . import wire
-from .harness import (GAP_S, SAFE_A, TICK_S, TIMEOUTS_S, Bed, Case, Check, bed, common_checks, env, histogram_quantile,
-                      metric, min_current, reasons_in, received)
+from .harness import (
+    SAFE_A,
+    TICK_S,
+    TIMEOUTS_S,
+    Bed,
+    Case,
+    Check,
+    bed,
+    common_checks,
+    env,
+    histogram_quantile,
+    metric,
+    min_current,
+    reasons_in,
+    received,
+)
 
 SETTLE_S = 0.4  # after a case, before its counters are read: the last frames in flight
 TICK_P99_TARGET_MS = 20.0  # tick p99 on a full bus (issue 14, done when)
@@ -44,7 +58,7 @@ def _dropped_delta(m0: dict[str, float], m1: dict[str, float]) -> dict[str, int]
     return out
 
 
-def _settled(b: Bed, seconds: float = 3.0) -> None:
+def _settled(seconds: float = 3.0) -> None:
     """Let the service leave its start-up state (limits from live inputs)."""
     time.sleep(seconds)
 
@@ -55,7 +69,7 @@ def bad_frames(full: bool) -> Iterator[Case]:
     n = 50 if full else 5
     with bed("bad-frames") as b:
         assert b.inverter is not None
-        _settled(b)
+        _settled()
         for kind in wire.BAD_KINDS:
             sent0, m0 = _counts(b)
             t0 = time.time()
@@ -67,6 +81,7 @@ def bad_frames(full: bool) -> Iterator[Case]:
             sent1, m1 = _counts(b)
             dropped = _dropped_delta(m0, m1)
             did = ("dropped " + ", ".join(f"{v} as {k}" for k, v in sorted(dropped.items())) if dropped else "ignored")
+            did += " (python-can cannot unpack it)" if kind in wire.UNDECODABLE else ""
             did += f"; limits {reasons_in(b.monitor.read(), t0, t1)}"
             yield Case.of(kind, "bad frames", n, did, common_checks(b, t0, t1), _lost(sent0, m0, sent1, m1))
         # a repeated counter (a duplicate frame) is dropped; a jump is counted as lost frames
@@ -99,7 +114,7 @@ def floods(full: bool) -> Iterator[Case]:
     """3,000 bad frames/s of one kind (10 s full, 3 s short) on top of the valid traffic."""
     seconds = 10.0 if full else 3.0
     with bed("floods") as b:
-        _settled(b)
+        _settled()
         for kind in ("bad_crc", "unknown_id", "short_dlc", "not_msgpack", "classic_12_bytes", "std_id_0x800"):
             sent0, m0 = _counts(b)
             t0 = time.time()
@@ -117,7 +132,7 @@ def floods(full: bool) -> Iterator[Case]:
 def _flood(b: Bed, kind: str, rate: float, seconds: float) -> dict:
     out = subprocess.run([sys.executable, "-m", "thermal_edge.bench.faults.wire", "flood", "--group", b.group, "--port",
                           str(b.port), "--kind", kind, "--rate", str(rate), "--seconds", str(seconds)],
-                         env=env(), cwd=str(ROOT), capture_output=True, text=True, timeout=seconds + 60)
+                         env=env(), cwd=str(ROOT), capture_output=True, text=True, timeout=seconds + 60, check=False)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -180,7 +195,7 @@ def stale_inputs(full: bool) -> Iterator[Case]:
     with bed("stale") as b:
         inv = b.inverter
         assert inv is not None
-        _settled(b)
+        _settled()
         for frames in [[f] for f in wire.INPUT_FRAMES] + [list(wire.INPUT_FRAMES)]:
             name = frames[0] if len(frames) == 1 else "all_inputs"
             timeout = min(TIMEOUTS_S[f] for f in frames)
@@ -209,7 +224,7 @@ def sensor_faults(full: bool) -> Iterator[Case]:
     with bed("sensors") as b:
         inv = b.inverter
         assert inv is not None
-        _settled(b)
+        _settled()
         normal = dict(inv.signals["INV_StatorTemps"])
         for which in list(SENSORS) + ["all_three"]:
             targets = list(SENSORS) if which == "all_three" else [which]
@@ -243,7 +258,7 @@ def band(full: bool) -> Iterator[Case]:
             assert inv is not None
             with inv.lock:
                 inv.signals["INV_StatorTemps"] = hot(start_c)
-            _settled(b, 4.0)
+            _settled(4.0)
             t0 = time.time()
             with inv.lock:
                 inv.signals["INV_StatorTemps"] = hot(hot_c)
@@ -264,7 +279,7 @@ def bus_silence(full: bool) -> Iterator[Case]:
     with bed("bus-silence") as b:
         inv = b.inverter
         assert inv is not None
-        _settled(b)
+        _settled()
         from .harness import EDGE
 
         silence_s = float(EDGE["transmit"]["bus_silence_s"])
@@ -328,7 +343,7 @@ def _sockets(pid: int) -> list[tuple[str, str, int, str]]:
 def _host_addresses() -> list[str]:
     """This host's own non-loopback addresses (``ip -o addr``)."""
     try:
-        text = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True, timeout=5).stdout
+        text = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True, timeout=5, check=False).stdout
     except OSError:
         return []
     out = []
@@ -348,7 +363,7 @@ def security(full: bool) -> Iterator[Case]:
     to the host's own addresses must not be taken as CAN frames."""
     n = 100 if full else 20
     with bed("security") as b:
-        _settled(b, 2.0)
+        _settled(2.0)
         socks = _sockets(b.service.pid)
         tcp = [s for s in socks if s[0].startswith("tcp") and s[3] == "LISTEN"]
         udp = [s for s in socks if s[0].startswith("udp")]
@@ -387,7 +402,7 @@ def metrics_abuse(full: bool) -> Iterator[Case]:
     storm: no TE_Limits gap over 300 ms."""
     n = 200
     with bed("metrics-abuse") as b:
-        _settled(b, 2.0)
+        _settled(2.0)
         port = b.service.metrics_port
         assert port is not None
         for name, payload in (("idle_connections", b""), ("half_sent_requests", b"GET /metrics HTTP/1.1\r\nHost: x\r\n")):
@@ -425,6 +440,6 @@ def metrics_abuse(full: bool) -> Iterator[Case]:
                       common_checks(b, t0, t1))
 
 
+#: group name -> its cases
 GROUPS = {"bad_frames": bad_frames, "floods": floods, "load": full_bus, "stale": stale_inputs, "sensors": sensor_faults,
           "band": band, "bus": bus_silence, "security": security, "metrics": metrics_abuse}
-__all__ = ["GROUPS", "GAP_S"]

@@ -9,7 +9,6 @@ faulty, above the derating band at the measured winding temperature, and a crash
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import random
 import re
@@ -22,9 +21,10 @@ import tempfile
 import threading
 import time
 import urllib.request
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import yaml
 
@@ -72,7 +72,7 @@ def band_limit_a(winding_c: float) -> float:
 def unit_memory_max_bytes() -> int:
     """``MemoryMax=`` of the shipped systemd unit, bytes."""
     text = (ROOT / "deploy" / "systemd" / "thermal-edge.service").read_text()
-    m = re.search(r"^MemoryMax=(\d+)([KMG]?)\s*$", text, re.M)
+    m = re.search(r"^MemoryMax=(\d+)([KMG]?)\s*$", text, re.MULTILINE)
     if not m:
         raise RuntimeError("deploy/systemd/thermal-edge.service has no MemoryMax=")
     return int(m.group(1)) * {"": 1, "K": 1 << 10, "M": 1 << 20, "G": 1 << 30}[m.group(2)]
@@ -138,10 +138,6 @@ class Limits:
     reason: list[int] = field(default_factory=list)
     crc_ok: list[int] = field(default_factory=list)
 
-    def window(self, t0: float, t1: float) -> "Limits":
-        idx = [i for i, t in enumerate(self.t) if t0 <= t < t1]
-        return Limits([self.t[i] for i in idx], [self.current[i] for i in idx], [self.torque[i] for i in idx],
-                      [self.reason[i] for i in idx], [self.crc_ok[i] for i in idx])
 
 
 class Monitor:
@@ -342,7 +338,7 @@ class Inverter:
         self._hold = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
-    def start(self) -> "Inverter":
+    def start(self) -> Inverter:
         self._thread.start()
         return self
 
@@ -421,7 +417,6 @@ class Bed:
     service: Service
     monitor: Monitor
     inverter: Inverter | None
-    first_limits_s: float | None  # from spawn to the first TE_Limits
 
 
 @contextlib.contextmanager
@@ -440,9 +435,10 @@ def bed(name: str, *, inverter: bool = True, state_dir: Path | None = None, prep
         svc = Service(raw, workdir)
         svc.start()
         try:
-            first = mon.first_after(svc.started, START_TIMEOUT_S)
+            if mon.first_after(svc.started, START_TIMEOUT_S) is None:
+                raise RuntimeError(f"no TE_Limits within {START_TIMEOUT_S:g} s of the start:\n{svc.log_text()[-1500:]}")
             svc.wait_metrics(5)
-            yield Bed(workdir, group, port, svc, mon, inv, None if first is None else first - svc.started)
+            yield Bed(workdir, group, port, svc, mon, inv)
         finally:
             if inv is not None:
                 inv.close()
@@ -526,10 +522,6 @@ def min_current(lim: Limits, t0: float, t1: float) -> float:
     return min((c for t, c in zip(lim.t, lim.current) if t0 <= t <= t1), default=float("nan"))
 
 
-def json_dump(obj: Any) -> str:
-    return json.dumps(obj, indent=2, default=float)
-
-
 @dataclass
 class Case:
     """One row of the bench: what was tried how often, what the service did, what was lost (frames
@@ -544,6 +536,6 @@ class Case:
     seconds: float = 0.0
 
     @classmethod
-    def of(cls, name: str, group: str, tried: int, did: str, check: Check, lost: int = 0) -> "Case":
+    def of(cls, name: str, group: str, tried: int, did: str, check: Check, lost: int = 0) -> Case:
         notes = "; ".join(check.notes)
         return cls(name, group, tried, did + (f" | UNSAFE: {notes}" if notes else ""), int(lost), check.unsafe)

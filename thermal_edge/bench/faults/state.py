@@ -15,15 +15,34 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 import yaml
 
 from ..common import ROOT
 from . import wire
-from .harness import (HOT_SPOT_BAND, START_TIMEOUT_S, Bed, Case, Check, Inverter, Monitor, Service, common_checks, edge_config, env, free_port, gaps,
-                      metric, service_config_path, thermal_edge_cmd, unique_group, unit_memory_max_bytes)
+from .harness import (
+    HOT_SPOT_BAND,
+    START_TIMEOUT_S,
+    Bed,
+    Case,
+    Check,
+    Inverter,
+    Monitor,
+    Service,
+    common_checks,
+    edge_config,
+    env,
+    free_port,
+    gaps,
+    metric,
+    service_config_path,
+    thermal_edge_cmd,
+    unique_group,
+    unit_memory_max_bytes,
+)
 
 STATE = "state.json"
 LEARNED_SCALE = 1.2  # learned parameters: the nominal value moved by this factor (inside the bounds)
@@ -57,7 +76,7 @@ def params_lost(expected: dict[str, float], got: dict[str, float], rel: float = 
 
 def _bed(svc: Service, mon: Monitor, group: str, port: int, workdir: Path) -> Bed:
     """A service and its monitor as the common checks take them."""
-    return Bed(workdir, group, port, svc, mon, None, None)
+    return Bed(workdir, group, port, svc, mon, None)
 
 
 class Rig:
@@ -216,8 +235,7 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         with open(d / STATE, "wb") as fh:
             fh.write(head.encode())
             chunk = b"25.0," * (1 << 20)
-            for _ in range(256 // 5 + 1):
-                fh.write(chunk)
+            fh.writelines(chunk for _ in range(256 // 5 + 1))
             fh.write(b"25.0]}")
 
     def temp_left(d: Path) -> None:
@@ -297,7 +315,7 @@ def corrupt_states(full: bool) -> Iterator[Case]:
                 c.add(int(not aside), "the file was not moved aside (the next start meets it again)")
             code = svc.stop()
             if usable:  # the state it saves on SIGTERM loads again with the same parameters
-                svc2, first2 = r.start(r.config(sd))
+                svc2, _ = r.start(r.config(sd))
                 time.sleep(1.0)
                 lost += params_lost(expected, parameter_metrics(svc2.metrics()), rel=1e-6)
                 lost += len(list(sd.glob(STATE + ".corrupt-*"))) - len(aside)
