@@ -9,9 +9,6 @@ thermal_edge.discovery.bench`` prints the same cases as a table. The real-data c
 """
 from __future__ import annotations
 
-import math
-
-import numpy as np
 import pytest
 
 from thermal_edge.discovery import bench, fitting, workflow
