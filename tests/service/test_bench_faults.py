@@ -19,7 +19,7 @@ from thermal_edge.bench.faults import harness, wire
 
 _D1 = "issue 14 defect 1 (undecodable datagrams stop TE_Limits), being fixed"
 _D5 = "issue 14 defect 5 (TE_Limits gaps over 300 ms under host load), being fixed"
-_D6 = "issue 14 defect 6 (a full bus: tick p99 above 20 ms), being fixed"
+_D6 = "issue 14 defect 6 (a full bus: TE_Limits gaps over 150 ms, tick p99 above 20 ms), being fixed"
 _D8 = "issue 14 defect 8 (run --check accepts a configuration that cannot work), being fixed"
 _D9 = "issue 14 defect 9 (limit above the band at the measured winding temperature), being fixed"
 #: case name -> why it is expected to fail today (measured at 03:59 UTC on 2026-11-24; remove when fixed)
