@@ -234,7 +234,7 @@ def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
 
     from ..config import config_from_mapping
 
-    path = Path(config_file) if config_file is not None else config_path("edge.yaml")
+    path = (Path(config_file) if config_file is not None else config_path("edge.yaml")).resolve()
     raw = yaml.safe_load(path.read_text())
     raw["bus"] = {"interface": "virtual", "channel": "bench-protection"}
     raw["clock"] = {**(raw.get("clock") or {}), "mode": "frame"}
