@@ -117,6 +117,41 @@ async def test_undecodable_datagrams_do_not_stop_te_limits(udp_port, caplog):
     assert 1 <= len(warnings) <= 2  # rate-limited: one line, not one per datagram
 
 
+async def test_a_flood_of_undecodable_datagrams_never_reopens_the_bus(udp_port):
+    """3,000 undecodable datagrams a second for 2 s, nothing valid in between (the fault bench's flood:
+    runs of 50 and more used to count as a dead bus, and each reopen silenced TE_Limits)."""
+    watch = _LimitsWatch(udp_port)
+    watch.start()
+    garbage = _garbage_sender(udp_port)
+    te = CanTransport({"interface": "udp_multicast", "port": udp_port, "node": "TE"}, FrameCodec(DBC_PATH))
+    sent = 0
+
+    def flood() -> None:
+        nonlocal sent
+        t0 = time.monotonic()
+        while (elapsed := time.monotonic() - t0) < 2.0:
+            while sent < 3000 * elapsed:
+                garbage.sendto(GARBAGE[sent % len(GARBAGE)], (DEFAULT_UDP_MULTICAST_GROUP, udp_port))
+                sent += 1
+            time.sleep(0.001)
+
+    try:
+        async with te:
+            te.start_cyclic("TE_Limits", lambda: LIMITS, thread=True)
+            await asyncio.sleep(0.3)
+            await asyncio.get_running_loop().run_in_executor(None, flood)
+            await asyncio.sleep(0.5)
+            stats = te.stats.as_dict()
+    finally:
+        garbage.close()
+        times = watch.close()
+    gaps = [b - a for a, b in zip(times, times[1:])]
+    assert sent >= 5000
+    assert stats["reconnects"] == 0 and stats["bus_errors"] == 0
+    assert stats["rx_undecodable"] == sent  # every one counted, none lost in a reopen
+    assert max(gaps) < 0.3, f"largest TE_Limits gap {max(gaps):.3f} s"
+
+
 class _ErrorBus(can.BusABC):
     """A virtual bus whose receive raises instead of returning messages while ``failing``.
 

@@ -38,6 +38,7 @@ from .candump import CandumpRecorder
 from .codec import DecodedFrame, FrameCodec
 from .cyclic import CyclicSender, Fallback, SignalProvider
 from .stats import TransportStats
+from .udp import UndecodableDatagram
 
 __all__ = ["RX_ERROR_RUN_LIMIT", "CanTransport", "FrameCallback"]
 
@@ -434,7 +435,9 @@ class CanTransport:
         """Count one receive error; True (and a reconnect) if the bus is gone (any thread)."""
         if generation != self._generation or self._stopping:
             return True
-        self._rx_error_run += 1
+        # a datagram that arrived but is no CAN message proves the socket works: never a reason to reopen,
+        # however many come (a flood of them must not silence TE_Limits through reconnects)
+        self._rx_error_run = 0 if isinstance(exc, UndecodableDatagram) else self._rx_error_run + 1
         if _bus_gone(bus, exc) or self._rx_error_run >= RX_ERROR_RUN_LIMIT:
             if self._rx_error_run >= RX_ERROR_RUN_LIMIT:
                 log.warning("CAN bus %s: %d receive errors in a row", self._describe(), self._rx_error_run)
