@@ -12,8 +12,10 @@ the configuration file.
 from __future__ import annotations
 
 import difflib
+import ipaddress
 import math
 import os
+import tempfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -337,6 +339,13 @@ class EdgeConfig:
             msg = f"{d} is not a directory" if probe == d else f"{d} cannot be created: {probe} is not a directory"
             raise self.error("state.dir", msg)
         if not create:
+            if probe != d:  # try to make a directory where it would go, then remove it
+                try:
+                    os.rmdir(tempfile.mkdtemp(prefix=".thermal-edge-check-", dir=probe))
+                except PermissionError:
+                    pass  # perhaps only for this user: the service's user may be allowed
+                except OSError as exc:
+                    raise self.error("state.dir", f"{d} cannot be created under {probe}: {exc.strerror or exc}") from None
             return
         try:
             d.mkdir(parents=True, exist_ok=True)
@@ -701,8 +710,14 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     s.done()
 
     s = top.sub("metrics")
-    metrics = MetricsConfig(s.boolean("enabled", True), s.string("address", "127.0.0.1"),
-                            s.integer("port", 9108, min_=0, max_=65535))
+    address = s.string("address", MetricsConfig.address)
+    try:  # an address to bind, not a name: what it binds to must be plain in the file
+        ipaddress.ip_address(address)
+    except ValueError:
+        raise s.fail("address", f"not an IP address: {address!r} (127.0.0.1 or ::1 for this host only; "
+                                "0.0.0.0 or an interface's address to be scraped from the network)") from None
+    metrics = MetricsConfig(s.boolean("enabled", MetricsConfig.enabled), address,
+                            s.integer("port", MetricsConfig.port, min_=0, max_=65535))
     s.done()
 
     s = top.sub("state")

@@ -204,6 +204,11 @@ BROKEN = [
     ("frame not in the DBC", _set("signals.inputs.i_rms.frame", "INV_Nothing"), "signals.inputs.i_rms.frame", "no frame"),
     ("transmitted limit unknown", _set("transmit.hot_spot_limit", "nowhere"), "transmit.hot_spot_limit", "no limited node"),
     ("bitrate negative", _set("bus.bitrate", -5), "bus.bitrate", "positive integer"),
+    ("state.dir on a file system that cannot hold it", _set("state.dir", "/proc/thermal-edge/state"), "state.dir",
+     "cannot be created under /proc"),
+    ("metrics address a name", _set("metrics.address", "not an address"), "metrics.address", "not an IP address"),
+    ("udp_multicast channel a unicast address", _set("bus", {"interface": "udp_multicast", "channel": "192.0.2.1"}),
+     "bus.channel", "not a multicast group"),
 ]
 # the checks that need more than the file also hold when the service starts (not only with --check)
 AT_START = {"limits period above the inverter timeout", "state.dir is a file", "state.dir under a file",

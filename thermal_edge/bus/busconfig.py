@@ -174,6 +174,8 @@ class BusConfig:
         if not isinstance(self.options, Mapping):
             raise BusConfigError("bus.options", f"expected a mapping, got {type(self.options).__name__}")
         self.options = dict(self.options)
+        if self.interface == "udp_multicast" and self.channel is not None:
+            _check_multicast_group(self.channel)  # at load, not only when the bus opens
 
     @classmethod
     def from_mapping(cls, mapping: Mapping[str, Any]) -> BusConfig:
