@@ -17,20 +17,12 @@ import pytest
 from thermal_edge.bench import faults
 from thermal_edge.bench.faults import harness, wire
 
-_D1 = "issue 14 defect 1 (undecodable datagrams stop TE_Limits), being fixed"
 _D5 = "issue 14 defect 5 (TE_Limits gaps over 300 ms under host load), being fixed"
 _D6 = "issue 14 defect 6 (a full bus: TE_Limits gaps over 150 ms, tick p99 above 20 ms), being fixed"
-_D8 = "issue 14 defect 8 (run --check accepts a configuration that cannot work), being fixed"
 _D9 = "issue 14 defect 9 (limit above the band at the measured winding temperature), being fixed"
 #: case name -> why it is expected to fail today (measured at 03:59 UTC on 2026-11-24; remove when fixed)
 KNOWN_DEFECTS: dict[str, str] = {
-    "flood_3000fps_not_msgpack": _D1,
-    "flood_3000fps_classic_12_bytes": _D1,
-    "flood_3000fps_std_id_0x800": _D1,
     "full_bus_8000fps_10s": _D6,
-    "config_state_dir_cannot_be_created": _D8,
-    "config_metrics_address_not_an_address": _D8,
-    "config_udp_channel_unicast_address": _D8,
     "measured_winding_150c": _D9,
 }
 
