@@ -19,11 +19,9 @@ from thermal_edge.bench.faults import harness, wire
 
 _D5 = "issue 14 defect 5 (TE_Limits gaps over 300 ms under host load), being fixed"
 _D6 = "issue 14 defect 6 (a full bus: TE_Limits gaps over 150 ms, tick p99 above 20 ms), being fixed"
-_D9 = "issue 14 defect 9 (limit above the band at the measured winding temperature), being fixed"
 #: case name -> why it is expected to fail today (measured at 03:59 UTC on 2026-11-24; remove when fixed)
 KNOWN_DEFECTS: dict[str, str] = {
     "full_bus_8000fps_10s": _D6,
-    "measured_winding_150c": _D9,
 }
 
 #: groups within the ~3 min budget of the suite; the rest are marked slow

@@ -279,16 +279,22 @@ class EdgeService:
         ref = self._last_frame_mono if self._last_frame_mono is not None else self._started_mono
         out = self.engine.last
         if ref is not None and now - ref > silence and not self._waiting:
-            safe = policy.safe(DerateReason.STALE_INPUT)
-            if out is not None and out.limits.current_a < safe.current_a:
-                return {**safe.signals(), "TE_CurrentLimit": out.limits.current_a,
-                        "TE_TorqueLimit": min(out.limits.torque_nm, safe.torque_nm)}
-            return safe.signals()
+            return self._forced_signals(DerateReason.STALE_INPUT)
         if out is None:
             return policy.safe(DerateReason.STARTING).signals()
         if not self.frame_mode and self._last_tick_mono is not None and now - self._last_tick_mono > 3 * self.config.clock.tick_s:
-            return policy.safe(DerateReason.MODEL_FAULT).signals()  # ticks stopped: something is stuck
+            return self._forced_signals(DerateReason.MODEL_FAULT)  # ticks stopped: something is stuck
         return out.limits.signals()
+
+    def _forced_signals(self, reason: DerateReason) -> dict[str, float | int]:
+        """The safe limit with ``reason``, never above the last tick's limit (which already held the
+        band at the measured temperatures): decided between ticks, so it cannot know better."""
+        safe = self.engine.policy.safe(reason)
+        out = self.engine.last
+        if out is not None and out.limits.current_a < safe.current_a:
+            return {**safe.signals(), "TE_CurrentLimit": out.limits.current_a,
+                    "TE_TorqueLimit": min(out.limits.torque_nm, safe.torque_nm)}
+        return safe.signals()
 
     def _tx_time(self) -> float:
         """Timestamp of sent (and recorded) frames: the clock's time. With the frame clock, frames

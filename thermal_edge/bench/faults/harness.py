@@ -455,12 +455,19 @@ def gaps(lim: Limits, t0: float, t1: float, limit_s: float = GAP_S) -> list[floa
     return [b - a for a, b in zip(ts, ts[1:]) if b - a > limit_s]
 
 
-def runs_above(lim: Limits, t0: float, t1: float, bound: float) -> int:
-    """Runs of consecutive ``TE_Limits`` in [t0, t1] whose current is above ``bound`` (+ one step)."""
+def forced_reasons() -> frozenset[int]:
+    """``TE_DerateReason`` values that say the service does not trust its estimate (from the DBC)."""
+    choices = wire.dbc().get_message_by_frame_id(wire.TE_LIMITS_ID).get_signal_by_name("TE_DerateReason").choices
+    return frozenset(int(k) for k, v in choices.items() if str(v) in ("starting", "model_fault", "stale_input", "sensor_fault"))
+
+
+def runs_above(lim: Limits, t0: float, t1: float, bound: float, reasons: frozenset[int] | None = None) -> int:
+    """Runs of consecutive ``TE_Limits`` in [t0, t1] whose current is above ``bound`` (+ one step);
+    with ``reasons``, only frames giving one of those reasons count."""
     runs, inside = 0, False
-    for t, c in zip(lim.t, lim.current):
+    for t, c, r in zip(lim.t, lim.current, lim.reason):
         if t0 <= t <= t1:
-            above = c > bound + RESOLUTION_A
+            above = c > bound + RESOLUTION_A and (reasons is None or r in reasons)
             runs += above and not inside
             inside = above
     return runs
@@ -482,7 +489,8 @@ class Check:
 def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = None, band_c: float | None = None,
                   gap_limit_s: float = GAP_S) -> Check:
     """Gaps while alive, limits above the maximum, above the safe limit from ``safe_from`` on, above
-    the band at the measured winding ``band_c``, crash."""
+    the band at the measured winding ``band_c`` while the service says it does not trust its
+    estimate, crash."""
     lim = b.monitor.read()
     c = Check()
     alive = b.service.alive()
@@ -499,8 +507,13 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
         if not any(safe_from <= t <= t1 for t in lim.t):
             c.add(1, "no TE_Limits to derate with")
     if band_c is not None:
-        n = runs_above(lim, t0, t1, band_limit_a(band_c))
-        c.add(n, f"above the band at the measured {band_c:g} degC ({band_limit_a(band_c):.1f} A)")
+        # the configured band at a measured temperature is what is left when the model is not trusted
+        # (defect 9); a trusted model may give the headroom between warn and max (issue 15's policy),
+        # but not past max: at a measured max every limit must be zero
+        bound = band_limit_a(band_c)
+        n = runs_above(lim, t0, t1, bound, None if bound <= 0 else forced_reasons())
+        c.add(n, f"above the band at the measured {band_c:g} degC ({band_limit_a(band_c):.1f} A) while the "
+                 "estimate was not trusted")
     if not alive or b.service.tracebacks():
         c.add(1, f"crash (exit {b.service.proc.returncode if b.service.proc else None}, {b.service.tracebacks()} traceback(s)"
                  + (", killed at the unit's MemoryMax" if b.service.oom_killed else "") + ")")
