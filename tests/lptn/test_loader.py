@@ -247,7 +247,7 @@ def test_paderborn_model_file_loads():
 
     d = require_paderborn()
     m = load_model(PADERBORN_YAML, data_dir=d)
-    assert m.nodes == ("pm", "sy", "st", "sw") and len(m.parameters) == 8
+    assert m.nodes == ("pm", "sy", "st", "sw") and len(m.parameters) == 9
 
 
 def test_pm10kw_model_file_loads():

@@ -263,7 +263,7 @@ class ThermalEngine:
         self.initialized = False
         self.start_t: float | None = None
         self.last_t: float | None = None
-        self.prev_sample: tuple[float, dict[str, float], np.ndarray] | None = None  # (t, measured, x_ol) at last tick
+        self.prev_sample: tuple[float, dict[str, float], np.ndarray] | None = None  # (t, measured, observer estimate) at last tick
         self.last_inputs: dict[str, float] = dict(restored.inputs) if restored is not None else {}
         self.recent_inputs: deque[tuple[float, dict[str, float]]] = deque(maxlen=1024)
         self.err_window: deque[tuple[float, float, int]] = deque()
@@ -435,7 +435,7 @@ class ThermalEngine:
             have_sensors = any(math.isfinite(v) for v in ti.measured.values())
             if have_inputs and have_sensors and t >= self.fault_until:
                 self._init_state(t, ti)
-                self.prev_sample = (t, dict(ti.measured), self.x_ol.copy())  # type: ignore[union-attr]
+                self.prev_sample = (t, dict(ti.measured), self.observer.T.copy())  # type: ignore[union-attr]
             else:
                 grace = max(cfg.timeouts.values(), default=1.0) + self.dt
                 waited = t - (self.start_t if self.start_t is not None else t)
@@ -501,7 +501,7 @@ class ThermalEngine:
             self._reinit_after_fault(ti)
         if t < self.fault_until:
             forced.insert(0, DerateReason.MODEL_FAULT)
-        self.prev_sample = (t, dict(y), self.x_ol.copy())
+        self.prev_sample = (t, dict(y), obs.T.copy())  # the adapter judges from the observer's state
         return self._finish(t, ti, forced, new_results, pred_error)
 
     def _adaptation(self, t: float) -> list[AdaptationResult]:
