@@ -369,3 +369,20 @@ def test_bad_dbc_is_reported_with_its_path(tmp_path):
         FrameCodec(bad)
     with pytest.raises(DbcError, match="missing.dbc"):
         FrameCodec(tmp_path / "missing.dbc")
+
+
+def test_a_sender_that_restarts_its_counter_is_not_taken_for_a_duplicate():
+    """An inverter reset: 1 s silent, then its counter from 0 again, which may equal the last one
+    seen. From a sender off its DBC cycle (here every 3 cycles, as the fault bench's inverter; time
+    stamps then cannot count wraps) that frame is taken as a counter resync; a duplicate right after
+    a frame is still dropped."""
+    tx, rx = _fresh_pair()
+    period = 3 * tx.cycle_time_s("INV_Currents")
+    for i in range(32):  # counters 0..15, 0..15: the last one seen is 15
+        assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=i % 16), timestamp=i * period)
+    t = 31 * period + 1.0
+    restart = tx.encode("INV_Currents", _currents(0), counter=15)  # the reset sender happens to be at 15
+    assert rx.decode(0x0A0, restart, timestamp=t) is not None
+    assert rx.stats.counter_resync == 1 and rx.stats.dropped_total == 0 and rx.stats.lost == 0
+    assert rx.decode(0x0A0, restart, timestamp=t + 0.001) is None  # a real duplicate
+    assert rx.stats.counter_repeat == 1

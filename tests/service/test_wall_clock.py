@@ -45,7 +45,8 @@ async def test_real_time_service_on_the_wall_clock(tmp_path, channel):
     assert s.rx_lost == 0 and svc.codec.stats.lost == 0
     assert svc.max_lateness_s < 0.2
     assert svc.engine.last.initialized
-    assert s.limits_received and emu.last_reason in (DerateReason.STARTING, DerateReason.NONE, DerateReason.LOOK_AHEAD)
+    # 4.5 s after a cold start the limit still climbs from the safe start value at the rise rate
+    assert s.limits_received and emu.last_reason in (DerateReason.STARTING, DerateReason.RECOVERING, DerateReason.NONE)
     assert "thermal_edge_up 1.0" in body and "thermal_edge_ticks_total" in body
     msgs = list(notify.messages)
     assert msgs[0].startswith("READY=1") and msgs.count("WATCHDOG=1") >= 10  # every 0.3 s while ticking

@@ -56,6 +56,9 @@ _PACE_FRAMES = 64
 #: Gaps seen before the pace is trusted, and the band around the DBC cycle it must lie in.
 _PACE_MIN_GAPS = 8
 _PACE_BAND = (0.5, 2.0)
+#: A repeated counter this many of the sender's own frame times after its last frame is no
+#: duplicate (a duplicate follows at once) but a sender that restarted its counter (a reset).
+_REPEAT_WITHIN_PACES = 3.0
 
 
 def _keeps_cycle(pace: tuple[float, int] | None, cycle: float) -> bool:
@@ -549,6 +552,12 @@ class FrameCodec:
                             and _keeps_cycle(pace, cycle)):
                         wraps = 16 * max(0, round((dt / cycle - step) / 16))
                         n += wraps
+                    if n == 0 and dt is not None and pace is not None and pace[1] >= _PACE_MIN_GAPS \
+                            and dt > _REPEAT_WITHIN_PACES * max(pace[0], cycle or 0.0):
+                        # the same counter long after the last frame, not explained by whole wraps:
+                        # a sender that restarted its counter (an inverter reset), not a duplicate
+                        self.stats.counter_resync += 1
+                        n, pace = 1, None
                     if n == 0:
                         self.stats.count_drop("counter_repeat", spec.name)
                         return None

@@ -46,7 +46,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..bus.busconfig import BusConfig
+from ..bus.busconfig import BusConfig, interface_keywords
 from ..bus.codec import DecodedFrame, FrameCodec
 from ..bus.frames import (DEFAULT_DBC_PATH, INV_AMBIENT_TEMPS, INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS,
                           TE_ESTIMATES, TE_LIMITS, TE_STATUS, SensorStatus)
@@ -659,7 +659,9 @@ def main(argv: list[str] | None = None) -> int:
         closed_loop=not args.open_loop, fallback_current_a=args.fallback_current, flow_control=not args.no_flow_control,
         max_lead_s=args.max_lead, seed=args.seed, flow_timeout_s=args.flow_timeout, limits_timeout_s=args.limits_timeout,
     )
-    bus: dict[str, Any] = {"interface": args.interface, "preserve_timestamps": True}
+    bus: dict[str, Any] = {"interface": args.interface}
+    if "preserve_timestamps" in interface_keywords(args.interface):  # simulated time on virtual/udp buses
+        bus["preserve_timestamps"] = True
     if args.channel is not None:
         bus["channel"] = args.channel
     if args.port is not None:
