@@ -386,3 +386,19 @@ def test_a_sender_that_restarts_its_counter_is_not_taken_for_a_duplicate():
     assert rx.stats.counter_resync == 1 and rx.stats.dropped_total == 0 and rx.stats.lost == 0
     assert rx.decode(0x0A0, restart, timestamp=t + 0.001) is None  # a real duplicate
     assert rx.stats.counter_repeat == 1
+
+
+@pytest.mark.parametrize("late_cycles", [0.0, 6.0, 12.0])
+def test_a_late_sender_is_not_counted_as_losing_a_counter_wrap(late_cycles):
+    """Five frames left out (counter step 6) by a sender that was also late by up to 12 cycles (a
+    busy host): 5 lost, not 21 (the fault bench's counter_jump counted 41 for 25 left out)."""
+    tx, rx = _fresh_pair()
+    cycle = tx.cycle_time_s("INV_Currents")
+    t = 0.0
+    for i in range(40):  # a sender keeping its cycle, seen long enough for time to count wraps
+        t = i * cycle
+        assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=i % 16), timestamp=t)
+    nxt = 39 + 6  # five left out
+    assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=nxt % 16),
+                     timestamp=t + (6 + late_cycles) * cycle) is not None
+    assert rx.stats.lost == 5

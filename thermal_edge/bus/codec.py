@@ -56,6 +56,9 @@ _PACE_FRAMES = 64
 #: Gaps seen before the pace is trusted, and the band around the DBC cycle it must lie in.
 _PACE_MIN_GAPS = 8
 _PACE_BAND = (0.5, 2.0)
+#: Cycles a sender's time stamps may run early; time counts a counter wrap only from 16 minus
+#: this many periods beyond the counter step (a late sender is never counted as lost frames).
+_WRAP_EARLY_CYCLES = 2.0
 #: A repeated counter this many of the sender's own frame times after its last frame is no
 #: duplicate (a duplicate follows at once) but a sender that restarted its counter (a reset).
 _REPEAT_WITHIN_PACES = 3.0
@@ -550,7 +553,9 @@ class FrameCodec:
                     n = step
                     if (self._wraps_from_time and dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS
                             and _keeps_cycle(pace, cycle)):
-                        wraps = 16 * max(0, round((dt / cycle - step) / 16))
+                        # rounded down: a sender that is late (a busy host) makes dt longer, never
+                        # shorter, than its frame periods; only early jitter needs the allowance
+                        wraps = 16 * max(0, math.floor((dt / cycle - step + _WRAP_EARLY_CYCLES) / 16))
                         n += wraps
                     if n == 0 and dt is not None and pace is not None and pace[1] >= _PACE_MIN_GAPS \
                             and dt > _REPEAT_WITHIN_PACES * max(pace[0], cycle or 0.0):

@@ -155,7 +155,8 @@ class TickOutput:
     stale: list[str]
     faults: dict[str, str]
     new_results: list[AdaptationResult] = field(default_factory=list)
-    compute_s: float = 0.0
+    compute_s: float = 0.0  # CPU time of the tick's thread, s
+    wall_s: float = 0.0  # wall time of the tick, s
     hot_spot: NodeBand | None = None
     magnet: NodeBand | None = None
     reaction_a: float = math.inf  # largest current keeping every upper band below max over the reaction time
@@ -403,7 +404,9 @@ class ThermalEngine:
     # ------------------------------------------------------------------------------------------
     def tick(self, t: float) -> TickOutput:
         """Run the tick ending at ``t``; never raises for bad data (a failure forces the safe limit)."""
-        c0 = time.perf_counter()
+        # CPU time of this thread: what the tick costs, not how long the host or the adapter's thread
+        # kept it from running (that is the wall time, reported beside it)
+        c0, w0 = time.thread_time(), time.perf_counter()
         try:
             out = self._tick(t)
         except Exception as exc:
@@ -413,7 +416,8 @@ class ThermalEngine:
             self.initialized = False
             self.observer = None
             out = self._output(t, None, [DerateReason.MODEL_FAULT], [], {}, TeState.FAULT, error=str(exc))
-        out.compute_s = time.perf_counter() - c0
+        out.compute_s = time.thread_time() - c0
+        out.wall_s = time.perf_counter() - w0
         self.last = out
         self.last_t = t
         self.ticks += 1

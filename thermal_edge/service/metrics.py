@@ -239,8 +239,11 @@ class ServiceMetrics:
         self.store: Any = None
         self.extra: list[tuple[str, Callable[[], float], str]] = []
         r = self.registry
-        self.tick_duration = Histogram(P + "tick_duration_seconds", "Compute time of one tick", registry=r,
-                                       buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0))
+        buckets = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0)
+        self.tick_duration = Histogram(P + "tick_duration_seconds", "Compute (CPU) time of one tick", registry=r,
+                                       buckets=buckets)
+        self.tick_wall = Histogram(P + "tick_wall_seconds", "Wall time of one tick (CPU time plus waits for the "
+                                   "processor and the interpreter)", registry=r, buckets=buckets)
         self.tick_lateness = Histogram(P + "tick_lateness_seconds", "Start of a tick after its scheduled time (wall clock)",
                                        registry=r, buckets=(0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0))
         self.adapt_duration = Histogram(P + "adaptation_duration_seconds", "Wall time of one adaptation decision",
@@ -262,6 +265,7 @@ class ServiceMetrics:
 
     def observe_tick(self, out: "TickOutput", lateness_s: float | None = None) -> None:
         self.tick_duration.observe(out.compute_s)
+        self.tick_wall.observe(out.wall_s)
         if lateness_s is not None:
             self.tick_lateness.observe(lateness_s)
         for res in out.new_results:

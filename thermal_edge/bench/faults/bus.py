@@ -7,6 +7,7 @@ import json
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -31,6 +32,7 @@ from .harness import (
 )
 
 SETTLE_S = 0.4  # after a case, before its counters are read: the last frames in flight
+INIT_S = 3.0  # s into the full-bus flood from which ticks are judged
 TICK_P99_TARGET_MS = 20.0  # tick p99 on a full bus (issue 14, done when)
 
 
@@ -145,7 +147,13 @@ def full_bus(full: bool) -> Iterator[Case]:
         m0 = b.service.metrics()
         t0 = time.time()
         rss0 = b.service.rss()
+        # ticks are judged from INIT_S into the flood: the service starts with no inputs, and its first
+        # tick with them initialises the state (a steady-state solve, ~60 ms once; not a load effect)
+        settled: dict[str, float] = {}
+        snap = threading.Timer(INIT_S, lambda: settled.update(b.service.metrics()))
+        snap.start()
         rep = _flood(b, "valid", 8000, seconds)
+        snap.join()
         t_end = time.time()
         time.sleep(1.0)
         m1 = b.service.metrics()
@@ -157,14 +165,16 @@ def full_bus(full: bool) -> Iterator[Case]:
         # two ticks into it
         judged = (t0 + max(TIMEOUTS_S.values()) + 2 * TICK_S, t_end)
         stale = sum(1 for t, r in zip(lim.t, lim.reason) if judged[0] <= t <= judged[1] and r == 5)
-        p99 = histogram_quantile(m1, "thermal_edge_tick_duration_seconds", 0.99, since=m0) * 1e3
+        p99 = histogram_quantile(m1, "thermal_edge_tick_duration_seconds", 0.99, since=settled or m0) * 1e3
+        wall99 = histogram_quantile(m1, "thermal_edge_tick_wall_seconds", 0.99, since=settled or m0) * 1e3
         ts = [t for t in lim.t if t0 <= t <= t_end]
         max_gap = max((y - x for x, y in zip(ts, ts[1:])), default=float("nan")) * 1e3
         c = common_checks(b, t0, t_end, gap_limit_s=0.15)
         c.add(1 if stale else 0, f"{stale} TE_Limits with a false stale input")
         c.add(int(not p99 <= TICK_P99_TARGET_MS), f"tick p99 above {TICK_P99_TARGET_MS:g} ms (issue 14, done when)")
         did = (f"{sent} sent at {sent / rep['seconds']:.0f}/s, {got} accepted, {sent - got} lost in transit, {counted} counted "
-               f"lost; tick p99 <= {p99:.0f} ms (histogram bucket; target {TICK_P99_TARGET_MS:g}); max gap {max_gap:.0f} ms; RSS {rss0 / 2**20:.0f} -> "
+               f"lost; tick p99 <= {p99:.0f} ms CPU (histogram bucket; target {TICK_P99_TARGET_MS:g}), wall "
+               f"<= {wall99:.0f} ms; max gap {max_gap:.0f} ms; RSS {rss0 / 2**20:.0f} -> "
                f"{b.service.rss() / 2**20:.0f} MiB")
         yield Case.of(f"full_bus_8000fps_{seconds:.0f}s", "load", sent, did, c, abs((sent - got) - counted))
 
