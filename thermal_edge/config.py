@@ -23,7 +23,6 @@ from typing import Any, Iterable, Mapping
 import yaml
 
 from .bus.busconfig import BusConfig, BusConfigError
-from .bus.codec import DEFAULT_RESYNC_AFTER_CYCLES
 from .bus.frames import DerateReason
 from .estimation.adapter import METHODS, AdapterConfig
 
@@ -82,7 +81,10 @@ class CodecConfig:
     """``codec:`` -- the DBC and the alive-counter resynchronisation gap (in cycle times)."""
 
     dbc: Path | None = None
-    resync_after_cycles: float = DEFAULT_RESYNC_AFTER_CYCLES
+    # the service's own choice, below the codec's 1000: an inverter frame missing for longer than 8
+    # cycles is a sender that paused or changed its rate (its input goes stale), not a run of lost frames
+    # that time stamps could count (they over-counted a 10 Hz feed of 10 ms frames by a wrap per frame)
+    resync_after_cycles: float = 8.0
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,7 @@ def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt
 
     raw = yaml.safe_load(config_path("edge.yaml").read_text())
     raw["bus"] = {**bus, "preserve_timestamps": True}
-    raw["codec"] = {"dbc": str(ROOT / "dbc" / "thermal_edge.dbc")}
+    raw["codec"] = {"dbc": str(ROOT / "dbc" / "thermal_edge.dbc"), "resync_after_cycles": 1000}
     model = load_model(config_path("machines", "pm10kw.yaml"))
     raw["model"] = {"path": str(config_path("machines", "pm10kw.yaml")),
                     "parameters": table4_parameters(model) if table4 else {}}

@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     raw = dict(raw or {})
     raw["bus"] = {"interface": "virtual", "channel": channel, "preserve_timestamps": True}
     raw["clock"] = {**(raw.get("clock") or {}), "mode": "frame"}
+    raw["codec"] = {**(raw.get("codec") or {}), "resync_after_cycles": 1000}  # frames 10 cycles apart, accelerated
     raw["metrics"] = {"enabled": True, "address": args.metrics_address, "port": args.metrics_port}
     raw["state"] = {**(raw.get("state") or {}), "dir": state_dir}
     slow = max(args.current_period, args.temperature_period)
