@@ -209,14 +209,18 @@ class CyclicSender:
                 raise
             except Exception:  # belt and braces: the cadence must survive anything
                 log.exception("%s cyclic send failed", self.frame_name)
-            next_t += self.period_s
-            delay = next_t - loop.time()
-            if delay < -self.period_s:
-                missed = int(-delay // self.period_s)
-                self.stats.cyclic_overruns += missed
-                next_t += missed * self.period_s
-                delay = next_t - loop.time()
-            await asyncio.sleep(max(0.0, delay))
+            next_t, delay = self._next(next_t, loop.time())
+            await asyncio.sleep(delay)
+
+    def _next(self, next_t: float, now: float) -> tuple[float, float]:
+        """The next send time after ``next_t`` and the wait until it (s), from ``now``: fixed rate,
+        periods already missed skipped (counted in ``cyclic_overruns``), never a burst."""
+        next_t += self.period_s
+        if now - next_t > self.period_s:
+            missed = int((now - next_t) // self.period_s)
+            self.stats.cyclic_overruns += missed
+            next_t += missed * self.period_s
+        return next_t, max(0.0, next_t - now)
 
     def _run_thread(self) -> None:
         next_t = time.monotonic()
@@ -226,11 +230,5 @@ class CyclicSender:
                 self.send_once_sync()
             except Exception:  # belt and braces: the cadence must survive anything
                 log.exception("%s cyclic send failed", self.frame_name)
-            next_t += self.period_s
-            delay = next_t - time.monotonic()
-            if delay < -self.period_s:
-                missed = int(-delay // self.period_s)
-                self.stats.cyclic_overruns += missed
-                next_t += missed * self.period_s
-                delay = next_t - time.monotonic()
-            stop.wait(max(0.0, delay))
+            next_t, delay = self._next(next_t, time.monotonic())
+            stop.wait(delay)
