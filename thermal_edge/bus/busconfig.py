@@ -284,7 +284,10 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     -------
     can.BusABC
         The open bus; the caller shuts it down. ``udp_multicast`` is a
-        :class:`~thermal_edge.bus.udp.LocalUdpMulticastBus` (this host only).
+        :class:`~thermal_edge.bus.udp.LocalUdpMulticastBus` (this host only, a 4 MiB receive
+        buffer so that short stalls of the receiver drop nothing). With ``preserve_timestamps:
+        true`` (``virtual``, ``udp_multicast``) the receiver keeps the sender's timestamps: how
+        simulated time travels with the frames of the emulator and the service.
 
     Raises
     ------

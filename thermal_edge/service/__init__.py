@@ -13,7 +13,6 @@ Modules, one job each:
 - :mod:`.engine` -- the tick pipeline without I/O (shared by the live service and replays);
 - :mod:`.metrics` -- Prometheus metrics;
 - :mod:`.systemd` -- ``sd_notify`` readiness, status and watchdog;
-- :mod:`.canbus` -- clock-stamped transport, buses that keep frame timestamps;
 - :mod:`.service` -- the asyncio service;
 - :mod:`.replay` -- a candump log through the pipeline.
 """

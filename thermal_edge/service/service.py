@@ -29,13 +29,13 @@ from typing import Any
 
 from prometheus_client import CollectorRegistry
 
+from ..bus.busconfig import create_bus as bus_factory
 from ..bus.codec import DecodedFrame, FrameCodec
 from ..bus.transport import CanTransport
 from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason,
                           TeState)
 from ..config import EdgeConfig
 from ..lptn import Model
-from .canbus import bus_factory
 from .clock import FrameClock, WallClock
 from .engine import ThermalEngine, TickOutput, load_service_model
 from .memory import limit_heap_retention

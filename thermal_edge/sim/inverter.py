@@ -46,7 +46,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..bus.busconfig import BusConfig, interface_keywords
+from ..bus.busconfig import BusConfig, create_bus, interface_keywords
 from ..bus.codec import DecodedFrame, FrameCodec
 from ..bus.frames import (DEFAULT_DBC_PATH, INV_AMBIENT_TEMPS, INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS,
                           TE_ESTIMATES, TE_LIMITS, TE_STATUS, SensorStatus)
@@ -443,12 +443,10 @@ class InverterEmulator:
         """
         import can
 
-        from ..service.canbus import bus_factory
-
         if self.bus_config is None:
             raise ValueError("no bus configured")
         cfg = self.config
-        self.bus = bus = bus_factory(self.bus_config)
+        self.bus = bus = create_bus(self.bus_config)
         own = self.codec.frames_sent_by("INV")
         ids = {name: self.codec.frame_id(name) for name in (INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS, INV_AMBIENT_TEMPS)}
 
