@@ -22,7 +22,7 @@ PM10KW_YAML = MACHINES / "pm10kw.yaml"
 
 TINY_RAW = {
     "name": "tiny",
-    "inputs": {"speed_rpm": {}, "i_rms": {}, "ambient_c": {}},
+    "inputs": {"speed_rpm": {"role": "speed"}, "i_rms": {"role": "current"}, "ambient_c": {"role": "ambient"}},
     "boundaries": {"ambient": "ambient_c"},
     "constants": {"alpha": 3.93e-3},
     "parameters": {
@@ -37,9 +37,9 @@ TINY_RAW = {
     },
     "arcs": [
         {"name": "yoke", "r1": 0.1, "r2": 0.12, "theta": 6.28, "length": 0.1, "material": "fe"},
-        {"name": "wind", "r1": 0.08, "r2": 0.1, "theta": 3.0, "length": 0.1, "material": "cu"},
+        {"name": "wind", "role": "winding", "r1": 0.08, "r2": 0.1, "theta": 3.0, "length": 0.1, "material": "cu"},
     ],
-    "nodes": [{"name": "rotor", "capacity": 2000}],
+    "nodes": [{"name": "rotor", "role": "rotor_iron", "capacity": 2000}],
     "conductances": [
         {"between": ["yoke.r_out", "ambient"], "r": "R_amb"},
         {"between": ["yoke.r_in", "wind.r_out"]},
@@ -64,7 +64,7 @@ def tiny_plus_raw() -> dict:
     temperature, a declared algebraic point carrying a loss, a face with two connections (its
     own face point) and a second boundary. Exercises every path of the simulator and network."""
     raw = tiny_raw()
-    raw["inputs"]["coolant_c"] = {}
+    raw["inputs"]["coolant_c"] = {"role": "coolant"}
     raw["boundaries"]["coolant"] = "coolant_c"
     raw["parameters"]["R_ph"] = {"value": 0.5, "min": 0.05, "max": 5}
     raw["parameters"]["R_cool"] = {"value": 0.8, "min": 0.1, "max": 5}

@@ -117,6 +117,11 @@ CASES = [
     ("derived uses parameter", _set(["derived"], {"n": "speed_rpm / R_amb"}), "derived.n", "R_amb"),
     ("arcs not a list", _set(["arcs"], {"name": "x"}), "arcs", "list"),
     ("parameters not a mapping", _set(["parameters"], [1, 2]), "parameters", "mapping"),
+    ("unknown input role", _set(["inputs", "i_rms"], {"role": "curent"}), "inputs.i_rms.role", "did you mean 'current'"),
+    ("input role twice", _set(["inputs", "ambient_c"], {"role": "speed"}), "inputs.ambient_c.role", "speed_rpm"),
+    ("unknown input key", _set(["inputs", "i_rms"], {"rol": "current"}), "inputs.i_rms.rol", "unknown key"),
+    ("unknown node role", _set(["nodes", 0, "role"], "magnit"), "nodes[0].role", "did you mean 'magnet'"),
+    ("unknown arc role", _set(["arcs", 1, "role"], "windings"), "arcs[1].role", "did you mean 'winding'"),
 ]
 
 

@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..lptn import Model, Network, discretise
-from ..lptn.loader import temperature_name
+from ..lptn.vocabulary import temperature_name
 
 
 @dataclass

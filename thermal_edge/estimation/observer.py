@@ -30,7 +30,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..lptn import Model, Stepper, discretise
-from ..lptn.loader import temperature_name
+from ..lptn.vocabulary import temperature_name
 
 
 class Observer:

@@ -13,11 +13,12 @@ from .model import Limit, Model, ModelError, Parameter, ParameterError
 from .network import Continuous, Network
 from .simulate import Simulator, Trajectory
 from .steady import initial_state, steady_state
-from .stepper import Stepper
+from .stepper import Stepper, cool_down
+from .vocabulary import DEFAULT_COLUMNS, NodeRole, Role, temperature_name
 
 __all__ = [
-    "Continuous", "Discrete", "ExprError", "Limit", "Model", "ModelError", "Network", "NotPassive", "Parameter",
-    "ParameterError",
-    "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "discretise", "initial_state", "load_model", "parse",
-    "steady_state",
+    "Continuous", "DEFAULT_COLUMNS", "Discrete", "ExprError", "Limit", "Model", "ModelError", "Network", "NodeRole",
+    "NotPassive", "Parameter", "ParameterError", "Role", "Simulator", "Stepper", "Trajectory",
+    "UnstableDiscretisation", "cool_down", "discretise", "initial_state", "load_model", "parse", "steady_state",
+    "temperature_name",
 ]

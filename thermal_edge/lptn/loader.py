@@ -16,8 +16,7 @@ from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
 from .expr import Expr, ExprError, Num, evaluate_const, parse
 from .model import DEFAULT_SPREAD, Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
 from .tables import Lookup, load_table
-
-TEMP_PREFIX = "T."
+from .vocabulary import TEMP_PREFIX, NodeRole, Role, parse_role
 MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
 
 
@@ -41,6 +40,12 @@ class _Ctx:
         if bad:
             raise self.fail(key, f"{what} may not use {', '.join(bad)} (unknown, or not allowed here)")
         return e
+
+    def role(self, key: str, value: Any, kind: type[Role] | type[NodeRole]) -> Any:
+        try:
+            return parse_role(value, kind)
+        except ValueError as exc:
+            raise self.fail(key, str(exc)) from None
 
     def number(self, key: str, value: Any, positive: bool = False) -> float:
         e = self.law(key, value, set(), "a geometric or fixed quantity")
@@ -151,9 +156,21 @@ def build_model(
         except (ValueError, IndexError) as exc:
             raise ctx.fail(key, f"cannot read {f}: {exc}") from None
 
-    inputs = tuple(_mapping(ctx, raw.get("inputs"), "inputs"))
+    raw_inputs = _mapping(ctx, raw.get("inputs"), "inputs")
+    inputs = tuple(str(k) for k in raw_inputs)
     if not inputs:
         raise ctx.fail("inputs", "at least one input is required")
+    input_roles: dict[str, Role] = {}
+    for k, spec in raw_inputs.items():
+        key = f"inputs.{k}"
+        spec = _mapping(ctx, spec, key)
+        _only(ctx, spec, key, ("unit", "doc", "role"))
+        if "role" in spec:
+            role = ctx.role(f"{key}.role", spec["role"], Role)
+            if role in input_roles.values():
+                other = next(n for n, r in input_roles.items() if r is role)
+                raise ctx.fail(f"{key}.role", f"role {role.value!r} is already the role of input {other!r}")
+            input_roles[str(k)] = role
     boundaries = {str(k): str(v) for k, v in _mapping(ctx, raw.get("boundaries"), "boundaries").items()}
     for b, col in boundaries.items():
         if col not in inputs:
@@ -193,10 +210,12 @@ def build_model(
         builder.arc(f"arcs[{i}]", spec, materials, {p.name: Num(p.value) for p in params})
     for i, spec in enumerate(_list(ctx, raw.get("nodes"), "nodes")):
         key = f"nodes[{i}]"
-        _only(ctx, spec, key, ("name", "capacity", "doc"))
+        _only(ctx, spec, key, ("name", "capacity", "role", "doc"))
         nname = str(_req(ctx, spec, "name", key))
         cap = ctx.law(f"{key}.capacity", _req(ctx, spec, "capacity", key), pnames, "a capacity")
         builder.add_node(key, nname, cap)
+        if "role" in spec:
+            builder.node_roles[nname] = ctx.role(f"{key}.role", spec["role"], NodeRole)
     for i, pname in enumerate(_list(ctx, raw.get("points"), "points")):
         builder.add_point(f"points[{i}]", str(pname))
     for b in boundaries:
@@ -263,6 +282,8 @@ def build_model(
         limits=tuple(limits),
         discretisation=Discretisation(method, substep),
         drive=drive,
+        input_roles=input_roles,
+        node_roles=dict(builder.node_roles),
     )
 
 
@@ -288,6 +309,7 @@ class _Builder:
         self.edges: list[Edge] = []
         self.names: dict[str, str] = {}  # name -> key that declared it
         self.faces: dict[str, tuple[str, Expr]] = {}  # "arc.face" -> (mid-point, face resistance)
+        self.node_roles: dict[str, NodeRole] = {}
 
     def declare(self, key: str, name: str, internal: bool = False) -> None:
         """Reserve a name; user-given names may not contain ``/`` or ``.`` (kept for arc parts)."""
@@ -308,8 +330,10 @@ class _Builder:
 
     def arc(self, key: str, spec: Any, materials: dict[str, dict[str, Expr]], nominal: dict[str, Expr]) -> None:
         ctx = self.ctx
-        _only(ctx, spec, key, ("name", "r1", "r2", "theta", "length", "count", "material", "doc"))
+        _only(ctx, spec, key, ("name", "r1", "r2", "theta", "length", "count", "material", "role", "doc"))
         name = str(_req(ctx, spec, "name", key))
+        if "role" in spec:
+            self.node_roles[name] = ctx.role(f"{key}.role", spec["role"], NodeRole)
         r1 = ctx.number(f"{key}.r1", _req(ctx, spec, "r1", key), positive=True)
         r2 = ctx.number(f"{key}.r2", _req(ctx, spec, "r2", key), positive=True)
         if not r2 > r1:
@@ -402,9 +426,4 @@ class _Builder:
             self.edges.append(Edge(ends[0], ends[1], g, key))
 
 
-def temperature_name(node: str) -> str:
-    """The law name of a node temperature, ``T.<node>``."""
-    return TEMP_PREFIX + node
-
-
-__all__ = ["load_model", "build_model", "read_yaml", "temperature_name", "ModelError"]
+__all__ = ["load_model", "build_model", "read_yaml", "ModelError"]

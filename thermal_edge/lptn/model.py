@@ -14,6 +14,7 @@ from typing import Mapping
 import numpy as np
 
 from .expr import Expr
+from .vocabulary import NodeRole, Role
 
 
 class ModelError(ValueError):
@@ -122,6 +123,11 @@ class Model:
         Algebraic points (no capacity), eliminated by Schur complement.
     boundaries : dict
         Boundary name -> input column giving its temperature (°C).
+    input_roles : dict
+        Input name -> its :class:`~thermal_edge.lptn.vocabulary.Role` (inputs without ``role:``
+        are absent); ask with :meth:`input_name` rather than reading it.
+    node_roles : dict
+        Node name -> its :class:`~thermal_edge.lptn.vocabulary.NodeRole`; ask with :meth:`nodes_with`.
     """
 
     name: str
@@ -140,6 +146,56 @@ class Model:
     limits: tuple[Limit, ...] = ()
     discretisation: Discretisation = field(default_factory=Discretisation)
     drive: dict[str, float] = field(default_factory=dict)
+    input_roles: dict[str, Role] = field(default_factory=dict)
+    node_roles: dict[str, NodeRole] = field(default_factory=dict)
+
+    def find_input(self, role: Role) -> str | None:
+        """The input that has ``role``, or None when the model has none."""
+        return next((k for k, r in self.input_roles.items() if r is role), None)
+
+    def input_name(self, role: Role) -> str:
+        """The input that has ``role``; ``KeyError`` naming the model when it has none."""
+        name = self.find_input(role)
+        if name is None:
+            raise KeyError(f"model {self.name} has no input with role {role.value!r} "
+                           f"(its inputs: {', '.join(f'{k} ({r.value})' for k, r in self.input_roles.items()) or 'none with a role'})")
+        return name
+
+    @property
+    def temperature_inputs(self) -> tuple[str, ...]:
+        """Inputs that are temperatures: boundary columns and inputs with a temperature role."""
+        bounds = set(self.boundaries.values())
+        return tuple(k for k in self.inputs if k in bounds or (k in self.input_roles and self.input_roles[k].is_temperature))
+
+    def at_rest(self, inputs: Mapping[str, float]) -> dict[str, float]:
+        """The inputs of the machine at rest: every temperature input as in ``inputs``, all else 0.
+
+        The one definition of standstill (cool-down after a stop, the initial steady state of a
+        simulation, a benchmark's starting point): no current, speed or torque, the boundary
+        temperatures held.
+
+        Parameters
+        ----------
+        inputs : mapping
+            Input name -> value; only the temperature inputs (°C) are read.
+
+        Raises
+        ------
+        ValueError
+            A temperature input missing from ``inputs`` or not finite.
+        """
+        temperatures = self.temperature_inputs
+        out = {k: 0.0 for k in self.inputs}
+        for k in temperatures:
+            v = inputs.get(k)
+            if v is None or not math.isfinite(float(v)):
+                raise ValueError(f"the machine at rest needs the value of temperature input {k!r} (got {v!r})")
+            out[k] = float(v)
+        return out
+
+    def nodes_with(self, *roles: NodeRole) -> tuple[str, ...]:
+        """Nodes (in state order) whose role is one of ``roles``."""
+        return tuple(x for x in self.nodes if self.node_roles.get(x) in roles)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:

@@ -20,7 +20,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
 from .expr import Compiled, Expr
-from .loader import temperature_name
+from .vocabulary import temperature_name
 from .model import Model
 
 

@@ -12,7 +12,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .loader import temperature_name
+from .vocabulary import temperature_name
 from .model import Model
 from .network import Network
 

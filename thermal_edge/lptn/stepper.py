@@ -12,7 +12,7 @@ from typing import Mapping
 import numpy as np
 
 from .discretise import discretise
-from .loader import temperature_name
+from .vocabulary import temperature_name
 from .model import Model
 from .network import Network
 
@@ -80,3 +80,43 @@ class Stepper:
         Phi, Gam = self.matrices(inputs)
         P = self.losses(T, inputs)
         return Phi @ T + Gam @ np.concatenate([self.boundary(inputs), P]), P
+
+
+def cool_down(model: Model, theta: np.ndarray, T: np.ndarray, downtime_s: float,
+              inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Node temperatures after ``downtime_s`` with the machine at rest, and the transition matrix.
+
+    At rest is :meth:`Model.at_rest`: no current, speed or torque, the temperature inputs held at
+    their values in ``inputs`` (the last ones seen). One exact zero-order-hold step of the whole
+    downtime (the inputs are held), so any downtime costs one discretisation.
+
+    Parameters
+    ----------
+    theta : ndarray
+        Parameter vector.
+    T : ndarray
+        Node temperatures at the stop, °C.
+    downtime_s : float
+        Time at rest, s (≤ 0: nothing changes).
+    inputs : mapping
+        The last inputs; only the temperature inputs are read (°C).
+
+    Returns
+    -------
+    T1 : ndarray
+        Node temperatures after the downtime, °C.
+    Phi : ndarray
+        ``Φ`` of the downtime (n, n), to carry a covariance over it.
+
+    Raises
+    ------
+    ValueError
+        A temperature input missing from ``inputs`` or not finite.
+    """
+    if downtime_s <= 0:
+        return np.asarray(T, dtype=float).copy(), np.eye(len(model.nodes))
+    u = model.at_rest(inputs)
+    st = Stepper(model, theta, float(downtime_s), method="zoh")
+    Phi, _ = st.matrices(u)
+    T1, _ = st.step(np.asarray(T, dtype=float), u)
+    return T1, Phi

@@ -1,0 +1,98 @@
+"""The model's vocabulary: inputs and nodes asked for by role, one definition of "at rest".
+
+Checked against the model files themselves (read as plain YAML, independently of the loader) and
+against the small test model.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from lptn_ref import MACHINES, tiny_plus_raw
+from thermal_edge.lptn import DEFAULT_COLUMNS, NodeRole, Role, Stepper, cool_down, load_model
+from thermal_edge.lptn.loader import build_model
+from thermal_edge.lptn.vocabulary import FRAME, STATOR_IRON, parse_role
+
+MODEL_FILES = sorted(MACHINES.glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", MODEL_FILES, ids=[p.stem for p in MODEL_FILES])
+def test_every_input_of_a_model_file_declares_a_known_role(path):
+    raw = yaml.safe_load(path.read_text())
+    for name, spec in raw["inputs"].items():
+        assert "role" in spec, f"{path.name}: inputs.{name} declares no role"
+        assert parse_role(spec["role"], Role).value == spec["role"]
+
+
+@pytest.mark.parametrize("path", MODEL_FILES, ids=[p.stem for p in MODEL_FILES])
+def test_model_answers_by_role_what_the_file_declares(path):
+    if path.stem == "paderborn4":
+        from lptn_ref import require_paderborn
+        require_paderborn()
+    raw = yaml.safe_load(path.read_text())
+    model = load_model(path)
+    for name, spec in raw["inputs"].items():
+        assert model.input_name(Role(spec["role"])) == name
+    roles = {**{n["name"]: n.get("role") for n in raw.get("nodes", [])},
+             **{a["name"]: a.get("role") for a in raw.get("arcs", [])}}
+    for role in NodeRole:
+        assert set(model.nodes_with(role)) == {n for n, r in roles.items() if r == role.value}
+    limits_on_windings = [lim.node for lim in model.limits if lim.name == "hot_spot"]
+    assert set(limits_on_windings) <= set(model.nodes_with(NodeRole.WINDING))
+
+
+def test_missing_role_is_a_clear_key_error(tiny_model):
+    assert tiny_model.find_input(Role.COOLANT) is None
+    with pytest.raises(KeyError, match="tiny has no input with role 'coolant'"):
+        tiny_model.input_name(Role.COOLANT)
+
+
+def test_node_groups(tiny_model):
+    assert tiny_model.nodes_with(NodeRole.WINDING) == ("wind",)
+    assert tiny_model.nodes_with(*STATOR_IRON) == ()
+    assert tiny_model.nodes_with(*FRAME) == ()
+    assert tiny_model.nodes_with(NodeRole.ROTOR_IRON, NodeRole.WINDING) == ("wind", "rotor")  # state order
+
+
+def test_at_rest_holds_the_temperatures_and_zeroes_the_rest(tiny_plus_model):
+    last = {"speed_rpm": 900.0, "i_rms": 12.0, "ambient_c": 31.0, "coolant_c": 40.0}
+    assert tiny_plus_model.at_rest(last) == {"speed_rpm": 0.0, "i_rms": 0.0, "ambient_c": 31.0, "coolant_c": 40.0}
+    with pytest.raises(ValueError, match="coolant_c"):
+        tiny_plus_model.at_rest({"ambient_c": 20.0})
+    with pytest.raises(ValueError, match="ambient_c"):
+        tiny_plus_model.at_rest({"ambient_c": math.nan, "coolant_c": 20.0})
+
+
+def test_a_boundary_input_without_a_role_is_still_a_temperature():
+    raw = tiny_plus_raw()
+    raw["inputs"]["coolant_c"] = {}
+    model = build_model(raw, fname="x.yaml")
+    assert model.temperature_inputs == ("ambient_c", "coolant_c")
+    assert model.at_rest({"ambient_c": 20.0, "coolant_c": 50.0})["coolant_c"] == 50.0
+
+
+def test_cool_down_is_one_zoh_step_at_rest(tiny_plus_model):
+    theta = tiny_plus_model.nominal()
+    T = np.array([80.0, 120.0, 60.0])
+    last = {"speed_rpm": 900.0, "i_rms": 12.0, "ambient_c": 25.0, "coolant_c": 30.0}
+    T1, Phi = cool_down(tiny_plus_model, theta, T, 600.0, last)
+    # independent: 600 steps of 1 s at rest (ZOH is exact for held inputs, so the two agree)
+    st = Stepper(tiny_plus_model, theta, 1.0, method="zoh")
+    rest = {"speed_rpm": 0.0, "i_rms": 0.0, "ambient_c": 25.0, "coolant_c": 30.0}
+    x = T.copy()
+    for _ in range(600):
+        x, _ = st.step(x, rest)
+    np.testing.assert_allclose(T1, x, atol=1e-6)
+    assert np.all(np.abs(np.linalg.eigvals(Phi)) < 1.0)
+    T0, I = cool_down(tiny_plus_model, theta, T, 0.0, last)
+    np.testing.assert_array_equal(T0, T)
+    np.testing.assert_array_equal(I, np.eye(3))
+
+
+def test_default_columns_name_every_role_once():
+    assert set(DEFAULT_COLUMNS) == set(Role)
+    assert len(set(DEFAULT_COLUMNS.values())) == len(Role)
+    assert Role.CURRENT.default_column == "i_rms"
