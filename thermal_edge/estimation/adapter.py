@@ -31,85 +31,13 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..lptn import Model, Simulator
+from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adaptation:), read here
 from .common import ParamSpace, Window, decimate
 from .gauss_newton import fit_gauss_newton
 from .objective import Objective
 from .screening import screen
 from .sqp import fit_sqp
 from .uncertainty import estimate_uncertainty
-
-METHODS = ("sqp", "gauss_newton", "numerical")
-
-
-@dataclass
-class AdapterConfig:
-    """Settings of the online adapter (``adaptation:`` in ``config/edge.yaml``).
-
-    Attributes
-    ----------
-    period_s : float
-        Decision period ``Ts``, s (the paper: 180 s).
-    threshold_k : float
-        RMS prediction error over the last period above which the adapter optimises, K.
-    window_s : float
-        History window used for estimation, s.
-    min_window_s : float
-        Floor on the history before optimising (s); above it the window's Fisher information
-        decides (``max_rel_std``). Minutes at one operating point cannot separate capacities from
-        resistances, whatever their (time-correlated) residuals suggest.
-    decimate : int
-        Samples per optimiser step (20 at 1 Hz: 20 s steps, short against the machine's thermal
-        time constants; ZOH on the coarse grid is exact for inputs held over each step).
-    max_iter : int
-        SQP iteration cap per decision.
-    coverage : float
-        Screening keeps parameters covering this share of the optimisation potential.
-    weighting : {"paper", "forgetting", "uniform"}
-    tau_s : float
-        Forgetting time constant for ``weighting: forgetting``, s.
-    prior_weight : float
-        MAP weight toward the offline values (0 = least squares), K².
-    validate_s : float
-        Most evidence (s, recorded after the fit) a challenger is judged on; undecided by then, it
-        is dropped. It is promoted only if, besides the margin, no single sensor's RMS error over
-        the evidence grows by more than ``sensor_tolerance_k`` (K).
-    noise_k : float
-        Sensor noise σ (K) assumed in the promotion margin.
-    promote_z : float
-        Noise margin in standard errors of the mean squared-error difference.
-    min_gain : float
-        Share of the champion's mean squared error the challenger must remove over the full
-        evidence to be promoted (more on less evidence: :func:`judge`).
-    method : {"sqp", "gauss_newton", "numerical"}
-    params : tuple of str, optional
-        Adaptable parameters; default: the model's ``adaptable: true`` ones.
-    sensors : tuple of str, optional
-        Sensors the adapter learns from; default: all the model's sensors present.
-    max_rel_std : float
-        A parameter is offered to the optimiser only if the window pins it down to this relative
-        standard deviation (Fisher information, all adaptable parameters free).
-    """
-
-    period_s: float = 180.0
-    threshold_k: float = 0.25
-    window_s: float = 10800.0
-    min_window_s: float = 600.0
-    decimate: int = 20
-    max_iter: int = 3
-    coverage: float = 0.98
-    weighting: str = "paper"
-    tau_s: float = 3600.0
-    prior_weight: float = 1e-4
-    validate_s: float = 1800.0
-    sensor_tolerance_k: float = 0.1
-    noise_k: float = 0.15
-    promote_z: float = 2.0
-    min_gain: float = 0.5
-    method: str = "sqp"
-    params: tuple[str, ...] | None = None
-    sensors: tuple[str, ...] | None = None
-    max_rel_std: float = 0.5
-
 
 @dataclass
 class Decision:
