@@ -5,6 +5,11 @@ With ``--adapt`` the observer and the online adapter run over the run as the ser
 learning only from ``--sensors``, and every sensor in the file is scored (the unseen ones too):
 the online trace, the same with the parameters fixed, the observer and its 95 % band coverage.
 ``--set NAME=VALUE`` replaces a parameter's value (within the model's bounds) before anything runs.
+A CSV run is checked and summarised (sample period, duration, columns used and ignored, ranges)
+before the model runs. ``--plot FILE.png`` draws measured against predicted against the
+observer's 95 % band per sensor, speed and current below, adaptation decisions marked (needs
+matplotlib: the ``report`` extra); ``--out FILE.csv|.parquet`` writes the same per sample
+(Parquet needs pyarrow).
 A ``candump -L`` log (``--format candump``) goes through the service's own pipeline with the
 service configuration ``--config`` (frame timestamps as the clock) and is summarised.
 """
@@ -12,14 +17,29 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from dataclasses import replace
+from pathlib import Path
 
-from ..data import FORMATS, read_run
-from ..estimation.adapter import AdapterConfig
-from ..estimation.online import online_report
-from ..estimation.predict import open_loop, sensor_columns
+import numpy as np
+
 from ..bench.common import config_path
+from ..data import FORMATS, Run, write_run
+from ..estimation.adapter import AdapterConfig
+from ..estimation.online import OnlineResult, online_report, run_online
+from ..estimation.predict import open_loop
+from ..estimation.uncertainty import Z95
+from ..lptn import Model
+from ..lptn.vocabulary import Role
+from ..plots import missing
 from ..service.replay import format_summary, replay_summary
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
+from .runs import read_checked, require_finite
+
+#: ``--out`` suffixes and the module each needs (None: none beyond the core).
+EXPORTS = {".csv": None, ".parquet": "pyarrow"}
+#: ``--plot`` suffixes matplotlib writes.
+PLOTS = (".png", ".svg", ".pdf")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -36,12 +56,35 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--period", type=float, default=AdapterConfig.period_s, help="adaptation period, s")
     p.add_argument("--threshold", type=float, default=AdapterConfig.threshold_k, help="adaptation threshold, K RMS")
     p.add_argument("--decimate", type=int, default=AdapterConfig.decimate, help="samples per optimiser step")
+    p.add_argument("--plot", metavar="FILE.png", help="figure: measured, predicted and the observer's band per sensor")
+    p.add_argument("--out", metavar="FILE.csv", help="per-sample estimates, predictions and bands (.csv or .parquet)")
     add_set_arg(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run, adapt=False)
 
 
+def _check_outputs(args: argparse.Namespace) -> str | None:
+    """One line if ``--plot``/``--out`` cannot be written (suffix, missing extra), checked before any work."""
+    if args.plot:
+        if Path(args.plot).suffix.lower() not in PLOTS:
+            return f"--plot {args.plot}: the suffix must be one of {', '.join(PLOTS)}"
+        if (why := missing("matplotlib")):
+            return f"--plot: {why}"
+    if args.out:
+        suffix = Path(args.out).suffix.lower()
+        if suffix not in EXPORTS:
+            return f"--out {args.out}: the suffix must be one of {', '.join(EXPORTS)}"
+        if EXPORTS[suffix] and (why := missing(EXPORTS[suffix])):
+            return f"--out {args.out}: {why}"
+    if (args.plot or args.out) and args.format == "candump":
+        return "--plot and --out need a CSV run (a candump log is summarised only)"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
+    if (why := _check_outputs(args)):
+        print(f"thermal-edge replay: error: {why}", file=sys.stderr)
+        return 2
     if args.format == "candump":
         summary = replay_summary(args.run, args.config, args.model, sets=split_sets(args.set))
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
@@ -49,28 +92,29 @@ def run(args: argparse.Namespace) -> int:
     if not args.model:
         raise KeyError("--model is required for CSV runs")
     model = model_with_sets(model_from_args(args), args.set)
-    rec = read_run(args.run, args.format)
-    out: dict[str, object] = {"model": model.name, "run": args.run, "samples": len(rec), "adapt": bool(args.adapt)}
+    sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip()) if args.sensors else None
+    rec, data = read_checked(args.run, args.format, model, sensors if args.adapt else None)
+    out: dict[str, object] = {"model": model.name, "run": args.run, "samples": len(rec), "adapt": bool(args.adapt),
+                              "data": data}
+    if not args.json:
+        print(data)
     if args.set:
         out["set"] = parse_sets(model, args.set)
-    if not args.adapt:
-        _, scores = open_loop(model, rec, method=args.method, max_substep=args.max_substep)
-        out.update(scores.as_dict())
-        if args.json:
-            print(json.dumps(out, indent=2, default=float))
-            return 0
-        print(f"{model.name} on {args.run}: {len(rec)} samples, open loop")
-        print(f"{'sensor':<18}{'MSE K²':>10}{'RMS K':>10}{'max |e| K':>11}")
-        for s in scores.mse:
-            print(f"{s:<18}{scores.mse[s]:>10.3f}{scores.rms[s]:>10.3f}{scores.max_abs[s]:>11.3f}")
-        print(f"{'mean':<18}{scores.mean_mse:>10.3f}")
-        return 0
-    sensors = tuple(s.strip() for s in args.sensors.split(",")) if args.sensors else None
-    sensor_columns(model, rec, sensors)  # names a sensor the model or the run lacks
     cfg = AdapterConfig(period_s=args.period, threshold_k=args.threshold, decimate=args.decimate, sensors=sensors)
-    rep = online_report(model, rec, cfg)
-    res = rep["result"]
-    _, final = open_loop(model, rec, theta=res.theta, method=args.method, max_substep=args.max_substep)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # refused below, by node and sample
+        if not args.adapt:
+            traj, scores = open_loop(model, rec, method=args.method, max_substep=args.max_substep)
+            require_finite(model, rec, traj.T, "the open-loop prediction")
+            if args.plot or args.out:
+                _outputs(args, model, rec, traj.T, run_online(model, rec, replace(cfg, threshold_k=np.inf)))
+            return _print_open_loop(args, model, rec, scores, out)
+        rep = online_report(model, rec, cfg)
+        res = rep["result"]
+        require_finite(model, rec, res.T, "the online trace")
+        require_finite(model, rec, res.estimate, "the observer's estimate")
+        _, final = open_loop(model, rec, theta=res.theta, method=args.method, max_substep=args.max_substep)
+        if args.plot or args.out:
+            _outputs(args, model, rec, res.T, res)
     out.update({
         "adapted_from": list(res.adapter.sensors),
         "mse": {t: v["mse"] for t, v in rep["targets"].items()},  # the online trace, as before per target
@@ -98,3 +142,80 @@ def run(args: argparse.Namespace) -> int:
           f"median adaptation step {rep['adapt_step_median_s']:.3f} s; final parameters: "
           + ", ".join(f"{k}={v:.4g}" for k, v in rep["final_params"].items()))
     return 0
+
+
+def _print_open_loop(args: argparse.Namespace, model: Model, rec: Run, scores, out: dict[str, object]) -> int:  # type: ignore[no-untyped-def]
+    out.update(scores.as_dict())
+    if args.json:
+        print(json.dumps(out, indent=2, default=float))
+        return 0
+    print(f"{model.name} on {args.run}: {len(rec)} samples, open loop")
+    print(f"{'sensor':<18}{'MSE K²':>10}{'RMS K':>10}{'max |e| K':>11}")
+    for s in scores.mse:
+        print(f"{s:<18}{scores.mse[s]:>10.3f}{scores.rms[s]:>10.3f}{scores.max_abs[s]:>11.3f}")
+    print(f"{'mean':<18}{scores.mean_mse:>10.3f}")
+    return 0
+
+
+def per_sample(model: Model, rec: Run, predicted: np.ndarray, obs: OnlineResult) -> dict[str, np.ndarray]:
+    """The per-sample table of ``--out``: the model's inputs as recorded; per sensor in the run
+    ``<s>_measured``, ``<s>_predicted``, ``<s>_observer``, ``<s>_band_low``, ``<s>_band_high``
+    (degC, the band the observer's 95 % interval); the same but measured for each limited node
+    (``<limit>_…``); ``adaptation`` (0 no decision, 1 a triggered decision, 2 a promoted
+    challenger) and, with ``--adapt``, each adaptable parameter's value in use (``param_<name>``).
+
+    Parameters
+    ----------
+    predicted : ndarray (N, n)
+        The prediction scored (open loop, or the online trace with ``--adapt``), degC.
+    obs : OnlineResult
+        The observer run over the same samples (its ``estimate`` and ``sigma``).
+    """
+    cols: dict[str, np.ndarray] = {c: rec.columns[c] for c in model.inputs}
+
+    def node(prefix: str, i: int) -> None:
+        half = Z95 * obs.sigma[:, i]
+        cols[f"{prefix}_predicted"] = predicted[:, i]
+        cols[f"{prefix}_observer"] = obs.estimate[:, i]
+        cols[f"{prefix}_band_low"] = obs.estimate[:, i] - half
+        cols[f"{prefix}_band_high"] = obs.estimate[:, i] + half
+
+    for s, n in model.sensors.items():
+        if s in rec.columns:
+            cols[f"{s}_measured"] = rec.columns[s]
+            node(s, model.node_index(n))
+    for lim in model.limits:
+        node(lim.name, model.node_index(lim.node))
+    flag = np.zeros(len(rec))
+    for d in obs.decisions:
+        if d.triggered:
+            flag[int(np.searchsorted(rec.t, d.t))] = 2.0 if d.accepted else 1.0
+    cols["adaptation"] = flag
+    if np.isfinite(obs.adapter.config.threshold_k):
+        cols.update({f"param_{p}": v for p, v in obs.param_trace.items()})
+    return cols
+
+
+def _outputs(args: argparse.Namespace, model: Model, rec: Run, predicted: np.ndarray, obs: OnlineResult) -> None:
+    cols = per_sample(model, rec, predicted, obs)
+    if args.out:
+        if Path(args.out).suffix.lower() == ".parquet":
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            pq.write_table(pa.table({"t": rec.t, **cols}), args.out)
+        else:
+            write_run(args.out, Run(rec.t, cols, args.out),
+                      comment=f"thermal-edge replay of {args.run} with model {model.name}")
+        print(f"wrote {args.out}: {len(rec)} samples, {len(cols) + 1} columns", file=sys.stderr)
+    if args.plot:
+        from ..plots.replay import replay_figure
+
+        sensors = {s: {k: cols[f"{s}_{k}"] for k in ("measured", "predicted", "observer", "band_low", "band_high")}
+                   for s in model.sensors if f"{s}_measured" in cols}
+        speed, current = model.find_input(Role.SPEED), model.find_input(Role.CURRENT)
+        mode = "online adaptation" if args.adapt else "open loop"
+        replay_figure(args.plot, f"{model.name} on {Path(args.run).name}, {mode}", rec.t, sensors,
+                      rec.columns[speed] if speed else None, rec.columns[current] if current else None,
+                      [(d.t, d.accepted) for d in obs.decisions if d.triggered])
+        print(f"wrote {args.plot}", file=sys.stderr)

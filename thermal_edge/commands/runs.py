@@ -1,0 +1,126 @@
+"""Runs read for the offline commands: checked against the model and summarised before any fit.
+
+Every offline command that reads a recorded run (``replay``, ``calibrate``, ``discover``,
+``fleet``) goes through :func:`read_checked`: the file is read (:func:`thermal_edge.data.read_run`),
+the model's inputs and sensors are looked up in it, units that cannot be right are refused
+(:func:`thermal_edge.data.check_run`), and a one-line summary says what will be used. A result
+that is not finite (a law of the model that overflows) is refused by :func:`require_finite`
+instead of being printed as ``inf`` or ``nan``.
+"""
+from __future__ import annotations
+
+import difflib
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..data import PADERBORN_COLUMNS, Run, RunError, check_run, describe, read_run
+from ..lptn import Model, ModelError
+
+#: How alike a column name and a missing sensor's name must be to be called a misspelling
+#: (difflib ratio; "housng" and "housing" are 0.92, "housing" and "hot_spot" 0.53).
+TYPO_RATIO = 0.8
+
+
+def read_checked(path: str, fmt: str, model: Model, sensors: Sequence[str] | None = None) -> tuple[Run, str]:
+    """Read a run for ``model`` and refuse what cannot be fitted or scored.
+
+    Parameters
+    ----------
+    path : str
+        The run file.
+    fmt : {"csv", "paderborn"}
+        Its format (:data:`thermal_edge.data.FORMATS`).
+    model : Model
+        The model the run is for: its inputs must be columns of the run, and at least one of its
+        sensors.
+    sensors : sequence of str, optional
+        The sensors the command will use (default: every model sensor the run has).
+
+    Returns
+    -------
+    run : Run
+    summary : str
+        One line: samples, sample period (s), duration (h), the columns used with their ranges,
+        the columns ignored and the model's sensors the run lacks.
+
+    Raises
+    ------
+    RunError
+        One line naming the file and the column (or line) at fault: an input or sensor column
+        missing (a misspelt sensor column is named with the sensor it resembles), no sensor of the
+        model in the run, time not in seconds, temperatures not in degC, uneven sample times.
+    """
+    run = read_run(path, fmt)
+    cols = list(run.columns)
+    missing = [c for c in model.inputs if c not in run.columns]
+    if missing:
+        hint = ""
+        if fmt != "paderborn" and any(c in run.columns for c in PADERBORN_COLUMNS):
+            hint = "; a Paderborn file? use --format paderborn"
+        else:
+            hint = _did_you_mean(missing[0], cols)
+        raise RunError(f"{path}: no column {missing[0]!r}: model {model.name} needs input column(s) "
+                       f"{', '.join(missing)} (the run has: {', '.join(cols)}){hint}")
+    if sensors is not None:
+        unknown = [s for s in sensors if s not in model.sensors]
+        if unknown:
+            raise RunError(f"{path}: --sensors {unknown[0]!r}: model {model.name} has no such sensor "
+                           f"(has: {', '.join(model.sensors)})")
+        absent = [s for s in sensors if s not in run.columns]
+        if absent:
+            raise RunError(f"{path}: no column {absent[0]!r} for the sensor given in --sensors"
+                           f"{_did_you_mean(absent[0], cols)}")
+    present = [s for s in model.sensors if s in run.columns]
+    lacking = [s for s in model.sensors if s not in run.columns]
+    spare = [c for c in cols if c not in model.inputs and c not in model.sensors]
+    for s in lacking:  # a sensor column under a misspelt name would be dropped without a word
+        close = difflib.get_close_matches(s, spare, n=1, cutoff=TYPO_RATIO)
+        if close:
+            raise RunError(f"{path}: column {close[0]!r} is not a sensor of model {model.name}; "
+                           f"did you mean {s!r}? (the run has no column {s!r})")
+    if not present:
+        raise RunError(f"{path}: none of model {model.name}'s sensors ({', '.join(model.sensors)}) is a column "
+                       f"of the run (it has: {', '.join(cols)}); the wrong model or the wrong file?")
+    used_sensors = list(sensors) if sensors is not None else present
+    check_run(run, [*used_sensors, *model.temperature_inputs])
+    run.dt  # uneven sample times are refused here, before anything is fitted  # noqa: B018
+    summary = describe(run, [*model.inputs, *used_sensors])
+    not_used = [s for s in model.sensors if s not in used_sensors]
+    if not_used:
+        summary += (f"; model sensors not used: {', '.join(not_used)}"
+                    + (f" (not in the run: {', '.join(lacking)})" if lacking else ""))
+    return run, summary
+
+
+def _did_you_mean(name: str, candidates: Sequence[str]) -> str:
+    close = difflib.get_close_matches(name, candidates, n=1, cutoff=TYPO_RATIO)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
+    """Refuse a node-temperature series that is not finite everywhere.
+
+    Parameters
+    ----------
+    model : Model
+    run : Run
+        The run the series was computed on (same samples).
+    T : ndarray (N, n)
+        Node temperatures, degC.
+    what : str
+        What ``T`` is ("the open-loop prediction", "the observer's estimate"), for the message.
+
+    Raises
+    ------
+    ModelError
+        One line naming the model file, the first node and sample that are not finite, and the
+        inputs there: a loss or conductance law of the model overflows (or divides by zero).
+    """
+    bad = ~np.isfinite(T)
+    if not bad.any():
+        return
+    k, i = (int(x) for x in np.argwhere(bad)[0])
+    inputs = ", ".join(f"{c} = {run.columns[c][k]:g}" for c in model.inputs if c in run.columns)
+    raise ModelError(f"{model.path}: {what} is not finite from sample {k + 1} (t = {run.t[k]:g} s) on, node "
+                     f"{model.nodes[i]!r}: a loss or conductance law overflows at {inputs}")
