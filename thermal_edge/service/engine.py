@@ -316,7 +316,7 @@ class ThermalEngine:
             last = {**inputs, **{k: v for k, v in rs.inputs.items() if math.isfinite(v)}}
             if 0 <= downtime <= cfg.state.max_downtime_s:
                 try:
-                    T0, Phi = cool_down(m, self.theta, np.array(rs.T), downtime, last, self.current_input)
+                    T0, Phi = cool_down(m, self.theta, np.array(rs.T), downtime, last)
                     P = np.array(rs.P) if rs.P else np.diag(np.square(np.array(rs.sigma))) if rs.sigma else np.eye(len(T0)) * obs_cfg.restart_p0_k**2
                     P = P + self._run_on_covariance(np.array(rs.T), rs.inputs, min(downtime, cfg.state.save_interval_s))
                     grow = min(obs_cfg.q_k**2 * downtime / self.dt, obs_cfg.restart_p0_k**2)
@@ -355,7 +355,7 @@ class ThermalEngine:
             return np.zeros((n, n))
         try:
             run, _ = Stepper(m, self.theta, run_on_s).step(T, {k: float(last[k]) for k in m.inputs})
-            stop, _ = cool_down(m, self.theta, T, run_on_s, last, self.current_input)
+            stop, _ = cool_down(m, self.theta, T, run_on_s, last)
         except Exception:
             return np.zeros((n, n))
         v = run - stop
@@ -387,7 +387,7 @@ class ThermalEngine:
         if self.initialized and self.observer is not None and self.last_t is not None:
             gap = t_to - self.last_t
             try:
-                T1, Phi = cool_down(self.model, self.theta, self.observer.T, gap, self.last_inputs, self.current_input)
+                T1, Phi = cool_down(self.model, self.theta, self.observer.T, gap, self.last_inputs)
                 grow = min(self.config.observer.q_k**2 * gap / self.dt, self.config.observer.restart_p0_k**2)
                 self.observer.T = T1
                 self.observer.P = Phi @ self.observer.P @ Phi.T + np.eye(len(T1)) * grow

@@ -37,11 +37,11 @@ import stat
 import time
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable
 
 import numpy as np
 
-from ..lptn import Model, ParameterError, Stepper
+from ..lptn import Model, ParameterError, cool_down  # cool_down: model physics, re-exported for the engine
 
 __all__ = ["PersistedState", "StateError", "StateStore", "cool_down", "decode"]
 
@@ -466,27 +466,3 @@ class StateStore:
         self.saves += 1
         return True
 
-
-def cool_down(model: Model, theta: np.ndarray, T: np.ndarray, downtime_s: float, inputs: Mapping[str, float],
-              current_input: str = "i_rms") -> tuple[np.ndarray, np.ndarray]:
-    """Node temperatures after ``downtime_s`` at standstill (zero current and speed) at the last
-    ambient, and the transition matrix ``Φ`` of the downtime (to carry a covariance over it).
-
-    One exact zero-order-hold step of the whole downtime (the inputs are held), so any downtime
-    costs one discretisation.
-    """
-    n = len(model.nodes)
-    if downtime_s <= 0:
-        return np.asarray(T, dtype=float).copy(), np.eye(n)
-    u = {k: float(v) for k, v in inputs.items()}
-    temperatures = set(model.boundaries.values())
-    for k in model.inputs:  # standstill: every input that is not a boundary temperature is zero
-        if k not in temperatures or k == current_input:
-            u[k] = 0.0
-    for k in model.inputs:
-        if k not in u or not math.isfinite(u[k]):
-            raise ValueError(f"cool-down needs the last value of input {k!r}")
-    st = Stepper(model, theta, float(downtime_s), method="zoh")
-    Phi, _ = st.matrices(u)
-    T1, _ = st.step(np.asarray(T, dtype=float), u)
-    return T1, Phi
