@@ -1,4 +1,10 @@
-"""``thermal-edge calibrate``: fit a model's parameters offline to recorded runs (global search + SQP)."""
+"""``thermal-edge calibrate``: fit a model's parameters offline to recorded runs (global search + SQP).
+
+Every run is checked and summarised first (sample period, duration, columns used and ignored,
+ranges). The global search (differential evolution) stops at ``--generations``, when its
+population has converged, when the best objective has not improved for ``--patience``
+generations, or at ``--max-time``; SQP then polishes the best point within the time left.
+"""
 from __future__ import annotations
 
 import argparse
@@ -6,9 +12,11 @@ import argparse
 import numpy as np
 
 from ..bench.common import table
-from ..data import FORMATS, read_run
-from ..estimation.calibrate import calibrate, progress_bar, write_calibrated
+from ..data import FORMATS
+from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets
+from .progress import bar
+from .runs import read_checked
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -20,9 +28,12 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
     p.add_argument("--out", required=True, help="calibrated model file to write")
     p.add_argument("--decimate", type=int, default=1, help="samples per optimiser step")
-    p.add_argument("--generations", type=int, default=30, help="differential-evolution generations")
+    p.add_argument("--generations", type=int, default=30, help="differential-evolution generations, at most")
     p.add_argument("--popsize", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--patience", type=int, default=PATIENCE,
+                   help=f"stop the global search after this many generations without improvement (default {PATIENCE})")
+    p.add_argument("--max-time", type=float, metavar="SECONDS", help="wall-time budget of the fit, s (default: none)")
     add_set_arg(p)
     p.set_defaults(func=run)
 
@@ -32,12 +43,23 @@ def _names(arg: str | None) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.max_time is not None and not args.max_time > 0:
+        raise KeyError(f"--max-time {args.max_time:g}: must be a positive number of seconds")
     model = model_from_args(args)
     sets = parse_sets(model, args.set)  # the starting values; written to --out with the fitted ones
     model = model.with_parameters(sets) if sets else model
-    runs = [read_run(r, args.format) for r in args.run]
-    res = calibrate(model, runs, _names(args.params), _names(args.sensors), args.decimate, args.generations,
-                    args.popsize, args.seed, progress=progress_bar())
+    runs = []
+    for path in args.run:
+        rec, summary = read_checked(path, args.format, model, _names(args.sensors))
+        print(summary, flush=True)
+        runs.append(rec)
+    with bar(args.generations, "calibrate: global search", "generation") as pb:
+        def progress(done: int, total: int, best: float) -> None:
+            pb.update(1)
+            pb.set_postfix_str(f"best objective {best:.4g} K²")
+
+        res = calibrate(model, runs, _names(args.params), _names(args.sensors), args.decimate, args.generations,
+                        args.popsize, args.seed, progress=progress, patience=args.patience, max_time_s=args.max_time)
     values = dict(zip(res.names, map(float, res.values)))
     write_calibrated(args.model, {**sets, **values}, args.out, note=", ".join(args.run))
     lo, hi = model.bounds()
@@ -47,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
             for i, n in enumerate(res.names)]
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
     print(f"objective (mean squared error, K²): start {res.objective_start:.4g}, after global search "
-          f"{res.objective_global:.4g}, after SQP {res.objective_final:.4g}; {res.evaluations} evaluations, "
-          f"{res.wall_s:.1f} s; residual σ {np.sqrt(unc.sigma2):.3f} K")
+          f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "
+          f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; residual σ {np.sqrt(unc.sigma2):.3f} K")
     print(f"wrote {args.out}")
     return 0

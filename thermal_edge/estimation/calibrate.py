@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import re
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,11 +18,21 @@ import numpy as np
 from scipy.optimize import differential_evolution, minimize
 
 from ..data import Run
-from ..lptn import Model, Simulator
+from ..lptn import Model, ModelError, Simulator
 from .common import ParamSpace, decimate, window_from_arrays
 from .objective import Objective
 from .predict import initial_from_run, model_inputs, sensor_columns
 from .uncertainty import Uncertainty, estimate_uncertainty
+
+
+#: Differential evolution's own convergence test: the population's spread of objective values
+#: below this share of their mean (scipy's ``tol``; its default).
+TOL = 0.01
+#: Generations the best objective may go without improving by :data:`MIN_IMPROVEMENT` before the
+#: global search stops (a run that starts near its optimum stays there from the first generation).
+PATIENCE = 3
+#: Relative improvement of the best objective that counts as progress.
+MIN_IMPROVEMENT = 1e-4
 
 
 @dataclass
@@ -37,6 +46,8 @@ class CalibrationResult:
     evaluations: int
     wall_s: float
     uncertainty: Uncertainty
+    generations: int = 0  #: differential-evolution generations run
+    stopped: str = ""  #: why the global search stopped
 
 
 class _Sum:
@@ -52,35 +63,38 @@ class _Sum:
         return np.sum([o.evaluate(phi).grad for o in self.objs], axis=0)
 
 
-def progress_bar(stream=sys.stderr) -> Callable[[int, int, float], None]:  # type: ignore[no-untyped-def]
-    """A one-line text progress bar: ``bar(done, total, best)``."""
-
-    def bar(done: int, total: int, best: float) -> None:
-        width = 30
-        k = int(width * min(done, total) / max(total, 1))
-        stream.write(f"\r[{'#' * k}{'.' * (width - k)}] {done}/{total} generations, best objective {best:.4g}")
-        if done >= total:
-            stream.write("\n")
-        stream.flush()
-
-    return bar
-
-
 def calibrate(
     model: Model, runs: Sequence[Run], names: Sequence[str] | None = None, sensors: Sequence[str] | None = None,
     decimation: int = 1, maxiter: int = 30, popsize: int = 10, seed: int = 0, sqp_iter: int = 30,
-    progress: Callable[[int, int, float], None] | None = None,
+    progress: Callable[[int, int, float], None] | None = None, patience: int = PATIENCE,
+    max_time_s: float | None = None,
 ) -> CalibrationResult:
     """Fit ``names`` (default: the adaptable parameters) to the runs.
+
+    The global search stops at ``maxiter`` generations, when its population has converged
+    (:data:`TOL`), when the best objective has not improved by :data:`MIN_IMPROVEMENT` (relative)
+    for ``patience`` generations, or after ``max_time_s``; the SQP polish then runs within what
+    is left of ``max_time_s``.
 
     Parameters
     ----------
     decimation : int
         Samples per optimiser step (inputs averaged, currents as RMS).
     maxiter, popsize, seed : int
-        Differential-evolution generations, population multiplier and seed.
+        Differential-evolution generations (at most), population multiplier and seed.
     sqp_iter : int
         SQP iterations of the polish.
+    progress : callable, optional
+        ``progress(generation, maxiter, best objective)`` after every generation.
+    patience : int
+        Generations without progress before the global search stops.
+    max_time_s : float, optional
+        Wall-time budget of the whole fit, s.
+
+    Raises
+    ------
+    ModelError
+        The objective at the starting parameters is not finite (a law of the model overflows).
     """
     t0 = time.perf_counter()
     names = tuple(names or model.adaptable)
@@ -93,27 +107,52 @@ def calibrate(
         objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform"))
     total = _Sum(objs)
     phi0 = np.log(space.values())
-    f0 = total.value(phi0)
-    gen = [0]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        f0 = total.value(phi0)
+    if not np.isfinite(f0):
+        raise ModelError(f"{model.path}: the prediction error at the starting parameters is {f0}: a loss or "
+                         "conductance law of the model overflows on these runs (replay shows where)")
+    best = [f0]  # the best objective when progress was last made
+    gen, idle, why = [0], [0], ["generations exhausted"]
 
-    def cb(xk: np.ndarray, convergence: float = 0.0) -> None:
+    def timed_out() -> bool:
+        return max_time_s is not None and time.perf_counter() - t0 >= max_time_s
+
+    def cb(intermediate_result) -> bool:  # type: ignore[no-untyped-def]  # scipy passes it by this name
         gen[0] += 1
+        fun = float(intermediate_result.fun)
         if progress:
-            progress(gen[0], maxiter, total.value(xk))
+            progress(gen[0], maxiter, fun)
+        if fun < best[0] * (1.0 - MIN_IMPROVEMENT):
+            best[0], idle[0] = fun, 0
+        else:
+            idle[0] += 1
+        if idle[0] >= patience:
+            why[0] = f"no improvement above {MIN_IMPROVEMENT:g} (relative) in {patience} generations"
+            return True
+        if timed_out():
+            why[0] = f"--max-time {max_time_s:g} s reached"
+            return True
+        return False
 
     de = differential_evolution(total.value, space.log_bounds(), maxiter=maxiter, popsize=popsize, seed=seed,
-                                polish=False, x0=phi0, callback=cb, tol=1e-8)
-    if progress and gen[0] < maxiter:
-        progress(maxiter, maxiter, float(de.fun))
+                                polish=False, x0=phi0, callback=cb, tol=TOL)
+    if de.success and gen[0] < maxiter and "callback" not in str(de.message).lower():
+        why[0] = f"population converged (spread below {TOL:g} of the mean)"
+
+    def sqp_cb(intermediate_result) -> None:  # type: ignore[no-untyped-def]
+        if timed_out():
+            raise StopIteration
+
     res = minimize(total.value, de.x, jac=total.grad, method="SLSQP", bounds=space.log_bounds(),
-                   options={"maxiter": sqp_iter, "ftol": 1e-14})
+                   options={"maxiter": sqp_iter, "ftol": 1e-14}, callback=sqp_cb)
     phi = res.x if total.value(res.x) <= de.fun else de.x
     values = np.exp(phi)
     final_space = ParamSpace(model, names, space.full(values))
     o = Objective(sim, final_space, objs[0].window, objs[0].sensors, "uniform")
     unc = estimate_uncertainty(o, o.evaluate(phi))
     return CalibrationResult(names, space.values(), values, f0, float(de.fun), total.value(phi),
-                             int(de.nfev) + int(res.nfev), time.perf_counter() - t0, unc)
+                             int(de.nfev) + int(res.nfev), time.perf_counter() - t0, unc, gen[0], why[0])
 
 
 _VALUE = re.compile(r"^(?P<head>\s+(?P<name>[A-Za-z_][A-Za-z0-9_]*):\s*\{\s*value:\s*)(?P<value>[^,}]+)(?P<tail>.*)$")

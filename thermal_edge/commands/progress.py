@@ -1,0 +1,49 @@
+"""Progress bars with an ETA for the commands that can run longer than ~10 s (tqdm, on stderr).
+
+The bar is drawn only when stderr is a terminal, so logs, pipes and tests see nothing of it;
+without tqdm installed there is no bar either (the command runs the same).
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+
+class _Silent:
+    """Stands in for a tqdm bar when none is drawn."""
+
+    def update(self, n: int = 1) -> None:
+        pass
+
+    def set_postfix_str(self, s: str, refresh: bool = True) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> "_Silent":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+
+def bar(total: float | None, desc: str, unit: str = "it") -> Any:
+    """A tqdm progress bar on stderr when it is a terminal, else a silent stand-in.
+
+    Parameters
+    ----------
+    total : float or None
+        Units of work expected (the ETA is computed against it); None when unknown.
+    desc : str
+        What is being done, shown left of the bar.
+    unit : str
+        Name of one unit of work ("generation", "s" of a simulated run …).
+    """
+    if not sys.stderr.isatty():
+        return _Silent()
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _Silent()
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=True)
