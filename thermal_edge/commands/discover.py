@@ -15,8 +15,9 @@ import shlex
 import sys
 from pathlib import Path
 
-from ..data import FORMATS, read_run
+from ..data import FORMATS
 from .common import add_set_arg, parse_sets
+from .runs import read_checked, require_finite_prediction
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -85,9 +86,14 @@ def run(args: argparse.Namespace) -> int:
     build = hidden.builder(args.model, args.data_dir)
     for k, v in parse_sets(build(raw), args.set).items():  # as if the model file said so
         raw["parameters"][k]["value"] = v
-    rec = read_run(args.run, args.format)
+    sensors = [s.strip() for s in args.sensors.split(",") if s.strip()] if args.sensors else None
+    model = build(raw)
+    rec, summary = read_checked(args.run, args.format, model, sensors)
+    require_finite_prediction(model, rec)
+    if not args.json:
+        print(summary, flush=True)
     opt = workflow.Options(
-        sensors=[s.strip() for s in args.sensors.split(",") if s.strip()] if args.sensors else None,
+        sensors=sensors,
         effects=[e.strip() for e in args.effects.split(",") if e.strip()] if args.effects else None,
         max_rounds=args.max_rounds, min_improvement=args.min_improvement, min_gain_k=args.min_gain,
         train_frac=args.train_fraction, fit_step_s=args.fit_step,

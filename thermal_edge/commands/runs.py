@@ -124,3 +124,14 @@ def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
     inputs = ", ".join(f"{c} = {run.columns[c][k]:g}" for c in model.inputs if c in run.columns)
     raise ModelError(f"{model.path}: {what} is not finite from sample {k + 1} (t = {run.t[k]:g} s) on, node "
                      f"{model.nodes[i]!r}: a loss or conductance law overflows at {inputs}")
+
+
+def require_finite_prediction(model: Model, run: Run) -> None:
+    """Predict ``run`` open loop at the model's nominal parameters and refuse it (as
+    :func:`require_finite`) if the prediction is not finite: a fit would fail on it without
+    saying why."""
+    from ..estimation.predict import open_loop
+
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        traj, _ = open_loop(model, run)
+    require_finite(model, run, traj.T, "the open-loop prediction at the nominal parameters")
