@@ -22,6 +22,10 @@ from typing import Any
 
 from ..data import FORMATS
 from .common import add_model_args
+from .runs import read_checked
+
+#: Run files whose summary is printed before a fleet job (the rest are counted).
+SUMMARY_FILES = 5
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -79,11 +83,27 @@ def _abs(path: str | None) -> str | None:
 
 
 def _machines(args: argparse.Namespace) -> list[Any]:
+    """The machines of RUNS, every run file checked against the model before any task is sent
+    (:func:`~thermal_edge.commands.runs.read_checked`): a file a worker would fail on is named
+    here, in one line. Prints each file's summary (only the first few and a total for a big fleet)."""
     from ..fleet.runs import find_machines
+    from ..lptn import load_model
 
     if not args.runs:
         raise KeyError("no RUNS given (files, machine directories or globs)")
-    return find_machines([_abs(r) or r for r in args.runs], args.id_column)
+    machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
+    model = load_model(args.model, data_dir=args.data_dir)
+    sensors = _names(getattr(args, "sensors", None))
+    files = sorted({f for m in machines for f in m.runs})
+    samples = 0
+    for k, f in enumerate(files):
+        rec, summary = read_checked(f, args.format, model, sensors)
+        samples += len(rec)
+        if k < SUMMARY_FILES:
+            print(summary, flush=True)
+    if len(files) > SUMMARY_FILES:
+        print(f"... {len(files) - SUMMARY_FILES} more; {len(files)} run files checked, {samples} samples in all", flush=True)
+    return machines
 
 
 def _guard(job: Any) -> Any:
