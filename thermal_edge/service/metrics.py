@@ -32,6 +32,28 @@ __all__ = ["ServiceMetrics"]
 log = logging.getLogger(__name__)
 
 P = "thermal_edge_"
+#: label names of the labelled families built at scrape time, by name without the prefix (one
+#: place for them: deploy/docs reads it for the families that have no sample yet)
+LABELS: dict[str, tuple[str, ...]] = {
+    "node_estimate_celsius": ("node",),
+    "node_estimate_stddev_celsius": ("node",),
+    "node_prediction_celsius": ("node",),
+    "sensor_measurement_celsius": ("sensor", "node"),
+    "prediction_error_celsius": ("sensor", "node"),
+    "input_value": ("input",),
+    "limited_node_celsius": ("limit", "node", "band"),
+    "sensor_age_seconds": ("sensor",),
+    "input_stale": ("frame",),
+    "sensor_fault": ("sensor", "kind"),
+    "parameter_value": ("parameter", "unit"),
+    "parameter_band": ("parameter", "bound"),
+    "parameter_identifiable": ("parameter",),
+    "bad_readings": ("kind",),
+    "frames_received": ("frame",),
+    "frames_sent": ("frame",),
+    "frames_dropped": ("reason",),
+    "frames_lost": ("frame",),
+}
 
 
 class _LiveCollector(Collector):
@@ -47,11 +69,11 @@ class _LiveCollector(Collector):
         model = eng.model if eng is not None else None
         if out is not None and model is not None:
             est = GaugeMetricFamily(P + "node_estimate_celsius", "Best estimate (observer) of each node's temperature",
-                                    labels=["node"])
+                                    labels=LABELS["node_estimate_celsius"])
             sig = GaugeMetricFamily(P + "node_estimate_stddev_celsius", "Standard deviation of each node's estimate",
-                                    labels=["node"])
+                                    labels=LABELS["node_estimate_stddev_celsius"])
             pre = GaugeMetricFamily(P + "node_prediction_celsius", "Open-loop model prediction of each node's temperature",
-                                    labels=["node"])
+                                    labels=LABELS["node_prediction_celsius"])
             for i, node in enumerate(model.nodes):
                 if math.isfinite(out.estimate[i]):
                     est.add_metric([node], float(out.estimate[i]))
@@ -62,9 +84,9 @@ class _LiveCollector(Collector):
             yield sig
             yield pre
             meas = GaugeMetricFamily(P + "sensor_measurement_celsius", "Latest usable reading of each sensor",
-                                     labels=["sensor", "node"])
+                                     labels=LABELS["sensor_measurement_celsius"])
             err = GaugeMetricFamily(P + "prediction_error_celsius",
-                                    "Open-loop prediction minus reading, per sensor (last tick)", labels=["sensor", "node"])
+                                    "Open-loop prediction minus reading, per sensor (last tick)", labels=LABELS["prediction_error_celsius"])
             for s, v in out.measured.items():
                 node = model.sensors.get(s, "")
                 if math.isfinite(v):
@@ -78,13 +100,13 @@ class _LiveCollector(Collector):
                                         "RMS open-loop prediction error over the last adaptation period",
                                         value=out.pred_err_rms)
             inp = GaugeMetricFamily(P + "input_value", "Model inputs of the last tick (units as the model names them)",
-                                    labels=["input"])
+                                    labels=LABELS["input_value"])
             for k, v in out.inputs.items():
                 if math.isfinite(v):
                     inp.add_metric([k], v)
             yield inp
             lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
-                                    labels=["limit", "node", "band"])
+                                    labels=LABELS["limited_node_celsius"])
             for b, (name, idx, warn, mx, _) in zip(out.bands, eng.limit_specs):  # type: ignore[union-attr]
                 node = model.nodes[idx]
                 lim.add_metric([name, node, "estimate"], b.estimate_c)
@@ -114,30 +136,30 @@ class _LiveCollector(Collector):
             yield StateSetMetricFamily(P + "state", "Service state", value={s.name.lower(): s == out.state for s in TeState})
             yield GaugeMetricFamily(P + "last_tick_timestamp_seconds", "Clock time of the last tick", value=out.t)
             age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
-                                    labels=["sensor"])
+                                    labels=LABELS["sensor_age_seconds"])
             for s in eng.config.sensors:  # type: ignore[union-attr]
                 a = eng.accumulator._latest[s].t  # type: ignore[union-attr]
                 if math.isfinite(a):
                     age.add_metric([s], out.t - a)
             yield age
             stale = GaugeMetricFamily(P + "input_stale", "1 for each frame missing longer than its timeout",
-                                      labels=["frame"])
+                                      labels=LABELS["input_stale"])
             for f in eng.config.timeouts:  # type: ignore[union-attr]
                 stale.add_metric([f], float(f in out.stale))
             yield stale
             fault = GaugeMetricFamily(P + "sensor_fault", "1 for each required sensor/input reporting a fault",
-                                      labels=["sensor", "kind"])
+                                      labels=LABELS["sensor_fault"])
             for s, kind in out.faults.items():
                 fault.add_metric([s, kind], 1.0)
             yield fault
         if eng is not None and model is not None:
             val = GaugeMetricFamily(P + "parameter_value", "Adaptable parameter value (unit in the label)",
-                                    labels=["parameter", "unit"])
+                                    labels=LABELS["parameter_value"])
             band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information)",
-                                     labels=["parameter", "bound"])
+                                     labels=LABELS["parameter_band"])
             ident = GaugeMetricFamily(P + "parameter_identifiable",
                                       "1 if the sensors at hand pin the parameter down (relative sd < 25 %)",
-                                      labels=["parameter"])
+                                      labels=LABELS["parameter_identifiable"])
             units = {p.name: p.unit for p in model.parameters}
             for name, v in eng.adaptable_values().items():
                 val.add_metric([name, units.get(name, "")], v)
@@ -163,7 +185,7 @@ class _LiveCollector(Collector):
             ):
                 yield CounterMetricFamily(P + name, doc, value=value)
             acc = eng.accumulator
-            bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=["kind"])
+            bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=LABELS["bad_readings"])
             for kind in FAULT_KINDS:
                 bad.add_metric([kind], acc.bad_readings.get(kind, 0))
             yield bad
@@ -173,19 +195,19 @@ class _LiveCollector(Collector):
         codec = m.codec
         if codec is not None:
             st = codec.stats
-            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)", labels=["frame"])
+            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)", labels=LABELS["frames_received"])
             for k, v in st.received.items():
                 rx.add_metric([k], v)
             yield rx
-            tx = CounterMetricFamily(P + "frames_sent", "Frames encoded for sending", labels=["frame"])
+            tx = CounterMetricFamily(P + "frames_sent", "Frames encoded for sending", labels=LABELS["frames_sent"])
             for k, v in st.sent.items():
                 tx.add_metric([k], v)
             yield tx
-            dr = CounterMetricFamily(P + "frames_dropped", "Received frames dropped, by reason", labels=["reason"])
+            dr = CounterMetricFamily(P + "frames_dropped", "Received frames dropped, by reason", labels=LABELS["frames_dropped"])
             for r in DROP_REASONS:
                 dr.add_metric([r], getattr(st, r))
             yield dr
-            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter", labels=["frame"])
+            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter", labels=LABELS["frames_lost"])
             for k, v in st.lost_by_frame.items():
                 lost.add_metric([k], v)
             yield lost
