@@ -8,10 +8,10 @@ import cantools
 import numpy as np
 
 from svc_testlib import CYCLES, DBC, MODEL, REPO, edge_raw, env, write_yaml
-from thermal_edge.bus import read_candump
+from thermal_edge.bus import read_log as read_candump
 from thermal_edge.config import load_config
 from thermal_edge.service import replay_candump
-from thermal_edge.sim.inverter import write_candump
+from thermal_edge.sim.inverter import write_log as write_candump
 
 
 def test_simulate_writes_a_decodable_candump_log(tmp_path):

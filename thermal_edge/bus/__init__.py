@@ -1,4 +1,4 @@
-"""CAN layer of thermal_edge: DBC codec with frame integrity, python-can transport, candump logs.
+"""CAN layer of thermal_edge: DBC codec with frame integrity, python-can transport, CAN logs.
 
 Knows ``dbc/thermal_edge.dbc`` and nothing of the thermal model.
 
@@ -12,7 +12,9 @@ Knows ``dbc/thermal_edge.dbc`` and nothing of the thermal model.
   (unknown keys and interfaces named with the closest valid one).
 - :class:`LocalUdpMulticastBus` -- ``udp_multicast`` on loopback only, hop limit 0: nothing
   leaves this host, nothing from beyond it is received.
-- :class:`CandumpRecorder`, :class:`CandumpReader`, :func:`read_candump` -- ``candump -L`` logs.
+- :class:`LogRecorder`, :class:`FrameLogReader`, :func:`read_log` -- CAN logs in every format
+  python-can knows (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``), by suffix;
+  recordings rotate at a size cap.
 - :func:`crc8_sae_j1850`, :func:`frame_crc`, :func:`data_id` -- the frame CRC.
 """
 
@@ -24,7 +26,6 @@ from .busconfig import (
     bus_kwargs,
     create_bus,
 )
-from .candump import CandumpFormatError, CandumpReader, CandumpRecorder, read_candump
 from .codec import DbcError, DecodedFrame, FrameCodec, FrameEncodeError
 from .crc import crc8_sae_j1850, data_id, frame_crc
 from .cyclic import CyclicSender
@@ -45,6 +46,7 @@ from .frames import (
     SensorStatus,
     TeState,
 )
+from .logs import FrameLogReader, LogFormatError, LogRecorder, log_messages, read_log, readable_suffixes
 from .stats import DROP_REASONS, FrameStats, TransportStats
 from .transport import CanTransport
 from .udp import LocalUdpMulticastBus, UndecodableDatagram
@@ -68,17 +70,17 @@ __all__ = [
     "BusConfig",
     "BusConfigError",
     "CanTransport",
-    "CandumpFormatError",
-    "CandumpReader",
-    "CandumpRecorder",
     "CyclicSender",
     "DbcError",
     "DecodedFrame",
     "DerateReason",
     "FrameCodec",
     "FrameEncodeError",
+    "FrameLogReader",
     "FrameStats",
     "LocalUdpMulticastBus",
+    "LogFormatError",
+    "LogRecorder",
     "SensorStatus",
     "TeState",
     "TransportStats",
@@ -88,5 +90,7 @@ __all__ = [
     "create_bus",
     "data_id",
     "frame_crc",
-    "read_candump",
+    "log_messages",
+    "read_log",
+    "readable_suffixes",
 ]

@@ -28,6 +28,7 @@ from typing import Any
 import can
 import can.interfaces
 
+from .logs import DEFAULT_KEEP, LogFormatError, log_suffix
 from .udp import RECEIVE_QUEUE_BYTES, LocalUdpMulticastBus, enlarge_receive_queue
 
 __all__ = [
@@ -128,9 +129,14 @@ class BusConfig:
         filter in the kernel (SocketCAN) only the frames this node receives are let in.
         None: keep all.
     record_path : str or Path or None
-        If set, all RX and TX traffic is recorded to this ``candump -L`` file.
+        If set, all RX and TX traffic is recorded to this CAN log, in the format of its suffix
+        (``.log`` candump -L, ``.asc``, ``.blf``, ... see :mod:`thermal_edge.bus.logs`).
     record_channel : str
         Interface name written into the recorded log lines.
+    record_max_bytes : int
+        Rotate the recording at this size, bytes (0: never); closed text files are gzipped.
+    record_keep : int
+        Rotated recordings kept besides the one being written (the oldest are deleted).
     send_timeout_s : float
         Time a send may block, in s.
     reconnect_min_s, reconnect_max_s : float
@@ -146,6 +152,8 @@ class BusConfig:
     node: str | None = "TE"
     record_path: str | Path | None = None
     record_channel: str = "can0"
+    record_max_bytes: int = 0
+    record_keep: int = DEFAULT_KEEP
     send_timeout_s: float = 0.05
     reconnect_min_s: float = 0.1
     reconnect_max_s: float = 5.0
@@ -169,6 +177,15 @@ class BusConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or value <= 0:
                 raise BusConfigError(f"bus.{name}", f"expected a positive number of seconds, got {value!r}")
+        for name in ("record_max_bytes", "record_keep"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise BusConfigError(f"bus.{name}", f"expected a whole number >= 0, got {value!r}")
+        if self.record_path is not None:
+            try:
+                log_suffix(self.record_path, write=True)
+            except LogFormatError as exc:
+                raise BusConfigError("bus.record_path", str(exc)) from None
         if self.reconnect_max_s < self.reconnect_min_s:
             raise BusConfigError("bus.reconnect_max_s", "must not be below bus.reconnect_min_s")
         if not isinstance(self.options, Mapping):

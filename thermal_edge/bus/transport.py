@@ -34,9 +34,9 @@ from typing import Any
 import can
 
 from .busconfig import BusConfig, BusConfigError, create_bus
-from .candump import CandumpRecorder
 from .codec import DecodedFrame, FrameCodec
 from .cyclic import CyclicSender, Fallback, SignalProvider
+from .logs import LogRecorder
 from .stats import TransportStats
 from .udp import UndecodableDatagram
 
@@ -151,7 +151,7 @@ class CanTransport:
         self._generation = 0  # bumped per open; errors of an older bus are ignored
         self._opened_at = 0.0
         self._cyclic: list[CyclicSender] = []
-        self._recorder: CandumpRecorder | None = None
+        self._recorder: LogRecorder | None = None
 
     # ----------------------------------------------------------------- status
     @property
@@ -165,8 +165,8 @@ class CanTransport:
         return self._bus is not None and not self._failed_flag
 
     @property
-    def recorder(self) -> CandumpRecorder | None:
-        """The candump recorder, if recording."""
+    def recorder(self) -> LogRecorder | None:
+        """The recorder of the traffic, if recording."""
         return self._recorder
 
     async def wait_connected(self, timeout: float | None = None) -> bool:
@@ -201,7 +201,8 @@ class CanTransport:
         self._connected = asyncio.Event()
         self._stopping = False
         if self.config.record_path is not None and self._recorder is None:
-            self._recorder = CandumpRecorder(self.config.record_path, channel=self.config.record_channel)
+            self._recorder = LogRecorder(self.config.record_path, channel=self.config.record_channel,
+                                         max_bytes=self.config.record_max_bytes, keep=self.config.record_keep)
         try:
             self._open()
         except (BusConfigError, can.CanInterfaceNotImplementedError, TypeError):

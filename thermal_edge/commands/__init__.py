@@ -1,7 +1,7 @@
 """Sub-commands of ``thermal-edge``; each module has ``register(subparsers)``."""
 from __future__ import annotations
 
-from ..bus import CandumpFormatError
+from ..bus import LogFormatError
 from ..config import ConfigError
 from ..data import RunError
 from ..lptn import ExprError, ModelError, NotPassive, UnstableDiscretisation
@@ -14,4 +14,4 @@ COMMANDS += (fleet,)
 
 #: errors caused by the user's input: reported in one line, exit status 2
 USER_ERRORS = (ModelError, RunError, CycleError, ExprError, UnstableDiscretisation, NotPassive, ConfigError,
-               CandumpFormatError, KeyError, FileNotFoundError)
+               LogFormatError, KeyError, FileNotFoundError)

@@ -16,7 +16,7 @@ from ..data import write_run
 from ..discovery import effects as E
 from ..discovery import hidden
 from ..sim.cycles import cycle_run, load_cycle
-from ..sim.inverter import write_candump
+from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
 from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
@@ -120,7 +120,7 @@ def run_candump(args: argparse.Namespace) -> int:
     from ..lptn import load_model
 
     sets = parse_sets(load_model(args.model, data_dir=args.data_dir), args.set)
-    st = write_candump(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
+    st = write_log(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
                        noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
                        current_period_s=args.current_period, temperature_period_s=args.temperature_period)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())

@@ -15,10 +15,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..bus.candump import CandumpReader
 from ..bus.codec import FrameCodec
 from ..bus.stats import DROP_REASONS
 from ..bus.frames import DEFAULT_DBC_PATH
+from ..bus.logs import FrameLogReader
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
 from ..lptn import Model
 from .clock import FrameClock
@@ -75,7 +75,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
 
     Raises
     ------
-    FileNotFoundError, thermal_edge.bus.CandumpFormatError
+    FileNotFoundError, thermal_edge.bus.LogFormatError
         Missing file, or not a candump log.
     """
     cfg = replace(config, clock=ClockConfig("frame", config.clock.tick_s, config.clock.max_catchup_s),
@@ -85,7 +85,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     cfg.check_dbc(codec)
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s)
-    reader = CandumpReader(Path(path), codec, include_tx=False)
+    reader = FrameLogReader(Path(path), codec, include_tx=False)
     tick = cfg.clock.tick_s
     outs: list[TickOutput] = []
     n_frames = 0
@@ -126,7 +126,7 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
     (``--set``, checked against the model's bounds) is merged into its ``model.parameters``.
 
     Raises ``thermal_edge.config.ConfigError``, ``FileNotFoundError`` or
-    ``thermal_edge.bus.CandumpFormatError`` with one-line messages.
+    ``thermal_edge.bus.LogFormatError`` with one-line messages.
     """
     from ..config import ModelConfig, load_config
 

@@ -50,10 +50,11 @@ from ..bus.busconfig import BusConfig, create_bus, interface_keywords
 from ..bus.codec import DecodedFrame, FrameCodec
 from ..bus.frames import (DEFAULT_DBC_PATH, INV_AMBIENT_TEMPS, INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS,
                           TE_ESTIMATES, TE_LIMITS, TE_STATUS, SensorStatus)
+from ..bus.logs import LogRecorder
 from ..lptn import Model, Stepper, load_model, steady_state
 from .cycles import cycle_run, load_cycle
 
-__all__ = ["EmulatorConfig", "InverterEmulator", "Plant", "TABLE4_VARIATIONS", "main", "write_candump"]
+__all__ = ["EmulatorConfig", "InverterEmulator", "Plant", "TABLE4_VARIATIONS", "main", "write_log"]
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +194,7 @@ class InverterEmulator:
     ----------
     config : EmulatorConfig
     bus : BusConfig or mapping, optional
-        The bus (its ``node`` is forced to ``INV``); not needed for :meth:`write_candump`.
+        The bus (its ``node`` is forced to ``INV``); not needed for :meth:`write_log`.
     codec : FrameCodec, optional
     model : Model, optional
         The machine model (default: ``config.model_path``); the plant applies ``config.params``.
@@ -572,35 +573,36 @@ class InverterEmulator:
         s.rx_dropped = {k: int(v) for k, v in st.dropped.items()}
 
     # -- offline ----------------------------------------------------------------------------------
-    def write_candump(self, path: str | os.PathLike[str], channel: str = "can0") -> EmulatorSummary:
-        """Write the inverter frames of the whole (open-loop) run as a ``candump -L`` log, no bus."""
+    def write_log(self, path: str | os.PathLike[str], channel: str = "can0") -> EmulatorSummary:
+        """Write the inverter frames of the whole (open-loop) run as a CAN log, no bus (format by
+        the file's suffix: ``.log`` candump -L, ``.asc``, ``.blf``, ... see :mod:`thermal_edge.bus.logs`)."""
         import can
 
-        from ..bus.candump import CandumpRecorder
-
         self.summary.sim_start = self.sim_time
-        with CandumpRecorder(path, channel=channel, flush_interval_s=60.0) as rec:
+        with LogRecorder(path, channel=channel, flush_interval_s=60.0) as rec:
             while self.elapsed < self.duration - 1e-9:
                 for ts, name, signals in self._step(None):
                     data = self.codec.encode(name, signals)
                     rec.write(can.Message(timestamp=ts, arbitration_id=self.codec.frame_id(name), data=data,
                                           is_extended_id=False, is_rx=True))
                     self.summary.frames_sent[name] = self.summary.frames_sent.get(name, 0) + 1
+        if rec.write_errors:
+            raise OSError(f"{path}: {rec.write_errors} frames could not be written (see the log)")
         self._finish()
         return self.summary
 
 
-def write_candump(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[str], out: str | os.PathLike[str], *,
-                  params: Mapping[str, float] | None = None, duration_s: float | None = None, noise_k: float = 0.1,
-                  resolution_k: float = 0.1, seed: int = 0, t0: float | None = None, current_period_s: float = 0.01,
-                  temperature_period_s: float = 0.1, channel: str = "can0") -> EmulatorSummary:
-    """The inverter frames of a simulated open-loop run as a ``candump -L`` log (``thermal-edge
-    simulate --format candump``)."""
+def write_log(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[str], out: str | os.PathLike[str], *,
+              params: Mapping[str, float] | None = None, duration_s: float | None = None, noise_k: float = 0.1,
+              resolution_k: float = 0.1, seed: int = 0, t0: float | None = None, current_period_s: float = 0.01,
+              temperature_period_s: float = 0.1, channel: str = "can0") -> EmulatorSummary:
+    """The inverter frames of a simulated open-loop run as a CAN log in the format of ``out``'s
+    suffix (``thermal-edge simulate --format candump``)."""
     cfg = EmulatorConfig(model_path=model_path, cycle_path=cycle_path, params=dict(params or {}), duration_s=duration_s,
                          noise_k=noise_k, resolution_k=resolution_k, seed=seed, t0=t0 if t0 is not None else 1.7e9,
                          current_period_s=current_period_s, temperature_period_s=temperature_period_s,
                          closed_loop=False, plant_dt_s=max(current_period_s, min(1.0, temperature_period_s)))
-    return InverterEmulator(cfg).write_candump(out, channel)
+    return InverterEmulator(cfg).write_log(out, channel)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,503 @@
+"""CAN log files in every format python-can knows: record live traffic, read it back.
+
+The format is chosen by the file's suffix, as ``python -m can.logger`` and ``python -m can.player``
+do: ``.log`` (``candump -L``, can-utils), ``.asc`` (Vector ASCII), ``.blf`` (Vector binary),
+``.trc`` (PEAK), ``.csv`` (python-can's CSV), ``.mf4`` (ASAM MDF, with ``asammdf`` installed), each
+text format also gzip-compressed (``.log.gz``, ``.asc.gz``...). Writing is python-can's
+python-can's writers (by suffix, as :func:`can.Logger`) and :class:`can.SizedRotatingLogger`,
+reading its readers (as :func:`can.LogReader`).
+
+- :class:`LogRecorder` -- records the service's RX/TX traffic: timestamps never decrease, frames
+  sent before the time is known (timestamp 0, python-can's "none") are written at the first
+  known time, so a log never starts in 1970; with ``max_bytes`` it rotates at that size, gzips
+  the closed text files (BLF compresses itself) and keeps the newest ``keep`` of them. A write
+  error is counted and logged, never raised.
+- :class:`FrameLogReader`, :func:`read_log` -- the decoded frames of a log, for replay; a damaged
+  ``candump`` line or a truncated binary log is skipped (counted in ``malformed_lines``) or, with
+  ``strict``, refused with file and line.
+- :func:`log_messages` -- the raw python-can messages of a log, timestamps in s since the epoch.
+
+Timestamps read back are rounded to 1 µs, the resolution of ``candump`` and ASC logs, so that a
+run gives the same times whichever format it was stored in (BLF stores ns offsets from a start
+in whole ms, ASC µs offsets from a start in whole ms).
+"""
+
+from __future__ import annotations
+
+import gzip
+import importlib.util
+import logging
+import math
+import re
+import shutil
+import threading
+import time
+from collections import deque
+from datetime import datetime
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import can
+from can.io.logger import MESSAGE_WRITERS, SizedRotatingLogger
+from can.io.player import MESSAGE_READERS
+
+from .codec import DecodedFrame, FrameCodec
+
+__all__ = [
+    "DEFAULT_KEEP",
+    "ROTATING_SUFFIXES",
+    "LogFormatError",
+    "FrameLogReader",
+    "LogRecorder",
+    "log_messages",
+    "log_suffix",
+    "read_log",
+    "readable_suffixes",
+]
+
+log = logging.getLogger(__name__)
+
+#: Rotated files a recording keeps besides the one being written (with ``max_bytes``).
+DEFAULT_KEEP = 10
+#: Formats :class:`can.SizedRotatingLogger` can rotate (it needs the writer's file size).
+ROTATING_SUFFIXES = frozenset({".asc", ".blf", ".csv", ".log"})
+#: Formats written as text (gzip compresses their rotated files; BLF compresses itself).
+_TEXT_SUFFIXES = frozenset({".asc", ".csv", ".log", ".trc"})
+#: Not CAN logs for this project: python-can's SQLite tables and its plain-text printer.
+_EXCLUDED = frozenset({".db", ".txt"})
+#: Frames without a time kept until the first one with a time (older ones are dropped, counted).
+UNSTAMPED_MAX = 1000
+#: Resolution of timestamps read back, decimal places of s (1 µs).
+_TIME_DECIMALS = 6
+
+_CANDUMP_LINE = re.compile(
+    r"^\(\d+(\.\d+)?\)\s+\S+\s+([0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})#"
+    r"((#[0-9A-Fa-f])?([0-9A-Fa-f]{2})*|R\d*)(\s+[RTrt])?$"
+)
+
+
+class LogFormatError(ValueError):
+    """A file is not a CAN log of the format its suffix names (the message names file and line)."""
+
+
+def _format_available(suffix: str) -> bool:
+    return suffix != ".mf4" or importlib.util.find_spec("asammdf") is not None
+
+
+def readable_suffixes() -> tuple[str, ...]:
+    """The log suffixes this installation reads (``.mf4`` only with ``asammdf``), sorted."""
+    return tuple(sorted(s for s in MESSAGE_READERS if s not in _EXCLUDED and _format_available(s)))
+
+
+def log_suffix(path: str | Path, *, write: bool = False) -> str:
+    """The format suffix of a log file (``".log"`` for ``run.log`` and ``run.log.gz``).
+
+    Raises
+    ------
+    LogFormatError
+        A suffix python-can cannot read (or write), naming the ones it can; ``.mf4`` without
+        ``asammdf``; a gzipped binary format.
+    """
+    p = Path(path)
+    suffixes = [s.lower() for s in p.suffixes]
+    gz = bool(suffixes) and suffixes[-1] == ".gz"
+    suffix = suffixes[-2] if gz and len(suffixes) >= 2 else (suffixes[-1] if suffixes and not gz else "")
+    known = MESSAGE_WRITERS if write else MESSAGE_READERS
+    if suffix not in known or suffix in _EXCLUDED:
+        raise LogFormatError(f"{p}: unknown CAN log format {''.join(p.suffixes) or '(no suffix)'!r}; known: "
+                             + ", ".join(readable_suffixes()) + " (text formats also .gz)")
+    if not _format_available(suffix):
+        raise LogFormatError(f"{p}: MF4 logs need asammdf: pip install thermal-edge[mf4]")
+    if gz and suffix not in _TEXT_SUFFIXES:
+        raise LogFormatError(f"{p}: {suffix} cannot be gzipped (python-can reads gzip for text formats only)")
+    return suffix
+
+
+# --------------------------------------------------------------------------------------------- read
+class _CheckedLines:
+    """Line source for ``CanutilsLogReader`` that skips (or, strict, rejects) malformed lines."""
+
+    def __init__(self, path: Path, strict: bool, malformed: list[tuple[int, str]]) -> None:
+        self._path = path
+        self._strict = strict
+        self._malformed = malformed
+        opener: Any = gzip.open if path.suffix.lower() == ".gz" else open
+        self._file: IO[str] = opener(path, "rt", encoding="ascii", errors="replace")
+
+    def __iter__(self) -> Iterator[str]:
+        for lineno, line in enumerate(self._file, start=1):
+            text = line.strip()
+            if not text or text.startswith(("#", ";")):
+                continue
+            if _CANDUMP_LINE.match(text):
+                yield text
+                continue
+            if self._strict:
+                raise LogFormatError(f"{self._path}:{lineno}: not a candump -L line: {text[:80]!r}")
+            self._malformed.append((lineno, text[:200]))
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, str]]) -> can.io.generic.MessageReader:
+    if suffix == ".log":
+        return can.CanutilsLogReader(_CheckedLines(path, strict, malformed))  # type: ignore[arg-type]
+    # python-can's registry, opened here because can.LogReader drops the keyword arguments of a
+    # .gz file (4.6.1), and ASC needs one: absolute times, the header's start plus each offset
+    kwargs = {"relative_timestamp": False} if suffix == ".asc" else {}
+    file: Any = path
+    if path.suffix.lower() == ".gz":
+        file = gzip.open(path, "rt" if suffix in _TEXT_SUFFIXES else "rb")
+    return MESSAGE_READERS[suffix](file, **kwargs)
+
+
+def log_messages(path: str | Path, *, strict: bool = False,
+                 malformed: list[tuple[int, str]] | None = None) -> Iterator[can.Message]:
+    """The raw python-can messages of a CAN log, in file order (format by suffix).
+
+    Parameters
+    ----------
+    path : str or Path
+        The log.
+    strict : bool
+        Raise :class:`LogFormatError` on the first damaged line or record instead of skipping it.
+    malformed : list, optional
+        Receives (line number, text) of every skipped line (line 0: a damaged record of a
+        binary log, after which the rest of the file is unreadable).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    LogFormatError
+        Unknown suffix, or a non-empty file with not one readable message.
+    """
+    p = Path(path)
+    suffix = log_suffix(p)
+    if not p.is_file():
+        raise FileNotFoundError(f"{p}: no such CAN log")
+    bad = malformed if malformed is not None else []
+    n = 0
+    try:
+        reader = _reader(p, suffix, strict, bad)
+    except LogFormatError:
+        raise
+    except Exception as exc:  # python-can refusing the header of a file that is no such log
+        raise LogFormatError(f"{p}: not a {suffix} log: {type(exc).__name__}: {exc}") from None
+    with reader:
+        it = iter(reader)
+        while True:
+            try:
+                msg = next(it)
+            except StopIteration:
+                break
+            except LogFormatError:
+                raise
+            except Exception as exc:  # a damaged or truncated record: nothing after it can be trusted
+                if strict or n == 0:
+                    raise LogFormatError(f"{p}: damaged {suffix} log after {n} messages: "
+                                         f"{type(exc).__name__}: {exc}") from None
+                bad.append((0, f"{type(exc).__name__}: {exc}"[:200]))
+                log.warning("%s: damaged after %d messages, rest skipped: %s", p, n, exc)
+                break
+            msg.timestamp = round(float(msg.timestamp), _TIME_DECIMALS)
+            n += 1
+            yield msg
+    if n == 0 and bad:
+        lineno, text = bad[0]
+        raise LogFormatError(f"{p}:{lineno}: not a {suffix} log: {text[:80]!r}")
+
+
+class FrameLogReader:
+    """Iterate over the decoded frames of a CAN log (any format python-can reads), for replay.
+
+    Parameters
+    ----------
+    path : str or Path
+        The log file; its suffix names the format.
+    codec : FrameCodec, optional
+        Codec to decode with (a fresh one on the project DBC by default); its ``stats`` count
+        the frames dropped by the integrity checks.
+    include_tx : bool, optional
+        Also yield frames the recording node sent (candump ``T``, ASC/BLF/TRC ``Tx``). Formats
+        without a direction (python-can's CSV, MF4 without it) mark every frame received.
+    strict : bool, optional
+        Raise :class:`LogFormatError` on the first damaged line instead of skipping it (skipped
+        lines are listed in :attr:`malformed_lines`).
+
+    Notes
+    -----
+    Frames come in file order; ``DecodedFrame.timestamp`` is the log time in s since the epoch.
+    """
+
+    def __init__(self, path: str | Path, codec: FrameCodec | None = None, *, include_tx: bool = True,
+                 strict: bool = False) -> None:
+        self.path = Path(path)
+        log_suffix(self.path)  # an unknown format is refused before anything is read
+        self.codec = codec if codec is not None else FrameCodec()
+        self.include_tx = include_tx
+        self.strict = strict
+        #: (line number, text) of every skipped damaged line of the last iteration.
+        self.malformed_lines: list[tuple[int, str]] = []
+        #: Raw messages read in the last iteration (TX included).
+        self.messages_read = 0
+
+    def messages(self) -> Iterator[can.Message]:
+        """Raw python-can messages of the log, in file order."""
+        self.malformed_lines = []
+        self.messages_read = 0
+        for msg in log_messages(self.path, strict=self.strict, malformed=self.malformed_lines):
+            self.messages_read += 1
+            yield msg
+
+    def __iter__(self) -> Iterator[DecodedFrame]:
+        for msg in self.messages():
+            if not self.include_tx and not msg.is_rx:
+                continue
+            frame = self.codec.decode_message(msg)
+            if frame is not None:
+                yield frame
+
+
+def read_log(path: str | Path, codec: FrameCodec | None = None, *, include_tx: bool = True,
+             strict: bool = False) -> list[DecodedFrame]:
+    """All decoded frames of a CAN log (see :class:`FrameLogReader`)."""
+    return list(FrameLogReader(path, codec, include_tx=include_tx, strict=strict))
+
+
+# -------------------------------------------------------------------------------------------- write
+class _ASCWriter(can.ASCWriter):
+    """python-can's ASC writer, its start exact: python-can 4.6.1 writes the start's milliseconds
+    unpadded (30 ms as ``.30``, which every reader takes for 300 ms) and measures the offsets from
+    the first frame's exact time although the header can only say whole milliseconds. Here the
+    start is the first frame's time floored to the millisecond (as python-can's BLF writer does),
+    so that start + offset reads back as the frame's time."""
+
+    def _format_header_datetime(self, dt: datetime) -> str:
+        return dt.strftime(self.FORMAT_DATE.format(f"{dt.microsecond // 1000:03d}"))
+
+    def log_event(self, message: str, timestamp: float | None = None) -> None:
+        if not self.header_written:
+            self.started = self.last_timestamp = math.floor((timestamp or 0.0) * 1000.0) / 1000.0
+            start = self._format_header_datetime(datetime.fromtimestamp(self.started))
+            self.file.write(f"Begin Triggerblock {start}\n")
+            self.header_written = True
+            super().log_event("Start of measurement")
+        super().log_event(message, timestamp)
+
+
+def _open_writer(path: str | Path, **kwargs: Any) -> can.io.generic.MessageWriter:
+    """The python-can writer of a log file's suffix (``.gz``: a gzip stream of a text format)."""
+    p = Path(path)
+    suffix = log_suffix(p, write=True)
+    cls = _ASCWriter if suffix == ".asc" else MESSAGE_WRITERS[suffix]
+    if p.suffix.lower() == ".gz":
+        return cls(gzip.open(p, "wt"), **kwargs)
+    return cls(p, **kwargs)
+
+
+class _RotatingLogger(SizedRotatingLogger):
+    """:class:`can.SizedRotatingLogger` opening its files with :func:`_open_writer` (the ASC fix)."""
+
+    def _get_new_writer(self, filename: Any) -> Any:
+        return _open_writer(filename, **self.writer_kwargs)
+
+
+class LogRecorder:
+    """Record CAN messages to a log in the format of the file's suffix (RX and TX marked).
+
+    Parameters
+    ----------
+    path : str or Path
+        Log file (``.log`` candump -L, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``; text
+        formats also ``.gz``); parent directories are created.
+    channel : str, optional
+        Interface name written into each record (default ``"can0"``; ASC/BLF/TRC number it).
+    max_bytes : int, optional
+        Rotate when the file reaches this size, bytes (0: never; ``.log``, ``.asc``, ``.csv``,
+        ``.blf`` only, not gzipped: the closed files are gzipped instead). A file left by an
+        earlier run is rotated away first instead of being overwritten.
+    keep : int, optional
+        Rotated files kept (the oldest are deleted), besides the one being written.
+    flush_interval_s : float, optional
+        The file is flushed at most this often while writing, in s, and on close.
+
+    Notes
+    -----
+    Thread-safe. Write errors (disk full, ...) are logged and counted in :attr:`write_errors`,
+    never raised. A message without a time (timestamp 0) waits for the first message with one
+    and is written at that time (at most :data:`UNSTAMPED_MAX` of them wait; older ones are
+    dropped and counted in :attr:`unstamped_dropped`).
+    """
+
+    def __init__(self, path: str | Path, *, channel: str = "can0", max_bytes: int = 0, keep: int = DEFAULT_KEEP,
+                 flush_interval_s: float = 1.0) -> None:
+        self.path = Path(path)
+        suffix = log_suffix(self.path, write=True)
+        if max_bytes < 0 or keep < 0:
+            raise ValueError(f"{self.path}: max_bytes and keep must not be negative")
+        if max_bytes and (suffix not in ROTATING_SUFFIXES or self.path.suffix.lower() == ".gz"):
+            raise LogFormatError(f"{self.path}: a size-capped recording must be one of "
+                                 f"{', '.join(sorted(ROTATING_SUFFIXES))} (rotated text files are gzipped)")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.channel = channel
+        self.max_bytes = int(max_bytes)
+        self.keep = int(keep)
+        self._compress = suffix in _TEXT_SUFFIXES
+        self.frames_written = 0
+        self.write_errors = 0
+        self.unstamped_dropped = 0
+        self._flush_interval = float(flush_interval_s)
+        self._last_flush = time.monotonic()
+        self._last_timestamp: float | None = None
+        self._unstamped: deque[can.Message] = deque()
+        self._lock = threading.Lock()
+        self._writer: can.io.generic.MessageWriter | None = None
+        if self.max_bytes:
+            if self.path.is_file() and self.path.stat().st_size > 0:
+                self._rotate_aside()
+            rotating = _RotatingLogger(self.path, max_bytes=self.max_bytes)
+            rotating.namer = self._namer
+            rotating.rotator = self._rotator
+            self._writer = rotating
+        else:
+            self._writer = _open_writer(self.path)
+
+    # -- rotation -------------------------------------------------------------------------------
+    @property
+    def rotated_files(self) -> list[Path]:
+        """The closed files of this recording, oldest first."""
+        stem = self.path.name.split(".")[0]
+        suffix = "".join(self.path.suffixes[-1:])
+        pattern = f"{stem}_*_#*{suffix}" + (".gz" if self._compress else "")
+        # by age: a restart's counter begins again at 0
+        return sorted(self.path.parent.glob(pattern), key=lambda f: (f.stat().st_mtime, f.name))
+
+    @property
+    def files_rotated(self) -> int:
+        """Rotations since this recorder was opened."""
+        return self._writer.rollover_count if isinstance(self._writer, SizedRotatingLogger) else 0
+
+    def _rotated_name(self, when: float, count: int) -> Path:
+        """``<stem>_<local time>_#<count><suffix>[.gz]``: sorts by time (python-can's scheme)."""
+        stamp = time.strftime("%Y-%m-%dT%H%M%S", time.localtime(when))
+        name = f"{self.path.name.split('.')[0]}_{stamp}_#{count:03}{self.path.suffixes[-1]}"
+        return self.path.parent / (f"{name}.gz" if self._compress else name)
+
+    def _namer(self, default: Any) -> str:
+        count = self._writer.rollover_count if isinstance(self._writer, SizedRotatingLogger) else 0
+        return str(self._rotated_name(time.time(), count))
+
+    def _rotator(self, source: Any, dest: Any) -> None:
+        """Move (gzip) the closed file to its rotated name, then delete the oldest beyond ``keep``."""
+        src, dst = Path(source), Path(dest)
+        if src.exists():
+            if self._compress:
+                with open(src, "rb") as fin, gzip.open(dst, "wb") as fout:
+                    shutil.copyfileobj(fin, fout)
+                src.unlink()
+            else:
+                src.rename(dst)
+        old = self.rotated_files
+        for f in old[: max(0, len(old) - self.keep)]:
+            f.unlink(missing_ok=True)
+
+    def _rotate_aside(self) -> None:
+        """Rotate a file an earlier run left, so that a restart never overwrites its recording."""
+        self._rotator(self.path, self._rotated_name(self.path.stat().st_mtime, 0))
+
+    # -- writing ---------------------------------------------------------------------------------
+    def write(self, msg: can.Message) -> None:
+        """Append one message (its ``is_rx`` flag gives the direction).
+
+        The record's time is the message's (s since the epoch), raised if needed so that times
+        never decrease in the file; a message without a time waits for the first one with one.
+        """
+        with self._lock:
+            if self._writer is None:
+                return
+            try:
+                if not msg.timestamp or msg.timestamp <= 0:
+                    if self._last_timestamp is None:
+                        if len(self._unstamped) >= UNSTAMPED_MAX:
+                            self._unstamped.popleft()
+                            self.unstamped_dropped += 1
+                        self._unstamped.append(msg)
+                        return
+                    timestamp = self._last_timestamp
+                else:
+                    timestamp = float(msg.timestamp)
+                # records go in processing order; keep their times non-decreasing (a received frame
+                # can carry a kernel time older than a frame just sent)
+                if self._last_timestamp is not None and timestamp < self._last_timestamp:
+                    timestamp = self._last_timestamp
+                self._last_timestamp = timestamp
+                while self._unstamped:
+                    self._write_one(self._unstamped.popleft(), timestamp)
+                self._write_one(msg, timestamp)
+                now = time.monotonic()
+                if now - self._last_flush >= self._flush_interval:
+                    self._flush_file()
+                    self._last_flush = now
+            except Exception as exc:  # never let recording break the bus
+                self.write_errors += 1
+                if self.write_errors == 1:
+                    log.error("cannot record CAN traffic to %s: %s", self.path, exc)
+
+    __call__ = write
+
+    def _write_one(self, msg: can.Message, timestamp: float) -> None:
+        assert self._writer is not None
+        self._writer.on_message_received(can.Message(
+            timestamp=timestamp, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
+            is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, is_fd=msg.is_fd,
+            is_rx=msg.is_rx, dlc=msg.dlc, data=msg.data, channel=self.channel, check=False))
+        self.frames_written += 1
+
+    def write_all(self, messages: Iterable[can.Message]) -> None:
+        """Write messages in order (see :meth:`write`)."""
+        for msg in messages:
+            self.write(msg)
+
+    def _flush_file(self) -> None:
+        writer = self._writer.writer if isinstance(self._writer, SizedRotatingLogger) else self._writer
+        file = getattr(writer, "file", None)
+        if file is not None and not file.closed:
+            file.flush()
+
+    def flush(self) -> None:
+        """Flush buffered records to the file (BLF and MF4 write whole blocks, on close)."""
+        with self._lock:
+            if self._writer is not None:
+                try:
+                    self._flush_file()
+                except Exception as exc:
+                    self.write_errors += 1
+                    log.error("cannot flush %s: %s", self.path, exc)
+
+    def close(self) -> None:
+        """Write what waits for a time (at the wall clock's), flush and close (idempotent)."""
+        with self._lock:
+            writer = self._writer
+            if writer is not None and self._unstamped:
+                try:
+                    t = time.time()
+                    while self._unstamped:
+                        self._write_one(self._unstamped.popleft(), t)
+                except Exception as exc:
+                    self.write_errors += 1
+                    log.error("cannot record CAN traffic to %s: %s", self.path, exc)
+            self._writer = None
+        if writer is not None:
+            try:
+                writer.stop()
+            except Exception as exc:
+                log.error("cannot close %s: %s", self.path, exc)
+
+    def __enter__(self) -> LogRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
