@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..lptn import Model, Network, discretise
-from ..lptn.vocabulary import temperature_name
+from ..lptn.losses import LossLaws
 
 
 @dataclass
@@ -62,11 +62,7 @@ def run_ekf(
     Pc = np.diag(np.concatenate([np.full(n, p_t0_k**2), sig**2]))
     N = len(next(iter(inputs.values())))
     every = max(1, int(round(update_s / dt)))
-    laws = [(loss.power.compile(), {j: loss.power.diff(model.parameter_names[i]).compile() for j, i in enumerate(idx)
-                                    if model.parameter_names[i] in loss.power.free()},
-             {i: loss.power.diff(temperature_name(x)).compile() for i, x in enumerate(model.nodes)
-              if temperature_name(x) in loss.power.free()}) for loss in model.losses]
-    tnames = [temperature_name(x) for x in model.nodes]
+    laws = LossLaws(model)
     cache: dict[tuple[float, ...], tuple[np.ndarray, ...]] = {}
     T = np.asarray(T0, dtype=float).copy()
     out = np.empty((N, n))
@@ -99,19 +95,12 @@ def run_ekf(
             cache[key] = (d.Phi[0], d.Gam[0], d.dPhi[0], d.dGam[0])
         Phi, Gam, dPhi, dGam = cache[key]
         env = net.env(theta, {c: np.asarray(v) for c, v in u.items()})
-        env.update(zip(tnames, map(float, T)))
-        P = np.array([float(f(env)) for f, _, _ in laws])
-        dPdT = np.zeros((len(laws), n))
-        dPdth = np.zeros((len(laws), p))
-        for li, (_, dth, dT) in enumerate(laws):
-            for j, g in dth.items():
-                dPdth[li, j] = float(g(env))
-            for i, g in dT.items():
-                dPdT[li, i] = float(g(env))
+        P = laws.power(env, T)
         w = np.concatenate([[u[c] for c in model.boundaries.values()], P])
         GP = Gam[:, nb:]
-        M = Phi + GP @ dPdT
-        X = (dPhi @ T + dGam @ w).T + GP @ dPdth  # (n, p) per unit θ
+        M = Phi.copy()
+        M[:, laws.nodes] += GP @ laws.dT(env, T)
+        X = (dPhi @ T + dGam @ w).T + GP @ laws.dtheta(env, T, idx)  # (n, p) per unit θ
         F = np.eye(n + p)
         F[:n, :n] = M
         F[:n, n:] = X * theta[idx][None, :]

@@ -30,7 +30,6 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..lptn import Model, Stepper, discretise
-from ..lptn.vocabulary import temperature_name
 
 
 class Observer:
@@ -83,11 +82,9 @@ class Observer:
         self.r2 = r_k**2
         self.rows = {s: model.node_index(node) for s, node in model.sensors.items()}
         self._nb = len(model.boundaries)
-        self._dT = [{i: loss.power.diff(temperature_name(x)).compile() for i, x in enumerate(model.nodes)
-                     if temperature_name(x) in loss.power.free()} for loss in model.losses]
-        names = model.parameter_names
-        self._dth = [{j: loss.power.diff(names[i]).compile() for j, i in enumerate(self.cidx)
-                      if names[i] in loss.power.free()} for loss in model.losses]
+        laws = self.stepper.loss_laws
+        # the loss feedback enters the covariance only where a law reads a temperature or a considered parameter
+        self._loss_feedback = laws.temperature_dependent or any(int(i) in law.d for law in laws.laws for i in self.cidx)
         self._dcache: OrderedDict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
 
     @property
@@ -136,12 +133,10 @@ class Observer:
         p = len(self.cidx)
         M = Phi.copy()
         GP = Gam[:, self._nb:]
-        if any(self._dT) or any(self._dth):
-            env = st.net.env(st.theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
-            env.update(zip((temperature_name(x) for x in self.model.nodes), map(float, self.T)))
-            for li, d in enumerate(self._dT):
-                for i, g in d.items():
-                    M[:, i] += GP[:, li] * float(g(env))
+        laws = st.loss_laws
+        env = st.env(inputs) if self._loss_feedback else {}
+        if laws.temperature_dependent:
+            M[:, laws.nodes] += GP @ laws.dT(env, self.T)
         n, g = self._n, self.n_gain
         F = np.eye(n + g)
         F[:n, :n] = M
@@ -150,9 +145,8 @@ class Observer:
             dPhi, dGam = self._derivatives(inputs)
             w = np.concatenate([st.boundary(inputs), P_loss])
             X = (dPhi @ self.T + dGam @ w).T  # (n, p) per unit θ
-            for li, d in enumerate(self._dth):
-                for j, gl in d.items():
-                    X[:, j] += GP[:, li] * float(gl(env))
+            if self._loss_feedback:
+                X += GP @ laws.dtheta(env, self.T, self.cidx)
             X = X * st.theta[self.cidx][None, :]  # per unit log θ
             F[:n, n:] = X[:, :g]
             S += X[:, g:]

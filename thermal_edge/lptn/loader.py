@@ -16,7 +16,7 @@ from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
 from .expr import Expr, ExprError, Num, evaluate_const, parse
 from .model import DEFAULT_SPREAD, Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
 from .tables import Lookup, load_table
-from .vocabulary import TEMP_PREFIX, NodeRole, Role, parse_role
+from .vocabulary import NodeRole, Role, parse_role, temperature_name
 MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
 
 
@@ -224,7 +224,7 @@ def build_model(
     conns = _list(ctx, raw.get("conductances"), "conductances")
     builder.connect(conns, pnames | op_names, boundaries)
 
-    temp_names = {TEMP_PREFIX + n for n in builder.nodes}
+    temp_names = {temperature_name(n) for n in builder.nodes}
     losses: list[Loss] = []
     for i, spec in enumerate(_list(ctx, raw.get("losses"), "losses")):
         key = f"losses[{i}]"

@@ -20,7 +20,6 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
 from .expr import Compiled, Expr
-from .vocabulary import temperature_name
 from .model import Model
 
 
@@ -130,7 +129,6 @@ class Network:
         #: raw inputs that enter conductances: an operating point is a value of these
         self.matrix_inputs: tuple[str, ...] = tuple(sorted(used & set(model.inputs)))
         self.derived = [(k, v.free(), v.compile()) for k, v in model.derived.items()]
-        self.temp_names = [temperature_name(x) for x in model.nodes]
 
     # -- environments ---------------------------------------------------------------------
     def env(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> dict[str, object]:

@@ -20,9 +20,9 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .discretise import Discrete, discretise
-from .expr import is_affine
+from .losses import LossLaws
 from .model import Model
-from .network import Network, _Law
+from .network import Network
 from .sensitivity import Sensitivities, held_steps
 
 
@@ -102,19 +102,11 @@ class Simulator:
         self.net = Network(model)
         self.method = method or model.discretisation.method
         self.max_substep = max_substep if max_substep is not None else model.discretisation.max_substep_s
-        params = model.parameter_names
         self.n = len(model.nodes)
-        # loss laws: which node temperatures they use; affine ones are split into constant + slope
-        tnames = self.net.temp_names
-        used = sorted({tnames.index(t) for loss in model.losses for t in loss.power.free() if t in tnames})
-        self.tv = np.array(used, dtype=int)  # nodes whose temperature enters losses
-        self.tvn = [tnames[i] for i in used]
-        self.loss_laws = [_Law(loss.power, params) for loss in model.losses]
-        self.affine = [is_affine(loss.power, frozenset(self.tvn)) for loss in model.losses]
-        # ∂P/∂T of each law at the temperatures it reads (index into tv, compiled derivative)
-        self.loss_dT_c = [[(i, loss.power.diff(t).compile()) for i, t in enumerate(self.tvn) if t in loss.power.free()]
-                          for loss in model.losses]
-        self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
+        # loss laws: the affine ones are split into constant + slope, the others evaluated per step
+        self.losses = LossLaws(model)
+        self.tv = self.losses.nodes  # nodes whose temperature enters losses
+        self.nonaffine = self.losses.nonaffine
 
     # ---------------------------------------------------------------------------------------
     def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int]) -> _Prepared:
@@ -142,30 +134,7 @@ class Simulator:
 
         With ``T`` None the temperatures are zero: for affine laws that gives the constant part.
         """
-        e = dict(env)
-        for i, t in zip(self.tv, self.tvn):
-            e[t] = 0.0 if T is None else T[:, i]
-        nl, nt = len(self.loss_laws), len(self.tv)
-        P = np.empty((N, nl))
-        dPdT = np.zeros((N, nl, nt)) if slopes else None
-        for j, law in enumerate(self.loss_laws):
-            P[:, j] = law.f(e)
-            if dPdT is not None:
-                for i, f in self.loss_dT_c[j]:
-                    dPdT[:, j, i] = f(e)
-        return P, dPdT
-
-    def _loss_theta(self, env: dict[str, object], T: np.ndarray, wrt: Sequence[int]) -> np.ndarray:
-        """∂P/∂θ (N, nl, p) along the simulated trajectory."""
-        e = dict(env)
-        for i, t in zip(self.tv, self.tvn):
-            e[t] = T[:, i]
-        out = np.zeros((T.shape[0], len(self.loss_laws), len(wrt)))
-        for j, law in enumerate(self.loss_laws):
-            for q, pi in enumerate(wrt):
-                if pi in law.d:
-                    out[:, j, q] = law.d[pi](e)
-        return out
+        return self.losses.power(env, T, N), (self.losses.dT(env, T, N) if slopes else None)
 
     def _rows(self, nodes: Sequence[str]) -> np.ndarray:
         return np.array([self.model.node_index(x) for x in nodes], dtype=int)
@@ -218,7 +187,7 @@ class Simulator:
         T = np.empty((N, n))
         T[0] = T0
         mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT0)
-        step_losses = self._step_losses(prep, N) if na else None
+        step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
         opl = ops.tolist()
         if step_losses is None:
@@ -257,31 +226,8 @@ class Simulator:
         mi = (np.cumsum(change) - 1).tolist()
         o = ops[starts]
         mats = Phi[o].copy()  # (distinct, n, n)
-        mats[:, :, self.tv] += GP[o] @ slopes[starts].reshape(len(starts), len(self.loss_laws), len(self.tv))
+        mats[:, :, self.tv] += GP[o] @ slopes[starts].reshape(len(starts), len(self.losses), len(self.tv))
         return list(mats), mi
-
-    def _step_losses(self, prep: _Prepared, N: int):  # type: ignore[no-untyped-def]
-        """Per-step evaluator of the loss laws that are not affine in temperature."""
-        env = prep.env
-        needed: set[str] = set()
-        for j in self.nonaffine:
-            needed |= self.loss_laws[j].expr.free()
-        # only the names these laws read go into the per-step environment
-        scal = {k: v for k, v in env.items() if k in needed and np.ndim(v) == 0}
-        series = [(k, np.broadcast_to(np.asarray(v, dtype=float), (N,))) for k, v in env.items()
-                  if k in needed and np.ndim(v) > 0]
-        laws = [self.loss_laws[j].f for j in self.nonaffine]
-        temps = [(i, t) for i, t in zip(self.tv, self.tvn) if t in needed]
-
-        def at(k: int, x: np.ndarray) -> np.ndarray:
-            e = dict(scal)
-            for key, arr in series:
-                e[key] = arr[k]
-            for i, t in temps:
-                e[t] = x[i]
-            return np.array([float(g(e)) for g in laws])
-
-        return at
 
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int],
                        rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]]) -> np.ndarray:
@@ -297,6 +243,7 @@ class Simulator:
 
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
-                             loss_theta=lambda k, temps: self._loss_theta(at(k), temps, widx), loss_nodes=self.tv)
+                             loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
+                             loss_nodes=self.tv)
         # the closed form over held inputs needs losses affine in temperature
         return sens.run(held_steps(env, N - 1), self.closed_form and not self.nonaffine, rows)

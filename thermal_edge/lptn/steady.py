@@ -12,7 +12,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .vocabulary import temperature_name
+from .losses import LossLaws
 from .model import Model
 from .network import Network
 
@@ -46,13 +46,11 @@ def steady_state(
     net = Network(model)
     A, W, U = _point(net, theta, inputs)
     env = net.env(theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
-    laws = [loss.power.compile() for loss in model.losses]
+    laws = LossLaws(model)
     nb = len(U)
     T = np.full(len(model.nodes), float(np.mean(U)) if nb else 20.0)
     for _ in range(max_iter):
-        for i, node in enumerate(model.nodes):
-            env[temperature_name(node)] = T[i]
-        P = np.array([float(g(env)) for g in laws])
+        P = laws.power(env, T)
         T_new = np.linalg.solve(A, -W @ np.concatenate([U, P]))
         if np.max(np.abs(T_new - T)) < tol:
             return T_new, P
@@ -95,10 +93,9 @@ def initial_state(
     T[u] = np.linalg.solve(A[np.ix_(u, u)], rhs)
     if rest_inputs is not None and model.losses:
         env = net.env(theta, {c: np.array(float(v)) for c, v in rest_inputs.items()})
-        laws = [loss.power.compile() for loss in model.losses]
+        laws = LossLaws(model)
         for _ in range(2):
-            env.update((temperature_name(x), T[i]) for i, x in enumerate(model.nodes))
-            P = np.array([float(np.asarray(f(env))) for f in laws])
+            P = laws.power(env, T)
             if not np.all(np.isfinite(P)):
                 break
             T[u] = np.linalg.solve(A[np.ix_(u, u)], rhs - W[u, len(U):] @ P)

@@ -12,7 +12,7 @@ from typing import Mapping
 import numpy as np
 
 from .discretise import discretise
-from .vocabulary import temperature_name
+from .losses import LossLaws
 from .model import Model
 from .network import Network
 
@@ -41,8 +41,7 @@ class Stepper:
         self.cache_size = cache_size
         self._cache: OrderedDict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self.theta = model.nominal() if theta is None else np.asarray(theta, dtype=float)
-        self._laws = [loss.power.compile() for loss in model.losses]
-        self._tnames = [temperature_name(x) for x in model.nodes]
+        self.loss_laws = LossLaws(model)
         self.n_bound = len(model.boundaries)
 
     def set_parameters(self, theta: np.ndarray) -> None:
@@ -69,11 +68,13 @@ class Stepper:
         """Boundary temperatures (°C) from the inputs."""
         return np.array([float(inputs[c]) for c in self.model.boundaries.values()])
 
+    def env(self, inputs: Mapping[str, float]) -> dict[str, object]:
+        """The law environment (parameters, inputs, derived inputs) of one tick's inputs."""
+        return self.net.env(self.theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
+
     def losses(self, T: np.ndarray, inputs: Mapping[str, float]) -> np.ndarray:
         """Loss of every loss source (W) at node temperatures ``T`` and these inputs."""
-        env = self.net.env(self.theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
-        env.update(zip(self._tnames, (float(x) for x in T)))
-        return np.array([float(g(env)) for g in self._laws])
+        return self.loss_laws.power(self.env(inputs), np.asarray(T, dtype=float))
 
     def step(self, T: np.ndarray, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """Temperatures after one step (°C) and the losses used over it (W)."""
