@@ -1,9 +1,12 @@
 """The service configuration (``config/edge.yaml``): YAML -> validated, typed dataclasses.
 
-:func:`load_config` checks the file's structure, types and ranges; :meth:`EdgeConfig.check_model`
-and :meth:`EdgeConfig.check_dbc` then check what needs the machine model and the DBC (model
-inputs and sensors mapped, signal names present). Every error is a :class:`ConfigError` whose
-message starts with the file name and the key, e.g.
+The dataclasses below are the one home of every setting: its type, its default and what the file
+may give for it (:func:`thermal_edge.settings.setting`: range, choices, a check). :func:`load_config`
+reads the file generically from them -- types, defaults, nested sections, unknown keys refused with
+the closest known one -- and ``deploy/docs`` renders the defaults from the same declarations.
+:meth:`EdgeConfig.check_model` and :meth:`EdgeConfig.check_dbc` then check what needs the machine
+model and the DBC (model inputs and sensors mapped, signal names present). Every error is a
+:class:`ConfigError` whose message starts with the file name and the key, e.g.
 ``edge.yaml: derating.safe_current_a: must be positive, got -3``.
 
 Relative paths in the file (model, state directory, recording) are relative to the directory of
@@ -11,12 +14,17 @@ the configuration file.
 """
 from __future__ import annotations
 
+import dataclasses
 import difflib
+import functools
 import ipaddress
 import math
 import os
 import tempfile
-from dataclasses import dataclass, field, fields
+import types
+import typing
+from dataclasses import MISSING, dataclass, field, fields
+from enum import Enum
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -24,7 +32,7 @@ import yaml
 
 from .bus.busconfig import BusConfig, BusConfigError
 from .bus.frames import DerateReason
-from .estimation.adapter import METHODS, AdapterConfig
+from .settings import AdapterConfig, setting, spec_of
 
 __all__ = [
     "AdaptationConfig",
@@ -42,9 +50,11 @@ __all__ = [
     "ObserverConfig",
     "RecordingConfig",
     "SensorSignal",
+    "SignalsConfig",
     "StateConfig",
     "TransmitConfig",
     "config_from_mapping",
+    "file_key",
     "load_config",
 ]
 
@@ -52,7 +62,6 @@ REDUCTIONS = ("mean", "rms", "dq_rms", "latest")
 CLOCK_MODES = ("wall", "frame")
 WORKERS = ("thread", "sync")
 REASON_NAMES = {"winding": DerateReason.WINDING, "magnet": DerateReason.MAGNET}
-WEIGHTINGS = ("paper", "forgetting", "uniform")
 #: The inverter treats TE_Limits as absent after this long without a valid frame, s (can-matrix.md).
 INVERTER_LIMITS_TIMEOUT_S = 0.3
 #: Longest TE_Limits period accepted, s: half the timeout, so that one lost or late frame still
@@ -64,6 +73,83 @@ MAX_DECISIONS = 5000
 
 class ConfigError(ValueError):
     """An invalid service configuration; the message names the file and the key."""
+
+
+def default_reason(name: str) -> DerateReason:
+    """The derate reason of a limited node the file does not give one for: by its name."""
+    return DerateReason.MAGNET if "magnet" in name.lower() else DerateReason.WINDING
+
+
+# -- readers and checks of fields that are not a plain value (used by the declarations below) ---
+def _str_list(sec: "_Section", k: str) -> tuple[str, ...] | None:
+    v = sec.value(k)
+    if v is None:
+        return None
+    if isinstance(v, str):
+        v = [v]
+    if not isinstance(v, list) or not all(isinstance(x, str) and x for x in v):
+        raise sec.fail(k, f"expected a list of names, got {v!r}")
+    return tuple(v)
+
+
+def _input_signals(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> tuple[str, ...]:
+    """``signals: [d, q]`` with ``reduce: dq_rms``, else one ``signal: NAME``."""
+    reduce = values["reduce"]
+    if reduce == "dq_rms":
+        sigs = _str_list(sec, "signals")
+        if sigs is None or len(sigs) != 2:
+            raise sec.fail("signals", "dq_rms needs the two signals [d axis, q axis] (peak amplitudes)")
+        if sec.has("signal"):
+            raise sec.fail("signal", "use signals: [d, q] with reduce: dq_rms")
+        return sigs
+    sig = sec.string("signal", sec.value("signal"), required=True)
+    if sec.has("signals"):
+        raise sec.fail("signals", f"reduce: {reduce} takes one signal (signal: NAME)")
+    return (sig,)
+
+
+def _reason(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> DerateReason:
+    v = sec.string(k, sec.value(k), choices=tuple(REASON_NAMES))
+    return REASON_NAMES[v] if v is not None else default_reason(values["name"])
+
+
+def _range_c(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> tuple[float, float]:
+    rng = sec.value(k)
+    if rng is None:
+        return default
+    if (not isinstance(rng, list) or len(rng) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in rng)
+            or not rng[0] < rng[1]):
+        raise sec.fail(k, f"expected [low, high] in degC with low < high, got {rng!r}")
+    return float(rng[0]), float(rng[1])
+
+
+def _bus(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> BusConfig:
+    """BusConfig checks its own keys (the interface's keyword arguments, or ``options:``)."""
+    raw = sec.value(k)
+    raw = {} if raw is None else raw
+    if not isinstance(raw, Mapping):
+        raise sec.fail(k, f"expected a mapping, got {type(raw).__name__}")
+    try:
+        return BusConfig.from_mapping({"node": "TE", **raw})
+    except (BusConfigError, TypeError, ValueError) as exc:  # BusConfigError names the key ("bus.chanel: ...")
+        msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ConfigError(f"{sec.fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
+
+
+def _within_inverter_timeout(v: float) -> str | None:
+    if v > MAX_LIMITS_PERIOD_S:
+        return (f"must be at most {MAX_LIMITS_PERIOD_S:g} s (the inverter drops TE_Limits after "
+                f"{INVERTER_LIMITS_TIMEOUT_S * 1000:.0f} ms; one lost frame must not trip it), got {v:g}")
+    return None
+
+
+def _ip_address(v: str) -> str | None:
+    try:  # an address to bind, not a name: what it binds to must be plain in the file
+        ipaddress.ip_address(v)
+    except ValueError:
+        return (f"not an IP address: {v!r} (127.0.0.1 or ::1 for this host only; "
+                "0.0.0.0 or an interface's address to be scraped from the network)")
+    return None
 
 
 # ------------------------------------------------------------------------------------------
@@ -84,28 +170,28 @@ class CodecConfig:
     # the service's own choice, below the codec's 1000: an inverter frame missing for longer than 8
     # cycles is a sender that paused or changed its rate (its input goes stale), not a run of lost frames
     # that time stamps could count (they over-counted a 10 Hz feed of 10 ms frames by a wrap per frame)
-    resync_after_cycles: float = 8.0
+    resync_after_cycles: float = setting(8.0, positive=True)
 
 
 @dataclass(frozen=True)
 class ClockConfig:
     """``clock:`` -- what drives the 1 Hz tick: ``wall`` (hardware) or ``frame`` timestamps."""
 
-    mode: str = "wall"
-    tick_s: float = 1.0
-    max_catchup_s: float = 300.0
+    mode: str = setting("wall", choices=CLOCK_MODES)
+    tick_s: float = setting(1.0, positive=True)
+    max_catchup_s: float = setting(300.0, positive=True)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class InputSignal:
     """How one model input is formed from CAN signals over a tick."""
 
     name: str
     frame: str
-    reduce: str
-    signals: tuple[str, ...]
+    reduce: str = setting("mean", choices=REDUCTIONS)
+    signals: tuple[str, ...] = setting(aliases=("signal",), parse=_input_signals)
     status: str | None = None
-    resolution: float | None = None
+    resolution: float | None = setting(None, positive=True)
 
 
 @dataclass(frozen=True)
@@ -121,45 +207,54 @@ class SensorSignal:
 
 @dataclass(frozen=True)
 class LimitConfig:
-    """Derating band of one limited model node."""
+    """Derating band of one limited model node (the reason by default from its name)."""
 
     name: str
     warn_c: float | None = None
     max_c: float | None = None
-    reason: DerateReason = DerateReason.WINDING
+    reason: DerateReason = setting(DerateReason.WINDING, parse=_reason)
+
+
+@dataclass(frozen=True)
+class SignalsConfig:
+    """``signals:`` -- CAN signals to model inputs and sensors, and the plausible reading range."""
+
+    inputs: dict[str, InputSignal]
+    sensors: dict[str, SensorSignal]
+    valid_range_c: tuple[float, float] = setting((-40.0, 250.0), parse=_range_c)
 
 
 @dataclass(frozen=True)
 class FaultConfig:
     """``derating.faults:`` -- when the model counts as diverged."""
 
-    innovation_k: float = 15.0
-    innovation_ticks: int = 5
-    prediction_error_k: float = 40.0
-    hold_s: float = 30.0
+    innovation_k: float = setting(15.0, positive=True)
+    innovation_ticks: int = setting(5, min=1)
+    prediction_error_k: float = setting(40.0, positive=True)
+    hold_s: float = setting(30.0, min=0.0)
 
 
 @dataclass(frozen=True)
 class DeratingConfig:
     """``derating:`` -- limits, bands, safe limit and how limits move."""
 
-    max_current_a: float
-    max_torque_nm: float
-    safe_current_a: float
-    safe_torque_nm: float | None = None
-    kt_nm_per_arms: float | None = None
-    band_z: float = 1.96
+    max_current_a: float = setting(positive=True)
+    max_torque_nm: float = setting(positive=True)
+    safe_current_a: float = setting(positive=True)
+    safe_torque_nm: float | None = setting(None, positive=True)
+    kt_nm_per_arms: float | None = setting(None, positive=True)
+    band_z: float = setting(1.96, min=0.0)
     limits: dict[str, LimitConfig] = field(default_factory=dict)
-    rise_rate_a_per_s: float = 0.5
-    hysteresis_a: float = 0.5
+    rise_rate_a_per_s: float = setting(0.5, positive=True)
+    hysteresis_a: float = setting(0.5, min=0.0)
     faults: FaultConfig = field(default_factory=FaultConfig)
     #: how long the present limit must keep every limited node's upper band below its max
     #: (thermal_edge.service.derating explains the choice)
-    reaction_time_s: float = 10.0
+    reaction_time_s: float = setting(10.0, positive=True, max=600.0)
     #: kept below each max by the reaction-time current, K: the model error the band does not cover
-    margin_k: float = 1.5
+    margin_k: float = setting(1.5, min=0.0, max=50.0)
     #: the limit falls linearly over this many K below (max - margin) on the upper band, K
-    approach_k: float = 3.0
+    approach_k: float = setting(3.0, positive=True, max=100.0)
 
 
 @dataclass(frozen=True)
@@ -167,8 +262,8 @@ class LookaheadConfig:
     """``lookahead:`` -- horizon of the look-ahead current and the time to limit."""
 
     enabled: bool = True
-    horizon_s: float = 1800.0
-    steps: int = 60
+    horizon_s: float = setting(1800.0, positive=True, max=65535)
+    steps: int = setting(60, min=1, max=10000)
 
 
 @dataclass(frozen=True)
@@ -176,20 +271,20 @@ class AdaptationConfig:
     """``adaptation:`` -- :class:`AdapterConfig` fields plus how the service runs the adapter."""
 
     enabled: bool = True
-    worker: str = "thread"
-    apply_delay_ticks: int = 5
+    worker: str = setting("thread", choices=WORKERS)
+    apply_delay_ticks: int = setting(5, min=1)
     bands: bool = True
-    adapter: AdapterConfig = field(default_factory=AdapterConfig)
+    adapter: AdapterConfig = setting(default_factory=AdapterConfig, inline=True)
 
 
 @dataclass(frozen=True)
 class ObserverConfig:
     """``observer:`` -- Kalman filter noise levels (K)."""
 
-    q_k: float = 0.02
-    r_k: float = 0.15
-    p0_k: float = 2.0
-    restart_p0_k: float = 3.0
+    q_k: float = setting(0.02, positive=True)
+    r_k: float = setting(0.15, positive=True)
+    p0_k: float = setting(2.0, positive=True)
+    restart_p0_k: float = setting(3.0, positive=True)
 
 
 @dataclass(frozen=True)
@@ -197,18 +292,18 @@ class MetricsConfig:
     """``metrics:`` -- the Prometheus endpoint (read only; nothing listens for commands)."""
 
     enabled: bool = True
-    address: str = "127.0.0.1"
-    port: int = 9108
+    address: str = setting("127.0.0.1", check=_ip_address)
+    port: int = setting(9108, min=0, max=65535)
 
 
 @dataclass(frozen=True)
 class StateConfig:
     """``state:`` -- where parameters, decisions and the thermal state persist."""
 
-    dir: Path
-    save_interval_s: float = 60.0
-    max_decisions: int = 500
-    max_downtime_s: float = 7 * 86400.0
+    dir: Path = setting(env="STATE_DIRECTORY")  # systemd's StateDirectory= sets it
+    save_interval_s: float = setting(60.0, positive=True)
+    max_decisions: int = setting(500, min=0, max=MAX_DECISIONS)
+    max_downtime_s: float = setting(7 * 86400.0, positive=True)
 
 
 @dataclass(frozen=True)
@@ -225,32 +320,45 @@ class TransmitConfig:
 
     hot_spot_limit: str = "hot_spot"
     magnet_limit: str = "magnet"
-    limits_period_s: float = 0.1
-    status_period_s: float = 1.0
-    bus_silence_s: float = 1.0
+    limits_period_s: float = setting(0.1, positive=True, check=_within_inverter_timeout)
+    status_period_s: float = setting(1.0, positive=True)
+    bus_silence_s: float = setting(1.0, positive=True)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class EdgeConfig:
-    """The validated service configuration."""
+    """The validated service configuration: one field per section of the file (and its path)."""
 
-    path: Path | None
-    bus: BusConfig
-    codec: CodecConfig
+    path: Path | None = None
+    bus: BusConfig = setting(default_factory=BusConfig, parse=_bus)
+    codec: CodecConfig = field(default_factory=CodecConfig)
     model: ModelConfig
-    clock: ClockConfig
-    inputs: dict[str, InputSignal]
-    sensors: dict[str, SensorSignal]
-    valid_range_c: tuple[float, float]
-    timeouts: dict[str, float]
+    clock: ClockConfig = field(default_factory=ClockConfig)
+    signals: SignalsConfig
+    timeouts: dict[str, float] = setting(default_factory=dict, positive=True)
     derating: DeratingConfig
-    lookahead: LookaheadConfig
-    adaptation: AdaptationConfig
-    observer: ObserverConfig
-    metrics: MetricsConfig
+    lookahead: LookaheadConfig = field(default_factory=LookaheadConfig)
+    adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
+    observer: ObserverConfig = field(default_factory=ObserverConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
     state: StateConfig
-    recording: RecordingConfig
-    transmit: TransmitConfig
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    transmit: TransmitConfig = field(default_factory=TransmitConfig)
+
+    @property
+    def inputs(self) -> dict[str, InputSignal]:
+        """``signals.inputs``: model input name -> how it is formed from CAN signals."""
+        return self.signals.inputs
+
+    @property
+    def sensors(self) -> dict[str, SensorSignal]:
+        """``signals.sensors``: model sensor name -> its CAN signal."""
+        return self.signals.sensors
+
+    @property
+    def valid_range_c(self) -> tuple[float, float]:
+        """``signals.valid_range_c``: readings outside are implausible, degC."""
+        return self.signals.valid_range_c
 
     @property
     def fname(self) -> str:
@@ -396,23 +504,160 @@ class EdgeConfig:
         over = self.derating.limits.get(limit.name)
         if over is not None:
             return over.reason
-        return DerateReason.MAGNET if "magnet" in limit.name.lower() else DerateReason.WINDING
-
+        return default_reason(limit.name)
 
 
 # ------------------------------------------------------------------------------------------
-# parsing helpers
-class _Section:
-    """Reads one mapping of the file; every error names the file and the dotted key."""
+# the generic reader
+#: the keys of the file that are not read from it (the file's own path; an entry's name is its key)
+_NOT_IN_FILE = {EdgeConfig: {"path"}, InputSignal: {"name"}, SensorSignal: {"name"}, LimitConfig: {"name"}}
 
-    def __init__(self, fname: str, prefix: str, raw: Any) -> None:
-        self.fname, self.prefix = fname, prefix
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _optional(tp: Any) -> tuple[Any, bool]:
+    """``X | None`` -> (X, True); anything else -> (tp, False)."""
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
+        rest = tuple(a for a in args if a is not type(None))
+        return (rest[0] if len(rest) == 1 else typing.Union[rest]), True
+    return tp, False
+
+
+def file_key(cls: type, key: str) -> tuple[dataclasses.Field[Any], Any] | None:
+    """The field (and its type) that the file's ``key`` gives in a section read as ``cls``; an inline
+    section's keys included. None for a key the section does not have."""
+    for f in fields(cls):
+        if f.name in _NOT_IN_FILE.get(cls, ()):
+            continue
+        tp = _hints(cls)[f.name]
+        if spec_of(f).inline:
+            found = file_key(tp, key)
+            if found is not None:
+                return found
+        elif key == f.name or key in spec_of(f).aliases:
+            return f, tp
+    return None
+
+
+def _file_keys(cls: type) -> set[str]:
+    out: set[str] = set()
+    for f in fields(cls):
+        if f.name in _NOT_IN_FILE.get(cls, ()):
+            continue
+        spec = spec_of(f)
+        out |= _file_keys(_hints(cls)[f.name]) if spec.inline else {f.name, *spec.aliases}
+    return out
+
+
+def field_default(f: dataclasses.Field[Any]) -> Any:
+    """The value a field takes when the file leaves its key out (:data:`dataclasses.MISSING`: required)."""
+    if f.default is not MISSING:
+        return f.default
+    if f.default_factory is not MISSING:
+        return f.default_factory()
+    return MISSING
+
+
+def _read(cls: type, sec: "_Section", given: Mapping[str, Any] | None = None, *, whole: bool = True) -> Any:
+    """A ``cls`` from the section: every field by its declared type, default and :class:`Spec`.
+
+    ``whole``: the section is ``cls`` alone (its unknown keys refused, before any value is read,
+    so that a misspelt required key is named as a typo rather than as missing).
+    """
+    if whole:
+        sec.refuse_unknown(_file_keys(cls))
+    values: dict[str, Any] = dict(given or {})
+    for f in fields(cls):
+        if f.name in values:
+            continue
+        spec, tp = spec_of(f), _hints(cls)[f.name]
+        if spec.parse is not None:
+            values[f.name] = spec.parse(sec, f.name, values, field_default(f))
+        elif spec.inline:
+            values[f.name] = _read(tp, sec, whole=False)
+        else:
+            values[f.name] = _value(sec, f, tp)
+    out = cls(**values)
+    check = _CHECKS.get(cls)
+    if check is not None:
+        check(out, sec)
+    return out
+
+
+def _value(sec: "_Section", f: dataclasses.Field[Any], tp: Any) -> Any:
+    k, spec = f.name, spec_of(f)
+    tp, _ = _optional(tp)
+    if dataclasses.is_dataclass(tp):
+        return _read(tp, sec.sub(k))
+    if typing.get_origin(tp) is dict:
+        entry = typing.get_args(tp)[1]
+        sub = sec.sub(k)
+        if dataclasses.is_dataclass(entry):  # named entries: the key is the name
+            return {name: _read(entry, sub.sub(name), {"name": name}) for name in list(sub.raw)}
+        return {name: sub.number(name, sub.value(name), spec, required=True) for name in list(sub.raw)}
+    if typing.get_origin(tp) is tuple:
+        return _str_list(sec, k)
+    v = sec.value(k)
+    if v is None:
+        v = os.environ.get(spec.env, "").split(":")[0] or None if spec.env else None
+        if v is None:
+            d = field_default(f)
+            if d is MISSING:
+                raise sec.fail(k, "is required")
+            return d
+    if tp is bool:
+        out: Any = sec.boolean(k, v)
+    elif tp is int:
+        out = sec.integer(k, v, spec)
+    elif tp is float:
+        out = sec.number(k, v, spec)
+    elif tp is Path:
+        out = sec.path(k, v)
+    elif tp is str:
+        out = sec.string(k, v, choices=spec.choices)
+    else:  # pragma: no cover - a declaration this reader does not know
+        raise TypeError(f"{k}: no reader for {tp!r}")
+    problem = spec.check(out) if spec.check is not None else None
+    if problem:
+        raise sec.fail(k, problem)
+    return out
+
+
+# -- rules between fields (not defaults: those are in the declarations) ------------------------
+def _check_derating(d: DeratingConfig, sec: "_Section") -> None:
+    if d.safe_current_a > d.max_current_a:
+        raise sec.fail("safe_current_a", f"must not exceed max_current_a ({d.max_current_a:g}), got {d.safe_current_a:g}")
+
+
+def _check_limit(lim: LimitConfig, sec: "_Section") -> None:
+    if lim.warn_c is not None and lim.max_c is not None and not lim.max_c > lim.warn_c:
+        raise sec.fail("max_c", f"must be above warn_c ({lim.warn_c:g}), got {lim.max_c:g}")
+
+
+def _check_signals(s: SignalsConfig, sec: "_Section") -> None:
+    if not s.inputs:
+        raise sec.fail("inputs", "map at least the model's inputs to CAN signals")
+    if not s.sensors:
+        raise sec.fail("sensors", "map at least one model sensor to a CAN signal")
+
+
+_CHECKS: dict[type, Any] = {DeratingConfig: _check_derating, LimitConfig: _check_limit, SignalsConfig: _check_signals}
+
+
+class _Section:
+    """One mapping of the file; every error names the file and the dotted key."""
+
+    def __init__(self, fname: str, prefix: str, raw: Any, base: Path) -> None:
+        self.fname, self.prefix, self.base = fname, prefix, base
         if raw is None:
             raw = {}
         if not isinstance(raw, Mapping):
             raise self.fail("", f"expected a mapping, got {type(raw).__name__}")
         self.raw: Mapping[str, Any] = raw
-        self.used: set[str] = set()
 
     def key(self, k: str) -> str:
         return f"{self.prefix}.{k}" if self.prefix and k else (self.prefix or k or "(top)")
@@ -423,57 +668,52 @@ class _Section:
     def has(self, k: str) -> bool:
         return k in self.raw and self.raw[k] is not None
 
-    def get(self, k: str, default: Any = None) -> Any:
-        self.used.add(k)
-        v = self.raw.get(k, default)
-        return default if v is None else v
+    def value(self, k: str) -> Any:
+        """The raw value of ``k`` (None when left out or null)."""
+        return self.raw.get(k)
 
-    def required(self, k: str) -> Any:
-        self.used.add(k)
-        if k not in self.raw or self.raw[k] is None:
-            raise self.fail(k, "is required")
-        return self.raw[k]
+    def sub(self, k: str) -> "_Section":
+        return _Section(self.fname, self.key(k), self.raw.get(k), self.base)
 
-    def number(self, k: str, default: float | None = None, *, positive: bool = False, min_: float | None = None,
-               max_: float | None = None, required: bool = False, allow_none: bool = False) -> Any:
-        v = self.required(k) if required else self.get(k, default)
-        if v is None:
-            if allow_none:
-                return None
+    def refuse_unknown(self, known: set[str]) -> None:
+        extra = sorted(set(self.raw) - known, key=str)
+        if extra:
+            raise self.fail(str(extra[0]), f"unknown key{_did_you_mean(str(extra[0]), known)}")
+
+    def number(self, k: str, v: Any, spec: Any, *, required: bool = False) -> float:
+        if v is None and required:
             raise self.fail(k, "is required")
         if isinstance(v, bool) or not isinstance(v, (int, float)):
             raise self.fail(k, f"expected a number, got {v!r}")
         v = float(v)
         if not math.isfinite(v):
             raise self.fail(k, f"must be finite, got {v}")
-        if positive and not v > 0:
+        if spec.positive and not v > 0:
             raise self.fail(k, f"must be positive, got {v:g}")
-        if min_ is not None and v < min_:
-            raise self.fail(k, f"must be at least {min_:g}, got {v:g}")
-        if max_ is not None and v > max_:
-            raise self.fail(k, f"must be at most {max_:g}, got {v:g}")
+        if spec.min is not None and v < spec.min:
+            raise self.fail(k, f"must be at least {spec.min:g}, got {v:g}")
+        if spec.max is not None and v > spec.max:
+            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}")
         return v
 
-    def integer(self, k: str, default: int, *, min_: int | None = None, max_: int | None = None) -> int:
-        v = self.get(k, default)
+    def integer(self, k: str, v: Any, spec: Any) -> int:
         if isinstance(v, bool) or not isinstance(v, int):
             raise self.fail(k, f"expected an integer, got {v!r}")
-        if min_ is not None and v < min_:
-            raise self.fail(k, f"must be at least {min_}, got {v}")
-        if max_ is not None and v > max_:
-            raise self.fail(k, f"must be at most {max_}, got {v}")
+        if spec.min is not None and v < spec.min:
+            raise self.fail(k, f"must be at least {spec.min}, got {v}")
+        if spec.max is not None and v > spec.max:
+            raise self.fail(k, f"must be at most {spec.max}, got {v}")
         return int(v)
 
-    def boolean(self, k: str, default: bool) -> bool:
-        v = self.get(k, default)
+    def boolean(self, k: str, v: Any) -> bool:
         if not isinstance(v, bool):
             raise self.fail(k, f"expected true or false, got {v!r}")
         return v
 
-    def string(self, k: str, default: str | None = None, *, choices: Iterable[str] | None = None,
-               required: bool = False) -> Any:
-        v = self.required(k) if required else self.get(k, default)
+    def string(self, k: str, v: Any, *, choices: Iterable[str] | None = None, required: bool = False) -> Any:
         if v is None:
+            if required:
+                raise self.fail(k, "is required")
             return None
         if not isinstance(v, str) or not v:
             raise self.fail(k, f"expected a non-empty string, got {v!r}")
@@ -481,100 +721,15 @@ class _Section:
             raise self.fail(k, f"must be one of {', '.join(choices)}, got {v!r}")
         return v
 
-    def path(self, k: str, base: Path, default: str | None = None, *, required: bool = False) -> Path | None:
-        v = self.string(k, default, required=required)
-        if v is None:
-            return None
-        p = Path(os.path.expandvars(os.path.expanduser(v)))
-        return p if p.is_absolute() else (base / p)
-
-    def sub(self, k: str) -> "_Section":
-        self.used.add(k)
-        return _Section(self.fname, self.key(k), self.raw.get(k))
-
-    def done(self, allow_extra: bool = False) -> None:
-        if allow_extra:
-            return
-        extra = sorted(set(self.raw) - self.used, key=str)
-        if extra:
-            raise self.fail(str(extra[0]), f"unknown key{_did_you_mean(str(extra[0]), self.used)}")
+    def path(self, k: str, v: Any) -> Path:
+        p = Path(os.path.expandvars(os.path.expanduser(self.string(k, v))))
+        return p if p.is_absolute() else (self.base / p)
 
 
 def _did_you_mean(name: str, known: Iterable[str]) -> str:
     """`` (did you mean 'x'?)`` for the closest of ``known``, else empty."""
     close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
     return f" (did you mean {close[0]!r}?)" if close else ""
-
-
-def _limits_period(sec: _Section) -> float:
-    v = sec.number("limits_period_s", 0.1, positive=True)
-    if v > MAX_LIMITS_PERIOD_S:
-        raise sec.fail("limits_period_s", f"must be at most {MAX_LIMITS_PERIOD_S:g} s (the inverter drops TE_Limits after "
-                                          f"{INVERTER_LIMITS_TIMEOUT_S * 1000:.0f} ms; one lost frame must not trip it), "
-                                          f"got {v:g}")
-    return v
-
-
-def _str_list(sec: _Section, k: str) -> tuple[str, ...] | None:
-    v = sec.get(k)
-    if v is None:
-        return None
-    if isinstance(v, str):
-        v = [v]
-    if not isinstance(v, list) or not all(isinstance(x, str) and x for x in v):
-        raise sec.fail(k, f"expected a list of names, got {v!r}")
-    return tuple(v)
-
-
-def _input_signal(sec: _Section, name: str) -> InputSignal:
-    s = sec.sub(name)
-    frame = s.string("frame", required=True)
-    reduce = s.string("reduce", "mean", choices=REDUCTIONS)
-    if reduce == "dq_rms":
-        sigs = _str_list(s, "signals")
-        if sigs is None or len(sigs) != 2:
-            raise s.fail("signals", "dq_rms needs the two signals [d axis, q axis] (peak amplitudes)")
-        if s.has("signal"):
-            raise s.fail("signal", "use signals: [d, q] with reduce: dq_rms")
-    else:
-        sigs = (s.string("signal", required=True),)
-        s.used.add("signals")
-        if s.has("signals"):
-            raise s.fail("signals", f"reduce: {reduce} takes one signal (signal: NAME)")
-    status = s.string("status")
-    resolution = s.number("resolution", None, positive=True, allow_none=True)
-    s.done()
-    return InputSignal(name, frame, reduce, tuple(sigs), status, resolution)
-
-
-def _sensor_signal(sec: _Section, name: str) -> SensorSignal:
-    s = sec.sub(name)
-    out = SensorSignal(name, s.string("frame", required=True), s.string("signal", required=True), s.string("status"),
-                       s.boolean("required", True))
-    s.done()
-    return out
-
-
-def _adapter_config(sec: _Section) -> AdapterConfig:
-    d = AdapterConfig()
-    kwargs: dict[str, Any] = {}
-    for f in fields(AdapterConfig):
-        k = f.name
-        if k in ("params", "sensors"):
-            kwargs[k] = _str_list(sec, k)
-        elif k == "method":
-            kwargs[k] = sec.string(k, d.method, choices=METHODS)
-        elif k == "weighting":
-            kwargs[k] = sec.string(k, d.weighting, choices=WEIGHTINGS)
-        elif k in ("decimate", "max_iter"):
-            kwargs[k] = sec.integer(k, getattr(d, k), min_=1)
-        elif k == "coverage":
-            kwargs[k] = sec.number(k, d.coverage, positive=True, max_=1.0)
-        elif k in ("period_s", "window_s", "tau_s", "validate_s"):
-            kwargs[k] = sec.number(k, getattr(d, k), positive=True)
-        else:  # thresholds, weights, tolerances (new numeric fields of AdapterConfig are read alike)
-            kwargs[k] = sec.number(k, getattr(d, k), min_=0.0)
-    return AdapterConfig(**kwargs)
 
 
 # ------------------------------------------------------------------------------------------
@@ -607,145 +762,9 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     p = Path(path) if path is not None else None
     fname = p.name if p is not None else "<config>"
     base = p.resolve().parent if p is not None else Path.cwd()
-    top = _Section(fname, "", raw)
-
-    # bus (python-can): BusConfig checks its keys (the interface's own keyword arguments, or options:)
-    bus_raw = top.get("bus", {})
-    if not isinstance(bus_raw, Mapping):
-        raise ConfigError(f"{fname}: bus: expected a mapping, got {type(bus_raw).__name__}")
-    try:
-        bus = BusConfig.from_mapping({"node": "TE", **bus_raw})
-    except (BusConfigError, TypeError, ValueError) as exc:  # BusConfigError names the key ("bus.chanel: ...")
-        msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise ConfigError(f"{fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
-
-    s = top.sub("codec")
-    codec = CodecConfig(s.path("dbc", base), s.number("resync_after_cycles", CodecConfig.resync_after_cycles, positive=True))
-    s.done()
-
-    s = top.sub("model")
-    mpath = s.path("path", base, required=True)
-    ps = s.sub("parameters")
-    params = {k: ps.number(k) for k in list(ps.raw)}
-    ps.done()
-    s.done()
-    model = ModelConfig(mpath, params)  # type: ignore[arg-type]
-
-    s = top.sub("clock")
-    clock = ClockConfig(s.string("mode", "wall", choices=CLOCK_MODES), s.number("tick_s", 1.0, positive=True),
-                        s.number("max_catchup_s", 300.0, positive=True))
-    s.done()
-
-    s = top.sub("signals")
-    si = s.sub("inputs")
-    inputs = {k: _input_signal(si, k) for k in list(si.raw)}
-    if not inputs:
-        raise si.fail("", "map at least the model's inputs to CAN signals")
-    ss = s.sub("sensors")
-    sensors = {k: _sensor_signal(ss, k) for k in list(ss.raw)}
-    if not sensors:
-        raise ss.fail("", "map at least one model sensor to a CAN signal")
-    rng = s.get("valid_range_c", [-40.0, 250.0])
-    if (not isinstance(rng, list) or len(rng) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in rng)
-            or not rng[0] < rng[1]):
-        raise s.fail("valid_range_c", f"expected [low, high] in degC with low < high, got {rng!r}")
-    s.done()
-
-    s = top.sub("timeouts")
-    timeouts = {k: s.number(k, positive=True) for k in list(s.raw)}
-    s.done()
-
-    s = top.sub("derating")
-    max_i = s.number("max_current_a", required=True, positive=True)
-    safe_i = s.number("safe_current_a", required=True, positive=True)
-    if safe_i > max_i:
-        raise s.fail("safe_current_a", f"must not exceed max_current_a ({max_i:g}), got {safe_i:g}")
-    ls = s.sub("limits")
-    limits: dict[str, LimitConfig] = {}
-    for name in list(ls.raw):
-        e = ls.sub(name)
-        reason = e.string("reason", "magnet" if "magnet" in name.lower() else "winding", choices=tuple(REASON_NAMES))
-        limits[name] = LimitConfig(name, e.number("warn_c", None, allow_none=True), e.number("max_c", None, allow_none=True),
-                                   REASON_NAMES[reason])
-        if limits[name].warn_c is not None and limits[name].max_c is not None and not limits[name].max_c > limits[name].warn_c:
-            raise e.fail("max_c", f"must be above warn_c ({limits[name].warn_c:g}), got {limits[name].max_c:g}")
-        e.done()
-    ls.done()
-    fs = s.sub("faults")
-    faults = FaultConfig(fs.number("innovation_k", 15.0, positive=True), fs.integer("innovation_ticks", 5, min_=1),
-                         fs.number("prediction_error_k", 40.0, positive=True), fs.number("hold_s", 30.0, min_=0.0))
-    fs.done()
-    derating = DeratingConfig(
-        max_current_a=max_i,
-        max_torque_nm=s.number("max_torque_nm", required=True, positive=True),
-        safe_current_a=safe_i,
-        safe_torque_nm=s.number("safe_torque_nm", None, positive=True, allow_none=True),
-        kt_nm_per_arms=s.number("kt_nm_per_arms", None, positive=True, allow_none=True),
-        band_z=s.number("band_z", 1.96, min_=0.0),
-        limits=limits,
-        rise_rate_a_per_s=s.number("rise_rate_a_per_s", 0.5, positive=True),
-        hysteresis_a=s.number("hysteresis_a", 0.5, min_=0.0),
-        faults=faults,
-        reaction_time_s=s.number("reaction_time_s", DeratingConfig.reaction_time_s, positive=True, max_=600.0),
-        margin_k=s.number("margin_k", DeratingConfig.margin_k, min_=0.0, max_=50.0),
-        approach_k=s.number("approach_k", DeratingConfig.approach_k, positive=True, max_=100.0),
-    )
-    s.done()
-
-    s = top.sub("lookahead")
-    lookahead = LookaheadConfig(s.boolean("enabled", True), s.number("horizon_s", 1800.0, positive=True, max_=65535),
-                                s.integer("steps", 60, min_=1, max_=10000))
-    s.done()
-
-    s = top.sub("adaptation")
-    enabled = s.boolean("enabled", True)
-    worker = s.string("worker", "thread", choices=WORKERS)
-    delay = s.integer("apply_delay_ticks", 5, min_=1)
-    bands = s.boolean("bands", True)
-    adapter = _adapter_config(s)
-    s.done()
-    adaptation = AdaptationConfig(enabled, worker, delay, bands, adapter)
-
-    s = top.sub("observer")
-    observer = ObserverConfig(s.number("q_k", 0.02, positive=True), s.number("r_k", 0.15, positive=True),
-                              s.number("p0_k", 2.0, positive=True), s.number("restart_p0_k", 3.0, positive=True))
-    s.done()
-
-    s = top.sub("metrics")
-    address = s.string("address", MetricsConfig.address)
-    try:  # an address to bind, not a name: what it binds to must be plain in the file
-        ipaddress.ip_address(address)
-    except ValueError:
-        raise s.fail("address", f"not an IP address: {address!r} (127.0.0.1 or ::1 for this host only; "
-                                "0.0.0.0 or an interface's address to be scraped from the network)") from None
-    metrics = MetricsConfig(s.boolean("enabled", MetricsConfig.enabled), address,
-                            s.integer("port", MetricsConfig.port, min_=0, max_=65535))
-    s.done()
-
-    s = top.sub("state")
-    default_dir = os.environ.get("STATE_DIRECTORY", "").split(":")[0] or None
-    sdir = s.path("dir", base, default_dir, required=default_dir is None)
-    state = StateConfig(sdir, s.number("save_interval_s", 60.0, positive=True),  # type: ignore[arg-type]
-                        s.integer("max_decisions", 500, min_=0, max_=MAX_DECISIONS), s.number("max_downtime_s", 7 * 86400.0, positive=True))
-    s.done()
-
-    s = top.sub("recording")
-    recording = RecordingConfig(s.path("candump", base), s.string("channel", "can0"))
-    s.done()
-
-    s = top.sub("transmit")
-    transmit = TransmitConfig(s.string("hot_spot_limit", "hot_spot"), s.string("magnet_limit", "magnet"),
-                              _limits_period(s), s.number("status_period_s", 1.0, positive=True),
-                              s.number("bus_silence_s", 1.0, positive=True))
-    s.done()
-    top.used.add("bus")
-    top.done()
-
-    if recording.candump is not None and bus.record_path is None:
-        bus = BusConfig(**{**{f.name: getattr(bus, f.name) for f in fields(BusConfig)},
-                           "record_path": recording.candump, "record_channel": recording.channel})
-    return EdgeConfig(
-        path=p, bus=bus, codec=codec, model=model, clock=clock, inputs=inputs, sensors=sensors,
-        valid_range_c=(float(rng[0]), float(rng[1])), timeouts=timeouts, derating=derating, lookahead=lookahead,
-        adaptation=adaptation, observer=observer, metrics=metrics, state=state, recording=recording, transmit=transmit,
-    )
+    cfg: EdgeConfig = _read(EdgeConfig, _Section(fname, "", raw, base), {"path": p})
+    rec = cfg.recording
+    if rec.candump is not None and cfg.bus.record_path is None:
+        cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, record_path=rec.candump,
+                                                               record_channel=rec.channel))
+    return cfg
