@@ -102,7 +102,9 @@ def require_pm10kw() -> Path:
 
 
 def synthetic_inputs(model, duration_s: float, dt: float, seed: int = 0, hold_s: float = 60.0) -> dict[str, np.ndarray]:
-    """Piecewise-constant inputs for any model, chosen by input name (rpm, A, Nm, °C)."""
+    """Piecewise-constant inputs for any model, chosen by the inputs' roles (rpm, A, Nm, °C)."""
+    from thermal_edge.lptn import Role
+
     rng = np.random.default_rng(seed)
     N = int(round(duration_s / dt)) + 1
     seg = max(1, int(round(hold_s / dt)))
@@ -110,20 +112,14 @@ def synthetic_inputs(model, duration_s: float, dt: float, seed: int = 0, hold_s:
     kt = float(model.drive.get("kt_nm_per_arms", 6.0)) if getattr(model, "drive", None) else 6.0
     speed = np.repeat(rng.choice([0.0, 300.0, 600.0, 900.0, 1200.0], nseg), seg)[:N]
     torque = np.repeat(rng.uniform(-60.0, 110.0, nseg), seg)[:N]
+    by_role = {Role.SPEED: speed, Role.TORQUE: torque, Role.CURRENT: np.abs(torque) / kt, Role.CURRENT_D: np.zeros(N),
+               Role.CURRENT_Q: np.sqrt(2.0) * torque / kt}
     out: dict[str, np.ndarray] = {}
     for name in model.inputs:
-        low = name.lower()
-        if "speed" in low or "rpm" in low:
-            out[name] = speed
-        elif "torque" in low:
-            out[name] = torque
-        elif low == "i_rms" or low.startswith("i_rms"):
-            out[name] = np.abs(torque) / kt
-        elif low == "i_d":
-            out[name] = np.zeros(N)
-        elif low == "i_q":
-            out[name] = np.sqrt(2.0) * torque / kt
-        elif low.endswith("_c") or "temp" in low or "ambient" in low or "coolant" in low:
+        role = model.input_roles.get(name)
+        if role in by_role:
+            out[name] = by_role[role]
+        elif name in model.temperature_inputs:
             out[name] = np.repeat(rng.uniform(20.0, 35.0, nseg), seg)[:N]
         else:
             out[name] = np.repeat(rng.uniform(0.5, 1.5, nseg), seg)[:N]

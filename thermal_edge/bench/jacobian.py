@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from ..lptn import Simulator, load_model, steady_state
+from ..lptn import Role, Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
 from ..sim.cycles import cycle_run, load_cycle
 from .common import config_path, timed, timed_together
@@ -46,8 +46,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
     dt = inputs.dt
     wrt = list(model.adaptable)
     theta = model.nominal()
-    first = {c: float(v[0]) for c, v in cols.items()}
-    T0, _ = steady_state(model, {**first, "i_rms": 0.0, "speed_rpm": 0.0, "torque_nm": 0.0})
+    T0, _ = steady_state(model, model.at_rest({c: float(v[0]) for c, v in cols.items()}))
     sim = Simulator(model)
     idx = model.parameter_index(wrt)
     sensor_nodes = list(model.sensors.values())
@@ -105,7 +104,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
         "sensors": len(rows),
         "params": p,
         "samples": N,
-        "operating_points": int(len(np.unique(cols["speed_rpm"]))),
+        "operating_points": int(len(np.unique(cols[model.input_name(Role.SPEED)]))),
         "analytic_s": t_an,
         "analytic_runs_s": times_an,
         "numerical_s": t_num,

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..lptn import Model, Simulator
 from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adaptation:), read here
-from .common import ParamSpace, Window, decimate
+from .common import ParamSpace, Window, decimate, rms_inputs
 from .gauss_newton import fit_gauss_newton
 from .objective import Objective
 from .screening import screen
@@ -239,7 +239,7 @@ class OnlineAdapter:
             y = meas[s][0]
             if np.isfinite(y):
                 T0[self.model.node_index(self.model.sensors[s])] = y
-        return Window(inputs, meas, T0, self.dt, t)
+        return Window(inputs, meas, T0, self.dt, t, rms_inputs(self.model))
 
     def _errors(self, theta: np.ndarray, since: float, until: float = np.inf) -> dict[str, np.ndarray]:
         """Per-sensor errors (K, NaN where not read) of the open-loop prediction from the recorded

@@ -7,11 +7,11 @@ Parameters are optimised in ``φ = log θ`` within ``[log L, log U]`` so that a 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Mapping
 
 import numpy as np
 
-from ..lptn import Model
+from ..lptn import Model, Role
 
 
 @dataclass
@@ -77,6 +77,8 @@ class Window:
         Sample period, s.
     t : ndarray
         Sample times, s.
+    rms : tuple of str
+        Inputs that :func:`decimate` averages as RMS (the current: copper losses go with its square).
     """
 
     inputs: dict[str, np.ndarray]
@@ -84,16 +86,24 @@ class Window:
     T0: np.ndarray
     dt: float
     t: np.ndarray
+    rms: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.t)
 
 
-def decimate(window: Window, factor: int, current_inputs: Sequence[str] = ("i_rms",)) -> Window:
+def rms_inputs(model: Model) -> tuple[str, ...]:
+    """The inputs of ``model`` that a window averages as RMS: its current (if it has one)."""
+    current = model.find_input(Role.CURRENT)
+    return () if current is None else (current,)
+
+
+def decimate(window: Window, factor: int) -> Window:
     """Coarser window for the optimiser: ``factor`` samples per step.
 
-    Over each new step the inputs are averaged (currents as RMS: the root of the mean square, so
-    that copper losses are kept), measurements are taken at the step boundaries. With inputs that
+    Over each new step the inputs are averaged (the window's :attr:`~Window.rms` inputs, the
+    current, as RMS: the root of the mean square, so that copper losses are kept), measurements
+    are taken at the step boundaries. With inputs that
     are constant over each new step the ZOH model on the coarse grid is exact.
     """
     if factor <= 1:
@@ -104,10 +114,10 @@ def decimate(window: Window, factor: int, current_inputs: Sequence[str] = ("i_rm
     out = {}
     for k, v in window.inputs.items():
         seg = v[: m * factor].reshape(m, factor)
-        mean = np.sqrt(np.mean(seg**2, axis=1)) if k in current_inputs else seg.mean(axis=1)
+        mean = np.sqrt(np.mean(seg**2, axis=1)) if k in window.rms else seg.mean(axis=1)
         out[k] = np.append(mean, v[m * factor])
     meas = {s: y[idx] for s, y in window.measured.items()}
-    return Window(out, meas, window.T0, window.dt * factor, window.t[idx])
+    return Window(out, meas, window.T0, window.dt * factor, window.t[idx], window.rms)
 
 
 @dataclass
@@ -149,4 +159,5 @@ def window_from_arrays(
         np.asarray(T0, dtype=float),
         float(dt),
         np.arange(n) * dt if t is None else np.asarray(t, dtype=float),
+        rms_inputs(model),
     )
