@@ -87,3 +87,85 @@ def test_paderborn_replay_with_adaptation_scores_unseen_sensors():
     assert set(res["mse"]) == {"pm", "stator_yoke", "stator_tooth", "stator_winding"}
     assert res["adapted_from"] == ["stator_winding", "stator_yoke"]
     assert res["decisions"] and all("accepted" in d for d in res["decisions"])
+
+
+# -- sub-commands load lazily --------------------------------------------------------------------
+HEAVY = ("thermal_edge.discovery", "thermal_edge.bench", "scipy.optimize")
+
+
+def loaded_modules(*args: str) -> list[str]:
+    """Modules loaded by ``thermal-edge ARGS`` (run as the console script does), in a fresh interpreter."""
+    code = ("import json, sys\n"
+            "from thermal_edge.cli import main\n"
+            f"sys.argv = ['thermal-edge', *{list(args)!r}]\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\n"
+            "print(json.dumps(sorted(sys.modules)))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=ENV, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("args", [["--help"], ["run", "--help"]])
+def test_help_loads_no_other_command(args):
+    mods = loaded_modules(*args)
+    assert "argparse" in mods  # (the probe saw the interpreter's modules)
+    heavy = [m for m in mods if m.startswith(HEAVY)]
+    assert heavy == [], f"thermal-edge {' '.join(args)} loaded {heavy}"
+    if args[0] == "run":  # only the chosen command's module
+        from thermal_edge.commands import COMMANDS
+
+        others = {f"thermal_edge.commands.{c.module}" for c in COMMANDS if c.name != "run"}
+        assert not others & set(mods), sorted(others & set(mods))
+
+
+def test_every_command_listed_and_loaded_when_chosen():
+    from thermal_edge.commands import COMMANDS
+
+    out = cli("--help")
+    for c in COMMANDS:
+        assert f"    {c.name} " in out.stdout or f"    {c.name}\n" in out.stdout, c.name
+        sub = cli(c.name, "--help")
+        assert sub.returncode == 0 and sub.stdout.startswith(f"usage: thermal-edge {c.name} "), sub.stderr
+        assert "--help" in sub.stdout  # its own arguments, not the listing's placeholder
+
+
+# -- run --check knows python-can ----------------------------------------------------------------
+def edge_yaml(tmp_path: Path, bus: dict) -> Path:
+    """The shipped config/edge.yaml with ``bus`` and absolute paths (written to ``tmp_path``)."""
+    import yaml
+
+    raw = yaml.safe_load((ROOT / "config" / "edge.yaml").read_text())
+    raw["model"]["path"] = str(ROOT / "config" / "machines" / "pm10kw.yaml")
+    raw["state"]["dir"] = str(tmp_path / "state")
+    raw["bus"] = bus
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+@pytest.mark.parametrize("bus, line", [
+    ({"interface": "socketcan", "chanel": "can0"},
+     "edge.yaml: bus.chanel: unknown key 'chanel' under bus: (did you mean 'channel'?)"),
+    ({"interface": "socketcann", "channel": "can0"},
+     "edge.yaml: bus.interface: unknown python-can interface 'socketcann' (did you mean 'socketcan'?)"),
+])
+def test_run_check_names_bus_typos(tmp_path, bus, line):
+    import can
+
+    out = cli("run", "--check", "--config", str(edge_yaml(tmp_path, bus)))
+    assert out.returncode == 2
+    lines = out.stderr.splitlines()
+    assert len(lines) == 1 and "Traceback" not in out.stderr, out.stderr
+    assert lines[0].startswith(f"thermal-edge run: error: {line}"), lines[0]
+    if "interface" in line:  # the interfaces python-can itself offers are named
+        assert all(name in lines[0] for name in can.interfaces.VALID_INTERFACES)
+    assert not (tmp_path / "state").exists()
+
+
+def test_run_check_names_a_misspelt_required_key(tmp_path):
+    path = edge_yaml(tmp_path, {"interface": "virtual"})
+    path.write_text(path.read_text().replace("max_current_a:", "max_curent_a:"))
+    out = cli("run", "--check", "--config", str(path))
+    assert out.returncode == 2
+    assert out.stderr.strip() == ("thermal-edge run: error: edge.yaml: derating.max_curent_a: unknown key "
+                                  "(did you mean 'max_current_a'?)"), out.stderr

@@ -1,4 +1,5 @@
-"""The ``thermal-edge`` command: one module per sub-command in :mod:`thermal_edge.commands`.
+"""The ``thermal-edge`` command: one module per sub-command in :mod:`thermal_edge.commands`,
+imported only when chosen.
 
 Bad input (a broken model, cycle, run or config file) exits with status 2 and one line naming
 the file and key; it never prints a traceback.
@@ -16,34 +17,44 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 
 from . import __version__  # noqa: E402
-from .commands import COMMANDS, USER_ERRORS  # noqa: E402
+from .commands import COMMANDS, add_commands, user_errors  # noqa: E402
 
 
-def build_parser() -> argparse.ArgumentParser:
+def chosen_command(argv: list[str]) -> str | None:
+    """The sub-command named on the command line (the first argument that is not an option: the
+    top level has no option that takes a value), or None."""
+    names = {c.name for c in COMMANDS}
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in names else None
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser for ``argv`` (default ``sys.argv[1:]``): every command listed, the chosen one
+    complete."""
     parser = argparse.ArgumentParser(
         prog="thermal-edge",
         description="Online-adapted LPTN thermal protection for PM machines: CAN in, derating out.",
     )
     parser.add_argument("--version", action="version", version=f"thermal-edge {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in COMMANDS:
-        module.register(sub)
+    add_commands(parser, chosen_command(sys.argv[1:] if argv is None else argv))
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser(argv).parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except USER_ERRORS as exc:
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"thermal-edge {args.command}: error: {msg}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
+    except Exception as exc:
+        if not isinstance(exc, user_errors()):
+            raise
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"thermal-edge {args.command}: error: {msg}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,17 +1,64 @@
-"""Sub-commands of ``thermal-edge``; each module has ``register(subparsers)``."""
+"""Sub-commands of ``thermal-edge``: one module per command, each with ``register(subparsers)``.
+
+The commands are listed here by name and one-line help, and a command's module is imported only
+when it is the one chosen (as cantools does): ``thermal-edge --help`` and ``thermal-edge run
+--help`` load none of the modules that other commands need (discovery, the benchmarks, the
+simulator, scipy.optimize).
+"""
 from __future__ import annotations
 
-from ..bus import LogFormatError
-from ..config import ConfigError
-from ..data import RunError
-from ..lptn import ExprError, ModelError, NotPassive, UnstableDiscretisation
-from ..sim.cycles import CycleError
-from . import bench, calibrate, demo, discover, monitor, replay, run, simulate
-from . import fleet
+import argparse
+import importlib
+from dataclasses import dataclass
+from types import ModuleType
 
-COMMANDS = (run, demo, monitor, simulate, replay, calibrate, discover, bench)
-COMMANDS += (fleet,)
+__all__ = ["COMMANDS", "Command", "add_commands", "user_errors"]
 
-#: errors caused by the user's input: reported in one line, exit status 2
-USER_ERRORS = (ModelError, RunError, CycleError, ExprError, UnstableDiscretisation, NotPassive, ConfigError,
-               LogFormatError, KeyError, FileNotFoundError)
+
+@dataclass(frozen=True)
+class Command:
+    """A sub-command: its name, the one line ``thermal-edge --help`` lists, and its module."""
+
+    name: str
+    help: str
+    module: str  # in this package
+
+    def load(self) -> ModuleType:
+        return importlib.import_module(f"{__name__}.{self.module}")
+
+
+COMMANDS = (
+    Command("run", "run the edge service", "run"),
+    Command("demo", "the service against the simulated machine (virtual bus, live metrics)", "demo"),
+    Command("monitor", "live view of a running service (metrics or bus)", "monitor"),
+    Command("simulate", "simulate the machine over a drive cycle", "simulate"),
+    Command("replay", "replay a recorded run through the model", "replay"),
+    Command("calibrate", "offline fit of the model to recorded runs", "calibrate"),
+    Command("discover", "find, name and add the physical effect a model lacks", "discover"),
+    Command("bench", "run a benchmark", "bench"),
+    Command("fleet", "calibrate, evaluate and screen many machines' runs on Dask", "fleet"),
+)
+
+
+def add_commands(parser: argparse.ArgumentParser, chosen: str | None) -> None:
+    """Add every command to ``parser``: the ``chosen`` one with all its arguments (its module
+    imported), the others by name and help only."""
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for command in COMMANDS:
+        if command.name == chosen:
+            command.load().register(sub)  # (its parser's help line is never shown: it is chosen)
+        else:  # listed; its arguments are known once it is chosen
+            sub.add_parser(command.name, help=command.help, add_help=False)
+
+
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Errors caused by the user's input: reported in one line, exit status 2 (imported when an
+    error is to be judged: by then the command has loaded the modules that raise them)."""
+    from ..bus import LogFormatError
+    from ..config import ConfigError
+    from ..data import RunError
+    from ..lptn import ExprError, ModelError, NotPassive, UnstableDiscretisation
+    from ..sim.cycles import CycleError
+
+    return (ModelError, RunError, CycleError, ExprError, UnstableDiscretisation, NotPassive, ConfigError,
+            LogFormatError, KeyError, FileNotFoundError)

@@ -23,8 +23,8 @@ from ..bench.common import config_path
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("demo", help="the service against the simulated machine (virtual bus, live metrics)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("demo", description=__doc__,  # (its help line: thermal_edge.commands.COMMANDS)
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default=str(config_path("edge.yaml")), help="service configuration (default config/edge.yaml)")
     p.add_argument("--cycle", default=str(config_path("cycles", "overload.yaml")), help="drive cycle (default overload)")
     p.add_argument("--speed", type=float, default=30.0,
