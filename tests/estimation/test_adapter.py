@@ -91,3 +91,29 @@ def test_history_is_bounded(pm10kw):
 def test_unknown_method_is_refused(pm10kw):
     with pytest.raises(ValueError, match="method"):
         OnlineAdapter(pm10kw, AdapterConfig(method="magic"), 1.0)
+
+
+@pytest.mark.parametrize("max_rel_std", [None, 0.6])
+def test_reported_identifiability_is_the_gate_of_adaptation(pm10kw, make_run, max_rel_std):
+    """What ``current_uncertainty`` reports as identifiable (the parameter bands and the
+    ``parameter_identifiable`` metric) is what the adapter's gate lets it adapt, at the default
+    threshold and at a configured one. 20 min without a prior leave a parameter whose relative σ
+    lies between 0.25 (the metric's threshold until both used one) and the gate's."""
+    plant = make_run(pm10kw, "varied_drive.yaml", 1200.0, seed=5)
+    run = plant.run
+    extra = {} if max_rel_std is None else {"max_rel_std": max_rel_std}
+    cfg = AdapterConfig(threshold_k=0.0, prior_weight=0.0, min_window_s=600.0, **extra)
+    ad = OnlineAdapter(pm10kw, cfg, 1.0)
+    for k in range(len(run.t)):
+        ad.record(float(run.t[k]), {c: float(run.columns[c][k]) for c in pm10kw.inputs},
+                  {s: float(run.columns[s][k]) for s in pm10kw.sensors}, plant.truth.T[k])
+    t = float(run.t[-1])
+    d = ad.decide(t)
+    assert d.triggered and not d.accepted  # a challenger may be fitted; the parameters in use are unchanged
+    unc = ad.current_uncertainty(t - cfg.window_s)
+    rel = dict(zip(unc.names, unc.rel_std))
+    assert any(0.25 <= r < cfg.max_rel_std for r in rel.values()), rel
+    reported = {n for n, ok in zip(unc.names, unc.identifiable) if not ok}
+    assert reported == set(d.unidentifiable)
+    assert reported == {n for n, r in rel.items() if not r < cfg.max_rel_std}  # the configured threshold
+    assert 0 < len(reported) < len(rel)

@@ -37,7 +37,7 @@ from .gauss_newton import fit_gauss_newton
 from .objective import Objective
 from .screening import screen
 from .sqp import fit_sqp
-from .uncertainty import estimate_uncertainty
+from .uncertainty import Uncertainty, estimate_uncertainty
 
 @dataclass
 class Decision:
@@ -371,13 +371,15 @@ class OnlineAdapter:
         self.decisions.append(d)
         return d
 
-    def current_uncertainty(self, since: float | None = None):  # type: ignore[no-untyped-def]
-        """Parameter covariance and identifiability at the current parameters over the history."""
+    def current_uncertainty(self, since: float | None = None) -> Uncertainty:
+        """Parameter covariance and identifiability at the current parameters over the history
+        since ``since`` (s; default all of it), judged by the same ``max_rel_std`` as the gate of
+        :meth:`decide`: what is reported as identifiable is what the adapter may adapt."""
         cfg = self.config
         win = decimate(self._window(-np.inf if since is None else since), cfg.decimate)
         obj = self.objective(win)
         ev = obj.evaluate(np.log(self.theta[obj.space.index]))
-        return estimate_uncertainty(obj, ev)
+        return estimate_uncertainty(obj, ev, cfg.max_rel_std)
 
     def params_dict(self) -> dict[str, float]:
         """Current values of the adaptable parameters."""

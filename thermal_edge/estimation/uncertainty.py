@@ -13,9 +13,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..settings import AdapterConfig
 from .objective import Evaluation, Objective
 
 Z95 = 1.959963984540054
+#: The one identifiability threshold: a parameter is identifiable when the window pins it down to
+#: this relative standard deviation (σ of log θ). Stated with the adapter's settings
+#: (``adaptation.max_rel_std``), which a configuration may change for the service: the adapter
+#: passes its configured value wherever it judges identifiability.
+MAX_REL_STD: float = AdapterConfig.max_rel_std
 
 
 @dataclass
@@ -44,10 +50,11 @@ class Uncertainty:
         }
 
 
-def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = 0.25) -> Uncertainty:
+def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = MAX_REL_STD) -> Uncertainty:
     """Covariance of the estimate at the evaluation ``ev`` of ``obj`` (with derivatives).
 
-    A parameter is *identifiable* when its relative standard deviation is below ``max_rel_std``.
+    A parameter is *identifiable* when its relative standard deviation is below ``max_rel_std``
+    (default :data:`MAX_REL_STD`).
     """
     w = obj.w
     scale = w.size / max(float(w.sum()), 1e-300) if w.sum() > 0 else 1.0
