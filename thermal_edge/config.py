@@ -32,6 +32,7 @@ import yaml
 
 from .bus.busconfig import BusConfig, BusConfigError
 from .bus.frames import DerateReason
+from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .settings import AdapterConfig, setting, spec_of
 
 __all__ = [
@@ -308,10 +309,12 @@ class StateConfig:
 
 @dataclass(frozen=True)
 class RecordingConfig:
-    """``recording:`` -- optional candump -L recording of all RX/TX traffic."""
+    """``recording:`` -- optional recording of all RX/TX traffic, a CAN log in its file's format."""
 
-    candump: Path | None = None
+    candump: Path | None = None  # the log (.log candump -L, .asc, .blf, .csv by suffix; the key predates them)
     channel: str = "can0"
+    max_bytes: int = setting(DEFAULT_MAX_BYTES, min=0)  # rotate at this size (0: never); closed files gzipped
+    keep: int = setting(DEFAULT_KEEP, min=0)  # rotated files kept
 
 
 @dataclass(frozen=True)
@@ -765,6 +768,9 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     cfg: EdgeConfig = _read(EdgeConfig, _Section(fname, "", raw, base), {"path": p})
     rec = cfg.recording
     if rec.candump is not None and cfg.bus.record_path is None:
-        cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, record_path=rec.candump,
-                                                               record_channel=rec.channel))
+        try:
+            cfg = dataclasses.replace(cfg, bus=dataclasses.replace(cfg.bus, record_path=rec.candump, record_channel=rec.channel,
+                                                                   record_max_bytes=rec.max_bytes, record_keep=rec.keep))
+        except BusConfigError as exc:  # the log's format, or a size cap on a format that cannot rotate
+            raise ConfigError(f"{fname}: recording.candump: {str(exc).split(': ', 1)[-1]}") from None
     return cfg

@@ -180,7 +180,7 @@ DIRECTED = {".log", ".asc", ".blf", ".trc", ".log.gz", ".asc.gz"}
 @pytest.mark.parametrize("suffix", [".asc", ".blf", ".trc", ".csv", ".log.gz", ".asc.gz", ".csv.gz"])
 def test_every_format_records_and_reads_back(tmp_path, virtual_channel, suffix):
     path = tmp_path / f"te{suffix}"
-    te = _record(path, virtual_channel)
+    te = _record(path, virtual_channel, record_max_bytes=0)  # .trc and .gz cannot rotate: no cap
     assert te.written == 2 * 4 * ROUNDS
     if suffix.endswith(".gz"):
         with gzip.open(path, "rb") as fh:
@@ -277,3 +277,28 @@ def test_a_restart_never_overwrites_the_last_recording(tmp_path):
         rec.write_all([_msg(1.8e9 + i, i) for i in range(5)])
     (old,) = rec.rotated_files
     assert len(list(log_messages(old))) == 20 and len(list(log_messages(path))) == 5
+
+
+def test_the_service_configuration_caps_its_recording(tmp_path):
+    """``recording:`` of edge.yaml reaches the bus: its cap and count, its format checked at load."""
+    import yaml
+
+    from thermal_edge.config import ConfigError, load_config
+
+    raw = yaml.safe_load((REPO / "config" / "edge.yaml").read_text())
+    raw["state"] = {"dir": str(tmp_path / "state")}
+    path = tmp_path / "edge.yaml"
+
+    def load(recording: dict):
+        raw["recording"] = recording
+        path.write_text(yaml.safe_dump(raw))
+        return load_config(path)
+
+    bus = load({"candump": "rec/can.asc", "max_bytes": 5000, "keep": 2}).bus
+    assert (bus.record_path, bus.record_max_bytes, bus.record_keep) == (tmp_path / "rec" / "can.asc", 5000, 2)
+    assert load({"candump": "can.log"}).bus.record_max_bytes == 64 * 2**20  # capped unless told otherwise
+    assert load({"candump": "can.trc", "max_bytes": 0}).bus.record_max_bytes == 0
+    with pytest.raises(ConfigError, match=r"edge\.yaml: recording\.candump: .*can\.trc: a size-capped recording must be"):
+        load({"candump": "can.trc"})
+    with pytest.raises(ConfigError, match=r"edge\.yaml: recording\.candump: .*can\.xyz: unknown CAN log format"):
+        load({"candump": "can.xyz"})

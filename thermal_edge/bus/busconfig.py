@@ -28,7 +28,7 @@ from typing import Any
 import can
 import can.interfaces
 
-from .logs import DEFAULT_KEEP, LogFormatError, log_suffix
+from .logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES, LogFormatError, check_recording
 from .udp import RECEIVE_QUEUE_BYTES, LocalUdpMulticastBus, enlarge_receive_queue
 
 __all__ = [
@@ -152,7 +152,7 @@ class BusConfig:
     node: str | None = "TE"
     record_path: str | Path | None = None
     record_channel: str = "can0"
-    record_max_bytes: int = 0
+    record_max_bytes: int = DEFAULT_MAX_BYTES
     record_keep: int = DEFAULT_KEEP
     send_timeout_s: float = 0.05
     reconnect_min_s: float = 0.1
@@ -183,7 +183,7 @@ class BusConfig:
                 raise BusConfigError(f"bus.{name}", f"expected a whole number >= 0, got {value!r}")
         if self.record_path is not None:
             try:
-                log_suffix(self.record_path, write=True)
+                check_recording(self.record_path, self.record_max_bytes)
             except LogFormatError as exc:
                 raise BusConfigError("bus.record_path", str(exc)) from None
         if self.reconnect_max_s < self.reconnect_min_s:

@@ -46,10 +46,12 @@ from .codec import DecodedFrame, FrameCodec
 
 __all__ = [
     "DEFAULT_KEEP",
+    "DEFAULT_MAX_BYTES",
     "ROTATING_SUFFIXES",
-    "LogFormatError",
     "FrameLogReader",
+    "LogFormatError",
     "LogRecorder",
+    "check_recording",
     "log_messages",
     "log_suffix",
     "read_log",
@@ -58,6 +60,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Size at which the service's recording rotates, bytes (about 1.7 h of the DBC's traffic as candump).
+DEFAULT_MAX_BYTES = 64 * 2**20
 #: Rotated files a recording keeps besides the one being written (with ``max_bytes``).
 DEFAULT_KEEP = 10
 #: Formats :class:`can.SizedRotatingLogger` can rotate (it needs the writer's file size).
@@ -111,6 +115,21 @@ def log_suffix(path: str | Path, *, write: bool = False) -> str:
         raise LogFormatError(f"{p}: MF4 logs need asammdf: pip install thermal-edge[mf4]")
     if gz and suffix not in _TEXT_SUFFIXES:
         raise LogFormatError(f"{p}: {suffix} cannot be gzipped (python-can reads gzip for text formats only)")
+    return suffix
+
+
+def check_recording(path: str | Path, max_bytes: int) -> str:
+    """The format suffix of a recording to ``path`` rotated at ``max_bytes`` (0: never).
+
+    Raises
+    ------
+    LogFormatError
+        A format python-can cannot write, or a size cap on one it cannot rotate.
+    """
+    suffix = log_suffix(path, write=True)
+    if max_bytes and (suffix not in ROTATING_SUFFIXES or Path(path).suffix.lower() == ".gz"):
+        raise LogFormatError(f"{path}: a size-capped recording must be one of {', '.join(sorted(ROTATING_SUFFIXES))} "
+                             "(the closed files are gzipped), or max_bytes 0")
     return suffix
 
 
@@ -335,12 +354,9 @@ class LogRecorder:
     def __init__(self, path: str | Path, *, channel: str = "can0", max_bytes: int = 0, keep: int = DEFAULT_KEEP,
                  flush_interval_s: float = 1.0) -> None:
         self.path = Path(path)
-        suffix = log_suffix(self.path, write=True)
+        suffix = check_recording(self.path, max_bytes)
         if max_bytes < 0 or keep < 0:
             raise ValueError(f"{self.path}: max_bytes and keep must not be negative")
-        if max_bytes and (suffix not in ROTATING_SUFFIXES or self.path.suffix.lower() == ".gz"):
-            raise LogFormatError(f"{self.path}: a size-capped recording must be one of "
-                                 f"{', '.join(sorted(ROTATING_SUFFIXES))} (rotated text files are gzipped)")
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.channel = channel
         self.max_bytes = int(max_bytes)
