@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from collections.abc import Sequence
 from pathlib import Path
@@ -55,8 +56,11 @@ class Run:
             return 1.0
         d = np.diff(self.t)
         dt = float(np.median(d))
-        if not np.allclose(d, dt, rtol=1e-6, atol=1e-6):
-            raise RunError(f"{self.source}: sample times are not uniformly spaced (median {dt:g} s)")
+        off = np.flatnonzero(~np.isclose(d, dt, rtol=1e-6, atol=1e-6))
+        if off.size:
+            k = int(off[0]) + 1
+            raise RunError(f"{self.source}: column 't', sample {k + 1} (t = {self.t[k]:g} s): sample times are not "
+                           f"uniformly spaced (median period {dt:g} s, here {d[k - 1]:g} s)")
         return dt
 
     def column(self, name: str) -> np.ndarray:
@@ -70,6 +74,8 @@ class Run:
         return Run(self.t[start:stop], {k: v[start:stop] for k, v in self.columns.items()}, self.source, dict(self.meta))
 
 
+#: A line of a ``candump -L`` log: ``(1700000000.000000) can0 123#11223344``.
+CANDUMP_LINE = re.compile(r"^\s*\(\d+\.\d+\)\s+\S+\s+[0-9A-Fa-f]+#")
 #: Bytes looked at to tell a binary file from a CSV.
 SNIFF_BYTES = 8192
 #: Encodings tried in turn: UTF-8 (a BOM is dropped), then Windows-1252, the usual test-bench
@@ -84,8 +90,12 @@ def _text(path: Path) -> str:
         raise RunError(f"{path}: is a directory, not a run file") from None
     except OSError as exc:
         raise RunError(f"{path}: cannot read: {exc.strerror}") from None
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise RunError(f"{path}: UTF-16 text (a spreadsheet's 'Unicode text' export); save it as UTF-8 or "
+                       "Windows-1252 CSV")
     if b"\x00" in raw[:SNIFF_BYTES]:
-        raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads those with --candump)")
+        raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads candump -L logs "
+                       "with --format candump)")
     for enc in ENCODINGS:
         try:
             return raw.decode(enc)
@@ -101,7 +111,8 @@ def _number(v: str, path: Path, line: int, column: str) -> float:
     try:
         x = float(v)
     except ValueError:
-        raise RunError(f"{path}: line {line}, column {column!r}: not a number: {v!r}") from None
+        hint = " (a decimal comma? the run needs a decimal point)" if re.fullmatch(r"[-+]?\d+,\d+", v) else ""
+        raise RunError(f"{path}: line {line}, column {column!r}: not a number: {v!r}{hint}") from None
     if math.isinf(x):
         raise RunError(f"{path}: line {line}, column {column!r}: infinite value {v!r}")
     return x
@@ -133,6 +144,9 @@ def read_run(path: str | os.PathLike[str], fmt: str = "csv") -> Run:
         raise RunError(f"{path}: empty: no header and no data rows")
     if len(rows) < 2:
         raise RunError(f"{path}: a header but no data rows")
+    if CANDUMP_LINE.match(numbered[0][1]):
+        raise RunError(f"{path}: line {numbered[0][0]}: a candump -L log, not a CSV run (replay reads it with "
+                       "--format candump)")
     header = [h.strip() for h in rows[0][1]]
     dupes = sorted({h for h in header if header.count(h) > 1})
     if dupes:
@@ -165,6 +179,9 @@ def _paderborn(cols: dict[str, np.ndarray], source: str) -> Run:
 
 #: Plausible temperatures of a machine and its surroundings, degC; outside: a unit or sensor error.
 TEMPERATURE_RANGE_C = (-60.0, 300.0)
+#: A temperature column whose every value lies above this, degC, is in kelvin: no machine stays
+#: above 200 degC for a whole run, and no recording in kelvin goes below 200 K (-73 degC).
+KELVIN_ABOVE = 200.0
 #: Longest plausible sample period of a thermal run, s (a 1 Hz model; a longer one is time in ms).
 MAX_SAMPLE_PERIOD_S = 60.0
 
@@ -182,7 +199,7 @@ def check_run(run: Run, temperatures: Sequence[str]) -> None:
     ------
     RunError
         Time not in seconds (a sample period above :data:`MAX_SAMPLE_PERIOD_S`), a temperature
-        column in kelvin (every value above 200 and some above the plausible maximum) or outside
+        column in kelvin (every value above :data:`KELVIN_ABOVE`) or outside
         :data:`TEMPERATURE_RANGE_C`; the message names the file, the column and the line.
     """
     if len(run) < 2:
@@ -197,7 +214,7 @@ def check_run(run: Run, temperatures: Sequence[str]) -> None:
         if x is None or not np.isfinite(x).any():
             continue
         finite = x[np.isfinite(x)]
-        if finite.min() > 200.0 and finite.max() > hi:
+        if finite.min() > KELVIN_ABOVE:
             raise RunError(f"{run.source}: column {name!r}: {finite.min():.1f} to {finite.max():.1f}; "
                            "kelvin? (temperatures must be in degC)")
         out = np.flatnonzero(np.isfinite(x) & ((x < lo) | (x > hi)))

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bench.common import config_path
-from ..data import FORMATS, Run, write_run
+from ..data import FORMATS, Run, RunError, write_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.online import OnlineResult, online_report, run_online
 from ..estimation.predict import open_loop
@@ -34,7 +34,7 @@ from ..lptn.vocabulary import Role
 from ..plots import missing
 from ..service.replay import format_summary, replay_summary
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
-from .runs import read_checked, require_finite
+from .runs import read_checked, require_finite, require_finite_prediction
 
 #: ``--out`` suffixes and the module each needs (None: none beyond the core).
 EXPORTS = {".csv": None, ".parquet": "pyarrow"}
@@ -87,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.format == "candump":
         summary = replay_summary(args.run, args.config, args.model, sets=split_sets(args.set))
+        if not summary["frames"]:
+            raise RunError(f"{args.run}: no CAN frame read ({summary['malformed_lines']} malformed lines): "
+                           "not a CAN log of the drive, or an empty one")
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
         return 0
     if not args.model:
@@ -108,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
             if args.plot or args.out:
                 _outputs(args, model, rec, traj.T, run_online(model, rec, replace(cfg, threshold_k=np.inf)))
             return _print_open_loop(args, model, rec, scores, out)
+        require_finite_prediction(model, rec)  # the adapter's fits would fail on it without saying why
         rep = online_report(model, rec, cfg)
         res = rep["result"]
         require_finite(model, rec, res.T, "the online trace")
