@@ -298,12 +298,12 @@ class EdgeService:
 
     def _tx_time(self) -> float:
         """Timestamp of sent (and recorded) frames: the clock's time. With the frame clock, frames
-        sent before the first frame arrived carry 1 µs after the epoch (time not known yet; 0 would
-        make the recorder use the wall clock), so that a recording never has a wall-clock stamp
-        ahead of the simulated times that follow."""
+        sent before the first frame arrived carry 0, python-can's "no time" (not known yet): the
+        recorder writes them at the first known time, so that a recording neither starts in 1970
+        nor has a wall-clock stamp ahead of the simulated times that follow."""
         clock = self.clock
         if isinstance(clock, FrameClock) and not clock.started:
-            return 1e-6
+            return 0.0
         return clock.now()
 
     def _clock_lag(self) -> float:
