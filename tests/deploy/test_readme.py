@@ -133,3 +133,53 @@ def test_operator_sections() -> None:
     assert re.search(r"^## The method$", README.read_text(encoding="utf-8"), re.M), "the section the benchmarks link to"
     for name in ("can", "config", "metrics", "alerts"):
         block(name)
+
+
+def test_config_defaults_are_what_the_loader_uses(monkeypatch) -> None:
+    """Each Default cell (read from the declarations) against the loader itself: the shipped file with
+    that key left out loads to that value, or is refused as missing the key when it says required."""
+    import copy
+
+    import yaml
+
+    from thermal_edge.config import ConfigError, config_from_mapping
+
+    gen_docs()
+    docs = sys.modules["thermal_edge_deploy_docs.config"]
+    text = dl.EDGE_YAML.read_text(encoding="utf-8")
+    raw = yaml.safe_load(text)
+    monkeypatch.setenv("STATE_DIRECTORY", "/run/te-state:/other")
+    checked = 0
+    for row in docs.parse_commented_yaml(text):
+        if row.parent or not row.shipped:
+            continue
+        shown = docs.default_of(row.path, raw)
+        if shown == "—":
+            continue
+        r = copy.deepcopy(raw)
+        node = r
+        for k in row.path[:-1]:
+            node = node[k]
+        del node[row.path[-1]]
+        if shown == "required":
+            with pytest.raises(ConfigError, match=rf"^edge.yaml: {re.escape('.'.join(row.path))}: is required"):
+                config_from_mapping(r, dl.EDGE_YAML)
+            checked += 1
+            continue
+        cfg = config_from_mapping(r, dl.EDGE_YAML)
+        value: object = cfg
+        for k in row.path:
+            if isinstance(value, dict):
+                value = value[k]
+            elif k == "signal":  # the one-signal form of signals
+                value = value.signals[0]  # type: ignore[attr-defined]
+            elif not hasattr(value, k):  # adaptation: the adapter's keys sit in its section
+                value = getattr(value.adapter, k)  # type: ignore[attr-defined]
+            else:
+                value = getattr(value, k)
+        if shown == "`$STATE_DIRECTORY`":
+            assert str(value) == "/run/te-state", row.path
+        else:
+            assert docs._fmt(value) == shown, (row.path, value, shown)
+        checked += 1
+    assert checked >= 60, checked  # every section's plain keys were compared
