@@ -167,11 +167,11 @@ def test_non_finite_state_is_a_model_fault(tmp_path, model):
     for k in range(1, 4):
         out = _feed(eng, model, 100.0 + k, T, i=12.0, speed=600.0)
     assert out.limits.reason != DerateReason.MODEL_FAULT
-    eng.observer.T[5] = math.nan
+    eng.estimate.observer.T[5] = math.nan
     out = _feed(eng, model, 104.0, T, i=12.0, speed=600.0)
     assert out.limits.reason == DerateReason.MODEL_FAULT and out.state == TeState.FAULT
     assert out.limits.current_a <= SAFE
-    assert np.all(np.isfinite(eng.observer.T))  # restarted from the readings
+    assert np.all(np.isfinite(eng.estimate.observer.T))  # restarted from the readings
 
 
 def test_model_fault_reports_the_error_that_caused_it(tmp_path, model):

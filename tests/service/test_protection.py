@@ -150,7 +150,7 @@ def test_safety_events_logged_with_priorities_and_rate_limited(tmp_path):
     handler.setFormatter(JournalFormatter("%(message)s"))
     limiter = RateLimit(burst=5, window_s=60.0, clock=lambda: loop.emu.elapsed)
     handler.addFilter(limiter)
-    logger = logging.getLogger("thermal_edge.service.engine")
+    logger = logging.getLogger("thermal_edge.service.events")
     old_level, old_prop = logger.level, logger.propagate
     logger.addHandler(handler)
     logger.setLevel(logging.DEBUG)

@@ -210,8 +210,7 @@ class ThermalEdgePolicy(_Policy):
 
     def step(self, frames: list[Any]) -> float:
         for f in frames:
-            boundaries = self.clock.observe(f.timestamp)
-            for b in boundaries:
+            for b in self.engine.ticks_for(self.clock.observe(f.timestamp)):
                 out = self.engine.tick(b)
                 self.last_out = out
                 # TE_Limits through the DBC (the inverter sees the quantised values)
@@ -398,12 +397,13 @@ def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float) -> dic
     service saved when it stopped."""
     import yaml
 
-    from ..lptn import Stepper
+    from ..lptn import DEFAULT_COLUMNS, Role, Stepper
 
     with tempfile.TemporaryDirectory(prefix="te-bench-warm-") as tmp:
         warm_cycle = Path(tmp) / "warm.yaml"
-        warm_cycle.write_text(yaml.safe_dump({"name": "warm_up", "dt_s": 1.0, "ambient_c": 25.0, "segments": [
-            {"duration_s": WARM_UP_S, "speed_rpm": 900.0, "torque_nm": WARM_UP_TORQUE_NM, "ramp_s": 10.0}]}))
+        col = DEFAULT_COLUMNS  # a drive cycle is data without a model
+        warm_cycle.write_text(yaml.safe_dump({"name": "warm_up", "dt_s": 1.0, col[Role.AMBIENT]: 25.0, "segments": [
+            {"duration_s": WARM_UP_S, col[Role.SPEED]: 900.0, col[Role.TORQUE]: WARM_UP_TORQUE_NM, "ramp_s": 10.0}]}))
         emu = emulator_for(plant, warm_cycle, case, None)
         pol = ThermalEdgePolicy(emu, cfg.derating.max_current_a, cfg.derating.max_torque_nm, cfg)
         try:
@@ -412,8 +412,8 @@ def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float) -> dic
         finally:
             pol.close()
         # the machine stands still over the downtime
-        rest = {k: 0.0 for k in plant.inputs}
-        rest.update({c: float(emu.run_inputs.columns["ambient_c"][-1]) for c in plant.boundaries.values()})
+        ambient = float(emu.run_inputs.columns[plant.input_name(Role.AMBIENT)][-1])
+        rest = plant.at_rest({c: ambient for c in plant.temperature_inputs})
         T, _ = Stepper(plant, emu.plant.theta, RESTART_DOWNTIME_S).step(emu.plant.T, rest)
     return {"T": T, "state": state}
 

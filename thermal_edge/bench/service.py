@@ -94,7 +94,8 @@ def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = Fa
             from dataclasses import replace
 
             ad_cfg = replace(cfg.adaptation.adapter, threshold_k=0.0, min_window_s=600.0)
-            busy = AdaptationWorker(engine.model, ad_cfg, 1.0, engine.theta, engine.offline_theta, mode="thread")
+            busy = AdaptationWorker(engine.model, ad_cfg, 1.0, engine.adaptation.theta, engine.adaptation.offline_theta,
+                                   mode="thread")
         t_next = 1.0
         durations: list[float] = []
         decisions = 0
@@ -103,8 +104,9 @@ def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = Fa
             for f in _frames(emu):
                 while f.timestamp >= t_next:  # ticks at the boundaries the frames cross
                     out = engine.tick(t_next)
-                    if busy is not None and engine.x_ol is not None:
-                        busy.record(t_next - 1, out.inputs, out.measured, engine.x_ol)
+                    x_ol = engine.estimate.prediction
+                    if busy is not None and x_ol is not None:
+                        busy.record(t_next - 1, out.inputs, out.measured, x_ol)
                     if t_next > warmup_s:
                         durations.append(out.compute_s)
                         if busy is not None and not busy.busy:

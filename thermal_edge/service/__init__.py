@@ -7,16 +7,24 @@ Modules, one job each:
 - :mod:`.inputs` -- per-tick input accumulation (mean i², mean speed, latest temperatures + age,
   stale and faulty inputs);
 - :mod:`.lookahead` -- largest current that keeps every limit over a horizon, time to limit;
-- :mod:`.derating` -- band derate, look-ahead, forced safe limit, slew (fall at once, rise slowly);
-- :mod:`.adaptation` -- the online adapter in a worker, commands serialised;
+- :mod:`.derating` -- every derating rule: reaction-time current, approach, forced safe limit at the
+  measured temperatures, slew, and the limit between ticks (bus silence, stalled ticks);
+- :mod:`.adaptation` -- the online adapter in a worker, commands serialised; the parameters in use
+  and when decisions are requested and applied;
 - :mod:`.persistence` -- atomic state file, corrupt-file handling, cool-down over the downtime;
-- :mod:`.engine` -- the tick pipeline without I/O (shared by the live service and replays);
+- :mod:`.estimate` -- the observer's estimate and the open-loop prediction (start, restore, restart);
+- :mod:`.health` -- the reasons that force the safe limit (stale or faulty inputs, model faults);
+- :mod:`.outputs` -- what a tick produced and the contents of the frames sent from it;
+- :mod:`.events` -- safety events in the log, once each, with their journald priority;
+- :mod:`.engine` -- the tick pipeline without I/O, wiring the parts above (shared by the live
+  service and replays);
 - :mod:`.metrics` -- Prometheus metrics;
 - :mod:`.systemd` -- ``sd_notify`` readiness, status and watchdog;
 - :mod:`.service` -- the asyncio service;
 - :mod:`.replay` -- a candump log through the pipeline.
 """
-from .engine import ThermalEngine, TickOutput, load_service_model
+from .engine import ThermalEngine, load_service_model
+from .outputs import TickOutput
 from .replay import ReplayResult, replay_candump
 from .service import EdgeService, status_line
 

@@ -6,6 +6,9 @@ FIFO, executed in order by a worker thread (``mode="thread"``) or at once (``mod
 replays and tests). A decision therefore sees exactly the samples recorded before it was
 requested, wherever and however long it runs, and the same log replayed gives the same decisions.
 
+:class:`Adaptation` is the service's side: the parameters in use, when a decision is due and when
+its result is applied, the counters and the bounded list of decisions.
+
 For an accepted decision the worker also re-derives the open-loop state at the last recorded
 sample with the new parameters (simulating the history window, as the paper's §5.1 and
 :func:`thermal_edge.estimation.online.run_online` do) and, if asked, the parameters' 95 % bands
@@ -19,16 +22,18 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
-from typing import Any, Mapping
+from dataclasses import dataclass, field, replace
+from collections import deque
+from typing import Any, Iterable, Mapping
 
 import numpy as np
 
 from ..estimation.adapter import AdapterConfig, Decision, OnlineAdapter
 from ..estimation.uncertainty import Z95
-from ..lptn import Model
+from ..config import AdaptationConfig
+from ..lptn import Model, Stepper
 
-__all__ = ["AdaptationResult", "AdaptationWorker"]
+__all__ = ["Adaptation", "AdaptationCounts", "AdaptationResult", "AdaptationWorker"]
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +57,19 @@ class AdaptationResult:
     @property
     def accepted(self) -> bool:
         return self.decision is not None and self.decision.accepted
+
+    def state_now(self, stepper: Stepper, recent: Iterable[tuple[float, Mapping[str, float]]]) -> np.ndarray | None:
+        """The open-loop state with the new parameters now (°C), derived once: the state at the end
+        of the decision's window (``state_t``, simulated by the worker), stepped by ``stepper`` (the
+        new parameters) over the inputs of the samples recorded since. None without a state or if
+        it is not finite."""
+        if self.state is None or self.state_t is None:
+            return None
+        x = self.state.copy()
+        for ts, u in recent:
+            if ts + 1e-9 >= self.state_t:
+                x, _ = stepper.step(x, dict(u))
+        return x if np.all(np.isfinite(x)) else None
 
 
 class AdaptationWorker:
@@ -84,12 +102,10 @@ class AdaptationWorker:
         self.params = self.adapter.params
         self._ids = 0
         self._results: dict[int, AdaptationResult] = {}
-        self._done: list[AdaptationResult] = []
         self._cond = threading.Condition()
         self._pending: set[int] = set()
         self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
-        self.failures = 0
         if mode == "thread":
             self._thread = threading.Thread(target=self._loop, name="thermal-edge adapter", daemon=True)
             self._thread.start()
@@ -129,12 +145,6 @@ class AdaptationWorker:
             self._queue.put(cmd)
 
     # -- results --------------------------------------------------------------------------------
-    def poll(self) -> list[AdaptationResult]:
-        """Completed results not yet returned (oldest first)."""
-        with self._cond:
-            out, self._done = self._done, []
-        return out
-
     def result(self, rid: int) -> AdaptationResult | None:
         with self._cond:
             return self._results.get(rid)
@@ -188,7 +198,6 @@ class AdaptationWorker:
                 _, t, rid = cmd
                 self._finish(self._decide(t, rid))
         except Exception as exc:  # a failed command must never kill the worker
-            self.failures += 1
             log.exception("adaptation %s failed", kind)
             if kind == "decide":
                 self._finish(AdaptationResult(cmd[2], cmd[1], theta=self.adapter.theta.copy(),
@@ -230,6 +239,215 @@ class AdaptationWorker:
     def _finish(self, res: AdaptationResult) -> None:
         with self._cond:
             self._results[res.request_id] = res
-            self._done.append(res)
             self._pending.discard(res.request_id)
             self._cond.notify_all()
+
+
+@dataclass
+class AdaptationCounts:
+    """What the adaptation has done so far (read as a copy, :attr:`Adaptation.counts`)."""
+
+    version: int = 0  #: accepted parameter sets (TE_ParamVersion)
+    runs: int = 0  #: adaptations run (triggered and optimised)
+    accepted: int = 0
+    rejected: int = 0  #: rolled back
+    failures: int = 0  #: decisions that failed with an error
+    skipped: int = 0  #: triggered decisions that could not optimise yet
+
+
+class Adaptation:
+    """The parameters in use and the decisions that change them, one tick at a time.
+
+    A decision is requested every ``adapter.period_s`` of recorded samples; with the frame clock
+    its result is applied exactly ``apply_delay_ticks`` after the request (the caller waits for it,
+    see :meth:`awaiting`), with the wall clock at the first tick after it is ready.
+
+    Parameters
+    ----------
+    model : Model
+    config : AdaptationConfig
+    dt : float
+        Tick period, s.
+    frame_mode : bool
+        Frame clock (results applied at a fixed tick) or wall clock.
+    max_decisions : int
+        Decisions kept (``state.max_decisions``).
+    restored : PersistedState, optional
+        Parameters, version, run count and decisions saved before.
+    worker_mode : {"thread", "sync"}, optional
+        Default: the configuration's.
+    """
+
+    def __init__(self, model: Model, config: AdaptationConfig, dt: float, frame_mode: bool, max_decisions: int,
+                 restored: Any = None, worker_mode: str | None = None) -> None:
+        self.model = model
+        self.config = config
+        self.dt = float(dt)
+        self.frame_mode = frame_mode
+        self.max_decisions = int(max_decisions)
+        self.offline_theta = model.nominal()
+        self._theta = self.offline_theta.copy()
+        self._counts = AdaptationCounts()
+        self._decisions: list[dict[str, Any]] = []
+        if restored is not None:
+            idx = {n: i for i, n in enumerate(model.parameter_names)}
+            for k, v in restored.parameters.items():
+                self._theta[idx[k]] = v
+            self._counts.version = restored.param_version
+            self._counts.runs = restored.adapt_runs
+            self._decisions = list(restored.decisions)
+        self.worker = AdaptationWorker(model, config.adapter, self.dt, self._theta, self.offline_theta,
+                                       worker_mode or config.worker, config.bands) if config.enabled else None
+        self._bands: dict[str, tuple[float, float]] = {}
+        self._identifiable: dict[str, bool] = {}
+        self._recent: deque[tuple[float, dict[str, float]]] = deque(maxlen=1024)
+        self._next_t: float | None = None
+        self._pending: tuple[int, float] | None = None  # (request id, apply at)
+
+    # -- read-only views -------------------------------------------------------------------------
+    @property
+    def theta(self) -> np.ndarray:
+        """The full parameter vector in use (a copy)."""
+        return self._theta.copy()
+
+    @property
+    def counts(self) -> AdaptationCounts:
+        """The counters (a copy)."""
+        return replace(self._counts)
+
+    @property
+    def decisions(self) -> list[dict[str, Any]]:
+        """The kept decisions, oldest first (a copy)."""
+        return list(self._decisions)
+
+    def parameter_bands(self) -> tuple[dict[str, tuple[float, float]], dict[str, bool]]:
+        """After the last accepted decision: the 95 % band of each adaptable parameter, and whether
+        the sensors pin it down (copies)."""
+        return dict(self._bands), dict(self._identifiable)
+
+    @property
+    def deciding(self) -> bool:
+        """A decision was requested and its result not applied yet."""
+        return self.worker is not None and self._pending is not None
+
+    def values(self) -> dict[str, float]:
+        """The adaptable parameters' values in use."""
+        names = self.worker.params if self.worker is not None else self.model.adaptable
+        idx = self.model.parameter_index(names)
+        return {n: float(self._theta[i]) for n, i in zip(names, idx)}
+
+    def changed(self) -> dict[str, float]:
+        """Every parameter whose value differs from the model file's (what is saved)."""
+        m = self.model
+        return {n: float(v) for n, v, v0 in zip(m.parameter_names, self._theta, self.offline_theta) if v != v0}
+
+    # -- per tick -----------------------------------------------------------------------------------
+    def record(self, t: float, inputs: dict[str, float], measured: Mapping[str, float], state: np.ndarray) -> None:
+        """A finished sample: time ``t`` (s), the inputs of the interval after it, its readings and
+        the observer's state then."""
+        self._recent.append((t, inputs))
+        if self.worker is not None:
+            self.worker.record(t, inputs, measured, state)
+            if self._next_t is None:
+                self._next_t = t + self.config.adapter.period_s
+
+    def awaiting(self, t: float) -> int | None:
+        """With the frame clock: the decision that must be applied at the tick ``t`` and is not done yet."""
+        if self.worker is None or self._pending is None or not self.frame_mode:
+            return None
+        rid, apply_at = self._pending
+        if t + 1e-9 >= apply_at and self.worker.result(rid) is None:
+            return rid
+        return None
+
+    async def wait_async(self, rid: int, timeout_s: float) -> AdaptationResult | None:
+        """Await decision ``rid`` (None after ``timeout_s``: it is then dropped)."""
+        assert self.worker is not None
+        res = await self.worker.wait_async(rid, timeout_s)
+        if res is None:
+            self._pending = None
+        return res
+
+    def step(self, t: float) -> list[AdaptationResult]:
+        """Apply a finished decision (when due), request the next one when due; returns the results applied."""
+        w = self.worker
+        if w is None:
+            return []
+        applied: list[AdaptationResult] = []
+        if self._pending is not None:
+            rid, apply_at = self._pending
+            res = w.result(rid)
+            if res is not None and (not self.frame_mode or t + 1e-9 >= apply_at):
+                self._pending = None
+                w.forget(rid)
+                self._apply(res)
+                applied.append(res)
+        if self._pending is None and self._next_t is not None and self._recent:
+            t_rec = self._recent[-1][0]
+            if t_rec + 1e-9 >= self._next_t:
+                rid = w.request(t_rec)
+                self._pending = (rid, t + self.config.apply_delay_ticks * self.dt)
+                self._next_t = t_rec + self.config.adapter.period_s
+        return applied
+
+    def state_now(self, res: AdaptationResult, stepper: Stepper) -> np.ndarray | None:
+        """The open-loop state after the accepted ``res`` (see :meth:`AdaptationResult.state_now`)."""
+        return res.state_now(stepper, self._recent)
+
+    def restart(self) -> None:
+        """A gap in the data: the worker forgets its history, the next decision is a period away."""
+        if self.worker is not None:
+            self.worker.reset(self._theta)
+        self._next_t = None
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+
+    def _apply(self, res: AdaptationResult) -> None:
+        if res.error is not None or res.decision is None:
+            if res.error != "no history yet":
+                self._counts.failures += 1
+                log.warning("adaptation at t=%.0f failed: %s", res.t, res.error)
+            return
+        d = res.decision
+        rec = json_safe(d.as_dict())
+        rec["wall_s"] = res.wall_s
+        self._decisions.append(rec)
+        if len(self._decisions) > self.max_decisions:
+            del self._decisions[: len(self._decisions) - self.max_decisions]
+        if not d.triggered:
+            return
+        if d.evaluations == 0 and not d.accepted:  # triggered, but the adapter did not optimise (too little history, ...)
+            self._counts.skipped += 1
+            log.debug("adaptation at t=%.0f skipped: %s", d.t, d.reason)
+            return
+        c = self._counts
+        c.runs += 1
+        if not d.accepted:
+            c.rejected += 1
+            log.info("adaptation at t=%.0f rolled back (%s)", d.t, d.reason)
+            return
+        c.accepted += 1
+        c.version += 1
+        self._theta = np.array(res.theta, dtype=float)
+        if res.bands:
+            self._bands.update(res.bands)
+            self._identifiable.update(res.identifiable)
+        log.info("adaptation at t=%.0f accepted (version %d): %s", d.t, c.version,
+                 ", ".join(f"{k}={v:.4g}" for k, v in d.params.items()))
+
+
+def json_safe(x: Any) -> Any:
+    """Non-finite floats -> None, numpy scalars -> Python, recursively (for the JSON state file)."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    return x

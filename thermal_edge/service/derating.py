@@ -43,11 +43,18 @@ The policy, per tick (1 s):
    cause. The model is then not trusted, so the limit is also held to the **band derate at the
    measured temperatures** (issue 14, defect 9): the readings of the sensors that bound a limited
    node from below (a sensor whose node is never hotter than the limited node in the model's steady
-   states, :func:`.engine.bounding_sensors`; the end-winding PT100 for the end-winding hot spot)
+   states, :func:`bounding_sensors`; the end-winding PT100 for the end-winding hot spot)
    with that node's band, full current at ``warn_c`` falling linearly to zero at ``max_c`` (the
    thermistor rule, what is left when the model is not trusted): ``min(safe, band at measured)``.
 4. **Slew**: a limit falls at once; it rises at most ``rise_rate_a_per_s`` and only once the
    candidate exceeds the present limit by more than ``hysteresis_a``.
+
+**Between ticks** (:meth:`DeratingPolicy.between_ticks`, for every ``TE_Limits`` sent, 10 Hz): the
+last tick's limits, unless the bus has been silent longer than ``transmit.bus_silence_s`` (safe
+limit, ``stale_input``: the inverter went silent, and with the frame clock the ticks stop with the
+frames) or, with the wall clock, no tick ran for ``STALL_TICKS`` periods (safe limit,
+``model_fault``: something is stuck). Decided between ticks, such a limit is never above the last
+tick's, which already held the band at the measured temperatures.
 
 The 30 min look-ahead (the current that could be held for the whole horizon and the time to limit)
 is advice for the vehicle or plant controller in ``TE_Forecast``: it never limits by itself. It is
@@ -80,16 +87,27 @@ torque (safe torque when forced).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Mapping, Sequence
+
+import numpy as np
 
 from ..bus.frames import DerateReason
 from ..config import DeratingConfig
+from ..lptn import Model, Role
 
-__all__ = ["DeratingPolicy", "Limits", "NodeBand"]
+__all__ = ["DeratingPolicy", "LimitSpec", "Limits", "MeasuredFloor", "NodeBand", "STALL_TICKS", "bounding_sensors"]
 
 #: reasons that force the safe limit, in order of precedence
 FORCED_ORDER = (DerateReason.STARTING, DerateReason.MODEL_FAULT, DerateReason.STALE_INPUT, DerateReason.SENSOR_FAULT)
+#: ticks of bounding-sensor readings averaged for the floor under a limited node's upper band: the
+#: PT100 noise (σ 0.1 K, 0.1 K steps) averaged down, so the reaction-time current (very sensitive
+#: near the max) does not jump with each reading; at 0.35 K/s (40 A) the mean lags by 0.7 K
+FLOOR_TICKS = 5
+#: tick periods without a tick (wall clock) after which the tick loop counts as stalled: one late
+#: tick is load, three in a row something stuck
+STALL_TICKS = 3
 
 
 @dataclass(frozen=True)
@@ -129,6 +147,104 @@ class Limits:
         }
 
 
+@dataclass(frozen=True)
+class LimitSpec:
+    """A limited node: its name, node row, warning and max temperature (°C) and derate reason."""
+
+    name: str
+    row: int
+    warn_c: float
+    max_c: float
+    reason: DerateReason
+
+
+def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], limits: dict[str, int],
+                     max_current_a: float, kt_nm_per_arms: float, rated_speed_rpm: float = 1000.0) -> dict[str, list[str]]:
+    """Sensors whose reading is a lower bound of a limited node's temperature.
+
+    A sensor bounds a limited node if, in the model's steady states over a grid of operating points
+    (speeds 0, ½, 1 and 2 times ``rated_speed_rpm``; currents ¼, ½ and 1 times the maximum; 25 °C),
+    its node is never hotter than the limited node: then a reading at or above the node's warning
+    temperature means the limited node is at least that hot, whatever the model's state (the
+    end-winding PT100 for the end-winding hot spot; not for the magnet, which is cooler than the
+    winding at low speed).
+
+    Parameters
+    ----------
+    model : Model
+    theta : ndarray
+        Parameters of the steady states.
+    sensors, limits : dict of str to int
+        Sensor name -> node row, limit name -> node row.
+    max_current_a : float
+        Maximum current, A rms.
+    kt_nm_per_arms : float
+        Torque constant (for a torque input).
+
+    Returns
+    -------
+    dict of str to list of str
+        Limit name -> the sensors that bound it from below (only limits with at least one).
+    """
+    from ..lptn import steady_state
+
+    rest = model.at_rest({k: 25.0 for k in model.temperature_inputs})
+    ok = {(lim, s): True for lim in limits for s in sensors}
+    for speed in (0.0, 0.5 * rated_speed_rpm, rated_speed_rpm, 2.0 * rated_speed_rpm):
+        for frac in (0.25, 0.5, 1.0):
+            i = frac * max_current_a
+            u = dict(rest)
+            u.update({k: v for k, v in ((model.find_input(Role.SPEED), speed), (model.find_input(Role.TORQUE), kt_nm_per_arms * i),
+                                        (model.input_name(Role.CURRENT), i)) if k in u})
+            try:
+                T, _ = steady_state(model, u, theta)
+            except Exception:  # no steady state at this point: decide on the others
+                continue
+            for (lim, s) in ok:
+                if T[sensors[s]] > T[limits[lim]] + 1e-6:
+                    ok[(lim, s)] = False
+    out: dict[str, list[str]] = {}
+    for (lim, s), v in ok.items():
+        if v:
+            out.setdefault(lim, []).append(s)
+    return out
+
+
+class MeasuredFloor:
+    """The readings of the sensors that bound a limited node from below (:func:`bounding_sensors`).
+
+    Two uses: a limited node's upper band is never below the mean of its bounding sensors' last
+    ``FLOOR_TICKS`` readings (an estimate the readings have outrun, a model that runs cold, does not
+    hide that), and while the model is not trusted the readings with that node's band are the
+    thermistor rule's input (step 3).
+
+    Parameters
+    ----------
+    limits : sequence of LimitSpec
+    bound_by : mapping of str to list of str
+        Limit name -> its bounding sensors.
+    """
+
+    def __init__(self, limits: Sequence[LimitSpec], bound_by: Mapping[str, list[str]]) -> None:
+        self.specs = [(s, lim) for lim in limits for s in bound_by.get(lim.name, [])]
+        self._history: dict[str, deque[float]] = {s: deque(maxlen=FLOOR_TICKS) for s, _ in self.specs}
+
+    def bands(self, measured: Mapping[str, float]) -> list[NodeBand]:
+        """The readings as bands of the nodes they bound (finite readings only), °C."""
+        return [NodeBand(lim.name, measured[s], measured[s], lim.warn_c, lim.max_c, lim.reason)
+                for s, lim in self.specs if math.isfinite(measured.get(s, math.nan))]
+
+    def raise_upper(self, upper: np.ndarray, measured: Mapping[str, float]) -> None:
+        """Record this tick's readings and raise ``upper`` (°C, by node row, in place) to their means."""
+        for s, lim in self.specs:
+            v = measured.get(s, math.nan)
+            hist = self._history[s]
+            if math.isfinite(v):
+                hist.append(v)
+            if hist:
+                upper[lim.row] = max(upper[lim.row], sum(hist) / len(hist))
+
+
 class DeratingPolicy:
     """Turns the reaction-time current, readings and health into limits, one tick at a time.
 
@@ -138,15 +254,20 @@ class DeratingPolicy:
     kt_nm_per_arms : float
         Torque constant (Nm per A rms) linking the current and the torque limit.
     tick_s : float
-        Tick period (s), for the rise rate.
+        Tick period (s), for the rise rate and the stall of the tick loop.
+    bus_silence_s : float
+        Silence of the bus (s) after which the safe limit is sent between ticks (the service's
+        ``transmit.bus_silence_s``; infinite: never).
     """
 
     FORCED_ORDER = FORCED_ORDER
 
-    def __init__(self, config: DeratingConfig, kt_nm_per_arms: float, tick_s: float = 1.0) -> None:
+    def __init__(self, config: DeratingConfig, kt_nm_per_arms: float, tick_s: float = 1.0,
+                 bus_silence_s: float = math.inf) -> None:
         self.config = config
         self.kt = float(kt_nm_per_arms)
         self.tick_s = float(tick_s)
+        self.bus_silence_s = float(bus_silence_s)
         self.safe_current = config.safe_current_a
         self.safe_torque = config.safe_torque_nm if config.safe_torque_nm is not None else min(
             config.max_torque_nm, self.kt * config.safe_current_a)
@@ -221,3 +342,37 @@ class DeratingPolicy:
         torque = min(torque_cap, self.kt * self.current)
         self.last = Limits(self.current, torque, self.reason, self.reason != DerateReason.NONE)
         return self.last
+
+    # -- between ticks (called from the TE_Limits sender thread: reads only constants and ``last``) --
+    def stalled(self, tick_age_s: float | None) -> bool:
+        """True if ``tick_age_s`` (s since the last tick; None: not judged) means the tick loop is stuck."""
+        return tick_age_s is not None and tick_age_s > STALL_TICKS * self.tick_s
+
+    def between_ticks(self, last: Limits | None, frame_age_s: float | None, tick_age_s: float | None) -> Limits:
+        """The limits to send now (see the module docstring).
+
+        Parameters
+        ----------
+        last : Limits or None
+            The last tick's limits (None before the first tick).
+        frame_age_s : float or None
+            Seconds since the last accepted frame (or since the start); None where silence is
+            expected (the frame clock waiting for an adaptation's result holds the sender back).
+        tick_age_s : float or None
+            Seconds since the last tick; None where ticks follow the frames (frame clock) or
+            before the first tick.
+        """
+        if frame_age_s is not None and frame_age_s > self.bus_silence_s:
+            return self._forced_after(DerateReason.STALE_INPUT, last)
+        if last is None:
+            return self.safe(DerateReason.STARTING)
+        if self.stalled(tick_age_s):
+            return self._forced_after(DerateReason.MODEL_FAULT, last)
+        return last
+
+    def _forced_after(self, reason: DerateReason, last: Limits | None) -> Limits:
+        """The safe limit with ``reason``, never above ``last`` (decided between ticks, it cannot know better)."""
+        safe = self.safe(reason)
+        if last is not None and last.current_a < safe.current_a:
+            return Limits(last.current_a, min(last.torque_nm, safe.torque_nm), reason, True)
+        return safe

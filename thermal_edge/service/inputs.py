@@ -234,6 +234,16 @@ class InputAccumulator:
         frames, self._frames = self._frames, Counter()
         return TickInputs(t, inputs, measured, ages, status, stale, faults, frames, fresh)
 
+    @property
+    def fault_sources(self) -> list[str]:
+        """The names whose fault is reported in :attr:`TickInputs.faults`: latest-value inputs and
+        required sensors."""
+        return [*self.latest_inputs, *(n for n, spec in self.sensors.items() if spec.required)]
+
+    def last_valid_t(self, name: str) -> float:
+        """Clock time (s) of the last valid reading of a sensor or a latest-value input (-inf: none yet)."""
+        return self._latest[name].t
+
     def reset(self) -> None:
         """Forget the per-tick sums (after a gap)."""
         for k in self._sum:

@@ -24,7 +24,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..lptn import Model, Stepper
+from ..lptn import Model, Role, Stepper
 
 __all__ = ["Lookahead", "LookaheadResult"]
 
@@ -62,22 +62,20 @@ class Lookahead:
     horizon_s : float
     steps : int
         Checkpoints over the horizon (the ZOH step is ``horizon_s / steps``).
-    current_input : str
-        The model input that carries the RMS current (``i_rms``).
     loss_temperature_c : float
         Temperature at which temperature-dependent losses are evaluated (conservative: the highest
         limit).
     """
 
     def __init__(self, model: Model, theta: np.ndarray, limits: Sequence[tuple[str, int, float]], horizon_s: float,
-                 steps: int, current_input: str = "i_rms", loss_temperature_c: float | None = None) -> None:
+                 steps: int, loss_temperature_c: float | None = None) -> None:
         self.model = model
         self.limits = list(limits)
         self.horizon_s = float(horizon_s)
         self.steps = int(steps)
         self.dt = self.horizon_s / self.steps
         self.stepper = Stepper(model, theta, self.dt, method="zoh")
-        self.current_input = current_input
+        self.current_input = model.input_name(Role.CURRENT)  # the RMS current, A
         self.rows = np.array([i for _, i, _ in self.limits], dtype=int)
         self.max_c = np.array([m for _, _, m in self.limits], dtype=float)
         self.loss_T = float(loss_temperature_c if loss_temperature_c is not None else self.max_c.max())
@@ -86,7 +84,7 @@ class Lookahead:
         # and the boundary temperatures (which enter through U)
         bounds = set(model.boundaries.values())
         used = set(self.stepper.net.matrix_inputs) | _loss_inputs(model)
-        self._key_inputs = tuple(k for k in model.inputs if k in used and k != current_input and k not in bounds)
+        self._key_inputs = tuple(k for k in model.inputs if k in used and k != self.current_input and k not in bounds)
         self._cache: dict[tuple[float, ...], tuple[np.ndarray, ...]] = {}
         self.cache_size = 64  # operating points (each ~75 kB for 60 checkpoints)
 

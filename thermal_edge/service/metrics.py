@@ -5,6 +5,11 @@ by a custom collector at scrape time from the engine's last tick and the CAN lay
 the hot paths do no metric work. Histograms (tick duration and lateness, adaptation duration) and
 a few counters are updated as events happen.
 
+Every labelled counter and flag an operator alerts on exists from the first scrape, 0 for each of
+its known label values (frames, sensors and fault kinds, drop reasons; the derate reason and the
+state say ``starting`` before the first tick), so that ``increase()`` and the alert rules see the
+first event. Gauges of measured values (temperatures, errors) appear with their first value.
+
 The endpoint is read only (``/metrics``); it binds 127.0.0.1:9108 unless configured otherwise.
 """
 from __future__ import annotations
@@ -19,7 +24,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, State
 from prometheus_client.registry import Collector
 
 from .. import __version__
-from ..bus.frames import DerateReason, TeState
+from ..bus.frames import TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
 from ..bus.stats import DROP_REASONS
 from .inputs import FAULT_KINDS
 from .metrics_server import MetricsServer
@@ -54,6 +59,16 @@ LABELS: dict[str, tuple[str, ...]] = {
     "frames_dropped": ("reason",),
     "frames_lost": ("frame",),
 }
+
+#: the frames the service sends (frames_sent has a series for each from the start)
+SENT_FRAMES = (TE_LIMITS, TE_ESTIMATES, TE_FORECAST, TE_STATUS)
+
+
+def _with_known(counts: "dict[str, int]", known: Iterable[str]) -> list[tuple[str, int]]:
+    """Counts per label value, every known value present (0 if not counted yet), known ones first."""
+    out = {k: 0 for k in known}
+    out.update(counts)
+    return list(out.items())
 
 
 class _LiveCollector(Collector):
@@ -107,12 +122,12 @@ class _LiveCollector(Collector):
             yield inp
             lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
                                     labels=LABELS["limited_node_celsius"])
-            for b, (name, idx, warn, mx, _) in zip(out.bands, eng.limit_specs):  # type: ignore[union-attr]
-                node = model.nodes[idx]
-                lim.add_metric([name, node, "estimate"], b.estimate_c)
-                lim.add_metric([name, node, "upper"], b.upper_c)
-                lim.add_metric([name, node, "warn"], warn)
-                lim.add_metric([name, node, "max"], mx)
+            for b, ln in zip(out.bands, eng.limited_nodes):  # type: ignore[union-attr]
+                node = model.nodes[ln.row]
+                lim.add_metric([ln.name, node, "estimate"], b.estimate_c)
+                lim.add_metric([ln.name, node, "upper"], b.upper_c)
+                lim.add_metric([ln.name, node, "warn"], ln.warn_c)
+                lim.add_metric([ln.name, node, "max"], ln.max_c)
             yield lim
             yield GaugeMetricFamily(P + "current_limit_amperes", "Current limit sent in TE_Limits (A rms)",
                                     value=out.limits.current_a)
@@ -121,8 +136,6 @@ class _LiveCollector(Collector):
             yield GaugeMetricFamily(P + "derate_active", "1 while the limits are reduced", value=float(out.limits.active))
             yield GaugeMetricFamily(P + "derate_reason_code", "TE_DerateReason of the last tick (enumeration value)",
                                     value=float(int(out.limits.reason)))
-            yield StateSetMetricFamily(P + "derate_reason", "Why the limits are reduced",
-                                       value={r.name.lower(): r == out.limits.reason for r in DerateReason})
             if math.isfinite(out.lookahead_a):
                 yield GaugeMetricFamily(P + "lookahead_current_amperes",
                                         "Largest RMS current that keeps every limit over the horizon",
@@ -133,26 +146,33 @@ class _LiveCollector(Collector):
             yield GaugeMetricFamily(P + "lookahead_horizon_seconds", "Look-ahead horizon", value=out.horizon_s)
             yield GaugeMetricFamily(P + "state_code", "TE_State of the last tick (enumeration value)",
                                     value=float(int(out.state)))
-            yield StateSetMetricFamily(P + "state", "Service state", value={s.name.lower(): s == out.state for s in TeState})
             yield GaugeMetricFamily(P + "last_tick_timestamp_seconds", "Clock time of the last tick", value=out.t)
             age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
                                     labels=LABELS["sensor_age_seconds"])
             for s in eng.config.sensors:  # type: ignore[union-attr]
-                a = eng.accumulator._latest[s].t  # type: ignore[union-attr]
+                a = eng.accumulator.last_valid_t(s)  # type: ignore[union-attr]
                 if math.isfinite(a):
                     age.add_metric([s], out.t - a)
             yield age
+        if eng is not None and model is not None:
+            # before the first tick: starting, nothing stale, no fault (as TE_Limits says)
+            reason = out.limits.reason if out is not None else DerateReason.STARTING
+            state = out.state if out is not None else TeState.STARTING
+            yield StateSetMetricFamily(P + "derate_reason", "Why the limits are reduced",
+                                       value={r.name.lower(): r == reason for r in DerateReason})
+            yield StateSetMetricFamily(P + "state", "Service state", value={s.name.lower(): s == state for s in TeState})
             stale = GaugeMetricFamily(P + "input_stale", "1 for each frame missing longer than its timeout",
                                       labels=LABELS["input_stale"])
-            for f in eng.config.timeouts:  # type: ignore[union-attr]
-                stale.add_metric([f], float(f in out.stale))
+            for f in eng.config.timeouts:
+                stale.add_metric([f], float(out is not None and f in out.stale))
             yield stale
             fault = GaugeMetricFamily(P + "sensor_fault", "1 for each required sensor/input reporting a fault",
                                       labels=LABELS["sensor_fault"])
-            for s, kind in out.faults.items():
-                fault.add_metric([s, kind], 1.0)
+            faults = out.faults if out is not None else {}
+            for s in eng.accumulator.fault_sources:
+                for kind in FAULT_KINDS:
+                    fault.add_metric([s, kind], float(faults.get(s) == kind))
             yield fault
-        if eng is not None and model is not None:
             val = GaugeMetricFamily(P + "parameter_value", "Adaptable parameter value (unit in the label)",
                                     labels=LABELS["parameter_value"])
             band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information)",
@@ -161,24 +181,26 @@ class _LiveCollector(Collector):
                                       "1 if the sensors at hand pin the parameter down (relative sd < 25 %)",
                                       labels=LABELS["parameter_identifiable"])
             units = {p.name: p.unit for p in model.parameters}
-            for name, v in eng.adaptable_values().items():
+            param_bands, identifiable = eng.adaptation.parameter_bands()
+            for name, v in eng.adaptation.values().items():
                 val.add_metric([name, units.get(name, "")], v)
-                if name in eng.param_bands:
-                    lo, hi = eng.param_bands[name]
+                if name in param_bands:
+                    lo, hi = param_bands[name]
                     band.add_metric([name, "lower"], lo)
                     band.add_metric([name, "upper"], hi)
-                if name in eng.identifiable:
-                    ident.add_metric([name], float(eng.identifiable[name]))
+                if name in identifiable:
+                    ident.add_metric([name], float(identifiable[name]))
             yield val
             yield band
             yield ident
-            yield GaugeMetricFamily(P + "parameter_version", "Accepted parameter sets so far", value=eng.param_version)
+            ad = eng.adaptation.counts
+            yield GaugeMetricFamily(P + "parameter_version", "Accepted parameter sets so far", value=ad.version)
             for name, value, doc in (
-                ("adaptation_runs", eng.adapt_runs, "Adaptations run (prediction error above the threshold)"),
-                ("adaptation_accepted", eng.adapt_accepted, "Adaptations accepted"),
-                ("adaptation_rejected", eng.adapt_rejected, "Adaptations rolled back"),
-                ("adaptation_failures", eng.adapt_failures, "Adaptations that failed with an error"),
-                ("adaptation_skipped", eng.adapt_skipped, "Decisions above the threshold that could not optimise yet"),
+                ("adaptation_runs", ad.runs, "Adaptations run (prediction error above the threshold)"),
+                ("adaptation_accepted", ad.accepted, "Adaptations accepted"),
+                ("adaptation_rejected", ad.rejected, "Adaptations rolled back"),
+                ("adaptation_failures", ad.failures, "Adaptations that failed with an error"),
+                ("adaptation_skipped", ad.skipped, "Decisions above the threshold that could not optimise yet"),
                 ("model_faults", eng.model_faults, "Times the model was found diverged (safe limit forced)"),
                 ("ticks", eng.ticks, "Ticks run"),
                 ("frame_gaps", eng.gaps, "Gaps in the frame clock bridged by cooling the state"),
@@ -195,12 +217,13 @@ class _LiveCollector(Collector):
         codec = m.codec
         if codec is not None:
             st = codec.stats
+            received = eng.config.timeouts if eng is not None else ()  # the inverter's frames the service needs
             rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)", labels=LABELS["frames_received"])
-            for k, v in st.received.items():
+            for k, v in _with_known(st.received, received):
                 rx.add_metric([k], v)
             yield rx
             tx = CounterMetricFamily(P + "frames_sent", "Frames encoded for sending", labels=LABELS["frames_sent"])
-            for k, v in st.sent.items():
+            for k, v in _with_known(st.sent, SENT_FRAMES):
                 tx.add_metric([k], v)
             yield tx
             dr = CounterMetricFamily(P + "frames_dropped", "Received frames dropped, by reason", labels=LABELS["frames_dropped"])
@@ -208,7 +231,7 @@ class _LiveCollector(Collector):
                 dr.add_metric([r], getattr(st, r))
             yield dr
             lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter", labels=LABELS["frames_lost"])
-            for k, v in st.lost_by_frame.items():
+            for k, v in _with_known(st.lost_by_frame, received):
                 lost.add_metric([k], v)
             yield lost
             yield CounterMetricFamily(P + "frames_lost_all", "Frames missing according to the alive counter (all frames)",

@@ -22,7 +22,8 @@ from ..bus.logs import FrameLogReader
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
 from ..lptn import Model
 from .clock import FrameClock
-from .engine import ThermalEngine, TickOutput, load_service_model
+from .engine import ThermalEngine, load_service_model
+from .outputs import TickOutput
 from .persistence import PersistedState
 
 __all__ = ["ReplayResult", "format_summary", "replay_candump", "replay_summary"]
@@ -86,19 +87,13 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s)
     reader = FrameLogReader(Path(path), codec, include_tx=False)
-    tick = cfg.clock.tick_s
     outs: list[TickOutput] = []
     n_frames = 0
     try:
         for frame in reader:
             n_frames += 1
-            boundaries = clock.observe(frame.timestamp)
-            if boundaries:
-                if len(boundaries) * tick > cfg.clock.max_catchup_s:
-                    engine.bridge_gap(boundaries[-1] - tick)
-                    boundaries = boundaries[-1:]
-                for b in boundaries:
-                    outs.append(engine.tick(b))
+            for b in engine.ticks_for(clock.observe(frame.timestamp)):
+                outs.append(engine.tick(b))
             engine.add_frame(frame, clock.now())
     finally:
         engine.close()
@@ -113,7 +108,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
         nodes=tuple(model.nodes), t=np.array([o.t for o in outs]), estimate=est, sigma=sig, prediction=pred,
         current_limit_a=np.array([o.limits.current_a for o in outs]), reason=np.array([int(o.limits.reason) for o in outs]),
         state=np.array([int(o.state) for o in outs]), pred_err_rms=np.array([o.pred_err_rms for o in outs]),
-        decisions=list(engine.decisions), parameters=engine.adaptable_values(), frame_stats=codec.stats.as_dict(),
+        decisions=engine.adaptation.decisions, parameters=engine.adaptation.values(), frame_stats=codec.stats.as_dict(),
         frames=n_frames, malformed_lines=len(reader.malformed_lines), outputs=outs if keep_outputs else [],
     )
 

@@ -37,7 +37,8 @@ from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS
 from ..config import EdgeConfig
 from ..lptn import Model
 from .clock import FrameClock, WallClock
-from .engine import ThermalEngine, TickOutput, load_service_model
+from .engine import ThermalEngine, load_service_model
+from .outputs import TickOutput
 from .memory import limit_heap_retention
 from .metrics import ServiceMetrics
 from .persistence import StateStore
@@ -208,11 +209,7 @@ class EdgeService:
         return None
 
     async def _frame_ticks(self, boundaries: list[float], frame: DecodedFrame) -> None:
-        tick = self.config.clock.tick_s
-        if len(boundaries) * tick > self.config.clock.max_catchup_s:
-            self.engine.bridge_gap(boundaries[-1] - tick)
-            boundaries = boundaries[-1:]
-        for b in boundaries:
+        for b in self.engine.ticks_for(boundaries):
             await self._run_tick(b, None)
         self.engine.add_frame(frame, self.clock.now())
 
@@ -231,18 +228,17 @@ class EdgeService:
     async def _run_tick(self, t: float, lateness: float | None) -> TickOutput:
         async with self._tick_lock:
             rid = self.engine.awaiting(t)
-            if rid is not None and self.engine.worker is not None:
+            if rid is not None:
                 # frame clock: the decision is applied at a fixed tick; the sender waits for us meanwhile,
                 # which is not the inverter going silent
                 self._waiting = True
                 try:
-                    res = await self.engine.worker.wait_async(rid, ADAPT_WAIT_TIMEOUT_S)
+                    res = await self.engine.adaptation.wait_async(rid, ADAPT_WAIT_TIMEOUT_S)
                 finally:
                     self._waiting = False
                     self._last_frame_mono = time.monotonic()
                 if res is None:
                     log.error("adaptation %d did not finish within %.0f s: dropped", rid, ADAPT_WAIT_TIMEOUT_S)
-                    self.engine.pending = None
             out = self.engine.tick(t)
             self._last_tick_mono = time.monotonic()
             self.metrics.observe_tick(out, lateness)
@@ -272,29 +268,22 @@ class EdgeService:
         return out if out is not None else self.engine.placeholder(self.clock.now())
 
     def _limits_signals(self) -> dict[str, float | int]:
-        # called in the TE_Limits sender thread: reads only references and numbers the loop replaces whole
-        policy = self.engine.policy
-        now = time.monotonic()
-        silence = self.config.transmit.bus_silence_s
-        ref = self._last_frame_mono if self._last_frame_mono is not None else self._started_mono
+        # called in the TE_Limits sender thread: reads only references and numbers the loop replaces whole;
+        # the rule (silence, stalled ticks) is the derating policy's
         out = self.engine.last
-        if ref is not None and now - ref > silence and not self._waiting:
-            return self._forced_signals(DerateReason.STALE_INPUT)
-        if out is None:
-            return policy.safe(DerateReason.STARTING).signals()
-        if not self.frame_mode and self._last_tick_mono is not None and now - self._last_tick_mono > 3 * self.config.clock.tick_s:
-            return self._forced_signals(DerateReason.MODEL_FAULT)  # ticks stopped: something is stuck
-        return out.limits.signals()
+        return self.engine.policy.between_ticks(out.limits if out is not None else None, self._frame_age(),
+                                                self._tick_age()).signals()
 
-    def _forced_signals(self, reason: DerateReason) -> dict[str, float | int]:
-        """The safe limit with ``reason``, never above the last tick's limit (which already held the
-        band at the measured temperatures): decided between ticks, so it cannot know better."""
-        safe = self.engine.policy.safe(reason)
-        out = self.engine.last
-        if out is not None and out.limits.current_a < safe.current_a:
-            return {**safe.signals(), "TE_CurrentLimit": out.limits.current_a,
-                    "TE_TorqueLimit": min(out.limits.torque_nm, safe.torque_nm)}
-        return safe.signals()
+    def _frame_age(self) -> float | None:
+        """Seconds since the last accepted frame (or the start); None while silence is expected (the
+        frame clock waits for an adaptation's result)."""
+        ref = self._last_frame_mono if self._last_frame_mono is not None else self._started_mono
+        return None if ref is None or self._waiting else time.monotonic() - ref
+
+    def _tick_age(self) -> float | None:
+        """Seconds since the last tick of the wall clock (None with the frame clock or before the first tick)."""
+        last = self._last_tick_mono
+        return None if self.frame_mode or last is None else time.monotonic() - last
 
     def _tx_time(self) -> float:
         """Timestamp of sent (and recorded) frames: the clock's time. With the frame clock, frames
@@ -324,8 +313,7 @@ class EdgeService:
         next_t = time.monotonic()
         while True:
             now = time.monotonic()
-            healthy = self.frame_mode or self._last_tick_mono is None or now - self._last_tick_mono < 3 * self.config.clock.tick_s
-            if healthy:  # a stalled tick loop stops the pings: systemd restarts the service
+            if not self.engine.policy.stalled(self._tick_age()):  # a stalled tick loop stops the pings: systemd restarts the service
                 self.notifier.watchdog()
                 self.metrics.watchdog_pings.inc()
             out = self.engine.last

@@ -331,6 +331,9 @@ def corrupt_states(full: bool) -> Iterator[Case]:
 # ----------------------------------------------------------------------------------------------
 def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
     """Broken configurations: name -> the YAML mapping, or raw bytes, or None (no file at all)."""
+    from ...lptn import Role, load_model
+
+    current = load_model(base["model"]["path"]).input_name(Role.CURRENT)  # the input left unmapped
 
     def set_(path: str, value: Any) -> dict[str, Any]:
         raw = json.loads(json.dumps(base))
@@ -361,7 +364,7 @@ def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
         "tick_zero": set_("clock.tick_s", 0),
         "model_file_missing": set_("model.path", "/nonexistent/pm10kw.yaml"),
         "dbc_file_missing": set_("codec.dbc", "/nonexistent/thermal_edge.dbc"),
-        "input_not_mapped": set_("signals.inputs", {k: v for k, v in base["signals"]["inputs"].items() if k != "i_rms"}),
+        "input_not_mapped": set_("signals.inputs", {k: v for k, v in base["signals"]["inputs"].items() if k != current}),
         "sensor_signal_unknown": set_("signals.sensors", {**base["signals"]["sensors"],
                                                           "housing": {"frame": "INV_StatorTemps", "signal": "INV_T_Bogus"}}),
         "valid_range_reversed": set_("signals.valid_range_c", [250, -40]),

@@ -1,0 +1,204 @@
+"""The thermal state estimate: the observer's best estimate and the open-loop prediction beside it.
+
+:class:`StateEstimate` owns the :class:`~thermal_edge.estimation.observer.Observer` (Kalman filter,
+corrected by the readings) and the **open-loop prediction** (the same model step, never corrected:
+its error against the readings is what tells a model gone wrong and triggers adaptation). It starts
+them (from the readings, or from a saved state cooled over the downtime), steps them once a tick,
+restarts them from the readings after a model fault, cools them over a gap in the frames, and takes
+new parameters.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from typing import Mapping
+
+import numpy as np
+
+from ..config import ObserverConfig, StateConfig
+from ..estimation.observer import Observer
+from ..lptn import Model, Stepper, cool_down, initial_state
+from .inputs import TickInputs
+from .persistence import PersistedState
+
+__all__ = ["StateEstimate"]
+
+log = logging.getLogger(__name__)
+
+STEPPER_CACHE = 128  # operating points (speeds) whose transition matrices are kept
+
+
+class StateEstimate:
+    """Observer and open-loop prediction of the model's node temperatures (°C).
+
+    Parameters
+    ----------
+    model : Model
+    dt : float
+        Tick period, s.
+    config : ObserverConfig
+        Noise levels (K).
+    """
+
+    def __init__(self, model: Model, dt: float, config: ObserverConfig) -> None:
+        self.model = model
+        self.dt = float(dt)
+        self.config = config
+        self._observer: Observer | None = None
+        self._prediction: np.ndarray | None = None
+
+    # -- read-only views -------------------------------------------------------------------------
+    @property
+    def initialized(self) -> bool:
+        """True once the state is started (and until a failed tick drops it)."""
+        return self._observer is not None
+
+    @property
+    def observer(self) -> Observer | None:
+        """The observer (None before the start)."""
+        return self._observer
+
+    @property
+    def prediction(self) -> np.ndarray | None:
+        """The open-loop prediction, °C (None before the start)."""
+        return self._prediction
+
+    @property
+    def finite(self) -> bool:
+        """Whether the estimate, its covariance and the prediction are all finite."""
+        obs, x = self._observer, self._prediction
+        return bool(obs is not None and x is not None and np.all(np.isfinite(obs.T)) and np.all(np.isfinite(obs.P))
+                    and np.all(np.isfinite(x)))
+
+    # -- start and restart ------------------------------------------------------------------------
+    def start(self, t: float, ti: TickInputs, theta: np.ndarray, restored: PersistedState | None,
+              state: StateConfig) -> dict[str, float]:
+        """Start from a saved state cooled over the downtime (if usable) or from the readings, then
+        correct by the first readings; returns what the restart was (``downtime_s``, or empty)."""
+        m, cfg = self.model, self.config
+        T0 = P0 = None
+        info: dict[str, float] = {}
+        rs = restored
+        if rs is not None and rs.T:
+            downtime = t - rs.saved_at
+            info = {"downtime_s": downtime}
+            last = {**ti.inputs, **{k: v for k, v in rs.inputs.items() if math.isfinite(v)}}
+            if 0 <= downtime <= state.max_downtime_s:
+                try:
+                    T0, Phi = cool_down(m, theta, np.array(rs.T), downtime, last)
+                    P = np.array(rs.P) if rs.P else np.diag(np.square(np.array(rs.sigma))) if rs.sigma else np.eye(len(T0)) * cfg.restart_p0_k**2
+                    P = P + self._run_on_covariance(theta, np.array(rs.T), rs.inputs, min(downtime, state.save_interval_s))
+                    grow = min(cfg.q_k**2 * downtime / self.dt, cfg.restart_p0_k**2)
+                    P0 = Phi @ P @ Phi.T + np.eye(len(T0)) * grow
+                    log.info("restored thermal state from %.0f s ago (cooled over the downtime at %.1f degC ambient)",
+                             downtime, float(np.mean([float(last.get(c, math.nan)) for c in m.boundaries.values()])))
+                except Exception as exc:
+                    log.warning("cannot cool the saved state over the downtime (%s): starting from the readings", exc)
+                    T0 = None
+            elif downtime < 0:
+                log.warning("saved state is %.0f s in the future (clock changed?): using it as it is", -downtime)
+                T0 = np.array(rs.T)
+            else:
+                log.info("saved state is %.0f s old (more than %.0f s): starting from the readings", downtime,
+                         state.max_downtime_s)
+        if T0 is None:
+            T0 = initial_state(m, ti.inputs, ti.measured, theta)
+        self._begin(T0, theta, ti.measured, P0)
+        return info
+
+    def restart_from_readings(self, ti: TickInputs, theta: np.ndarray) -> None:
+        """After a model fault: start again from the usable readings alone."""
+        m = self.model
+        ok = {k: v for k, v in ti.measured.items() if math.isfinite(v)}
+        try:
+            T0 = initial_state(m, ti.inputs, ok, theta)
+        except Exception:
+            T0 = np.full(len(m.nodes), float(np.nanmean(list(ok.values()))) if ok else 25.0)
+        if not np.all(np.isfinite(T0)):
+            T0 = np.full(len(m.nodes), 25.0)
+        self._begin(T0, theta, ok, None)
+
+    def drop(self) -> None:
+        """Forget the state (a tick failed): the next usable tick starts it again."""
+        self._observer = None
+
+    def _begin(self, T0: np.ndarray, theta: np.ndarray, measured: Mapping[str, float], P0: np.ndarray | None) -> None:
+        c = self.config
+        obs = Observer(self.model, T0, theta, self.dt, c.q_k, c.r_k, c.p0_k)
+        obs.stepper.cache_size = STEPPER_CACHE
+        if P0 is not None:
+            obs.P = 0.5 * (P0 + P0.T)
+        obs.update(dict(measured))  # corrected by the first measurements
+        self._observer = obs
+        self._prediction = obs.T.copy()
+
+    def _run_on_covariance(self, theta: np.ndarray, T: np.ndarray, last: dict[str, float], run_on_s: float) -> np.ndarray:
+        """Uncertainty of the saved state about what happened after it was saved: the machine may have
+        run on at its last load for up to one save interval before it stopped. Rank one, along the
+        difference between running on and standing still, so that the first readings of the measured
+        nodes correct the unmeasured ones consistently (they were all heated by the same losses)."""
+        m = self.model
+        n = len(m.nodes)
+        if run_on_s <= 0 or not all(math.isfinite(last.get(k, math.nan)) for k in m.inputs):
+            return np.zeros((n, n))
+        try:
+            run, _ = Stepper(m, theta, run_on_s).step(T, {k: float(last[k]) for k in m.inputs})
+            stop, _ = cool_down(m, theta, T, run_on_s, last)
+        except Exception:
+            return np.zeros((n, n))
+        v = run - stop
+        return np.outer(v, v) if np.all(np.isfinite(v)) else np.zeros((n, n))
+
+    # -- per tick -----------------------------------------------------------------------------------
+    def step(self, u: Mapping[str, float], measured: Mapping[str, float], sensor_rows: Mapping[str, int]) -> list[float]:
+        """One tick: the prediction and the observer step with the interval's inputs ``u``, the
+        observer is corrected by ``measured``; returns the absolute innovations (K) of the sensors
+        with a reading."""
+        obs, x = self._observer, self._prediction
+        assert obs is not None and x is not None
+        self._prediction, _ = obs.stepper.step(x, dict(u))
+        obs.predict(dict(u))
+        prior = obs.T.copy()
+        innov = [abs(measured[s] - prior[r]) for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
+        obs.update(dict(measured))
+        return innov
+
+    def bridge(self, gap_s: float, theta: np.ndarray, last_inputs: Mapping[str, float]) -> None:
+        """Cool the state at standstill over a gap of ``gap_s`` in the frames (the uncertainty grows)."""
+        obs = self._observer
+        if obs is None:
+            return
+        T1, Phi = cool_down(self.model, theta, obs.T, gap_s, dict(last_inputs))
+        grow = min(self.config.q_k**2 * gap_s / self.dt, self.config.restart_p0_k**2)
+        obs.T = T1
+        obs.P = Phi @ obs.P @ Phi.T + np.eye(len(T1)) * grow
+        self._prediction = T1.copy()
+
+    @property
+    def stepper(self) -> Stepper:
+        """The model step with the parameters in use (the observer's)."""
+        assert self._observer is not None
+        return self._observer.stepper
+
+    def set_parameters(self, theta: np.ndarray) -> None:
+        """New parameters for the observer (and so for the prediction's next steps)."""
+        assert self._observer is not None
+        self._observer.set_parameters(theta)
+
+    def replace_prediction(self, prediction: np.ndarray | None) -> None:
+        """The open-loop state consistent with new parameters, °C (ignored if None or not finite)."""
+        if prediction is not None and np.all(np.isfinite(prediction)):
+            self._prediction = prediction
+
+    def saved(self) -> dict[str, list] | None:
+        """The state to persist (nodes, T, sigma, P, T_pred), or None if not started or not finite."""
+        obs = self._observer
+        if obs is None or not (np.all(np.isfinite(obs.T)) and np.all(np.isfinite(obs.P))):
+            return None
+        out: dict[str, list] = {"nodes": list(self.model.nodes), "T": [float(x) for x in obs.T],
+                                "sigma": [float(x) for x in obs.std()], "P": [[float(x) for x in row] for row in obs.P],
+                                "T_pred": []}
+        x = self._prediction
+        if x is not None and np.all(np.isfinite(x)):
+            out["T_pred"] = [float(v) for v in x]
+        return out
