@@ -24,7 +24,6 @@ import tempfile
 import types
 import typing
 from dataclasses import MISSING, dataclass, field, fields
-from enum import Enum
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
