@@ -45,7 +45,8 @@ class Spec:
     check : callable, optional
         ``check(value) -> message or None`` for a rule the bounds cannot say.
     parse : callable, optional
-        ``parse(section, key, entry_name) -> value``: reads a field that is not a plain value.
+        ``parse(section, key, values, default) -> value``: reads a field that is not a plain value
+        (``values``: the fields of the same section read so far, ``default``: this field's).
     """
 
     positive: bool = False
