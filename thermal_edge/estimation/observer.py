@@ -30,6 +30,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..lptn import Model, Stepper, discretise
+from ..lptn.discretise import DiscreteDerivatives
 
 
 class Observer:
@@ -116,7 +117,7 @@ class Observer:
         if hit is None:
             op = {k: np.array([v]) for k, v in zip(st.net.matrix_inputs, key)}
             d = discretise(st.net.continuous(st.theta, op, K=1, wrt=list(self.cidx)), st.dt, st.method, st.max_substep)
-            assert d.dPhi is not None and d.dGam is not None
+            assert isinstance(d, DiscreteDerivatives)
             hit = (d.dPhi[0], d.dGam[0])
             self._dcache[key] = hit
             if len(self._dcache) > st.cache_size:

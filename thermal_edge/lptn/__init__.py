@@ -6,7 +6,9 @@ Load a machine model, simulate it, and get exact parameter sensitivities::
     sim = Simulator(model)
     traj = sim.simulate(model.nominal(), inputs, dt=1.0, T0=T0, wrt=model.adaptable)
 """
-from .discretise import Discrete, NotPassive, UnstableDiscretisation, discretise
+from .discretise import (
+    Discrete, DiscreteDerivatives, EulerDerivatives, NotPassive, UnstableDiscretisation, ZohDerivatives, discretise,
+)
 from .expr import ExprError, parse
 from .loader import load_model
 from .model import Limit, Model, ModelError, Parameter, ParameterError
@@ -17,8 +19,8 @@ from .stepper import Stepper, cool_down
 from .vocabulary import DEFAULT_COLUMNS, NodeRole, Role, temperature_name
 
 __all__ = [
-    "Continuous", "DEFAULT_COLUMNS", "Discrete", "ExprError", "Limit", "Model", "ModelError", "Network", "NodeRole",
-    "NotPassive", "Parameter", "ParameterError", "Role", "Simulator", "Stepper", "Trajectory",
-    "UnstableDiscretisation", "cool_down", "discretise", "initial_state", "load_model", "parse", "steady_state",
-    "temperature_name",
+    "Continuous", "DEFAULT_COLUMNS", "Discrete", "DiscreteDerivatives", "EulerDerivatives", "ExprError", "Limit",
+    "Model", "ModelError", "Network", "NodeRole", "NotPassive", "Parameter", "ParameterError", "Role", "Simulator",
+    "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down", "discretise", "initial_state",
+    "load_model", "parse", "steady_state", "temperature_name",
 ]

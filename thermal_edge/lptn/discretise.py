@@ -15,7 +15,8 @@ Both ``Φ`` are functions of ``C⁻¹A = V Λ V⁻¹`` with ``V = C^-½ Q`` (``Q
 eigenvectors of ``Ã``), so the derivatives are kept in that modal basis, ``dΦ̃ = V⁻¹ dΦ V`` and
 ``dΓ̃ = V⁻¹ dΓ``, where ZOH gets them from the rank-one factors of ``dA`` and ``dW`` without any
 dense product per parameter; :attr:`Discrete.dPhi` and :attr:`Discrete.dGam` give the dense
-node-coordinate forms on demand.
+node-coordinate forms on demand. The method is the type of the result: :class:`Discrete`
+without derivatives, :class:`ZohDerivatives` or :class:`EulerDerivatives` with them.
 """
 from __future__ import annotations
 
@@ -37,50 +38,63 @@ class NotPassive(ValueError):
     non-passive T-model)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class Discrete:
-    """``Φ`` (K, n, n), ``Γ`` (K, n, m) and, if asked, their derivatives in the modal basis.
+    """``Φ`` (K, n, n) and ``Γ`` (K, n, m) of one step at ``K`` operating points, and the modal basis.
 
     The modal basis of operating point ``k`` is ``V_k = diag(1/s) Q_k``: ``Φ = V diag(mu) V⁻¹``
-    and ``V⁻¹ (Φ − I) A⁻¹ = diag(phi) Q_kᵀ diag(1/s)`` (``phi = (mu − 1)/λ``, positive).
-    ``V⁻¹ dΦ_j V`` is built per operating point when first needed (:meth:`dphit`);
-    :meth:`forcing` applies it to vectors, row by row without building it (ZOH).
-    ``V⁻¹ dΓ_j`` is kept factored, ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with
-    ``Ht = V⁻¹ A⁻¹ W`` (K, n, m), ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m)
-    from the rank-one factors of :class:`~thermal_edge.lptn.network.Continuous`:
-    ``dΓ w = V (dPhit (Ht w) − phi ∘ Zh (dg ∘ Yt w))`` costs no more than ``dΦ T``.
+    and ``V⁻¹ (Φ − I) A⁻¹ = diag(phi) Q_kᵀ diag(1/s)`` (``phi = (mu − 1)/λ``, positive). Both
+    methods give this; the derivatives, which they compute differently, are in the subclasses
+    :class:`ZohDerivatives` and :class:`EulerDerivatives` (:func:`discretise` returns one of them
+    when the continuous system carries derivatives).
     """
 
     Phi: np.ndarray
     Gam: np.ndarray
-    substeps: int = 1
-    s: np.ndarray | None = None
-    Q: np.ndarray | None = None
-    mu: np.ndarray | None = None
-    phi: np.ndarray | None = None
-    Ht: np.ndarray | None = None
-    Zh: np.ndarray | None = None
-    Yt: np.ndarray | None = None
-    dg: np.ndarray | None = None
-    #: ZOH: divided differences ``D`` of exp (K, n, n), the capacity term ``Wc`` and ``r = dc/2c`` (p, n)
-    Dd: np.ndarray | None = None
-    Wc: np.ndarray | None = None
-    r: np.ndarray | None = None
-    _dense: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+    substeps: int  # Euler sub-steps per step (1 for ZOH)
+    s: np.ndarray  # √c (n,)
+    Q: np.ndarray  # orthonormal eigenvectors of C^-½ A C^-½ (K, n, n)
+    mu: np.ndarray  # eigenvalues of Φ (K, n)
+    phi: np.ndarray  # (mu − 1)/λ (K, n)
 
-    @property
-    def with_derivatives(self) -> bool:
-        return self.dg is not None
+    def basis(self, ops: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The modal basis ``V = diag(1/s) Q`` of ``Φ`` at these operating points, and ``V⁻¹``."""
+        Q = self.Q[ops]
+        return Q / self.s[:, None], np.swapaxes(Q, -1, -2) * self.s
+
+
+@dataclass(frozen=True)
+class DiscreteDerivatives(Discrete):
+    """A discretisation with its exact derivatives by ``p`` parameters, in the modal basis.
+
+    ``V⁻¹ dΦ_j V`` is built per operating point when first needed (:meth:`dphit`, by the
+    method's :meth:`_build`); :meth:`forcing` applies it to vectors. ``V⁻¹ dΓ_j`` is kept
+    factored, ``dPhit_j Ht − diag(phi) Zh diag(dg_j) Yt`` with ``Ht = V⁻¹ A⁻¹ W`` (K, n, m),
+    ``Zh = Qᵀ C^-½ Z`` (K, n, e), ``Yt = Vᵀ − Zᵀ A⁻¹ W`` (K, e, m) from the rank-one factors of
+    :class:`~thermal_edge.lptn.network.Continuous`: ``dΓ w = V (dPhit (Ht w) − phi ∘ Zh (dg ∘ Yt w))``
+    costs no more than ``dΦ T``.
+    """
+
+    Ht: np.ndarray
+    Zh: np.ndarray
+    Yt: np.ndarray
+    dg: np.ndarray  # (K, p, e) derivatives of the edges' conductances
+    _dense: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def _build(self, ops: np.ndarray) -> np.ndarray:
+        """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at these operating points (the method's own way)."""
+        raise NotImplementedError
+
+    def _forcing_rows(self, o: np.ndarray, y: np.ndarray, low: np.ndarray) -> np.ndarray:
+        """:meth:`forcing` with one operating point per row; ``low = phi ∘ v`` (B, n, e)."""
+        raise NotImplementedError
 
     def build_dphit(self, ops: Sequence[int] | np.ndarray) -> None:
         """Build ``V⁻¹ dΦ_j V`` at these operating points where not built yet (together: cheaper
         than one by one)."""
         todo = sorted({int(o) for o in np.atleast_1d(ops)} - self._dense.keys())
         if todo:
-            assert self.Dd is not None and self.Zh is not None and self.dg is not None and self.Q is not None
-            t = np.array(todo)
-            built = _zoh_dense(self.Dd[t], None if self.Wc is None else self.Wc[t], self.Zh[t], self.dg[t], self.Q[t], self.r)
-            self._dense.update(zip(todo, built))
+            self._dense.update(zip(todo, self._build(np.array(todo))))
 
     def dphit(self, ops: int | Sequence[int] | np.ndarray) -> np.ndarray:
         """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each);
@@ -88,28 +102,18 @@ class Discrete:
         self.build_dphit(ops)
         if np.ndim(ops) == 0:
             return self._dense[int(ops)]  # type: ignore[arg-type]
-        assert self.dg is not None
         if not len(ops):  # type: ignore[arg-type]
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
         return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
-
-    def basis(self, ops: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The modal basis ``V = diag(1/s) Q`` of ``Φ`` at these operating points, and ``V⁻¹``."""
-        assert self.Q is not None and self.s is not None
-        Q = self.Q[ops]
-        return Q / self.s[:, None], np.swapaxes(Q, -1, -2) * self.s
 
     def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p) from ``y = V⁻¹ T + Ht w`` (B, n) and
         ``v = Yt w`` (B, e): ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``.
 
         ``o`` is one operating point for all rows (its dense ``dPhit``: one product for all rows
-        and parameters) or one per row (B,). Per row, ZOH applies the Daleckii–Krein form edge by
-        edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``, joined with the factored ``dΓ`` in one product,
-        about ``n² (e + nc)`` flops a row: cheaper than building ``dPhit`` for an operating point
-        that a few steps use (a ramp). Euler uses its dense derivatives.
+        and parameters) or one per row (B,), which each method does its own way
+        (:meth:`_forcing_rows`).
         """
-        assert self.Zh is not None and self.dg is not None and self.Q is not None and self.phi is not None
         p, B = self.dg.shape[1], len(y)
         if np.ndim(o) == 0:
             n = len(self.phi[o])
@@ -117,12 +121,51 @@ class Discrete:
             lowv = (v[:, :, None] * self.dg[o].T).transpose(1, 0, 2).reshape(-1, B * p)  # (e, B p)
             X -= self.phi[o][:, None] * (self.Zh[o] @ lowv).reshape(n, B, p).transpose(1, 0, 2)
             return X
+        return self._forcing_rows(np.asarray(o), y, self.phi[o][:, :, None] * v[:, None, :])
+
+    @property
+    def dPhit(self) -> np.ndarray:
+        """``V⁻¹ ∂Φ/∂θ_j V`` (K, p, n, n) at every operating point."""
+        return self.dphit(np.arange(self.Phi.shape[0]))
+
+    @property
+    def dGamt(self) -> np.ndarray:
+        """``V⁻¹ ∂Γ/∂θ_j`` (K, p, n, m)."""
+        low = (self.Zh[:, None] * self.dg[:, :, None, :]) @ self.Yt[:, None]
+        return self.dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
+
+    @property
+    def dPhi(self) -> np.ndarray:
+        """``∂Φ/∂θ_j`` (K, p, n, n) in node coordinates."""
+        V, Vi = self.basis(np.arange(self.Phi.shape[0]))
+        return sandwich(V, self.dPhit, Vi)
+
+    @property
+    def dGam(self) -> np.ndarray:
+        """``∂Γ/∂θ_j`` (K, p, n, m) in node coordinates."""
+        return self.basis(np.arange(self.Phi.shape[0]))[0][:, None] @ self.dGamt
+
+
+@dataclass(frozen=True)
+class ZohDerivatives(DiscreteDerivatives):
+    """Zero-order hold: ``dΦ`` by the Daleckii–Krein formula from the divided differences ``Dd``
+    (K, n, n) of exp, the capacity term ``Wc`` (K, n, n; None when no parameter is a capacity) and
+    ``r = dc/2c`` (p, n) (:func:`_zoh_dense`)."""
+
+    Dd: np.ndarray
+    Wc: np.ndarray | None
+    r: np.ndarray
+
+    def _build(self, ops: np.ndarray) -> np.ndarray:
+        return _zoh_dense(self.Dd[ops], None if self.Wc is None else self.Wc[ops], self.Zh[ops], self.dg[ops],
+                          self.Q[ops], self.r)
+
+    def _forcing_rows(self, o: np.ndarray, y: np.ndarray, low: np.ndarray) -> np.ndarray:
+        """Edge by edge, ``(ẑ ẑᵀ ∘ D) y = ẑ ∘ (D (ẑ ∘ y))``, joined with the factored ``dΓ`` in one
+        product: about ``n² (e + nc)`` flops a row, cheaper than building ``dPhit`` for an
+        operating point that a few steps use (a ramp)."""
         Zh = self.Zh[o]  # (B, n, e)
-        low = self.phi[o][:, :, None] * v[:, None, :]
-        if self.Dd is None:
-            return np.einsum("bjac,bc->baj", self.dphit(o), y) - (Zh * low) @ np.swapaxes(self.dg[o], 1, 2)
         X = (Zh * -(self.Dd[o] @ (Zh * y[:, :, None]) + low)) @ np.swapaxes(self.dg[o], 1, 2)
-        assert self.r is not None
         nz = np.nonzero(np.any(self.r != 0.0, axis=0))[0]
         if len(nz):
             assert self.Wc is not None
@@ -130,34 +173,19 @@ class Discrete:
             X += (Qc * (self.Wc[o] @ (Qc * y[:, :, None]))) @ self.r[:, nz].T
         return X
 
-    @property
-    def dPhit(self) -> np.ndarray | None:
-        """``V⁻¹ ∂Φ/∂θ_j V`` (K, p, n, n) at every operating point."""
-        return self.dphit(np.arange(self.Phi.shape[0])) if self.with_derivatives else None
 
-    @property
-    def dGamt(self) -> np.ndarray | None:
-        """``V⁻¹ ∂Γ/∂θ_j`` (K, p, n, m)."""
-        dPhit = self.dPhit
-        if dPhit is None or self.Ht is None or self.Zh is None or self.Yt is None or self.dg is None:
-            return None
-        low = (self.Zh[:, None] * self.dg[:, :, None, :]) @ self.Yt[:, None]
-        return dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
+@dataclass(frozen=True)
+class EulerDerivatives(DiscreteDerivatives):
+    """Explicit Euler with sub-steps: ``V⁻¹ dΦ_j V`` (K, p, n, n) computed densely at once
+    (:func:`_euler_derivatives`)."""
 
-    @property
-    def dPhi(self) -> np.ndarray | None:
-        """``∂Φ/∂θ_j`` (K, p, n, n) in node coordinates."""
-        dPhit = self.dPhit
-        if dPhit is None:
-            return None
-        V, Vi = self.basis(np.arange(self.Phi.shape[0]))
-        return sandwich(V, dPhit, Vi)
+    dense: np.ndarray
 
-    @property
-    def dGam(self) -> np.ndarray | None:
-        """``∂Γ/∂θ_j`` (K, p, n, m) in node coordinates."""
-        dGamt = self.dGamt
-        return None if dGamt is None else self.basis(np.arange(self.Phi.shape[0]))[0][:, None] @ dGamt
+    def _build(self, ops: np.ndarray) -> np.ndarray:
+        return self.dense[ops]
+
+    def _forcing_rows(self, o: np.ndarray, y: np.ndarray, low: np.ndarray) -> np.ndarray:
+        return np.einsum("bjac,bc->baj", self.dphit(o), y) - (self.Zh[o] * low) @ np.swapaxes(self.dg[o], 1, 2)
 
 
 def _eig(cont: Continuous) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -231,20 +259,21 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
         raise ValueError(f"unknown discretisation method {method!r} (zoh, euler)")
     Phi = PmI + eye
     H = np.linalg.solve(cont.A, cont.W)
-    out = Discrete(Phi=Phi, Gam=PmI @ H, substeps=m, s=s, Q=Qm, mu=mu, phi=phi)
+    values = dict(Phi=Phi, Gam=PmI @ H, substeps=m, s=s, Q=Qm, mu=mu, phi=phi)
     if not with_d:
-        return out
+        return Discrete(**values)
     assert cont.dc is not None and cont.dZ is not None and cont.dV is not None and cont.dg is not None
-    out.Ht = Qt @ (s[:, None] * H)  # V⁻¹ H
-    out.Zh = Qt @ (cont.dZ / s[:, None])
-    out.Yt = np.swapaxes(cont.dV, -1, -2) - np.swapaxes(cont.dZ, -1, -2) @ H
-    out.dg = cont.dg
+    factors = dict(
+        Ht=Qt @ (s[:, None] * H),  # V⁻¹ H
+        Zh=Qt @ (cont.dZ / s[:, None]),
+        Yt=np.swapaxes(cont.dV, -1, -2) - np.swapaxes(cont.dZ, -1, -2) @ H,
+        dg=cont.dg,
+    )
     if method == "zoh":
-        out.Dd, out.Wc, out.r = _zoh_divided_differences(cont, dt, lam, mu)
-    else:
-        Vi = Qt * s  # V⁻¹
-        out._dense.update(enumerate(sandwich(Vi, _euler_derivatives(cont, Phi1, h, m), Qm / s[:, None])))
-    return out
+        Dd, Wc, r = _zoh_divided_differences(cont, dt, lam, mu)
+        return ZohDerivatives(**values, **factors, Dd=Dd, Wc=Wc, r=r)
+    Vi = Qt * s  # V⁻¹
+    return EulerDerivatives(**values, **factors, dense=sandwich(Vi, _euler_derivatives(cont, Phi1, h, m), Qm / s[:, None]))
 
 
 def _zoh_divided_differences(cont: Continuous, dt: float, lam: np.ndarray,

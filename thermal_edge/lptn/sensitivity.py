@@ -17,7 +17,7 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chose
   differences. Runs that meet a set point again share its eigendecomposition and the forcing's
   linear part (``p·n²`` numbers); each run adds only matrix-vector products.
 * **Step by step** otherwise: the forcing for a block of steps as products per operating point
-  (in the modal basis of :class:`~thermal_edge.lptn.discretise.Discrete`; the Daleckii–Krein
+  (in the modal basis of :class:`~thermal_edge.lptn.discretise.DiscreteDerivatives`; the Daleckii–Krein
   form row by row at a ramp's operating points), then the recursion.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
-from .discretise import Discrete
+from .discretise import DiscreteDerivatives
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -71,7 +71,7 @@ class Sensitivities:
 
     Parameters
     ----------
-    disc : Discrete
+    disc : DiscreteDerivatives
         Discretisation with modal derivatives at every operating point.
     ops : ndarray (N-1,)
         Operating point of each step.
@@ -89,9 +89,8 @@ class Sensitivities:
         The nodes whose temperatures the loss laws read.
     """
 
-    def __init__(self, disc: Discrete, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
+    def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
                  U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray) -> None:
-        assert disc.with_derivatives and disc.Q is not None and disc.s is not None and disc.dg is not None
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
@@ -101,11 +100,10 @@ class Sensitivities:
     def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray) -> np.ndarray:
         """``V⁻¹ (dΦ T + dΓ w)`` (B, n, p) for temperatures ``T`` (B, n) and inputs ``w`` (B, m) of
         ``Γ`` at operating point ``o`` (one for all rows, or one per row), in the modal basis of
-        ``Φ`` there (:meth:`~thermal_edge.lptn.discretise.Discrete.forcing`). The losses' own
+        ``Φ`` there (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.forcing`). The losses' own
         dependence on θ, ``Γ_P ∂P/∂θ``, is the callers' to add.
         """
         d = self.d
-        assert d.Ht is not None and d.Yt is not None
         _, Vi = d.basis(o)
         # y = V⁻¹ T + Ht w and v = Yt w, one row per step
         y = np.einsum("...ac,...c->...a", Vi, T) + np.einsum("...am,...m->...a", d.Ht[o], w)
@@ -171,7 +169,6 @@ class Sensitivities:
     def _forcing(self, ks: np.ndarray) -> np.ndarray:
         """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""
         d = self.d
-        assert d.Q is not None and d.s is not None
         X = np.empty((len(ks), self.n, self.p))
         ob = self.ops[ks]
         w = np.concatenate([self.U[ks], self.P[ks]], axis=1)
@@ -282,7 +279,6 @@ class Sensitivities:
         in the modal basis of ``Φ``, ``diag(r)^-1 V⁻¹ M V diag(r)`` with ``r = √phi`` is
         symmetric (up to round-off) when no loss law couples nodes."""
         d = self.d
-        assert d.phi is not None
         V, Vi = d.basis(ops)  # modal basis of Φ at each operating point
         r = np.sqrt(d.phi[ops])
         Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
@@ -300,7 +296,6 @@ class Sensitivities:
         temperature entering ``dΦ`` kept at 0: the constant part and the losses' part per kelvin;
         and the inputs ``w`` (runs, m) of ``Γ`` at T = 0."""
         d, n, p = self.d, self.n, self.p
-        assert d.Q is not None and d.s is not None
         tv = self.loss_nodes
         nt = 1 + len(tv)
         probes = np.zeros((len(a_), nt, n))

@@ -19,7 +19,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .discretise import Discrete, discretise
+from .discretise import Discrete, DiscreteDerivatives, discretise
 from .losses import LossLaws
 from .model import Model
 from .network import Network
@@ -232,6 +232,7 @@ class Simulator:
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int],
                        rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]]) -> np.ndarray:
         d = prep.disc
+        assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
         N = T.shape[0]
         ops = prep.ops[: max(N - 1, 0)]
         if self.nonaffine:  # the simulation's matrices leave these laws' temperature feedback out
