@@ -54,8 +54,10 @@ __all__ = [
     "StateConfig",
     "TransmitConfig",
     "config_from_mapping",
+    "field_default",
     "file_key",
     "load_config",
+    "without_none",
 ]
 
 REDUCTIONS = ("mean", "rms", "dq_rms", "latest")
@@ -520,13 +522,13 @@ def _hints(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
 
-def _optional(tp: Any) -> tuple[Any, bool]:
-    """``X | None`` -> (X, True); anything else -> (tp, False)."""
+def without_none(tp: Any) -> Any:
+    """The type of an optional field: ``X | None`` -> ``X`` (anything else as it is)."""
     args = typing.get_args(tp)
     if typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
         rest = tuple(a for a in args if a is not type(None))
-        return (rest[0] if len(rest) == 1 else typing.Union[rest]), True
-    return tp, False
+        return rest[0] if len(rest) == 1 else typing.Union[rest]
+    return tp
 
 
 def file_key(cls: type, key: str) -> tuple[dataclasses.Field[Any], Any] | None:
@@ -592,7 +594,7 @@ def _read(cls: type, sec: "_Section", given: Mapping[str, Any] | None = None, *,
 
 def _value(sec: "_Section", f: dataclasses.Field[Any], tp: Any) -> Any:
     k, spec = f.name, spec_of(f)
-    tp, _ = _optional(tp)
+    tp = without_none(tp)
     if dataclasses.is_dataclass(tp):
         return _read(tp, sec.sub(k))
     if typing.get_origin(tp) is dict:
@@ -604,13 +606,13 @@ def _value(sec: "_Section", f: dataclasses.Field[Any], tp: Any) -> Any:
     if typing.get_origin(tp) is tuple:
         return _str_list(sec, k)
     v = sec.value(k)
+    if v is None and spec.env:  # e.g. STATE_DIRECTORY: systemd may give several, ':'-separated
+        v = os.environ.get(spec.env, "").split(":")[0] or None
     if v is None:
-        v = os.environ.get(spec.env, "").split(":")[0] or None if spec.env else None
-        if v is None:
-            d = field_default(f)
-            if d is MISSING:
-                raise sec.fail(k, "is required")
-            return d
+        d = field_default(f)
+        if d is MISSING:
+            raise sec.fail(k, "is required")
+        return d
     if tp is bool:
         out: Any = sec.boolean(k, v)
     elif tp is int:

@@ -141,12 +141,6 @@ def _describe(f: dataclasses.Field[Any]) -> str:
     return "required" if d is dataclasses.MISSING else _fmt(d)
 
 
-def _without_none(tp: Any) -> Any:
-    """``X | None`` -> ``X``."""
-    args = typing.get_args(tp)
-    return next(a for a in args if a is not type(None)) if type(None) in args else tp
-
-
 def default_of(path: tuple[str, ...], raw: Any) -> str:
     """The Default cell of the key ``path`` of the file (``raw``: the file as loaded, for the form of
     an entry), from the declarations of :class:`thermal_edge.config.EdgeConfig`.
@@ -154,7 +148,7 @@ def default_of(path: tuple[str, ...], raw: Any) -> str:
     A key that names an entry of a mapping the file fills (an input, a sensor, a limited node, a
     frame's timeout) has no default: "—".
     """
-    from thermal_edge.config import EdgeConfig, InputSignal, file_key
+    from thermal_edge.config import EdgeConfig, InputSignal, file_key, without_none
 
     cls: Any = EdgeConfig
     keys = list(path)
@@ -166,7 +160,7 @@ def default_of(path: tuple[str, ...], raw: Any) -> str:
         if found is None:
             return "—"
         f, tp = found
-        tp = _without_none(tp)
+        tp = without_none(tp)
         if not keys:
             return _describe(f)
         if dataclasses.is_dataclass(tp):
