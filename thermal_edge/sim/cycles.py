@@ -11,14 +11,17 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from ..data import Run
 from ..lptn.loader import read_yaml
+from ..lptn.vocabulary import DEFAULT_COLUMNS, Role
 
-FIELDS = ("speed_rpm", "torque_nm", "ambient_c", "coolant_c")
+SPEED, TORQUE, AMBIENT, COOLANT = (DEFAULT_COLUMNS[r] for r in (Role.SPEED, Role.TORQUE, Role.AMBIENT, Role.COOLANT))
+#: a segment's values: the keys of a cycle file and the columns of its run (data without a model)
+FIELDS = (SPEED, TORQUE, AMBIENT, COOLANT)
 
 
 class CycleError(ValueError):
@@ -27,11 +30,11 @@ class CycleError(ValueError):
 
 @dataclass(frozen=True)
 class Segment:
+    """One segment: its duration, its values (:data:`FIELDS` -> speed rpm, torque Nm, ambient and
+    coolant °C) and the ramp from the previous segment's values, s."""
+
     duration_s: float
-    speed_rpm: float
-    torque_nm: float
-    ambient_c: float
-    coolant_c: float
+    values: Mapping[str, float]
     ramp_s: float = 0.0
 
 
@@ -63,7 +66,7 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
         return float(v)
 
     dt = num("dt_s", raw.get("dt_s", 1.0), positive=True)
-    defaults = {"ambient_c": num("ambient_c", raw.get("ambient_c", 25.0)), "coolant_c": num("coolant_c", raw.get("coolant_c", raw.get("ambient_c", 25.0)))}
+    defaults = {AMBIENT: num(AMBIENT, raw.get(AMBIENT, 25.0)), COOLANT: num(COOLANT, raw.get(COOLANT, raw.get(AMBIENT, 25.0)))}
     segs_raw = raw.get("segments")
     if not isinstance(segs_raw, list) or not segs_raw:
         raise CycleError(f"{f}: segments: expected a non-empty list")
@@ -75,19 +78,12 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
         unknown = set(s) - set(FIELDS) - {"duration_s", "ramp_s"}
         if unknown:
             raise CycleError(f"{f}: {key}.{sorted(unknown)[0]}: unknown key")
-        for req in ("duration_s", "speed_rpm", "torque_nm"):
+        for req in ("duration_s", SPEED, TORQUE):
             if req not in s:
                 raise CycleError(f"{f}: {key}.{req}: is required")
-        segs.append(
-            Segment(
-                duration_s=num(f"{key}.duration_s", s["duration_s"], positive=True),
-                speed_rpm=num(f"{key}.speed_rpm", s["speed_rpm"]),
-                torque_nm=num(f"{key}.torque_nm", s["torque_nm"]),
-                ambient_c=num(f"{key}.ambient_c", s.get("ambient_c", defaults["ambient_c"])),
-                coolant_c=num(f"{key}.coolant_c", s.get("coolant_c", defaults["coolant_c"])),
-                ramp_s=num(f"{key}.ramp_s", s.get("ramp_s", 0.0)),
-            )
-        )
+        values = {k: num(f"{key}.{k}", s[k] if k in s else defaults[k]) for k in FIELDS}
+        segs.append(Segment(num(f"{key}.duration_s", s["duration_s"], positive=True), values,
+                            num(f"{key}.ramp_s", s.get("ramp_s", 0.0))))
     repeat = int(num("repeat", raw.get("repeat", 1), positive=True))
     return Cycle(str(raw.get("name", path.stem)), dt, tuple(segs) * repeat, str(raw.get("description", "")))
 
@@ -116,10 +112,10 @@ def cycle_run(cycle: Cycle, kt_nm_per_arms: float, duration_s: float | None = No
         local = tt[sel] - bounds[i]
         frac = np.clip(local / seg.ramp_s, 0.0, 1.0) if seg.ramp_s > 0 else np.ones(sel.sum())
         for k in FIELDS:
-            a, b = getattr(prev, k), getattr(seg, k)
+            a, b = prev.values[k], seg.values[k]
             cols[k][sel] = a + (b - a) * frac
-    i_rms = np.abs(cols["torque_nm"]) / kt_nm_per_arms
-    cols["i_rms"] = i_rms
-    cols["i_d"] = np.zeros(n)
-    cols["i_q"] = math.sqrt(2.0) * i_rms * np.sign(cols["torque_nm"])
+    i_rms = np.abs(cols[TORQUE]) / kt_nm_per_arms
+    cols[DEFAULT_COLUMNS[Role.CURRENT]] = i_rms
+    cols[DEFAULT_COLUMNS[Role.CURRENT_D]] = np.zeros(n)
+    cols[DEFAULT_COLUMNS[Role.CURRENT_Q]] = math.sqrt(2.0) * i_rms * np.sign(cols[TORQUE])
     return Run(t, cols, f"cycle:{cycle.name}")

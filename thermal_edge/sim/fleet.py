@@ -23,7 +23,7 @@ import numpy as np
 
 from ..data import Run, write_run
 from ..lptn import Model
-from .cycles import Cycle, cycle_run
+from .cycles import AMBIENT, COOLANT, Cycle, cycle_run
 from .plant import simulate_plant
 
 #: manufacturing spread: σ of log θ for every adaptable parameter
@@ -107,7 +107,7 @@ def machine_run(model: Model, cycle: Cycle, spec: MachineSpec, duration_s: float
     full = cycle_run(cycle, kt, (offset + n) * cycle.dt_s + cycle.duration_s)
     inp = full.slice(offset, offset + n)
     cols = dict(inp.columns)
-    for c in ("ambient_c", "coolant_c"):
+    for c in (AMBIENT, COOLANT):
         cols[c] = cols[c] + spec.ambient_offset_k
     inputs = Run(np.arange(n) * cycle.dt_s, cols, f"fleet:{spec.id}")
     return simulate_plant(model, inputs, spec.params, noise_k=noise_k, resolution_k=resolution_k, seed=spec.seed).run

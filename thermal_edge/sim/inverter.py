@@ -51,10 +51,12 @@ from ..bus.codec import DecodedFrame, FrameCodec
 from ..bus.frames import (DEFAULT_DBC_PATH, INV_AMBIENT_TEMPS, INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS,
                           TE_ESTIMATES, TE_LIMITS, TE_STATUS, SensorStatus)
 from ..bus.logs import LogRecorder
-from ..lptn import Model, Stepper, load_model, steady_state
-from .cycles import cycle_run, load_cycle
+from ..lptn import Model, Role, load_model
+from .cycles import AMBIENT, COOLANT, SPEED, TORQUE, cycle_run, load_cycle
+from .plant import Plant
+from .sensors import pt100
 
-__all__ = ["EmulatorConfig", "InverterEmulator", "Plant", "TABLE4_VARIATIONS", "main", "write_log"]
+__all__ = ["EmulatorConfig", "InverterEmulator", "TABLE4_VARIATIONS", "main", "write_log"]
 
 log = logging.getLogger(__name__)
 
@@ -116,49 +118,6 @@ class EmulatorConfig:
     record_estimates: bool = True  # keep every TE_Estimates and TE_Limits change received (tests); off for long runs
     seed: int = 0
     sensor_signals: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_SENSOR_SIGNALS))
-    ambient_input: str = "ambient_c"
-    current_input: str = "i_rms"
-
-
-class Plant:
-    """The simulated machine: a model with its own (possibly aging) parameters, stepped in time."""
-
-    def __init__(self, model: Model, params: Mapping[str, float], dt: float, aging: Mapping[str, float] | None = None,
-                 T0: np.ndarray | None = None, ambient_c: float = 25.0) -> None:
-        self.base = model.with_parameters(dict(params), widen_bounds=True)  # a plant may lie outside the search bounds
-        self.model = self.base
-        self.theta0 = self.base.nominal()
-        self.aging = dict(aging or {})
-        self._aging_idx = self.base.parameter_index(list(self.aging)) if self.aging else np.zeros(0, dtype=int)
-        self.stepper = Stepper(self.base, self.theta0, dt)
-        self.dt = float(dt)
-        if T0 is None:
-            rest = {k: 0.0 for k in model.inputs}
-            for c in model.boundaries.values():
-                rest[c] = ambient_c
-            T0, _ = steady_state(self.base, rest)
-        self.T = np.asarray(T0, dtype=float).copy()
-
-    def age(self, hours: float) -> None:
-        """Apply the aging rates for ``hours`` of simulated time since the start."""
-        if not self.aging:
-            return
-        th = self.theta0.copy()
-        lo, hi = self.base.bounds()
-        for (name, rate), i in zip(self.aging.items(), self._aging_idx):
-            th[i] = min(max(self.theta0[i] * (1.0 + rate * hours), lo[i]), hi[i])
-        self.stepper.set_parameters(th)
-
-    @property
-    def theta(self) -> np.ndarray:
-        return self.stepper.theta
-
-    def step(self, inputs: Mapping[str, float]) -> np.ndarray:
-        self.T, _ = self.stepper.step(self.T, inputs)
-        return self.T
-
-    def node(self, name: str) -> float:
-        return float(self.T[self.base.node_index(name)])
 
 
 @dataclass
@@ -225,11 +184,14 @@ class InverterEmulator:
         self.duration = float(cfg.duration_s if cfg.duration_s is not None else cycle.duration_s)
         self.run_inputs = cycle_run(cycle, self.kt, self.duration)
         if cfg.ambient_offset_k:
-            for c in ("ambient_c", "coolant_c"):
+            for c in (AMBIENT, COOLANT):
                 self.run_inputs.columns[c] = self.run_inputs.columns[c] + cfg.ambient_offset_k
         self.cycle_dt = cycle.dt_s
-        amb0 = float(self.run_inputs.columns["ambient_c"][0])
-        self.plant = Plant(self.model, cfg.params, cfg.plant_dt_s, cfg.aging, ambient_c=amb0)
+        amb0 = float(self.run_inputs.columns[AMBIENT][0])
+        self.plant = Plant(self.model, cfg.params, cfg.plant_dt_s, cfg.aging,
+                           rest_inputs={c: amb0 for c in self.model.temperature_inputs})
+        # the model's inputs the emulator drives (a model may lack torque), by role
+        self._input_of = {r: self.model.find_input(r) for r in (Role.SPEED, Role.TORQUE, Role.CURRENT, Role.AMBIENT)}
         self.rng = np.random.default_rng(cfg.seed)
         self.t0 = float(cfg.t0) if cfg.t0 is not None else time.time()
         self.elapsed = 0.0  # simulated seconds since t0
@@ -300,11 +262,11 @@ class InverterEmulator:
         """Speed, torque, ambient demanded by the cycle at elapsed time ``tau``."""
         cols = self.run_inputs.columns
         k = min(int(tau // self.cycle_dt), len(self.run_inputs) - 1)
-        amb = float(cols["ambient_c"][k])
+        amb = float(cols[AMBIENT][k])
         cfg = self.config
         if cfg.ambient_drift_k:
             amb += cfg.ambient_drift_k * math.sin(2 * math.pi * tau / cfg.ambient_drift_period_s)
-        return float(cols["speed_rpm"][k]), float(cols["torque_nm"][k]), amb
+        return float(cols[SPEED][k]), float(cols[TORQUE][k]), amb
 
     def _limits_in_force(self, now_wall: float | None) -> tuple[float | None, float | None, bool]:
         """(current limit, torque limit, from a fresh TE_Limits)."""
@@ -366,7 +328,10 @@ class InverterEmulator:
         frames.sort(key=lambda f: f[0])
         i_eff = math.sqrt(sum(i2) / len(i2)) if i2 else i_rms
         inputs = {c: 0.0 for c in self.model.inputs}
-        inputs.update({"speed_rpm": speed, "torque_nm": torque, cfg.current_input: i_eff, cfg.ambient_input: amb})
+        for role, value in ((Role.SPEED, speed), (Role.TORQUE, torque), (Role.CURRENT, i_eff), (Role.AMBIENT, amb)):
+            name = self._input_of[role]
+            if name is not None:
+                inputs[name] = value
         if tau >= self._next_trace:
             self.trace_t.append(self.t0 + tau)
             self.trace_T.append(self.plant.T.copy())
@@ -382,9 +347,8 @@ class InverterEmulator:
         return [(self.t0 + ft, name, sig) for ft, name, sig in frames]
 
     def _reading(self, true_c: float) -> float:
-        cfg = self.config
-        y = true_c + (self.rng.normal(0.0, cfg.noise_k) if cfg.noise_k > 0 else 0.0)
-        return round(y / cfg.resolution_k) * cfg.resolution_k if cfg.resolution_k > 0 else y
+        """One PT100 reading of a true temperature, °C."""
+        return float(pt100(true_c, self.rng, self.config.noise_k, self.config.resolution_k))
 
     def _stator_signals(self) -> dict[str, float]:
         out: dict[str, float] = {}

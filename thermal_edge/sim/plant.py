@@ -1,5 +1,6 @@
-"""The simulated machine ("plant"): a machine model with its own parameters, driven by a run's
-inputs, observed through PT100-like sensors."""
+"""The simulated machine ("plant"): a machine model with its own (possibly aging) parameters,
+started at rest, stepped in time (the inverter emulator) or run over a whole run of inputs
+(``simulate``), observed through PT100-like sensors (:mod:`.sensors`)."""
 from __future__ import annotations
 
 import copy
@@ -9,9 +10,79 @@ from typing import Mapping
 import numpy as np
 
 from ..data import Run
-from ..lptn import Model, Simulator, Trajectory, steady_state
+from ..lptn import Model, Simulator, Stepper, Trajectory, steady_state
 from ..lptn.loader import ModelError, build_model, read_yaml
 from .sensors import pt100
+
+
+class Plant:
+    """The simulated machine: ``model`` built with the plant's own parameter values.
+
+    Parameters
+    ----------
+    model : Model
+        The machine model; ``params`` (absolute values) replace its nominal ones, and may lie
+        outside its search bounds (a plant is what it is).
+    params : mapping
+        Parameter name -> value.
+    dt : float
+        Step of :meth:`step`, s.
+    aging : mapping, optional
+        Parameter name -> relative change per simulated hour (:meth:`age`).
+    T0 : ndarray, optional
+        Initial node temperatures, °C; default: the steady state at rest
+        (:meth:`~thermal_edge.lptn.Model.at_rest`) with ``rest_inputs``' temperatures.
+    rest_inputs : mapping, optional
+        Inputs whose temperature inputs (°C) define the rest state (required without ``T0``).
+    """
+
+    def __init__(self, model: Model, params: Mapping[str, float], dt: float, aging: Mapping[str, float] | None = None,
+                 T0: np.ndarray | None = None, rest_inputs: Mapping[str, float] | None = None) -> None:
+        self.base = model.with_parameters(dict(params), widen_bounds=True)
+        self.model = self.base
+        self.theta0 = self.base.nominal()
+        self.aging = dict(aging or {})
+        self._aging_idx = self.base.parameter_index(list(self.aging)) if self.aging else np.zeros(0, dtype=int)
+        self.dt = float(dt)
+        self._stepper: Stepper | None = None  # made on the first step: a whole-run simulation needs none
+        if T0 is None:
+            T0, _ = steady_state(self.base, self.base.at_rest(rest_inputs or {}))
+        self.T = np.asarray(T0, dtype=float).copy()
+
+    @property
+    def stepper(self) -> Stepper:
+        if self._stepper is None:
+            self._stepper = Stepper(self.base, self.theta0, self.dt)
+        return self._stepper
+
+    def age(self, hours: float) -> None:
+        """Apply the aging rates for ``hours`` of simulated time since the start."""
+        if not self.aging:
+            return
+        th = self.theta0.copy()
+        lo, hi = self.base.bounds()
+        for (name, rate), i in zip(self.aging.items(), self._aging_idx):
+            th[i] = min(max(self.theta0[i] * (1.0 + rate * hours), lo[i]), hi[i])
+        self.stepper.set_parameters(th)
+
+    @property
+    def theta(self) -> np.ndarray:
+        """The plant's parameter vector now (aged)."""
+        return self.stepper.theta
+
+    def step(self, inputs: Mapping[str, float]) -> np.ndarray:
+        """Advance by ``dt`` with these inputs; the node temperatures after it, °C."""
+        self.T, _ = self.stepper.step(self.T, inputs)
+        return self.T
+
+    def node(self, name: str) -> float:
+        """The true temperature of one node now, °C."""
+        return float(self.T[self.base.node_index(name)])
+
+    def simulate(self, inputs: Run) -> Trajectory:
+        """The node temperatures over a whole run of inputs from the current state (no aging)."""
+        cols = {c: inputs.columns[c] for c in self.model.inputs}
+        return Simulator(self.model).simulate(self.theta0, cols, inputs.dt, self.T)
 
 
 @dataclass
@@ -39,19 +110,15 @@ def simulate_plant(
     inputs : Run
         Input columns (e.g. from :func:`thermal_edge.sim.cycles.cycle_run`).
     T0 : ndarray, optional
-        Initial node temperatures, °C; default: at rest at the first ambient temperature.
+        Initial node temperatures, °C; default: at rest at the run's first temperatures.
     noise_k, resolution_k : float
         PT100 noise σ and quantisation, K.
     all_nodes : bool
         Also write every node's true temperature as a ``T_<node>`` column.
     """
-    plant = model.with_parameters(dict(params or {}), widen_bounds=True)  # a plant may lie outside the search bounds
-    cols = {c: inputs.columns[c] for c in model.inputs}
-    if T0 is None:
-        first = {c: float(v[0]) for c, v in cols.items()}
-        first.update({c: 0.0 for c in ("i_rms", "speed_rpm", "torque_nm") if c in first})
-        T0, _ = steady_state(plant, first)
-    traj = Simulator(plant).simulate(plant.nominal(), cols, inputs.dt, T0)
+    first = {c: float(inputs.columns[c][0]) for c in model.inputs}
+    plant = Plant(model, params or {}, inputs.dt, T0=T0, rest_inputs=first)
+    traj = plant.simulate(inputs)
     rng = np.random.default_rng(seed)
     out = dict(inputs.columns)
     for s, node in model.sensors.items():
