@@ -1,7 +1,7 @@
 """Figures of the offline commands (matplotlib, imported here only: the optional ``report`` extra)."""
 from __future__ import annotations
 
-import importlib.util
+import importlib
 
 #: How to get an optional dependency, by the module a command needs.
 INSTALL = {
@@ -12,6 +12,8 @@ INSTALL = {
 
 def missing(module: str) -> str | None:
     """None if ``module`` can be imported, else one line saying how to install it."""
-    if importlib.util.find_spec(module) is not None:
-        return None
-    return f"this needs {module}, which is not installed: {INSTALL[module]}"
+    try:
+        importlib.import_module(module)
+    except ImportError:
+        return f"this needs {module}, which is not installed: {INSTALL[module]}"
+    return None

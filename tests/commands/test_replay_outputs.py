@@ -1,0 +1,101 @@
+"""``replay --plot`` and ``--out``: the figure is a PNG of the expected size, the table has one row
+per sample and the columns the docs name, and its numbers agree with what replay prints."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cmd_testlib import TWO_NODE, te
+
+
+SENSORS = ("winding_t", "housing")
+PER_NODE = ("predicted", "observer", "band_low", "band_high")
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    """Width and height from a PNG's signature and IHDR chunk (the file format, not matplotlib)."""
+    head = path.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR"
+    return struct.unpack(">II", head[16:24])
+
+
+def _read_csv(path: Path) -> tuple[list[str], np.ndarray]:
+    with open(path) as fh:
+        rows = [r for r in csv.reader(ln for ln in fh if not ln.startswith("#"))]
+    return rows[0], np.array(rows[1:], dtype=float)
+
+
+def _samples(run: Path) -> int:
+    return sum(1 for ln in run.read_text().splitlines() if ln and not ln.startswith("#")) - 1
+
+
+def test_open_loop_plot_and_csv(good_run, tmp_path):
+    png, table = tmp_path / "replay.png", tmp_path / "replay.csv"
+    r = te("replay", "--model", TWO_NODE, "--run", good_run, "--plot", png, "--out", table, "--json")
+    assert r.returncode == 0, r.stderr
+    scores = json.loads(r.stdout)
+    w, h = _png_size(png)
+    assert (w, h) == (1100, 720)  # 11 in x (2 sensor panels + 1 operating-point panel) x 2.4 in at 100 dpi
+    assert 30_000 < png.stat().st_size < 2_000_000
+    header, data = _read_csv(table)
+    expected = ["t", "speed_rpm", "i_rms", "ambient_c"]
+    for s in SENSORS:
+        expected += [f"{s}_measured"] + [f"{s}_{k}" for k in PER_NODE]
+    expected += [f"hot_spot_{k}" for k in PER_NODE] + ["adaptation"]
+    assert header == expected
+    assert len(data) == _samples(good_run) == scores["samples"]
+    col = {h: data[:, i] for i, h in enumerate(header)}
+    run_header, run_data = _read_csv(good_run)
+    for s in SENSORS:  # the measured column is the run's; the printed MSE is the one of this prediction
+        np.testing.assert_array_equal(col[f"{s}_measured"], run_data[:, run_header.index(s)])
+        e = col[f"{s}_predicted"] - col[f"{s}_measured"]
+        assert np.mean(e**2) == pytest.approx(scores["mse"][s], rel=1e-3, abs=1e-4)  # 6 digits in the CSV
+        lo, mid, hi = col[f"{s}_band_low"], col[f"{s}_observer"], col[f"{s}_band_high"]
+        assert np.all(lo < mid) and np.all(mid < hi)
+        np.testing.assert_allclose(hi - mid, mid - lo, atol=2e-4)  # symmetric: estimate ± Z95 σ
+        inside = np.mean(np.abs(col[f"{s}_measured"] - mid) <= (hi - mid) + 1e-4)
+        assert inside > 0.5  # most readings of a good run lie in the observer's 95 % band
+    # the winding sensor is the hot-spot node of this model: the same prediction
+    np.testing.assert_array_equal(col["hot_spot_predicted"], col["winding_t_predicted"])
+    assert not col["adaptation"].any()  # open loop: no decision
+
+
+def test_adapting_replay_marks_its_decisions_in_parquet_and_png(good_run, tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    png, table = tmp_path / "adapt.png", tmp_path / "adapt.parquet"
+    # a wrong start (R_wh x3, R_ha x2) so that the adapter has something to decide
+    r = te("replay", "--model", TWO_NODE, "--run", good_run, "--adapt", "--set", "R_wh=0.15", "--set", "R_ha=0.2",
+           "--period", "300", "--plot", png, "--out", table, "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    t = pq.read_table(table).to_pydict()
+    n = _samples(good_run)
+    assert all(len(v) == n for v in t.values())
+    flags = np.array(t["adaptation"])
+    assert int(np.sum(flags > 0)) == len(out["decisions"]) > 0
+    assert int(np.sum(flags == 2)) == sum(1 for d in out["decisions"] if d["accepted"])
+    times = np.array(t["t"])[flags > 0]
+    np.testing.assert_allclose(times, [d["t"] for d in out["decisions"]])
+    for p, v in out["final_params"].items():  # the parameter trace ends at the final parameters
+        assert t[f"param_{p}"][-1] == pytest.approx(v, rel=1e-9)
+    assert _png_size(png) == (1100, 720)
+
+
+def test_plot_without_matplotlib_says_how_to_install(good_run, tmp_path, monkeypatch):
+    """matplotlib is the optional ``report`` extra: without it, one line with the pip command, exit 2,
+    and nothing computed."""
+    blocker = tmp_path / "block" / "matplotlib"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ImportError('matplotlib blocked for this test')\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(blocker.parent), os.environ.get("PYTHONPATH")])))
+    r = te("replay", "--model", TWO_NODE, "--run", good_run, "--plot", tmp_path / "x.png")
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        "thermal-edge replay: error: --plot: this needs matplotlib, which is not installed: "
+        "pip install 'thermal-edge[report]'"]
+    assert not (tmp_path / "x.png").exists()
