@@ -21,7 +21,7 @@ demo: $(STAMP)
 # the suite: everything but the long sweeps marked slow; the SocketCAN VM tests run when a VM
 # can be had (root + apt), else they skip and say why
 test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -m "not slow"
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
 
 # quick local runs: no VM, no slow tests
 test-fast: $(STAMP)

@@ -84,12 +84,36 @@ def vm(request: pytest.FixtureRequest) -> vmrun.VM:
     return machine
 
 
-def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001
+def _summary_line() -> str | None:
+    """What this process learnt about the VM, one line, or None if it never tried one."""
+    if "skip" in _state:
+        return f"unavailable: {_state['skip']}"
     machine = _state.get("vm")
-    if machine is None:
+    return machine.summary() if machine is not None else None  # type: ignore[attr-defined]
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:  # noqa: ARG001
+    # an xdist worker hands its line to the controller, which prints the summary
+    workeroutput = getattr(session.config, "workeroutput", None)
+    line = _summary_line()
+    if workeroutput is not None and line is not None:
+        workeroutput["vm_summary"] = line
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error) -> None:  # noqa: ANN001, ARG001
+    line = getattr(node, "workeroutput", {}).get("vm_summary")
+    if line:
+        _state.setdefault("worker_lines", []).append(line)  # type: ignore[union-attr]
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001, ARG001
+    lines = list(_state.get("worker_lines", []))  # type: ignore[call-overload]
+    own = _summary_line()
+    if own is not None:
+        lines.append(own)
+    if not lines:
         return
     terminalreporter.section("SocketCAN VM")
-    if "skip" in _state:
-        terminalreporter.write_line(f"unavailable: {_state['skip']}")
-        return
-    terminalreporter.write_line(machine.summary())  # type: ignore[attr-defined]
+    for line in lines:
+        terminalreporter.write_line(line)

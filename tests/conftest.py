@@ -1,0 +1,29 @@
+"""Suite-wide collection order: the files with the longest set-up first.
+
+``make test`` runs on two xdist workers that take whole files (``--dist loadfile``) in collection
+order; a long file handed out last would leave one worker idle while the other finishes it (the
+SocketCAN VM's service scenario alone runs 2-3 min under emulation). The order within a file is
+kept.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+_ROOT = Path(__file__).resolve().parent
+
+#: Directories (relative to tests/) whose files start first, longest set-up first.
+_FIRST = ("vm", "deploy", "service", "discovery", "fleet")
+
+
+def _rank(item: pytest.Item) -> int:
+    try:
+        part = Path(str(item.path)).resolve().relative_to(_ROOT).parts[0]
+    except (ValueError, IndexError):
+        return len(_FIRST)
+    return _FIRST.index(part) if part in _FIRST else len(_FIRST)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:  # noqa: ARG001
+    items.sort(key=_rank)  # stable: the order within a directory and a file is kept
