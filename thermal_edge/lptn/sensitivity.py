@@ -191,88 +191,129 @@ class Sensitivities:
 
         None where it does not apply: the closed-loop transition is not symmetrisable (a loss law
         couples nodes) or has an eigenvalue outside (0, 1).
+
+        In steps: runs with the same transition share its modes (:meth:`_transitions`); each run's
+        temperatures in those modes, ``ξ_k = ξ∞ + μ^k δ`` (:meth:`_run_states`); the forcing in
+        the modes per transition, applied to each run's states (:meth:`_modal_forcing`); from
+        those, the coefficients of the chosen rows on the time basis (:meth:`_coefficients`), the
+        sensitivity at each run's end (:meth:`_ends`) and the terms of close eigenvalue pairs
+        (:meth:`_close_pairs`).
         """
-        d, n, p = self.d, self.n, self.p
-        a_ = np.array([a for a, _ in runs])
-        o_ = self.ops[a_]
-        L = np.array([b - a for a, b in runs])
-        # runs with the same transition (operating point and current: a set point met again)
-        # share its modes and the part of the forcing that is linear in temperature
+        starts = np.array([a for a, _ in runs])
+        lengths = np.array([b - a for a, b in runs])
+        ops = self.ops[starts]
+        tr = self._transitions(starts, ops)
+        probe, w0 = self._probe_forcing(starts, ops)
+        st = self._run_states(tr, starts, ops, lengths, w0)
+        pairs = _ModePairs.of(tr.modes.mu)
+        fo = self._modal_forcing(tr, ops, probe, st, pairs, keep)
+        # the constant forcing of each mode, F ξ∞ + X(0)
+        const = fo.F_xinf + np.matmul(tr.modes.Q2r[tr.index], probe[:, 0])
+        to_rows = tr.modes.Om[tr.index][:, keep]  # ξ -> chosen rows, per run
+        coef = self._coefficients(tr, st, pairs, fo, const, to_rows)
+        end = self._ends(tr, st, lengths, fo, const)
+        extra = self._close_pairs(tr, st, lengths, pairs, fo, const, to_rows, end)
+        mu_ext = np.concatenate([st.mu, np.ones((len(runs), 1))], axis=1)  # with μ_n = 1 of the constant forcing
+        modes = tr.modes
+        return [_HeldRun(mu_ext[i], coef[i], to_rows[i], modes.Om[u], modes.Xi[u], st.mu_end[i], end[i], extra[i])
+                if modes.ok[u] else None for i, u in enumerate(tr.index)]
+
+    def _transitions(self, starts: np.ndarray, ops: np.ndarray) -> _Transitions:
+        """Group the runs starting at ``starts`` by their transition ``M`` (operating point and
+        current: a set point met again) and decompose each distinct one (:meth:`_modes`)."""
         seen: dict[bytes, int] = {}
-        ui = np.array([seen.setdefault(self.mats[self.mi[a]].tobytes(), len(seen)) for a in a_])
-        rep = np.unique(ui, return_index=True)[1]
-        members = np.split(np.argsort(ui, kind="stable"), np.cumsum(np.bincount(ui))[:-1])
-        m = self._modes(o_[rep], np.stack([self.mats[self.mi[a]] for a in a_[rep]]))
-        Xf, w0 = self._probe_forcing(a_, o_)
-        # per run: ξ_k = ξ∞ + μ^k δ
-        mur = m.mu[ui]
-        xinf = (m.Xi[ui] @ (d.Gam[o_] @ w0[:, :, None]))[..., 0] / (1.0 - mur)
-        delta = (m.Xi[ui] @ self.T[a_][:, :, None])[..., 0] - xinf
+        index = np.array([seen.setdefault(self.mats[self.mi[a]].tobytes(), len(seen)) for a in starts])
+        first = np.unique(index, return_index=True)[1]
+        members = np.split(np.argsort(index, kind="stable"), np.cumsum(np.bincount(index))[:-1])
+        modes = self._modes(ops[first], np.stack([self.mats[self.mi[a]] for a in starts[first]]))
+        return _Transitions(index, first, members, modes)
+
+    def _run_states(self, tr: _Transitions, starts: np.ndarray, ops: np.ndarray, lengths: np.ndarray,
+                    w0: np.ndarray) -> _RunStates:
+        """Each run's temperatures in its modes, ``ξ_k = ξ∞ + μ^k δ``, and the powers ``μ^L``, ``μ^(L−1)``."""
+        modes = tr.modes
+        mu = modes.mu[tr.index]
+        xi_inf = (modes.Xi[tr.index] @ (self.d.Gam[ops] @ w0[:, :, None]))[..., 0] / (1.0 - mu)
+        delta = (modes.Xi[tr.index] @ self.T[starts][:, :, None])[..., 0] - xi_inf
         with np.errstate(under="ignore"):
-            muL = mur ** L[:, None]
-            mu1 = mur ** (L[:, None] - 1)
-        # mode pairs (b = n: the constant forcing, μ = 1): R = 1/(μ_a − μ_b) splits a well-apart
-        # pair's divided differences over the power basis; close pairs keep theirs, and a mode
-        # with itself has DD_k(μ, μ) = k μ^(k−1)
-        diff = m.mu[:, :, None] - np.concatenate([m.mu, np.ones((len(rep), 1))], axis=1)[:, None, :]
-        close = np.abs(diff) < CLOSE
-        R = np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))
-        dg = np.arange(n)
-        close[:, dg, dg] = False
-        # F_u[j, a, b]: the forcing of parameter j on mode a per unit of mode b; only its products
-        # with the runs' vectors leave the loop (all small arrays: per transition, not per run)
-        nr = len(keep)
-        Fx, g1, g2 = np.empty((len(runs), n, p)), np.empty((len(runs), n, p)), np.empty((len(runs), n, p))
-        CFR, diagF = np.empty((len(rep), p, nr, n)), np.empty((len(rep), n, p))
-        Fcl: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        has_close = close.any(axis=(1, 2))
+            mu_end = mu ** lengths[:, None]
+            mu_before_end = mu ** (lengths[:, None] - 1)
+        return _RunStates(mu, xi_inf, delta, mu_end, mu_before_end)
+
+    def _modal_forcing(self, tr: _Transitions, ops: np.ndarray, probe: np.ndarray, st: _RunStates,
+                       pairs: _ModePairs, keep: np.ndarray) -> _ModalForcing:
+        """The forcing ``F_u[j, a, b]`` of parameter ``j`` on mode ``a`` per unit of mode ``b`` of each
+        transition ``u``, applied to the runs' states: only these products leave the loop (all
+        small arrays: per transition, not per run)."""
+        d, n, p = self.d, self.n, self.p
+        modes, runs = tr.modes, len(tr.index)
+        nr, ntr = len(keep), len(tr.first)
+        F_xinf, F_delta, F_delta_end = np.empty((runs, n, p)), np.empty((runs, n, p)), np.empty((runs, n, p))
+        rows_F, diag_F = np.empty((ntr, p, nr, n)), np.empty((ntr, n, p))
+        close_F: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        diag = np.arange(n)
         # the losses' part of the forcing per unit T at each loss node, in the modal basis of Φ (pn, tv)
         tv = self.loss_nodes
-        Bl = (Xf[rep, 1:] - Xf[rep, :1]).transpose(0, 3, 2, 1).reshape(len(rep), p * n, len(tv))
-        Omt = m.Om[:, tv]
-        for u, sel in enumerate(members):
-            # V⁻¹ X = (dΦ̃ V⁻¹ + Bl E_tv) T, T = V rQ2 ξ: F = Q2r (dΦ̃ rQ2 + Bl Om[tv])
-            Fu = d.dphit(int(o_[rep[u]])).reshape(p * n, n) @ m.rQ2[u]
-            Fu += Bl[u] @ Omt[u]
-            Fu = m.Q2r[u] @ Fu.reshape(p, n, n)
-            diagF[u] = Fu[:, dg, dg].T
-            if has_close[u]:
-                ia, ib = np.nonzero(close[u, :, :n])
-                Fcl[u] = (ia, ib, Fu[:, ia, ib])
-            Fx[sel] = (Fu.reshape(p * n, n) @ xinf[sel].T).reshape(p, n, -1).transpose(2, 1, 0)
-            Fu *= R[u, :, :n]
-            CFR[u] = m.Om[u, keep] @ Fu
-            G = (Fu.reshape(p * n, n) @ np.concatenate([delta[sel], delta[sel] * muL[sel]]).T).reshape(p, n, -1)
-            g1[sel], g2[sel] = G[:, :, : len(sel)].transpose(2, 1, 0), G[:, :, len(sel):].transpose(2, 1, 0)
-        h = Fx + np.matmul(m.Q2r[ui], Xf[:, 0])  # the constant forcing of each mode, F ξ∞ + X(0)
-        # coefficients of the chosen rows on the time basis μ_b^k (b ≤ n), k μ_a^(k−1) (a < n)
-        C = m.Om[ui][:, keep]  # ξ -> chosen rows
-        Ct = np.swapaxes(C, 1, 2)[..., None]  # (r, a, rows, 1)
-        Rn = R[ui][:, :, n]
-        coef = np.empty((len(runs), 2 * n + 1, nr, p))
-        coef[:, :n] = -CFR[ui].transpose(0, 3, 2, 1) * delta[:, :, None, None]  # μ_b^k of F δ_b
-        coef[:, n] = -(C * Rn[:, None, :]) @ h  # μ_n^k = 1 of the constant forcing
-        coef[:, :n] += Ct * (g1 + Rn[:, :, None] * h)[:, :, None, :]  # μ_a^k of both
-        coef[:, n + 1:] = Ct * (diagF[ui] * delta[:, :, None])[:, :, None, :]
-        # σ_L without the part of σ_0, in ξ: the same sums at k = L
-        endG = muL[:, :, None] * g1 - g2 + (L[:, None] * mu1 * delta)[:, :, None] * diagF[ui]
+        per_kelvin = (probe[tr.first, 1:] - probe[tr.first, :1]).transpose(0, 3, 2, 1).reshape(ntr, p * n, len(tv))
+        Om_tv = modes.Om[:, tv]
+        for u, sel in enumerate(tr.members):
+            # V⁻¹ X = (dΦ̃ V⁻¹ + per_kelvin E_tv) T, T = V rQ2 ξ: F = Q2r (dΦ̃ rQ2 + per_kelvin Om[tv])
+            F = d.dphit(int(ops[tr.first[u]])).reshape(p * n, n) @ modes.rQ2[u]
+            F += per_kelvin[u] @ Om_tv[u]
+            F = modes.Q2r[u] @ F.reshape(p, n, n)
+            diag_F[u] = F[:, diag, diag].T
+            if pairs.any_close[u]:
+                ia, ib = np.nonzero(pairs.close[u, :, :n])
+                close_F[u] = (ia, ib, F[:, ia, ib])
+            F_xinf[sel] = (F.reshape(p * n, n) @ st.xi_inf[sel].T).reshape(p, n, -1).transpose(2, 1, 0)
+            F *= pairs.split[u, :, :n]
+            rows_F[u] = modes.Om[u, keep] @ F
+            G = (F.reshape(p * n, n) @ np.concatenate([st.delta[sel], st.delta[sel] * st.mu_end[sel]]).T).reshape(p, n, -1)
+            F_delta[sel], F_delta_end[sel] = G[:, :, : len(sel)].transpose(2, 1, 0), G[:, :, len(sel):].transpose(2, 1, 0)
+        return _ModalForcing(F_xinf, F_delta, F_delta_end, rows_F, diag_F, close_F)
+
+    def _coefficients(self, tr: _Transitions, st: _RunStates, pairs: _ModePairs, fo: _ModalForcing,
+                      const: np.ndarray, to_rows: np.ndarray) -> np.ndarray:
+        """Coefficients (runs, 2n+1, rows, p) of the chosen rows on the time basis ``μ_b^k`` (b ≤ n)
+        and ``k μ_a^(k−1)`` (a < n), without the part of ``σ_0``."""
+        n = self.n
+        split_const = pairs.split[tr.index][:, :, n]  # 1/(μ_a − 1)
+        to_rows_t = np.swapaxes(to_rows, 1, 2)[..., None]  # (r, a, rows, 1)
+        coef = np.empty((len(tr.index), 2 * n + 1, to_rows.shape[1], self.p))
+        coef[:, :n] = -fo.rows_F[tr.index].transpose(0, 3, 2, 1) * st.delta[:, :, None, None]  # μ_b^k of F δ_b
+        coef[:, n] = -(to_rows * split_const[:, None, :]) @ const  # μ_n^k = 1 of the constant forcing
+        coef[:, :n] += to_rows_t * (fo.F_delta + split_const[:, :, None] * const)[:, :, None, :]  # μ_a^k of both
+        coef[:, n + 1:] = to_rows_t * (fo.diag_F[tr.index] * st.delta[:, :, None])[:, :, None, :]
+        return coef
+
+    def _ends(self, tr: _Transitions, st: _RunStates, lengths: np.ndarray, fo: _ModalForcing,
+              const: np.ndarray) -> np.ndarray:
+        """``σ_L`` (runs, n, p) of each run without the part of ``σ_0``, in ``ξ``: the sums of
+        :meth:`_coefficients` at ``k = L`` (close pairs: :meth:`_close_pairs` adds theirs)."""
+        end = st.mu_end[:, :, None] * fo.F_delta - fo.F_delta_end
+        end += (lengths[:, None] * st.mu_before_end * st.delta)[:, :, None] * fo.diag_F[tr.index]
         with np.errstate(under="ignore"):
-            endG += divided_powers(mur, np.ones_like(mur), L[:, None].astype(float))[:, :, None] * h
-        # close pairs (none in most models): their divided differences at the end of the run, and
-        # as extra terms for every step
-        extra: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = [None] * len(runs)
-        for u, (ia, ib, Fab) in Fcl.items():
-            an = np.nonzero(close[u, :, n])[0]  # modes close to μ = 1
-            for i in members[u]:
-                cc = (Fab * delta[i, ib]).T  # pairs b < n (pair, p)
+            end += divided_powers(st.mu, np.ones_like(st.mu), lengths[:, None].astype(float))[:, :, None] * const
+        return end
+
+    def _close_pairs(self, tr: _Transitions, st: _RunStates, lengths: np.ndarray, pairs: _ModePairs,
+                     fo: _ModalForcing, const: np.ndarray, to_rows: np.ndarray,
+                     end: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """The close eigenvalue pairs (none in most models), which keep their divided differences:
+        their part of each run's end is added to ``end``; returned per run as extra terms for
+        every step (pairs, their modes and coefficients on the chosen rows), None without any."""
+        n = self.n
+        extra: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = [None] * len(tr.index)
+        for u, (ia, ib, F_ab) in fo.close_F.items():
+            near_one = np.nonzero(pairs.close[u, :, n])[0]  # modes close to μ = 1
+            for i in tr.members[u]:
+                c = (F_ab * st.delta[i, ib]).T  # pairs b < n (pair, p)
                 with np.errstate(under="ignore"):
-                    endG[i, ia] += divided_powers(mur[i, ia], mur[i, ib], float(L[i]))[:, None] * cc
-                pa, pb = np.concatenate([ia, an]), np.concatenate([ib, np.full(len(an), n)])
-                cc = np.concatenate([cc, h[i, an]])
-                extra[i] = (pa, pb, C[i].T[pa][:, :, None] * cc[:, None, :])
-        mue = np.concatenate([mur, np.ones((len(runs), 1))], axis=1)
-        return [_HeldRun(mue[i], coef[i], C[i], m.Om[u], m.Xi[u], muL[i], endG[i], extra[i]) if m.ok[u] else None
-                for i, u in enumerate(ui)]
+                    end[i, ia] += divided_powers(st.mu[i, ia], st.mu[i, ib], float(lengths[i]))[:, None] * c
+                pa, pb = np.concatenate([ia, near_one]), np.concatenate([ib, np.full(len(near_one), n)])
+                c = np.concatenate([c, const[i, near_one]])
+                extra[i] = (pa, pb, to_rows[i].T[pa][:, :, None] * c[:, None, :])
+        return extra
 
     def _modes(self, ops: np.ndarray, M: np.ndarray) -> _Modes:
         """Eigendecomposition of the transitions ``M`` (U, n, n) at operating points ``ops`` (U,):
@@ -327,6 +368,61 @@ class _Modes(NamedTuple):
     Q2r: np.ndarray
     Om: np.ndarray
     Xi: np.ndarray
+
+
+class _Transitions(NamedTuple):
+    """The distinct transitions of the held runs: each run's transition (``index``), the first
+    run of each transition (``first``), the runs of each (``members``) and their modes."""
+
+    index: np.ndarray
+    first: np.ndarray
+    members: list[np.ndarray]
+    modes: _Modes
+
+
+class _RunStates(NamedTuple):
+    """Per held run, in its modes: ``mu`` (runs, n), the fixed point ``xi_inf`` and the initial
+    departure from it ``delta`` (``ξ_k = ξ∞ + μ^k δ``), ``mu_end = μ^L`` and ``mu_before_end = μ^(L−1)``."""
+
+    mu: np.ndarray
+    xi_inf: np.ndarray
+    delta: np.ndarray
+    mu_end: np.ndarray
+    mu_before_end: np.ndarray
+
+
+class _ModePairs(NamedTuple):
+    """Mode pairs ``(a, b)`` per transition, ``b = n`` the constant forcing (``μ = 1``):
+    ``split = 1/(μ_a − μ_b)`` splits a well-apart pair's divided differences over the power
+    basis; ``close`` pairs keep theirs (a mode with itself has ``DD_k(μ, μ) = k μ^(k−1)`` and is
+    not one of them)."""
+
+    split: np.ndarray
+    close: np.ndarray
+    any_close: np.ndarray
+
+    @classmethod
+    def of(cls, mu: np.ndarray) -> "_ModePairs":
+        n = mu.shape[1]
+        diff = mu[:, :, None] - np.concatenate([mu, np.ones((len(mu), 1))], axis=1)[:, None, :]
+        close = np.abs(diff) < CLOSE
+        split = np.where(close, 0.0, 1.0 / np.where(close, 1.0, diff))
+        diag = np.arange(n)
+        close[:, diag, diag] = False
+        return cls(split, close, close.any(axis=(1, 2)))
+
+
+class _ModalForcing(NamedTuple):
+    """The forcing in the modes, per run: on the fixed point (``F_xinf``), on ``δ`` and on ``δ μ^L``
+    (both scaled by the pair split); per transition: the chosen rows of the split forcing
+    (``rows_F``), its diagonal (``diag_F``) and its close pairs (``close_F``)."""
+
+    F_xinf: np.ndarray
+    F_delta: np.ndarray
+    F_delta_end: np.ndarray
+    rows_F: np.ndarray
+    diag_F: np.ndarray
+    close_F: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 class _HeldRun:
