@@ -104,3 +104,35 @@ def test_scrape_config_matches_the_service() -> None:
     assert all('job="thermal-edge"' in r["expr"] for r in rules())
     for pattern in doc["rule_files"]:
         assert list(CONFIG.parent.glob(pattern)), pattern
+
+
+def test_the_drive_label_reaches_every_alert() -> None:
+    """prometheus.yml names each drive with a ``drive`` label (every drive's service is scraped at
+    127.0.0.1:9108, so ``instance`` cannot tell them apart): every summary names it and no
+    aggregation or join drops it (promtool's unit tests check two drives behind one address)."""
+    doc = yaml.safe_load(CONFIG.read_text())
+    (job,) = [j for j in doc["scrape_configs"] if j["job_name"] == "thermal-edge"]
+    assert all(sc["labels"]["drive"] for sc in job["static_configs"])
+    for r in rules():
+        assert "{{ $labels.drive }}" in r["annotations"]["summary"], r["alert"]
+        assert "$labels.instance" not in r["annotations"]["summary"], r["alert"]
+        for clause in re.findall(r"\b(?:by|on)\s*\(([^)]*)\)", r["expr"]):
+            assert "drive" in [c.strip() for c in clause.split(",")], (r["alert"], clause)
+    assert 'drive="drive-2"' in RULE_TESTS.read_text()  # the unit test of two drives behind one address
+
+
+#: Names ``promtool check metrics`` rejects that only the service's owner may rename (see the
+#: closing note of the ops helper); the test passes strictly once none of them is exposed.
+PENDING_RENAMES = ("thermal_edge_counter_resync_total",)
+
+
+def test_promtool_check_metrics_on_a_live_scrape(live_metrics: str) -> None:
+    """The running service's /metrics as Prometheus' own linter sees it."""
+    exe = promtool()
+    r = subprocess.run([exe, "check", "metrics"], input=live_metrics, capture_output=True, text=True, timeout=120)
+    problems = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip()]
+    pending = [p for p in problems if p.split()[0] in PENDING_RENAMES]
+    assert [p for p in problems if p not in pending] == [], problems
+    if pending:
+        pytest.xfail(f"promtool check metrics: {'; '.join(pending)} (a rename in thermal_edge/service/metrics.py)")
+    assert r.returncode == 0
