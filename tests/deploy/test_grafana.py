@@ -70,16 +70,21 @@ def test_dashboard_provisioning_points_at_the_dashboard() -> None:
     assert prov["options"]["path"].startswith("/")
 
 
+#: How every panel, target, annotation and query variable names its datasource: the dashboard's
+#: datasource variable (the provisioned default Prometheus, or the one chosen at a UI import).
+DS_REF = {"type": "prometheus", "uid": "${datasource}"}
+
+
 def test_dashboard_structure() -> None:
     d = dashboard()
-    uid = provisioned_datasource()["uid"]
+    uid = DS_REF["uid"]
     assert d["uid"] == "thermal-edge" and d["title"]
     ids = [p["id"] for p in all_panels(d["panels"])]
     assert len(ids) == len(set(ids)), "panel ids must be unique"
     for p in all_panels(d["panels"]):
         if p["type"] == "row":
             continue
-        assert p["datasource"] == {"type": "prometheus", "uid": uid}, p["title"]
+        assert p["datasource"] == DS_REF, p["title"]
         assert p["targets"], p["title"]
         for t in p["targets"]:
             assert t["datasource"]["uid"] == uid, p["title"]
@@ -141,3 +146,45 @@ def test_dashboard_promql_parses(tmp_path: Path) -> None:
     f.write_text(yaml.safe_dump({"groups": [{"name": "dashboard", "rules": rules}]}))
     r = subprocess.run([promtool, "check", "rules", str(f)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_datasource_variable_resolves_when_provisioned_and_when_imported() -> None:
+    """Provisioned, the datasource variable falls back to the default Prometheus (the provisioned
+    one is the default); imported through the UI, Grafana replaces ``${DS_PROMETHEUS}`` of
+    ``__inputs`` with the datasource the user picks, which becomes the variable's value."""
+    d = dashboard()
+    assert provisioned_datasource()["isDefault"] is True
+    (var,) = [v for v in d["templating"]["list"] if v["type"] == "datasource"]
+    assert var["name"] == "datasource" and var["query"] == "prometheus"
+    assert d["templating"]["list"][0] == var  # resolved before the query variables use it
+    (inp,) = d["__inputs"]
+    assert inp == {**inp, "name": "DS_PROMETHEUS", "type": "datasource", "pluginId": "prometheus"}
+    text = DASHBOARD.read_text()
+    assert set(re.findall(r"\$\{(DS_[A-Z_]+)\}", text)) == {"DS_PROMETHEUS"}  # every placeholder is an input
+    imported = json.loads(text.replace("${DS_PROMETHEUS}", "chosen-uid"))  # what the UI import does
+    (var,) = [v for v in imported["templating"]["list"] if v["type"] == "datasource"]
+    assert var["current"]["value"] == "chosen-uid"
+    requires = {(r["type"], r["id"]) for r in d["__requires"]}
+    assert {("grafana", "grafana"), ("datasource", "prometheus")} <= requires
+    used = {p["type"] for p in all_panels(d["panels"]) if p["type"] != "row"}
+    assert used == {i for t, i in requires if t == "panel"}
+
+
+def test_the_drive_label_selects_the_drive() -> None:
+    """Every drive's service is scraped at 127.0.0.1:9108: the dashboard selects by the ``drive``
+    label that prometheus.yml attaches, never by ``instance``."""
+    d = dashboard()
+    (var,) = [v for v in d["templating"]["list"] if v["name"] == "drive"]
+    assert re.fullmatch(r"label_values\(thermal_edge_\w+\{job=\"thermal-edge\"\}, drive\)", var["query"]["query"])
+    assert "instance" not in json.dumps(d["templating"]) + " ".join(e for _, e in exprs(d))
+    for where, e in exprs(d):
+        if where == "variable 'drive'":
+            continue
+        for m in re.finditer(r"\bthermal_edge_\w+", e):
+            assert e[m.end():].startswith('{drive=~"$drive"'), (where, e)
+    for a in d["annotations"]["list"]:
+        if a.get("expr"):
+            assert a["tagKeys"] == "drive", a["name"]
+    prom = yaml.safe_load((dl.DEPLOY / "prometheus" / "prometheus.yml").read_text())
+    (job,) = [j for j in prom["scrape_configs"] if j["job_name"] == "thermal-edge"]
+    assert all("drive" in sc["labels"] for sc in job["static_configs"])
