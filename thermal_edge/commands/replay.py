@@ -34,6 +34,7 @@ from ..lptn.vocabulary import Role
 from ..plots import missing
 from ..service.replay import format_summary, replay_summary
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
+from .progress import bar
 from .runs import read_checked, require_finite, require_finite_prediction
 
 #: ``--out`` suffixes and the module each needs (None: none beyond the core).
@@ -109,10 +110,13 @@ def run(args: argparse.Namespace) -> int:
             traj, scores = open_loop(model, rec, method=args.method, max_substep=args.max_substep)
             require_finite(model, rec, traj.T, "the open-loop prediction")
             if args.plot or args.out:
-                _outputs(args, model, rec, traj.T, run_online(model, rec, replace(cfg, threshold_k=np.inf)))
+                with bar(len(rec), "replay: observer", "sample") as pb:
+                    obs = run_online(model, rec, replace(cfg, threshold_k=np.inf), progress=pb.update)
+                _outputs(args, model, rec, traj.T, obs)
             return _print_open_loop(args, model, rec, scores, out)
         require_finite_prediction(model, rec)  # the adapter's fits would fail on it without saying why
-        rep = online_report(model, rec, cfg)
+        with bar(2 * len(rec), "replay: fixed, then adapting", "sample") as pb:
+            rep = online_report(model, rec, cfg, progress=pb.update)
         res = rep["result"]
         require_finite(model, rec, res.T, "the online trace")
         require_finite(model, rec, res.estimate, "the observer's estimate")

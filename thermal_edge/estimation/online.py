@@ -9,6 +9,7 @@ open loop from the observer's state at that sample.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -33,7 +34,7 @@ class OnlineResult:
 
 
 def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray | None = None,
-               T0: np.ndarray | None = None) -> OnlineResult:
+               T0: np.ndarray | None = None, progress: Callable[[int], object] | None = None) -> OnlineResult:
     """Replay ``run`` through the observer and the online adapter (only the configured sensors
     are seen).
 
@@ -43,6 +44,8 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
         Starting parameters (default: the model's nominal values, also the adapter's prior).
     T0 : ndarray, optional
         Initial state, °C (default: from the first row's readings).
+    progress : callable, optional
+        Called with 1 after every sample (a progress bar's ``update``).
     """
     dt = run.dt
     ad = OnlineAdapter(model, config, dt, theta0)
@@ -81,11 +84,14 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
             ad.decide(float(t[k]))
             if ad.version != before:
                 obs.set_parameters(ad.theta)
+        if progress is not None:
+            progress(1)
 
     return OnlineResult(T, est, sig, ad.decisions, ad.theta.copy(), ad, trace)
 
 
-def online_report(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray | None = None) -> dict[str, object]:
+def online_report(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray | None = None,
+                  progress: Callable[[int], object] | None = None) -> dict[str, object]:
     """What a user needs to judge online adaptation on a recorded run, per target (every sensor
     column of the run, seen by the adapter or not).
 
@@ -95,10 +101,11 @@ def online_report(model: Model, run: Run, config: AdapterConfig, theta0: np.ndar
     parameters, ``band_coverage`` the share of samples whose reading lies inside the 95 % band of
     that estimate (NaN readings not counted), ``seen`` whether the adapter learns from it. Also
     ``final_params`` (the adaptable parameters at the end), ``mean`` (the four figures averaged
-    over the targets), the decisions and the median time of an adaptation step (s).
+    over the targets), the decisions and the median time of an adaptation step (s). ``progress``
+    as :func:`run_online`'s, for both runs (twice the samples in all).
     """
-    fixed = run_online(model, run, replace(config, threshold_k=np.inf), theta0)
-    res = run_online(model, run, config, theta0)
+    fixed = run_online(model, run, replace(config, threshold_k=np.inf), theta0, progress=progress)
+    res = run_online(model, run, config, theta0, progress=progress)
     targets: dict[str, dict[str, object]] = {}
     for s, node in model.sensors.items():
         if s not in run.columns:
