@@ -10,10 +10,13 @@ from typing import Any
 
 
 class _Silent:
-    """Stands in for a tqdm bar when none is drawn."""
+    """Stands in for a tqdm bar when none is drawn (it counts as tqdm does: ``n``)."""
 
-    def update(self, n: int = 1) -> None:
-        pass
+    def __init__(self) -> None:
+        self.n: float = 0
+
+    def update(self, n: float = 1) -> None:
+        self.n += n
 
     def set_postfix_str(self, s: str, refresh: bool = True) -> None:
         pass

@@ -20,6 +20,7 @@ from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
 from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
+from .progress import bar
 
 
 def _effects_help() -> str:
@@ -120,9 +121,16 @@ def run_candump(args: argparse.Namespace) -> int:
     from ..lptn import load_model
 
     sets = parse_sets(load_model(args.model, data_dir=args.data_dir), args.set)
-    st = write_log(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
+    total = round(args.duration if args.duration is not None else load_cycle(args.cycle).duration_s)
+    with bar(total, "simulate: CAN log", "s") as pb:
+        def progress(elapsed_s: float) -> None:  # whole simulated seconds: a readable count
+            if int(elapsed_s) > pb.n:
+                pb.update(int(elapsed_s) - pb.n)
+
+        st = write_log(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
                        noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
-                       current_period_s=args.current_period, temperature_period_s=args.temperature_period)
+                       current_period_s=args.current_period, temperature_period_s=args.temperature_period,
+                       progress=progress)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
     print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s (candump -L); peak {peaks}")
     return 0

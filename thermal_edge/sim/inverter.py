@@ -42,7 +42,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -537,9 +537,11 @@ class InverterEmulator:
         s.rx_dropped = {k: int(v) for k, v in st.dropped.items()}
 
     # -- offline ----------------------------------------------------------------------------------
-    def write_log(self, path: str | os.PathLike[str], channel: str = "can0") -> EmulatorSummary:
+    def write_log(self, path: str | os.PathLike[str], channel: str = "can0",
+                  progress: Callable[[float], object] | None = None) -> EmulatorSummary:
         """Write the inverter frames of the whole (open-loop) run as a CAN log, no bus (format by
-        the file's suffix: ``.log`` candump -L, ``.asc``, ``.blf``, ... see :mod:`thermal_edge.bus.logs`)."""
+        the file's suffix: ``.log`` candump -L, ``.asc``, ``.blf``, ... see :mod:`thermal_edge.bus.logs`);
+        ``progress(elapsed_s)`` after every plant step."""
         import can
 
         self.summary.sim_start = self.sim_time
@@ -550,6 +552,8 @@ class InverterEmulator:
                     rec.write(can.Message(timestamp=ts, arbitration_id=self.codec.frame_id(name), data=data,
                                           is_extended_id=False, is_rx=True))
                     self.summary.frames_sent[name] = self.summary.frames_sent.get(name, 0) + 1
+                if progress is not None:
+                    progress(self.elapsed)
         if rec.write_errors:
             raise OSError(f"{path}: {rec.write_errors} frames could not be written (see the log)")
         self._finish()
@@ -559,14 +563,15 @@ class InverterEmulator:
 def write_log(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[str], out: str | os.PathLike[str], *,
               params: Mapping[str, float] | None = None, duration_s: float | None = None, noise_k: float = 0.1,
               resolution_k: float = 0.1, seed: int = 0, t0: float | None = None, current_period_s: float = 0.01,
-              temperature_period_s: float = 0.1, channel: str = "can0") -> EmulatorSummary:
+              temperature_period_s: float = 0.1, channel: str = "can0",
+              progress: Callable[[float], object] | None = None) -> EmulatorSummary:
     """The inverter frames of a simulated open-loop run as a CAN log in the format of ``out``'s
-    suffix (``thermal-edge simulate --format candump``)."""
+    suffix (``thermal-edge simulate --format candump``); ``progress(elapsed_s)`` as it goes."""
     cfg = EmulatorConfig(model_path=model_path, cycle_path=cycle_path, params=dict(params or {}), duration_s=duration_s,
                          noise_k=noise_k, resolution_k=resolution_k, seed=seed, t0=t0 if t0 is not None else 1.7e9,
                          current_period_s=current_period_s, temperature_period_s=temperature_period_s,
                          closed_loop=False, plant_dt_s=max(current_period_s, min(1.0, temperature_period_s)))
-    return InverterEmulator(cfg).write_log(out, channel)
+    return InverterEmulator(cfg).write_log(out, channel, progress)
 
 
 # ----------------------------------------------------------------------------------------------
