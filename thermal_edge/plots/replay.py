@@ -43,11 +43,12 @@ def replay_figure(path: str | os.PathLike[str], title: str, t_s: np.ndarray, sen
                              gridspec_kw={"height_ratios": [3] * (n - 1) + [2]})
     axes = axes[:, 0]
     for ax, (name, s) in zip(axes, sensors.items()):
-        ax.fill_between(x, s["band_low"], s["band_high"], color="tab:orange", alpha=0.25, lw=0,
+        # the readings underneath, so that on a long run the two model lines stay visible on them
+        ax.plot(x, s["measured"], color="0.45", ls="none", marker=".", ms=1.5, alpha=0.6, label="measured")
+        ax.fill_between(x, s["band_low"], s["band_high"], color="tab:orange", alpha=0.3, lw=0,
                         label="observer 95 % band")
         ax.plot(x, s["observer"], color="tab:orange", lw=1.0, label="observer")
-        ax.plot(x, s["predicted"], color="tab:blue", lw=1.2, label="predicted")
-        ax.plot(x, s["measured"], color="black", lw=0.8, ls="none", marker=".", ms=1.5, label="measured")
+        ax.plot(x, s["predicted"], color="tab:blue", lw=1.0, label="predicted")
         ax.set_ylabel(f"{name} (°C)")
         ax.grid(alpha=0.3)
     axes[0].legend(loc="upper left", ncol=4, fontsize=8)
