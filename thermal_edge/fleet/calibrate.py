@@ -28,7 +28,7 @@ POPSIZE = 1
 def calibrate_machine(
     machine: Machine, model_path: str, data_dir: str | None = None, fmt: str = "csv", id_column: str | None = None,
     params: Sequence[str] | None = None, sensors: Sequence[str] | None = None, decimation: int = DECIMATE,
-    generations: int = GENERATIONS, popsize: int = POPSIZE, seed: int = 0,
+    generations: int = GENERATIONS, popsize: int = POPSIZE, seed: int = 0, can_config: str | None = None,
 ) -> list[dict[str, Any]]:
     """Calibrate one machine: a ``parameter`` row per fitted parameter (or one ``error`` row).
 
@@ -43,11 +43,13 @@ def calibrate_machine(
         all in the runs).
     decimation, generations, popsize, seed : int
         As :func:`thermal_edge.estimation.calibrate.calibrate`.
+    can_config : str, optional
+        The service configuration that decodes the machine's CAN logs (default: the shipped one).
     """
 
     def job() -> list[dict[str, Any]]:
         model = cached_model(model_path, data_dir)
-        runs = read_machine_runs(machine, fmt, id_column)
+        runs = read_machine_runs(machine, fmt, id_column, can_config)
         res = calibrate(model, runs, params, sensors, decimation, generations, popsize, seed)
         unc = res.uncertainty
         common = dict(machine=machine.id, kind="parameter", residual_k=float(np.sqrt(unc.sigma2)),

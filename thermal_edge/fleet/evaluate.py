@@ -19,7 +19,7 @@ from .task import cached_model, read_machine_runs, run_machine
 
 def evaluate_machine(
     machine: Machine, params: Mapping[str, float] | None, model_path: str, data_dir: str | None = None,
-    fmt: str = "csv", id_column: str | None = None,
+    fmt: str = "csv", id_column: str | None = None, can_config: str | None = None,
 ) -> list[dict[str, Any]]:
     """Replay the model over one machine's runs: a ``sensor`` row per sensor (or one ``error`` row).
 
@@ -27,6 +27,8 @@ def evaluate_machine(
     ----------
     params : mapping, optional
         Parameter values replacing the model's (the machine's calibration); ``None``: the model's.
+    can_config : str, optional
+        The service configuration that decodes the machine's CAN logs (default: the shipped one).
     """
 
     def job() -> list[dict[str, Any]]:
@@ -34,7 +36,7 @@ def evaluate_machine(
         theta = model.nominal().copy()
         if params:
             theta[model.parameter_index(list(params))] = list(params.values())
-        runs = read_machine_runs(machine, fmt, id_column)
+        runs = read_machine_runs(machine, fmt, id_column, can_config)
         sq: dict[str, float] = {}
         count: dict[str, int] = {}
         worst: dict[str, float] = {}

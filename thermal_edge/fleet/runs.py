@@ -1,10 +1,11 @@
 """Finding the fleet's machines and their runs from paths and globs.
 
 A path (or a glob's match) that is a directory is one machine: its id is the directory's name and
-its runs are the ``*.csv`` files in it. A file is one machine's run: the machine id is the file's
-stem, or with ``id_column`` the value of that column in the file (then several files of one
-machine are grouped, and the column must hold one value per file). The run files themselves are
-read by the worker that processes the machine, not here.
+its runs are the run CSVs and the CAN logs in it (``*.csv``; ``*.log``, ``*.asc``, ``*.blf``,
+``*.trc``, gzipped or not: :mod:`.canlogs`). A file is one machine's run: the machine id is the
+file's name without its suffixes, or with ``id_column`` the value of that column in the file (a
+run CSV; then several files of one machine are grouped, and the column must hold one value per
+file). The run files themselves are read by the worker that processes the machine, not here.
 """
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ from pathlib import Path
 from typing import Sequence
 
 from ..data import RunError
+from .canlogs import CAN_LOG_SUFFIXES, is_can_log
 
-#: run files in a machine's directory
-RUN_GLOB = "*.csv"
+#: run files in a machine's directory: run CSVs and CAN logs (gzipped too)
+RUN_GLOBS = ("*.csv", *(f"*{s}" for s in CAN_LOG_SUFFIXES), *(f"*{s}.gz" for s in CAN_LOG_SUFFIXES))
 
 
 @dataclass(frozen=True)
@@ -47,8 +49,10 @@ def column_id(path: str | Path, column: str) -> str:
     Raises
     ------
     RunError
-        If the file has no such column or no data row.
+        If the file has no such column or no data row, or is a CAN log (whose machine is its name).
     """
+    if is_can_log(path):
+        raise RunError(f"{path}: a CAN log has no columns: its machine id is its file or directory name, not {column!r}")
     with open(path, newline="") as fh:
         rows = csv.reader(line for line in fh if not line.startswith("#"))
         header = [h.strip() for h in next(rows, [])]
@@ -84,13 +88,14 @@ def find_machines(sources: Sequence[str], id_column: str | None = None) -> list[
     for source in sources:
         for path in _expand(source):
             if path.is_dir():
-                files = sorted(str(f) for f in path.glob(RUN_GLOB))
+                files = sorted({str(f) for g in RUN_GLOBS for f in path.glob(g)})
                 if not files:
-                    raise FileNotFoundError(f"{path}: directory has no {RUN_GLOB} run files")
+                    raise FileNotFoundError(f"{path}: directory has no *.csv run files and no CAN logs "
+                                            f"({', '.join(RUN_GLOBS[1:])})")
                 mid = path.name
             else:
                 files = [str(path)]
-                mid = column_id(path, id_column) if id_column else path.stem
+                mid = column_id(path, id_column) if id_column else path.name.split(".")[0]
             if mid in runs and not id_column and origin[mid] != str(path):
                 raise KeyError(f"machine id {mid!r} from both {origin[mid]} and {path}: "
                                "give one directory per machine or --id-column")

@@ -1,5 +1,6 @@
 """What every fleet task does on its worker: load the model once per process, read one machine's
-runs, and stamp the machine's rows with its wall time and the worker's peak memory.
+runs (run CSVs and CAN logs), and stamp the machine's rows with its wall time and the worker's peak
+memory.
 
 A machine that cannot be processed (a broken run, a failed fit) gives one ``error`` row naming
 the machine, its files and the error, instead of failing the whole fleet's job.
@@ -13,6 +14,7 @@ from typing import Any, Callable
 
 from ..data import Run, read_run
 from ..lptn import Model, load_model
+from .canlogs import is_can_log, read_can_runs
 from .results import row
 from .runs import Machine, format_id
 
@@ -28,14 +30,28 @@ def warm(model_path: str, data_dir: str | None) -> str:
     return cached_model(model_path, data_dir).name
 
 
-def read_machine_runs(machine: Machine, fmt: str, id_column: str | None) -> list[Run]:
-    """The machine's runs; with ``id_column`` every row must carry the machine's id."""
-    runs = [read_run(p, fmt) for p in machine.runs]
-    if id_column:
-        for r in runs:
-            ids = {format_id(v) for v in r.column(id_column)}
+def read_machine_runs(machine: Machine, fmt: str, id_column: str | None, can_config: str | None = None) -> list[Run]:
+    """The machine's runs; with ``id_column`` every row of its run CSVs must carry the machine's id.
+
+    Parameters
+    ----------
+    fmt : str
+        Format of the run CSVs (:data:`thermal_edge.data.FORMATS`).
+    can_config : str, optional
+        Service configuration whose ``signals:`` decode the CAN logs (default: the shipped one);
+        a CAN log gives a run per stretch of traffic (:func:`~.canlogs.read_can_runs`).
+    """
+    runs: list[Run] = []
+    for path in machine.runs:
+        if is_can_log(path):  # its machine is its file or directory name
+            runs += read_can_runs(path, can_config)
+            continue
+        run = read_run(path, fmt)
+        if id_column:
+            ids = {format_id(v) for v in run.column(id_column)}
             if ids != {machine.id}:
-                raise KeyError(f"{r.source}: column {id_column} holds {', '.join(sorted(ids))}, expected only {machine.id}")
+                raise KeyError(f"{run.source}: column {id_column} holds {', '.join(sorted(ids))}, expected only {machine.id}")
+        runs.append(run)
     return runs
 
 
