@@ -17,6 +17,7 @@ from .expr import Expr, ExprError, Num, evaluate_const, parse
 from .model import DEFAULT_SPREAD, Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
 from .tables import Lookup, load_table
 from .vocabulary import NodeRole, Role, parse_role, temperature_name
+
 MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
 
 
