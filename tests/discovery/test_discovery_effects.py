@@ -43,8 +43,7 @@ def test_targets_of_pm10kw(pm10kw_raw, pm10kw_build):
 
 
 def _sim(model, inputs, theta=None):
-    first = {c: float(v[0]) for c, v in inputs.items()}
-    first.update({"i_rms": 0.0, "speed_rpm": 0.0, "torque_nm": 0.0})
+    first = model.at_rest({c: float(v[0]) for c, v in inputs.items()})
     T0, _ = steady_state(model, first, theta)
     tr = Simulator(model).simulate(model.nominal() if theta is None else theta, inputs, 10.0, T0)
     return {s: tr.node(n) for s, n in model.sensors.items()}
@@ -90,7 +89,7 @@ def test_default_magnitude_opens_a_visible_gap(spec, pm10kw_raw, pm10kw_build):
     default is too small for the target)."""
     model = pm10kw_build(pm10kw_raw)
     inputs = cycle_run(load_cycle(REPO / "config" / "cycles" / "varied_drive.yaml"), 5.6)
-    refs = E.references(inputs.columns)
+    refs = E.references(model, inputs.columns)
     doc, resolved = hidden.plant_document(pm10kw_raw, [spec], refs, pm10kw_build, inputs=inputs)
     plant = hidden._sensor_series(pm10kw_build(doc), inputs)
     base = hidden._sensor_series(model, inputs)

@@ -14,19 +14,23 @@ from thermal_edge.data import Run
 from thermal_edge.discovery import fitting as F
 from thermal_edge.discovery import judge as J
 from thermal_edge.discovery import residuals as R
+from thermal_edge.lptn import DEFAULT_COLUMNS, Role
 
 N, SPLIT = 3000, 2000
 SENSORS = ["a", "b"]
+# data without a model: the default column names, each input's role
+ROLES = {r: DEFAULT_COLUMNS[r] for r in (Role.SPEED, Role.CURRENT, Role.AMBIENT)}
+BOUNDARIES = {"ambient": ROLES[Role.AMBIENT]}
 
 
 def _data(speed: np.ndarray | None = None) -> F.Data:
     rng = np.random.default_rng(0)
     t = np.arange(N, dtype=float)
     cols = {s: 40.0 + rng.normal(0, 0.1, N) for s in SENSORS}
-    cols["speed_rpm"] = np.full(N, 1000.0) if speed is None else speed
-    cols["i_rms"] = np.full(N, 20.0)
-    cols["ambient_c"] = np.full(N, 25.0)
-    return F.Data(Run(t, cols, "hand"), list(SENSORS), SPLIT, 5, {"n_ref": 1000.0, "i_ref": 20.0})
+    cols[ROLES[Role.SPEED]] = np.full(N, 1000.0) if speed is None else speed
+    cols[ROLES[Role.CURRENT]] = np.full(N, 20.0)
+    cols[ROLES[Role.AMBIENT]] = np.full(N, 25.0)
+    return F.Data(Run(t, cols, "hand"), list(SENSORS), SPLIT, 5, {"n_ref": 1000.0, "i_ref": 20.0}, dict(ROLES))
 
 
 def _fit(label: str, data: F.Data, err: np.ndarray) -> F.Fit:
@@ -69,7 +73,7 @@ def test_held_out_data_from_a_new_region_decides():
     speed = np.full(N, 1000.0)
     speed[-500:] = 1500.0
     data = _data(speed)
-    mask, desc = J.novel_region(data, {"ambient": "ambient_c"})
+    mask, desc = J.novel_region(data, BOUNDARIES)
     assert mask.sum() == 500 and mask[-500:].all() and "speed (rpm) above 1000" in desc
     rng = np.random.default_rng(2)
     ea = rng.normal(0, 0.2, (N, 2))
@@ -79,11 +83,11 @@ def test_held_out_data_from_a_new_region_decides():
     a, b = _fit("A", data, ea), _fit("B", data, eb)
     cmp = J.compare(a, b, 1.0, data)
     assert cmp.ambiguous
-    cmp = J.decide_novel(cmp, a, b, data, {"ambient": "ambient_c"})
+    cmp = J.decide_novel(cmp, a, b, data, BOUNDARIES)
     assert not cmp.ambiguous and not cmp.swapped and "speed" in cmp.decided_by
     assert math.isclose(cmp.novel_gap_b, math.sqrt(np.mean(eb[-500:] ** 2)), rel_tol=1e-12)
     # the other way round: the runner-up wins there, so the pair is swapped
-    cmp2 = J.decide_novel(J.compare(b, a, 1.0, data), b, a, data, {"ambient": "ambient_c"})
+    cmp2 = J.decide_novel(J.compare(b, a, 1.0, data), b, a, data, BOUNDARIES)
     assert cmp2.swapped
 
 
@@ -92,7 +96,7 @@ def test_no_gap_and_an_unexplained_gap_are_told_apart():
     noise = 0.1
     resid = np.random.default_rng(3).normal(0, noise, (N, 2))
     an = R.analyse(data.run, SENSORS, np.column_stack([data.run.columns[s] for s in SENSORS]) + resid, SPLIT,
-                   {"ambient": "ambient_c"}, data.refs)
+                   BOUNDARIES, data.refs, data.roles)
     t_h = np.arange(N - SPLIT) / 3600.0
     st = J.gap_status(0.12, noise, 0.05, False, resid[SPLIT:], t_h, an.sensors, [])
     assert st.status == "none" and st.threshold_k == J.NO_GAP_FACTOR * noise + 0.05
@@ -101,7 +105,7 @@ def test_no_gap_and_an_unexplained_gap_are_told_apart():
     bumped[2400:2500, 1] += 2.0
     gap = float(np.sqrt(np.mean(bumped[SPLIT:] ** 2)))
     an = R.analyse(data.run, SENSORS, np.column_stack([data.run.columns[s] for s in SENSORS]) + bumped, SPLIT,
-                   {"ambient": "ambient_c"}, data.refs)
+                   BOUNDARIES, data.refs, data.roles)
     st = J.gap_status(gap, noise, 0.05, False, bumped[SPLIT:], t_h, an.sensors, [("x", 0.5, 0.01)])
     assert st.status == "unexplained" and st.worst_sensor == "b"
     assert math.isclose(st.ratio, gap / noise)

@@ -99,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     comment = shlex.join(cmd)
     plant = model
     if args.effect:
-        refs = E.references(inputs.columns)
+        refs = E.references(model, inputs.columns)
         doc, resolved = hidden.plant_document(raw, args.effect, refs, build, inputs=inputs)
         plant = build(doc)
         desc = hidden.describe(resolved, refs)

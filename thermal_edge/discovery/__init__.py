@@ -27,29 +27,29 @@ operating conditions in a way no parameter value removes. :func:`discover` takes
    (matplotlib, the ``report`` extra).
 
 Effects (``NAME[:TARGET][=PARAM=VALUE,...]``, the syntax of ``thermal-edge simulate --effect``;
-``s = |speed_rpm| / n_ref``, ``n_ref``/``i_ref`` the run's 95th-percentile speed/current):
+``s = |speed| / n_ref``, ``n_ref``/``i_ref`` the run's 95th-percentile speed/current):
 
 =====================================  =========================================================
-``copper_temperature``                 winding loss ``X + (k100-1)(T-t_ref)/100 X(t_ref)``:
-                                       ``k100`` loss factor 100 K above ``t_ref`` [1.4],
-                                       ``t_ref`` °C [20]
-``speed_convection:<group>``           conductance ``g (1 + k s^m)``: ``k`` [1], ``m`` [1]
-``iron_loss_frequency``                iron loss ``X (1 + k s^m)``: ``k`` [1], ``m`` [1]
-``magnet_eddy_loss``                   magnet loss ``p (s i/i_ref)²``: ``p`` W [100]
-``bearing_loss``                       shaft/end-cap loss ``p s``: ``p`` W [60]
-``housing_radiation``                  frame heat out ``eps_a σ (T⁴ − T_amb⁴)``: ``eps_a`` m² [0.8]
-``natural_convection``                 frame heat out ``h max(T − T_amb, 0)^1.25``: ``h`` [1]
-``sensor_lag:<sensor>``                probe node, time constant ``tau`` s [300]
-``ambient_offset[:<boundary>]``        air ``dT`` K warmer than the boundary input [4]
-``contact_resistance:<conductance>``   extra series ``R`` K/W [2 × the path's resistance]
+``copper_temperature``                 winding loss ``X + (k100-1)(T-t_ref)/100 X(t_ref)``
+``speed_convection:<group>``           conductance ``g (1 + k s^m)``
+``iron_loss_frequency``                iron loss ``X (1 + k s^m)``
+``magnet_eddy_loss``                   magnet loss ``p (s i/i_ref)²``
+``bearing_loss``                       shaft/end-cap loss ``p s``
+``housing_radiation``                  frame heat out ``eps_a σ (T⁴ − T_amb⁴)``
+``natural_convection``                 frame heat out ``h max(T − T_amb, 0)^1.25``
+``sensor_lag:<sensor>``                probe node, time constant ``tau`` s
+``ambient_offset[:<boundary>]``        air ``dT`` K warmer than the boundary input
+``contact_resistance:<conductance>``   extra series ``R`` K/W
 =====================================  =========================================================
 
+Parameters, defaults and bounds: :data:`.effects.CATALOGUE` (its table is in the docstring of
+:mod:`.effects`; ``thermal-edge discover --model M --list-effects`` prints it).
 Unset magnitudes of a hidden effect are raised (doubled, up to 8 times) until the plant differs
 from the model by at least 1 K RMS on some sensor over the cycle. Targets: a conductance group
 is named by the parameters its law uses (``R_e_hous``, ``h_gap0+h_gap1``) or by its two ends
 (``st-pm``); a single conductance by its ends (``housing_6-yoke_1``); ``thermal-edge discover
 --model M --list-effects`` lists them. Node roles (winding, stator iron, magnet, shaft/end cap,
-frame) are recognised by name (``effects.WINDING_RE`` …).
+frame) are read from the model file's ``role:`` of each node.
 
 Command line: ``thermal-edge discover --model M --run R [--format F] [--sensors a,b] [--out DIR]
 [--json]``; benchmark: ``python -m thermal_edge.discovery.bench``.

@@ -67,7 +67,7 @@ def simulated_run(spec: str | None, cycle: str, seed: int, model_path: Path = PM
     expected = None
     plant = model
     if spec:
-        refs = E.references(inputs.columns)
+        refs = E.references(model, inputs.columns)
         doc, resolved = hidden.plant_document(raw, [spec], refs, build, inputs=inputs)
         plant = build(doc)
         expected = resolved[0][0].label

@@ -6,41 +6,43 @@ in the model's own law grammar, so that adding an effect is writing a few lines 
 augmented document is validated by :func:`thermal_edge.lptn.loader.build_model` like any model.
 
 Every effect has a *zero-effect* value of its parameters (the model is then unchanged) and a
-*default magnitude* used by ``thermal-edge simulate --effect`` to hide it in simulated data.
+*default magnitude* used by ``thermal-edge simulate --effect`` to hide it in simulated data; both,
+with the bounds, are stated once, in :data:`CATALOGUE` (the table of parameters at the end of
+this docstring is generated from it).
 
-Reference scales: ``s = |speed_rpm| / n_ref`` and ``i_rms / i_ref``, where ``n_ref`` and
-``i_ref`` are the 95th percentiles of the run's speed and current rounded to two significant
-digits (:func:`references`); they are written into the laws as numbers, so magnitudes read as
-"W (or a factor) at the run's typical high-load point".
+Reference scales: ``s = |speed| / n_ref`` and ``current / i_ref`` (the model's inputs of role
+speed and current), where ``n_ref`` and ``i_ref`` are the 95th percentiles of the run's speed and
+current rounded to two significant digits (:func:`references`); they are written into the laws
+as numbers, so magnitudes read as "W (or a factor) at the run's typical high-load point".
+Nodes are chosen by their role in the model file (:class:`~thermal_edge.lptn.vocabulary.NodeRole`):
+windings, stator iron (yoke, tooth), magnets, the bearing side (shaft, end caps) and the frame
+(housing, end caps); the ambient air is the boundary whose input has the role ``ambient``.
 
 =====================================  =========================================================
-effect[:target]                        law (X = the existing law), parameters (default hidden)
+effect[:target]                        law (X = the existing law)
 =====================================  =========================================================
 ``copper_temperature``                 every winding loss ``X + (k100 - 1) (T.<node> - t_ref) / 100
                                        * X(T=t_ref)``; ``k100`` the loss factor 100 K above
-                                       ``t_ref`` (1.4; 1 = none, < 1 allowed: AC copper loss
-                                       falls with temperature), ``t_ref`` °C (20, shape)
-``speed_convection:<conductance>``     ``g = X * (1 + k * s ** m)`` (``r`` laws are divided);
-                                       ``k`` (1.0), ``m`` (1.0, shape)
-``iron_loss_frequency``                every stator iron loss ``X * (1 + k * s ** m)``;
-                                       ``k`` (1.0), ``m`` (1.0, shape)
-``magnet_eddy_loss``                   loss ``p * (s * i_rms / i_ref) ** 2`` shared by the
-                                       magnet nodes; ``p`` W at the reference point (40)
-``bearing_loss``                       loss ``p * s`` shared by the shaft and end-cap nodes;
-                                       ``p`` W at ``n_ref`` (40)
+                                       ``t_ref`` (1 = none, < 1 allowed: AC copper loss falls with
+                                       temperature)
+``speed_convection:<conductance>``     ``g = X * (1 + k * s ** m)`` (``r`` laws are divided)
+``iron_loss_frequency``                every stator iron loss ``X * (1 + k * s ** m)``
+``magnet_eddy_loss``                   loss ``p * (s * current / i_ref) ** 2`` shared by the
+                                       magnet nodes
+``bearing_loss``                       loss ``p * s`` shared by the bearing-side nodes
 ``housing_radiation``                  heat leaving the frame nodes ``eps_a * 5.67e-8 *
                                        ((T + 273.15)^4 - (T_amb + 273.15)^4)`` (shared by
-                                       their conductance to ambient); ``eps_a`` m² (0.8)
+                                       their conductance to ambient)
 ``natural_convection``                 heat leaving the frame nodes ``h * max(T - T_amb, 0)
-                                       ** 1.25`` (conductance ∝ ΔT^0.25); ``h`` W/K^1.25 (1.0)
+                                       ** 1.25`` (conductance ∝ ΔT^0.25)
 ``sensor_lag:<sensor>``                a probe node of capacity ``tau * 0.01`` J/K joined to
-                                       the sensed node by 0.01 W/K, the sensor moved onto it;
-                                       ``tau`` s (300)
+                                       the sensed node by 0.01 W/K, the sensor moved onto it
 ``ambient_offset[:<boundary>]``        the air at the machine is ``dT`` warmer than the
                                        boundary input: loss ``dT * g`` at every point joined
-                                       to the boundary by ``g``; ``dT`` K (4)
+                                       to the boundary by ``g``
 ``contact_resistance:<conductance>``   an extra series resistance ``R`` (K/W) on one
-                                       conductance; default 2 × its nominal resistance
+                                       conductance (its magnitudes scale with the path's
+                                       nominal resistance)
 =====================================  =========================================================
 
 Targets: a *conductance group* (``speed_convection``) is named by the parameters its law uses
@@ -63,16 +65,19 @@ import numpy as np
 from ..lptn.expr import parse
 from ..lptn.loader import build_model
 from ..lptn.model import Model, ModelError
+from ..lptn.vocabulary import (
+    BEARING_SIDE,
+    FRAME,
+    STATOR_IRON,
+    TEMP_PREFIX,
+    NodeRole,
+    Role,
+    temperature_name,
+)
 
 SIGMA_SB = 5.670374419e-8
 PROBE_G = 0.01  # W/K: conductance of a sensor probe node to the sensed node
 
-# node roles by name (documented in the module docstring of the package)
-WINDING_RE = re.compile(r"wind|coil|copper|^sw(_|\d|$)", re.I)
-IRON_RE = re.compile(r"yoke|tooth|teeth|core|lamination|stator_iron|^sy(_|\d|$)|^st(_|\d|$)", re.I)
-MAGNET_RE = re.compile(r"magnet|^pm(_|\d|$)", re.I)
-BEARING_RE = re.compile(r"shaft|bearing|end_?cap|end_?shield", re.I)
-FRAME_RE = re.compile(r"hous|frame|shell|fin|end_?cap|end_?shield", re.I)
 
 
 class EffectError(ModelError):
@@ -157,11 +162,13 @@ class Context:
 
     @property
     def speed(self) -> str | None:
-        return "speed_rpm" if "speed_rpm" in self.model.inputs else None
+        """The model's speed input (rpm), None without one."""
+        return self.model.find_input(Role.SPEED)
 
     @property
     def current(self) -> str | None:
-        return "i_rms" if "i_rms" in self.model.inputs else None
+        """The model's RMS current input (A), None without one."""
+        return self.model.find_input(Role.CURRENT)
 
 
 # ------------------------------------------------------------------------------------------
@@ -173,19 +180,19 @@ def _p(short, unit, doc, nominal, lower, upper, default, null=0.0, primary=True,
 
 class CopperTemperature(Effect):
     def targets(self, ctx: Context) -> list[str | None]:
-        return [None] if _loss_nodes(ctx.raw, WINDING_RE) else []
+        return [None] if _loss_nodes(ctx, NodeRole.WINDING) else []
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
         # X + a (T - t_ref) X(T = t_ref): the loss X rises by a per kelvin above t_ref. Written
         # with X taken at t_ref the law stays affine in T when X is (fast simulation).
-        for i in _loss_nodes(ctx.raw, WINDING_RE):
+        for i in _loss_nodes(ctx, NodeRole.WINDING):
             spec = dict(ed.raw["losses"][i])
             node = spec["node"]
             if node not in ctx.model.nodes:
                 continue
             law = _law_str(spec["power"])
-            at_ref = re.sub(r"\bT\.[A-Za-z_][\w]*(?![\w.])", P["t_ref"], law)
-            spec["power"] = f"{law} + ({P['k100']} - 1) / 100 * (T.{node} - {P['t_ref']}) * ({at_ref})"
+            at_ref = re.sub(rf"\b{re.escape(TEMP_PREFIX)}[A-Za-z_][\w]*(?![\w.])", P["t_ref"], law)
+            spec["power"] = f"{law} + ({P['k100']} - 1) / 100 * ({temperature_name(node)} - {P['t_ref']}) * ({at_ref})"
             ed.replace("losses", i, spec)
 
 
@@ -220,10 +227,10 @@ class IronLossFrequency(Effect):
 
 class MagnetEddyLoss(Effect):
     def targets(self, ctx: Context) -> list[str | None]:
-        return [None] if ctx.speed and ctx.current and _nodes_matching(ctx.model, MAGNET_RE) else []
+        return [None] if ctx.speed and ctx.current and ctx.model.nodes_with(NodeRole.MAGNET) else []
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
-        nodes = _nodes_matching(ctx.model, MAGNET_RE)
+        nodes = ctx.model.nodes_with(NodeRole.MAGNET)
         x = f"abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])} * {ctx.current} / {_fmt(ctx.refs['i_ref'])}"
         for node in nodes:
             ed.add_loss(node, f"{P['p']} / {len(nodes)} * ({x}) ** 2")
@@ -231,10 +238,10 @@ class MagnetEddyLoss(Effect):
 
 class BearingLoss(Effect):
     def targets(self, ctx: Context) -> list[str | None]:
-        return [None] if ctx.speed and _nodes_matching(ctx.model, BEARING_RE) else []
+        return [None] if ctx.speed and ctx.model.nodes_with(*BEARING_SIDE) else []
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
-        nodes = _nodes_matching(ctx.model, BEARING_RE)
+        nodes = ctx.model.nodes_with(*BEARING_SIDE)
         for node in nodes:
             ed.add_loss(node, f"{P['p']} / {len(nodes)} * abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}")
 
@@ -251,7 +258,7 @@ class _FrameHeatOut(Effect):
         raise NotImplementedError
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
-        amb = next((b for b in ctx.model.boundaries if "amb" in b.lower()), next(iter(ctx.model.boundaries)))
+        amb = ambient_boundary(ctx.model) or next(iter(ctx.model.boundaries))
         for node, w in _frame_nodes(ctx):
             ed.add_loss(node, self.law(node, w, ctx.model.boundaries[amb], P))
 
@@ -366,8 +373,9 @@ CATALOGUE: dict[str, Effect] = {
 }
 
 
-def references(columns: Mapping[str, np.ndarray]) -> dict[str, float]:
-    """Reference speed and current of a run: 95th percentiles rounded to two significant digits."""
+def references(model: Model, columns: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Reference speed and current of a run (the model's speed and current inputs): 95th
+    percentiles rounded to two significant digits."""
     def nice(x: float, floor: float) -> float:
         if not np.isfinite(x) or x <= 0:
             return floor
@@ -375,13 +383,18 @@ def references(columns: Mapping[str, np.ndarray]) -> dict[str, float]:
         return max(round(x / 10**e) * 10**e, floor)
 
     out = {"n_ref": 1000.0, "i_ref": 10.0}
-    if "speed_rpm" in columns:
-        v = np.abs(np.asarray(columns["speed_rpm"], float))
-        out["n_ref"] = float(nice(float(np.nanpercentile(v, 95)), 1.0))
-    if "i_rms" in columns:
-        v = np.abs(np.asarray(columns["i_rms"], float))
-        out["i_ref"] = float(nice(float(np.nanpercentile(v, 95)), 0.1))
+    for key, role, floor in (("n_ref", Role.SPEED, 1.0), ("i_ref", Role.CURRENT, 0.1)):
+        col = model.find_input(role)
+        if col is not None and col in columns:
+            v = np.abs(np.asarray(columns[col], float))
+            out[key] = float(nice(float(np.nanpercentile(v, 95)), floor))
     return out
+
+
+def ambient_boundary(model: Model) -> str | None:
+    """The boundary whose input is the ambient air temperature (by its role), None without one."""
+    col = model.find_input(Role.AMBIENT)
+    return next((b for b, c in model.boundaries.items() if c == col), None) if col else None
 
 
 # ------------------------------------------------------------------------------------------
@@ -436,7 +449,7 @@ def context(raw: Mapping[str, Any], model: Model | None = None, refs: Mapping[st
     for k, expr in model.derived.items():
         try:
             env_base[k] = expr.compile()(env_base)
-        except Exception:  # noqa: BLE001 - tables at odd points; nominal scale is a guide only
+        except Exception:
             env_base[k] = np.array(0.0)
     names: dict[str, int] = {}
     for i, spec in enumerate(conns):
@@ -453,7 +466,7 @@ def context(raw: Mapping[str, Any], model: Model | None = None, refs: Mapping[st
             try:
                 g = float(np.asarray(edge.g.compile()(env_base)))
                 ctx.edge_r_nominal[i] = 1.0 / g if g > 0 else float("nan")
-            except Exception:  # noqa: BLE001
+            except Exception:
                 ctx.edge_r_nominal[i] = float("nan")
         law = spec.get("g", spec.get("r"))
         if law is None:
@@ -465,12 +478,10 @@ def context(raw: Mapping[str, Any], model: Model | None = None, refs: Mapping[st
     return ctx
 
 
-def _loss_nodes(raw: Mapping[str, Any], pattern: re.Pattern[str]) -> list[int]:
-    return [i for i, spec in enumerate(raw.get("losses") or []) if pattern.search(str(spec.get("node", "")))]
-
-
-def _nodes_matching(model: Model, pattern: re.Pattern[str]) -> list[str]:
-    return [n for n in model.nodes if pattern.search(n)]
+def _loss_nodes(ctx: Context, *roles: NodeRole) -> list[int]:
+    """Raw indices of the losses at nodes of the given roles."""
+    nodes = set(ctx.model.nodes_with(*roles))
+    return [i for i, spec in enumerate(ctx.raw.get("losses") or []) if str(spec.get("node", "")) in nodes]
 
 
 def _boundary_edges(ctx: Context, boundary: str) -> list[int]:
@@ -480,13 +491,14 @@ def _boundary_edges(ctx: Context, boundary: str) -> list[int]:
 
 def _frame_nodes(ctx: Context) -> list[tuple[str, float]]:
     """Frame nodes (outer surface to ambient) with their share of the frame's conductance to ambient."""
-    amb = [b for b in ctx.model.boundaries if "amb" in b.lower()] or list(ctx.model.boundaries)[:1]
+    amb = [ambient_boundary(ctx.model) or next(iter(ctx.model.boundaries))]
+    frame = set(ctx.model.nodes_with(*FRAME))
     out: dict[str, float] = {}
     for b in amb:
         for i in _boundary_edges(ctx, b):
             spec = ctx.raw["conductances"][i]
             node = next(_end(x) for x in spec["between"] if str(x) != b)
-            if node in ctx.model.nodes and FRAME_RE.search(node):
+            if node in frame:
                 r = ctx.edge_r_nominal.get(i, float("nan"))
                 out[node] = out.get(node, 0.0) + (1.0 / r if r and np.isfinite(r) and r > 0 else 0.0)
     tot = sum(out.values())
@@ -503,10 +515,8 @@ def _iron_losses(ctx: Context) -> list[int]:
         if expr.free() & speed_dep:
             speed_dep.add(k)
     out = []
-    for i in _loss_nodes(raw, IRON_RE):
+    for i in _loss_nodes(ctx, *STATOR_IRON):
         law = raw["losses"][i]["power"]
-        if MAGNET_RE.search(str(raw["losses"][i]["node"])):
-            continue
         free = set(parse(law, _dummy_tables(raw)).free())
         if free & speed_dep:
             out.append(i)
@@ -574,6 +584,8 @@ def param_specs(ctx: Context, cand: Candidate, values: Mapping[str, float] | Non
         lo, hi = min(lo, v), max(hi, v)
         out.append({
             "value": _num(v), "min": _num(lo), "max": _num(hi), "unit": p.unit, "adaptable": False,
+            # a wide spread (a quarter of the log range): the fits' prior hardly pulls an effect
+            "spread": _num(math.log(hi / lo) / 4),
             "doc": f"{cand.label}: {p.doc}",
         })
     return out
@@ -716,7 +728,8 @@ def hidden_candidate(ctx: Context, spec: str) -> tuple[Candidate, dict[str, floa
             raise EffectError(f"--effect {spec!r}: {name} takes no target")
     elif target is None:
         if eff.target_kind == "boundary" and tg:
-            target = next((b for b in tg if b and "amb" in b.lower()), tg[0])
+            amb = ambient_boundary(ctx.model)
+            target = amb if amb in tg else tg[0]
         else:
             raise EffectError(f"--effect {spec!r}: {name} needs a target, one of: {', '.join(map(str, tg))}")
     elif target not in tg:
@@ -728,8 +741,43 @@ def hidden_candidate(ctx: Context, spec: str) -> tuple[Candidate, dict[str, floa
     return cand, full
 
 
+def catalogue_table() -> str:
+    """The parameters of every effect (unit, zero-effect value, default magnitude, bounds) as a
+    reStructuredText table, from :data:`CATALOGUE` (appended to this module's docstring)."""
+    rows = [("effect", "parameter", "unit", "zero effect", "default", "bounds", "kind")]
+    for eff in CATALOGUE.values():
+        per = " × nominal R" if eff.scale_by_target else ""
+        for p in eff.params:
+            rows.append((eff.name, p.short, p.unit, f"{p.null:g}", f"{p.default:g}{per if p.primary else ''}",
+                         f"{p.lower:g} – {p.upper:g}", "magnitude" if p.primary else "shape"))
+    widths = [max(len(r[k]) for r in rows) for k in range(len(rows[0]))]
+    rule = "  ".join("=" * w for w in widths)
+    lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join([rule, lines[0], rule, *lines[1:], rule])
+
+
+__doc__ = (__doc__ or "") + "\nParameters of the catalogue:\n\n" + catalogue_table() + "\n"
+
+
 __all__ = [
-    "CATALOGUE", "Candidate", "Context", "Edit", "Effect", "EffectError", "EffectParam", "applicable", "apply",
-    "augment", "context", "get", "hidden_candidate", "param_names", "param_specs", "parse_spec", "references",
+    "CATALOGUE",
+    "Candidate",
+    "Context",
+    "Edit",
+    "Effect",
+    "EffectError",
+    "EffectParam",
+    "ambient_boundary",
+    "applicable",
+    "apply",
+    "augment",
+    "catalogue_table",
+    "context",
+    "get",
+    "hidden_candidate",
+    "param_names",
+    "param_specs",
+    "parse_spec",
+    "references",
     "targets",
 ]

@@ -31,7 +31,7 @@ from ..estimation.common import ParamSpace, Window, decimate, window_from_arrays
 from ..estimation.gauss_newton import fit_gauss_newton
 from ..estimation.objective import Objective
 from ..estimation.predict import model_inputs
-from ..lptn import Model, Network, Simulator, initial_state
+from ..lptn import Model, Network, Role, Simulator, initial_state
 from . import effects as E
 
 
@@ -44,10 +44,17 @@ class Data:
     split: int  # first held-out sample
     factor: int  # decimation of the training window
     refs: dict[str, float]
+    #: the model's input column of each role it declares (speed, current, ambient …)
+    roles: dict[Role, str] = field(default_factory=dict)
 
     @property
     def dt(self) -> float:
         return self.run.dt
+
+    def column(self, role: Role) -> np.ndarray | None:
+        """The run's column of an input role (None when the model or the run has none)."""
+        name = self.roles.get(role)
+        return self.run.columns.get(name) if name is not None else None
 
 
 def stiff_factor(model: Model, run: Run, theta: np.ndarray | None = None, limit: float = 600.0) -> int:
@@ -55,10 +62,11 @@ def stiff_factor(model: Model, run: Run, theta: np.ndarray | None = None, limit:
     net = Network(model)
     theta = model.nominal() if theta is None else theta
     cols = model_inputs(model, run)
+    speed = model.find_input(Role.SPEED)
     op = {}
     for k in net.matrix_inputs:
         v = np.asarray(cols[k], float)
-        op[k] = np.array([np.nanmax(np.abs(v)) if k in ("speed_rpm",) else np.nanmedian(v)])
+        op[k] = np.array([np.nanmax(np.abs(v)) if k == speed else np.nanmedian(v)])
     cont = net.continuous(theta, op, K=1)
     lam = np.linalg.eigvals(cont.A[0] / cont.c[:, None])
     fastest = float(np.max(np.abs(lam.real)))
@@ -85,11 +93,11 @@ def prepare(model: Model, run: Run, sensors: Sequence[str] | None = None, train_
     split = int(round(N * train_frac))
     factor = max(1, int(round(fit_step_s / run.dt)))
     factor = min(factor, stiff_factor(model, run))
-    return Data(run, have, split, factor, E.references(run.columns))
+    roles = {role: name for name, role in model.input_roles.items()}
+    return Data(run, have, split, factor, E.references(model, run.columns), roles)
 
 
 _SIMS: dict[int, tuple[Model, Simulator]] = {}
-AT_REST = ("speed_rpm", "i_rms", "i_d", "i_q", "torque_nm")  # inputs that are zero at rest
 
 
 def simulator(model: Model) -> Simulator:
@@ -110,8 +118,7 @@ def initial(model: Model, run: Run, theta: np.ndarray, k: int = 0) -> np.ndarray
     unmeasured nodes where the machine has them."""
     inp = {c: float(v[k]) for c, v in model_inputs(model, run).items()}
     meas = {s: float(run.columns[s][k]) for s in model.sensors if s in run.columns}
-    rest = {c: (0.0 if c in AT_REST else v) for c, v in inp.items()}
-    return initial_state(model, inp, meas, theta, net=simulator(model).net, rest_inputs=rest)
+    return initial_state(model, inp, meas, theta, net=simulator(model).net, rest_inputs=model.at_rest(inp))
 
 
 def train_window(model: Model, data: Data, theta: np.ndarray) -> Window:

@@ -35,7 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from ..data import Run
-from ..lptn import Model, steady_state
+from ..lptn import Model, Role, steady_state
 from . import fitting as F
 
 N_BLOCKS = 10  # contiguous blocks of the held-out part for the standard errors
@@ -118,8 +118,8 @@ def novel_region(data: F.Data, boundaries: dict[str, str]) -> tuple[np.ndarray, 
     """Held-out samples outside the training range of speed, current or a boundary temperature
     (beyond 5 % of the training span), and a description of that region."""
     run, split = data.run, data.split
-    cols = {"speed (rpm)": np.abs(run.columns["speed_rpm"]) if "speed_rpm" in run.columns else None,
-            "current (A)": run.columns.get("i_rms")}
+    speed = data.column(Role.SPEED)
+    cols = {"speed (rpm)": np.abs(speed) if speed is not None else None, "current (A)": data.column(Role.CURRENT)}
     for b, c in boundaries.items():
         cols[f"{b} (°C)"] = run.columns.get(c)
     mask = np.zeros(len(run) - split, bool)
@@ -184,9 +184,10 @@ def evidence(base: F.Fit, a: F.Fit, b: F.Fit, data: F.Data, boundaries: dict[str
     pa, pb = base.traj_T - a.traj_T, base.traj_T - b.traj_T
     j = int(np.nanargmax(np.nanmean((pa - pb) ** 2, axis=0)))
     run = data.run
-    amb = next((c for n, c in boundaries.items() if "amb" in n.lower()), next(iter(boundaries.values()), None))
-    xs = {"speed (rpm)": np.abs(run.columns["speed_rpm"]) if "speed_rpm" in run.columns else None,
-          "current (A)": run.columns.get("i_rms"),
+    amb = data.roles.get(Role.AMBIENT, next(iter(boundaries.values()), None))
+    speed = data.column(Role.SPEED)
+    xs = {"speed (rpm)": np.abs(speed) if speed is not None else None,
+          "current (A)": data.column(Role.CURRENT),
           "ambient (°C)": run.columns.get(amb) if amb else None,
           "time (h)": (run.t - run.t[0]) / 3600.0}
     out = []
@@ -219,18 +220,20 @@ class Point:
     t_a: float
     t_b: float
     in_run: bool  # the run held steady near this point
+    roles: dict[str, Role] = field(default_factory=dict)  # input name -> role (for the description)
 
     @property
     def diff(self) -> float:
         return abs(self.t_a - self.t_b)
 
     def describe(self) -> str:
+        by_role = {self.roles[k]: v for k, v in self.inputs.items() if k in self.roles}
         parts = []
-        if "speed_rpm" in self.inputs:
-            parts.append(f"{self.inputs['speed_rpm']:.0f} rpm")
-        if "i_rms" in self.inputs:
-            parts.append(f"{self.inputs['i_rms']:.0f} A")
-        parts += [f"{k.removesuffix('_c')} {v:.0f} °C" for k, v in self.inputs.items() if k.endswith("_c")]
+        if Role.SPEED in by_role:
+            parts.append(f"{by_role[Role.SPEED]:.0f} rpm")
+        if Role.CURRENT in by_role:
+            parts.append(f"{by_role[Role.CURRENT]:.0f} A")
+        parts += [f"{r.value} {v:.0f} °C" for r, v in by_role.items() if r.is_temperature]
         return "steady " + ", ".join(parts)
 
 
@@ -239,21 +242,22 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     range) where the two fitted models' sensor temperatures differ most."""
     run, model = data.run, a.model
     cols = run.columns
+    speed_c, current_c, torque_c, amb_c = (model.find_input(r) for r in (Role.SPEED, Role.CURRENT, Role.TORQUE,
+                                                                       Role.AMBIENT))
     med = {c: float(np.nanmedian(cols[c])) for c in model.inputs if c in cols}
     speeds = [0.0]
-    if "speed_rpm" in model.inputs:
-        top = float(np.nanmax(np.abs(cols["speed_rpm"])))
+    if speed_c is not None:
+        top = float(np.nanmax(np.abs(cols[speed_c])))
         speeds = sorted({0.0, round(top / 2, -1), round(top, -1)})
     currents = [0.0]
-    if "i_rms" in model.inputs:
-        top = float(np.nanmax(np.abs(cols["i_rms"])))
+    if current_c is not None:
+        top = float(np.nanmax(np.abs(cols[current_c])))
         currents = sorted({round(top * f, 1) for f in (0.0, 0.25, 0.5, 0.75, 1.0)})
     ratio = 0.0
-    if "torque_nm" in model.inputs and "i_rms" in cols and "torque_nm" in cols:
-        i, tq = np.abs(cols["i_rms"]), cols["torque_nm"]
+    if torque_c is not None and current_c is not None and torque_c in cols:
+        i, tq = np.abs(cols[current_c]), cols[torque_c]
         ok = i > 0.2 * max(float(np.nanmax(i)), 1e-9)
         ratio = float(np.nanmedian(tq[ok] / i[ok])) if ok.any() else 0.0
-    amb_c = next((c for n, c in model.boundaries.items() if "amb" in n.lower()), None)
     ambients = [med.get(amb_c, 25.0)] if amb_c else [0.0]
     if amb_c and amb_c in cols:
         ambients = sorted({round(float(np.nanmin(cols[amb_c]))), round(float(np.nanmax(cols[amb_c]))) + 15})
@@ -262,7 +266,7 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
         for i in currents:
             for ta in ambients:
                 inp = dict(med)
-                inp.update({"speed_rpm": n, "i_rms": i, "torque_nm": ratio * i})
+                inp.update({c: v for c, v in ((speed_c, n), (current_c, i), (torque_c, ratio * i)) if c is not None})
                 if amb_c:
                     inp[amb_c] = ta
                 inp = {k: v for k, v in inp.items() if k in model.inputs}
@@ -277,7 +281,7 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
                     va = float(Ta[a.model.node_index(a.model.sensors[s])])
                     vb = float(Tb[b.model.node_index(b.model.sensors[s])])
                     if np.isfinite(va) and np.isfinite(vb) and (best is None or abs(va - vb) > best.diff):
-                        best = Point(inp, s, va, vb, _near(run, inp))
+                        best = Point(inp, s, va, vb, _near(run, inp, [speed_c, current_c]), dict(model.input_roles))
     return best
 
 
@@ -288,11 +292,12 @@ def _admissible(model: Model, T: np.ndarray) -> bool:
     return all(float(T[model.node_index(lim.node)]) < lim.warn_c for lim in model.limits)
 
 
-def _near(run: Run, inp: dict[str, float]) -> bool:
-    """The run spent at least 10 minutes within 10 % of the point's speed and current."""
+def _near(run: Run, inp: dict[str, float], columns: Sequence[str | None]) -> bool:
+    """The run spent at least 10 minutes within 10 % of the point's values of ``columns`` (its
+    speed and current)."""
     ok = np.ones(len(run), bool)
-    for c in ("speed_rpm", "i_rms"):
-        if c in inp and c in run.columns:
+    for c in columns:
+        if c is not None and c in inp and c in run.columns:
             x = np.abs(run.columns[c])
             ok &= np.abs(x - inp[c]) <= 0.1 * max(float(np.nanmax(x)), 1e-9)
     return bool(ok.sum() * run.dt >= 600.0)

@@ -4,10 +4,11 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
+from ..lptn import Role
 from . import effects as E
 from . import judge as J
 from . import residuals as R
@@ -62,12 +63,24 @@ def _binned(ax, x: np.ndarray, e: np.ndarray, color: str, bins: int = 12) -> Non
 
 def figures(disc: Discovery, out: Path) -> dict[str, str]:
     """Write the PNG figures; returns {kind: file name}."""
+    import matplotlib.pyplot as plt
+
+    files = {}
+    for kind, (name, fig) in build_figures(disc).items():
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+        files[kind] = name
+    return files
+
+
+def build_figures(disc: Discovery) -> dict[str, tuple[str, Any]]:
+    """The report's figures, unsaved: {kind: (file name, matplotlib figure)}."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    files: dict[str, str] = {}
+    figs: dict[str, tuple[str, Any]] = {}
     data = disc.data
     run = data.run
     t_h = (run.t - run.t[0]) / 3600.0
@@ -77,7 +90,8 @@ def figures(disc: Discovery, out: Path) -> dict[str, str]:
     step = max(1, len(run) // 4000)
     name_after = " + ".join(r.fit.label for r in disc.added) or "refitted (no effect added)"
 
-    fig, axes = plt.subplots(ns, 1, figsize=(9, 2.2 * ns + 0.6), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(ns + 1, 1, figsize=(9, 2.0 * ns + 2.2), sharex=True, squeeze=False,
+                             gridspec_kw={"height_ratios": [2] * ns + [1.4]})
     for j, s in enumerate(data.sensors):
         ax = axes[j, 0]
         ax.plot(t_h[::step], before.residual[::step, j], lw=0.8, color="tab:red", label="refitted model")
@@ -89,19 +103,20 @@ def figures(disc: Discovery, out: Path) -> dict[str, str]:
         ax.grid(alpha=0.3)
     axes[0, 0].set_title("prediction − reading (open loop from the first sample); dashed: start of the held-out part", fontsize=9)
     axes[0, 0].legend(fontsize=8, loc="best")
-    axes[-1, 0].set_xlabel("time since start (h)")
+    _operating_point(axes[ns, 0], disc, t_h, step)
+    axes[ns, 0].axvline(t_h[data.split], color="k", ls="--", lw=0.8)
     fig.tight_layout()
-    files["time"] = "residual_time.png"
-    fig.savefig(out / files["time"], dpi=110)
-    plt.close(fig)
+    figs["time"] = ("residual_time.png", fig)
 
     var = explained_variable(disc)
-    fig, axes = plt.subplots(1, ns, figsize=(3.6 * ns + 0.6, 3.4), squeeze=False)
+    fig, axes = plt.subplots(2, ns, figsize=(3.6 * ns + 0.6, 4.4), squeeze=False, sharex="col",
+                             gridspec_kw={"height_ratios": [3, 1]})
     for j, s in enumerate(data.sensors):
-        ax = axes[0, j]
+        ax, low = axes[0, j], axes[1, j]
         x = _xvar(before, s, var)
         if x is None:
             ax.set_visible(False)
+            low.set_visible(False)
             continue
         ax.scatter(x[::step], before.residual[::step, j], s=2, alpha=0.25, color="tab:red", label="refitted model")
         _binned(ax, x, before.residual[:, j], "tab:red")
@@ -109,20 +124,29 @@ def figures(disc: Discovery, out: Path) -> dict[str, str]:
             ax.scatter(x[::step], after.residual[::step, j], s=2, alpha=0.25, color="tab:blue", label=f"with {name_after}")
             _binned(ax, x, after.residual[:, j], "tab:blue")
         ax.axhline(0.0, color="grey", lw=0.5)
-        ax.set_xlabel(R.label(var))
         ax.set_ylabel("residual (K)")
         ax.set_title(s, fontsize=9)
         ax.grid(alpha=0.3)
+        # where the run was: the share of the training and of the held-out samples along the variable
+        ok = np.isfinite(x)
+        if ok.any():
+            edges = np.histogram_bin_edges(x[ok], bins=30)
+            for part, color, label in ((slice(0, data.split), "tab:gray", "training"),
+                                       (slice(data.split, None), "k", "held-out")):
+                xp = x[part][np.isfinite(x[part])]
+                if len(xp):
+                    low.hist(xp, bins=edges, weights=np.full(len(xp), 1.0 / len(xp)), histtype="step", color=color,
+                             label=label)
+        low.set_xlabel(R.label(var))
+        low.set_ylabel("share of\nsamples", fontsize=8)
+        low.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7, markerscale=4, loc="best")
+    axes[1, 0].legend(fontsize=7, loc="best")
     fig.tight_layout()
-    files["var"] = f"residual_vs_{var.replace(':', '_')}.png"
-    fig.savefig(out / files["var"], dpi=110)
-    plt.close(fig)
+    figs["var"] = (f"residual_vs_{var.replace(':', '_')}.png", fig)
 
     fig = _temperature_figure(disc, plt, t_h, step)
-    files["temperature"] = "temperature_time.png"
-    fig.savefig(out / files["temperature"], dpi=110)
-    plt.close(fig)
+    figs["temperature"] = ("temperature_time.png", fig)
 
     first = disc.rounds[0]
     win = first.winner.fit.label if first.winner else None
@@ -147,9 +171,7 @@ def figures(disc: Discovery, out: Path) -> dict[str, str]:
         ax.set_title("candidates (green: named by the held-out fits; orange: " + ("runner-up)" if win else
                      "the nearest by held-out gap, not accepted)"), fontsize=9)
         fig.tight_layout()
-        files["scores"] = "scores.png"
-        fig.savefig(out / files["scores"], dpi=110)
-        plt.close(fig)
+        figs["scores"] = ("scores.png", fig)
     if first.comparison is not None and first.evidence:
         fig, axes = plt.subplots(1, len(first.evidence), figsize=(3.3 * len(first.evidence) + 0.6, 3.2), squeeze=False)
         for ax, ev in zip(axes[0], first.evidence):
@@ -162,10 +184,8 @@ def figures(disc: Discovery, out: Path) -> dict[str, str]:
         axes[0, 0].legend(fontsize=7, loc="best")
         fig.suptitle("what each effect says the refitted model gets wrong (refit − fit, binned means)", fontsize=9)
         fig.tight_layout()
-        files["evidence"] = "winner_vs_runner_up.png"
-        fig.savefig(out / files["evidence"], dpi=110)
-        plt.close(fig)
-    return files
+        figs["evidence"] = ("winner_vs_runner_up.png", fig)
+    return figs
 
 
 def _temperature_figure(disc: Discovery, plt, t_h: np.ndarray, step: int):  # type: ignore[no-untyped-def]
@@ -191,24 +211,29 @@ def _temperature_figure(disc: Discovery, plt, t_h: np.ndarray, step: int):  # ty
     axes[0, 0].set_title("measured and predicted temperature (open loop from the first sample); "
                          "dotted: start of the held-out part", fontsize=9)
     axes[0, 0].legend(fontsize=7, loc="best")
-    ax = axes[ns, 0]
-    cols = run.columns
-    if "speed_rpm" in cols:
-        ax.plot(t_h[::step], np.abs(cols["speed_rpm"][::step]), lw=0.8, color="tab:purple", label="speed (rpm)")
-        ax.set_ylabel("speed (rpm)", color="tab:purple")
-    if "i_rms" in cols:
-        ax2 = ax.twinx()
-        ax2.plot(t_h[::step], cols["i_rms"][::step], lw=0.8, color="tab:olive")
-        ax2.set_ylabel("current (A)", color="tab:olive")
-    amb = next((c for b, c in disc.final.model.boundaries.items() if "amb" in b.lower()), None)
-    if amb and amb in cols:
-        ax.text(0.01, 0.9, f"ambient {np.nanmin(cols[amb]):.0f}–{np.nanmax(cols[amb]):.0f} °C", transform=ax.transAxes,
-                fontsize=7, va="top")
-    ax.axvline(t_h[data.split], color="k", ls=":", lw=0.8)
-    ax.set_xlabel("time since start (h)")
-    ax.grid(alpha=0.3)
+    _operating_point(axes[ns, 0], disc, t_h, step)
+    axes[ns, 0].axvline(t_h[data.split], color="k", ls=":", lw=0.8)
     fig.tight_layout()
     return fig
+
+
+def _operating_point(ax, disc: Discovery, t_h: np.ndarray, step: int) -> None:  # type: ignore[no-untyped-def]
+    """The operating point under a time plot: speed (left axis), current (right axis), the
+    ambient range as a note; the x-label is the time axis's."""
+    data = disc.data
+    speed, current, amb = (data.column(r) for r in (Role.SPEED, Role.CURRENT, Role.AMBIENT))
+    if speed is not None:
+        ax.plot(t_h[::step], np.abs(speed[::step]), lw=0.8, color="tab:purple")
+        ax.set_ylabel("speed (rpm)", color="tab:purple")
+    if current is not None:
+        ax2 = ax.twinx()
+        ax2.plot(t_h[::step], current[::step], lw=0.8, color="tab:olive")
+        ax2.set_ylabel("current (A)", color="tab:olive")
+    if amb is not None:
+        ax.text(0.01, 0.9, f"ambient {np.nanmin(amb):.0f}–{np.nanmax(amb):.0f} °C", transform=ax.transAxes,
+                fontsize=7, va="top")
+    ax.set_xlabel("time since start (h)")
+    ax.grid(alpha=0.3)
 
 
 def regime_shift(before: R.SensorResiduals, after: R.SensorResiduals) -> list[tuple[str, str, float, float]]:

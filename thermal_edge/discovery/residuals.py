@@ -18,6 +18,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..data import Run
+from ..lptn.vocabulary import Role
 
 LABELS = {
     "speed": "speed (rpm)",
@@ -46,22 +47,30 @@ def _smooth(x: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(xp, k, mode="valid")
 
 
-def variables(run: Run, sensors: Sequence[str], boundaries: Mapping[str, str]) -> dict[str, dict[str, np.ndarray]]:
-    """Operating variables per sensor: ``{sensor: {var: series}}`` (shared ones repeated)."""
+def _role_column(run: Run, roles: Mapping[Role, str], role: Role) -> np.ndarray | None:
+    name = roles.get(role)
+    return run.columns.get(name) if name is not None else None
+
+
+def variables(run: Run, sensors: Sequence[str], boundaries: Mapping[str, str],
+              roles: Mapping[Role, str]) -> dict[str, dict[str, np.ndarray]]:
+    """Operating variables per sensor: ``{sensor: {var: series}}`` (shared ones repeated);
+    ``roles`` maps input roles to the run's columns."""
     cols = run.columns
     N = len(run)
     dt = run.dt
     shared: dict[str, np.ndarray] = {"time": (run.t - run.t[0]) / 3600.0}
-    if "speed_rpm" in cols:
-        shared["speed"] = np.abs(cols["speed_rpm"])
-    if "i_rms" in cols:
-        shared["current2"] = cols["i_rms"] ** 2
-        if "speed_rpm" in cols:
-            shared["speed_current2"] = (np.abs(cols["speed_rpm"]) * cols["i_rms"]) ** 2
+    speed, current = _role_column(run, roles, Role.SPEED), _role_column(run, roles, Role.CURRENT)
+    if speed is not None:
+        shared["speed"] = np.abs(speed)
+    if current is not None:
+        shared["current2"] = current ** 2
+        if speed is not None:
+            shared["speed_current2"] = (np.abs(speed) * current) ** 2
     for b, c in boundaries.items():
         if c in cols:
             shared[f"U:{b}"] = cols[c]
-    amb_col = next((c for b, c in boundaries.items() if "amb" in b.lower()), next(iter(boundaries.values()), None))
+    amb_col = roles.get(Role.AMBIENT, next(iter(boundaries.values()), None))
     w = max(1, int(round(60.0 / dt)))
     out: dict[str, dict[str, np.ndarray]] = {}
     for s in sensors:
@@ -136,16 +145,18 @@ class Analysis:
         }
 
 
-def regimes(run: Run, refs: Mapping[str, float], sensors: Sequence[str]) -> dict[str, dict[str, np.ndarray]]:
+def regimes(run: Run, refs: Mapping[str, float], sensors: Sequence[str],
+            roles: Mapping[Role, str]) -> dict[str, dict[str, np.ndarray]]:
     """Boolean masks of the regimes along three axes: speed, load and thermal state."""
     cols = run.columns
     N = len(run)
     out: dict[str, dict[str, np.ndarray]] = {}
-    if "speed_rpm" in cols:
-        n = np.abs(cols["speed_rpm"]) / refs.get("n_ref", 1.0)
+    speed, current = _role_column(run, roles, Role.SPEED), _role_column(run, roles, Role.CURRENT)
+    if speed is not None:
+        n = np.abs(speed) / refs.get("n_ref", 1.0)
         out["speed"] = {"standstill": n < 0.05, "low speed": (n >= 0.05) & (n < 0.6), "high speed": n >= 0.6}
-    if "i_rms" in cols:
-        i = cols["i_rms"] / refs.get("i_ref", 1.0)
+    if current is not None:
+        i = current / refs.get("i_ref", 1.0)
         out["load"] = {"light": i < 0.4, "loaded": i >= 0.4}
     w = max(1, int(round(60.0 / run.dt)))
     ys = [np.nan_to_num(cols[s], nan=float(np.nanmean(cols[s]))) for s in sensors]
@@ -157,10 +168,11 @@ def regimes(run: Run, refs: Mapping[str, float], sensors: Sequence[str]) -> dict
 
 
 def analyse(run: Run, sensors: Sequence[str], pred: np.ndarray, split: int, boundaries: Mapping[str, str],
-            refs: Mapping[str, float]) -> Analysis:
-    """Residual analysis of predictions ``pred`` (N, ns) against the run's sensor columns."""
-    V = variables(run, sensors, boundaries)
-    R = regimes(run, refs, sensors)
+            refs: Mapping[str, float], roles: Mapping[Role, str]) -> Analysis:
+    """Residual analysis of predictions ``pred`` (N, ns) against the run's sensor columns
+    (``roles``: the run's column of each input role, :attr:`.fitting.Data.roles`)."""
+    V = variables(run, sensors, boundaries, roles)
+    R = regimes(run, refs, sensors, roles)
     res = np.column_stack([pred[:, j] - run.columns[s] for j, s in enumerate(sensors)])
     out = []
     for j, s in enumerate(sensors):
