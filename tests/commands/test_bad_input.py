@@ -128,8 +128,8 @@ CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = 
         ["discover", "--model", TWO_NODE, "--run", p := _map(g, tmp / "k.csv", "housing", lambda x: x + 273.15), "--quiet"],
         str(p), ["column 'housing'", "kelvin"]),
     "kelvin, fleet calibrate": lambda tmp, g: (
-        ["fleet", "calibrate", "--model", TWO_NODE, g, p := _map(g, tmp / "m2.csv", "housing", lambda x: x + 273.15),
-         "--out", tmp / "f.parquet", "--workers", "1"], str(p), ["column 'housing'", "kelvin"]),
+        ["fleet", "calibrate", "--model", TWO_NODE, p := _map(g, tmp / "m2.csv", "housing", lambda x: x + 273.15),
+         "--out", tmp / "f.parquet", "--workers", "1"], str(p), ["column 'housing'", "kelvin"]),  # its only machine
     "a directory as the run": lambda tmp, g: (replay(tmp), str(tmp), ["is a directory"]),
     "no such run file": lambda tmp, g: (replay(tmp / "nope.csv"), str(tmp / "nope.csv"), ["No such file"]),
     "--set outside the bounds": lambda tmp, g: (replay(g, "--set", "R_wh=9"), "--set R_wh=9", ["bound"]),

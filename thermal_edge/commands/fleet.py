@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ..data import FORMATS
+from ..data import FORMATS, RunError
 from .common import add_model_args
 from .runs import read_checked
 
@@ -82,10 +82,17 @@ def _abs(path: str | None) -> str | None:
     return str(Path(path).resolve()) if path else None
 
 
-def _machines(args: argparse.Namespace) -> list[Any]:
-    """The machines of RUNS, every run file checked against the model before any task is sent
-    (:func:`~thermal_edge.commands.runs.read_checked`): a file a worker would fail on is named
-    here, in one line. Prints each file's summary (only the first few and a total for a big fleet)."""
+def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]]:
+    """The machines of RUNS, every run CSV checked against the model before any task is sent
+    (:func:`~thermal_edge.commands.runs.read_checked`; the CAN logs are decoded on the workers).
+
+    Returns the machines to send and an ``error`` row for each refused one (a broken or
+    implausible run fails its machine, not the fleet: one line on stderr each). If every machine
+    is refused, :class:`~thermal_edge.data.RunError` with the first reason. Prints the first
+    :data:`SUMMARY_FILES` runs' summaries and a total.
+    """
+    from ..fleet.canlogs import is_can_log
+    from ..fleet.results import row
     from ..fleet.runs import find_machines
     from ..lptn import load_model
 
@@ -94,16 +101,28 @@ def _machines(args: argparse.Namespace) -> list[Any]:
     machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
     model = load_model(args.model, data_dir=args.data_dir)
     sensors = _names(getattr(args, "sensors", None))
-    files = sorted({f for m in machines for f in m.runs})
-    samples = 0
-    for k, f in enumerate(files):
-        rec, summary = read_checked(f, args.format, model, sensors)
-        samples += len(rec)
-        if k < SUMMARY_FILES:
-            print(summary, flush=True)
-    if len(files) > SUMMARY_FILES:
-        print(f"... {len(files) - SUMMARY_FILES} more; {len(files)} run files checked, {samples} samples in all", flush=True)
-    return machines
+    ok, refused, errors, files, samples = [], [], [], 0, 0
+    for m in machines:
+        try:
+            for f in m.runs:
+                if is_can_log(f):
+                    continue
+                rec, summary = read_checked(f, args.format, model, sensors)
+                if files < SUMMARY_FILES:
+                    print(summary, flush=True)
+                files, samples = files + 1, samples + len(rec)
+        except RunError as exc:
+            errors.append(str(exc))
+            refused.append(row(machine=m.id, kind="error", name="RunError", message=str(exc), runs=";".join(m.runs)))
+            continue
+        ok.append(m)
+    if not ok:
+        raise RunError(errors[0])
+    for e in errors:
+        print(f"thermal-edge fleet {args.fleet}: refused, an error row: {e}", file=sys.stderr, flush=True)
+    if files > SUMMARY_FILES:
+        print(f"... {files - SUMMARY_FILES} more; {files} run files checked, {samples} samples in all", flush=True)
+    return ok, refused
 
 
 def _guard(job: Any) -> Any:
@@ -158,9 +177,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from ..fleet.screen import distribution
 
     require_fleet_extra()
-    machines = _machines(args)
+    machines, refused = _machines(args)
     with connect(args.scheduler, args.workers) as client:
-        rows = _calibrate_rows(args, client, machines)
+        rows = refused + _calibrate_rows(args, client, machines)
     return _finish(args, "Fleet calibration", rows, _intro(args, machines, "calibrate"), spreads=distribution(rows))
 
 
@@ -172,7 +191,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from ..fleet.results import read_table
 
     require_fleet_extra()
-    machines = _machines(args)
+    machines, refused = _machines(args)
     params: list[dict[str, float] | None] = [None] * len(machines)
     if args.calibrated:
         fitted: dict[str, dict[str, float]] = {}
@@ -187,7 +206,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         per = map_machines(client, evaluate_machine, machines, params, progress=args.progress, desc="evaluate",
                            model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
                            id_column=args.id_column)
-    rows = [r for rs in per for r in rs]
+    rows = refused + [r for rs in per for r in rs]
     intro = _intro(args, machines, "evaluate") + [
         f"Each machine replayed with its own parameters from `{args.calibrated}`." if args.calibrated
         else "Every machine replayed with the model's own parameters."]
@@ -210,9 +229,9 @@ def run_screen(args: argparse.Namespace) -> int:
     else:
         if not args.model:
             raise KeyError("--model is required to calibrate RUNS (or screen a calibration with --table)")
-        machines = _machines(args)
+        machines, refused = _machines(args)
         with connect(args.scheduler, args.workers) as client:
-            rows = _calibrate_rows(args, client, machines)
+            rows = refused + _calibrate_rows(args, client, machines)
         intro = _intro(args, machines, "screen")
     spreads, outliers = screen(rows, args.threshold)
     intro.append(f"Outlier threshold |z| > {args.threshold:g}.")
