@@ -127,6 +127,9 @@ def build_figures(disc: Discovery) -> dict[str, tuple[str, Any]]:
         ax.set_ylabel("residual (K)")
         ax.set_title(s, fontsize=9)
         ax.grid(alpha=0.3)
+        if var == "time":  # against time, the operating point itself is what lies beneath
+            _operating_point(low, disc, t_h, step)
+            continue
         # where the run was: the share of the training and of the held-out samples along the variable
         ok = np.isfinite(x)
         if ok.any():
@@ -141,7 +144,8 @@ def build_figures(disc: Discovery) -> dict[str, tuple[str, Any]]:
         low.set_ylabel("share of\nsamples", fontsize=8)
         low.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=7, markerscale=4, loc="best")
-    axes[1, 0].legend(fontsize=7, loc="best")
+    if var != "time":
+        axes[1, 0].legend(fontsize=7, loc="best")
     fig.tight_layout()
     figs["var"] = (f"residual_vs_{var.replace(':', '_')}.png", fig)
 
