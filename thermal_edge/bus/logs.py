@@ -428,8 +428,8 @@ class LogRecorder:
     def write(self, msg: can.Message) -> None:
         """Append one message (its ``is_rx`` flag gives the direction).
 
-        The record's time is the message's (s since the epoch), raised if needed so that times
-        never decrease in the file; a message without a time waits for the first one with one.
+        The record's time is the message's (s since the epoch, to the µs), raised if needed so that
+        times never decrease in the file; a message without a time waits for the first one with one.
         """
         with self._lock:
             if self._writer is None:
@@ -443,8 +443,8 @@ class LogRecorder:
                         self._unstamped.append(msg)
                         return
                     timestamp = self._last_timestamp
-                else:
-                    timestamp = float(msg.timestamp)
+                else:  # to the µs of candump and ASC: every format then holds the same times
+                    timestamp = round(float(msg.timestamp), _TIME_DECIMALS)
                 # records go in processing order; keep their times non-decreasing (a received frame
                 # can carry a kernel time older than a frame just sent)
                 if self._last_timestamp is not None and timestamp < self._last_timestamp:
