@@ -1,5 +1,5 @@
-"""One simulated run stored as a candump, an ASC, a BLF (and a TRC, a gzipped candump) log replays to
-the same estimates, tick by tick: the format is only the container."""
+"""One simulated run stored as a candump, an ASC, a BLF (and a TRC, a gzipped candump, an MF4 with
+asammdf installed) log replays to the same estimates, tick by tick: the format is only the container."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from thermal_edge.bus import read_log
+from thermal_edge.bus import read_log, readable_suffixes
 from thermal_edge.config import load_config
 from thermal_edge.service import replay_candump
 from thermal_edge.sim.inverter import write_log
@@ -26,7 +26,8 @@ T0 = 1_700_000_000.0004
 def logs(tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("logs")
     out = {}
-    for suffix in (".log", ".asc", ".blf", ".trc", ".log.gz"):
+    mf4 = (".mf4",) if ".mf4" in readable_suffixes() else ()  # with the mf4 extra (asammdf)
+    for suffix in (".log", ".asc", ".blf", ".trc", ".log.gz", *mf4):
         out[suffix] = d / f"run{suffix}"
         write_log(MODEL, CYCLE, out[suffix], duration_s=240, t0=T0, current_period_s=0.1, temperature_period_s=1.0,
                   seed=3)
