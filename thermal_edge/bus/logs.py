@@ -47,6 +47,7 @@ from .codec import DecodedFrame, FrameCodec
 __all__ = [
     "DEFAULT_KEEP",
     "DEFAULT_MAX_BYTES",
+    "GZIP_SUFFIXES",
     "ROTATING_SUFFIXES",
     "FrameLogReader",
     "LogFormatError",
@@ -66,8 +67,8 @@ DEFAULT_MAX_BYTES = 64 * 2**20
 DEFAULT_KEEP = 10
 #: Formats :class:`can.SizedRotatingLogger` can rotate (it needs the writer's file size).
 ROTATING_SUFFIXES = frozenset({".asc", ".blf", ".csv", ".log"})
-#: Formats written as text (gzip compresses their rotated files; BLF compresses itself).
-_TEXT_SUFFIXES = frozenset({".asc", ".csv", ".log", ".trc"})
+#: Text formats: read and written gzipped too, and their rotated files gzipped (BLF compresses itself).
+GZIP_SUFFIXES = frozenset({".asc", ".csv", ".log", ".trc"})
 #: Not CAN logs for this project: python-can's SQLite tables and its plain-text printer.
 _EXCLUDED = frozenset({".db", ".txt"})
 #: Frames without a time kept until the first one with a time (older ones are dropped, counted).
@@ -113,7 +114,7 @@ def log_suffix(path: str | Path, *, write: bool = False) -> str:
                              + ", ".join(readable_suffixes()) + " (text formats also .gz)")
     if not _format_available(suffix):
         raise LogFormatError(f"{p}: MF4 logs need asammdf: pip install thermal-edge[mf4]")
-    if gz and suffix not in _TEXT_SUFFIXES:
+    if gz and suffix not in GZIP_SUFFIXES:
         raise LogFormatError(f"{p}: {suffix} cannot be gzipped (python-can reads gzip for text formats only)")
     return suffix
 
@@ -168,7 +169,7 @@ def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, st
     kwargs = {"relative_timestamp": False} if suffix == ".asc" else {}
     file: Any = path
     if path.suffix.lower() == ".gz":
-        file = gzip.open(path, "rt" if suffix in _TEXT_SUFFIXES else "rb")
+        file = gzip.open(path, "rt" if suffix in GZIP_SUFFIXES else "rb")
     return MESSAGE_READERS[suffix](file, **kwargs)
 
 
@@ -361,7 +362,7 @@ class LogRecorder:
         self.channel = channel
         self.max_bytes = int(max_bytes)
         self.keep = int(keep)
-        self._compress = suffix in _TEXT_SUFFIXES
+        self._compress = suffix in GZIP_SUFFIXES
         self.frames_written = 0
         self.write_errors = 0
         self.unstamped_dropped = 0

@@ -24,7 +24,7 @@ import numpy as np
 from ..bench.common import config_path
 from ..bus.codec import FrameCodec
 from ..bus.frames import DEFAULT_DBC_PATH
-from ..bus.logs import FrameLogReader, LogFormatError, log_suffix
+from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig, load_config
 from ..data import Run, RunError
 from ..service.clock import FrameClock
@@ -34,8 +34,9 @@ __all__ = ["CAN_LOG_SUFFIXES", "DEFAULT_CONFIG", "is_can_log", "read_can_runs"]
 
 #: the service configuration whose ``signals:`` decode the logs by default
 DEFAULT_CONFIG = config_path("edge.yaml")
-#: CAN log suffixes a machine's directory is searched for (``.csv`` is always a run CSV)
-CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".trc", ".mf4")
+#: CAN log suffixes a machine's directory is searched for: what the bus module reads here (``.mf4``
+#: with asammdf), except ``.csv``, which is always a run CSV
+CAN_LOG_SUFFIXES = tuple(s for s in readable_suffixes() if s != ".csv")
 
 
 def is_can_log(path: str | os.PathLike[str]) -> bool:

@@ -16,11 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+from ..bus.logs import GZIP_SUFFIXES
 from ..data import RunError
 from .canlogs import CAN_LOG_SUFFIXES, is_can_log
 
 #: run files in a machine's directory: run CSVs and CAN logs (gzipped too)
-RUN_GLOBS = ("*.csv", *(f"*{s}" for s in CAN_LOG_SUFFIXES), *(f"*{s}.gz" for s in CAN_LOG_SUFFIXES))
+RUN_GLOBS = ("*.csv", *(f"*{s}" for s in CAN_LOG_SUFFIXES), *(f"*{s}.gz" for s in CAN_LOG_SUFFIXES if s in GZIP_SUFFIXES))
 
 
 @dataclass(frozen=True)
