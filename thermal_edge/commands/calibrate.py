@@ -8,6 +8,7 @@ generations, or at ``--max-time``; SQP then polishes the best point within the t
 from __future__ import annotations
 
 import argparse
+import sys
 
 import numpy as np
 
@@ -44,7 +45,9 @@ def _names(arg: str | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     if args.max_time is not None and not args.max_time > 0:
-        raise KeyError(f"--max-time {args.max_time:g}: must be a positive number of seconds")
+        print(f"thermal-edge calibrate: error: --max-time {args.max_time:g}: must be a positive number of seconds",
+              file=sys.stderr)
+        return 2
     model = model_from_args(args)
     sets = parse_sets(model, args.set)  # the starting values; written to --out with the fitted ones
     model = model.with_parameters(sets) if sets else model
