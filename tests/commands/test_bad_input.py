@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from cmd_testlib import MODELS, ROOT, TWO_NODE, te
 
 OVERFLOW = MODELS / "overflow.yaml"  # the two-node model with a loss law exp(speed_rpm): inf above ~710 rpm
@@ -188,7 +187,7 @@ def test_the_summary_comes_before_the_scores(good_run):
     r = te(*replay(good_run))
     assert r.returncode == 0, r.stderr
     first = r.stdout.splitlines()[0]
-    header, rows = _table(good_run)
+    _, rows = _table(good_run)
     t = np.array([float(x[0]) for x in rows])
     assert first.startswith(f"{good_run}: {len(rows)} samples every 1 s ({(t[-1] - t[0]) / 3600:.2f} h)")
     assert "used: speed_rpm " in first and "housing " in first and "ignored: torque_nm" in first

@@ -46,7 +46,7 @@ def test_a_wrong_start_is_fitted_and_the_search_stops_when_it_stops_improving(go
     values, m = _fit(good_run, tmp_path / "cal.yaml", "R_ha=0.2", "R_wh=0.1")
     generations, why = int(m.group(2)), m.group(3)
     assert generations < GENERATIONS
-    assert why.startswith("no improvement above") or why.startswith("population converged"), why
+    assert why.startswith(("no improvement above", "population converged")), why
     for name in TRUE:
         assert values[name] == pytest.approx(ref[name], rel=0.02), name
     for name in ("R_wh", "R_ha"):  # the plant's resistances (C_w shows only in the two load steps: fitted 12 % low)

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from cmd_testlib import TWO_NODE, te
 
-
 SENSORS = ("winding_t", "housing")
 PER_NODE = ("predicted", "observer", "band_low", "band_high")
 
