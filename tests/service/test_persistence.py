@@ -13,9 +13,9 @@ import pytest
 from svc_testlib import EDGE_YAML, REPO, write_yaml
 from thermal_edge.bus import DecodedFrame
 from thermal_edge.config import config_from_mapping
-from thermal_edge.lptn import Simulator, steady_state
+from thermal_edge.lptn import Simulator, cool_down, steady_state
 from thermal_edge.service.engine import ThermalEngine
-from thermal_edge.service.persistence import KEEP_CORRUPT, PersistedState, StateStore, cool_down
+from thermal_edge.service.persistence import KEEP_CORRUPT, PersistedState, StateStore
 
 
 def state_for(model, T=None) -> PersistedState:

@@ -22,15 +22,16 @@ import math
 import queue
 import threading
 import time
-from dataclasses import dataclass, field, replace
 from collections import deque
-from typing import Any, Iterable, Mapping
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
+from ..config import AdaptationConfig
 from ..estimation.adapter import AdapterConfig, Decision, OnlineAdapter
 from ..estimation.uncertainty import Z95
-from ..config import AdaptationConfig
 from ..lptn import Model, Stepper
 
 __all__ = ["Adaptation", "AdaptationCounts", "AdaptationResult", "AdaptationWorker"]

@@ -88,8 +88,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -97,7 +97,7 @@ from ..bus.frames import DerateReason
 from ..config import DeratingConfig
 from ..lptn import Model, Role
 
-__all__ = ["DeratingPolicy", "LimitSpec", "Limits", "MeasuredFloor", "NodeBand", "STALL_TICKS", "bounding_sensors"]
+__all__ = ["STALL_TICKS", "DeratingPolicy", "LimitSpec", "Limits", "MeasuredFloor", "NodeBand", "bounding_sensors"]
 
 #: reasons that force the safe limit, in order of precedence
 FORCED_ORDER = (DerateReason.STARTING, DerateReason.MODEL_FAULT, DerateReason.STALE_INPUT, DerateReason.SENSOR_FAULT)

@@ -26,7 +26,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Any
 
 import numpy as np
 
@@ -205,7 +204,7 @@ class ThermalEngine:
         c0, w0 = time.thread_time(), time.perf_counter()
         try:
             out = self._tick(t)
-        except Exception as exc:
+        except Exception:
             log.exception("tick at %.3f failed", t)
             self.health.fault(t)
             self.estimate.drop()

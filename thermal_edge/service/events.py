@@ -7,7 +7,7 @@ limit (:mod:`.journal`) keeps a flapping input from flooding the journal.
 from __future__ import annotations
 
 import logging
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 from ..bus.frames import DerateReason, TeState
 from .derating import Limits

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 from ..bus.frames import DerateReason
 from ..config import FaultConfig
@@ -96,9 +96,9 @@ class ModelHealth:
         if not finite:
             return "non-finite state"
         if self._innovation_ticks >= fc.innovation_ticks:
-            return "innovation above %.0f K for %d ticks" % (fc.innovation_k, fc.innovation_ticks)
+            return f"innovation above {fc.innovation_k:.0f} K for {fc.innovation_ticks} ticks"
         if any(abs(e) > fc.prediction_error_k for e in pred_error.values()):
-            return "open-loop prediction error above %.0f K" % fc.prediction_error_k
+            return f"open-loop prediction error above {fc.prediction_error_k:.0f} K"
         return None
 
     def fault(self, t: float) -> None:

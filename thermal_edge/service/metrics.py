@@ -178,7 +178,8 @@ class _LiveCollector(Collector):
             band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information)",
                                      labels=LABELS["parameter_band"])
             ident = GaugeMetricFamily(P + "parameter_identifiable",
-                                      "1 if the sensors at hand pin the parameter down (relative sd < 25 %)",
+                                      "1 if the sensors at hand pin the parameter down (relative sd below adaptation.max_rel_std, "
+                                      "the adapter's own gate)",
                                       labels=LABELS["parameter_identifiable"])
             units = {p.name: p.unit for p in model.parameters}
             param_bands, identifiable = eng.adaptation.parameter_bands()

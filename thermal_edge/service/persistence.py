@@ -21,9 +21,10 @@ very same :func:`decode` on the bytes it is about to write; a state that would n
 :data:`~thermal_edge.lptn.model.BOUND_ROUNDOFF_REL` of a bound (round-off of an adaptation that
 reached it) are set onto the bound, on save and on load alike.
 
-On start the thermal state is **cooled over the downtime** with the model (zero current and
-speed, at the last ambient; one zero-order-hold step is exact for held inputs), then corrected by
-the first measurements through the observer.
+On start the saved thermal state is **cooled over the downtime** with the model
+(:func:`thermal_edge.lptn.cool_down`: the machine at rest, one zero-order-hold step, exact for held
+inputs), then corrected by the first measurements through the observer
+(:meth:`.estimate.StateEstimate.start`).
 """
 from __future__ import annotations
 
@@ -41,9 +42,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..lptn import Model, ParameterError, cool_down  # cool_down: model physics, re-exported for the engine
+from ..lptn import Model, ParameterError
 
-__all__ = ["PersistedState", "StateError", "StateStore", "cool_down", "decode"]
+__all__ = ["PersistedState", "StateError", "StateStore", "decode"]
 
 log = logging.getLogger(__name__)
 
