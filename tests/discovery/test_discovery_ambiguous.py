@@ -1,7 +1,7 @@
-"""Confusable effects end to end: an extra contact resistance hidden at one of the two flanges
-joining the housing to the non-drive end cap (``housing_1-end_cap_1``), in 3 h of the varied cycle.
-The other flange of that end cap (``housing_5-end_cap_1``) sits in parallel, so the two predict
-the sensors alike.
+"""Confusable effects end to end: a bearing loss (heat at the shaft and end caps growing with
+speed) hidden in 3 h of the varied cycle, seed 22. A magnet eddy loss (heat at the magnets
+growing with (speed × current)²) also reaches the rotor side, and on this run the two predict
+the sensors nearly alike.
 
 Discovery must name the pair, hidden one first or second, say it cannot separate them (held-out
 gaps within their uncertainty, or the runner-up achieving nearly all of the winner's reduction),
@@ -9,6 +9,11 @@ show the evidence (each one's predicted residual against speed, current, ambient
 the separating condition; ``discover --json`` carries ``runner_up``, ``ambiguous`` and
 ``gap_noise_floor``. The logic itself is tested on hand-made predictions in
 ``test_discovery_judge.py``; this case (3 h of 1 Hz data) is ``slow``.
+
+(Until the fits' prior, ``Options.prior_weight``, this case was a contact resistance at one of
+the two parallel flanges of an end cap; with the prior the refit of the adaptable conductances
+imitates it to within the noise floor on every seed tried, verdict "no gap" with the other
+flange the nearest candidate.)
 """
 from __future__ import annotations
 
@@ -18,12 +23,12 @@ import pytest
 
 from thermal_edge.discovery import bench, judge, report, workflow
 
-PAIR = {"contact_resistance:housing_1-end_cap_1", "contact_resistance:housing_5-end_cap_1"}
+PAIR = {"bearing_loss", "magnet_eddy_loss"}
 
 
 @pytest.mark.slow
-def test_two_parallel_flange_contacts_are_reported_as_a_pair(tmp_path):
-    raw, run, expected = bench.simulated_run("contact_resistance:housing_1-end_cap_1", "varied_drive", seed=21)
+def test_bearing_and_magnet_eddy_loss_are_reported_as_a_pair(tmp_path):
+    raw, run, expected = bench.simulated_run("bearing_loss", "varied_drive", seed=22)
     disc = workflow.discover(raw, run, bench.hidden.builder(bench.PM10KW))
     d = disc.as_dict()
     named = disc.named.fit.label if disc.named else None
@@ -39,7 +44,7 @@ def test_two_parallel_flange_contacts_are_reported_as_a_pair(tmp_path):
     assert sep is not None and sep["diff_k"] == pytest.approx(abs(sep["winner_c"] - sep["runner_up_c"]))
     assert f"or {d['runner_up']} (this run cannot separate them)" in d["verdict"]
     assert math.isclose(d["gap_noise_floor"], disc.noise_k)
-    # the gap above the noise floor is gone (the refit had imitated most of the effect)
+    # most of the gap above the noise floor is gone
     assert d["gap_above_noise_after"] < 0.4 * d["gap_above_noise_before"]
     # the report says it, with the figures
     body = open(report.write(disc, tmp_path)).read()
