@@ -80,6 +80,7 @@ def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = Fa
     """Tick compute times (ms) of the engine; with ``adapting`` a decision runs in a worker thread
     all the time."""
     from ..service.adaptation import AdaptationWorker
+    from ..service.clock import FrameClock
     from ..service.engine import ThermalEngine
     from ..sim.inverter import EmulatorConfig, InverterEmulator
 
@@ -96,25 +97,26 @@ def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = Fa
             ad_cfg = replace(cfg.adaptation.adapter, threshold_k=0.0, min_window_s=600.0)
             busy = AdaptationWorker(engine.model, ad_cfg, 1.0, engine.adaptation.theta, engine.adaptation.offline_theta,
                                    mode="thread")
-        t_next = 1.0
+        clock = FrameClock(cfg.clock.tick_s)
+        last_tick = 0.0
         durations: list[float] = []
         decisions = 0
         stop_at = warmup_s + ticks
-        while t_next <= stop_at:
+        while last_tick < stop_at:
             for f in _frames(emu):
-                while f.timestamp >= t_next:  # ticks at the boundaries the frames cross
-                    out = engine.tick(t_next)
+                for b in engine.ticks_for(clock.observe(f.timestamp)):  # the service's frame clock
+                    out = engine.tick(b)
                     x_ol = engine.estimate.prediction
                     if busy is not None and x_ol is not None:
-                        busy.record(t_next - 1, out.inputs, out.measured, x_ol)
-                    if t_next > warmup_s:
+                        busy.record(b - 1, out.inputs, out.measured, x_ol)
+                    if b > warmup_s:
                         durations.append(out.compute_s)
                         if busy is not None and not busy.busy:
-                            busy.request(t_next - 1)
+                            busy.request(b - 1)
                             decisions += 1
                         time.sleep(0.002)  # the loop's other work; lets the worker hold the GIL meanwhile
-                    t_next += 1.0
-                engine.add_frame(f, f.timestamp)
+                    last_tick = b
+                engine.add_frame(f, clock.now())
         if busy is not None:
             busy.close(timeout=30)
         engine.close()
