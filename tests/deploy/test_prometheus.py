@@ -121,18 +121,9 @@ def test_the_drive_label_reaches_every_alert() -> None:
     assert 'drive="drive-2"' in RULE_TESTS.read_text()  # the unit test of two drives behind one address
 
 
-#: Names ``promtool check metrics`` rejects that only the service's owner may rename (see the
-#: closing note of the ops helper); the test passes strictly once none of them is exposed.
-PENDING_RENAMES = ("thermal_edge_counter_resync_total",)
-
-
 def test_promtool_check_metrics_on_a_live_scrape(live_metrics: str) -> None:
     """The running service's /metrics as Prometheus' own linter sees it."""
     exe = promtool()
     r = subprocess.run([exe, "check", "metrics"], input=live_metrics, capture_output=True, text=True, timeout=120)
     problems = [ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip()]
-    pending = [p for p in problems if p.split()[0] in PENDING_RENAMES]
-    assert [p for p in problems if p not in pending] == [], problems
-    if pending:
-        pytest.xfail(f"promtool check metrics: {'; '.join(pending)} (a rename in thermal_edge/service/metrics.py)")
-    assert r.returncode == 0
+    assert problems == [] and r.returncode == 0

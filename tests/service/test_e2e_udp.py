@@ -97,7 +97,7 @@ def test_no_frame_lost_or_corrupted_in_either_direction(udp_run):
     m, s = udp_run.metrics, udp_run.summary
     assert metric_sum(m, "thermal_edge_frames_lost_all_total") == 0
     assert metric_sum(m, "thermal_edge_frames_dropped_total") == 0  # crc, counter, dlc, unknown id, decode
-    assert m["thermal_edge_counter_resync_total"] == 0
+    assert m["thermal_edge_frames_resynced_total"] == 0
     for name, n in s["frames_sent"].items():
         assert m[f'thermal_edge_frames_received_total{{frame="{name}"}}'] == n, name
     assert s["rx_lost"] == 0 and sum(s["rx_dropped"].values()) == 0 and s["send_failures"] == 0

@@ -141,7 +141,7 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
           f"limits_applied_s {summary['limits_applied_s']:.1f}, limited_s {summary['limited_s']:.1f}, "
           f"true max {summary['true_max_c']}")
     print(f"service: received {received}, dropped {msum(a1, 'thermal_edge_frames_dropped_total')}, "
-          f"lost {msum(a1, 'thermal_edge_frames_lost_all_total')}, resync {msum(a1, 'thermal_edge_counter_resync_total')}, "
+          f"lost {msum(a1, 'thermal_edge_frames_lost_all_total')}, resync {msum(a1, 'thermal_edge_frames_resynced_total')}, "
           f"TE_Limits sent in A {te_sent}")
     # frames flow both ways, none lost or corrupted
     assert summary["sim_seconds"] == pytest.approx(EMU_S)
@@ -155,7 +155,7 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
     # emulated machine makes one (0 measured under TCG). When it sent a plant step's ten frames in
     # one burst, every ~90 ms hole counted: 82-810 of 13,200 frames, with the host's load. The
     # counters are also judged without timestamps on the host below.
-    assert msum(a1, "thermal_edge_counter_resync_total") <= 0.01 * sum(sent.values())
+    assert msum(a1, "thermal_edge_frames_resynced_total") <= 0.01 * sum(sent.values())
     assert summary["rx_lost"] == 0 and sum(summary["rx_dropped"].values()) == 0 and summary["send_failures"] == 0
     assert summary["frames_received"].get("TE_Limits", 0) > 0 and summary["frames_received"].get("TE_Status", 0) > 0
     # TE_Limits at its cycle (0.1 s) during phase A, from the capture of the bus
@@ -252,7 +252,7 @@ def test_can_utils_client_cansend_candump_cantools(scenario):
            for n in FEED_VALUES}
     drops = {r: metric(b_end, "thermal_edge_frames_dropped_total", reason=r) for r in ("crc", "counter_repeat", "unknown_id", "dlc", "decode_error")}
     print(f"cansend (phase B): ok {ok}, failed {fail}; service received {got}; drops {drops}; "
-          f"counter resync (+) {delta(a1, b_end, 'thermal_edge_counter_resync_total')} (feed ~10 Hz vs 10 ms cycle), "
+          f"counter resync (+) {delta(a1, b_end, 'thermal_edge_frames_resynced_total')} (feed ~10 Hz vs 10 ms cycle), "
           f"lost (+) {delta(a1, b_end, 'thermal_edge_frames_lost_all_total')}")
     assert ok == {n: FEED_N for n in FEED_VALUES} and fail == 0
     assert got == ok

@@ -237,7 +237,7 @@ class _LiveCollector(Collector):
             yield lost
             yield CounterMetricFamily(P + "frames_lost_all", "Frames missing according to the alive counter (all frames)",
                                       value=st.lost)
-            yield CounterMetricFamily(P + "counter_resync", "Frames whose counter was not judged after a long gap",
+            yield CounterMetricFamily(P + "frames_resynced", "Frames whose counter was not judged after a long gap",
                                       value=st.counter_resync)
             yield CounterMetricFamily(P + "frames_clamped", "Signal values saturated to the DBC range when sending",
                                       value=st.clamped)

@@ -107,7 +107,7 @@ def bad_frames(full: bool) -> Iterator[Case]:
         sent1, m1 = _counts(b)
         counted = int(metric(m1, "thermal_edge_frames_lost_all_total") - metric(m0, "thermal_edge_frames_lost_all_total"))
         real = skip * n
-        resync = int(metric(m1, "thermal_edge_counter_resync_total") - metric(m0, "thermal_edge_counter_resync_total"))
+        resync = int(metric(m1, "thermal_edge_frames_resynced_total") - metric(m0, "thermal_edge_frames_resynced_total"))
         yield Case.of("counter_jump", "bad frames", n, f"{real} frames left out, {counted} counted lost, {resync} resyncs",
                       common_checks(b, t0, time.time()), abs(real - counted) + max(0, _lost(sent0, m0, sent1, m1)))
 
