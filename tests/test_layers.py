@@ -11,7 +11,7 @@ PKG = Path(__file__).resolve().parents[1] / "thermal_edge"
 ALLOWED: dict[str, set[str]] = {
     "settings": set(),
     "lptn": set(),
-    "data": set(),
+    "data": {"lptn"},
     "plots": set(),
     "bus": set(),
     "estimation": {"lptn", "data", "settings"},

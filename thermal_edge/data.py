@@ -21,13 +21,18 @@ from pathlib import Path
 
 import numpy as np
 
+from .lptn.vocabulary import Role
+
 FORMATS = ("csv", "paderborn")
 PADERBORN_ROW_S = 2.5
+#: the Paderborn data set's columns under the usual names of the model's inputs
 PADERBORN_COLUMNS = {
-    "motor_speed": "speed_rpm",
-    "torque": "torque_nm",
-    "ambient": "ambient_c",
-    "coolant": "coolant_c",
+    "motor_speed": Role.SPEED.default_column,
+    "torque": Role.TORQUE.default_column,
+    "ambient": Role.AMBIENT.default_column,
+    "coolant": Role.COOLANT.default_column,
+    "i_d": Role.CURRENT_D.default_column,
+    "i_q": Role.CURRENT_Q.default_column,
     "u_d": "u_d_v",
     "u_q": "u_q_v",
 }
@@ -172,8 +177,9 @@ def _paderborn(cols: dict[str, np.ndarray], source: str) -> Run:
     n = len(next(iter(cols.values())))
     t = cols.pop("t") if "t" in cols else np.arange(n) * PADERBORN_ROW_S
     out = {PADERBORN_COLUMNS.get(k, k): v for k, v in cols.items()}
-    if "i_d" in out and "i_q" in out:
-        out["i_rms"] = np.hypot(out["i_d"], out["i_q"]) / math.sqrt(2.0)  # amplitude -> RMS
+    i_d, i_q = Role.CURRENT_D.default_column, Role.CURRENT_Q.default_column
+    if i_d in out and i_q in out:
+        out[Role.CURRENT.default_column] = np.hypot(out[i_d], out[i_q]) / math.sqrt(2.0)  # amplitude -> RMS
     return Run(t, out, source, {"format": "paderborn"})
 
 

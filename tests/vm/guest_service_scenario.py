@@ -36,6 +36,7 @@ ART = Path(os.environ.get("VM_ARTIFACTS", str(TMP / "artifacts")))
 FILES = Path(os.environ.get("VM_FILES", str(TMP)))
 VENV_BIN = Path(sys.executable).parent
 PORT = 19118
+RX_BUFFER_BYTES = 4 * 1024 * 1024
 EMU_DURATION_S = float(os.environ.get("SCENARIO_EMU_S", "60"))
 DOWN_S = float(os.environ.get("SCENARIO_DOWN_S", "5"))
 AFTER_UP_S = float(os.environ.get("SCENARIO_AFTER_UP_S", "8"))
@@ -79,6 +80,16 @@ def main() -> int:
     ART.mkdir(parents=True, exist_ok=True)
     (TMP / "state").mkdir(exist_ok=True)
     kernel = os.uname().release
+    # Socket receive buffers of 4 MiB (the kernel's default 208 kB holds ~1 s of this bus): under TCG
+    # on a busy host the guest's processes stall for up to ~1 s, and a CAN socket whose buffer is
+    # full drops frames silently (the service then counts a counter resync, candump's capture shows
+    # gaps). A drive's edge computer is tuned the same way (README, "The CAN interface").
+    for knob in ("rmem_default", "rmem_max"):
+        try:
+            Path(f"/proc/sys/net/core/{knob}").write_text(str(RX_BUFFER_BYTES))
+        except OSError as exc:
+            ev(f"cannot set net.core.{knob}: {exc}")
+    ev("net.core.rmem_default " + Path("/proc/sys/net/core/rmem_default").read_text().strip())
     link = subprocess.run(["ip", "-details", "link", "show", "vcan0"], capture_output=True, text=True).stdout
     ev(f"kernel {kernel}; {link.splitlines()[0] if link else 'no vcan0'}")
 
