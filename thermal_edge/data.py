@@ -31,8 +31,6 @@ PADERBORN_COLUMNS = {
     "torque": Role.TORQUE.default_column,
     "ambient": Role.AMBIENT.default_column,
     "coolant": Role.COOLANT.default_column,
-    "i_d": Role.CURRENT_D.default_column,
-    "i_q": Role.CURRENT_Q.default_column,
     "u_d": "u_d_v",
     "u_q": "u_q_v",
 }
@@ -177,6 +175,7 @@ def _paderborn(cols: dict[str, np.ndarray], source: str) -> Run:
     n = len(next(iter(cols.values())))
     t = cols.pop("t") if "t" in cols else np.arange(n) * PADERBORN_ROW_S
     out = {PADERBORN_COLUMNS.get(k, k): v for k, v in cols.items()}
+    # the data set's own d/q current columns (amplitudes) keep their names: the vocabulary's too
     i_d, i_q = Role.CURRENT_D.default_column, Role.CURRENT_Q.default_column
     if i_d in out and i_q in out:
         out[Role.CURRENT.default_column] = np.hypot(out[i_d], out[i_q]) / math.sqrt(2.0)  # amplitude -> RMS

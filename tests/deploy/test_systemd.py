@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -240,13 +241,22 @@ def test_state_directory_used_when_config_has_no_dir(tmp_path: Path) -> None:
     sd.mkdir()
     proc = subprocess.Popen([*dl.thermal_edge_cmd(), "run", "--config", str(cfg)], env=dl.env(STATE_DIRECTORY=str(sd)),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)  # type: ignore[arg-type]
+    reader.start()
     try:
-        time.sleep(4)
-        assert proc.poll() is None, proc.communicate()[0]
+        # SIGTERM once the service is up (its handler is installed by then): on a busy host the
+        # start takes longer than any fixed sleep, and a signal before it ends the process
+        deadline = time.monotonic() + 45
+        while not any("service up" in ln for ln in lines) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert proc.poll() is None and any("service up" in ln for ln in lines), "".join(lines)
         proc.send_signal(signal.SIGTERM)
-        out = proc.communicate(timeout=30)[0]
+        proc.wait(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
+    reader.join(5)
+    out = "".join(lines)
     assert proc.returncode == 0, out
     assert (sd / "state.json").exists(), out

@@ -247,10 +247,10 @@ def start_service(config: Path, notify: NotifySocket | None = None, watchdog_use
 def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | None = None, table4: str = "none",
                  open_loop: bool = False, fallback_current: float | None = None, seed: int = 0,
                  cycle: str = "overload.yaml", ready_file: Path | None = None, speed: float = SPEED,
-                 flow_timeout: float = 2.0) -> list[str]:
+                 flow_timeout: float = 5.0) -> list[str]:
     cmd = [sys.executable, "-m", "thermal_edge.sim.inverter", "--interface", "udp_multicast", "--port", str(port),
            "--model", str(MODEL), "--cycle", str(CYCLES / cycle), "--speed", str(speed), "--t0", str(T0),
-           "--flow-timeout", str(flow_timeout),
+           "--flow-timeout", str(flow_timeout), "--max-lead", str(MAX_LEAD_S),
            "--current-period", str(CURRENT_PERIOD_S), "--temperature-period", str(TEMPERATURE_PERIOD_S),
            "--plant-dt", str(PLANT_DT_S), "--seed", str(seed), "--summary", str(summary), "--trace", str(trace),
            "--table4", table4]

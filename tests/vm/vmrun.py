@@ -112,6 +112,8 @@ APT_PACKAGES: dict[str, str] = {
 
 #: Where the guest sees the writable share (inside the chroot).
 GUEST_SHARE = "/tmp/vmshare"
+#: scheduling priority of qemu when run as root (negative: before the host's other processes)
+QEMU_NICE = -10
 DEFAULT_CWD = "/work/main"
 DEFAULT_PYTHON = "/work/main/.venv/bin/python"
 MARK = "@@VM:"
@@ -804,6 +806,11 @@ class VM:
 
     def _boot(self, cmd: str, share: Path, timeout: float) -> Result:
         argv = self._qemu_argv(share)
+        if os.geteuid() == 0 and shutil.which("nice"):
+            # The guest runs the service in real time (TE_Limits every 100 ms, the inverter's 300 ms
+            # timeout) on an emulated CPU: it gets the host's CPU before the suite's other worker
+            # and a second suite beside it, whose tests are paced and wait for their service.
+            argv = ["nice", "-n", str(QEMU_NICE), *argv]
         console: list[str] = []
         marks: dict[str, float] = {}
         t0 = time.monotonic()
