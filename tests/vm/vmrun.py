@@ -54,7 +54,9 @@ Only the standard library is used, so the driver runs with any python3 >= 3.9.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import fcntl
 import gzip
 import hashlib
 import io
@@ -596,6 +598,22 @@ def build_initramfs(kernel: Kernel, busybox: Path, cache_dir: Path | None = None
 # ---------------------------------------------------------------- the VM
 
 
+@contextlib.contextmanager
+def _one_vm_at_a_time():  # type: ignore[no-untyped-def]
+    """Hold the host-wide boot lock (a file in the VM cache) while a VM runs.
+
+    Two suites side by side would otherwise emulate two guests at once on two cores: each guest's
+    real-time service (TE_Limits every 100 ms) then stalls for seconds under TCG. The second
+    boot waits for the first to power off instead.
+    """
+    with open(_cache_dir() / "boot.lock", "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def _kvm_usable() -> tuple[bool, str]:
     if not os.path.exists("/dev/kvm"):
         return False, "no /dev/kvm"
@@ -800,7 +818,8 @@ class VM:
                     dest = share / "files" / name
                     dest.parent.mkdir(parents=True, exist_ok=True)
                     dest.write_bytes(content.encode() if isinstance(content, str) else content)
-            result = self._boot(cmd, share, timeout)
+            with _one_vm_at_a_time():
+                result = self._boot(cmd, share, timeout)
         self.runs.append(result)
         return result
 
