@@ -21,9 +21,9 @@ With ``flow_control`` the emulator also stays at most ``max_lead_s`` of simulate
 the service's ticks: it counts the service's ``TE_Status`` frames (one per tick with the frame
 clock) against the tick boundaries its own frames cross since its run began, so the service
 must be listening by then. A receiver that falls behind (e.g. while adapting) is thus waited for
-instead of having its ``udp_multicast`` socket overflow. If no ``TE_Status`` arrives for
-``flow_timeout_s`` (from the run's start for the first) the emulator runs on at ``speed`` and
-counts again from the next ``TE_Status``.
+instead of having its ``udp_multicast`` socket overflow. If no ``TE_Status`` arrives while it has
+waited ``flow_timeout_s`` (its own pauses on a busy host not counted) the emulator runs on at
+``speed`` and counts again from the next ``TE_Status``.
 
 The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
 ``trace_every_s``) for tests.
@@ -64,6 +64,9 @@ ROOT = Path(__file__).resolve().parents[2]
 #: frames due sooner than this are sent at once (accelerated runs: a sleep per frame would only add
 #: event-loop turns); later ones are slept for, so a real-time run sends at the DBC's cycle
 PACE_MIN_SLEEP_S = 0.001
+#: longest gap between two polls of the flow-control wait that counts fully as the service's
+#: silence (wall s); a longer one is the emulator's own pause
+FLOW_POLL_MAX_S = 0.1
 
 #: The paper's Table 4 parameter variations (additive, in the parameters' units).
 TABLE4_VARIATIONS: dict[str, float] = {"k_r_sw": 4.0, "k_c_sw": 1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
@@ -211,7 +214,6 @@ class InverterEmulator:
         self.limits_sim = -math.inf
         self.last_reason: int | None = None
         self.status_count = 0
-        self.last_status_wall: float | None = None
         self._status_event: asyncio.Event | None = None
         self.estimates: list[tuple[float, float, float, float, float, float]] = []  # (sim t, rx ts, hs, hsU, mg, mgU)
         self.limit_log: list[tuple[float, float, float, int]] = []  # (sim t, current, torque, reason)
@@ -390,7 +392,6 @@ class InverterEmulator:
                 self.limit_log.append((self.sim_time, self.current_limit, self.torque_limit, self.last_reason))
         elif name == TE_STATUS:
             self.status_count += 1
-            self.last_status_wall = now
             if self._status_event is not None:
                 self._status_event.set()
         elif name == TE_ESTIMATES and self.config.record_estimates:
@@ -442,6 +443,7 @@ class InverterEmulator:
         # service slow to tick first (busy process) then lagged by hundreds of ticks for the run
         synced = cfg.flow_control
         base_ticks, base_status = 0, self.status_count
+        status_at_timeout = self.status_count
         tick = cfg.service_tick_s
         ticks_sent = 0
         max_lead = max(1, int(round(cfg.max_lead_s / tick)))
@@ -451,20 +453,27 @@ class InverterEmulator:
                 drain()
                 # flow control: stay at most max_lead ticks ahead of the service
                 if cfg.flow_control:
-                    now = time.monotonic()
-                    alive = now - self._last_heard(t_start) < cfg.flow_timeout_s
-                    if alive and not synced:  # TE_Status again after a timeout
+                    if not synced and self.status_count > status_at_timeout:  # TE_Status again after a timeout
                         synced, base_ticks, base_status = True, ticks_sent, self.status_count
-                    elif not alive:
-                        synced = False
                     if synced and (ticks_sent - base_ticks) - (self.status_count - base_status) > max_lead:
                         self.summary.flow_waits += 1
-                        w0 = time.monotonic()
+                        w0 = prev = time.monotonic()
+                        heard, silent = self.status_count, 0.0
                         while (ticks_sent - base_ticks) - (self.status_count - base_status) > max_lead:
                             if drain() == 0:
                                 await asyncio.sleep(0.0005)
-                            if time.monotonic() - self._last_heard(t_start) >= cfg.flow_timeout_s:
+                            now = time.monotonic()
+                            # the service's silence counts only while the emulator itself runs: a
+                            # pause of this whole process (a busy host) gave the service no chance
+                            # to answer either, so a longer gap between two polls counts as one poll
+                            if self.status_count != heard:
+                                heard, silent = self.status_count, 0.0
+                            else:
+                                silent += min(now - prev, FLOW_POLL_MAX_S)
+                            prev = now
+                            if silent >= cfg.flow_timeout_s:
                                 synced = False  # the service is gone or lost frames: resync later
+                                status_at_timeout = self.status_count
                                 self.summary.flow_timeouts += 1
                                 break
                         self.summary.flow_wait_wall_s += time.monotonic() - w0
@@ -513,10 +522,6 @@ class InverterEmulator:
                 pass
             self._finish()
         return self.summary
-
-    def _last_heard(self, run_start: float) -> float:
-        """Wall time (monotonic) of the last TE_Status, or of the run's start before the first."""
-        return self.last_status_wall if self.last_status_wall is not None and self.last_status_wall > run_start else run_start
 
     def inject(self, arbitration_id: int, data: bytes, *, extended: bool = False, remote: bool = False,
                timestamp: float | None = None) -> None:
