@@ -27,3 +27,21 @@ def _rank(item: pytest.Item) -> int:
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:  # noqa: ARG001
     items.sort(key=_rank)  # stable: the order within a directory and a file is kept
+
+
+#: the SocketCAN VM's summary lines handed over by xdist workers (tests/vm/conftest.py)
+_VM_LINES: list[str] = []
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error) -> None:  # noqa: ANN001, ARG001
+    line = getattr(node, "workeroutput", {}).get("vm_summary")
+    if line:
+        _VM_LINES.append(line)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001, ARG001
+    if _VM_LINES:
+        terminalreporter.section("SocketCAN VM")
+        for line in _VM_LINES:
+            terminalreporter.write_line(line)

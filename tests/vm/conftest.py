@@ -93,27 +93,17 @@ def _summary_line() -> str | None:
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:  # noqa: ARG001
-    # an xdist worker hands its line to the controller, which prints the summary
+    # an xdist worker hands its line to the controller (tests/conftest.py prints it)
     workeroutput = getattr(session.config, "workeroutput", None)
     line = _summary_line()
     if workeroutput is not None and line is not None:
         workeroutput["vm_summary"] = line
 
 
-@pytest.hookimpl(optionalhook=True)
-def pytest_testnodedown(node, error) -> None:  # noqa: ANN001, ARG001
-    line = getattr(node, "workeroutput", {}).get("vm_summary")
-    if line:
-        _state.setdefault("worker_lines", []).append(line)  # type: ignore[union-attr]
-
-
 def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001, ARG001
-    lines = list(_state.get("worker_lines", []))  # type: ignore[call-overload]
+    # under xdist this conftest is not loaded in the controller: tests/conftest.py prints the workers' lines
     own = _summary_line()
-    if own is not None:
-        lines.append(own)
-    if not lines:
+    if own is None:
         return
     terminalreporter.section("SocketCAN VM")
-    for line in lines:
-        terminalreporter.write_line(line)
+    terminalreporter.write_line(own)
