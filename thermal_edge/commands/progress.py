@@ -1,7 +1,6 @@
 """Progress bars with an ETA for the commands that can run longer than ~10 s (tqdm, on stderr).
 
-The bar is drawn only when stderr is a terminal, so logs, pipes and tests see nothing of it;
-without tqdm installed there is no bar either (the command runs the same).
+The bar is drawn only when stderr is a terminal, so logs, pipes and tests see nothing of it.
 """
 from __future__ import annotations
 
@@ -45,8 +44,6 @@ def bar(total: float | None, desc: str, unit: str = "it") -> Any:
     """
     if not sys.stderr.isatty():
         return _Silent()
-    try:
-        from tqdm import tqdm
-    except ImportError:
-        return _Silent()
+    from tqdm import tqdm  # a core dependency; imported only when a bar is drawn
+
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=True)

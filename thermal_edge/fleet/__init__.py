@@ -14,13 +14,13 @@ INSTALL_HINT = "pip install thermal-edge[fleet]"
 
 
 class MissingExtra(RuntimeError):
-    """Dask, pyarrow or tqdm is not installed; the message says how to install the extra."""
+    """Dask or pyarrow is not installed; the message says how to install the extra."""
 
 
 def require_fleet_extra() -> None:
-    """Raise :class:`MissingExtra` unless ``distributed``, ``pyarrow`` and ``tqdm`` can be imported."""
+    """Raise :class:`MissingExtra` unless ``distributed`` and ``pyarrow`` can be imported (tqdm is a core dependency)."""
     missing = []
-    for mod in ("distributed", "pyarrow", "tqdm"):
+    for mod in ("distributed", "pyarrow"):
         try:
             __import__(mod)
         except ImportError:
