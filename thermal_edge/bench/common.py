@@ -4,10 +4,25 @@ from __future__ import annotations
 import statistics
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config"
+
+
+class Progress(Protocol):
+    """How a benchmark reports how far it is: ``progress(stage, done, total, unit)``.
+
+    ``stage`` names the part running now (a new name starts a new part); ``done`` of ``total``
+    units (``unit``: "round", "tick", "h" …) are finished. The command draws it (a bar on a
+    terminal); the benchmark only counts.
+    """
+
+    def __call__(self, stage: str, done: float, total: float, unit: str) -> object: ...
+
+
+def no_progress(stage: str, done: float, total: float, unit: str) -> None:
+    """The :class:`Progress` of a benchmark run without a reader (tests, ``--json`` in a pipe)."""
 
 
 def config_path(*parts: str) -> Path:
@@ -25,16 +40,20 @@ def timed(fn: Callable[[], object], repeat: int) -> tuple[float, list[float], ob
     return statistics.median(times), times, out
 
 
-def timed_together(fns: Sequence[Callable[[], object]], repeat: int) -> list[tuple[float, list[float], object]]:
+def timed_together(fns: Sequence[Callable[[], object]], repeat: int,
+                   progress: Progress = no_progress) -> list[tuple[float, list[float], object]]:
     """:func:`timed` for several functions called in turn (round-robin), so that a change in the
-    machine's speed during the run (a shared machine) falls on all of them alike."""
+    machine's speed during the run (a shared machine) falls on all of them alike; ``progress`` after
+    every round."""
     times: list[list[float]] = [[] for _ in fns]
     outs: list[object] = [None] * len(fns)
-    for _ in range(repeat):
+    for r in range(repeat):
+        progress("timed rounds", r, repeat, "round")
         for i, fn in enumerate(fns):
             t0 = time.perf_counter()
             outs[i] = fn()
             times[i].append(time.perf_counter() - t0)
+    progress("timed rounds", repeat, repeat, "round")
     return [(statistics.median(t), t, out) for t, out in zip(times, outs)]
 
 

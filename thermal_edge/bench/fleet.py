@@ -32,7 +32,7 @@ from ..fleet.task import cached_model, warm
 from ..lptn import load_model
 from ..sim.cycles import load_cycle
 from ..sim.fleet import FAULTY, plan_fleet, read_manifest, write_machine, write_manifest
-from .common import config_path, table
+from .common import Progress, config_path, no_progress, table
 
 #: the parameters the bench's fleet is calibrated on: those pm10kw's three sensors pin down
 #: (with the winding conductivities free as well, r_ins_sw's σ exceeds 100 %)
@@ -50,30 +50,39 @@ def _write(spec: Any, model_path: str, cycle_path: str, out_dir: str, duration_s
     return write_machine(cached_model(model_path, None), load_cycle(cycle_path), spec, out_dir, duration_s)
 
 
-def make_fleet(client: Any, out: Path, machines: int, faulty: int, seed: int, duration_s: float) -> None:
-    """Write a simulated fleet into ``out``, one machine per task on ``client``."""
+def make_fleet(client: Any, out: Path, machines: int, faulty: int, seed: int, duration_s: float,
+               progress: Progress = no_progress) -> None:
+    """Write a simulated fleet into ``out``, one machine per task on ``client``; ``progress`` counts
+    the machines written."""
+    from distributed import as_completed
+
     model_path, cycle_path = str(config_path(MODEL)), str(config_path(CYCLE))
     specs = plan_fleet(load_model(model_path), machines, faulty, seed)
     out.mkdir(parents=True, exist_ok=True)
     futures = client.map(_write, specs, model_path=model_path, cycle_path=cycle_path, out_dir=str(out),
                          duration_s=duration_s, pure=False)
-    client.gather(futures)
+    for k, fut in enumerate(as_completed(futures), 1):
+        fut.result()
+        progress("write the fleet", k, len(specs), "machine")
     write_manifest(out, model_path, cycle_path, specs, duration_s, seed)
 
 
-def _calibrate(client: Any, machines: Sequence[Any]) -> tuple[float, list[dict[str, Any]]]:
+def _calibrate(client: Any, machines: Sequence[Any], stage: str,
+               progress: Progress) -> tuple[float, list[dict[str, Any]]]:
     model_path = str(config_path(MODEL))
     client.run(warm, model_path, None)
     t0 = time.perf_counter()
     per = map_machines(client, calibrate_machine, machines, progress=False, model_path=model_path,
-                       params=list(FLEET_PARAMS))
+                       params=list(FLEET_PARAMS), finished=lambda k: progress(stage, k, len(machines), "machine"))
     return time.perf_counter() - t0, [r for rows in per for r in rows]
 
 
 def run(machines: int = MACHINES, faulty: int = FAULTY, speed_machines: int = SPEED_MACHINES, rounds: int = ROUNDS,
         hours: float = 3.0, seed: int = 0, threshold: float = THRESHOLD, project_machines: int = 10_000,
-        cluster_cores: Sequence[int] = CLUSTER_CORES, workdir: str | None = None) -> dict[str, Any]:
-    """Run the fleet benchmark; see the module docstring. Times in s, memory in MB.
+        cluster_cores: Sequence[int] = CLUSTER_CORES, workdir: str | None = None,
+        progress: Progress = no_progress) -> dict[str, Any]:
+    """Run the fleet benchmark; see the module docstring. Times in s, memory in MB; ``progress``
+    counts the machines of each part.
 
     The 1-worker and 2-worker clusters run side by side and take turns on the same machines for
     ``rounds`` rounds, so that a change of the shared machine's load falls on both alike; the
@@ -84,19 +93,19 @@ def run(machines: int = MACHINES, faulty: int = FAULTY, speed_machines: int = SP
         out = Path(tmp) / "fleet"
         t0 = time.perf_counter()
         with connect(workers=2) as client:
-            make_fleet(client, out, machines, faulty, seed, hours * 3600.0)
+            make_fleet(client, out, machines, faulty, seed, hours * 3600.0, progress)
         make_s = time.perf_counter() - t0
         fleet = find_machines([str(out / "*.csv")])
         subset = fleet[:speed_machines]
         t1s, t2s, cpu = [], [], []
         with connect(workers=1) as one, connect(workers=2) as two:
-            for _ in range(rounds):
-                t1, rows1 = _calibrate(one, subset)
-                t2, _ = _calibrate(two, subset)
+            for k in range(1, rounds + 1):
+                t1, rows1 = _calibrate(one, subset, f"round {k} of {rounds}, 1 worker", progress)
+                t2, _ = _calibrate(two, subset, f"round {k} of {rounds}, 2 workers", progress)
                 t1s.append(t1)
                 t2s.append(t2)
                 cpu += [r["cpu_s"] for r in rows1 if r["kind"] == "parameter" and r["name"] == FLEET_PARAMS[0]]
-            t_all, rows = _calibrate(two, fleet)
+            t_all, rows = _calibrate(two, fleet, "whole fleet, 2 workers", progress)
         manifest = read_manifest(out)
     load_end = os.getloadavg()
     spreads, outliers = screen(rows, threshold)

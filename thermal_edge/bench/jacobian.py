@@ -22,7 +22,7 @@ import numpy as np
 from ..lptn import Role, Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
 from ..sim.cycles import cycle_run, load_cycle
-from .common import config_path, timed, timed_together
+from .common import Progress, config_path, no_progress, timed, timed_together
 
 
 def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt: float, T0: np.ndarray,
@@ -38,7 +38,9 @@ def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt
     return (-at(2 * h) + 8 * at(h) - 8 * at(-h) + at(-2 * h)) / (12 * h)
 
 
-def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None = None, hours: float = 3.0) -> dict[str, object]:
+def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None = None, hours: float = 3.0,
+        progress: Progress = no_progress) -> dict[str, object]:
+    """Time both Jacobians (``repeat`` rounds) and check the analytic one; ``progress`` as it goes."""
     model = load_model(model_path or config_path("machines", "pm10kw.yaml"))
     cycle = load_cycle(cycle_path or config_path("cycles", "varied_drive.yaml"))
     inputs = cycle_run(cycle, model.drive["kt_nm_per_arms"], hours * 3600.0)
@@ -79,18 +81,20 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
 
     sim.simulate(theta, cols, dt, T0, wrt=wrt)  # warm-up (imports, caches of numpy)
     (t_an, times_an, S), (t_st, _, S_st), (t_num, times_num, _), (t_sim, _, _) = timed_together(
-        [analytic, analytic_stepped, forward, lambda: sim.simulate(theta, cols, dt, T0)], repeat)
+        [analytic, analytic_stepped, forward, lambda: sim.simulate(theta, cols, dt, T0)], repeat, progress)
 
     # accuracy: fourth-order central differences (step 1 % of the value: the simulation's own
     # round-off, ~1e-10 K, swamps smaller steps), relative error on entries above 1 % of that
     # parameter's largest sensitivity
     max_rel = 0.0
     for j, i in enumerate(idx):
+        progress("central differences", j, p, "parameter")
         fd = central_difference(sim, theta, i, cols, dt, T0)[:, rows]
         a = S[:, :, j]
         big = np.abs(fd) > 1e-2 * np.abs(fd).max()
         if big.any():
             max_rel = max(max_rel, float(np.max(np.abs(a[big] - fd[big]) / np.abs(fd[big]))))
+    progress("central differences", p, p, "parameter")
 
     # arithmetic limit: 2 products of N x n by n x (n p) (forcing and recursion), at the BLAS rate
     a_ = np.random.default_rng(0).standard_normal((N, n))

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .common import ROOT, config_path
+from .common import ROOT, Progress, config_path, no_progress
 
 RATES = (2000, 4000, 6000, 8000, 10000, 12000, 14000, 16000, 20000, 24000, 28000, 32000)
 
@@ -76,9 +76,10 @@ def _frames(emu: Any) -> list[Any]:
     return [DecodedFrame(name, 0, sig, 0, ts) for ts, name, sig in emu._step(None)]
 
 
-def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = False) -> dict[str, float]:
+def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = False,
+                 progress: Progress = no_progress) -> dict[str, float]:
     """Tick compute times (ms) of the engine; with ``adapting`` a decision runs in a worker thread
-    all the time."""
+    all the time. ``progress`` counts the ticks, warm-up included."""
     from ..service.adaptation import AdaptationWorker
     from ..service.clock import FrameClock
     from ..service.engine import ThermalEngine
@@ -102,7 +103,9 @@ def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = Fa
         durations: list[float] = []
         decisions = 0
         stop_at = warmup_s + ticks
+        stage = "ticks, adaptation running" if adapting else "ticks, adapter idle"
         while last_tick < stop_at:
+            progress(stage, last_tick, stop_at, "tick")
             for f in _frames(emu):
                 for b in engine.ticks_for(clock.observe(f.timestamp)):  # the service's frame clock
                     out = engine.tick(b)
@@ -164,14 +167,17 @@ def _sender(port: int, rate: float, seconds: float) -> None:
     print(json.dumps({"sent": sent, "seconds": time.monotonic() - t0}))
 
 
-def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0) -> dict[str, Any]:
-    """Highest sustained inbound frame rate the service accepts without loss (udp_multicast, wall clock)."""
+def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
+                     progress: Progress = no_progress) -> dict[str, Any]:
+    """Highest sustained inbound frame rate the service accepts without loss (udp_multicast, wall clock);
+    ``progress`` counts the rates tried."""
     from ..service import EdgeService
 
     results: list[dict[str, Any]] = []
     best = 0
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    for rate in rates:
+    for k, rate in enumerate(rates):
+        progress("frame rates", k, len(rates), "rate")
         import socket
 
         with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
@@ -215,8 +221,9 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0) -> di
 
 
 # ----------------------------------------------------------------------------------------------
-def memory_run(hours: float = 24.0, current_period_s: float = 0.5) -> dict[str, Any]:
-    """RSS of the service + simulated machine over an accelerated closed-loop run of ``hours``."""
+def memory_run(hours: float = 24.0, current_period_s: float = 0.5, progress: Progress = no_progress) -> dict[str, Any]:
+    """RSS of the service + simulated machine over an accelerated closed-loop run of ``hours``;
+    ``progress`` counts the simulated hours."""
     from ..service import EdgeService
     from ..sim.inverter import EmulatorConfig, InverterEmulator
 
@@ -237,6 +244,7 @@ def memory_run(hours: float = 24.0, current_period_s: float = 0.5) -> dict[str, 
             next_sample = [0.0]
 
             def sample(out: Any) -> None:
+                progress("memory run", (out.t - 1.7e9) / 3600.0, hours, "h")
                 if out.t - 1.7e9 >= next_sample[0]:
                     samples.append(((out.t - 1.7e9) / 3600.0, rss_mb()))
                     next_sample[0] += 3600.0
@@ -258,11 +266,13 @@ def memory_run(hours: float = 24.0, current_period_s: float = 0.5) -> dict[str, 
     return res
 
 
-def run(hours: float = 24.0, ticks: int = 600, fps_seconds: float = 4.0, rates: tuple[int, ...] = RATES) -> dict[str, Any]:
-    idle = tick_latency(ticks, adapting=False)
-    busy = tick_latency(ticks, adapting=True)
-    fps = max_lossless_fps(rates, fps_seconds)
-    mem = memory_run(hours)
+def run(hours: float = 24.0, ticks: int = 600, fps_seconds: float = 4.0, rates: tuple[int, ...] = RATES,
+        progress: Progress = no_progress) -> dict[str, Any]:
+    """All four measures in turn (tick latency idle and adapting, frame rate, memory); ``progress`` per part."""
+    idle = tick_latency(ticks, adapting=False, progress=progress)
+    busy = tick_latency(ticks, adapting=True, progress=progress)
+    fps = max_lossless_fps(rates, fps_seconds, progress)
+    mem = memory_run(hours, progress=progress)
     return {
         "tick_p50_ms": idle["p50_ms"], "tick_p99_ms": idle["p99_ms"], "tick_max_ms": idle["max_ms"],
         "tick_p50_adapting_ms": busy["p50_ms"], "tick_p99_adapting_ms": busy["p99_ms"], "tick_max_adapting_ms": busy["max_ms"],

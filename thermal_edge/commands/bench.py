@@ -7,6 +7,7 @@ import json
 from ..bench import jacobian, paper
 from ..bench.common import table
 from .common import add_set_arg, split_sets
+from .progress import StageBars
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -61,7 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 
 def run_jacobian(args: argparse.Namespace) -> int:
-    r = jacobian.run(repeat=args.repeat)
+    with StageBars("bench jacobian") as progress:
+        r = jacobian.run(repeat=args.repeat, progress=progress)
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
@@ -131,7 +133,8 @@ def run_paper(args: argparse.Namespace) -> int:
 def run_service(args: argparse.Namespace) -> int:
     from ..bench import service
 
-    r = service.run(hours=args.hours, ticks=args.ticks, fps_seconds=args.fps_seconds)
+    with StageBars("bench service") as progress:
+        r = service.run(hours=args.hours, ticks=args.ticks, fps_seconds=args.fps_seconds, progress=progress)
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0
@@ -158,7 +161,9 @@ def run_fleet(args: argparse.Namespace) -> int:
     from ..fleet import MissingExtra
 
     try:
-        r = fleet.run(machines=args.machines, speed_machines=args.speed_machines, rounds=args.rounds)
+        with StageBars("bench fleet") as progress:
+            r = fleet.run(machines=args.machines, speed_machines=args.speed_machines, rounds=args.rounds,
+                          progress=progress)
     except MissingExtra as exc:
         print(f"thermal-edge bench fleet: error: {exc}")
         return 2

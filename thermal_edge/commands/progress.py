@@ -47,3 +47,30 @@ def bar(total: float | None, desc: str, unit: str = "it") -> Any:
     from tqdm import tqdm  # a core dependency; imported only when a bar is drawn
 
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, leave=True)
+
+
+class StageBars:
+    """Draws a benchmark's :class:`~thermal_edge.bench.common.Progress`: one bar per stage, the
+    last one closed when the next stage starts (or on leaving the ``with`` block)."""
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self._stage: str | None = None
+        self._bar: Any = None
+
+    def __call__(self, stage: str, done: float, total: float, unit: str) -> None:
+        if stage != self._stage:
+            self.close()
+            self._stage, self._bar = stage, bar(total, f"{self.prefix}: {stage}", unit)
+        self._bar.update(done - self._bar.n)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+        self._stage, self._bar = None, None
+
+    def __enter__(self) -> StageBars:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -74,12 +74,13 @@ def connect(scheduler: str | None = None, workers: int | None = None, log: TextI
 
 def map_machines(client: Any, fn: Callable[..., list[dict[str, Any]]], machines: Sequence[Machine],
                  *per_machine: Sequence[Any], progress: bool = True, desc: str = "machines",
-                 **kwargs: Any) -> list[list[dict[str, Any]]]:
+                 finished: Callable[[int], object] | None = None, **kwargs: Any) -> list[list[dict[str, Any]]]:
     """``fn(machine, *per_machine[i], **kwargs)`` as one Dask task per machine; the results in the
     machines' order.
 
     ``per_machine`` are sequences of one value per machine; ``progress`` shows a bar on a terminal
-    (``tqdm`` on stderr) as the tasks complete.
+    (``tqdm`` on stderr) as the tasks complete; ``finished(count)`` is told the same count (a
+    caller that draws its own progress).
     """
     from distributed import as_completed
     from tqdm import tqdm
@@ -92,4 +93,6 @@ def map_machines(client: Any, fn: Callable[..., list[dict[str, Any]]], machines:
         for fut in as_completed(futures):
             out[index[fut.key]] = fut.result()
             bar.update(1)
+            if finished is not None:
+                finished(bar.n)
     return out
