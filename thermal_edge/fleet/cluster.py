@@ -90,9 +90,9 @@ def map_machines(client: Any, fn: Callable[..., list[dict[str, Any]]], machines:
     out: list[list[dict[str, Any]]] = [[] for _ in machines]
     with tqdm(total=len(futures), desc=desc, unit="machine", disable=None if progress else True,
               file=sys.stderr) as bar:
-        for fut in as_completed(futures):
+        for done, fut in enumerate(as_completed(futures), 1):
             out[index[fut.key]] = fut.result()
             bar.update(1)
             if finished is not None:
-                finished(bar.n)
+                finished(done)
     return out
