@@ -38,9 +38,11 @@ def test_restart_after_sigkill_starts_from_the_cooled_saved_state(tmp_path, udp_
     try:
         svc = start_service(cfg_a, notify, log=tmp_path / "a.log")
         assert notify.wait_for("READY=1", 60)
-        # without TE_Limits the inverter's own protection trips the drive (fallback 0 A: standstill)
+        # without TE_Limits the inverter's own protection trips the drive (fallback 0 A: standstill);
+        # it runs on for 5 simulated minutes without a service, then waits for service B however
+        # long B takes to start on a busy host
         emu = subprocess.Popen(emulator_cmd(udp_port, tmp_path / "summary.json", tmp_path / "trace.npz", duration=3300.0,
-                                            fallback_current=0.0, speed=300.0, flow_timeout=0.5),
+                                            fallback_current=0.0, speed=300.0, flow_timeout=0.5, max_free=300.0),
                                env=env(), cwd=str(REPO), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         assert wait_until(lambda: saved_at(state_file) >= T0 + 2400, 120), "service A did not get to 40 min"
         svc.send_signal(signal.SIGKILL)
@@ -50,10 +52,10 @@ def test_restart_after_sigkill_starts_from_the_cooled_saved_state(tmp_path, udp_
         assert wait_until(lambda: saved_at(state_file) > last_a, 60), (tmp_path / "b.log").read_text()
         time.sleep(0.1)  # the file is replaced atomically; read the first save
         first = json.loads(state_file.read_text())
-        svc.send_signal(signal.SIGKILL)  # no final save: keep the first one
-        svc.wait(10)
-        _, err = emu.communicate(timeout=120)
+        _, err = emu.communicate(timeout=120)  # B keeps answering: the emulator finishes its cycle with it
         assert emu.returncode == 0, err.decode()
+        svc.send_signal(signal.SIGKILL)
+        svc.wait(10)
     finally:
         for p in (svc, emu):
             if p is not None and p.poll() is None:

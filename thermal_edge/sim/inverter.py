@@ -23,7 +23,10 @@ clock) against the tick boundaries its own frames cross since its run began, so 
 must be listening by then. A receiver that falls behind (e.g. while adapting) is thus waited for
 instead of having its ``udp_multicast`` socket overflow. If no ``TE_Status`` arrives while it has
 waited ``flow_timeout_s`` (its own pauses on a busy host not counted) the emulator runs on at
-``speed`` and counts again from the next ``TE_Status``.
+``speed`` and counts again from the next ``TE_Status``. With ``max_free_s`` it runs on for at most
+that much simulated time and then waits for a service's ``TE_Limits`` (up to ``FREE_WAIT_MAX_S``
+of wall time): a test that restarts its service gets a downtime of known length however long the new
+process takes to start on a busy host.
 
 The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
 ``trace_every_s``) for tests.
@@ -67,6 +70,8 @@ PACE_MIN_SLEEP_S = 0.001
 #: longest gap between two polls of the flow-control wait that counts fully as the service's
 #: silence (wall s); a longer one is the emulator's own pause
 FLOW_POLL_MAX_S = 0.1
+#: longest wall time the emulator waits for a service after running on for ``max_free_s``
+FREE_WAIT_MAX_S = 120.0
 
 #: The paper's Table 4 parameter variations (additive, in the parameters' units).
 TABLE4_VARIATIONS: dict[str, float] = {"k_r_sw": 4.0, "k_c_sw": 1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
@@ -116,6 +121,7 @@ class EmulatorConfig:
     flow_control: bool = True
     max_lead_s: float = 10.0
     flow_timeout_s: float = 2.0  # wall
+    max_free_s: float | None = None  # simulated s run on without a service before waiting for one again
     service_tick_s: float = 1.0
     trace_every_s: float = 1.0
     record_estimates: bool = True  # keep every TE_Estimates and TE_Limits change received (tests); off for long runs
@@ -444,6 +450,7 @@ class InverterEmulator:
         synced = cfg.flow_control
         base_ticks, base_status = 0, self.status_count
         status_at_timeout = self.status_count
+        free_until = math.inf  # simulated elapsed time up to which the emulator runs on without a service
         tick = cfg.service_tick_s
         ticks_sent = 0
         max_lead = max(1, int(round(cfg.max_lead_s / tick)))
@@ -453,6 +460,16 @@ class InverterEmulator:
                 drain()
                 # flow control: stay at most max_lead ticks ahead of the service
                 if cfg.flow_control:
+                    if not synced and self.elapsed >= free_until and self.status_count == status_at_timeout:
+                        # ran on long enough: wait for a service to be there again. Its cyclic
+                        # TE_Limits says so (its TE_Status needs ticks, and ticks need our frames)
+                        w0, heard = time.monotonic(), self.summary.limits_received
+                        while self.summary.limits_received == heard and time.monotonic() - w0 < FREE_WAIT_MAX_S:
+                            if drain() == 0:
+                                await asyncio.sleep(0.005)
+                        self.summary.flow_wait_wall_s += time.monotonic() - w0
+                        free_until = math.inf
+                        wall0, sim0 = time.monotonic(), self.elapsed
                     if not synced and self.status_count > status_at_timeout:  # TE_Status again after a timeout
                         synced, base_ticks, base_status = True, ticks_sent, self.status_count
                     if synced and (ticks_sent - base_ticks) - (self.status_count - base_status) > max_lead:
@@ -475,6 +492,8 @@ class InverterEmulator:
                                 synced = False  # the service is gone or lost frames: resync later
                                 status_at_timeout = self.status_count
                                 self.summary.flow_timeouts += 1
+                                if cfg.max_free_s is not None:
+                                    free_until = self.elapsed + cfg.max_free_s
                                 break
                         self.summary.flow_wait_wall_s += time.monotonic() - w0
                         if not synced:
@@ -614,6 +633,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-flow-control", action="store_true")
     p.add_argument("--max-lead", type=float, default=10.0, help="simulated s the emulator may run ahead of the service")
     p.add_argument("--flow-timeout", type=float, default=2.0, help="wall s without TE_Status before running on")
+    p.add_argument("--max-free", type=float, default=None,
+                   help="simulated s to run on without a service before waiting for one again (default: run on)")
     p.add_argument("--limits-timeout", type=float, default=0.3, help="wall s after which TE_Limits counts as absent")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--summary", default=None, help="write the summary JSON here")
@@ -632,6 +653,7 @@ def main(argv: list[str] | None = None) -> int:
         temperature_period_s=args.temperature_period, plant_dt_s=args.plant_dt, ambient_drift_k=args.ambient_drift,
         closed_loop=not args.open_loop, fallback_current_a=args.fallback_current, flow_control=not args.no_flow_control,
         max_lead_s=args.max_lead, seed=args.seed, flow_timeout_s=args.flow_timeout, limits_timeout_s=args.limits_timeout,
+        max_free_s=args.max_free,
     )
     bus: dict[str, Any] = {"interface": args.interface}
     if "preserve_timestamps" in interface_keywords(args.interface):  # simulated time on virtual/udp buses
