@@ -119,9 +119,9 @@ def test_readme_install_steps_then_service_against_the_simulated_machine(tmp_pat
             proc.wait()
     out = "\n".join(lines)
     print("\n".join(lines[:3] + status[-3:] + lines[-2:]))
-    m = re.search(r"state: (\S+)", out)  # the demo's own temporary state directory
-    if m and Path(m.group(1)).name.startswith("thermal-edge-demo-"):
-        shutil.rmtree(m.group(1), ignore_errors=True)
+    m = re.search(r"state: (\S+)", out)  # the demo's own temporary state directory: gone after the demo
+    assert m and Path(m.group(1)).name.startswith("thermal-edge-demo-"), out[:2000]
+    assert not Path(m.group(1)).exists(), f"make demo left {m.group(1)} behind"
     assert len(status) >= 8, out[-3000:]
     assert any(l.startswith("metrics:") for l in lines), out[:2000]
     assert proc.returncode == 0, out[-3000:]

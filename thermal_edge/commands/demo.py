@@ -14,6 +14,7 @@ import asyncio
 import logging
 import math
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -38,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--open-loop", action="store_true", help="the machine ignores TE_Limits (to compare)")
     p.add_argument("--metrics-address", default="127.0.0.1")
     p.add_argument("--metrics-port", type=int, default=9108)
-    p.add_argument("--state-dir", default=None, help="state directory (default: a fresh temporary one)")
+    p.add_argument("--state-dir", default=None,
+                   help="state directory, kept (default: a fresh temporary one, removed when the demo ends)")
     p.add_argument("--record", default=None, help="record the bus traffic to this candump -L file")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
@@ -60,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"thermal-edge demo: error: {cfg_path}: {exc}", file=sys.stderr)
         return 2
     channel = f"thermal-edge-demo-{os.getpid()}"
-    state_dir = args.state_dir or tempfile.mkdtemp(prefix="thermal-edge-demo-")
+    own_dir = None if args.state_dir else tempfile.mkdtemp(prefix="thermal-edge-demo-")  # removed at the end
+    state_dir = args.state_dir or own_dir
     raw = dict(raw or {})
     raw["bus"] = {"interface": "virtual", "channel": channel, "preserve_timestamps": True}
     raw["clock"] = {**(raw.get("clock") or {}), "mode": "frame"}
@@ -129,4 +132,8 @@ def run(args: argparse.Namespace) -> int:
               f"adaptations accepted {service.engine.adapt_accepted}/{service.engine.adapt_runs}")
         return 0
 
-    return asyncio.run(main())
+    try:
+        return asyncio.run(main())
+    finally:
+        if own_dir is not None:
+            shutil.rmtree(own_dir, ignore_errors=True)

@@ -1,0 +1,45 @@
+"""``thermal-edge demo`` cleans up after itself: its own temporary state directory is gone when it
+ends; a ``--state-dir`` given by the user is kept, with the state saved on stop."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _demo(tmp: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "TMPDIR": str(tmp), "OPENBLAS_NUM_THREADS": "1"}  # mkdtemp's directory: this test's
+    return subprocess.run([sys.executable, "-m", "thermal_edge.cli", "demo", "--duration", "120", "--speed", "300",
+                           "--quiet", "--metrics-port", str(_free_port()), *extra],
+                          capture_output=True, text=True, timeout=180, env=env)
+
+
+def test_the_demo_removes_its_own_state_directory(tmp_path):
+    r = _demo(tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = re.search(r"state: (\S+)", r.stdout)
+    assert m, r.stdout
+    used = Path(m.group(1))
+    assert used.parent == tmp_path and used.name.startswith("thermal-edge-demo-")  # it did make one here
+    assert re.search(r"^done: .* simulated", r.stdout, re.M), r.stdout[-2000:]
+    assert not used.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_state_directory_given_by_the_user_is_kept(tmp_path):
+    mine = tmp_path / "mine"
+    r = _demo(tmp_path, "--state-dir", str(mine))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"state: {mine}" in r.stdout
+    state = json.loads((mine / "state.json").read_text())
+    assert state["format"] == "thermal_edge.state"
