@@ -97,8 +97,8 @@ def _text(path: Path) -> str:
         raise RunError(f"{path}: UTF-16 text (a spreadsheet's 'Unicode text' export); save it as UTF-8 or "
                        "Windows-1252 CSV")
     if b"\x00" in raw[:SNIFF_BYTES]:
-        raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads candump -L logs "
-                       "with --format candump)")
+        raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads CAN logs "
+                       "with --format can)")
     for enc in ENCODINGS:
         try:
             return raw.decode(enc)
@@ -149,7 +149,7 @@ def read_run(path: str | os.PathLike[str], fmt: str = "csv") -> Run:
         raise RunError(f"{path}: a header but no data rows")
     if CANDUMP_LINE.match(numbered[0][1]):
         raise RunError(f"{path}: line {numbered[0][0]}: a candump -L log, not a CSV run (replay reads it with "
-                       "--format candump)")
+                       "--format can)")
     header = [h.strip() for h in rows[0][1]]
     dupes = sorted({h for h in header if header.count(h) > 1})
     if dupes:

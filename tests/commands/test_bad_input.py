@@ -112,9 +112,9 @@ CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = 
         replay(p := _rename(_drop(g, tmp / "pb.csv", "speed_rpm"), tmp / "pb.csv", "t", "motor_speed")),
         str(p), ["no column 't'", "--format paderborn"]),
     "wrong --format: a candump log read as csv": lambda tmp, g: (
-        replay(p := tmp / "log.csv"), str(p), ["line 1", "candump -L log", "--format candump"]),
+        replay(p := tmp / "log.csv"), str(p), ["line 1", "candump -L log", "--format can"]),
     "wrong --format: a CSV run read as candump": lambda tmp, g: (
-        replay(p := tmp / "bin.log", "--format", "candump", model=ROOT / "config" / "machines" / "pm10kw.yaml"),
+        replay(p := tmp / "bin.log", "--format", "can", model=ROOT / "config" / "machines" / "pm10kw.yaml"),
         str(p), []),  # the CAN log reader's own message
     "overflowing loss law, replay": lambda tmp, g: (
         replay(g, model=OVERFLOW), str(OVERFLOW), ["not finite from sample", "node 'winding'", "speed_rpm = "]),

@@ -1,4 +1,4 @@
-"""``thermal-edge simulate --format candump`` and replaying logs through the service pipeline."""
+"""``thermal-edge simulate --format can`` (and its old name ``candump``) and replaying logs through the service pipeline."""
 from __future__ import annotations
 
 import subprocess
@@ -6,6 +6,7 @@ import sys
 
 import cantools
 import numpy as np
+import pytest
 
 from svc_testlib import CYCLES, DBC, MODEL, REPO, edge_raw, env, write_yaml
 from thermal_edge.bus import read_log as read_candump
@@ -14,14 +15,15 @@ from thermal_edge.service import replay_candump
 from thermal_edge.sim.inverter import write_log as write_candump
 
 
-def test_simulate_writes_a_decodable_candump_log(tmp_path):
+@pytest.mark.parametrize("fmt", ["can", "candump"])  # candump: the option's old name, still taken
+def test_simulate_writes_a_decodable_candump_log(tmp_path, fmt):
     out = tmp_path / "run.log"
     proc = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "simulate", "--model", str(MODEL), "--cycle",
-                           str(CYCLES / "rated_heat_cool.yaml"), "--out", str(out), "--format", "candump", "--duration", "60",
+                           str(CYCLES / "rated_heat_cool.yaml"), "--out", str(out), "--format", fmt, "--duration", "60",
                            "--current-period", "0.1"], capture_output=True, text=True, env=env(), cwd=str(REPO), timeout=60)
     assert proc.returncode == 0, proc.stderr
-    assert "candump -L" in proc.stdout
     lines = out.read_text().splitlines()
+    assert f"wrote {out}: {len(lines)} frames over 60 s" in proc.stdout
     assert len(lines) == 60 * (10 + 10 + 10 + 10)  # currents and mechanics at 0.1 s, temperatures at 0.1 s
     db = cantools.database.load_file(str(DBC))
     names = set()

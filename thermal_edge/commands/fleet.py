@@ -255,7 +255,7 @@ def simulate_fleet(args: argparse.Namespace) -> int:
     from ..sim.fleet import plan_fleet, write_machine, write_manifest
 
     if args.format != "csv" or args.effect or getattr(args, "set", None):
-        raise KeyError("--fleet writes run CSVs of the model's design: no --format candump, --effect or --set")
+        raise KeyError("--fleet writes run CSVs of the model's design: no --format can, --effect or --set")
     model = load_model(args.model, data_dir=args.data_dir)
     cycle = load_cycle(args.cycle)
     duration = args.duration if args.duration is not None else cycle.duration_s

@@ -10,8 +10,9 @@ before the model runs. ``--plot FILE.png`` draws measured against predicted agai
 observer's 95 % band per sensor, speed and current below, adaptation decisions marked (needs
 matplotlib: the ``report`` extra); ``--out FILE.csv|.parquet`` writes the same per sample
 (Parquet needs pyarrow).
-A ``candump -L`` log (``--format candump``) goes through the service's own pipeline with the
-service configuration ``--config`` (frame timestamps as the clock) and is summarised.
+A CAN log (``--format can``; old name ``candump``: ``.log`` candump -L, ``.asc``, ``.blf``,
+``.trc``, ``.mf4``, ``.csv``, by suffix) goes through the service's own pipeline with the service
+configuration ``--config`` (frame timestamps as the clock) and is summarised.
 """
 from __future__ import annotations
 
@@ -46,10 +47,11 @@ PLOTS = (".png", ".svg", ".pdf")
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("replay", help="replay a recorded run through the model", description=__doc__)
     add_model_args(p, required=False, discretisation=True)
-    p.add_argument("--run", required=True, help="recorded run, or a candump -L log with --format candump")
-    p.add_argument("--format", default="csv", choices=(*FORMATS, "candump"), help="run file format (default csv)")
+    p.add_argument("--run", required=True, help="recorded run, or a CAN log with --format can")
+    p.add_argument("--format", default="csv", choices=(*FORMATS, "can", "candump"),
+                   help="run file format (default csv); can (old name: candump): a CAN log of any format by its suffix")
     p.add_argument("--config", default=str(config_path("edge.yaml")),
-                   help="candump: the service configuration to replay with (default config/edge.yaml)")
+                   help="can: the service configuration to replay with (default config/edge.yaml)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--no-adapt", dest="adapt", action="store_false", help="open-loop prediction (default)")
     mode.add_argument("--adapt", dest="adapt", action="store_true", help="run the online adapter over the run")
@@ -77,8 +79,8 @@ def _check_outputs(args: argparse.Namespace) -> str | None:
             return f"--out {args.out}: the suffix must be one of {', '.join(EXPORTS)}"
         if EXPORTS[suffix] and (why := missing(EXPORTS[suffix])):
             return f"--out {args.out}: {why}"
-    if (args.plot or args.out) and args.format == "candump":
-        return "--plot and --out need a CSV run (a candump log is summarised only)"
+    if (args.plot or args.out) and args.format in ("can", "candump"):
+        return "--plot and --out need a CSV run (a CAN log is summarised only)"
     return None
 
 
@@ -86,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     if (why := _check_outputs(args)):
         print(f"thermal-edge replay: error: {why}", file=sys.stderr)
         return 2
-    if args.format == "candump":
+    if args.format in ("can", "candump"):
         summary = replay_summary(args.run, args.config, args.model, sets=split_sets(args.set))
         if not summary["frames"]:
             raise RunError(f"{args.run}: no CAN frame read ({summary['malformed_lines']} malformed lines): "

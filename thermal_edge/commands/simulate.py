@@ -50,15 +50,16 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)
     p.add_argument("--cycle", required=True, help="drive cycle file (config/cycles/*.yaml)")
-    p.add_argument("--out", required=True, help="output file: run CSV, or candump -L log with --format candump")
-    p.add_argument("--format", choices=("csv", "candump"), default="csv",
-                   help="csv: run CSV (default); candump: the inverter's CAN frames as a candump -L log "
-                        "(decodable with python -m cantools decode dbc/thermal_edge.dbc)")
+    p.add_argument("--out", required=True, help="output file: run CSV, or a CAN log with --format can")
+    p.add_argument("--format", choices=("csv", "can", "candump"), default="csv",
+                   help="csv: run CSV (default); can (old name: candump): the inverter's CAN frames as a log in "
+                        "the format of --out's suffix: .log (candump -L, decodable with python -m cantools decode "
+                        "dbc/thermal_edge.dbc), .asc, .blf, .trc, .mf4, .csv; .gz compresses the text formats")
     p.add_argument("--current-period", type=float, default=0.01,
-                   help="candump: INV_Currents/INV_Mechanics period, s (default 0.01 as the DBC)")
+                   help="can: INV_Currents/INV_Mechanics period, s (default 0.01 as the DBC)")
     p.add_argument("--temperature-period", type=float, default=0.1,
-                   help="candump: INV_StatorTemps/INV_AmbientTemps period, s (default 0.1)")
-    p.add_argument("--t0", type=float, default=1.7e9, help="candump: timestamp of the first frame, s since the epoch")
+                   help="can: INV_StatorTemps/INV_AmbientTemps period, s (default 0.1)")
+    p.add_argument("--t0", type=float, default=1.7e9, help="can: timestamp of the first frame, s since the epoch")
     p.add_argument("--duration", type=float, help="override the cycle's duration, s")
     add_set_arg(p, "--param")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:TARGET][=PARAM=VALUE,...]",
@@ -74,8 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 def run(args: argparse.Namespace) -> int:
     if args.fleet is not None:
         return simulate_fleet(args)
-    if args.format == "candump":
-        return run_candump(args)
+    if args.format in ("can", "candump"):
+        return run_can_log(args)
     raw = hidden.read_document(args.model)
     build = hidden.builder(args.model, args.data_dir)
     model = build(raw)
@@ -114,10 +115,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_candump(args: argparse.Namespace) -> int:
-    """The inverter's frames of a simulated run (open loop: no service answers) as a candump log."""
+def run_can_log(args: argparse.Namespace) -> int:
+    """The inverter's frames of a simulated run (open loop: no service answers) as a CAN log."""
     if args.effect:
-        raise KeyError("--effect is not supported with --format candump (the emulator plays the model file)")
+        raise KeyError("--effect is not supported with --format can (the emulator plays the model file)")
     from ..lptn import load_model
 
     sets = parse_sets(load_model(args.model, data_dir=args.data_dir), args.set)
@@ -132,5 +133,5 @@ def run_candump(args: argparse.Namespace) -> int:
                        current_period_s=args.current_period, temperature_period_s=args.temperature_period,
                        progress=progress)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
-    print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s (candump -L); peak {peaks}")
+    print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s; peak {peaks}")
     return 0

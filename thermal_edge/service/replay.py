@@ -116,7 +116,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
 def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
                    model_path: str | os.PathLike[str] | None = None,
                    sets: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """``thermal-edge replay --format candump``: replay a log with a service configuration and
+    """``thermal-edge replay --format can``: replay a log with a service configuration and
     summarise it (JSON-serialisable). ``model_path`` overrides the configuration's model, ``sets``
     (``--set``, checked against the model's bounds) is merged into its ``model.parameters``.
 

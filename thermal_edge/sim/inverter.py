@@ -590,7 +590,7 @@ def write_log(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[
               temperature_period_s: float = 0.1, channel: str = "can0",
               progress: Callable[[float], object] | None = None) -> EmulatorSummary:
     """The inverter frames of a simulated open-loop run as a CAN log in the format of ``out``'s
-    suffix (``thermal-edge simulate --format candump``); ``progress(elapsed_s)`` as it goes."""
+    suffix (``thermal-edge simulate --format can``); ``progress(elapsed_s)`` as it goes."""
     cfg = EmulatorConfig(model_path=model_path, cycle_path=cycle_path, params=dict(params or {}), duration_s=duration_s,
                          noise_k=noise_k, resolution_k=resolution_k, seed=seed, t0=t0 if t0 is not None else 1.7e9,
                          current_period_s=current_period_s, temperature_period_s=temperature_period_s,
