@@ -11,7 +11,7 @@ from thermal_edge.discovery import hidden, yamlpatch
 from thermal_edge.lptn import ModelError, Simulator, steady_state
 from thermal_edge.sim.cycles import cycle_run, load_cycle
 
-from thermal_edge.discovery.bench import PM10KW, REPO
+from thermal_edge.discovery.bench import PM10KW, REPO, UNOBSERVABLE
 
 REFS = {"n_ref": 1200.0, "i_ref": 23.0}
 
@@ -91,9 +91,24 @@ def test_default_magnitude_opens_a_visible_gap(spec, pm10kw_raw, pm10kw_build):
     inputs = cycle_run(load_cycle(REPO / "config" / "cycles" / "varied_drive.yaml"), 5.6)
     refs = E.references(model, inputs.columns)
     doc, resolved = hidden.plant_document(pm10kw_raw, [spec], refs, pm10kw_build, inputs=inputs)
-    plant = hidden._sensor_series(pm10kw_build(doc), inputs)
-    base = hidden._sensor_series(model, inputs)
-    assert hidden._gap(base, plant) >= 1.0, resolved
+    assert hidden.sensor_gap(model, pm10kw_build(doc), inputs) >= 1.0, resolved
+
+
+@pytest.mark.parametrize("spec", UNOBSERVABLE)
+def test_a_joint_with_a_parallel_path_is_seen_by_no_sensor(spec, pm10kw_raw, pm10kw_build):
+    """The front flange joint has a parallel path (housing_5 to the same end cap): raised to the
+    largest resistance its bounds allow (an open joint), it moves no sensor by as much as the
+    noise of the simulated PT100s (0.1 K RMS in 0.1 K steps: 0.104 K RMS) over the cycle, so
+    simulated data with it carry no gap to find."""
+    model = pm10kw_build(pm10kw_raw)
+    inputs = cycle_run(load_cycle(REPO / "config" / "cycles" / "varied_drive.yaml"), 5.6)
+    refs = E.references(model, inputs.columns)
+    doc, resolved = hidden.plant_document(pm10kw_raw, [spec], refs, pm10kw_build, inputs=inputs)
+    cand, values = resolved[0]
+    ctx = E.context(pm10kw_raw, model, refs, pm10kw_build)
+    assert values["R"] * 2 > cand.effect.params[0].upper * E.scale(ctx, cand)  # raised to its bound
+    noise = float(np.hypot(0.1, 0.1 / np.sqrt(12.0)))  # K: Gaussian noise and the rounding's uniform error
+    assert hidden.sensor_gap(model, pm10kw_build(doc), inputs) < noise, resolved
 
 
 def test_hidden_effect_values_and_errors(pm10kw_raw, pm10kw_build):

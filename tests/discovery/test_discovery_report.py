@@ -20,7 +20,7 @@ SHORT = 7200.0  # s, as in test_discovery_workflow
 
 @pytest.fixture(scope="module")
 def figs():
-    raw, run, expected = bench.simulated_run("speed_convection:R_e_hous", "heldout_drive", seed=3, duration_s=SHORT)
+    raw, run, expected, _ = bench.simulated_run("speed_convection:R_e_hous", "heldout_drive", seed=3, duration_s=SHORT)
     disc = workflow.discover(raw, run, bench.hidden.builder(bench.PM10KW))
     assert disc.named is not None and disc.named.fit.label == expected
     out = report.build_figures(disc)

@@ -6,6 +6,9 @@ extra ``copper_temperature`` heats its winding more with temperature than the mo
 Unset parameters take the effect's default magnitude (:mod:`.effects`), raised where needed
 until the plant differs from the model by at least 1 K RMS on some sensor over the cycle (a
 visible gap); reference speed and current are taken from the run's inputs (the cycle).
+Where even the largest magnitude the parameter's bounds allow cannot open that gap (an extra
+resistance on a joint with a parallel path, seen by no sensor), the plant stays below it:
+:func:`sensor_gap` measures what the sensors can see of a hidden effect.
 """
 from __future__ import annotations
 
@@ -68,7 +71,7 @@ def plant_document(raw: Mapping[str, Any], specs: Sequence[str], refs: Mapping[s
             sc = E.scale(ctx, cand)
             for _ in range(9):
                 doc, _, _ = E.augment(raw, [(cand, values)], refs, build, model=model)
-                gap = _gap(base, _sensor_series(build(doc), inputs))
+                gap = _max_rms(base, _sensor_series(build(doc), inputs))
                 if gap >= min_gap_k or any(values[p.short] * 2 > p.upper * sc for p in free):
                     break
                 for p in free:
@@ -78,12 +81,18 @@ def plant_document(raw: Mapping[str, Any], specs: Sequence[str], refs: Mapping[s
     return doc, resolved
 
 
+def sensor_gap(model: Model, plant: Model, inputs: Run) -> float:
+    """What the sensors can see of the plant's hidden effects: the largest RMS difference (K)
+    between plant and model over the run, on any sensor of the model, without sensor noise."""
+    return _max_rms(_sensor_series(model, inputs), _sensor_series(plant, inputs))
+
+
 def _sensor_series(model: Model, inputs: Run) -> dict[str, np.ndarray]:
     res = simulate_plant(model, inputs, noise_k=0.0, resolution_k=0.0)
     return {s: res.run.columns[s] for s in model.sensors}
 
 
-def _gap(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> float:
+def _max_rms(a: Mapping[str, np.ndarray], b: Mapping[str, np.ndarray]) -> float:
     return max(float(np.sqrt(np.mean((a[s] - b[s]) ** 2))) for s in a if s in b)
 
 
