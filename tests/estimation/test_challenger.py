@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.stats import norm
+from scipy.stats import t as t_dist
 
 from thermal_edge.estimation.adapter import AdapterConfig, OnlineAdapter, judge
 from thermal_edge.estimation.observer import Observer
@@ -61,6 +62,8 @@ def test_a_candidate_that_fits_the_window_but_mispredicts_the_next_data_is_refus
     assert "dropped" in last.reason and last.challenger_t == pytest.approx(other.run.t[T_FIT])
     assert last.improvement_k2 < 0 and last.candidate_error_k > last.current_error_k
     assert np.array_equal(ad.theta, theta0) and ad.version == 0
+    # refuted: the search restarts from the parameters in use, not from the refuted candidate (>10.5)
+    assert ad.iterate is None or ad.iterate[0] < 10.0
 
 
 def test_a_candidate_the_next_data_confirms_is_promoted(pm10kw, two_plants):
@@ -88,12 +91,60 @@ def test_judge_margins_by_hand():
     early = judge(champ, chal, 0.15, 2.0, 0.5, 0.02, share=0.1)
     full = judge(champ, chal, 0.15, 2.0, 0.5, 0.02, share=1.0)
     mse_c = np.mean(champ["a"] ** 2)
-    assert early.margin_k2 == pytest.approx((1 - 0.5 * 0.1) * mse_c)
-    assert full.margin_k2 == pytest.approx(0.5 * mse_c)
+    # the structural margin is a share of the champion's error above the sensor noise (0.15 K)
+    assert early.margin_k2 == pytest.approx((1 - 0.5 * 0.1) * (mse_c - 0.15**2))
+    assert full.margin_k2 == pytest.approx(0.5 * (mse_c - 0.15**2))
     assert early.outcome == "wait" and full.outcome == "promote"
     assert judge(chal, champ, 0.15, 2.0, 0.5, 0.02, share=0.1).outcome == "drop"
     # identical predictions: no improvement, dropped at the end of the evidence
     assert judge(champ, champ, 0.15, 2.0, 0.5, 0.02, share=1.0).outcome == "drop"
+
+
+def test_the_periods_not_the_samples_are_the_evidence():
+    """A challenger better in one period only is not promoted however many samples that period
+    holds; one better in every period is. The consistency margin against an independent count."""
+    rng = np.random.default_rng(1)
+    per, m = 72, 4  # 72 samples (180 s at 2.5 s) per period, 4 periods
+    blocks = np.repeat(np.arange(m), per)
+    noise = rng.normal(0, 0.15, per * m)
+    champ = {"a": 0.5 + noise}
+    # one period predicted perfectly (a transient the challenger catches), the rest alike
+    once = {"a": np.where(blocks == 3, noise, 0.5 + noise)}
+    as_samples = judge(champ, once, 0.15, 2.0, 0.2, 0.1, share=1.0)
+    as_periods = judge(champ, once, 0.15, 2.0, 0.2, 0.1, share=1.0, blocks=blocks)
+    assert as_samples.outcome == "promote" and as_periods.outcome == "drop"
+    d = np.array([np.mean(champ["a"][blocks == j] ** 2 - once["a"][blocks == j] ** 2) for j in range(m)])
+    consistency = t_dist.ppf(norm.cdf(2.0), m - 1) * d.std(ddof=1) / np.sqrt(m)
+    assert as_periods.margin_k2 == pytest.approx(consistency)
+    # better by a third of the error in every period: promoted
+    steady = {"a": 0.3 + noise}
+    v = judge(champ, steady, 0.15, 2.0, 0.2, 0.1, share=1.0, blocks=blocks)
+    assert v.outcome == "promote" and v.improvement_k2 > v.margin_k2
+    # one period is never enough, however good it is
+    first = blocks == 0
+    v1 = judge({"a": champ["a"][first]}, {"a": noise[first]}, 0.15, 2.0, 0.2, 0.1, share=0.1, blocks=blocks[first])
+    assert v1.outcome == "wait" and v1.margin_k2 == np.inf
+
+
+def test_the_optimiser_resumes_from_its_last_candidate(pm10kw, two_plants):
+    """A fit capped at one iteration stops short; when its challenger is not refuted, the next fit
+    continues from it instead of restarting from the parameters in use."""
+    _, other = two_plants
+    cfg = AdapterConfig(params=("R_e_hous",), threshold_k=0.0, min_window_s=600.0, max_iter=1)
+    ad = OnlineAdapter(pm10kw, cfg, 1.0)
+    _record(ad, pm10kw, other, range(T_FIT + 1))
+    t = float(other.run.t[T_FIT])
+    first = ad.decide(t).challenger["R_e_hous"]
+    assert ad.iterate is not None and ad.iterate[0] == pytest.approx(first)
+    ad.challenger = None  # as when its evidence ends undecided (not refuted)
+    second = ad.decide(t).challenger["R_e_hous"]
+    restart = OnlineAdapter(pm10kw, cfg, 1.0)
+    _record(restart, pm10kw, other, range(T_FIT + 1))
+    assert restart.decide(t).challenger["R_e_hous"] == pytest.approx(first)  # from the start: the same stop
+    full = OnlineAdapter(pm10kw, AdapterConfig(params=("R_e_hous",), threshold_k=0.0, min_window_s=600.0, max_iter=30), 1.0)
+    _record(full, pm10kw, other, range(T_FIT + 1))
+    optimum = full.decide(t).challenger["R_e_hous"]  # the window's optimum, iterations uncapped
+    assert abs(second - optimum) < abs(first - optimum)  # the resumed fit went on toward it
 
 
 def test_band_coverage_against_an_independent_count(rng):

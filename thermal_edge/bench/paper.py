@@ -34,7 +34,8 @@ from ..estimation.sqp import fit_sqp
 from ..lptn import Model, Simulator, load_model
 from ..sim.cycles import cycle_run, load_cycle
 from ..sim.plant import PlantResult, simulate_plant
-from .common import ROOT, config_path
+from .common import ROOT, Progress, config_path, no_progress
+from .real import sample_counter
 
 TABLE4 = {"k_r_sw": +4.0, "k_c_sw": +1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
 PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
@@ -49,12 +50,12 @@ def _rms(model: Model, T: np.ndarray, run_cols: dict, sel: np.ndarray | slice = 
     return float(np.sqrt(np.mean(e[np.isfinite(e)] ** 2)))
 
 
-def e1(model: Model) -> dict[str, object]:
+def e1(model: Model, progress: Progress = no_progress) -> dict[str, object]:
     true = model.nominal()[model.parameter_index(["R_e_hous"])[0]]
     plant = _plant(model, "paper_600rpm_70nm.yaml", seed=11)
     start = model.with_parameters({"R_e_hous": 6.1})
     cfg = AdapterConfig(params=("R_e_hous",))
-    out = run_online(start, plant.run, cfg, T0=plant.truth.T[0])
+    out = run_online(start, plant.run, cfg, T0=plant.truth.T[0], progress=sample_counter(progress, "E1", len(plant.run)))
     t = plant.run.t
     last = t >= t[-1] - 3600.0
     fixed = Simulator(start).simulate(start.nominal(), {c: plant.run.columns[c] for c in model.inputs}, 1.0, plant.truth.T[0])
@@ -75,7 +76,7 @@ def e1(model: Model) -> dict[str, object]:
     }
 
 
-def e2(model: Model) -> tuple[dict[str, object], float]:
+def e2(model: Model, progress: Progress = no_progress) -> tuple[dict[str, object], float]:
     train = _plant(model, "varied_drive.yaml", seed=21)
     held = _plant(model, "heldout_drive.yaml", seed=22)
     nominal = dict(zip(model.parameter_names, model.nominal()))
@@ -102,7 +103,9 @@ def e2(model: Model) -> tuple[dict[str, object], float]:
 
     methods: dict[str, dict[str, object]] = {}
     t0 = time.perf_counter()
-    out = run_online(start, train.run, AdapterConfig(), T0=train.truth.T[0])
+    out = run_online(start, train.run, AdapterConfig(), T0=train.truth.T[0],
+                     progress=sample_counter(progress, "E2 online", len(train.run)))
+    progress("E2 whole-data fits and EKF", 0, 4, "method")
     steps = [d for d in out.decisions if d.iterations]
     methods["analytic"] = {
         "label": "proposed: online screening + analytic SQP",
@@ -123,17 +126,21 @@ def e2(model: Model) -> tuple[dict[str, object], float]:
         "wall_s": time.perf_counter() - t0, "evaluations": r.evaluations + 1,
         "heldout_rms_k": heldout(full_theta(r.names, r.values)), "selected": list(sc.selected),
     }
+    progress("E2 whole-data fits and EKF", 1, 4, "method")
     r = fit_sqp(objective(names), max_iter=3, gradient="numerical")
     methods["numerical"] = {
         "label": "numerical SQP (finite differences), whole data, 3 iterations",
         "wall_s": r.wall_s, "evaluations": r.evaluations, "heldout_rms_k": heldout(full_theta(r.names, r.values)),
     }
+    progress("E2 whole-data fits and EKF", 2, 4, "method")
     r = fit_gauss_newton(objective(names), max_iter=4)
     methods["gauss_newton"] = {
         "label": "Gauss-Newton (trust region, analytic Jacobian), whole data",
         "wall_s": r.wall_s, "evaluations": r.evaluations, "heldout_rms_k": heldout(full_theta(r.names, r.values)),
     }
+    progress("E2 whole-data fits and EKF", 3, 4, "method")
     ek = run_ekf(start, cols, meas, 1.0, train.truth.T[0])
+    progress("E2 whole-data fits and EKF", 4, 4, "method")
     methods["ekf"] = {
         "label": "joint EKF, update every minute",
         "wall_s": ek.wall_s, "heldout_rms_k": heldout(ek.theta),
@@ -155,15 +162,17 @@ def e2(model: Model) -> tuple[dict[str, object], float]:
         ad.record(float(train.run.t[k]), {c: float(v[k]) for c, v in cols.items()},
                   {s: float(v[k]) for s, v in meas.items()}, states[k])
     times = []
-    for _ in range(5):
+    for k in range(5):
+        progress("adaptation step timing", k, 5, "step")
         ad.theta, ad.challenger = start.nominal(), None  # each time a full fit, not the judging of the last
         d = ad.decide(float(train.run.t[-1]))
         times.append(d.duration_s)
+    progress("adaptation step timing", 5, 5, "step")
     res["adapt_step_runs_s"] = times
     return res, float(np.median(times))
 
 
-def e3(data_dir: Path = PADERBORN) -> dict[str, object]:
+def e3(data_dir: Path = PADERBORN, progress: Progress = no_progress) -> dict[str, object]:
     run_path = data_dir / "run_a.csv"
     if not run_path.exists():
         return {"skipped": f"{run_path} not found"}
@@ -172,7 +181,8 @@ def e3(data_dir: Path = PADERBORN) -> dict[str, object]:
     _, fixed = open_loop(model, run)
     sensors = ("stator_winding", "stator_yoke")
     t0 = time.perf_counter()
-    out = run_online(model, run, AdapterConfig(sensors=sensors, decimate=8))  # 2.5 s rows: 20 s steps
+    out = run_online(model, run, AdapterConfig(sensors=sensors, decimate=8),  # 2.5 s rows: 20 s steps
+                     progress=sample_counter(progress, "E3", len(run)))
     wall = time.perf_counter() - t0
     _, adapted = open_loop(model, run, theta=out.theta)
     online = {s: float(np.nanmean((out.T[:, model.node_index(n)] - run.columns[s]) ** 2)) for s, n in model.sensors.items()}
@@ -187,7 +197,8 @@ def e3(data_dir: Path = PADERBORN) -> dict[str, object]:
     }
 
 
-def run() -> dict[str, object]:
+def run(progress: Progress = no_progress) -> dict[str, object]:
+    """E1, E2, the step timing and E3; ``progress`` counts samples replayed, methods and steps."""
     model = load_model(config_path("machines", "pm10kw.yaml"))
-    e2res, step = e2(model)
-    return {"e1": e1(model), "e2": e2res, "adapt_step_median_s": step, "e3": e3()}
+    e2res, step = e2(model, progress)
+    return {"e1": e1(model, progress), "e2": e2res, "adapt_step_median_s": step, "e3": e3(progress=progress)}

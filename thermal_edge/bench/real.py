@@ -12,19 +12,19 @@ as the paper's Fig. 12 compares them) and the median adaptation step time.
 """
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
+from ..commands.common import check_sets
 from ..data import read_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
 from ..estimation.predict import initial_from_run, model_inputs, open_loop
 from ..lptn import Model, load_model
-from ..commands.common import check_sets
-from .common import ROOT, config_path
+from .common import ROOT, Progress, config_path, no_progress
 
 PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
 SENSORS = ("stator_winding", "stator_yoke")
@@ -40,16 +40,32 @@ STARTS: dict[str, dict[str, float]] = {
 }
 
 
+def sample_counter(progress: Progress, stage: str, total: int) -> Callable[[int], None]:
+    """A per-sample ``progress(1)`` callback (as :func:`~thermal_edge.estimation.online.run_online`
+    takes) that reports to a benchmark's :class:`~.common.Progress` every 100 samples."""
+    done = 0
+
+    def count(n: int) -> None:
+        nonlocal done
+        done += n
+        if done % 100 == 0 or done == total:  # a bar redrawn per sample would cost more than the sample
+            progress(stage, done, total, "sample")
+
+    return count
+
+
 def adapter_config() -> AdapterConfig:
     """The adapter as the bench runs it: 2.5 s rows, 8 per optimiser step (20 s)."""
     return AdapterConfig(sensors=SENSORS, decimate=8)
 
 
-def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str, float]) -> dict[str, object]:  # type: ignore[no-untyped-def]
-    """Every figure of one start (see the module docstring)."""
+def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str, float],  # type: ignore[no-untyped-def]
+              progress: Callable[[int], object] | None = None) -> dict[str, object]:
+    """Every figure of one start (see the module docstring); ``progress`` as
+    :func:`~thermal_edge.estimation.online.online_report`'s (twice the run's samples)."""
     nominal = dict(zip(base.parameter_names, base.nominal()))
     model = base.with_parameters({k: nominal[k] * f for k, f in factors.items()})
-    rep = online_report(model, run, adapter_config())
+    rep = online_report(model, run, adapter_config(), progress=progress)
     out: dict[str, object] = {"factors": dict(factors)}
     ek = run_ekf(model, model_inputs(model, run), {s: run.columns[s] for s in SENSORS}, run.dt,
                  initial_from_run(model, run), update_s=60.0)
@@ -75,9 +91,10 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
 
 
 def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | None = None,
-        sets: Mapping[str, float] | None = None) -> dict[str, object]:
+        sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> dict[str, object]:
     """All starts; ``{"skipped": why}`` when the data is absent. ``sets`` overrides parameters of
-    the published model first (``--set``)."""
+    the published model first (``--set``). ``progress`` counts the samples replayed, one stage per
+    start."""
     path = data_dir / "run_a.csv"
     if not path.exists():
         return {"skipped": f"{path} not found"}
@@ -86,5 +103,7 @@ def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | 
     if sets:
         base = base.with_parameters(sets)
     run_ = read_run(path, "paderborn")
-    res = {name: one_start(base, run_, f, sets) for name, f in (starts or STARTS).items()}
+    chosen = starts or STARTS
+    res = {name: one_start(base, run_, f, sets, sample_counter(progress, f"start {k + 1} of {len(chosen)} ({name})", 2 * len(run_)))
+           for k, (name, f) in enumerate(chosen.items())}
     return {"run": str(path), "adapted_from": list(SENSORS), "starts": res}

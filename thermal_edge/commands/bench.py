@@ -89,7 +89,8 @@ def run_jacobian(args: argparse.Namespace) -> int:
 
 
 def run_paper(args: argparse.Namespace) -> int:
-    r = paper.run()
+    with StageBars("bench paper") as progress:
+        r = paper.run(progress=progress)
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0
@@ -186,7 +187,8 @@ def run_real(args: argparse.Namespace) -> int:
         summary = read_checked(str(path), "paderborn", model, real.SENSORS)[1]
         if not args.json:
             print(summary, flush=True)
-    r = real.run(sets=split_sets(args.set))
+    with StageBars("bench real") as progress:
+        r = real.run(sets=split_sets(args.set), progress=progress)
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0

@@ -8,6 +8,11 @@ by more than a margin that accounts for the sensor noise and the length of the e
 (:func:`judge`), dropped when it is worse by that margin or when ``validate_s`` of evidence has
 not decided it. A candidate judged on its own window would pass by fitting noise and the present
 operating point (``reference/findings.md`` §6). Every decision is recorded with its evidence.
+The evidence is counted in periods, not samples: one period never decides, either way.
+
+The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
+at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
+change only on out-of-sample evidence.
 
 Optimisation starts when the window can identify something: at least one adaptable parameter
 pinned down to ``max_rel_std`` by the window's Fisher information, and no less than
@@ -25,10 +30,11 @@ inputs held over each coarse step.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
 
 import numpy as np
+from scipy import stats
 
 from ..lptn import Model, Simulator
 from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adaptation:), read here
@@ -38,6 +44,7 @@ from .objective import Objective
 from .screening import screen
 from .sqp import fit_sqp
 from .uncertainty import Uncertainty, estimate_uncertainty
+
 
 @dataclass
 class Decision:
@@ -85,25 +92,34 @@ class Verdict:
 
 
 def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarray], noise_k: float, z: float,
-          min_gain: float, tolerance_k: float, share: float) -> Verdict:
+          min_gain: float, tolerance_k: float, share: float, blocks: np.ndarray | None = None) -> Verdict:
     """Compare two open-loop predictions' errors (K) per sensor over the same evidence samples.
 
     The statistic is the mean over the evidence of ``d_k``, the champion's minus the challenger's
-    squared error averaged over the sensors reporting at sample ``k`` (K²). Two margins:
+    squared error averaged over the sensors reporting at sample ``k`` (K²). ``blocks`` labels the
+    samples by the period they were predicted in (each period open loop from its own start);
+    without it every sample is its own block. Three margins:
 
     * sensor noise: white noise of σ ``noise_k`` alone moves the mean by a standard error of
       ``2 σ rms(Δp) / √n`` (``d_k = Δp_k (p_k + p'_k − 2 y_k)`` with ``Δp`` the difference of the
       predictions, over all ``n`` readings); the improvement must exceed ``z`` of them;
-    * structure: the improvement must remove a share of the champion's mean squared error that
-      falls linearly from all of it, with no evidence, to ``min_gain`` when the full evidence is
-      in (``share`` = evidence / full evidence = 1): a model that is not the machine has
-      parameters that suit one operating point better than another, and gains on the next
-      minutes are undone later unless they are overwhelming or persist. (The share is of the
-      whole error, noise included: the sensors' noise is rarely known well enough to subtract.)
+    * consistency: the errors of a model that is not the machine are correlated in time, so the
+      samples of one period are not independent evidence: the periods are. The improvement must
+      exceed the standard error of the per-period means ``D_j`` (``std(D)/√m`` over ``m``
+      periods) times Student's t quantile with ``m − 1`` degrees of freedom at the one-sided
+      level of ``z`` (one period never promotes; two need a huge, three a large margin);
+    * structure: the improvement must remove a share of the champion's mean squared error in
+      excess of the sensor noise (``noise_k²``) that falls linearly from all of it, with no
+      evidence, to ``min_gain`` when the full evidence is in (``share`` = evidence / full
+      evidence = 1): a model that is not the machine has parameters that suit one operating point
+      better than another, and gains on the next minutes are undone later unless they are
+      overwhelming or persist. (Noise cannot be removed: a share of it would stop a model that
+      is already the machine from ever being improved.)
 
-    Promoted when both margins are met and no sensor's RMS error grows by more than
-    ``tolerance_k``; dropped as soon as the challenger is worse by the noise margin, or when the
-    full evidence is in and it is not promoted; otherwise the verdict waits for more evidence.
+    Promoted when all margins are met and no sensor's RMS error grows by more than
+    ``tolerance_k``; dropped as soon as the challenger is worse by the noise and consistency
+    margins (or by the noise margin alone over a single period), or when the full evidence is in
+    and it is not promoted; otherwise the verdict waits for more evidence.
     """
     final = share >= 1.0
     names = [s for s in champion if s in challenger]
@@ -128,12 +144,19 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
     mse = float(np.mean(a2[ok]))
     dp = (a - b)[ok]
     noise = z * 2.0 * noise_k * float(np.sqrt(np.mean(dp**2) / n))
+    labels = np.arange(len(d)) if blocks is None else np.asarray(blocks)[rows]
+    per = np.array([d[labels == j].mean() for j in np.unique(labels)])
+    if len(per) > 1:
+        level = float(stats.norm.cdf(z))
+        spread = float(stats.t.ppf(level, len(per) - 1) * per.std(ddof=1) / np.sqrt(len(per)))
+    else:
+        spread = np.inf
     gain = 1.0 - (1.0 - min_gain) * min(share, 1.0)
-    margin = max(noise, gain * mse)
+    margin = max(noise, spread, gain * max(mse - noise_k**2, 0.0))
     worse = any(v[1] > v[0] + tolerance_k for v in rms.values())
     if mean > margin and not worse:
         outcome = "promote"
-    elif mean < -noise or final:
+    elif (len(per) > 1 and mean < -max(noise, spread)) or final:
         outcome = "drop"
     else:
         outcome = "wait"
@@ -217,6 +240,8 @@ class OnlineAdapter:
         self.version = 0
         self.last_decision_t: float | None = None
         self.challenger: tuple[float, np.ndarray] | None = None  # (fitted at, full parameters)
+        #: where the optimiser resumes (values of ``params``; None: from the parameters in use)
+        self.iterate: np.ndarray | None = None
 
     # -- data --------------------------------------------------------------------------------
     def record(self, t: float, inputs: Mapping[str, float], measured: Mapping[str, float], state: np.ndarray) -> None:
@@ -251,16 +276,19 @@ class OnlineAdapter:
         scored = t > t[0]
         return {s: (traj.node(self.model.sensors[s]) - win.measured[s][keep])[scored] for s in self.sensors}
 
-    def _period_errors(self, theta: np.ndarray, since: float, until: float) -> dict[str, np.ndarray]:
+    def _period_errors(self, theta: np.ndarray, since: float, until: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`_errors` period by period over ``(since, until]``: each ``period_s`` predicted
-        open loop from the recorded state at its start, as the online trace is scored."""
+        open loop from the recorded state at its start, as the online trace is scored. Also the
+        period (0, 1, …) of every sample."""
         parts: list[dict[str, np.ndarray]] = []
         a = since
         while a < until - 1e-9:
             b = min(a + self.config.period_s, until)
             parts.append(self._errors(theta, a, b))
             a = b
-        return {s: np.concatenate([p[s] for p in parts]) if parts else np.zeros(0) for s in self.sensors}
+        errors = {s: np.concatenate([p[s] for p in parts]) if parts else np.zeros(0) for s in self.sensors}
+        blocks = np.concatenate([np.full(len(p[self.sensors[0]]), j) for j, p in enumerate(parts)]) if parts else np.zeros(0)
+        return errors, blocks
 
     def recent_error(self, since: float) -> float:
         """RMS (K) over the seen sensors of the current parameters' open-loop prediction from the
@@ -268,9 +296,12 @@ class OnlineAdapter:
         e = np.concatenate([v[np.isfinite(v)] for v in self._errors(self.theta, since).values()])
         return float(np.sqrt(np.mean(e**2))) if len(e) else float("nan")
 
-    def objective(self, window: Window, names: Sequence[str] | None = None) -> Objective:
-        """The estimation objective over a window for the given parameters (default: all adaptable)."""
-        space = ParamSpace(self.model, tuple(names or self.params), self.theta, self.prior[self.model.parameter_index(tuple(names or self.params))])
+    def objective(self, window: Window, names: Sequence[str] | None = None, theta: np.ndarray | None = None) -> Objective:
+        """The estimation objective over a window for the given parameters (default: all adaptable),
+        the others held at ``theta`` (default: the parameters in use)."""
+        names = tuple(names or self.params)
+        space = ParamSpace(self.model, names, self.theta if theta is None else theta,
+                           self.prior[self.model.parameter_index(names)])
         cfg = self.config
         return Objective(self.sim, space, window, list(self.sensors), cfg.weighting, cfg.prior_weight, cfg.tau_s)
 
@@ -297,8 +328,15 @@ class OnlineAdapter:
             d.reason = self._also(d, f"waiting for {cfg.min_window_s:g} s of history before adapting")
             return self._done(d, t0)
         coarse = decimate(self._window(t - cfg.window_s), cfg.decimate)
-        obj = self.objective(coarse)
-        phi = np.log(self.theta[obj.space.index])
+        # The optimiser resumes from its last candidate unless that one was refuted: a fit capped
+        # at max_iter iterations stops short of the window's optimum, and the next one would stop
+        # at the same point if each restarted from the parameters in use, which change only on
+        # out-of-sample evidence.
+        start = self.theta.copy()
+        if self.iterate is not None:
+            start[self.model.parameter_index(self.params)] = self.iterate
+        obj = self.objective(coarse, theta=start)
+        phi = np.log(start[obj.space.index])
         ev = obj.evaluate(phi)
         unc = estimate_uncertainty(obj, ev, cfg.max_rel_std)
         d.unidentifiable = tuple(n for n, ok in zip(obj.space.names, unc.identifiable) if not ok)
@@ -311,19 +349,21 @@ class OnlineAdapter:
         if not sc.selected:
             d.reason = self._also(d, "no identifiable parameter can reduce the error within its bounds")
             return self._done(d, t0)
-        sub = self.objective(coarse, sc.selected)
+        sub = self.objective(coarse, sc.selected, theta=start)
         if cfg.method == "gauss_newton":
             res = fit_gauss_newton(sub, max_iter=cfg.max_iter + 1)
         else:
             res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical" if cfg.method == "numerical" else "analytic")
         d.iterations, d.evaluations = res.iterations, d.evaluations + res.evaluations
-        cand = self.theta.copy()
+        cand = start.copy()
         cand[sub.space.index] = np.clip(res.values, sub.space.lower, sub.space.upper)  # exp(log(bound)) rounds past it
-        if np.array_equal(cand, self.theta):
+        if np.array_equal(cand, start) or np.array_equal(cand, self.theta):
             d.reason = self._also(d, "the optimiser found no better parameters on the window")
+            self.iterate = None
             return self._done(d, t0)
         d.challenger = dict(zip(sc.selected, map(float, res.values)))
         self.challenger = (t, cand)
+        self.iterate = cand[self.model.parameter_index(self.params)].copy()
         d.reason = self._also(d, "challenger fitted; it is judged on the data that follows")
         return self._done(d, t0)
 
@@ -339,10 +379,10 @@ class OnlineAdapter:
         t_fit, cand = self.challenger
         t_last = float(self.history.arrays(t_fit)[0][-1])
         d.challenger_t, d.evidence_s = t_fit, t_last - t_fit
-        champ, chal = self._period_errors(self.theta, t_fit, t_last), self._period_errors(cand, t_fit, t_last)
+        (champ, blocks), (chal, _) = self._period_errors(self.theta, t_fit, t_last), self._period_errors(cand, t_fit, t_last)
         d.evaluations += 2
         v = judge(champ, chal, cfg.noise_k, cfg.promote_z, cfg.min_gain, cfg.sensor_tolerance_k,
-                  share=d.evidence_s / cfg.validate_s + 1e-9)
+                  share=d.evidence_s / cfg.validate_s + 1e-9, blocks=blocks)
         d.improvement_k2, d.margin_k2 = v.improvement_k2, v.margin_k2
         e_cur = np.concatenate([e[np.isfinite(e)] for e in champ.values()]) if champ else np.zeros(0)
         e_new = np.concatenate([e[np.isfinite(e)] for e in chal.values()]) if chal else np.zeros(0)
@@ -355,11 +395,14 @@ class OnlineAdapter:
             self.theta = cand
             self.version += 1
             self.challenger = None
+            self.iterate = None
             d.accepted = True
             d.params = vals
             d.reason = f"challenger promoted: better on the {ev}"
         elif v.outcome == "drop":
             self.challenger = None
+            if v.improvement_k2 < 0:  # refuted: the search restarts from the parameters in use
+                self.iterate = None
             worse = [s for s in v.champion_rms if v.challenger_rms[s] > v.champion_rms[s] + cfg.sensor_tolerance_k]
             why = f"predicts {', '.join(worse)} worse" if worse else "not better"
             d.reason = f"challenger dropped ({why}) on the {ev}"
