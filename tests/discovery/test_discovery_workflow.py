@@ -107,4 +107,4 @@ def test_sweep_effect_no_sensor_sees_names_nothing(spec, cycle, seed):
     the sensor noise, without noise) is no gap: nothing is named, as on clean data."""
     row = bench.run_case(spec, cycle, seed)
     assert row["plant_gap_k"] < row["noise_k"], row
-    assert row["named"] is None and row["gap_status"] == "none", row
+    assert row["named"] is None and row["gap_status"] == "none" and row["pass"], row
