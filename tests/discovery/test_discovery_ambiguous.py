@@ -8,7 +8,8 @@ gaps within their uncertainty, or the runner-up achieving nearly all of the winn
 show the evidence (each one's predicted residual against speed, current, ambient and time) and
 the separating condition; ``discover --json`` carries ``runner_up``, ``ambiguous`` and
 ``gap_noise_floor``. The logic itself is tested on hand-made predictions in
-``test_discovery_judge.py``; this case (3 h of 1 Hz data) is ``slow``.
+``test_discovery_judge.py``; these cases (3 h of 1 Hz data) are ``slow``. The second pair no
+operating point separates at the run's sensors: the report names the node where a sensor would.
 
 (Until the fits' prior, ``Options.prior_weight``, this case was a contact resistance at one of
 the two parallel flanges of an end cap. That joint is seen by no sensor: even open it moves
@@ -22,6 +23,7 @@ import math
 import pytest
 
 from thermal_edge.discovery import bench, judge, report, workflow
+from thermal_edge.lptn import steady_state
 
 PAIR = {"bearing_loss", "magnet_eddy_loss"}
 
@@ -50,3 +52,30 @@ def test_bearing_and_magnet_eddy_loss_are_reported_as_a_pair(tmp_path):
     body = open(report.write(disc, tmp_path)).read()
     assert "Not sure between two" in body and "Separating condition" in body
     assert (tmp_path / "winner_vs_runner_up.png").exists() and (tmp_path / "temperature_time.png").exists()
+
+
+@pytest.mark.slow
+def test_two_resistances_on_one_path_name_the_node_that_separates_them(tmp_path):
+    """A loose shrink fit of the front stator core in the frame (``contact_resistance:
+    housing_6-yoke_1``, varied cycle, seed 12) and a resistance inside the yoke on the same path
+    (``yoke_1-yoke_3``) heat the winding alike: at no steady operating point do the sensors
+    (winding, housing) see them 3 noise floors apart. The report says so and names the node where
+    a sensor would: the yoke between the two resistances, hotter with the first, cooler with the
+    second."""
+    raw, run, expected, _ = bench.simulated_run("contact_resistance:housing_6-yoke_1", "varied_drive", seed=12)
+    disc = workflow.discover(raw, run, bench.hidden.builder(bench.PM10KW))
+    d = disc.as_dict()
+    assert disc.named is not None and disc.named.fit.label == expected and d["ambiguous"] is True, d["rounds"]
+    assert d["runner_up"] == "contact_resistance:yoke_1-yoke_3", d["comparison"]
+    sep = d["comparison"]["separating_condition"]
+    assert sep["diff_k"] < 3 * disc.noise_k and sep["node"] == "yoke_1", sep
+    # the named node's temperatures are both fitted models' steady states at that point
+    rd = disc.rounds[0]
+    ta, _ = steady_state(rd.winner.fit.model, sep["inputs"], rd.winner.fit.theta)
+    tb, _ = steady_state(rd.runner_up.fit.model, sep["inputs"], rd.runner_up.fit.theta)
+    ia, ib = rd.winner.fit.model.node_index("yoke_1"), rd.runner_up.fit.model.node_index("yoke_1")
+    assert sep["node_winner_c"] == pytest.approx(float(ta[ia]), abs=1e-6)
+    assert sep["node_runner_up_c"] == pytest.approx(float(tb[ib]), abs=1e-6)
+    assert float(ta[ia] - tb[ib]) > 3 * disc.noise_k
+    body = open(report.write(disc, tmp_path)).read()
+    assert "no test run with these sensors tells them apart; a sensor on **yoke_1** would" in body

@@ -221,6 +221,15 @@ class Point:
     t_b: float
     in_run: bool  # the run held steady near this point
     roles: dict[str, Role] = field(default_factory=dict)  # input name -> role (for the description)
+    #: the node of both models where they differ most at this point, and its two temperatures (°C):
+    #: where a sensor would separate them when no sensor of the run does
+    node: str = ""
+    node_a: float = float("nan")
+    node_b: float = float("nan")
+
+    @property
+    def node_diff(self) -> float:
+        return abs(self.node_a - self.node_b)
 
     @property
     def diff(self) -> float:
@@ -239,7 +248,8 @@ class Point:
 
 def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     """Steady operating point (grid over speed, current and ambient, up to beyond the run's
-    range) where the two fitted models' sensor temperatures differ most."""
+    range) where the two fitted models' sensor temperatures differ most, with the node (of both
+    models) where they differ most at that point."""
     run, model = data.run, a.model
     cols = run.columns
     speed_c, current_c, torque_c, amb_c = (model.find_input(r) for r in (Role.SPEED, Role.CURRENT, Role.TORQUE,
@@ -262,6 +272,7 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     if amb_c and amb_c in cols:
         ambients = sorted({round(float(np.nanmin(cols[amb_c]))), round(float(np.nanmax(cols[amb_c]))) + 15})
     best: Point | None = None
+    steady: tuple[np.ndarray, np.ndarray] | None = None  # both models' node temperatures at ``best``
     for n in speeds:
         for i in currents:
             for ta in ambients:
@@ -282,6 +293,15 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
                     vb = float(Tb[b.model.node_index(b.model.sensors[s])])
                     if np.isfinite(va) and np.isfinite(vb) and (best is None or abs(va - vb) > best.diff):
                         best = Point(inp, s, va, vb, _near(run, inp, [speed_c, current_c]), dict(model.input_roles))
+                        steady = (Ta, Tb)
+    if best is not None and steady is not None:
+        common = [x for x in a.model.nodes if x in b.model.nodes]
+        d = [abs(float(steady[0][a.model.node_index(x)] - steady[1][b.model.node_index(x)])) for x in common]
+        if common:
+            x = common[int(np.argmax(d))]
+            best.node = x
+            best.node_a = float(steady[0][a.model.node_index(x)])
+            best.node_b = float(steady[1][b.model.node_index(x)])
     return best
 
 

@@ -503,10 +503,11 @@ def _separating_sentence(disc: Discovery) -> str:
     if p.diff >= 3 * disc.noise_k:
         return (f"a test run at **{p.describe()}** would ({p.sensor}: {p.t_a:.1f} °C against {p.t_b:.1f} °C). ")
     trans = max((ev.max_diff[1] for ev in rd.evidence), default=0.0)
+    where = ("a sensor closer to one of them would" if not p.node or p.node_diff < 3 * disc.noise_k else
+             f"a sensor on **{p.node}** would ({p.node_a:.1f} °C against {p.node_b:.1f} °C at that point)")
     return (f"no steady operating point separates them at these sensors by more than {p.diff:.2f} K (largest at "
             f"{p.describe()}), and over the run their predictions differ by at most {trans:.3f} K, both below 3× "
-            f"the noise floor ({disc.noise_k:.3f} K): no test run with these sensors tells them apart; a sensor "
-            "closer to one of them would. ")
+            f"the noise floor ({disc.noise_k:.3f} K): no test run with these sensors tells them apart; {where}. ")
 
 
 def _gap_section(disc: Discovery, add) -> None:  # type: ignore[no-untyped-def]
