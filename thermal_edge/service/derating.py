@@ -75,12 +75,12 @@ the model's and the air-gap heat transfer 30 % lower (``--plant P_pm_ref=+100% -
 h_gap1=-30%``), the estimate trailed the true magnet by up to 6.1 K (5.5 σ), the true magnet was
 above ``estimate + 1.96 σ`` 91 % of the time, and the policy let the magnet reach 121.1 °C (375 s
 over max; the PT100 derate, cooler on the winding, 119.9 °C and 0 s). A narrower magnet bound
-(the one-sided quantile z = 1.645 with the margin added in quadrature) gained 0.4-1.4 % of current
-in the bench's cases and made that case worse (122.4 °C, 906 s), so the stack stays as it is.
-The housing PT100 counts as a floor under the magnet (:func:`bounding_sensors`, steady states
-only) although an overload heats the housing long before the rotor; that false bound holds the
-limit low at times (r_hous_plus30: 11-17 A for 15 min with the true magnet at 106 °C), but it is
-conservative, and in the case above it was what kept the magnet near its max at all.
+(the one-sided quantile z = 1.645 with the margin added in quadrature) gained 0.7-1.4 points of
+headroom in the bench's cases and made that case worse (122.4 °C, 906 s), so the stack stays as
+it is. The housing PT100 counts as a floor under the magnet (:func:`bounding_sensors`, steady
+states only) although an overload heats the housing long before the rotor; that false bound holds
+the limit low at times (r_hous_plus30: 11-17 A for 15 min with the true magnet at 106 °C), but it
+only ever raises the magnet's bound, so it costs current, not safety.
 
 **The reason names what limits now**: the forced cause; else the candidate's cause when the limit
 sits at its candidate (within the hysteresis); ``recovering`` while the limit climbs back at the
