@@ -104,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
         doc, resolved = hidden.plant_document(raw, args.effect, refs, build, inputs=inputs)
         plant = build(doc)
         desc = hidden.describe(resolved, refs)
+        gap = hidden.sensor_gap(model, plant, inputs)
+        if gap < hidden.MIN_GAP_K:  # even at its magnitude's bound: nothing for discover to find
+            desc += (f"\nnote: the hidden effects move the sensors by at most {gap:.2f} K RMS (without noise, "
+                     f"below {hidden.MIN_GAP_K:g} K): no sensor of the model may see them")
         comment += f"\n{desc}"
         print(desc)
     res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
