@@ -71,8 +71,6 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
         if k == 0:
             T[0] = obs.T
         ad.record(float(t[k]), u, y, obs.T)
-        for p, i in zip(ad.params, pidx):
-            trace[p][k] = ad.theta[i]
         due = ad.due(float(t[k]))
         if due or k == N - 1:
             if k > seg:
@@ -84,6 +82,8 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
             ad.decide(float(t[k]))
             if ad.version != before:
                 obs.set_parameters(ad.theta)
+        for p, i in zip(ad.params, pidx):  # in use from this sample on (a decision here included)
+            trace[p][k] = ad.theta[i]
         if progress is not None:
             progress(1)
 
