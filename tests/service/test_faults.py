@@ -11,10 +11,15 @@ import can
 import numpy as np
 import pytest
 
-from svc_testlib import MAX_LEAD_S, running, scrape, sim_until
+from svc_testlib import MAX_LEAD_S, PLANT_DT_S, running, scrape, sim_until
 from thermal_edge.bus import DerateReason, FrameCodec, SensorStatus, TeState
 
 SAFE = 10.0
+
+
+#: simulated time from the tick that decides a limit to the emulator's record of it: the tick itself,
+#: the emulator's lead over the service, and the plant step in which the emulator drains the frame
+ARRIVES_WITHIN_S = 1.0 + MAX_LEAD_S + PLANT_DT_S
 
 
 def reasons_since(emu, t_rel: float) -> list[tuple[float, float, int]]:
@@ -62,7 +67,7 @@ async def test_open_circuit_and_implausible_sensors_force_the_safe_limit(tmp_pat
         emu.sensor_status["end_winding"] = int(SensorStatus.OPEN_CIRCUIT)
         t_fault = emu.elapsed
         await sim_until(emu, t_fault + 20)
-        seen = reasons_since(emu, t_fault + 3 + MAX_LEAD_S)
+        seen = reasons_since(emu, t_fault + 3 + ARRIVES_WITHIN_S)
         assert seen and all(r == DerateReason.SENSOR_FAULT and cur <= SAFE for _, cur, r in seen)
         assert svc.engine.last.state == TeState.DEGRADED
         assert svc.engine.accumulator.bad_readings["open_circuit"] == 1
@@ -87,7 +92,7 @@ async def test_stator_sensors_not_fitted_force_the_safe_limit(tmp_path, channel)
             emu.sensor_status[sensor] = int(SensorStatus.NOT_FITTED)
         t_fault = emu.elapsed
         await sim_until(emu, t_fault + 10)
-        seen = reasons_since(emu, t_fault + 3 + MAX_LEAD_S)
+        seen = reasons_since(emu, t_fault + 3 + ARRIVES_WITHIN_S)
         assert seen and all(r == DerateReason.SENSOR_FAULT and cur <= SAFE for _, cur, r in seen)
         m = scrape(svc.metrics.port)
         for sensor in ("slot_winding", "end_winding", "housing"):
@@ -106,7 +111,7 @@ async def test_stale_temperatures_force_the_safe_limit(tmp_path, channel):
         emu.paused.add("INV_StatorTemps")
         t_stop = emu.elapsed
         await sim_until(emu, t_stop + 15)
-        seen = reasons_since(emu, t_stop + 3 + 1 + MAX_LEAD_S)  # timeout 3 s, a tick, the emulator's lead
+        seen = reasons_since(emu, t_stop + 3 + ARRIVES_WITHIN_S)  # the 3 s timeout, then the limit's way
         assert seen and all(r == DerateReason.STALE_INPUT and cur <= SAFE for _, cur, r in seen)
         assert svc.engine.last.stale == ["INV_StatorTemps"]
         emu.paused.clear()
@@ -150,7 +155,7 @@ async def test_diverged_model_forces_the_safe_limit_with_model_fault(tmp_path, c
             emu.sensor_offset[s] = 60.0
         t_bad = emu.elapsed
         await sim_until(emu, t_bad + 15)
-        seen = reasons_since(emu, t_bad + 8 + MAX_LEAD_S)  # 5 ticks above 15 K
+        seen = reasons_since(emu, t_bad + 8 + ARRIVES_WITHIN_S)  # 5 ticks above 15 K
         assert seen and all(r == DerateReason.MODEL_FAULT and cur <= SAFE for _, cur, r in seen)
         assert svc.engine.model_faults >= 1
         assert svc.engine.last.state == TeState.FAULT  # within the 30 s hold after the fault
