@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         if cmp["separating_condition"]:
             sep = cmp["separating_condition"]
             print(f"separating condition: {sep['point']} ({sep['sensor']}: {sep['winner_c']:.1f} vs {sep['runner_up_c']:.1f} °C)")
-            if sep["node"] and sep["diff_k"] < 3 * d["gap_noise_floor"]:  # no sensor of the run tells them apart
+            if not sep["sensors_separate"] and sep["node_separates"]:
                 print(f"  no sensor of this run separates them there ({sep['diff_k']:.2f} K apart); a sensor on "
                       f"{sep['node']} would ({sep['node_winner_c']:.1f} vs {sep['node_runner_up_c']:.1f} °C)")
     g = d["gap_detail"]

@@ -211,6 +211,10 @@ def evidence(base: F.Fit, a: F.Fit, b: F.Fit, data: F.Data, boundaries: dict[str
     return out
 
 
+#: two fitted models are told apart at a sensor where they differ by this many noise floors
+SEPARATES_NOISE = 3.0
+
+
 @dataclass
 class Point:
     """A steady operating point where two fitted models disagree most."""
@@ -230,6 +234,15 @@ class Point:
     @property
     def node_diff(self) -> float:
         return abs(self.node_a - self.node_b)
+
+    def sensors_separate(self, noise_k: float) -> bool:
+        """A test run at this point tells the two models apart with the run's sensors: they differ
+        by :data:`SEPARATES_NOISE` noise floors (``noise_k``, K) or more."""
+        return self.diff >= SEPARATES_NOISE * noise_k
+
+    def node_separates(self, noise_k: float) -> bool:
+        """A sensor on :attr:`node` would tell them apart (by the same rule)."""
+        return bool(self.node) and self.node_diff >= SEPARATES_NOISE * noise_k
 
     @property
     def diff(self) -> float:

@@ -480,7 +480,7 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
             rows.append([ev.variable, f"{x:.4g}", _f(ev.a[i]), _f(ev.b[i]), _f(d)])
         add(_table(["variable", "at", "winner K", "runner-up K", "|difference| K"], rows))
         add("")
-    if rd.point is not None and rd.point.diff < 3 * disc.noise_k:
+    if rd.point is not None and not rd.point.sensors_separate(disc.noise_k):
         add(f"**Separating condition:** {_separating_sentence(disc)}")
         add("")
     elif rd.point is not None:
@@ -500,10 +500,10 @@ def _separating_sentence(disc: Discovery) -> str:
     p = rd.point
     if p is None:
         return ""
-    if p.diff >= 3 * disc.noise_k:
+    if p.sensors_separate(disc.noise_k):
         return (f"a test run at **{p.describe()}** would ({p.sensor}: {p.t_a:.1f} °C against {p.t_b:.1f} °C). ")
     trans = max((ev.max_diff[1] for ev in rd.evidence), default=0.0)
-    where = ("a sensor closer to one of them would" if not p.node or p.node_diff < 3 * disc.noise_k else
+    where = ("a sensor closer to one of them would" if not p.node_separates(disc.noise_k) else
              f"a sensor on **{p.node}** would ({p.node_a:.1f} °C against {p.node_b:.1f} °C at that point)")
     return (f"no steady operating point separates them at these sensors by more than {p.diff:.2f} K (largest at "
             f"{p.describe()}), and over the run their predictions differ by at most {trans:.3f} K, both below 3× "

@@ -253,7 +253,8 @@ class Discovery:
             "separating_condition": None if p is None else {
                 "point": p.describe(), "inputs": p.inputs, "sensor": p.sensor, "winner_c": p.t_a,
                 "runner_up_c": p.t_b, "diff_k": p.diff, "in_run": p.in_run,
-                "node": p.node or None, "node_winner_c": p.node_a, "node_runner_up_c": p.node_b},
+                "node": p.node or None, "node_winner_c": p.node_a, "node_runner_up_c": p.node_b,
+                "sensors_separate": p.sensors_separate(self.noise_k), "node_separates": p.node_separates(self.noise_k)},
         }
 
 
