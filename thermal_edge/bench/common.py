@@ -25,6 +25,20 @@ def no_progress(stage: str, done: float, total: float, unit: str) -> None:
     """The :class:`Progress` of a benchmark run without a reader (tests, ``--json`` in a pipe)."""
 
 
+def sample_counter(progress: Progress, stage: str, total: int) -> Callable[[int], None]:
+    """A per-sample ``progress(1)`` callback (as :func:`~thermal_edge.estimation.online.run_online`
+    takes) that reports to a benchmark's :class:`Progress` every 100 samples."""
+    done = 0
+
+    def count(n: int) -> None:
+        nonlocal done
+        done += n
+        if done % 100 == 0 or done == total:  # a bar redrawn per sample would cost more than the sample
+            progress(stage, done, total, "sample")
+
+    return count
+
+
 def config_path(*parts: str) -> Path:
     """A file under the repository's ``config/`` directory."""
     return CONFIG.joinpath(*parts)

@@ -24,7 +24,7 @@ from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
 from ..estimation.predict import initial_from_run, model_inputs, open_loop
 from ..lptn import Model, load_model
-from .common import ROOT, Progress, config_path, no_progress
+from .common import ROOT, Progress, config_path, no_progress, sample_counter
 
 PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
 SENSORS = ("stator_winding", "stator_yoke")
@@ -38,20 +38,6 @@ STARTS: dict[str, dict[str, float]] = {
     "stator_together": {"R_c_sy": 1.5, "C_sw": 0.71, "R_sy_sw": 0.7, "C_sy": 1.4},
     "unidentifiable_C_pm_x1.5": {"C_pm": 1.5},
 }
-
-
-def sample_counter(progress: Progress, stage: str, total: int) -> Callable[[int], None]:
-    """A per-sample ``progress(1)`` callback (as :func:`~thermal_edge.estimation.online.run_online`
-    takes) that reports to a benchmark's :class:`~.common.Progress` every 100 samples."""
-    done = 0
-
-    def count(n: int) -> None:
-        nonlocal done
-        done += n
-        if done % 100 == 0 or done == total:  # a bar redrawn per sample would cost more than the sample
-            progress(stage, done, total, "sample")
-
-    return count
 
 
 def adapter_config() -> AdapterConfig:
