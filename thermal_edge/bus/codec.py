@@ -48,9 +48,9 @@ _CYCLE_ATTRIBUTE = "GenMsgCycleTime"
 #: Frame periods between two frames of an identifier from which their time stamps decide how
 #: often the 4-bit counter wrapped (3/4 of a wrap: bursts of up to 11 frames keep their count).
 _WRAP_FROM_PERIODS = 12.0
-#: A frame this many cycles or less after one that ended a long gap shows a burst: the sender
-#: was late and catches up, and the wraps counted for that gap are taken back.
-_BURST_CYCLES = 0.25
+#: Frame periods after a gap that added counter wraps during which the sender is watched for
+#: catching up (frames faster than its cycle); a late sender that does takes the wraps back.
+_CATCH_UP_PERIODS = 64
 #: Frames over which a sender's time per frame is averaged (plain mean up to then, then running).
 _PACE_FRAMES = 64
 #: Gaps seen before the pace is trusted, and the band around the DBC cycle it must lie in.
@@ -292,7 +292,7 @@ class FrameCodec:
         self._tx_counter: dict[int, int] = {}
         # last accepted counter, its time stamp (s), the sender's pace (see _keeps_cycle) and the
         # frames its time stamp added to the counter step
-        self._rx_last: dict[int, tuple[int, float | None, tuple[float, int] | None, int]] = {}
+        self._rx_last: dict[int, tuple[int, float | None, tuple[float, int] | None, tuple[int, float, int] | None]] = {}
 
     # ------------------------------------------------------------------ lookup
     @property
@@ -470,10 +470,12 @@ class FrameCodec:
         sender whose mean time per frame (over about 64 frames, at least 8) lies within half
         and twice its DBC cycle: frames that arrive in bursts, without time stamps, or from a
         sender at another rate (an accelerated emulator, a load test) are judged by the
-        counter step alone, which counts holes modulo 16. If the frame after such a gap follows
-        within a quarter cycle, the sender was late and is catching up in a burst: the wraps
-        counted for the gap are taken back from ``stats.lost`` (the ``lost_before`` already
-        returned stays). A step of 0 is a repeated frame.
+        counter step alone, which counts holes modulo 16. A sender that was late and catches up
+        sends the frames after such a gap faster than its cycle: once, within 64 frame periods of
+        the gap, its frames run more than 2 cycles ahead of the cadence the gap's frame started
+        (more than its timing jitter can), the wraps counted for the gap are taken back from
+        ``stats.lost`` (the ``lost_before`` already returned stays). A step of 0 is a repeated
+        frame.
         """
         try:
             return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
@@ -532,25 +534,22 @@ class FrameCodec:
             lost = 0
             last = self._rx_last.get(spec.frame_id)
             pace = None  # running mean of the time per frame (s) and how many gaps it has seen
-            wraps = 0  # frames this frame's time stamp added to its counter step
+            # wraps the last gap added that a catch-up would take back: (wraps, the gap frame's
+            # time stamp, frame periods since it), until the sender is seen to keep its cadence
+            owed: tuple[int, float, int] | None = None
             if last is not None:
-                last_counter, last_ts, pace, last_wraps = last
+                last_counter, last_ts, pace, owed = last
                 step = (counter - last_counter) % 16
                 cycle = spec.cycle_time_s
                 dt = ts - last_ts if ts is not None and last_ts is not None else None
-                if last_wraps and dt is not None and cycle and dt < _BURST_CYCLES * cycle:
-                    # the frames after that long gap come in a burst: the sender was late and is
-                    # catching up, the gap held no lost frames beyond the counter step
-                    self.stats.lost -= last_wraps
-                    self.stats.lost_by_frame[spec.name] -= last_wraps
                 if dt is not None and cycle and abs(dt) > self._resync_after * cycle:
                     self.stats.counter_resync += 1
-                    pace = None
+                    pace, owed = None, None
                 else:
                     # frame periods since the last one: the counter step plus the whole counter
                     # wraps that bring it nearest to the time stamps, once these span most of a
                     # wrap and the sender is seen to keep its DBC cycle; else the step alone
-                    n = step
+                    n, wraps = step, 0
                     if (self._wraps_from_time and dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS
                             and _keeps_cycle(pace, cycle)):
                         # rounded down: a sender that is late (a busy host) makes dt longer, never
@@ -570,11 +569,23 @@ class FrameCodec:
                     if lost:
                         self.stats.lost += lost
                         self.stats.lost_by_frame[spec.name] += lost
+                    if owed is not None and ts is not None:
+                        owed_wraps, t_gap, periods = owed[0], owed[1], owed[2] + n
+                        if ts - t_gap < (periods - _WRAP_EARLY_CYCLES) * cycle:
+                            # ahead of the cadence by more than jitter: the sender was late and is
+                            # catching up, the gap held no lost frames beyond its counter step
+                            self.stats.lost -= owed_wraps
+                            self.stats.lost_by_frame[spec.name] -= owed_wraps
+                            owed = None
+                        else:
+                            owed = (owed_wraps, t_gap, periods) if periods < _CATCH_UP_PERIODS else None
+                    if wraps and ts is not None:
+                        owed = (wraps, ts, 0)
                     if dt is not None:  # signed: jitter that reorders time stamps averages out
                         gaps = 0 if pace is None else pace[1]
                         mean = 0.0 if pace is None else pace[0]
                         pace = (mean + (dt / n - mean) / min(gaps + 1, _PACE_FRAMES), gaps + 1)
-            self._rx_last[spec.frame_id] = (counter, ts, pace, wraps)
+            self._rx_last[spec.frame_id] = (counter, ts, pace, owed)
             self.stats.received[spec.name] += 1
         return DecodedFrame(spec.name, spec.frame_id, values, counter, ts, lost, bool(is_rx))
 
