@@ -125,3 +125,24 @@ def test_reported_identifiability_is_the_gate_of_adaptation(pm10kw, make_run, ma
     assert reported == set(d.unidentifiable)
     assert reported == {n for n, r in rel.items() if not r < cfg.max_rel_std}  # the configured threshold
     assert 0 < len(reported) < len(rel)
+
+
+def test_replayed_state_is_the_plant_state_when_the_parameters_are_the_plant_s(pm10kw, make_run):
+    """What a service restarts from after accepting parameters: the recorded window replayed with
+    them. With the plant's own parameters and exact readings it lands on the plant's true state
+    (simulated beforehand by the plant); with wrong ones it lands 0.8 K off."""
+    r = make_run(pm10kw, "varied_drive.yaml", 900.0, seed=2, noise=0.0)
+    ad = OnlineAdapter(pm10kw, AdapterConfig(window_s=600.0), 1.0)
+    t = r.run.t
+    for k in range(len(t)):
+        ad.record(float(t[k]), {c: r.run.columns[c][k] for c in pm10kw.inputs},
+                  {s: r.run.columns[s][k] for s in pm10kw.sensors}, r.truth.T[k])
+    T, t_end = ad.replayed_state(float(t[-1]) - 600.0)
+    assert t_end == t[-1]
+    assert np.max(np.abs(T - r.truth.T[-1])) < 0.05
+    wrong = OnlineAdapter(pm10kw.with_parameters({"R_e_hous": 4.0}), AdapterConfig(window_s=600.0), 1.0)
+    for k in range(len(t)):
+        wrong.record(float(t[k]), {c: r.run.columns[c][k] for c in pm10kw.inputs},
+                     {s: r.run.columns[s][k] for s in pm10kw.sensors}, r.truth.T[k])
+    T_wrong, _ = wrong.replayed_state(float(t[-1]) - 600.0)
+    assert np.max(np.abs(T_wrong - r.truth.T[-1])) > 0.2

@@ -414,6 +414,27 @@ class OnlineAdapter:
         self.decisions.append(d)
         return d
 
+    def replayed_state(self, since: float) -> tuple[np.ndarray, float]:
+        """The node temperatures the present parameters give at the last recorded sample.
+
+        Parameters
+        ----------
+        since : float
+            Start of the replay, s: the recorded state there (measured nodes at their readings)
+            is simulated open loop over the recorded inputs.
+
+        Returns
+        -------
+        T : ndarray
+            Node temperatures, °C, at the last sample (what a service restarts its state from
+            once it accepts these parameters).
+        t : float
+            Time of that sample, s.
+        """
+        win = self._window(since)
+        traj = self.sim.simulate(self.theta, win.inputs, win.dt, win.T0)
+        return traj.T[-1].copy(), float(win.t[-1])
+
     def current_uncertainty(self, since: float | None = None) -> Uncertainty:
         """Parameter covariance and identifiability at the current parameters over the history
         since ``since`` (s; default all of it), judged by the same ``max_rel_std`` as the gate of

@@ -219,11 +219,9 @@ class AdaptationWorker:
             del ad.decisions[:-100]
         res = AdaptationResult(rid, t, decision=d, theta=ad.theta.copy(), version=ad.version)
         if d.accepted:
-            win = ad._window(t - self.config.window_s)
-            traj = ad.sim.simulate(ad.theta, win.inputs, win.dt, win.T0)
-            x = traj.T[-1]
+            x, x_t = ad.replayed_state(t - self.config.window_s)
             if np.all(np.isfinite(x)):
-                res.state, res.state_t = x.copy(), float(win.t[-1])
+                res.state, res.state_t = x, x_t
             if self.bands:
                 try:
                     unc = ad.current_uncertainty(t - self.config.window_s)
