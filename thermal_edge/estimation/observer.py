@@ -184,3 +184,12 @@ class Observer:
     def std(self) -> np.ndarray:
         """Standard deviation of each node's estimate, K (state and parameter uncertainty)."""
         return np.sqrt(np.clip(np.diag(self.P) + (self.S**2) @ self.sigma_phi2[self.n_gain:], 0.0, None))
+
+    def covariance(self) -> np.ndarray:
+        """Covariance of the estimate's error (n, n), K²: :attr:`P` plus the parameters' part
+        ``S Σ Sᵀ`` the bands carry (its diagonal is :meth:`std` squared). What a saved state keeps:
+        the parameters' part is an error shared by whole regions (a wrong magnet loss heats the
+        magnets, rotor iron and shaft together), so it must survive a restart with that structure,
+        not as independent variances the model's conduction would wash out within a minute."""
+        Ss = self.S * np.sqrt(self.sigma_phi2[self.n_gain:])[None, :]
+        return self.P + Ss @ Ss.T

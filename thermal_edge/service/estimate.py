@@ -196,7 +196,10 @@ class StateEstimate:
         if obs is None or not (np.all(np.isfinite(obs.T)) and np.all(np.isfinite(obs.P))):
             return None
         out: dict[str, list] = {"nodes": list(self.model.nodes), "T": [float(x) for x in obs.T],
-                                "sigma": [float(x) for x in obs.std()], "P": [[float(x) for x in row] for row in obs.P],
+                                "sigma": [float(x) for x in obs.std()],
+                                # with the parameters' part of the bands (the rotor-side model error), which a
+                                # restart must not forget
+                                "P": [[float(x) for x in row] for row in obs.covariance()],
                                 "T_pred": []}
         x = self._prediction
         if x is not None and np.all(np.isfinite(x)):
