@@ -17,7 +17,8 @@ How drives protect a machine, and what this policy takes from each:
 The policy, per tick (1 s):
 
 1. **Reaction-time current** ``I_react``: the largest RMS current that, held for
-   ``derating.reaction_time_s`` from the present upper-band state (estimate + z σ, z = 1.96), keeps
+   ``derating.reaction_time_s`` from the present upper-band state (estimate + z σ, ``derating.band_z``:
+   1.645 in config/edge.yaml, the one-sided 95 % upper bound, since only overheating is a risk), keeps
    every limited node below its max less ``derating.margin_k`` (:class:`.lookahead.Lookahead` over
    that short horizon, the copper losses at the highest max, so never underestimated). A limited
    node's upper band is never taken below the reading of a sensor that bounds it from below (see
@@ -61,26 +62,29 @@ is advice for the vehicle or plant controller in ``TE_Forecast``: it never limit
 a limit only where holding the present limit would reach a max within the reaction time, which is
 exactly step 1.
 
-**The margin** (``derating.margin_k``, default 1.5 K): the 95 % band is the estimator's own
-uncertainty *given the model* (σ of the end-winding hot spot ~0.15 K: it sits next to a PT100). It
-does not cover a model that is wrong before the adapter has corrected it (the adapter needs 30 min
-of history): with the winding conductivity 25 % lower than modelled (copper losses +33 %) the
+**The margin** (``derating.margin_k``, default 1.5 K): the 95 % band carries the state noise and
+the declared spread of the parameters the adapter does not estimate; for the end-winding hot spot,
+next to a PT100, that is σ ~0.15 K. It does not cover a stator model that is wrong before the
+adapter has corrected it (the adapter needs 30 min of history; the winding resistance is a
+constant, not a parameter with a spread): with the winding conductivity 25 % lower than modelled (copper losses +33 %) the
 unmeasured hot spot's estimate trailed the truth by up to 1.5 K. The margin covers that, and costs
 ~1 % of the current held at the max; the readings of the bounding sensors are the second line.
 
-**What the band does not cover: the magnet's model error** (measured with ``thermal-edge bench
-protection``, session 8). The magnet is far from every sensor; its σ (~1.1 K) is the estimator's
-uncertainty given the model, and no sensor tells a wrong rotor model. With the magnet losses twice
-the model's and the air-gap heat transfer 30 % lower (``--plant P_pm_ref=+100% --plant
-h_gap1=-30%``), the estimate trailed the true magnet by up to 6.1 K (5.5 σ), the true magnet was
-above ``estimate + 1.96 σ`` 91 % of the time, and the policy let the magnet reach 121.1 °C (375 s
-over max; the PT100 derate, cooler on the winding, 119.9 °C and 0 s). A narrower magnet bound
-(the one-sided quantile z = 1.645 with the margin added in quadrature) gained 0.7-1.4 points of
-headroom in the bench's cases and made that case worse (122.4 °C, 906 s), so the stack stays as
-it is. The housing PT100 counts as a floor under the magnet (:func:`bounding_sensors`, steady
-states only) although an overload heats the housing long before the rotor; that false bound holds
-the limit low at times (r_hous_plus30: 11-17 A for 15 min with the true magnet at 106 °C), but it
-only ever raises the magnet's bound, so it costs current, not safety.
+**The magnet's band carries the rotor model's error** (session 9). The magnet is far from every
+sensor, and no reading tells a wrong rotor model: in session 8, with the magnet losses twice the
+model's and the air-gap heat transfer 30 % lower (``--plant P_pm_ref=+100% --plant h_gap1=-30%``),
+the estimate trailed the true magnet by up to 6.1 K while σ was ~1.1 K, and the policy let the
+magnet reach 121.1 °C (372 s over max). The model file now declares the rotor-side loss
+coefficients (``P_pm_ref``, the iron-loss, friction and windage coefficients) as parameters with
+their spread (``P_pm_ref`` 0.4: magnet eddy-loss estimates are off by ~2x) and the convection
+coefficients with 0.3; the observer carries them into the band as the first-order error ``S δφ``
+of its estimate (:mod:`..estimation.observer`), and a saved state keeps that part of the
+covariance across a restart. The magnet's σ is now ~2.5-3.8 K near its max; in that case the true
+magnet stayed within 1.5 σ of the estimate and reached 117.3 °C (0 s over). The price is 1.5-3.6
+points of the oracle's delivery in the bench's cases (the magnet binds a few kelvin lower). The
+housing PT100 counts as a floor under the magnet (:func:`bounding_sensors`, steady states only)
+although an overload heats the housing long before the rotor; that false bound holds the limit low
+at times, but it only ever raises the magnet's bound, so it costs current, not safety.
 
 **The reason names what limits now**: the forced cause; else the candidate's cause when the limit
 sits at its candidate (within the hysteresis); ``recovering`` while the limit climbs back at the
