@@ -79,7 +79,7 @@ coefficients (``P_pm_ref``, the iron-loss, friction and windage coefficients) as
 their spread (``P_pm_ref`` 0.4: magnet eddy-loss estimates are off by ~2x) and the convection
 coefficients with 0.3; the observer carries them into the band as the first-order error ``S δφ``
 of its estimate (:mod:`..estimation.observer`), and a saved state keeps that part of the
-covariance across a restart. The magnet's σ is now ~2.5-3.8 K near its max; in that case the true
+covariance across a restart. The magnet's σ is now 2.3-3.9 K near its max; in that case the true
 magnet stayed within 1.5 σ of the estimate and reached 117.3 °C (0 s over). The price is 1.5-3.6
 points of the oracle's delivery in the bench's cases (the magnet binds a few kelvin lower). The
 housing PT100 counts as a floor under the magnet (:func:`bounding_sensors`, steady states only)
