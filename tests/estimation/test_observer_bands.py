@@ -16,6 +16,7 @@ from thermal_edge.lptn import Role
 from thermal_edge.data import Run
 from thermal_edge.sim.plant import simulate_plant
 
+#: the service's upper band: estimate + 1.96 σ (config/edge.yaml derating.band_z)
 Z95 = 1.96
 #: parameters that were constants (no declared spread) before the rotor-side losses were declared
 LOSS_COEFFICIENTS = ("P_pm_ref", "P_fe_y_ref", "P_fe_t_ref", "T_fric", "P_wind_ref")
