@@ -78,7 +78,7 @@ coefficients (``P_pm_ref``, the iron-loss, friction and windage coefficients) as
 their spread (``P_pm_ref`` 0.4: magnet eddy-loss estimates are off by ~2x) and the convection
 coefficients with 0.3; the observer carries them into the band as the first-order error ``S δφ``
 of its estimate (:mod:`..estimation.observer`), and a saved state keeps that part of the
-covariance across a restart. The magnet's σ is now 2.3-3.9 K near its max; in that case the true
+covariance across a restart. The magnet's σ is now 2.2-3.9 K near its max; in that case the true
 magnet stayed within 1.5 σ of the estimate and reached 116.2 °C (0 s over). The price is 1.9-4.0
 points of the oracle's delivery in the bench's cases (the magnet binds a few kelvin lower). z stays
 1.96: a factor 2 on ``P_pm_ref`` lies at 1.7 σ of its spread, inside this band but outside the
