@@ -411,3 +411,30 @@ def test_a_late_sender_is_not_counted_as_losing_a_counter_wrap(late_cycles):
     assert rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0), counter=nxt % 16),
                      timestamp=t + (6 + late_cycles) * cycle) is not None
     assert rx.stats.lost == 5
+
+
+@pytest.mark.parametrize("frame", ["INV_Currents", "INV_StatorTemps"])
+def test_a_frozen_alive_counter_is_never_fresh_data(frame):
+    """A hung inverter task whose controller resends its last buffer: the same bytes at the normal
+    cycle for 20 s. Every repeat is dropped (a black-box client saw one in every 3-8 accepted as a
+    'restart' or a 'resync', enough to keep the input from ever going stale); a real restart after
+    a pause is still accepted."""
+    tx, rx = _fresh_pair()
+    cycle = tx.cycle_time_s(frame)
+    fid = tx.frame_id(frame)
+    signals = _currents(0) if frame == "INV_Currents" else {"INV_T_WindingSlot": 40.0, "INV_T_EndWinding": 40.0,
+                                                            "INV_T_Housing": 35.0, "INV_S_WindingSlot": 0,
+                                                            "INV_S_EndWinding": 0, "INV_S_Housing": 0}
+    t = 0.0
+    for i in range(40):  # a healthy sender first
+        t = i * cycle
+        assert rx.decode(fid, tx.encode(frame, signals, counter=i % 16), timestamp=t) is not None
+    frozen = tx.encode(frame, signals, counter=39 % 16)
+    n_frozen = int(20.0 / cycle)
+    accepted = sum(rx.decode(fid, frozen, timestamp=t + k * cycle) is not None for k in range(1, n_frozen + 1))
+    assert accepted == 0 and rx.stats.counter_repeat == n_frozen
+    assert rx.stats.counter_resync == 0 and rx.stats.lost == 0
+    # the inverter restarts: 1 s of silence, then its counter from 0
+    t_restart = t + n_frozen * cycle + 1.0
+    assert rx.decode(fid, tx.encode(frame, signals, counter=0), timestamp=t_restart) is not None
+    assert rx.decode(fid, tx.encode(frame, signals, counter=1), timestamp=t_restart + cycle) is not None

@@ -475,7 +475,10 @@ class FrameCodec:
         the gap, its frames run more than 2 cycles ahead of the cadence the gap's frame started
         (more than its timing jitter can), the wraps counted for the gap are taken back from
         ``stats.lost`` (the ``lost_before`` already returned stays). A step of 0 is a repeated
-        frame.
+        frame, dropped; it still counts as the sender's latest frame, so a sender whose counter is
+        frozen is dropped for as long as it keeps sending (its input goes stale), and only a
+        pause of ``resync_after_cycles`` or of 3 of its frame times before a repeated counter
+        passes for a restarted sender.
         """
         try:
             return self._decode(arbitration_id, data, timestamp, is_rx, is_extended_id)
@@ -564,6 +567,10 @@ class FrameCodec:
                         n, pace = 1, None
                     if n == 0:
                         self.stats.count_drop("counter_repeat", spec.name)
+                        # the repeat is the sender's latest sign of life: a sender whose counter is
+                        # frozen (a hung task, its controller resending the last buffer) is never
+                        # silent, so its repeats never pass for a restart or a resync
+                        self._rx_last[spec.frame_id] = (last_counter, ts if ts is not None else last_ts, pace, owed)
                         return None
                     lost = n - 1
                     if lost:
