@@ -228,12 +228,24 @@ class SignalsConfig:
 
 @dataclass(frozen=True)
 class FaultConfig:
-    """``derating.faults:`` -- when the model counts as diverged."""
+    """``derating.faults:`` -- when the model counts as diverged, and when a sensor is stuck."""
 
     innovation_k: float = setting(15.0, positive=True)
     innovation_ticks: int = setting(5, min=1)
     prediction_error_k: float = setting(40.0, positive=True)
     hold_s: float = setting(30.0, min=0.0)
+    #: a model fault within this long after the previous hold ended is the same cause recurring: the
+    #: hold doubles each time, up to ``hold_max_s`` (black-box finding 2: one cause faulted every 153 s,
+    #: 122 s of each at full power, for as long as it lasted)
+    repeat_s: float = setting(300.0, min=0.0)
+    hold_max_s: float = setting(960.0, positive=True)
+    #: a required sensor is stuck (a sensor fault) when its reading stayed within ``stuck_still_k``
+    #: (two steps of a PT100's 0.1 K resolution) while the open-loop prediction, stepped with the measured
+    #: losses, moved its node by ``stuck_model_k`` or more, within the last
+    #: ``stuck_window_s`` (10 min, against the machine's slowest time constant of about 70 min)
+    stuck_window_s: float = setting(600.0, positive=True)
+    stuck_model_k: float = setting(5.0, positive=True)
+    stuck_still_k: float = setting(0.2, min=0.0)
 
 
 @dataclass(frozen=True)

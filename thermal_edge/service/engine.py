@@ -37,8 +37,9 @@ from .adaptation import Adaptation, AdaptationResult
 from .derating import DeratingPolicy, LimitSpec, MeasuredFloor, NodeBand, bounding_sensors
 from .estimate import StateEstimate
 from .events import SafetyEvents
-from .health import ModelHealth, input_reasons
+from .health import ModelHealth, StuckSensors, input_reasons
 from .inputs import InputAccumulator, TickInputs
+from .journal import notice
 from .lookahead import Lookahead
 from .outputs import TickOutput
 from .persistence import PersistedState
@@ -112,6 +113,7 @@ class ThermalEngine:
         self.floor = MeasuredFloor(self.limited_nodes, bound_by)
         self.estimate = StateEstimate(m, self.dt, config.observer)
         self.health = ModelHealth(dc.faults, config.adaptation.adapter.period_s)
+        self.stuck = StuckSensors(dc.faults, config.sensors)
         self.events = SafetyEvents()
         self._restored = restored  # used once, at the start of the state
         self._restart_info: dict[str, float] = {}
@@ -185,6 +187,7 @@ class ThermalEngine:
         gap at standstill, forget the adapter's history, and continue at ``t_to``."""
         self._gaps += 1
         self.accumulator.reset()
+        self.stuck.restart()
         if self.estimate.initialized and self._last_t is not None:
             gap = t_to - self._last_t
             try:
@@ -219,6 +222,8 @@ class ThermalEngine:
     def _tick(self, t: float) -> TickOutput:
         cfg = self.config
         ti = self.accumulator.take(t)
+        readings = dict(ti.measured)  # as received: a stuck sensor is released when its reading moves
+        self._withhold_stuck(ti, self.stuck.release(readings))
         forced = input_reasons(ti)
         for k, v in ti.inputs.items():
             if math.isfinite(v):
@@ -249,7 +254,23 @@ class ThermalEngine:
             self.adaptation.record(t_prev, u, y_prev, x_prev)
         # 2. open-loop prediction, 3. observer
         y = ti.measured
+        x_prev = est.prediction.copy()  # type: ignore[union-attr]
         innov = est.step(u, y, self.sensor_rows)
+        # the stuck-sensor check: how far the measured losses moved each sensor's node in the open-loop
+        # prediction's step (the step alone: not a restart or new parameters). Not the observer's step:
+        # the readings correct it every tick, so a small steady bias of the model would add up there
+        # while a healthy reading sits still; the open loop only moves towards the model's own state.
+        x_now = est.prediction
+        assert x_now is not None
+        moved = {s: float(x_now[r] - x_prev[r]) for s, r in self.sensor_rows.items()}
+        newly = self.stuck.observe(t, readings, moved)
+        if newly:
+            for s, why in sorted(newly.items()):
+                log.error("sensor %s stuck at t=%.0f: %s; its reading is withheld%s", s, t, why,
+                          "; safe limit" if self.config.sensors[s].required else "")
+                self.accumulator.bad_readings["stuck"] += 1
+            self._withhold_stuck(ti, [])
+            forced = input_reasons(ti)
         # 4. adaptation results and requests
         new_results = self.adaptation.step(t)
         for res in new_results:
@@ -261,15 +282,23 @@ class ThermalEngine:
         pred_error = {s: float(x_ol[r] - y[s]) for s, r in self.sensor_rows.items() if math.isfinite(y.get(s, math.nan))}
         why = self.health.judge(t, innov, pred_error, est.finite)
         if why is not None:
-            fc = cfg.derating.faults
-            self.health.fault(t)
-            log.error("model fault at t=%.0f: %s; safe limit for %.0f s, state re-initialised from the readings", t, why, fc.hold_s)
+            hold = self.health.fault(t)
+            log.error("model fault at t=%.0f: %s; safe limit for %.0f s, state re-initialised from the readings", t, why, hold)
             est.restart_from_readings(ti, self.adaptation.theta)
             self.health.restart()
         if self.health.holding(t):
             forced.insert(0, DerateReason.MODEL_FAULT)
         self._prev_sample = (t, dict(y), est.observer.T.copy())  # type: ignore[union-attr]  # the adapter judges from the observer's state
         return self._finish(t, ti, forced, new_results, pred_error)
+
+    def _withhold_stuck(self, ti: TickInputs, released: list[str]) -> None:
+        """The stuck sensors' readings are not used; a required one is a sensor fault (``stuck``)."""
+        for s in released:
+            notice(log, "sensor %s no longer stuck: its reading moved", s)
+        for s in self.stuck.stuck:
+            ti.measured[s] = math.nan
+            if self.config.sensors[s].required:
+                ti.faults.setdefault(s, "stuck")
 
     def _take_parameters(self, res: AdaptationResult) -> None:
         """Accepted parameters to the estimate, the look-ahead and the reaction-time current; the

@@ -5,8 +5,13 @@
 - the model (:class:`ModelHealth`): diverged when its state is not finite, when an innovation
   (reading minus the observer's prediction) stays above ``derating.faults.innovation_k`` for
   ``innovation_ticks`` ticks, or when the open-loop prediction error exceeds
-  ``prediction_error_k``; a fault forces ``model_fault`` for ``hold_s``. It also keeps the window of
-  squared open-loop prediction errors over the adaptation period, whose RMS is ``TE_PredErrRms``.
+  ``prediction_error_k``; a fault forces ``model_fault`` for ``hold_s``, doubled for each fault that
+  recurs within ``repeat_s`` after the previous hold ended (up to ``hold_max_s``): a cause that
+  persists does not get full power back after every hold. It also keeps the window of squared
+  open-loop prediction errors over the adaptation period, whose RMS is ``TE_PredErrRms``;
+- the sensors' plausibility over time (:class:`StuckSensors`): a reading that sits still while the
+  model, stepped with the measured losses, moves its node by several kelvin is stuck (frozen), a
+  sensor fault (kind ``stuck``) until the reading moves again.
 """
 from __future__ import annotations
 
@@ -19,7 +24,7 @@ from ..bus.frames import DerateReason
 from ..config import FaultConfig
 from .inputs import TickInputs
 
-__all__ = ["ModelHealth", "input_reasons"]
+__all__ = ["ModelHealth", "StuckSensors", "input_reasons"]
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +58,7 @@ class ModelHealth:
         self._innovation_ticks = 0
         self._fault_until = -math.inf
         self._faults = 0
+        self._repeats = 0  # faults in a row, each within repeat_s of the previous hold's end
 
     # -- read-only views -------------------------------------------------------------------------
     @property
@@ -101,10 +107,21 @@ class ModelHealth:
             return f"open-loop prediction error above {fc.prediction_error_k:.0f} K"
         return None
 
-    def fault(self, t: float) -> None:
-        """A model fault at ``t``: count it and hold the safe limit for ``hold_s``."""
+    def fault(self, t: float) -> float:
+        """A model fault at ``t``: count it and hold the safe limit; returns the hold, s.
+
+        The hold is ``hold_s``, doubled for each fault in a row that came within ``repeat_s`` after
+        the previous hold ended (up to ``hold_max_s``): the state restarts from the readings after
+        each fault, so a cause that persists (a reading the model cannot follow) faults again after
+        the same time at full power; a longer hold each time keeps the mean current near the safe
+        limit instead of handing full power back for most of every cycle.
+        """
+        fc = self.config
         self._faults += 1
-        self._fault_until = t + self.config.hold_s
+        self._repeats = self._repeats + 1 if t <= self._fault_until + fc.repeat_s else 0
+        hold = min(fc.hold_s * 2.0 ** self._repeats, max(fc.hold_max_s, fc.hold_s))
+        self._fault_until = t + hold
+        return hold
 
     def restart(self) -> None:
         """The state was re-initialised: the errors of the old one no longer count."""
@@ -115,3 +132,94 @@ class ModelHealth:
     def new_state(self) -> None:
         """A fresh state (first initialisation): innovations count from zero, the window is kept."""
         self._innovation_ticks = 0
+
+
+class StuckSensors:
+    """A sensor whose reading sits still while the model says its node moved: stuck (frozen).
+
+    A healthy PT100 at a steady state sits still too, but then the model predicts no change either.
+    Per sensor with a reading: the latest stretch (within the last ``stuck_window_s``) over which the
+    readings stayed within ``stuck_still_k``, and the range of the model's path of the sensor's node
+    over it (the sum of the open-loop prediction's one-step changes with the tick's measured losses:
+    a change the losses drive, not a restart or new parameters). A path spanning
+    ``stuck_model_k`` or more over such a stretch latches the sensor as stuck; it stays stuck (its reading withheld, a sensor fault if it is
+    required) until the reading leaves the value it froze at by more than ``stuck_still_k``.
+
+    Parameters
+    ----------
+    config : FaultConfig
+        ``derating.faults``: ``stuck_window_s`` (s), ``stuck_model_k`` and ``stuck_still_k`` (K).
+        ``stuck_still_k`` is two steps of the reading's resolution: a frozen reading may flicker by a
+        step; a reading with a coarser resolution needs a larger one.
+    sensors : iterable of str
+        The sensors to watch.
+    """
+
+    def __init__(self, config: FaultConfig, sensors: Iterable[str]) -> None:
+        self.config = config
+        self._hist: dict[str, deque[tuple[float, float, float]]] = {s: deque() for s in sensors}  # (t, reading, path)
+        self._path: dict[str, float] = dict.fromkeys(self._hist, 0.0)
+        self._frozen: dict[str, float] = {}  # stuck sensor -> the reading it froze at, degC
+
+    @property
+    def stuck(self) -> dict[str, float]:
+        """The sensors found stuck, with the reading each froze at (degC)."""
+        return dict(self._frozen)
+
+    def release(self, readings: Mapping[str, float]) -> list[str]:
+        """Release the stuck sensors whose reading moved by more than ``stuck_still_k`` (or has none
+        now: the input's own fault or staleness speaks for it); returns them."""
+        out = []
+        for s, v0 in list(self._frozen.items()):
+            v = readings.get(s, math.nan)
+            if not math.isfinite(v) or abs(v - v0) > self.config.stuck_still_k:
+                del self._frozen[s]
+                self._hist[s].clear()
+                out.append(s)
+        return out
+
+    def observe(self, t: float, readings: Mapping[str, float], moved: Mapping[str, float]) -> dict[str, str]:
+        """Record a tick; returns the sensors newly found stuck, each with the evidence (a sentence).
+
+        Parameters
+        ----------
+        t : float
+            Tick time, s.
+        readings : mapping of str to float
+            Sensor -> reading of the tick, degC (NaN: none; the sensor's history restarts).
+        moved : mapping of str to float
+            Sensor -> the open-loop prediction's one-step change of its node this tick, K.
+        """
+        fc = self.config
+        new: dict[str, str] = {}
+        for s, hist in self._hist.items():
+            v, d = readings.get(s, math.nan), moved.get(s, math.nan)
+            if s in self._frozen:
+                continue
+            if not (math.isfinite(v) and math.isfinite(d)):
+                hist.clear()
+                self._path[s] = 0.0
+                continue
+            self._path[s] += d
+            hist.append((t, v, self._path[s]))
+            while hist and hist[0][0] <= t - fc.stuck_window_s:
+                hist.popleft()
+            # the latest stretch of the window over which the reading stayed within stuck_still_k
+            v_lo = v_hi = v
+            p_lo = p_hi = self._path[s]
+            since = t
+            for th, vh, ph in reversed(hist):
+                if max(v_hi, vh) - min(v_lo, vh) > fc.stuck_still_k:
+                    break
+                v_lo, v_hi, p_lo, p_hi, since = min(v_lo, vh), max(v_hi, vh), min(p_lo, ph), max(p_hi, ph), th
+            if p_hi - p_lo >= fc.stuck_model_k:
+                self._frozen[s] = v
+                new[s] = (f"reading within {v_hi - v_lo:.1f} K at {v:.1f} degC for {t - since:.0f} s while the "
+                          f"model moved its node {p_hi - p_lo:.1f} K with the measured losses")
+        return new
+
+    def restart(self) -> None:
+        """A gap in the data: the histories no longer describe one stretch of time."""
+        for s, hist in self._hist.items():
+            hist.clear()
+            self._path[s] = 0.0

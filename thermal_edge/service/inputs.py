@@ -50,7 +50,8 @@ class TickInputs:
         Frames (by name) missing for longer than their timeout.
     faults : dict
         Sensor/input name -> fault kind (``open_circuit``, ``short_circuit``, ``not_fitted``,
-        ``out_of_range``, ``no_value``) for the required ones.
+        ``out_of_range``, ``no_value``; ``stuck`` is added by the engine's plausibility check over
+        time, :class:`.health.StuckSensors`) for the required ones.
     frames : Counter
         Accepted frames of the tick per frame name.
     fresh : set of str
@@ -91,7 +92,7 @@ _STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatu
 
 
 #: Every kind of rejected reading, in the order metrics list them.
-FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value")
+FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck")
 
 
 class InputAccumulator:
@@ -125,7 +126,7 @@ class InputAccumulator:
         self._frames: Counter[str] = Counter()
         self.started_t: float | None = None
         #: Readings rejected, by kind (``open_circuit``, ``short_circuit``, ``not_fitted``, ``out_of_range``,
-        #: ``no_value``), counted when a sensor enters the fault.
+        #: ``no_value``; ``stuck``, counted by the engine), counted when a sensor enters the fault.
         self.bad_readings: Counter[str] = Counter()
         #: Frames whose signals did not have the expected names/values (counted, ignored).
         self.malformed: int = 0

@@ -1,0 +1,156 @@
+"""A stuck (frozen) temperature reading is a sensor fault; a healthy reading that sits still at a
+steady state is not (black-box finding 2). And a model fault that recurs right after its hold gets a
+longer hold each time.
+
+The engine runs in closed loop with a plant of its own here: the plant (the model file's nominal
+parameters, stepped independently) draws min(demand, the engine's current limit), and the bound on
+the detection time comes from the plant's true temperature, not from the engine."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from svc_testlib import MAX_LEAD_S, PLANT_DT_S, running, sim_until
+from test_persistence import _engine_config, _feed
+from thermal_edge.bus import DerateReason, TeState
+from thermal_edge.lptn import Stepper, steady_state
+from thermal_edge.service.engine import ThermalEngine
+from thermal_edge.service.health import ModelHealth
+from thermal_edge.sim.sensors import pt100
+
+SAFE = 10.0
+MAX = 40.0
+
+
+def _closed_loop(tmp_path, model, demand_a: float, freeze_at: float | None, seconds: float,
+                 noise: bool = False) -> tuple[list, list[float], float | None]:
+    """Run the engine against the plant from cold at ``demand_a`` (900 rpm); the stator readings freeze
+    at ``freeze_at`` s (None: never). Returns the outputs, the plant's true end-winding temperature
+    per tick (degC) and the time the readings froze."""
+    eng = ThermalEngine(_engine_config(tmp_path), model, None, worker_mode="sync")
+    st = Stepper(model, model.nominal(), 1.0)
+    rng = np.random.default_rng(3)
+    ew = model.node_index(model.sensors["end_winding"])
+    T = np.full(len(model.nodes), 25.0)
+    frozen: np.ndarray | None = None
+    outs, true_ew = [], []
+    limit = 0.0
+    for k in range(1, int(seconds) + 1):
+        i = min(demand_a, limit)
+        T, _ = st.step(T, {"speed_rpm": 900.0, "i_rms": i, "torque_nm": 5.6 * i, "ambient_c": 25.0})
+        if freeze_at is not None and frozen is None and k >= freeze_at:
+            frozen = T.copy()
+        seen = frozen if frozen is not None else T
+        if noise:
+            seen = np.asarray(pt100(seen, rng, 0.1, 0.1), dtype=float)
+        out = _feed(eng, model, 1000.0 + k, seen, i=i, speed=900.0)
+        limit = out.limits.current_a
+        outs.append(out)
+        true_ew.append(float(T[ew]))
+    eng.close()
+    return outs, true_ew, freeze_at
+
+
+def test_a_stuck_stator_sensor_under_load_forces_the_safe_limit_with_sensor_fault(tmp_path, model):
+    """Frozen stator readings at full load: the safe limit with ``sensor_fault`` before the true winding
+    has moved by twice ``stuck_model_k`` since the freeze (the model, stepped with the same losses from a
+    state held at the frozen reading, moves the node about as fast as the plant; twice allows for the
+    difference), and it holds while the readings stay frozen. Before the check the engine gave 40 A
+    until the open-loop error passed 40 K, then full power again after each 30 s hold."""
+    fc = _engine_config(tmp_path).derating.faults
+    freeze = 120.0  # s: the machine is warm and heating at 40 A
+    outs, true_ew, _ = _closed_loop(tmp_path, model, MAX, freeze, 420.0)
+    k0 = int(freeze) - 1
+    moved = [abs(v - true_ew[k0]) for v in true_ew[k0:]]
+    bound_s = next(n for n, d in enumerate(moved) if d >= 2 * fc.stuck_model_k) + 1  # + the tick that decides
+    safe_at = next(n for n, o in enumerate(outs[k0:]) if o.limits.reason == DerateReason.SENSOR_FAULT)
+    assert safe_at <= bound_s, (safe_at, bound_s)
+    after = outs[k0 + safe_at:]
+    assert all(o.limits.reason == DerateReason.SENSOR_FAULT and o.limits.current_a <= SAFE for o in after)
+    assert all(o.state == TeState.DEGRADED for o in after)
+    assert set(after[-1].faults.values()) == {"stuck"}
+    assert "end_winding" in after[-1].faults
+    # no model fault on the way: the stuck sensor is named, not the model
+    assert all(o.limits.reason != DerateReason.MODEL_FAULT for o in outs)
+
+
+def test_a_stuck_sensor_is_released_when_its_reading_moves_again(tmp_path, model):
+    eng = ThermalEngine(_engine_config(tmp_path), model, None, worker_mode="sync")
+    st = Stepper(model, model.nominal(), 1.0)
+    T = np.full(len(model.nodes), 25.0)
+    frozen = T.copy()
+    out = None
+    for k in range(1, 200):
+        T, _ = st.step(T, {"speed_rpm": 900.0, "i_rms": 30.0, "torque_nm": 168.0, "ambient_c": 25.0})
+        out = _feed(eng, model, 1000.0 + k, frozen, i=30.0, speed=900.0)
+        if out.limits.reason == DerateReason.SENSOR_FAULT:
+            break
+    assert out is not None and out.faults.get("end_winding") == "stuck"
+    assert eng.accumulator.bad_readings["stuck"] >= 1
+    for k in range(200, 205):  # the frame comes alive again: the true readings
+        T, _ = st.step(T, {"speed_rpm": 900.0, "i_rms": 10.0, "torque_nm": 56.0, "ambient_c": 25.0})
+        out = _feed(eng, model, 1000.0 + k, T, i=10.0, speed=900.0)
+    assert "stuck" not in out.faults.values() and eng.stuck.stuck == {}
+
+
+@pytest.mark.parametrize("noise", [False, True], ids=["exact", "pt100_noise"])
+def test_a_healthy_machine_at_steady_state_is_not_stuck(tmp_path, model, noise):
+    """At the rated steady state the readings sit still (exactly, or within the PT100's noise and
+    0.1 K resolution) and the model predicts no change: no sensor fault in 15 min; then a heat-up at
+    full load with healthy readings: none either."""
+    eng = ThermalEngine(_engine_config(tmp_path), model, None, worker_mode="sync")
+    op = {"speed_rpm": 900.0, "i_rms": 19.0, "torque_nm": 106.0, "ambient_c": 25.0}
+    T, _ = steady_state(model, op)
+    rng = np.random.default_rng(1)
+    for k in range(1, 901):
+        seen = np.asarray(pt100(T, rng, 0.1, 0.1), dtype=float) if noise else T
+        out = _feed(eng, model, 1000.0 + k, seen, i=19.0, speed=900.0)
+        assert not out.faults and out.limits.reason not in (DerateReason.SENSOR_FAULT, DerateReason.MODEL_FAULT)
+    outs, _, _ = _closed_loop(tmp_path, model, MAX, None, 300.0, noise=noise)
+    assert not any(o.faults for o in outs)
+    assert eng.accumulator.bad_readings["stuck"] == 0
+
+
+@pytest.mark.async_timeout(120)
+async def test_stuck_readings_in_the_closed_loop_as_the_inverter_sees_it(tmp_path, channel):
+    """The service and the emulator (rated heat-up, 19 A) on a virtual bus: the stator temperatures
+    freeze 300 s into the heat-up. The emulator's own decode of TE_Limits shows the safe limit with
+    ``sensor_fault`` before the plant's true winding (slot or end) has moved 2 x ``stuck_model_k``
+    since the freeze, counted back by the frame's way (one tick, the emulator's lead, a plant step)."""
+    async with running(tmp_path, channel) as (svc, emu):
+        await sim_until(emu, 300)
+        frozen = emu._stator_signals()
+        emu._stator_signals = lambda: dict(frozen)  # the frame keeps coming, with frozen values
+        t_freeze = emu.elapsed
+        nodes = [emu.model.sensors[s] for s in ("slot_winding", "end_winding")]
+        start = {n: emu.true(n) for n in nodes}
+        moved: list[tuple[float, float]] = []  # (simulated s since the freeze, largest true move, K)
+        while emu.last_reason != DerateReason.SENSOR_FAULT:
+            await sim_until(emu, emu.elapsed + 1.0)
+            moved.append((emu.elapsed - t_freeze, max(abs(emu.true(n) - start[n]) for n in nodes)))
+            assert moved[-1][0] < 900, "no sensor fault in 15 min"
+        log = [(t - emu.t0 - t_freeze, cur, r) for t, cur, tq, r in emu.limit_log]
+        hit = next(t for t, cur, r in log if t >= 0 and r == DerateReason.SENSOR_FAULT and cur <= SAFE)
+        decided = hit - (1.0 + MAX_LEAD_S + PLANT_DT_S)
+        true_move = max(m for t, m in moved if t <= max(decided, moved[0][0]))
+        k = svc.engine.config.derating.faults.stuck_model_k
+        assert true_move < 2 * k, (hit, true_move)
+        assert svc.engine.accumulator.bad_readings["stuck"] >= 1
+        await sim_until(emu, emu.elapsed + 30.0)
+        assert emu.last_reason == DerateReason.SENSOR_FAULT and emu.current_limit <= SAFE
+
+
+def test_a_model_fault_that_recurs_after_its_hold_holds_longer(tmp_path):
+    """The hold doubles for each fault within ``repeat_s`` after the previous hold ended, up to
+    ``hold_max_s``; a fault long after starts again at ``hold_s``."""
+    fc = _engine_config(tmp_path).derating.faults
+    h = ModelHealth(fc, 180.0)
+    t, holds = 0.0, []
+    for _ in range(8):
+        hold = h.fault(t)
+        holds.append(hold)
+        assert h.holding(t + hold - 1e-6) and not h.holding(t + hold)
+        t += hold + 122.0  # full power again for 122 s (the finding's cycle), then the same fault
+    assert holds == [min(fc.hold_s * 2 ** n, fc.hold_max_s) for n in range(8)]
+    assert h.fault(t + fc.hold_max_s + fc.repeat_s + 1.0) == fc.hold_s
+    assert h.faults == 9
