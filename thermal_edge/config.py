@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import errno
 import functools
 import ipaddress
 import math
@@ -27,12 +28,15 @@ from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-import yaml
-
 from .bus.busconfig import BusConfig, BusConfigError
-from .bus.frames import DerateReason
+from .bus.frames import TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .settings import AdapterConfig, setting, spec_of
+from .yamlfile import YamlProblem, parse_yaml
+
+#: Errors making ``state.dir`` that the file system's state or permissions decide, not the configuration:
+#: the service starts without persistence and says so (:meth:`EdgeConfig.check_state_dir`).
+_STATE_DIR_CONDITIONS = frozenset({errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EIO})
 
 __all__ = [
     "AdaptationConfig",
@@ -180,7 +184,7 @@ class ClockConfig:
     """``clock:`` -- what drives the 1 Hz tick: ``wall`` (hardware) or ``frame`` timestamps."""
 
     mode: str = setting("wall", choices=CLOCK_MODES)
-    tick_s: float = setting(1.0, positive=True)
+    tick_s: float = setting(1.0, positive=True, max=10.0)  # stale inputs are judged once a tick
     max_catchup_s: float = setting(300.0, positive=True)
 
 
@@ -233,7 +237,7 @@ class FaultConfig:
     innovation_k: float = setting(15.0, positive=True)
     innovation_ticks: int = setting(5, min=1)
     prediction_error_k: float = setting(40.0, positive=True)
-    hold_s: float = setting(30.0, min=0.0)
+    hold_s: float = setting(30.0, positive=True)  # 0 would hand a diverged model back at once
     #: a model fault within this long after the previous hold ended is the same cause recurring: the
     #: hold doubles each time, up to ``hold_max_s`` (black-box finding 2: one cause faulted every 153 s,
     #: 122 s of each at full power, for as long as it lasted)
@@ -436,7 +440,9 @@ class EdgeConfig:
             ``<file>: model.parameters.<name>: <value> is outside the model's bounds [lo, hi] ...``
             or, for an unknown name, the closest known one.
         """
-        from .lptn import ParameterError  # (the model package is only needed once a model is loaded)
+        from .lptn import (
+            ParameterError,  # (the model package is only needed once a model is loaded)
+        )
 
         for name, value in self.model.parameters.items():
             try:
@@ -446,11 +452,13 @@ class EdgeConfig:
                 raise self.error(f"model.parameters.{name}", f"{exc.problem}{where}") from None
 
     def check_state_dir(self, create: bool) -> None:
-        """Check that ``state.dir`` is, or can be made, a directory; with ``create`` make it and
-        check that this user can write it.
+        """Check that ``state.dir`` is, or can be made, a directory; with ``create`` make it if it can.
 
-        Without ``create`` (``run --check``, perhaps as another user than the service's) only what
-        no user could fix is an error: the path is a file, or lies under one.
+        Only a path where no directory can be is an error: the path is a file, or lies under one,
+        or the file system refuses any directory there (``/proc``). What the file system's state or
+        permissions decide (read-only after an I/O error, full, not this user's) changes without an
+        edit of the configuration: the service starts and protects, its state store says it cannot
+        save (ERROR, metric ``state_save_failing``) and every save retries.
 
         Raises
         ------
@@ -468,17 +476,15 @@ class EdgeConfig:
             if probe != d:  # try to make a directory where it would go, then remove it
                 try:
                     os.rmdir(tempfile.mkdtemp(prefix=".thermal-edge-check-", dir=probe))
-                except PermissionError:
-                    pass  # perhaps only for this user: the service's user may be allowed
                 except OSError as exc:
-                    raise self.error("state.dir", f"{d} cannot be created under {probe}: {exc.strerror or exc}") from None
+                    if exc.errno not in _STATE_DIR_CONDITIONS:
+                        raise self.error("state.dir", f"{d} cannot be created under {probe}: {exc.strerror or exc}") from None
             return
         try:
             d.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
-            raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
-        if not os.access(d, os.W_OK | os.X_OK):
-            raise self.error("state.dir", f"{d} is not writable by this user")
+            if exc.errno not in _STATE_DIR_CONDITIONS:
+                raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
 
     def check_dbc(self, codec: Any) -> None:
         """Check that every mapped frame and signal exists in the DBC."""
@@ -500,6 +506,17 @@ class EdgeConfig:
                 codec.frame_id(frame)
             except KeyError:
                 raise self.error(f"timeouts.{frame}", f"no frame {frame!r} in {Path(codec.dbc_path).name}") from None
+        # a limit the DBC cannot carry would be sent saturated: not the configured one
+        limits = codec.database.get_message_by_name(TE_LIMITS)
+        d = self.derating
+        for key, value, signal in (("max_current_a", d.max_current_a, "TE_CurrentLimit"),
+                                   ("safe_current_a", d.safe_current_a, "TE_CurrentLimit"),
+                                   ("max_torque_nm", d.max_torque_nm, "TE_TorqueLimit"),
+                                   ("safe_torque_nm", d.safe_torque_nm, "TE_TorqueLimit")):
+            top = limits.get_signal_by_name(signal).maximum
+            if value is not None and top is not None and value > top:
+                raise self.error(f"derating.{key}", f"must be at most {top:g}, the largest value {signal} carries in "
+                                 f"{Path(codec.dbc_path).name}; got {value:g}")
 
     # -- derived values -------------------------------------------------------------------------
     def kt(self, model: Any) -> float | None:
@@ -765,11 +782,9 @@ def load_config(path: str | os.PathLike[str]) -> EdgeConfig:
     except UnicodeDecodeError:
         raise ConfigError(f"{path.name}: not a UTF-8 text file") from None
     try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark is not None else ""
-        raise ConfigError(f"{path.name}: not valid YAML{where}: {getattr(exc, 'problem', None) or exc}") from None
+        raw = parse_yaml(text)
+    except YamlProblem as exc:
+        raise ConfigError(f"{path.name}: {exc}") from None
     return config_from_mapping(raw, path)
 
 

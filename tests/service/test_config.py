@@ -209,10 +209,16 @@ BROKEN = [
     ("metrics address a name", _set("metrics.address", "not an address"), "metrics.address", "not an IP address"),
     ("udp_multicast channel a unicast address", _set("bus", {"interface": "udp_multicast", "channel": "192.0.2.1"}),
      "bus.channel", "not a multicast group"),
+    ("maximum current the DBC cannot carry", _set("derating.max_current_a", 5000), "derating.max_current_a",
+     "must be at most 3276.75, the largest value TE_CurrentLimit carries in thermal_edge.dbc; got 5000"),
+    ("maximum torque the DBC cannot carry", _set("derating.max_torque_nm", 10000), "derating.max_torque_nm",
+     "must be at most 6553.5, the largest value TE_TorqueLimit carries"),
+    ("no hold after a model fault", _set("derating.faults.hold_s", 0), "derating.faults.hold_s", "must be positive"),
+    ("a tick of a day", _set("clock.tick_s", 86400), "clock.tick_s", "must be at most 10"),
 ]
 # the checks that need more than the file also hold when the service starts (not only with --check)
 AT_START = {"limits period above the inverter timeout", "state.dir is a file", "state.dir under a file",
-            "parameter below its bound", "unknown parameter", "typo under bus"}
+            "parameter below its bound", "unknown parameter", "typo under bus", "maximum current the DBC cannot carry"}
 
 
 def _run(path: Path, *extra: str) -> subprocess.CompletedProcess[str]:
@@ -244,3 +250,32 @@ def test_check_accepts_the_shipped_file_with_a_state_dir_still_to_create(tmp_pat
     proc = _run(write_yaml(tmp_path / "edge.yaml", raw), "--check")
     assert proc.returncode == 0 and proc.stdout.startswith("edge.yaml: ok"), proc.stderr
     assert not (tmp_path / "not").exists()  # --check creates nothing
+
+
+# what PyYAML alone gets wrong in a hand-typed file (a black-box client's findings): each is still
+# exit 2 and one line naming the file (and the key or the line)
+TEXT_EDITS = [
+    ("a number written 1e9", lambda t: t.replace("  tick_s: 1.0 ", "  tick_s: 1e9 "), "clock.tick_s: must be at most 10, got 1e+09"),
+    ("a number written 5e-1", lambda t: t.replace("  tick_s: 1.0 ", "  tick_s: 5e-1 "), None),
+    ("a section given twice", lambda t: t + "\nbus:\n  interface: virtual\n", "key 'bus' appears twice (first on line"),
+    ("nested 5,000 deep", lambda t: t + "\nextra: " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply to read"),
+]
+
+
+@pytest.mark.parametrize("case, edit, words", TEXT_EDITS, ids=[c[0] for c in TEXT_EDITS])
+def test_hand_typed_yaml_is_read_as_an_engineer_means_it(tmp_path, case, edit, words):
+    text = EDGE_YAML.read_text()
+    text = text.replace("path: machines/pm10kw.yaml", f"path: {REPO / 'config' / 'machines' / 'pm10kw.yaml'}")
+    text = text.replace("  dir: ", f"  dir: {tmp_path / 'state'}  # ", 1)
+    changed = edit(text)
+    assert changed != text
+    path = tmp_path / "edge.yaml"
+    path.write_text(changed)
+    proc = _run(path, "--check")
+    if words is None:  # read as the number it looks like: the file is valid
+        assert proc.returncode == 0, proc.stderr
+        assert load_config(path).clock.tick_s == 0.5
+        return
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith("thermal-edge run: error: edge.yaml: ") and words in lines[0], lines[0]

@@ -10,11 +10,19 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Mapping
 
-import yaml
-
+from ..yamlfile import YamlProblem, parse_yaml
 from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
 from .expr import Expr, ExprError, Num, evaluate_const, parse
-from .model import DEFAULT_SPREAD, Discretisation, Edge, Limit, Loss, Model, ModelError, Parameter
+from .model import (
+    DEFAULT_SPREAD,
+    Discretisation,
+    Edge,
+    Limit,
+    Loss,
+    Model,
+    ModelError,
+    Parameter,
+)
 from .tables import Lookup, load_table
 from .vocabulary import NodeRole, Role, parse_role, temperature_name
 
@@ -112,11 +120,11 @@ def read_yaml(path: str | os.PathLike[str], error: type[Exception]) -> Any:
     """Parse a YAML file; a missing file or bad YAML raises ``error`` naming the file."""
     path = Path(path)
     try:
-        return yaml.safe_load(path.read_text())
+        return parse_yaml(path.read_text())
     except OSError as exc:
         raise error(f"{path}: cannot read: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
-        raise error(f"{path.name}: not valid YAML: {exc}") from None
+    except YamlProblem as exc:
+        raise error(f"{path.name}: {exc}") from None
 
 
 def build_model(
