@@ -86,7 +86,9 @@ def nan_literal(model) -> bytes:
 
 
 # (case, content builder, words of the log line); every one: one log line naming the file, a
-# count, the file moved aside unchanged, a fresh start -- never an exception
+# count, the file moved aside unchanged, a fresh start -- never an exception. (An unknown parameter
+# name is no longer one of them: it is dropped and the rest kept, see
+# test_an_unknown_parameter_is_dropped_and_every_known_one_kept.)
 CORRUPT_STATE = [
     ("100,000 nested [", lambda m: b"[" * 100_000, "nested 100000 deep"),
     ("8 MiB of nested [ (at the cap)", lambda m: b"[" * (8 * 1024 * 1024), "nested"),
@@ -99,7 +101,6 @@ CORRUPT_STATE = [
     ("decisions: [1, 2]", lambda m: edited(m, decisions=[1, 2]), "decisions[0]: expected an object"),
     ("parameter as a string", lambda m: edited(m, parameters={"R_e_hous": "8.5"}), "parameters.R_e_hous: expected a number"),
     ("parameter outside its bounds", lambda m: edited(m, parameters={"R_e_hous": 1e6}), "outside the model's bounds"),
-    ("unknown parameter", lambda m: edited(m, parameters={"R_e_house": 8.5}), "did you mean 'R_e_hous'"),
     ("param_version true", lambda m: edited(m, param_version=True), "param_version: expected a non-negative integer"),
     ("adapt_runs -1", lambda m: edited(m, adapt_runs=-1), "adapt_runs"),
     ("T holds null", lambda m: edited(m, T=[None] * len(m.nodes)), "T[0]: expected a number"),
@@ -463,3 +464,75 @@ def test_engine_persists_what_it_restores(tmp_path, model):
     assert store.save(st)
     back = store.load()
     assert back is not None and np.allclose(back.T, out.estimate) and back.saved_at == out.t
+
+
+# ------------------------------------------------------------------------------------------
+# black-box finding 9: one unknown parameter name no longer costs every learned parameter
+def test_an_unknown_parameter_is_dropped_and_every_known_one_kept(tmp_path, model, caplog):
+    known = {"R_e_hous": 8.5, "c_p_ew": 330.0}
+    (tmp_path / "state.json").write_bytes(edited(model, parameters={**known, "R_nosuch": 1.0, "R_e_house": 9.0}))
+    store = StateStore(tmp_path, model)
+    with caplog.at_level(logging.WARNING):
+        st = store.load()
+    assert st is not None and st.parameters == known and st.T == state_for(model).T
+    assert store.params_dropped == 2 and store.load_errors == 0 and not store.quarantined
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "R_e_house, R_nosuch" in warnings[0] and str(tmp_path / "state.json") in warnings[0]
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert [p.name for p in tmp_path.iterdir()] == ["state.json"]  # not moved aside
+
+
+def test_an_unknown_parameter_beside_a_bad_value_still_refuses_the_file(tmp_path, model, caplog):
+    (tmp_path / "state.json").write_bytes(edited(model, parameters={"R_nosuch": 1.0, "R_e_hous": 1e6}))
+    store = StateStore(tmp_path, model)
+    with caplog.at_level(logging.ERROR):
+        assert store.load() is None
+    check_refused(tmp_path, store, caplog, "outside the model's bounds")
+
+
+def test_a_state_with_an_unknown_parameter_is_never_saved(tmp_path, model, caplog):
+    store = StateStore(tmp_path, model)
+    bad = state_for(model)
+    bad.parameters["R_nosuch"] = 1.0
+    with caplog.at_level(logging.ERROR):
+        assert store.save(bad) is False
+    assert store.save_refused == 1 and "has no parameter 'R_nosuch'" in caplog.text
+    assert not (tmp_path / "state.json").exists()
+
+
+# black-box findings 4 and 5: failed saves are visible without a flood; an unwritable directory is said at start
+def test_failed_saves_are_logged_at_1_2_4_8_and_when_they_work_again(tmp_path, model, caplog):
+    store = StateStore(tmp_path, model)
+    assert store.save(state_for(model))
+    blocker = tmp_path / f"state.json.tmp-{os.getpid()}"
+    blocker.mkdir()  # a real failure: the temporary file's name is a directory (EISDIR), as root too
+    with caplog.at_level(logging.WARNING):
+        results = [store.save(state_for(model)) for _ in range(20)]
+        blocker.rmdir()
+        assert store.save(state_for(model))
+    assert results == [False] * 20 and store.save_errors == 20 and store.failing == 0 and store.saves == 2
+    errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert [int(e.split(" failed in a row")[0].rsplit("(", 1)[1]) for e in errors] == [1, 2, 4, 8, 16]
+    assert all("cannot save state to" in e and "Is a directory" in e and "keeping the previous file" in e for e in errors)
+    assert "20 in all" not in caplog.text and "next report after 32" in errors[-1]
+    again = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert again == [f"state saved again to {tmp_path / 'state.json'} after 20 failed save(s) in a row"]
+
+
+def test_the_log_backs_off_to_every_64th_failure():
+    from thermal_edge.service.persistence import _worth_logging
+
+    assert [n for n in range(1, 300) if _worth_logging(n)] == [1, 2, 4, 8, 16, 32, 64, 128, 192, 256]
+
+
+def test_probe_says_when_the_state_directory_cannot_be_written(tmp_path, model, caplog):
+    good = StateStore(tmp_path / "new" / "state", model)
+    assert good.probe() and (tmp_path / "new" / "state").is_dir() and not list((tmp_path / "new" / "state").iterdir())
+    under_a_file = tmp_path / "a-file"
+    under_a_file.write_text("x")
+    store = StateStore(under_a_file / "state", model)
+    with caplog.at_level(logging.ERROR):
+        assert store.probe() is False
+    assert store.failing == 1 and store.save_errors == 1
+    assert f"cannot write the state directory {under_a_file / 'state'}" in caplog.text
+    assert "protects without persistence; every save retries" in caplog.text

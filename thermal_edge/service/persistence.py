@@ -13,7 +13,14 @@ first and never read beyond :data:`MAX_BYTES`; the JSON is parsed only after a b
 characters and ``NaN``/``Infinity``; then every field is type-checked into the dataclass. An
 unusable file is logged with its name and the reason, counted (:attr:`StateStore.load_errors`),
 moved aside to ``state.json.corrupt-<time>-<pid>`` (the newest :data:`KEEP_CORRUPT` are kept for
-forensics) and the service starts from the defaults.
+forensics) and the service starts from the defaults. One exception: a learned parameter the model
+no longer has (renamed or removed by a model update) is dropped with a WARNING naming it and
+counted (:attr:`StateStore.params_dropped`); every parameter the model knows is kept.
+
+A state directory that cannot be written (read-only, full, not creatable) is not a reason to stop
+protecting: :meth:`StateStore.probe` says so at start, every save retries, and failed saves are
+logged on the first, second, fourth, ... (:func:`_worth_logging`) with their count, and once more
+when a save works again.
 
 Saved state is loadable by construction: :meth:`StateStore.save` encodes the state and runs the
 very same :func:`decode` on the bytes it is about to write; a state that would not load is refused
@@ -76,6 +83,13 @@ class StateError(ValueError):
     """A state file that cannot be used (the message says why)."""
 
 
+def _worth_logging(n: int) -> bool:
+    """Log the ``n``-th failure in a row? The 1st, 2nd, 4th, ... 64th, then every 64th: a state
+    directory that stays unwritable stays visible (about hourly at the 60 s save interval) without
+    a line a minute."""
+    return n & (n - 1) == 0 if n <= 64 else n % 64 == 0
+
+
 # ------------------------------------------------------------------------------------------
 # bounded parsing
 def _structure(data: bytes) -> tuple[int, int]:
@@ -122,8 +136,16 @@ def _parse_constant(text: str) -> Any:
     raise StateError(f"{text} is not a number")
 
 
-def decode(data: bytes, model: Model) -> "PersistedState":
+def decode(data: bytes, model: Model, dropped: list[str] | None = None) -> "PersistedState":
     """Bytes of a state file -> a validated state for ``model``; the one check of load and save.
+
+    Parameters
+    ----------
+    data : bytes
+    model : Model
+    dropped : list of str, optional
+        Given (on load): parameter names the model does not have are dropped and appended here.
+        None (on save): such a name makes the state unusable, so a saved file never holds one.
 
     Raises
     ------
@@ -149,7 +171,7 @@ def decode(data: bytes, model: Model) -> "PersistedState":
         raise StateError(f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except (RecursionError, MemoryError, ValueError) as exc:  # StateError from the hooks included
         raise StateError(f"not usable JSON: {exc}") from None
-    return PersistedState.from_json(raw, model)
+    return PersistedState.from_json(raw, model, dropped)
 
 
 # ------------------------------------------------------------------------------------------
@@ -223,11 +245,13 @@ class PersistedState:
         return {"format": FORMAT, "version": VERSION, **self.__dict__}
 
     @classmethod
-    def from_json(cls, raw: Any, model: Model) -> "PersistedState":
+    def from_json(cls, raw: Any, model: Model, dropped: list[str] | None = None) -> "PersistedState":
         """Validate a parsed state file into a state for ``model``.
 
         Every field is type-checked; parameters are checked against the model's bounds after
-        round-off at a bound is set onto it (:meth:`Model.snap_to_bounds`).
+        round-off at a bound is set onto it (:meth:`Model.snap_to_bounds`). With ``dropped`` given,
+        parameter names the model does not have are removed and appended to it (a model update
+        that renames one parameter must not cost the others); without, they are an error.
 
         Raises
         ------
@@ -250,6 +274,10 @@ class PersistedState:
             if k not in raw:
                 raise StateError(f"missing field {k!r}")
         params = _mapping(raw["parameters"], "parameters", _number)
+        if dropped is not None:
+            names = {p.name for p in model.parameters}
+            dropped.extend(sorted(k for k in params if k not in names))
+            params = {k: v for k, v in params.items() if k in names}
         try:
             params = model.snap_to_bounds(params)
             model.check_parameters(params)
@@ -315,8 +343,14 @@ class StateStore:
         self.save_refused = 0
         #: Temporary files of interrupted saves removed at start.
         self.temp_removed = 0
+        #: Learned parameters dropped on load because the model has no parameter of that name.
+        self.params_dropped = 0
+        #: Saves failed in a row (0 once a save works again; 1 after a failed :meth:`probe`).
+        self.failing = 0
+        self._failing_since: float | None = None  # wall time of the first failure of the streak
         self.saves = 0
         self.last_error: str | None = None
+        self.last_saved_wall: float | None = None  # wall time of this process's last good save
         self.quarantined: list[Path] = []
 
     def load(self) -> PersistedState | None:
@@ -345,10 +379,59 @@ class StateStore:
                 data = f.read(MAX_BYTES + 1)  # the file may have grown since the stat
         except OSError as exc:
             return self._bad(f"cannot read: {exc.strerror or exc}")
+        dropped: list[str] = []
         try:
-            return decode(data, self.model)
+            st = decode(data, self.model, dropped)
         except StateError as exc:
             return self._bad(str(exc))
+        if dropped:
+            self.params_dropped += len(dropped)
+            kept = ", ".join(sorted(st.parameters)) or "none"
+            log.warning("state file %s: dropped learned parameter(s) %s: model %s has no parameter of that name "
+                        "(renamed or removed by a model update?); kept the others (%s)", self.path,
+                        ", ".join(dropped), self.model.name, kept)
+        return st
+
+    def probe(self) -> bool:
+        """Can a save work? Create the directory if needed, write and remove a temporary file.
+
+        A directory that cannot be written (read-only or full filesystem, permissions, cannot be
+        created) is logged as an ERROR and counted as a failed save (:attr:`failing`); the service
+        protects on without persistence and every save retries. Never raises.
+        """
+        tmp = self.path.with_name(f"{FILENAME}.tmp-probe-{os.getpid()}")  # removed at the next start if killed here
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+            try:
+                os.write(fd, b"{}")
+            finally:
+                os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            self._failed(f"cannot write the state directory {self.dir}: {exc.strerror or exc}",
+                         "the service protects without persistence; every save retries")
+            try:  # a write that failed after the create leaves the file
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+            return False
+        return True
+
+    def _failed(self, what: str, consequence: str) -> None:
+        """Count a failed save (or probe) and log it if :func:`_worth_logging`."""
+        self.save_errors += 1
+        self.failing += 1
+        self.last_error = what
+        if self._failing_since is None:
+            self._failing_since = time.time()
+        if _worth_logging(self.failing):
+            since = time.strftime("%H:%M:%S", time.gmtime(self._failing_since))
+            kept = ("no state saved by this process yet" if self.last_saved_wall is None else
+                    "the file holds the state of " + time.strftime("%H:%M:%S", time.gmtime(self.last_saved_wall)))
+            log.error("%s; %s (%d failed in a row since %s UTC, %d in all; %s; next report after %d)", what,
+                      consequence, self.failing, since, self.save_errors, kept,
+                      self.failing * 2 if self.failing < 64 else self.failing + 64)
 
     def _remove_temp_files(self) -> None:
         try:
@@ -426,12 +509,8 @@ class StateStore:
         try:
             data = self.encode(state)
         except StateError as exc:
-            self.save_errors += 1
             self.save_refused += 1
-            self.last_error = str(exc)
-            if self.save_refused == 1 or self.save_refused % 100 == 0:
-                log.error("refusing to save state to %s: it would not load (%s); keeping the previous file "
-                          "(refused so far: %d)", self.path, exc, self.save_refused)
+            self._failed(f"refusing to save state to {self.path}: it would not load ({exc})", "keeping the previous file")
             return False
         tmp = self.path.with_name(f"{FILENAME}.tmp-{os.getpid()}")
         try:
@@ -455,15 +534,17 @@ class StateStore:
             except OSError:
                 pass
         except OSError as exc:
-            self.save_errors += 1
-            self.last_error = str(exc)
-            if self.save_errors == 1 or self.save_errors % 100 == 0:
-                log.error("cannot save state to %s: %s (failures so far: %d)", self.path, exc, self.save_errors)
+            self._failed(f"cannot save state to {self.path}: {exc.strerror or exc}", "keeping the previous file")
             try:
                 tmp.unlink(missing_ok=True)
             except OSError:
                 pass
             return False
+        if self.failing:
+            log.warning("state saved again to %s after %d failed save(s) in a row", self.path, self.failing)
+        self.failing = 0
+        self._failing_since = None
         self.saves += 1
+        self.last_saved_wall = time.time()
         return True
 

@@ -15,7 +15,16 @@
   out with every tick (frame clock) or from cyclic senders (wall clock);
 - the state is saved every ``state.save_interval_s``, after every accepted adaptation, and on stop;
 - systemd gets ``READY=1`` once the bus is up, ``WATCHDOG=1`` at half ``WatchdogSec`` while ticks
-  are on time, ``STATUS=`` lines, and ``STOPPING=1``; SIGTERM/SIGINT stop the service cleanly.
+  are on time, ``STATUS=`` lines, and ``STOPPING=1``.
+
+Signals (:data:`STOP_SIGNALS`, :data:`IGNORED_SIGNALS`): SIGTERM, SIGINT and SIGQUIT stop the
+service cleanly (state saved; exit 0, or :data:`EXIT_STATE_NOT_SAVED` if that final save failed).
+SIGQUIT is a stop too: it is what Ctrl-\\ and ``kill -QUIT`` mean to a daemon (nginx, many others), and
+its default action -- die at once with a core -- would lose everything learned since the last save.
+SIGHUP, SIGUSR1, SIGUSR2 and SIGALRM are logged (WARNING, naming the signal) and ignored: there is no
+reload and no other command by signal, and by default each of them kills the process, which
+stops TE_Limits -- and systemd's ``Restart=on-failure`` does not restart a death by SIGHUP (it counts as a
+clean exit), while the others count towards ``StartLimitBurst``. SIGPIPE is ignored by Python already.
 """
 from __future__ import annotations
 
@@ -49,6 +58,13 @@ __all__ = ["EdgeService", "status_line"]
 log = logging.getLogger(__name__)
 
 ADAPT_WAIT_TIMEOUT_S = 300.0
+#: Signals that stop the service cleanly (the state saved).
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGQUIT)
+#: Signals logged and ignored (each would otherwise kill the process: no TE_Limits, no save).
+IGNORED_SIGNALS = (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM)
+#: Exit status of a clean stop whose final save failed (what was learned since the last good save is
+#: lost): not 0, so that ``systemctl`` shows the unit failed and a stop not asked by systemd restarts it.
+EXIT_STATE_NOT_SAVED = 3
 
 
 def status_line(out: TickOutput | None) -> str:
@@ -94,6 +110,7 @@ class EdgeService:
         config.check_dbc(self.codec)
         self.store = StateStore(config.state.dir, self.model)
         restored = self.store.load()
+        self.store.probe()  # an unwritable state directory: ERROR, counted; the service protects on and retries
         self.engine = ThermalEngine(config, self.model, restored, worker_mode)
         self.frame_mode = config.clock.mode == "frame"
         self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s) if self.frame_mode else WallClock(config.clock.tick_s)
@@ -102,6 +119,9 @@ class EdgeService:
         self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
                                       bus_factory=bus_factory_fn)
         self.metrics.attach(self.engine, self.codec, self.transport.stats, self.store)
+        self.metrics.extra.append(("state_save_failing", lambda: self.store.failing,
+                                   "State saves failed in a row (0: the last save worked; 1 at start: the state "
+                                   "directory is not writable)"))
         self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
                                    "Wall time minus clock time of the last frame (frame clock; large = behind)"))
         self.serve_metrics = serve_metrics
@@ -115,6 +135,9 @@ class EdgeService:
         self._waiting = False
         self._saved_running = False
         self._stopped = False
+        self._final_saved = True
+        #: Signals received and ignored, by name.
+        self.signals_ignored: dict[str, int] = {}
         self.on_tick: list[Callable[[TickOutput], Any]] = []
         self.max_lateness_s = 0.0
 
@@ -166,22 +189,39 @@ class EdgeService:
             await self.transport.stop()
         except Exception as exc:
             log.warning("bus stop: %s", exc)
-        self.save()
+        self._final_saved = self.save()
         self.engine.close()
         self.metrics.up.set(0)
         self.metrics.close()
         self.notifier.close()
-        log.info("thermal_edge service stopped, state saved to %s", self.store.path)
+        store = self.store
+        if self._final_saved:
+            log.info("thermal_edge service stopped, state saved to %s", store.path)
+        else:
+            kept = ("the file there holds the state saved at " + time.strftime("%H:%M:%S UTC", time.gmtime(store.last_saved_wall))
+                    if store.last_saved_wall is not None else "no state was saved by this run")
+            log.error("thermal_edge service stopped WITHOUT saving its state to %s (%s): the parameters, decisions and "
+                      "thermal state since the last good save are lost; %s", store.path, store.last_error, kept)
 
     async def run(self, stop: asyncio.Event | None = None, *, handle_signals: bool = True) -> int:
-        """Run until ``stop`` is set or SIGTERM/SIGINT arrives; returns the exit status (0)."""
+        """Run until ``stop`` is set or a stop signal (:data:`STOP_SIGNALS`) arrives.
+
+        Returns
+        -------
+        int
+            The exit status: 0, or :data:`EXIT_STATE_NOT_SAVED` if the final save failed.
+        """
         stop = stop or asyncio.Event()
         loop = asyncio.get_running_loop()
         installed = []
         if handle_signals:
-            for sig in (signal.SIGTERM, signal.SIGINT):
+            def stopping(sig: signal.Signals) -> None:
+                log.info("received %s: stopping", sig.name)
+                stop.set()
+
+            for sig in STOP_SIGNALS + IGNORED_SIGNALS:
                 try:
-                    loop.add_signal_handler(sig, stop.set)
+                    loop.add_signal_handler(sig, stopping if sig in STOP_SIGNALS else self._ignore_signal, sig)
                     installed.append(sig)
                 except (NotImplementedError, RuntimeError, ValueError):
                     pass
@@ -192,7 +232,14 @@ class EdgeService:
             await self.stop()
             for sig in installed:
                 loop.remove_signal_handler(sig)
-        return 0
+        return 0 if self._final_saved else EXIT_STATE_NOT_SAVED
+
+    def _ignore_signal(self, sig: signal.Signals) -> None:
+        n = self.signals_ignored.get(sig.name, 0) + 1
+        self.signals_ignored[sig.name] = n
+        if n & (n - 1) == 0:  # the 1st, 2nd, 4th, ...: a signal storm cannot flood the journal
+            log.warning("received %s: ignored (thermal-edge has no reload and takes no command by signal; "
+                        "TE_Limits continues; %d so far)", sig.name, n)
 
     # ------------------------------------------------------------------------------------------
     def _on_frame(self, frame: DecodedFrame) -> Any:

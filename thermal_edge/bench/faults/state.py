@@ -279,6 +279,8 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         "fifo": (fifo, False),
         "temp_file_left_over": (temp_left, True),
         "parameter_at_bound_roundoff": (with_(parameters=roundoff), True),
+        # a model update renamed or removed a parameter: the others are kept (black-box finding 9)
+        "unknown_parameter_name": (with_(parameters=dict(seed["parameters"], R_nosuch=1.0)), True),
     }
 
 
@@ -526,4 +528,142 @@ def soak(full: bool) -> Iterator[Case]:
         shutil.rmtree(workdir, ignore_errors=True)
 
 
-GROUPS = {"crash": crash_safety, "states": corrupt_states, "configs": broken_configs, "soak": soak}
+# ----------------------------------------------------------------------------------------------
+IGNORED = ("SIGHUP", "SIGUSR1", "SIGUSR2", "SIGALRM")
+#: Exit status of a stop whose final save failed (documented in :mod:`thermal_edge.service.service`).
+EXIT_STATE_NOT_SAVED = 3
+
+
+def _log_names(svc: Service, *words: str) -> bool:
+    return any(all(w in line for w in words) for line in svc.log_text().splitlines())
+
+
+def _block_saves(sd: Path, pid: int) -> Path:
+    """Make every save of the service ``pid`` fail for real: its temporary file's name taken by a directory."""
+    blocker = sd / f"{STATE}.tmp-{pid}"
+    blocker.mkdir(parents=True, exist_ok=True)
+    return blocker
+
+
+@contextlib.contextmanager
+def _small_fs(path: Path) -> Iterator[bool]:
+    """A 1 MiB tmpfs at ``path`` (True), or False where this user cannot mount (not root)."""
+    path.mkdir(parents=True, exist_ok=True)
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(path)], capture_output=True).returncode == 0
+    try:
+        yield ok
+    finally:
+        if ok:
+            subprocess.run(["umount", "-l", str(path)], capture_output=True)
+
+
+def _remount(path: Path, mode: str) -> None:
+    subprocess.run(["mount", "-o", f"remount,{mode}", str(path)], check=True, capture_output=True)
+
+
+def persist(full: bool) -> Iterator[Case]:
+    """Signals and unwritable state (black-box findings 3-5): each of SIGHUP, SIGUSR1, SIGUSR2, SIGALRM
+    is logged by name and ignored while TE_Limits flows on; SIGQUIT stops cleanly with the state saved;
+    saves that fail while running are logged again (not only the first) and a failed final save is
+    reported as such with exit 3; a read-only state directory at start does not stop the protection."""
+    rounds = 5 if full else 1
+    with rig("persist") as r:
+        sd = r.workdir / "state"
+        _seed(r, sd)
+        learned = learned_parameters()
+        raw = r.config(sd, state={"save_interval_s": 0.2})
+        # ignored signals: each in turn to a running service (a fresh one if the last signal killed it),
+        # TE_Limits watched for 2 s after each
+        svc, first = r.start(raw)
+        for name in IGNORED:
+            if not svc.alive():
+                svc, first = r.start(raw)
+            t0 = time.time()
+            for _ in range(rounds):
+                svc.kill(getattr(signal, name))
+                time.sleep(2.0)
+            c = common_checks(_bed(svc, r.monitor, r.group, r.port, r.workdir), t0, time.time())
+            c.add(int(not _log_names(svc, name, "ignored")), f"no log line names {name}")
+            n = sum(1 for t in r.monitor.read().t if t >= t0)
+            yield Case.of(f"signal_{name}", "signals", rounds,
+                          f"{'alive' if svc.alive() else f'dead (exit {svc.proc.returncode if svc.proc else None})'}; "
+                          f"{n} TE_Limits in the {time.time() - t0:.0f} s after it", c)
+        svc.stop()
+        # SIGQUIT: a clean stop with the state saved
+        c = Check()
+        lost = 0
+        codes = []
+        for _ in range(rounds):
+            svc, first = r.start(raw)
+            time.sleep(1.0)
+            before = (sd / STATE).stat().st_mtime_ns
+            svc.kill(signal.SIGQUIT)
+            assert svc.proc is not None
+            try:
+                code = svc.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                code = svc.stop()
+            codes.append(code)
+            c.add(int(code != 0), f"SIGQUIT exit {code}")
+            c.add(svc.tracebacks(), "traceback")
+            c.add(int(not _log_names(svc, "SIGQUIT")), "no log line names SIGQUIT")
+            n, _ = _state_check(sd, learned)
+            lost += n + int((sd / STATE).stat().st_mtime_ns == before)
+        yield Case.of("signal_SIGQUIT", "signals", rounds, f"exit codes {sorted(set(codes), key=str)}; state saved "
+                      f"{'each time' if not lost else 'NOT each time'}", c, lost)
+        # saves failing while running: reported more than once, then back; a failed final save is not "saved"
+        svc, first = r.start(raw)
+        blocker = _block_saves(sd, svc.pid)
+        t0 = time.monotonic()
+        errors = 0.0
+        while errors < 9 and time.monotonic() - t0 < 30 and svc.alive():  # saves run with the 1 Hz tick
+            time.sleep(0.5)
+            errors = metric(svc.metrics(), "thermal_edge_state_save_errors_total")
+        took = time.monotonic() - t0
+        c = Check()
+        lines = [ln for ln in svc.log_text().splitlines() if "cannot save state" in ln]
+        c.add(int(errors >= 4 and len(lines) < 3), f"{errors:.0f} failed saves but {len(lines)} log line(s)")
+        c.add(int(len(lines) > max(3, errors / 2)), f"{len(lines)} log lines for {errors:.0f} failed saves (a flood)")
+        blocker.rmdir()
+        time.sleep(1.0)
+        c.add(int(not _log_names(svc, "saved again")), "no log line says the saves work again")
+        _block_saves(sd, svc.pid)
+        time.sleep(0.5)
+        code = svc.stop()
+        claims = _log_names(svc, "stopped, state saved")
+        c.add(int(claims), "the stop line says 'state saved' after a failed final save")
+        c.add(int(not _log_names(svc, "WITHOUT saving")), "no log line says the final save failed")
+        c.add(int(code != EXIT_STATE_NOT_SAVED), f"exit {code} (expected {EXIT_STATE_NOT_SAVED})")
+        c.add(svc.tracebacks(), "traceback")
+        shutil.rmtree(blocker, ignore_errors=True)
+        yield Case.of("save_fails_at_stop", "persistence", 1,
+                      f"{errors:.0f} failed saves in {took:.0f} s, {len(lines)} ERROR line(s); exit {code}; stop line "
+                      f"{'claims saved' if claims else 'says not saved'}", c)
+        # a read-only state directory at start (a filesystem remounted read-only after an I/O error)
+        ro = r.workdir / "ro-state"
+        with _small_fs(ro) as mounted:
+            if not mounted:
+                yield Case("state_dir_read_only_at_start", "persistence", 0, "not run: mounting a tmpfs needs root")
+                return
+            shutil.copy(sd / STATE, ro / STATE)
+            _remount(ro, "ro")
+            svc, first = r.start(r.config(ro, state={"save_interval_s": 0.5}), timeout=20.0)
+            t0 = time.time()
+            time.sleep(2.0)
+            c = common_checks(_bed(svc, r.monitor, r.group, r.port, r.workdir), t0, time.time())
+            c.add(int(first is None), "no TE_Limits after the start")
+            failing = metric(svc.metrics(), "thermal_edge_state_save_failing")
+            c.add(int(not failing >= 1), f"state_save_failing {failing:g} while the directory is read-only")
+            c.add(int(not _log_names(svc, "ERROR", str(ro))), "no ERROR line names the state directory")
+            lost = params_lost(learned, parameter_metrics(svc.metrics()), rel=1e-6)
+            _remount(ro, "rw")
+            time.sleep(1.5)
+            c.add(int(not _log_names(svc, "saved again")), "the saves did not resume once the directory was writable")
+            code = svc.stop()
+            n, _ = _state_check(ro, learned)
+            yield Case.of("state_dir_read_only_at_start", "persistence", 1,
+                          f"first TE_Limits {'none' if first is None else f'{first:.1f} s'}; state_save_failing "
+                          f"{failing:g}; exit {code}", c, lost + n)
+
+
+GROUPS = {"crash": crash_safety, "states": corrupt_states, "configs": broken_configs, "soak": soak, "persist": persist}

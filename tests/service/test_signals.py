@@ -1,0 +1,143 @@
+"""Signals and an unwritable state directory, against the real service (``thermal-edge run`` in a
+process of its own) with an independent ``TE_Limits`` monitor process on the bus (the fault bench's,
+decoding with cantools from the DBC): black-box findings 3, 4 and 5.
+
+- SIGHUP, SIGUSR1, SIGUSR2, SIGALRM: logged by name (WARNING) and ignored; TE_Limits flows on
+  without a gap over the inverter's 300 ms timeout (they used to kill the process at once).
+- SIGQUIT: a clean stop like SIGTERM (state saved, exit 0).
+- A final save that fails: an ERROR line saying so, and exit 3 (it used to say "state saved", exit 0);
+  saves failing while running are logged again (1st, 2nd, 4th, ...) and once more when they work again.
+- A read-only state directory at start: the service starts and protects, says so (ERROR, metric),
+  and saves once the directory is writable again (it used to exit 2, which the unit never restarts).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from thermal_edge.bench.faults.harness import (GAP_S, START_TIMEOUT_S, Inverter, Monitor, Service, edge_config,
+                                               free_port, gaps, metric, unique_group)
+from thermal_edge.service.service import EXIT_STATE_NOT_SAVED
+
+STATE = "state.json"
+
+
+@pytest.fixture
+def bed(tmp_path, udp_ok):  # noqa: ARG001
+    group, port = unique_group(), free_port()
+    mon = Monitor(group, port, tmp_path)
+    inv = Inverter(group, port).start()
+    started: list[Service] = []
+
+    def start(state_dir: Path, **sections) -> Service:
+        svc = Service(edge_config(state_dir, group, port, **sections), tmp_path, f"svc{len(started)}")
+        svc.start()
+        started.append(svc)
+        assert mon.first_after(svc.started, START_TIMEOUT_S) is not None, svc.log_text()[-3000:]
+        assert svc.wait_metrics(10) is not None, svc.log_text()[-3000:]
+        return svc
+
+    try:
+        yield start, mon
+    finally:
+        for svc in started:
+            if svc.alive():
+                svc.kill(signal.SIGKILL)
+        inv.close()
+        mon.close()
+
+
+def log_lines(svc: Service, *words: str) -> list[str]:
+    return [ln for ln in svc.log_text().splitlines() if all(w in ln for w in words)]
+
+
+def test_hup_usr1_usr2_alrm_are_logged_and_ignored_while_te_limits_flow(tmp_path, bed):
+    start, mon = bed
+    svc = start(tmp_path / "state")
+    for sig in (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM, signal.SIGHUP):
+        t0 = time.time()
+        svc.kill(sig)
+        time.sleep(1.5)
+        t1 = time.time()
+        assert svc.alive(), f"{sig.name} killed the service (exit {svc.proc.returncode}):\n{svc.log_text()[-2000:]}"
+        lim = mon.read()
+        assert gaps(lim, t0, t1) == [], f"TE_Limits gaps over {GAP_S * 1e3:.0f} ms after {sig.name}"
+        assert sum(1 for t in lim.t if t0 <= t <= t1) >= 10  # 100 ms cycle: about 15 in 1.5 s
+        assert log_lines(svc, "WARNING", f"received {sig.name}: ignored"), svc.log_text()[-2000:]
+    assert len(log_lines(svc, "received SIGHUP: ignored")) == 2  # the 1st and the 2nd are logged
+    assert svc.stop() == 0
+    assert log_lines(svc, "received SIGTERM: stopping") and log_lines(svc, "stopped, state saved")
+
+
+def test_sigquit_stops_cleanly_with_the_state_saved(tmp_path, bed):
+    start, _ = bed
+    sd = tmp_path / "state"
+    svc = start(sd)
+    time.sleep(1.5)
+    before = json.loads((sd / STATE).read_text())["saved_at"]
+    svc.kill(signal.SIGQUIT)
+    assert svc.proc is not None and svc.proc.wait(30) == 0, svc.log_text()[-2000:]
+    assert log_lines(svc, "received SIGQUIT: stopping") and log_lines(svc, "stopped, state saved to", str(sd / STATE))
+    assert json.loads((sd / STATE).read_text())["saved_at"] > before
+    assert "Traceback" not in svc.log_text()
+
+
+def test_failed_saves_are_logged_with_back_off_and_a_failed_final_save_exits_3(tmp_path, bed):
+    start, _ = bed
+    sd = tmp_path / "state"
+    svc = start(sd, state={"save_interval_s": 0.2})
+    # every save fails for real: the name of its temporary file is taken by a directory (EISDIR)
+    blocker = sd / f"{STATE}.tmp-{svc.pid}"
+    blocker.mkdir()
+    deadline = time.monotonic() + 60
+    while metric(svc.metrics(), "thermal_edge_state_save_errors_total") < 9 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    m = svc.metrics()
+    assert metric(m, "thermal_edge_state_save_errors_total") >= 9 and metric(m, "thermal_edge_state_save_failing") >= 9
+    counts = [int(ln.split(" failed in a row")[0].rsplit("(", 1)[1]) for ln in log_lines(svc, "ERROR", "cannot save state")]
+    assert counts[:4] == [1, 2, 4, 8], counts
+    blocker.rmdir()
+    assert _wait_log(svc, "state saved again to", 10)
+    assert metric(svc.metrics(), "thermal_edge_state_save_failing") == 0
+    blocker.mkdir()
+    assert svc.stop() == EXIT_STATE_NOT_SAVED == 3
+    assert not log_lines(svc, "stopped, state saved")
+    assert log_lines(svc, "ERROR", "stopped WITHOUT saving its state to", str(sd / STATE), "Is a directory")
+    assert "Traceback" not in svc.log_text()
+    shutil.rmtree(blocker)
+
+
+def _wait_log(svc: Service, words: str, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if log_lines(svc, words):
+            return True
+        time.sleep(0.1)
+    return False
+
+
+def test_a_read_only_state_directory_at_start_protects_and_saves_once_writable(tmp_path, bed):
+    start, mon = bed
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,ro", "tmpfs", str(ro)], capture_output=True).returncode:
+        pytest.skip("a read-only file system needs a tmpfs mount (root)")
+    try:
+        svc = start(ro, state={"save_interval_s": 0.5})  # asserts TE_Limits within the start timeout
+        t0 = time.time()
+        time.sleep(2.0)
+        assert svc.alive() and gaps(mon.read(), t0, time.time()) == []
+        assert metric(svc.metrics(), "thermal_edge_state_save_failing") >= 1
+        assert log_lines(svc, "ERROR", f"cannot write the state directory {ro}", "Read-only file system")
+        subprocess.run(["mount", "-o", "remount,rw", str(ro)], check=True)
+        assert _wait_log(svc, "state saved again", 10), svc.log_text()[-2000:]
+        assert svc.stop() == 0
+        assert json.loads((ro / STATE).read_text())["T"]
+    finally:
+        subprocess.run(["umount", "-l", str(ro)], capture_output=True)
