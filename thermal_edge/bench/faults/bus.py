@@ -12,9 +12,11 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from ...bus.frames import DerateReason
 from ..common import ROOT
 from . import wire
 from .harness import (
+    EDGE,
     SAFE_A,
     TICK_S,
     TIMEOUTS_S,
@@ -29,6 +31,7 @@ from .harness import (
     min_current,
     reasons_in,
     received,
+    service_config_path,
 )
 
 SETTLE_S = 0.4  # after a case, before its counters are read: the last frames in flight
@@ -253,6 +256,69 @@ def sensor_faults(full: bool) -> Iterator[Case]:
                 yield Case.of(f"{which}_{fault}", "faulty sensors", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
 
 
+#: full load for the stuck-sensor case: 40 A rms at 900 rpm (the d/q peak amplitudes of 40 A rms on q)
+STUCK_LOAD = {"INV_Currents": {"INV_Id": 0.0, "INV_Iq": 40.0 * 2 ** 0.5, "INV_IphRms": 40.0},
+              "INV_Mechanics": {"INV_Speed": 900.0, "INV_Torque": 224.0, "INV_Udc": 560.0}}
+
+
+def stuck_bound_s(idle_c: float) -> float:
+    """How long the machine model of the shipped configuration (its nominal parameters, stepped here
+    at 1 s, independently of the service) needs at :data:`STUCK_LOAD` from ``idle_c`` everywhere before
+    a stator sensor's node has moved by ``derating.faults.stuck_model_k``, s: a reading that has not
+    moved by then is the stuck one the service must name."""
+    import numpy as np
+
+    from ...config import FaultConfig
+    from ...lptn import Stepper, load_model
+
+    k = float(EDGE["derating"].get("faults", {}).get("stuck_model_k", FaultConfig().stuck_model_k))
+    model = load_model(service_config_path(*Path(EDGE["model"]["path"]).parts))
+    st = Stepper(model, model.nominal(), 1.0)
+    rows = [model.node_index(n) for n in model.sensors.values()]
+    T = np.full(len(model.nodes), idle_c)
+    u = {"speed_rpm": 900.0, "i_rms": 40.0, "torque_nm": 224.0, "ambient_c": idle_c}
+    for n in range(1, 3601):
+        T, _ = st.step(T, u)
+        if max(abs(T[r] - idle_c) for r in rows) >= k:
+            return float(n)
+    return 3600.0
+
+
+def stuck_sensors(full: bool) -> Iterator[Case]:
+    """The stator readings frozen (the bench's readings never move) while the machine draws full load:
+    the safe limit with ``sensor_fault`` and a ``stuck`` bad reading within the time the model needs to
+    move a sensor's node by ``stuck_model_k`` (computed here from the model file), one tick and margin;
+    never a model fault first (black-box finding 2: full power for 122 s of every 153 s)."""
+    idle = wire.idle_signals()
+    idle_c = float(idle["INV_StatorTemps"]["INV_T_Housing"])
+    bound = stuck_bound_s(idle_c) + TICK_S + 1.0  # the deciding tick, margin for the wall clock
+    hold = 20.0 if full else 8.0
+    with bed("stuck") as b:
+        inv = b.inverter
+        assert inv is not None
+        _settled()
+        m0 = b.service.metrics()
+        t0 = time.time()
+        with inv.lock:
+            inv.signals.update({k: dict(v) for k, v in STUCK_LOAD.items()})
+        time.sleep(bound + hold)
+        t1 = time.time()
+        m1 = b.service.metrics()
+        lim = b.monitor.read()
+        c = common_checks(b, t0, t1, safe_from=t0 + bound)
+        other = sum(1 for t, r in zip(lim.t, lim.reason) if t0 + bound <= t <= t1 and r != int(DerateReason.SENSOR_FAULT))
+        c.add(other, f"{other} TE_Limits after {bound:.0f} s without the sensor_fault reason")
+        stuck = int(metric(m1, 'thermal_edge_bad_readings_total{kind="stuck"}') - metric(m0, 'thermal_edge_bad_readings_total{kind="stuck"}'))
+        c.add(0 if stuck >= 1 else 1, "no stuck bad reading counted")
+        did = f"{_safe_after(b, t0, t1, bound)}; {reasons_in(lim, t0, t1)}; {stuck} stuck reading(s) counted; "
+        with inv.lock:  # the readings come alive (and the load goes): the fault clears
+            inv.signals.update({k: dict(v) for k, v in idle.items() if k in STUCK_LOAD})
+            inv.signals["INV_StatorTemps"] = {**idle["INV_StatorTemps"], "INV_T_WindingSlot": idle_c + 0.5,
+                                              "INV_T_EndWinding": idle_c + 0.5}
+        did += _recovery(b, time.time(), timeout=15.0)
+        yield Case.of("stator_stuck_at_full_load", "faulty sensors", 1, did, c)
+
+
 def band(full: bool) -> Iterator[Case]:
     """The limit at a hot measured winding: never above the band at the measured temperature, also
     when the model faults there (issue 14 defect 9)."""
@@ -290,7 +356,6 @@ def bus_silence(full: bool) -> Iterator[Case]:
         inv = b.inverter
         assert inv is not None
         _settled()
-        from .harness import EDGE
 
         silence_s = float(EDGE["transmit"]["bus_silence_s"])
         for s in silences:
@@ -452,4 +517,5 @@ def metrics_abuse(full: bool) -> Iterator[Case]:
 
 #: group name -> its cases
 GROUPS = {"bad_frames": bad_frames, "floods": floods, "load": full_bus, "stale": stale_inputs, "sensors": sensor_faults,
+          "stuck": stuck_sensors,
           "band": band, "bus": bus_silence, "security": security, "metrics": metrics_abuse}
