@@ -223,11 +223,19 @@ class LimitConfig:
 
 @dataclass(frozen=True)
 class SignalsConfig:
-    """``signals:`` -- CAN signals to model inputs and sensors, and the plausible reading range."""
+    """``signals:`` -- CAN signals to model inputs and sensors, and the plausible reading ranges."""
 
     inputs: dict[str, InputSignal]
     sensors: dict[str, SensorSignal]
     valid_range_c: tuple[float, float] = setting((-40.0, 250.0), parse=_range_c)
+    #: the current input ``i_rms`` above this multiple of ``derating.max_current_a`` is implausible (the
+    #: input's fault, ``out_of_range``): the inverter obeys TE_CurrentLimit <= max_current_a and a drive's
+    #: short-time peak is 2-2.5x its rated current; the d/q signals carry up to 1638 A
+    valid_current_factor: float = setting(3.0, positive=True)
+    #: the speed input ``speed_rpm`` beyond +-this is implausible: about 5x the pm10kw's base speed (its
+    #: back-EMF, kt 5.6 Nm/A, reaches the 560 V DC link's phase voltage at ~1170 rpm; field weakening of
+    #: a surface PM machine rarely reaches 4x); the signal carries +-16000 rpm
+    valid_speed_rpm: float = setting(6000.0, positive=True)
 
 
 @dataclass(frozen=True)

@@ -142,3 +142,37 @@ def test_frame_clock_ticks_at_boundaries_crossed():
     assert c.observe(100.5) == []  # backwards: ignored for the clock
     assert c.observe(104.3) == [102.0, 103.0, 104.0]
     assert first_boundary(7.0, 1.0) == 8.0 and first_boundary(7.2, 0.5) == 7.5
+
+
+def test_absurd_currents_and_speeds_are_bad_readings_left_out_of_the_mean(acc):
+    """1000 A, the d/q signals' 1638 A and +-16000 rpm (black-box finding 6): each frame out of its
+    plausible range (3 x the 40 A maximum current; +-6000 rpm) is left out of the tick's mean, the
+    input is faulty (``out_of_range``) for that tick and counted once per entry into the fault."""
+    cfg = load_config(EDGE_YAML)
+    assert (cfg.signals.valid_current_factor * cfg.derating.max_current_a, cfg.signals.valid_speed_rpm) == (120.0, 6000.0)
+    good_iq, good_speed = 30.0 * math.sqrt(2), 900.0  # 30 A rms on q
+    for k in range(10):
+        t = 10.0 + 0.1 * k
+        absurd = k in (3, 7)
+        iq = 1000.0 * math.sqrt(2) if k == 3 else 1638.35 if k == 7 else good_iq
+        speed = 16000.0 if k == 3 else -16000.0 if k == 7 else good_speed
+        acc.add(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=iq, INV_IphRms=0.0), t)
+        acc.add(frame("INV_Mechanics", t, INV_Speed=speed, INV_Torque=100.0, INV_Udc=560.0), t)
+        assert absurd or iq == good_iq
+    acc.add(stator(10.5), 10.5)
+    acc.add(ambient(10.5), 10.5)
+    ti = acc.take(11.0)
+    assert ti.inputs["i_rms"] == pytest.approx(30.0) and ti.inputs["speed_rpm"] == 900.0  # the 8 plausible frames
+    assert ti.faults == {"i_rms": "out_of_range", "speed_rpm": "out_of_range"}
+    assert acc.bad_readings["out_of_range"] == 2  # one per input entering the fault
+    assert {"i_rms", "speed_rpm"} <= set(acc.fault_sources)
+    # a tick of only absurd frames: the input holds its last value, still faulty, not counted again
+    acc.add(frame("INV_Currents", 11.2, INV_Id=0.0, INV_Iq=1000.0, INV_IphRms=0.0), 11.2)
+    ti = acc.take(12.0)
+    assert ti.inputs["i_rms"] == pytest.approx(30.0) and ti.faults == {"i_rms": "out_of_range"}
+    assert acc.bad_readings["out_of_range"] == 2
+    # plausible again (just inside the ranges): no fault
+    acc.add(frame("INV_Currents", 12.2, INV_Id=0.0, INV_Iq=119.9 * math.sqrt(2), INV_IphRms=0.0), 12.2)
+    acc.add(frame("INV_Mechanics", 12.2, INV_Speed=-6000.0, INV_Torque=0.0, INV_Udc=560.0), 12.2)
+    ti = acc.take(13.0)
+    assert not ti.faults and ti.inputs["i_rms"] == pytest.approx(119.9) and ti.inputs["speed_rpm"] == -6000.0

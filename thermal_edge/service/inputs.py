@@ -11,7 +11,9 @@ Per tick (the frames of ``[t - period, t)``):
 
 A frame type that has not arrived for longer than its timeout makes its inputs *stale*; a sensor
 reporting open/short circuit or "not fitted", or a value outside the plausible range, is *faulty*
-(a sensor marked ``required: false`` is then only unmeasured). An input with
+(a sensor marked ``required: false`` is then only unmeasured). A current or speed frame outside its
+plausible range (:func:`input_ranges`) is left out of the tick's mean and makes the input faulty
+(``out_of_range``) for that tick: a physically absurd value is a bad reading, not a load for the model. An input with
 no fresh value keeps its last value (the model must keep running) and is flagged. Bad readings
 are counted by kind in :attr:`InputAccumulator.bad_readings`.
 """
@@ -26,7 +28,7 @@ from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus
 from ..config import EdgeConfig, InputSignal, SensorSignal
 
-__all__ = ["FAULT_KINDS", "InputAccumulator", "TickInputs"]
+__all__ = ["FAULT_KINDS", "InputAccumulator", "TickInputs", "input_ranges"]
 
 
 @dataclass
@@ -95,6 +97,16 @@ _STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatu
 FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck")
 
 
+def input_ranges(config: EdgeConfig) -> dict[str, tuple[float, float]]:
+    """The plausible range of each checked mean/rms input, per frame: ``i_rms`` in A from 0 to
+    ``signals.valid_current_factor`` x ``derating.max_current_a``, ``speed_rpm`` within
+    +-``signals.valid_speed_rpm``."""
+    sig = config.signals
+    ranges = {"i_rms": (0.0, sig.valid_current_factor * config.derating.max_current_a),
+              "speed_rpm": (-sig.valid_speed_rpm, sig.valid_speed_rpm)}
+    return {k: r for k, r in ranges.items() if k in config.inputs and config.inputs[k].reduce != "latest"}
+
+
 class InputAccumulator:
     """Accumulate decoded frames into :class:`TickInputs`, one tick at a time.
 
@@ -120,6 +132,9 @@ class InputAccumulator:
             self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signal, spec.status)))
         self._sum = {k: 0.0 for k in self.reduced}
         self._n = {k: 0 for k in self.reduced}
+        self.ranges = input_ranges(config)
+        self._implausible: set[str] = set()  # checked inputs with a frame out of range this tick
+        self._was_implausible: set[str] = set()  # ... and in the last tick (a fault is counted when it starts)
         self._held = {k: math.nan for k in config.inputs}
         self._latest: dict[str, _Latest] = {k: _Latest() for k in [*self.latest_inputs, *self.sensors]}
         self._last_frame_t: dict[str, float] = {}
@@ -165,6 +180,12 @@ class InputAccumulator:
         if not math.isfinite(x):
             self.bad_readings["no_value"] += 1
             return
+        rng = self.ranges.get(name)
+        if rng is not None:
+            v = math.sqrt(x) if spec.reduce in ("rms", "dq_rms") else x  # this frame's value (rms: its magnitude)
+            if not rng[0] <= v <= rng[1]:
+                self._implausible.add(name)
+                return
         self._sum[name] += x
         self._n[name] += 1
 
@@ -208,7 +229,9 @@ class InputAccumulator:
             self._n[name] = 0
         ages: dict[str, float] = {}
         status: dict[str, int | None] = {}
-        faults: dict[str, str] = {}
+        faults: dict[str, str] = dict.fromkeys(sorted(self._implausible), "out_of_range")
+        self.bad_readings["out_of_range"] += len(self._implausible - self._was_implausible)
+        self._was_implausible, self._implausible = self._implausible, set()
         for name in self.latest_inputs:
             slot = self._latest[name]
             inputs[name] = slot.value
@@ -237,9 +260,9 @@ class InputAccumulator:
 
     @property
     def fault_sources(self) -> list[str]:
-        """The names whose fault is reported in :attr:`TickInputs.faults`: latest-value inputs and
-        required sensors."""
-        return [*self.latest_inputs, *(n for n, spec in self.sensors.items() if spec.required)]
+        """The names whose fault is reported in :attr:`TickInputs.faults`: range-checked mean/rms
+        inputs, latest-value inputs and required sensors."""
+        return [*self.ranges, *self.latest_inputs, *(n for n, spec in self.sensors.items() if spec.required)]
 
     def last_valid_t(self, name: str) -> float:
         """Clock time (s) of the last valid reading of a sensor or a latest-value input (-inf: none yet)."""
@@ -250,3 +273,4 @@ class InputAccumulator:
         for k in self._sum:
             self._sum[k] = 0.0
             self._n[k] = 0
+        self._implausible.clear()
