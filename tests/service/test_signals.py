@@ -4,6 +4,7 @@ decoding with cantools from the DBC): black-box findings 3, 4 and 5.
 
 - SIGHUP, SIGUSR1, SIGUSR2, SIGALRM: logged by name (WARNING) and ignored; TE_Limits flows on
   without a gap over the inverter's 300 ms timeout (they used to kill the process at once).
+  Also while the service starts (before its handlers are installed).
 - SIGQUIT: a clean stop like SIGTERM (state saved, exit 0).
 - A final save that fails: an ERROR line saying so, and exit 3 (it used to say "state saved", exit 0);
   saves failing while running are logged again (1st, 2nd, 4th, ...) and once more when they work again.
@@ -23,7 +24,7 @@ import pytest
 
 from thermal_edge.bench.faults.harness import (GAP_S, START_TIMEOUT_S, Inverter, Monitor, Service, edge_config,
                                                free_port, gaps, metric, unique_group)
-from thermal_edge.service.service import EXIT_STATE_NOT_SAVED
+from thermal_edge.process_signals import EXIT_STATE_NOT_SAVED
 
 STATE = "state.json"
 
@@ -44,7 +45,7 @@ def bed(tmp_path, udp_ok):  # noqa: ARG001
         return svc
 
     try:
-        yield start, mon
+        yield start, mon, (group, port)
     finally:
         for svc in started:
             if svc.alive():
@@ -58,7 +59,7 @@ def log_lines(svc: Service, *words: str) -> list[str]:
 
 
 def test_hup_usr1_usr2_alrm_are_logged_and_ignored_while_te_limits_flow(tmp_path, bed):
-    start, mon = bed
+    start, mon, _ = bed
     svc = start(tmp_path / "state")
     for sig in (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM, signal.SIGHUP):
         t0 = time.time()
@@ -75,8 +76,24 @@ def test_hup_usr1_usr2_alrm_are_logged_and_ignored_while_te_limits_flow(tmp_path
     assert log_lines(svc, "received SIGTERM: stopping") and log_lines(svc, "stopped, state saved")
 
 
+def test_a_sighup_while_the_service_starts_does_not_kill_it(tmp_path, bed):
+    _, mon, (group, port) = bed
+    svc = Service(edge_config(tmp_path / "state", group, port), tmp_path, "early")
+    svc.start()
+    try:
+        # the first log line comes from loading the state, seconds before the running service's handlers
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not svc.log_text().strip() and time.monotonic() < deadline and svc.alive():
+            time.sleep(0.01)
+        svc.kill(signal.SIGHUP)
+        assert mon.first_after(time.time(), START_TIMEOUT_S) is not None, svc.log_text()[-2000:]
+        assert svc.alive() and svc.stop() == 0
+    finally:
+        svc.kill(signal.SIGKILL)
+
+
 def test_sigquit_stops_cleanly_with_the_state_saved(tmp_path, bed):
-    start, _ = bed
+    start, _, _ = bed
     sd = tmp_path / "state"
     svc = start(sd)
     time.sleep(1.5)
@@ -89,7 +106,7 @@ def test_sigquit_stops_cleanly_with_the_state_saved(tmp_path, bed):
 
 
 def test_failed_saves_are_logged_with_back_off_and_a_failed_final_save_exits_3(tmp_path, bed):
-    start, _ = bed
+    start, _, _ = bed
     sd = tmp_path / "state"
     svc = start(sd, state={"save_interval_s": 0.2})
     # every save fails for real: the name of its temporary file is taken by a directory (EISDIR)
@@ -123,7 +140,7 @@ def _wait_log(svc: Service, words: str, timeout: float) -> bool:
 
 
 def test_a_read_only_state_directory_at_start_protects_and_saves_once_writable(tmp_path, bed):
-    start, mon = bed
+    start, mon, _ = bed
     ro = tmp_path / "ro"
     ro.mkdir()
     if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m,ro", "tmpfs", str(ro)], capture_output=True).returncode:

@@ -1,8 +1,9 @@
 """``thermal-edge run``: the edge service (CAN in, derating out), e.g. under systemd.
 
 Reads and validates the configuration, loads the saved state, opens the bus and runs until
-SIGTERM/SIGINT, which save the state and exit 0. Bad configuration exits 2 with one line naming
-the file and the key.
+SIGTERM/SIGINT/SIGQUIT, which save the state and exit 0 (3 if that final save failed); SIGHUP,
+SIGUSR1, SIGUSR2 and SIGALRM are ignored (:mod:`thermal_edge.process_signals`). Bad configuration
+exits 2 with one line naming the file and the key.
 """
 from __future__ import annotations
 
@@ -29,6 +30,9 @@ def fail(msg: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..process_signals import ignore_while_starting
+
+    ignore_while_starting()  # a SIGHUP while the service starts must not kill it (the running service logs them)
     from ..service.journal import setup_logging
 
     setup_logging(args.log_level)
@@ -48,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
             model = load_service_model(config)
         except (ModelError, OSError) as exc:  # the model file's message names that file and its key
             raise ConfigError(f"{config.fname}: model.path: {line(exc)}") from None
-        # a state directory that cannot hold the state is an error, not a service without persistence
+        # only a path where no directory can be is an error; one that cannot be written now is the state store's to report
         config.check_state_dir(create=not args.check)
         try:
             if args.check:  # (the service checks the model itself when it starts)

@@ -17,14 +17,8 @@
 - systemd gets ``READY=1`` once the bus is up, ``WATCHDOG=1`` at half ``WatchdogSec`` while ticks
   are on time, ``STATUS=`` lines, and ``STOPPING=1``.
 
-Signals (:data:`STOP_SIGNALS`, :data:`IGNORED_SIGNALS`): SIGTERM, SIGINT and SIGQUIT stop the
-service cleanly (state saved; exit 0, or :data:`EXIT_STATE_NOT_SAVED` if that final save failed).
-SIGQUIT is a stop too: it is what Ctrl-\\ and ``kill -QUIT`` mean to a daemon (nginx, many others), and
-its default action -- die at once with a core -- would lose everything learned since the last save.
-SIGHUP, SIGUSR1, SIGUSR2 and SIGALRM are logged (WARNING, naming the signal) and ignored: there is no
-reload and no other command by signal, and by default each of them kills the process, which
-stops TE_Limits -- and systemd's ``Restart=on-failure`` does not restart a death by SIGHUP (it counts as a
-clean exit), while the others count towards ``StartLimitBurst``. SIGPIPE is ignored by Python already.
+Signals: :mod:`thermal_edge.process_signals` (stop: SIGTERM, SIGINT, SIGQUIT; logged and ignored: SIGHUP,
+SIGUSR1, SIGUSR2, SIGALRM).
 """
 from __future__ import annotations
 
@@ -45,6 +39,7 @@ from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS
                           TeState)
 from ..config import EdgeConfig
 from ..lptn import Model
+from ..process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS, STOP_SIGNALS
 from .clock import FrameClock, WallClock
 from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
@@ -58,13 +53,6 @@ __all__ = ["EdgeService", "status_line"]
 log = logging.getLogger(__name__)
 
 ADAPT_WAIT_TIMEOUT_S = 300.0
-#: Signals that stop the service cleanly (the state saved).
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGQUIT)
-#: Signals logged and ignored (each would otherwise kill the process: no TE_Limits, no save).
-IGNORED_SIGNALS = (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM)
-#: Exit status of a clean stop whose final save failed (what was learned since the last good save is
-#: lost): not 0, so that ``systemctl`` shows the unit failed and a stop not asked by systemd restarts it.
-EXIT_STATE_NOT_SAVED = 3
 
 
 def status_line(out: TickOutput | None) -> str:

@@ -21,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from ...process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS
 from ..common import ROOT
 from . import wire
 from .harness import (
@@ -325,7 +326,8 @@ def corrupt_states(full: bool) -> Iterator[Case]:
                 svc2.stop()
             did = (f"first TE_Limits {'none' if first is None else f'{first:.1f} s ({cpu:.1f} s CPU)'}; "
                    f"{'moved aside' if aside else 'kept'}; load errors {metric(m, 'thermal_edge_state_load_errors_total'):.0f}; "
-                   f"peak RSS {peak / 2**20:.0f} MiB; exit {code}")
+                   + (f"parameters dropped {metric(m, 'thermal_edge_state_params_dropped_total'):.0f}; " if usable else "")
+                   + f"peak RSS {peak / 2**20:.0f} MiB; exit {code}")
             yield Case.of(f"state_{name}", "corrupt state", 1, did, c, lost)
             shutil.rmtree(sd, ignore_errors=True)
 
@@ -529,9 +531,6 @@ def soak(full: bool) -> Iterator[Case]:
 
 
 # ----------------------------------------------------------------------------------------------
-IGNORED = ("SIGHUP", "SIGUSR1", "SIGUSR2", "SIGALRM")
-#: Exit status of a stop whose final save failed (documented in :mod:`thermal_edge.service.service`).
-EXIT_STATE_NOT_SAVED = 3
 
 
 def _log_names(svc: Service, *words: str) -> bool:
@@ -575,7 +574,7 @@ def persist(full: bool) -> Iterator[Case]:
         # ignored signals: each in turn to a running service (a fresh one if the last signal killed it),
         # TE_Limits watched for 2 s after each
         svc, first = r.start(raw)
-        for name in IGNORED:
+        for name in (sig.name for sig in IGNORED_SIGNALS):
             if not svc.alive():
                 svc, first = r.start(raw)
             t0 = time.time()
@@ -589,6 +588,25 @@ def persist(full: bool) -> Iterator[Case]:
                           f"{'alive' if svc.alive() else f'dead (exit {svc.proc.returncode if svc.proc else None})'}; "
                           f"{n} TE_Limits in the {time.time() - t0:.0f} s after it", c)
         svc.stop()
+        # SIGHUP while the service starts: at its first log line (loading the state), before the running
+        # service's handlers exist
+        c = Check()
+        up = 0
+        for k in range(rounds):
+            svc = Service(raw, r.workdir, f"early{k}")
+            svc.start()
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while not svc.log_text().strip() and time.monotonic() < deadline and svc.alive():
+                time.sleep(0.01)
+            svc.kill(signal.SIGHUP)
+            first = r.monitor.first_after(time.time(), START_TIMEOUT_S)
+            up += first is not None
+            c.add(int(first is None), f"start {k}: no TE_Limits after the SIGHUP (exit "
+                                      f"{svc.proc.returncode if svc.proc else None})")
+            code = svc.stop()
+            c.add(int(code != 0), f"start {k}: exit {code}")
+        yield Case.of("signal_SIGHUP_while_starting", "signals", rounds, f"{up} of {rounds} start(s) sent TE_Limits "
+                      "after the SIGHUP", c)
         # SIGQUIT: a clean stop with the state saved
         c = Check()
         lost = 0
