@@ -319,6 +319,47 @@ def stuck_sensors(full: bool) -> Iterator[Case]:
         yield Case.of("stator_stuck_at_full_load", "faulty sensors", 1, did, c)
 
 
+#: absurd input values (black-box finding 6): frame, signals over the idle ones
+ABSURD_INPUTS = {"current_1000a": ("INV_Currents", {"INV_Iq": 1000.0 * 2 ** 0.5, "INV_IphRms": 1000.0}),
+                 "current_1638a_dq_max": ("INV_Currents", {"INV_Id": 1638.35, "INV_Iq": 1638.35, "INV_IphRms": 1638.35}),
+                 "speed_plus_16000rpm": ("INV_Mechanics", {"INV_Speed": 16000.0}),
+                 "speed_minus_16000rpm": ("INV_Mechanics", {"INV_Speed": -16000.0})}
+
+
+def absurd_inputs(full: bool) -> Iterator[Case]:
+    """Physically absurd currents and speeds (valid frames, plausible CRC and counter): the safe limit
+    with ``sensor_fault`` within a frame cycle, a tick and margin, and one ``out_of_range`` bad reading;
+    never a model fault (before: not counted, and a model fault a second later)."""
+    hold = 4.0 if full else 2.5
+    delay = 0.01 + TICK_S + 0.3  # one frame cycle, one tick, margin
+    with bed("absurd") as b:
+        inv = b.inverter
+        assert inv is not None
+        _settled()
+        idle = wire.idle_signals()
+        for name, (frame, values) in ABSURD_INPUTS.items():
+            m0 = b.service.metrics()
+            t0 = time.time()
+            with inv.lock:
+                inv.signals[frame] = {**idle[frame], **values}
+            time.sleep(hold)
+            t_clear = time.time()
+            with inv.lock:
+                inv.signals[frame] = dict(idle[frame])
+            time.sleep(SETTLE_S)
+            m1 = b.service.metrics()
+            lim = b.monitor.read()
+            c = common_checks(b, t0, t_clear, safe_from=t0 + delay)
+            key = 'thermal_edge_bad_readings_total{kind="out_of_range"}'
+            counted = int(metric(m1, key) - metric(m0, key))
+            c.add(0 if counted >= 1 else 1, "no out_of_range bad reading counted")
+            other = sum(1 for t, r in zip(lim.t, lim.reason) if t0 + delay <= t <= t_clear and r != int(DerateReason.SENSOR_FAULT))
+            c.add(other, f"{other} TE_Limits without the sensor_fault reason")
+            did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(lim, t0, t_clear)}; {counted} counted out of range; "
+            did += _recovery(b, t_clear)
+            yield Case.of(name, "absurd inputs", 1, did, c)
+
+
 def band(full: bool) -> Iterator[Case]:
     """The limit at a hot measured winding: never above the band at the measured temperature, also
     when the model faults there (issue 14 defect 9)."""
@@ -517,5 +558,5 @@ def metrics_abuse(full: bool) -> Iterator[Case]:
 
 #: group name -> its cases
 GROUPS = {"bad_frames": bad_frames, "floods": floods, "load": full_bus, "stale": stale_inputs, "sensors": sensor_faults,
-          "stuck": stuck_sensors,
+          "stuck": stuck_sensors, "absurd": absurd_inputs,
           "band": band, "bus": bus_silence, "security": security, "metrics": metrics_abuse}
