@@ -157,8 +157,7 @@ class StuckSensors:
 
     def __init__(self, config: FaultConfig, sensors: Iterable[str]) -> None:
         self.config = config
-        self._hist: dict[str, deque[tuple[float, float, float]]] = {s: deque() for s in sensors}  # (t, reading, path)
-        self._path: dict[str, float] = dict.fromkeys(self._hist, 0.0)
+        self._runs: dict[str, _StillRun] = {s: _StillRun() for s in sensors}
         self._frozen: dict[str, float] = {}  # stuck sensor -> the reading it froze at, degC
 
     @property
@@ -174,7 +173,7 @@ class StuckSensors:
             v = readings.get(s, math.nan)
             if not math.isfinite(v) or abs(v - v0) > self.config.stuck_still_k:
                 del self._frozen[s]
-                self._hist[s].clear()
+                self._runs[s].clear()
                 out.append(s)
         return out
 
@@ -192,34 +191,84 @@ class StuckSensors:
         """
         fc = self.config
         new: dict[str, str] = {}
-        for s, hist in self._hist.items():
-            v, d = readings.get(s, math.nan), moved.get(s, math.nan)
+        for s, run in self._runs.items():
             if s in self._frozen:
                 continue
+            v, d = readings.get(s, math.nan), moved.get(s, math.nan)
             if not (math.isfinite(v) and math.isfinite(d)):
-                hist.clear()
-                self._path[s] = 0.0
+                run.clear()
                 continue
-            self._path[s] += d
-            hist.append((t, v, self._path[s]))
-            while hist and hist[0][0] <= t - fc.stuck_window_s:
-                hist.popleft()
-            # the latest stretch of the window over which the reading stayed within stuck_still_k
-            v_lo = v_hi = v
-            p_lo = p_hi = self._path[s]
-            since = t
-            for th, vh, ph in reversed(hist):
-                if max(v_hi, vh) - min(v_lo, vh) > fc.stuck_still_k:
-                    break
-                v_lo, v_hi, p_lo, p_hi, since = min(v_lo, vh), max(v_hi, vh), min(p_lo, ph), max(p_hi, ph), th
-            if p_hi - p_lo >= fc.stuck_model_k:
+            run.add(t, v, d, fc.stuck_still_k, t - fc.stuck_window_s)
+            model_k = run.p_max.value - run.p_min.value
+            if model_k >= fc.stuck_model_k:
                 self._frozen[s] = v
-                new[s] = (f"reading within {v_hi - v_lo:.1f} K at {v:.1f} degC for {t - since:.0f} s while the "
-                          f"model moved its node {p_hi - p_lo:.1f} K with the measured losses")
+                new[s] = (f"reading within {run.v_max.value - run.v_min.value:.1f} K at {v:.1f} degC for "
+                          f"{t - run.since:.0f} s while the model moved its node {model_k:.1f} K with the measured losses")
         return new
 
     def restart(self) -> None:
         """A gap in the data: the histories no longer describe one stretch of time."""
-        for s, hist in self._hist.items():
-            hist.clear()
-            self._path[s] = 0.0
+        for run in self._runs.values():
+            run.clear()
+
+
+class _Extreme:
+    """Running min or max over a sliding stretch (monotonic deque of (sequence number, value))."""
+
+    __slots__ = ("q", "sign")
+
+    def __init__(self, sign: float) -> None:
+        self.q: deque[tuple[int, float]] = deque()
+        self.sign = sign  # +1: max, -1: min
+
+    @property
+    def value(self) -> float:
+        return self.q[0][1]
+
+    def push(self, n: int, x: float) -> None:
+        while self.q and self.sign * self.q[-1][1] <= self.sign * x:
+            self.q.pop()
+        self.q.append((n, x))
+
+    def drop_before(self, n: int) -> None:
+        while self.q and self.q[0][0] < n:
+            self.q.popleft()
+
+
+class _StillRun:
+    """The latest stretch of one sensor's ticks over which its reading stayed within a band, with the
+    extremes of the reading and of the model's path (cumulative one-step change) over it: amortised
+    O(1) a tick (the stretch that ends at the next tick starts no earlier than this one)."""
+
+    def __init__(self) -> None:
+        self.ts: deque[float] = deque()
+        self.v_min, self.v_max, self.p_min, self.p_max = _Extreme(-1), _Extreme(1), _Extreme(-1), _Extreme(1)
+        self.path = 0.0
+        self.n = 0  # sequence number of the next tick
+        self.first = 0  # sequence number of the stretch's first tick
+
+    @property
+    def since(self) -> float:
+        """Time of the stretch's first tick, s."""
+        return self.ts[0]
+
+    def add(self, t: float, v: float, d: float, band: float, not_before: float) -> None:
+        """A tick at ``t`` with reading ``v`` and the model's one-step change ``d``; the stretch keeps
+        its ticks after ``not_before`` over which the reading stays within ``band``."""
+        self.path += d
+        for e, x in ((self.v_min, v), (self.v_max, v), (self.p_min, self.path), (self.p_max, self.path)):
+            e.push(self.n, x)
+        self.ts.append(t)
+        self.n += 1
+        while self.ts[0] <= not_before or self.v_max.value - self.v_min.value > band:
+            self.ts.popleft()
+            self.first += 1
+            for e in (self.v_min, self.v_max, self.p_min, self.p_max):
+                e.drop_before(self.first)
+
+    def clear(self) -> None:
+        self.ts.clear()
+        for e in (self.v_min, self.v_max, self.p_min, self.p_max):
+            e.q.clear()
+        self.path = 0.0
+        self.first = self.n
