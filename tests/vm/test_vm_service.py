@@ -150,21 +150,28 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
     for reason in ("crc", "counter_repeat", "unknown_id", "dlc", "decode_error"):
         assert metric(a1, "thermal_edge_frames_dropped_total", reason=reason) == 0, reason
     assert msum(a1, "thermal_edge_frames_lost_all_total") == 0
-    # counter_resync counts frames of one ID arriving > 8 cycles (80 ms for INV_Currents) after the
-    # previous one. The emulator sends each frame at its cycle, so only a scheduling stall of the
-    # emulated machine makes one (0 measured under TCG). When it sent a plant step's ten frames in
-    # one burst, every ~90 ms hole counted: 82-810 of 13,200 frames, with the host's load. The
-    # counters are also judged without timestamps on the host below.
-    assert msum(a1, "thermal_edge_frames_resynced_total") <= 0.01 * sum(sent.values())
     assert summary["rx_lost"] == 0 and sum(summary["rx_dropped"].values()) == 0 and summary["send_failures"] == 0
     assert summary["frames_received"].get("TE_Limits", 0) > 0 and summary["frames_received"].get("TE_Status", 0) > 0
-    # TE_Limits at its cycle (0.1 s) during phase A, from the capture of the bus
     frames = parse_candump((d / "candump-all.log").read_text())
     assert frames and all(ch == "vcan0" for _, ch, _, _ in frames)
     c = codec()
     lim_id, cur_id = c.frame_id("TE_Limits"), c.frame_id("INV_Currents")
     inv_ts = [t for t, _, i, _ in frames if i == cur_id]
     t_a0, t_a1 = inv_ts[0], inv_ts[sent["INV_Currents"] - 1]  # the emulator's first and last INV_Currents
+    # counter_resync counts frames of one ID arriving more than 8 cycles (80 ms for INV_Currents)
+    # after the previous one: a stall of the emulated machine (none on an idle host; 82-381 of 13,200
+    # frames with the host busy). Counted again from candump's capture (the kernel's time stamps on
+    # another socket: a gap within 1 % of the threshold may fall either way)
+    sure = possible = 0
+    for name in sent:
+        fid, limit = c.frame_id(name), 8 * c.cycle_time_s(name)
+        ts = [t for t, _, i, _ in frames if i == fid and t <= t_a1 + 0.05]
+        gaps = [b - a for a, b in zip(ts, ts[1:])]
+        sure += sum(g > limit * 1.01 for g in gaps)
+        possible += sum(g > limit * 0.99 for g in gaps)
+    resynced = msum(a1, "thermal_edge_frames_resynced_total")
+    print(f"resyncs: service {resynced:.0f}, candump's gaps above 8 cycles {sure}-{possible}")
+    assert sure <= resynced <= possible
     # every frame of phase A on the wire, both directions: CRC good, alive counter +1 each (judged
     # without timestamps, so no gap can hide behind a resync)
     hc = codec()
@@ -172,6 +179,7 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
     n_a = sum(1 for t, _, _, _ in frames if t <= t_a1 + 0.05)
     print(f"host FrameCodec over the phase-A capture: {acc}/{n_a} accepted, lost {hc.stats.lost}, drops {hc.stats.dropped}")
     assert acc == n_a and hc.stats.lost == 0 and sum(hc.stats.dropped.values()) == 0
+    # TE_Limits at its cycle (0.1 s) during phase A, from the capture of the bus
     lim_ts = [t for t, _, i, _ in frames if i == lim_id and t_a0 <= t <= t_a1]
     gaps = [b - a for a, b in zip(lim_ts, lim_ts[1:])]
     gaps_sorted = sorted(gaps)
