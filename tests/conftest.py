@@ -7,11 +7,15 @@ kept.
 """
 from __future__ import annotations
 
+import os
+import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 _ROOT = Path(__file__).resolve().parent
+_UNIT = _ROOT.parent / "deploy" / "systemd" / "thermal-edge.service"
 
 #: Directories (relative to tests/) whose files start first, longest set-up first.
 _FIRST = ("vm", "deploy", "service", "discovery", "fleet")
@@ -45,3 +49,22 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # no
         terminalreporter.section("SocketCAN VM")
         for line in _VM_LINES:
             terminalreporter.write_line(line)
+
+
+@pytest.fixture
+def unit_nice() -> Iterator[int]:
+    """The test's thread at the scheduling priority the systemd unit gives the service (its
+    ``Nice=``), as deployed: the unit raises it so that the TE_Limits cadence holds on a busy edge
+    computer, and a cadence test judges it so. Threads the test starts inherit it; without the right
+    to raise it (not root) the test runs as it is."""
+    nice = int(re.search(r"^Nice=(-?\d+)", _UNIT.read_text(), re.M).group(1))
+    before = os.getpriority(os.PRIO_PROCESS, 0)
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)  # Linux: the calling thread
+    except PermissionError:
+        pass
+    yield nice
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, before)
+    except PermissionError:
+        pass

@@ -51,7 +51,7 @@ def _cfg(channel: str) -> dict:
 
 
 @pytest.mark.parametrize("thread", [True, False], ids=["thread", "asyncio"])
-async def test_blocked_event_loop_does_not_delay_a_threaded_sender(virtual_channel, thread):
+async def test_blocked_event_loop_does_not_delay_a_threaded_sender(virtual_channel, thread, unit_nice):
     watch = _Watch(virtual_channel)
     watch.start()
     te = CanTransport(_cfg(virtual_channel), FrameCodec(DBC_PATH))

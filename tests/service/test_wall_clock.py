@@ -54,7 +54,7 @@ async def test_real_time_service_on_the_wall_clock(tmp_path, channel):
 
 
 @pytest.mark.async_timeout(40)
-async def test_te_limits_keep_their_cadence_while_the_event_loop_is_blocked(tmp_path, channel):
+async def test_te_limits_keep_their_cadence_while_the_event_loop_is_blocked(tmp_path, channel, unit_nice):
     """A tick that blocks the loop for 1 s (a slow adaptation step, a stuck callback): TE_Limits,
     received by an independent python-can bus and timed by its receive stamps, never pauses."""
     import can
