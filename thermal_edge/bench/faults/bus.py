@@ -4,6 +4,7 @@ derating band at the measured temperature, bus silence, and the security of ever
 from __future__ import annotations
 
 import json
+import random
 import socket
 import subprocess
 import sys
@@ -11,6 +12,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from ...bus.frames import DerateReason
 from ..common import ROOT
@@ -365,9 +367,20 @@ def band(full: bool) -> Iterator[Case]:
     when the model faults there (issue 14 defect 9)."""
     hold = 20.0 if full else 8.0
 
-    def hot(temp_c: float) -> dict[str, float]:
-        return {"INV_T_WindingSlot": temp_c, "INV_T_EndWinding": temp_c, "INV_T_Housing": 40.0,
-                "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0, "INV_S_Housing": 0}
+    def hot(temp_c: float, flicker_k: float = 0.0) -> dict[str, float]:
+        return {"INV_T_WindingSlot": temp_c + flicker_k, "INV_T_EndWinding": temp_c + flicker_k,
+                "INV_T_Housing": 40.0 + flicker_k, "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0, "INV_S_Housing": 0}
+
+    def live(inv: Any, temp_c: float, seconds: float) -> None:
+        """The readings of live PT100s for ``seconds``: they flicker by 0.3 K (upwards, so that the band
+        at ``temp_c`` stays the bound), as frozen readings do not. Frozen, a 150 degC winding and a
+        40 degC housing at no load are stuck sensors (the model moves both by 5 K within seconds)."""
+        end = time.monotonic() + seconds
+        rng = random.Random(0)
+        while time.monotonic() < end:
+            with inv.lock:  # 0, 0.1, 0.2 or 0.3 K, drawn anew 4 times a tick (a fixed toggle aliases with the tick)
+                inv.signals["INV_StatorTemps"] = hot(temp_c, 0.1 * rng.randint(0, 3))
+            time.sleep(min(0.25, max(0.0, end - time.monotonic())))
 
     for start_c, hot_c, name in ((150.0, 150.0, "measured_winding_150c"), (80.0, 153.0, "model_fault_at_measured_153c")):
         with bed(name) as b:
@@ -375,11 +388,9 @@ def band(full: bool) -> Iterator[Case]:
             assert inv is not None
             with inv.lock:
                 inv.signals["INV_StatorTemps"] = hot(start_c)
-            _settled(4.0)
+            live(inv, start_c, 4.0)  # _settled, with live readings
             t0 = time.time()
-            with inv.lock:
-                inv.signals["INV_StatorTemps"] = hot(hot_c)
-            time.sleep(hold)
+            live(inv, hot_c, hold)
             t1 = time.time()
             lim = b.monitor.read()
             judge = t0 + 0.1 + TICK_S + 0.3
