@@ -25,7 +25,8 @@ KNOWN_DEFECTS: dict[str, str] = {
 #: groups within the suite's budget (the whole suite must stay under 10 min on 2 cores); the rest are
 #: marked slow (make test-all; the bench itself runs them all)
 FAST = ("bad_frames", "security", "metrics")
-SLOW = ("floods", "stale", "bus", "sensors", "band", "configs", "states", "crash", "load", "soak", "persist")
+SLOW = ("floods", "stale", "bus", "sensors", "stuck", "absurd", "band", "configs", "states", "crash", "load", "soak",
+        "persist")
 
 
 def _gaps_only(case: dict) -> bool:
