@@ -205,7 +205,8 @@ def _safe_after(b: Bed, t_fault: float, t_end: float, delay_s: float) -> str:
 
 
 def stale_inputs(full: bool) -> Iterator[Case]:
-    """Each input frame stopped, then all of them: safe limit within the timeout and one tick."""
+    """Each input frame stopped, then all of them; then the stator temperatures and then all frames
+    resent with their alive counter frozen: safe limit within the timeout and one tick."""
     hold = 4.0 if full else 2.0
     with bed("stale") as b:
         inv = b.inverter
@@ -223,6 +224,20 @@ def stale_inputs(full: bool) -> Iterator[Case]:
             did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; "
             did += _recovery(b, t_clear)
             yield Case.of(f"stale_{name}", "stale inputs", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
+        # the same frames resent unchanged, alive counter frozen: as good as no frame at all
+        for frames in (["INV_StatorTemps"], list(wire.INPUT_FRAMES)):
+            name = frames[0] if len(frames) == 1 else "all_inputs"
+            timeout = min(TIMEOUTS_S[f] for f in frames)
+            delay = timeout + TICK_S + 0.3
+            t0 = time.time()
+            inv.frozen.update(frames)
+            time.sleep(timeout + hold)
+            t_clear = time.time()
+            inv.frozen.clear()
+            did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; "
+            did += _recovery(b, t_clear)
+            yield Case.of(f"frozen_counter_{name}", "stale inputs", 1, did,
+                          common_checks(b, t0, t_clear, safe_from=t0 + delay))
 
 
 SENSORS = {"slot_winding": ("INV_T_WindingSlot", "INV_S_WindingSlot"), "end_winding": ("INV_T_EndWinding", "INV_S_EndWinding"),

@@ -323,13 +323,16 @@ def histogram_quantile(m: dict[str, float], name: str, q: float, since: dict[str
 # ----------------------------------------------------------------------------------------------
 class Inverter:
     """The inverter's four frames at their DBC cycles in a thread (wall clock), every field settable
-    while it runs: signals, paused frames, raw payload overrides, counters skipped or repeated."""
+    while it runs: signals, paused or frozen frames, raw payload overrides, counters skipped or
+    repeated."""
 
     def __init__(self, group: str, port: int) -> None:
         self.group, self.port = group, port
         self.sock = wire.sender_socket(group)
         self.signals = wire.idle_signals()
         self.paused: set[str] = set()
+        #: frames resent unchanged at their cycle, alive counter frozen (a hung inverter task)
+        self.frozen: set[str] = set()
         self.sent = dict.fromkeys(wire.INPUT_FRAMES, 0)
         self.counters = dict.fromkeys(wire.INPUT_FRAMES, 0)
         self.ids = {n: wire.frame_id(n) for n in wire.INPUT_FRAMES}
@@ -359,7 +362,9 @@ class Inverter:
         while not self._stop.is_set():
             if not self._hold.is_set():
                 for name in ("INV_Currents", "INV_Mechanics") + (("INV_StatorTemps", "INV_AmbientTemps") if n % 10 == 0 else ()):
-                    if name not in self.paused:
+                    if name in self.frozen:
+                        self.repeat_last(name)
+                    elif name not in self.paused:
                         self._send(name)
             n += 1
             time.sleep(max(0.0, t0 + n * 0.01 - time.monotonic()))
