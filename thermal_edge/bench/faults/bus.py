@@ -3,6 +3,7 @@ derating band at the measured temperature, bus silence, and the security of ever
 (issue 14 and the issue that built the service)."""
 from __future__ import annotations
 
+import contextlib
 import json
 import random
 import socket
@@ -25,6 +26,7 @@ from .harness import (
     Bed,
     Case,
     Check,
+    Inverter,
     bed,
     common_checks,
     env,
@@ -63,6 +65,15 @@ def _dropped_delta(m0: dict[str, float], m1: dict[str, float]) -> dict[str, int]
             if d:
                 out[k.split('reason="')[1].rstrip('"}')] = d
     return out
+
+
+@contextlib.contextmanager
+def _live(name: str) -> Iterator[tuple[Bed, Inverter]]:
+    """A bed with the bench's inverter, past the service's start-up state."""
+    with bed(name) as b:
+        assert b.inverter is not None
+        _settled()
+        yield b, b.inverter
 
 
 def _settled(seconds: float = 3.0) -> None:
@@ -206,38 +217,25 @@ def _safe_after(b: Bed, t_fault: float, t_end: float, delay_s: float) -> str:
 
 def stale_inputs(full: bool) -> Iterator[Case]:
     """Each input frame stopped, then all of them; then the stator temperatures and then all frames
-    resent with their alive counter frozen: safe limit within the timeout and one tick."""
+    resent unchanged with their alive counter frozen (a hung inverter task: as good as no frame):
+    safe limit within the timeout and one tick."""
     hold = 4.0 if full else 2.0
-    with bed("stale") as b:
-        inv = b.inverter
-        assert inv is not None
-        _settled()
-        for frames in [[f] for f in wire.INPUT_FRAMES] + [list(wire.INPUT_FRAMES)]:
+    all_inputs = list(wire.INPUT_FRAMES)
+    with _live("stale") as (b, inv):
+        cases = [("stale", inv.paused, [f]) for f in wire.INPUT_FRAMES] + [("stale", inv.paused, all_inputs)]
+        cases += [("frozen_counter", inv.frozen, ["INV_StatorTemps"]), ("frozen_counter", inv.frozen, all_inputs)]
+        for kind, held, frames in cases:
             name = frames[0] if len(frames) == 1 else "all_inputs"
             timeout = min(TIMEOUTS_S[f] for f in frames)
             delay = timeout + TICK_S + 0.3  # one tick to notice, margin for the frame cycle
             t0 = time.time()
-            inv.paused.update(frames)
+            held.update(frames)
             time.sleep(timeout + hold)
             t_clear = time.time()
-            inv.paused.clear()
+            held.clear()
             did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; "
             did += _recovery(b, t_clear)
-            yield Case.of(f"stale_{name}", "stale inputs", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
-        # the same frames resent unchanged, alive counter frozen: as good as no frame at all
-        for frames in (["INV_StatorTemps"], list(wire.INPUT_FRAMES)):
-            name = frames[0] if len(frames) == 1 else "all_inputs"
-            timeout = min(TIMEOUTS_S[f] for f in frames)
-            delay = timeout + TICK_S + 0.3
-            t0 = time.time()
-            inv.frozen.update(frames)
-            time.sleep(timeout + hold)
-            t_clear = time.time()
-            inv.frozen.clear()
-            did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; "
-            did += _recovery(b, t_clear)
-            yield Case.of(f"frozen_counter_{name}", "stale inputs", 1, did,
-                          common_checks(b, t0, t_clear, safe_from=t0 + delay))
+            yield Case.of(f"{kind}_{name}", "stale inputs", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
 
 
 SENSORS = {"slot_winding": ("INV_T_WindingSlot", "INV_S_WindingSlot"), "end_winding": ("INV_T_EndWinding", "INV_S_EndWinding"),
@@ -251,10 +249,7 @@ def sensor_faults(full: bool) -> Iterator[Case]:
     """Every fault kind on each required stator sensor and on all three at once."""
     hold = 4.0 if full else 2.5
     delay = 0.1 + TICK_S + 0.3  # one frame cycle, one tick, margin
-    with bed("sensors") as b:
-        inv = b.inverter
-        assert inv is not None
-        _settled()
+    with _live("sensors") as (b, inv):
         normal = dict(inv.signals["INV_StatorTemps"])
         for which in list(SENSORS) + ["all_three"]:
             targets = list(SENSORS) if which == "all_three" else [which]
@@ -310,10 +305,7 @@ def stuck_sensors(full: bool) -> Iterator[Case]:
     idle_c = float(idle["INV_StatorTemps"]["INV_T_Housing"])
     bound = stuck_bound_s(idle_c) + TICK_S + 1.0  # the deciding tick, margin for the wall clock
     hold = 20.0 if full else 8.0
-    with bed("stuck") as b:
-        inv = b.inverter
-        assert inv is not None
-        _settled()
+    with _live("stuck") as (b, inv):
         m0 = b.service.metrics()
         t0 = time.time()
         with inv.lock:
@@ -349,10 +341,7 @@ def absurd_inputs(full: bool) -> Iterator[Case]:
     never a model fault (before: not counted, and a model fault a second later)."""
     hold = 4.0 if full else 2.5
     delay = 0.01 + TICK_S + 0.3  # one frame cycle, one tick, margin
-    with bed("absurd") as b:
-        inv = b.inverter
-        assert inv is not None
-        _settled()
+    with _live("absurd") as (b, inv):
         idle = wire.idle_signals()
         for name, (frame, values) in ABSURD_INPUTS.items():
             m0 = b.service.metrics()
@@ -419,10 +408,7 @@ def bus_silence(full: bool) -> Iterator[Case]:
     """The inverter goes silent (the bus goes away for the service) and comes back; and comes back
     with its counters restarted (an inverter reset)."""
     silences = (2.0, 10.0, 30.0) if full else (2.0, 6.0)
-    with bed("bus-silence") as b:
-        inv = b.inverter
-        assert inv is not None
-        _settled()
+    with _live("bus-silence") as (b, inv):
 
         silence_s = float(EDGE["transmit"]["bus_silence_s"])
         for s in silences:
