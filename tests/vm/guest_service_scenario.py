@@ -111,13 +111,10 @@ def main() -> int:
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(sock_path)
     sock.settimeout(0.5)
-    # at the priority the systemd unit gives it (Nice=), as deployed: the emulator and candump share
-    # the guest's CPU with it
-    nice = int(re.search(r"^Nice=(-?\d+)", (REPO / "deploy" / "systemd" / "thermal-edge.service").read_text(), re.M).group(1))
     svc = subprocess.Popen([str(VENV_BIN / "thermal-edge"), "run", "--config", str(cfg)],
                            env={**env, "NOTIFY_SOCKET": sock_path}, stdout=open(TMP / "service.log", "w"),
-                           stderr=subprocess.STDOUT, preexec_fn=lambda: os.nice(nice))  # noqa: PLW1509
-    ev(f"service started pid {svc.pid} at nice {nice}")
+                           stderr=subprocess.STDOUT)
+    ev(f"service started pid {svc.pid}")
     ready_s = None
     deadline = time.monotonic() + 400
     while time.monotonic() < deadline and svc.poll() is None and ready_s is None:
