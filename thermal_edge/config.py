@@ -448,9 +448,8 @@ class EdgeConfig:
             ``<file>: model.parameters.<name>: <value> is outside the model's bounds [lo, hi] ...``
             or, for an unknown name, the closest known one.
         """
-        from .lptn import (
-            ParameterError,  # (the model package is only needed once a model is loaded)
-        )
+        # (the model package is only needed once a model is loaded)
+        from .lptn import ParameterError
 
         for name, value in self.model.parameters.items():
             try:

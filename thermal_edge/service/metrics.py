@@ -258,6 +258,8 @@ class _LiveCollector(Collector):
                                       value=store.save_refused)
             yield CounterMetricFamily(P + "state_temp_files_removed", "Temporary files of interrupted saves removed at start",
                                       value=store.temp_removed)
+            yield GaugeMetricFamily(P + "state_save_failing", "State saves failed in a row (0: the last save worked; 1 at "
+                                    "start: the state directory is not writable)", value=store.failing)
         server = m._server
         if server is not None:
             yield CounterMetricFamily(P + "metrics_connections_rejected",

@@ -107,9 +107,6 @@ class EdgeService:
         self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
                                       bus_factory=bus_factory_fn)
         self.metrics.attach(self.engine, self.codec, self.transport.stats, self.store)
-        self.metrics.extra.append(("state_save_failing", lambda: self.store.failing,
-                                   "State saves failed in a row (0: the last save worked; 1 at start: the state "
-                                   "directory is not writable)"))
         self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
                                    "Wall time minus clock time of the last frame (frame clock; large = behind)"))
         self.serve_metrics = serve_metrics
@@ -223,11 +220,10 @@ class EdgeService:
         return 0 if self._final_saved else EXIT_STATE_NOT_SAVED
 
     def _ignore_signal(self, sig: signal.Signals) -> None:
-        n = self.signals_ignored.get(sig.name, 0) + 1
-        self.signals_ignored[sig.name] = n
-        if n & (n - 1) == 0:  # the 1st, 2nd, 4th, ...: a signal storm cannot flood the journal
-            log.warning("received %s: ignored (thermal-edge has no reload and takes no command by signal; "
-                        "TE_Limits continues; %d so far)", sig.name, n)
+        n = self.signals_ignored[sig.name] = self.signals_ignored.get(sig.name, 0) + 1
+        # every one logged: the journal's rate limit (.journal) keeps a signal storm from flooding it
+        log.warning("received %s: ignored (thermal-edge has no reload and takes no command by signal; "
+                    "TE_Limits continues; %d so far)", sig.name, n)
 
     # ------------------------------------------------------------------------------------------
     def _on_frame(self, frame: DecodedFrame) -> Any:
