@@ -381,6 +381,12 @@ def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
         "bus_interface_unknown": set_("bus.interface", "nonexistent_interface"),
         "udp_channel_unicast_address": set_("bus.channel", "192.0.2.1"),
         "adaptation_method_unknown": set_("adaptation.method", "guessing"),
+        # what PyYAML alone misreads or crashes on, and limits TE_Limits cannot carry (black-box finding 8)
+        "max_current_a_above_the_dbc": set_("derating.max_current_a", 5000.0),
+        "model_fault_hold_zero": set_("derating.faults.hold_s", 0),
+        "tick_a_day": set_("clock.tick_s", 86400),
+        "a_section_twice": (yaml.safe_dump(base, sort_keys=False) + "bus:\n  interface: virtual\n").encode(),
+        "nested_5000_deep": b"bus: " + b"[" * 5000 + b"]" * 5000 + b"\n",
         "yaml_syntax_error": b"bus: [unclosed\n",
         "empty_file": b"",
         "yaml_a_list": b"- 1\n- 2\n",
