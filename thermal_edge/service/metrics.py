@@ -263,7 +263,8 @@ class _LiveCollector(Collector):
         server = m._server
         if server is not None:
             yield CounterMetricFamily(P + "metrics_connections_rejected",
-                                      "Connections to this endpoint closed on arrival (too many at once)",
+                                      "Connections to this endpoint closed without an answer: no complete request within "
+                                      "the idle timeout, or the longest waiting dropped for a newer one",
                                       value=server.rejected)
         for name, fn, doc in m.extra:
             try:

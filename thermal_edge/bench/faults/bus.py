@@ -525,47 +525,76 @@ def security(full: bool) -> Iterator[Case]:
             yield Case.of(f"unicast_to_{addr}", "security", n, f"{taken} of {n} taken as frames ({kind})", c)
 
 
+def _open_all(port: int, n: int) -> list[socket.socket]:
+    """``n`` connections to the port at once (non-blocking connects: a full backlog must not stall the bench)."""
+    conns = []
+    for _ in range(n):
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setblocking(False)
+        s.connect_ex(("127.0.0.1", port))
+        conns.append(s)
+    return conns
+
+
 def metrics_abuse(full: bool) -> Iterator[Case]:
-    """200 idle connections to /metrics opened and closed at once; 200 half-sent requests; a scrape
-    storm: no TE_Limits gap over 300 ms."""
-    n = 200
+    """Connections held open on /metrics (idle, half-sent requests, requests dribbled a byte at a
+    time), each with scrapes *while* they are held (black-box finding 7: held connections kept
+    every scrape out), then a scrape storm: no TE_Limits gap over 300 ms, every scrape answered."""
+    import resource
+
+    n = min(2000 if full else 500, resource.getrlimit(resource.RLIMIT_NOFILE)[0] - 200)
+    hold_s = 3.0 if full else 1.5
     with bed("metrics-abuse") as b:
         _settled(2.0)
         port = b.service.metrics_port
         assert port is not None
-        for name, payload in (("idle_connections", b""), ("half_sent_requests", b"GET /metrics HTTP/1.1\r\nHost: x\r\n")):
+        request = b"GET /metrics HTTP/1.1\r\nHost: x\r\n"
+        for name, payload, dribble in (("idle_connections", b"", False), ("half_sent_requests", request, False),
+                                       ("slow_senders", request + b"X-Slow: " + b"a" * 100, True)):
             t0 = time.time()
-            conns = []
-            for _ in range(n):  # all at once: non-blocking connects (a full backlog must not stall the bench)
-                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-                s.setblocking(False)
-                s.connect_ex(("127.0.0.1", port))
-                conns.append(s)
+            conns = _open_all(port, n)
             time.sleep(0.5)
-            connected = 0
+            connected = served = tried = 0
             for s in conns:
                 try:
                     s.getpeername()
                     connected += 1
-                    if payload:
+                    if payload and not dribble:
                         s.send(payload)
                 except OSError:
                     pass
-            time.sleep(3.0 if full else 1.5)
+            k = 0
+            while time.time() - t0 < 0.5 + hold_s:
+                if dribble:  # one more byte on every connection
+                    for s in conns:
+                        try:
+                            s.send(payload[k:k + 1])
+                        except OSError:
+                            pass
+                    k = min(k + 1, len(payload) - 1)
+                tried += 1
+                served += bool(b.service.metrics())
+                time.sleep(0.2)
             for s in conns:
                 s.close()
             time.sleep(1.5)
             t1 = time.time()
-            ok = bool(b.service.metrics())
-            did = f"{connected} of {n} connected; limits {reasons_in(b.monitor.read(), t0, t1)}; metrics {'served' if ok else 'NOT served'} after"
-            yield Case.of(f"metrics_{n}_{name}", "metrics abuse", n, did, common_checks(b, t0, t1))
+            after = bool(b.service.metrics())
+            c = common_checks(b, t0, t1)
+            c.add(tried - served, f"{tried - served} of {tried} scrapes during the hold not answered")
+            c.add(0 if after else 1, "metrics not served after the hold")
+            did = (f"{connected} of {n} connected; {served} of {tried} scrapes answered during the hold; "
+                   f"limits {reasons_in(b.monitor.read(), t0, t1)}")
+            yield Case.of(f"metrics_{name}_held", "metrics abuse", n, did, c)
         t0 = time.time()
-        done = 0
+        done = tried = 0
         while time.time() - t0 < (10.0 if full else 3.0):
+            tried += 1
             done += bool(b.service.metrics())
         t1 = time.time()
-        yield Case.of("metrics_scrape_storm", "metrics abuse", done, f"{done / (t1 - t0):.0f} scrapes/s served",
-                      common_checks(b, t0, t1))
+        c = common_checks(b, t0, t1)
+        c.add(tried - done, f"{tried - done} of {tried} scrapes not answered")
+        yield Case.of("metrics_scrape_storm", "metrics abuse", done, f"{done / (t1 - t0):.0f} scrapes/s served", c)
 
 
 #: group name -> its cases
