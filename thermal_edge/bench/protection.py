@@ -31,7 +31,9 @@ case ``custom``): ``nominal``; ``r_hous_plus30`` (housing to ambient +30 %); ``s
 speed-dependent shaft/rotor heat transfer −30 %: a magnet-side parameter the adapter does not
 estimate and no sensor sees); ``ambient_40`` (ambient 40 °C instead of 25 °C); ``warm_restart``
 (the machine warmed up for 40 min at 110 Nm, stopped 60 s; the service restarts from its saved
-state, the I²t image from empty).
+state, the I²t image from empty); ``warm_restart_rotor`` (the same restart on a plant whose rotor
+differs from the model, unseen by any sensor: magnet losses +60 %, rotor-surface cooling −30 %; the
+saved state must carry the magnet's band across the restart).
 
 Figures per case and policy: ``headroom_pct`` (current-time delivered ÷ demanded, %),
 ``oracle_share_pct`` (delivered ÷ the oracle's delivered, %), ``peak_hot_spot_c``,
@@ -94,6 +96,8 @@ CASES: dict[str, Case] = {c.name: c for c in (
     Case("h_sh1_minus30", {"h_sh1": 0.7}, doc="shaft/rotor heat transfer -30 % (magnet side, not identifiable)"),
     Case("ambient_40", ambient_offset_k=15.0, doc="ambient 40 degC"),
     Case("warm_restart", warm_restart=True, doc="service restarts warm from its saved state"),
+    Case("warm_restart_rotor", {"P_pm_ref": 1.6, "h_rot1": 0.7}, warm_restart=True,
+         doc="warm restart with the rotor built differently (magnet losses +60 %, rotor cooling -30 %)"),
 )}
 
 
@@ -509,5 +513,9 @@ def verdicts(res: dict[str, Any]) -> list[str]:
                            f"{f['peak_magnet_c']:.1f} degC)")
             elif te is not None and p != "oracle":
                 more = te["delivered_as"] - f["delivered_as"]
-                out.append(f"{case}: thermal_edge delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below max)")
+                beyond = (f", and delivers {f['oracle_share_pct']:.1f} % of what the oracle, which reads the true "
+                          f"temperatures, delivers: its early derate left headroom the cycle asks for later"
+                          if f["oracle_share_pct"] > 100.0 else "")
+                out.append(f"{case}: thermal_edge delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below max"
+                           f"{beyond})")
     return out
