@@ -27,6 +27,14 @@ def _hold(port: int, n: int) -> list[socket.socket]:
     return out
 
 
+def _established(s: socket.socket) -> bool:
+    try:
+        s.getpeername()
+        return True
+    except OSError:
+        return False
+
+
 def test_idle_connections_held_do_not_keep_a_scrape_out_nor_add_threads():
     """Black-box finding 7: 2,000 idle connections held by one client left every scrape unanswered."""
     reg = CollectorRegistry()
@@ -45,11 +53,17 @@ def test_idle_connections_held_do_not_keep_a_scrape_out_nor_add_threads():
                 assert "probe_total 3.0" in _scrape(port)
             # counted another way: no thread per connection
             assert threading.active_count() == base
-            # the idle ones beyond the bound were dropped for newer ones, counted by the server
-            deadline = time.monotonic() + 10
-            while server.rejected < n - MAX_CONNECTIONS and time.monotonic() < deadline:
-                time.sleep(0.05)
-            assert server.rejected >= n - MAX_CONNECTIONS
+            # the idle ones beyond the bound were dropped for newer ones, counted by the server against
+            # the connections the client sees established (the kernel completes the rest as their
+            # SYNs are retried, at its own pace on a busy host)
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                connected = sum(1 for s in held if _established(s))
+                if server.rejected >= connected - MAX_CONNECTIONS:
+                    break
+                time.sleep(0.1)
+            assert connected > MAX_CONNECTIONS
+            assert server.rejected >= connected - MAX_CONNECTIONS
         finally:
             for s in held:
                 s.close()
