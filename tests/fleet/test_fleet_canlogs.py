@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from thermal_edge.bench.common import config_path
+from thermal_edge.shipped import config_path
 from thermal_edge.data import RunError, write_run
 from thermal_edge.fleet.canlogs import read_can_runs
 from thermal_edge.fleet.evaluate import evaluate_machine

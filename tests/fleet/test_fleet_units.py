@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from thermal_edge.bench.common import config_path
+from thermal_edge.shipped import config_path
 from thermal_edge.data import RunError, read_run
 from thermal_edge.fleet.results import read_table, row, write_table
 from thermal_edge.fleet.runs import find_machines

@@ -1,13 +1,10 @@
-"""Shared pieces of the benchmarks: repository paths, timing, tables."""
+"""Shared pieces of the benchmarks: progress and timing."""
 from __future__ import annotations
 
 import statistics
 import time
-from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
-ROOT = Path(__file__).resolve().parents[2]
-CONFIG = ROOT / "config"
 
 
 class Progress(Protocol):
@@ -39,11 +36,6 @@ def sample_counter(progress: Progress, stage: str, total: int) -> Callable[[int]
     return count
 
 
-def config_path(*parts: str) -> Path:
-    """A file under the repository's ``config/`` directory."""
-    return CONFIG.joinpath(*parts)
-
-
 def timed(fn: Callable[[], object], repeat: int) -> tuple[float, list[float], object]:
     """Median wall time (s) over ``repeat`` calls, all times, and the last result."""
     times, out = [], None
@@ -69,18 +61,3 @@ def timed_together(fns: Sequence[Callable[[], object]], repeat: int,
             times[i].append(time.perf_counter() - t0)
     progress("timed rounds", repeat, repeat, "round")
     return [(statistics.median(t), t, out) for t, out in zip(times, outs)]
-
-
-def table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
-    """A plain-text table with right-aligned columns."""
-    cells = [[str(h) for h in headers]] + [[_fmt(v) for v in r] for r in rows]
-    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
-    lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
-
-
-def _fmt(v: object) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)

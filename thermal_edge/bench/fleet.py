@@ -32,7 +32,9 @@ from ..fleet.task import cached_model, warm
 from ..lptn import load_model
 from ..sim.cycles import load_cycle
 from ..sim.fleet import FAULTY, plan_fleet, read_manifest, write_machine, write_manifest
-from .common import Progress, config_path, no_progress, table
+from ..shipped import config_path
+from ..text_table import table
+from .common import Progress, no_progress
 
 #: the parameters the bench's fleet is calibrated on: those pm10kw's three sensors pin down
 #: (with the winding conductivities free as well, r_ins_sw's σ exceeds 100 %)

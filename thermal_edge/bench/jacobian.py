@@ -22,7 +22,8 @@ import numpy as np
 from ..lptn import Role, Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
 from ..sim.cycles import cycle_run, load_cycle
-from .common import Progress, config_path, no_progress, timed, timed_together
+from ..shipped import config_path
+from .common import Progress, no_progress, timed, timed_together
 
 
 def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt: float, T0: np.ndarray,

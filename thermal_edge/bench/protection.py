@@ -53,7 +53,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .common import config_path
+from ..shipped import config_path
 
 __all__ = ["CASES", "POLICIES", "Case", "ThermalEdgePolicy", "closed_loop", "edge_config", "emulator_for", "parse_plant_changes",
            "plant_for", "run", "run_case"]

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..commands.common import check_sets
 from ..data import read_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
 from ..estimation.predict import initial_from_run, model_inputs, open_loop
 from ..lptn import Model, load_model
-from .common import ROOT, Progress, config_path, no_progress, sample_counter
+from ..shipped import ROOT, config_path
+from .common import Progress, no_progress, sample_counter
 
 PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
 SENSORS = ("stator_winding", "stator_yoke")
@@ -79,13 +79,15 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
 def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | None = None,
         sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> dict[str, object]:
     """All starts; ``{"skipped": why}`` when the data is absent. ``sets`` overrides parameters of
-    the published model first (``--set``). ``progress`` counts the samples replayed, one stage per
-    start."""
+    the published model first (``--set``; the command names a bad one, here an unknown name or a
+    value outside its bounds raises :class:`~thermal_edge.lptn.ParameterError`). ``progress``
+    counts the samples replayed, one stage per start."""
     path = data_dir / "run_a.csv"
     if not path.exists():
         return {"skipped": f"{path} not found"}
     base = load_model(config_path("machines", "paderborn4.yaml"), data_dir=data_dir)
-    sets = check_sets(base, dict(sets or {}))
+    sets = dict(sets or {})
+    base.check_parameters(sets)
     if sets:
         base = base.with_parameters(sets)
     run_ = read_run(path, "paderborn")

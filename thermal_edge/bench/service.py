@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .common import ROOT, Progress, config_path, no_progress
+from ..shipped import ROOT, config_path
+from .common import Progress, no_progress
 
 RATES = (2000, 4000, 6000, 8000, 10000, 12000, 14000, 16000, 20000, 24000, 28000, 32000)
 

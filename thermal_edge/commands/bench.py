@@ -5,8 +5,8 @@ import argparse
 import json
 
 from ..bench import jacobian, paper
-from ..bench.common import table
-from .common import add_set_arg, split_sets
+from ..text_table import table
+from .common import add_set_arg, check_sets, split_sets
 from .progress import StageBars
 
 
@@ -178,18 +178,20 @@ def run_fleet(args: argparse.Namespace) -> int:
 
 def run_real(args: argparse.Namespace) -> int:
     from ..bench import real
-    from ..bench.common import config_path
     from ..lptn import load_model
+    from ..shipped import config_path
     from .runs import read_checked
 
     path = real.PADERBORN / "run_a.csv"
+    sets = split_sets(args.set)
     if path.exists():  # the bench's own data: checked and summarised as every offline run is
         model = load_model(config_path("machines", "paderborn4.yaml"), data_dir=real.PADERBORN)
+        sets = check_sets(model, sets)
         summary = read_checked(str(path), "paderborn", model, real.SENSORS)[1]
         if not args.json:
             print(summary, flush=True)
     with StageBars("bench real") as progress:
-        r = real.run(sets=split_sets(args.set), progress=progress)
+        r = real.run(sets=sets, progress=progress)
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0

@@ -12,7 +12,7 @@ import sys
 
 import numpy as np
 
-from ..bench.common import table
+from ..text_table import table
 from ..data import FORMATS
 from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets

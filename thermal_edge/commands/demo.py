@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..bench.common import config_path
+from ..shipped import config_path
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bench.common import config_path
+from ..shipped import config_path
 from ..data import FORMATS, Run, RunError, write_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.online import OnlineResult, online_report, run_online

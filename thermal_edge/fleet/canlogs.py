@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bench.common import config_path
+from ..shipped import config_path
 from ..bus.codec import FrameCodec
 from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes

@@ -16,7 +16,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..bench.common import table
+from ..text_table import table
 from .screen import Outlier, Spread
 
 

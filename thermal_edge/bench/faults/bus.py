@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from ...bus.frames import DerateReason
-from ..common import ROOT
+from ...shipped import ROOT
 from . import wire
 from .harness import (
     EDGE,

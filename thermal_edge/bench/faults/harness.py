@@ -28,7 +28,7 @@ from typing import Any
 
 import yaml
 
-from ..common import ROOT, config_path
+from ...shipped import ROOT, config_path
 from . import wire
 
 GAP_S = 0.3  # the inverter drops TE_Limits after this long

@@ -22,7 +22,7 @@ from typing import Any
 import yaml
 
 from ...process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS
-from ..common import ROOT
+from ...shipped import ROOT
 from . import wire
 from .harness import (
     HOT_SPOT_BAND,

@@ -26,7 +26,7 @@ from typing import Any
 import cantools
 import msgpack
 
-from ..common import ROOT
+from ...shipped import ROOT
 
 DBC = ROOT / "dbc" / "thermal_edge.dbc"
 TE_LIMITS_ID = 0x2A0
