@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cmd_testlib import MODELS, ROOT, TWO_NODE, te
+from cmd_testlib import MODELS, ROOT, TWO_NODE, te, te_here
 
 OVERFLOW = MODELS / "overflow.yaml"  # the two-node model with a loss law exp(speed_rpm): inf above ~710 rpm
 OTHER = MODELS / "other_sensors.yaml"  # the two-node model whose sensors have other names
@@ -156,7 +156,7 @@ def test_the_table_has_at_least_20_cases():
 @pytest.mark.parametrize("case", list(CASES))
 def test_bad_input_is_refused_in_one_line(case, files, good_run):
     argv, names, fragments = CASES[case](files, good_run)
-    r = te(*argv)
+    r = te_here(*argv)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2, (r.returncode, r.stdout[-2000:], r.stderr[-2000:])
     assert "Traceback" not in r.stderr + r.stdout
@@ -167,6 +167,16 @@ def test_bad_input_is_refused_in_one_line(case, files, good_run):
     for f in fragments:
         assert f in line, (f, line)
     assert not any(w in r.stdout.split() for w in ("inf", "nan", "-inf")), r.stdout
+
+
+@pytest.mark.parametrize("case", ["sensor in kelvin", "time in ms, calibrate"])
+def test_the_installed_command_refuses_as_the_table_does(case, files, good_run):
+    """The table runs in this process (:func:`te_here`); the command a user runs, in its own
+    process, gives the same exit status and line."""
+    argv, _, _ = CASES[case](files, good_run)
+    here, there = te_here(*argv), te(*argv)
+    assert (there.returncode, there.stderr.strip()) == (here.returncode, here.stderr.strip()) == (2, here.stderr.strip())
+    assert len(here.stderr.strip().splitlines()) == 1
 
 
 def test_utf8_cp1252_and_latin1_exports_replay_alike(good_run, tmp_path):

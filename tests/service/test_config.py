@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from cli_in_process import te_here
 from svc_testlib import EDGE_YAML, REPO, env, write_yaml
 from thermal_edge.bus import DEFAULT_DBC_PATH, FrameCodec
 from thermal_edge.config import ConfigError, config_from_mapping, load_config
@@ -222,6 +223,10 @@ AT_START = {"limits period above the inverter timeout", "state.dir is a file", "
 
 
 def _run(path: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+    """``thermal-edge run [--check] --config path``: ``--check`` in this process (it cannot start the
+    service), a start in a process of its own (a config that wrongly passes would start it)."""
+    if "--check" in extra:
+        return te_here("run", *extra, "--config", path)
     return subprocess.run([sys.executable, "-m", "thermal_edge.cli", "run", *extra, "--config", str(path)],
                           capture_output=True, text=True, env=env(), cwd=str(REPO), timeout=120)
 

@@ -37,7 +37,10 @@ FILES = Path(os.environ.get("VM_FILES", str(TMP)))
 VENV_BIN = Path(sys.executable).parent
 PORT = 19118
 RX_BUFFER_BYTES = 4 * 1024 * 1024
-EMU_DURATION_S = float(os.environ.get("SCENARIO_EMU_S", "60"))
+EMU_DURATION_S = float(os.environ.get("SCENARIO_EMU_S", "40"))
+#: ``python -m thermal_edge.sim.inverter ARGS``, started early: imports first, runs on a line on stdin
+EMU_GATED = ("import sys; from thermal_edge.sim import inverter; sys.stdin.readline(); "
+             "sys.argv[0] = 'inverter'; sys.exit(inverter.main(sys.argv[1:]))")
 DOWN_S = float(os.environ.get("SCENARIO_DOWN_S", "5"))
 AFTER_UP_S = float(os.environ.get("SCENARIO_AFTER_UP_S", "8"))
 
@@ -115,6 +118,16 @@ def main() -> int:
                            env={**env, "NOTIFY_SOCKET": sock_path}, stdout=open(TMP / "service.log", "w"),
                            stderr=subprocess.STDOUT)
     ev(f"service started pid {svc.pid}")
+    # the emulator imports its modules (~30 s under emulation) while the service starts, and begins
+    # (opens the bus, sends) only when told, after READY: phase A then starts at once
+    ready_file = TMP / "emu.ready"
+    emu_cmd = [str(VENV_BIN / "python"), "-c", EMU_GATED, "--interface", "socketcan", "--channel", "vcan0",
+               "--model", str(REPO / "config" / "machines" / "pm10kw.yaml"),
+               "--cycle", str(REPO / "config" / "cycles" / "overload.yaml"), "--speed", "1",
+               "--duration", str(EMU_DURATION_S), "--summary", str(ART / "emulator-summary.json"),
+               "--trace", str(ART / "emulator-trace.npz"), "--ready-file", str(ready_file)]
+    emu = subprocess.Popen(emu_cmd, env=env, stdin=subprocess.PIPE, stdout=open(TMP / "emulator.log", "w"),
+                           stderr=subprocess.STDOUT)
     ready_s = None
     deadline = time.monotonic() + 400
     while time.monotonic() < deadline and svc.poll() is None and ready_s is None:
@@ -126,16 +139,13 @@ def main() -> int:
     ev(f"service READY at {ready_s}")
     result: dict = {"kernel": kernel, "vcan0": link, "ready_s": ready_s}
     if ready_s is None:
+        emu.kill()
         return finish(result, svc, dump_all)
 
     # ---- A: closed loop with the emulator ------------------------------------------------------
-    ready_file = TMP / "emu.ready"
-    emu_cmd = [str(VENV_BIN / "python"), "-m", "thermal_edge.sim.inverter", "--interface", "socketcan", "--channel", "vcan0",
-               "--model", str(REPO / "config" / "machines" / "pm10kw.yaml"),
-               "--cycle", str(REPO / "config" / "cycles" / "overload.yaml"), "--speed", "1",
-               "--duration", str(EMU_DURATION_S), "--summary", str(ART / "emulator-summary.json"),
-               "--trace", str(ART / "emulator-trace.npz"), "--ready-file", str(ready_file)]
-    emu = subprocess.Popen(emu_cmd, env=env, stdout=open(TMP / "emulator.log", "w"), stderr=subprocess.STDOUT)
+    assert emu.stdin is not None
+    emu.stdin.write(b"go\n")
+    emu.stdin.close()
     ev("emulator started")
     while not ready_file.exists() and emu.poll() is None and time.monotonic() - T0 < 900:
         time.sleep(0.2)
