@@ -9,7 +9,7 @@ import pytest
 from thermal_edge.bus import DerateReason
 from thermal_edge.config import DeratingConfig
 from thermal_edge.lptn import Stepper, steady_state
-from thermal_edge.service.derating import DeratingPolicy, NodeBand
+from thermal_edge.service.derating import FLOOR_TICKS, DeratingPolicy, LimitSpec, MeasuredFloor, NodeBand
 from thermal_edge.service.lookahead import Lookahead
 
 W, M = DerateReason.WINDING, DerateReason.MAGNET
@@ -200,3 +200,19 @@ def test_lookahead_names_the_binding_limit(model):
         bindings.append(r.binding)
         assert r.binding == int(np.argmin(alone)) and r.current_a == pytest.approx(min(alone))
     assert bindings == [0, 1]  # winding, then magnet
+
+
+def test_a_sensor_bounding_two_nodes_is_averaged_over_its_own_last_readings():
+    """The floor under a node's upper band is the mean of its bounding sensor's last FLOOR_TICKS
+    readings, one a tick, also when the sensor bounds two limited nodes (it was recorded once per
+    node: twice a tick, a mean over half the ticks)."""
+    specs = [LimitSpec("hot_spot", 0, 140.0, 155.0, DerateReason.WINDING),
+             LimitSpec("end_turn", 1, 140.0, 155.0, DerateReason.WINDING)]
+    floor = MeasuredFloor(specs, {"hot_spot": ["end_winding"], "end_turn": ["end_winding"]})
+    readings = [100.0, 101.0, 102.0, 103.0, 104.0, 105.0, 106.0]
+    for v in readings:
+        upper = np.zeros(2)
+        floor.raise_upper(upper, {"end_winding": v})
+    want = float(np.mean(readings[-FLOOR_TICKS:]))
+    assert upper.tolist() == pytest.approx([want, want])
+

@@ -256,11 +256,12 @@ class MeasuredFloor:
 
     def raise_upper(self, upper: np.ndarray, measured: Mapping[str, float]) -> None:
         """Record this tick's readings and raise ``upper`` (°C, by node row, in place) to their means."""
-        for s, lim in self.specs:
+        for s, hist in self._history.items():  # once per sensor, whatever number of nodes it bounds
             v = measured.get(s, math.nan)
-            hist = self._history[s]
             if math.isfinite(v):
                 hist.append(v)
+        for s, lim in self.specs:
+            hist = self._history[s]
             if hist:
                 upper[lim.row] = max(upper[lim.row], sum(hist) / len(hist))
 
