@@ -29,7 +29,7 @@ def emulator(bus: dict | None = None, **kw) -> InverterEmulator:
 def run_offline(emu: InverterEmulator, seconds: float) -> list:
     frames = []
     while emu.elapsed < seconds - 1e-9:
-        frames += emu._step(None)
+        frames += emu.step(None)
     return frames
 
 
@@ -59,7 +59,7 @@ def test_frames_carry_the_plant_and_obey_the_limits():
     # a TE_Limits arrives: the torque is clamped to the current limit times kt
     emu._on_frame(DecodedFrame("TE_Limits", 0x2A0, {"TE_TorqueLimit": 200.0, "TE_CurrentLimit": 5.0, "TE_DerateActive": 1,
                                                     "TE_DerateReason": 1}, 0, 0.0))
-    frames = emu._step(emu.limits_wall)
+    frames = emu.step(emu.limits_wall)
     mech = [s for t, n, s in frames if n == "INV_Mechanics"]
     assert all(s["INV_Torque"] == pytest.approx(5.0 * 5.6) for s in mech)
     assert emu.summary.limited_s > 0
@@ -68,14 +68,14 @@ def test_frames_carry_the_plant_and_obey_the_limits():
     run_offline(emu2, 10.0)
     emu2._on_frame(DecodedFrame("TE_Limits", 0x2A0, {"TE_TorqueLimit": 1.0, "TE_CurrentLimit": 1.0, "TE_DerateActive": 1,
                                                      "TE_DerateReason": 1}, 0, 0.0))
-    mech = [s for t, n, s in emu2._step(emu2.limits_wall) if n == "INV_Mechanics"]
+    mech = [s for t, n, s in emu2.step(emu2.limits_wall) if n == "INV_Mechanics"]
     assert all(s["INV_Torque"] == pytest.approx(40.0) for s in mech)
 
 
 def test_limits_absent_fall_back_to_the_inverters_own_protection():
     emu = emulator(fallback_current_a=0.0, limits_timeout_s=0.3)
     run_offline(emu, 10.0)
-    mech = [s for t, n, s in emu._step(123.0) if n == "INV_Mechanics"]  # no TE_Limits ever: tripped, standstill
+    mech = [s for t, n, s in emu.step(123.0) if n == "INV_Mechanics"]  # no TE_Limits ever: tripped, standstill
     assert all(s["INV_Torque"] == 0.0 and s["INV_Speed"] == 0.0 for s in mech)
 
 

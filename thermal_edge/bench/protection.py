@@ -308,8 +308,8 @@ def closed_loop(emu: Any, policy: _Policy, kt: float, limits: list[tuple[str, in
     while emu.elapsed < emu.duration - 1e-9:
         emu.current_limit, emu.torque_limit = limit, min(policy.tmax, kt * limit)
         emu.limits_wall, emu.limits_sim = 0.0, emu.sim_time
-        _, torque_d, _ = emu._demand(emu.elapsed)
-        sent = emu._step(None)
+        _, torque_d, _ = emu.demand(emu.elapsed)
+        sent = emu.step(None)
         frames = [DecodedFrame(name, ids[name], sig, 0, ts) for ts, name, sig in sent if name not in emu.paused]
         i_applied = [sig["INV_IphRms"] for _, name, sig in sent if name == "INV_Currents"]
         demanded += abs(torque_d) / kt * PLANT_DT_S

@@ -74,7 +74,7 @@ def _frames(emu: Any) -> list[Any]:
     """The next plant step's frames as decoded frames (no bus)."""
     from ..bus.codec import DecodedFrame
 
-    return [DecodedFrame(name, 0, sig, 0, ts) for ts, name, sig in emu._step(None)]
+    return [DecodedFrame(name, 0, sig, 0, ts) for ts, name, sig in emu.step(None)]
 
 
 def tick_latency(ticks: int = 600, warmup_s: float = 3600.0, adapting: bool = False,

@@ -266,8 +266,9 @@ class InverterEmulator:
         self._stop = True
 
     # -- one plant step -------------------------------------------------------------------------
-    def _demand(self, tau: float) -> tuple[float, float, float]:
-        """Speed, torque, ambient demanded by the cycle at elapsed time ``tau``."""
+    def demand(self, tau: float) -> tuple[float, float, float]:
+        """What the cycle demands at ``tau`` (simulated s since the start): speed (rpm), torque
+        (Nm, before any limit clips it) and ambient (°C)."""
         cols = self.run_inputs.columns
         k = min(int(tau // self.cycle_dt), len(self.run_inputs) - 1)
         amb = float(cols[AMBIENT][k])
@@ -290,15 +291,17 @@ class InverterEmulator:
             return cfg.fallback_current_a, cfg.fallback_current_a * self.kt, False
         return None, None, False
 
-    def _step(self, now_wall: float | None) -> list[tuple[float, str, dict[str, float]]]:
-        """Advance the plant by one step; return the frames of that step (time, name, signals)."""
+    def step(self, now_wall: float | None) -> list[tuple[float, str, dict[str, float]]]:
+        """Advance the plant by one step (``plant_dt_s``) under the limits in force at ``now_wall``
+        (monotonic s; None: the last limits, as a bench that drives the emulator directly sets
+        them); return the frames of that step as (simulated timestamp, frame name, signals)."""
         cfg = self.config
         tau = self.elapsed
         dt = cfg.plant_dt_s
         if self.plant.aging and tau >= self._next_aging:
             self.plant.age(tau / 3600.0)
             self._next_aging = tau + cfg.aging_update_s
-        speed, torque_d, amb = self._demand(tau)
+        speed, torque_d, amb = self.demand(tau)
         i_lim, t_lim, fresh = self._limits_in_force(now_wall)
         if not fresh and i_lim == 0.0:  # its own protection tripped the drive: the machine stands still
             speed = 0.0
@@ -498,7 +501,7 @@ class InverterEmulator:
                         self.summary.flow_wait_wall_s += time.monotonic() - w0
                         if not synced:
                             wall0, sim0 = time.monotonic(), self.elapsed  # do not burst to catch up
-                frames = self._step(time.monotonic())
+                frames = self.step(time.monotonic())
                 for ts, name, signals in frames:
                     if name in self.paused:
                         continue
@@ -571,7 +574,7 @@ class InverterEmulator:
         self.summary.sim_start = self.sim_time
         with LogRecorder(path, channel=channel, flush_interval_s=60.0) as rec:
             while self.elapsed < self.duration - 1e-9:
-                for ts, name, signals in self._step(None):
+                for ts, name, signals in self.step(None):
                     data = self.codec.encode(name, signals)
                     rec.write(can.Message(timestamp=ts, arbitration_id=self.codec.frame_id(name), data=data,
                                           is_extended_id=False, is_rx=True))
