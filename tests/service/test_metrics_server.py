@@ -76,14 +76,18 @@ def test_slow_senders_are_cut_at_their_deadline_and_a_scrape_gets_through():
     arrival (300 slow senders held kept every scrape out before)."""
     server = MetricsServer(CollectorRegistry(), "127.0.0.1", 0)
     port = server.address[1]
+    t0 = time.monotonic()
     slow = _hold(port, 300)
     try:
-        time.sleep(0.3)
-        t0 = time.monotonic()
         request = b"GET /metrics HTTP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 200
+        for s in slow:  # each has started its request
+            try:
+                s.send(request[:1])
+            except OSError:
+                pass
+        scraped = [_scrape(port) for _ in range(3)]  # while they are held
         closed: dict[int, float] = {}
-        k = 0
-        scraped = []
+        k = 1
         while time.monotonic() - t0 < IDLE_TIMEOUT_S + 3 and len(closed) < len(slow):
             for i, s in enumerate(slow):
                 if i in closed:
@@ -97,8 +101,6 @@ def test_slow_senders_are_cut_at_their_deadline_and_a_scrape_gets_through():
                 except OSError:
                     closed[i] = time.monotonic() - t0
             k = min(k + 1, len(request) - 1)
-            if len(scraped) < 3:
-                scraped.append(_scrape(port))
             time.sleep(0.1)
         assert scraped == ["", "", ""]  # an empty registry, answered each time
         # every slow sender cut off, none kept past its deadline (from its arrival, with a margin for load)
