@@ -9,22 +9,12 @@ import urllib.request
 
 from prometheus_client import CollectorRegistry, Counter
 
+from thermal_edge.bench.faults.bus import open_connections
 from thermal_edge.service.metrics_server import IDLE_TIMEOUT_S, MAX_CONNECTIONS, MetricsServer
 
 
 def _scrape(port: int) -> str:
     return urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5).read().decode()
-
-
-def _hold(port: int, n: int) -> list[socket.socket]:
-    """``n`` connections opened at once and held (non-blocking connects: a full backlog must not stall the test)."""
-    out = []
-    for _ in range(n):
-        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        s.setblocking(False)
-        s.connect_ex(("127.0.0.1", port))
-        out.append(s)
-    return out
 
 
 def _established(s: socket.socket) -> bool:
@@ -45,7 +35,7 @@ def test_idle_connections_held_do_not_keep_a_scrape_out_nor_add_threads():
         assert "probe_total 3.0" in _scrape(port)
         base = threading.active_count()
         n = min(2000, resource.getrlimit(resource.RLIMIT_NOFILE)[0] - 200)  # as many as this process may open
-        held = _hold(port, n)
+        held = open_connections(port, n)
         try:
             time.sleep(0.5)
             # scrapes while the connections are held, each answered
@@ -77,7 +67,7 @@ def test_slow_senders_are_cut_at_their_deadline_and_a_scrape_gets_through():
     server = MetricsServer(CollectorRegistry(), "127.0.0.1", 0)
     port = server.address[1]
     t0 = time.monotonic()
-    slow = _hold(port, 300)
+    slow = open_connections(port, 300)
     try:
         request = b"GET /metrics HTTP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 200
         for s in slow:  # each has started its request

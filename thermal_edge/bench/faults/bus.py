@@ -525,8 +525,9 @@ def security(full: bool) -> Iterator[Case]:
             yield Case.of(f"unicast_to_{addr}", "security", n, f"{taken} of {n} taken as frames ({kind})", c)
 
 
-def _open_all(port: int, n: int) -> list[socket.socket]:
-    """``n`` connections to the port at once (non-blocking connects: a full backlog must not stall the bench)."""
+def open_connections(port: int, n: int) -> list[socket.socket]:
+    """``n`` TCP connections to ``port`` on 127.0.0.1 opened at once and left open (non-blocking
+    connects: a full listening backlog must not stall the caller)."""
     conns = []
     for _ in range(n):
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -552,7 +553,7 @@ def metrics_abuse(full: bool) -> Iterator[Case]:
         for name, payload, dribble in (("idle_connections", b"", False), ("half_sent_requests", request, False),
                                        ("slow_senders", request + b"X-Slow: " + b"a" * 100, True)):
             t0 = time.time()
-            conns = _open_all(port, n)
+            conns = open_connections(port, n)
             time.sleep(0.5)
             connected = served = tried = 0
             for s in conns:
