@@ -236,6 +236,10 @@ class SignalsConfig:
     #: back-EMF, kt 5.6 Nm/A, reaches the 560 V DC link's phase voltage at ~1170 rpm; field weakening of
     #: a surface PM machine rarely reaches 4x); the signal carries +-16000 rpm
     valid_speed_rpm: float = setting(6000.0, positive=True)
+    #: the torque input beyond +-this multiple of ``derating.max_torque_nm`` is implausible (the
+    #: inverter obeys TE_TorqueLimit <= max_torque_nm; its estimate overshoots in transients, not by
+    #: 3x); the signal carries +-3276.8 Nm
+    valid_torque_factor: float = setting(3.0, positive=True)
 
 
 @dataclass(frozen=True)

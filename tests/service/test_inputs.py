@@ -9,6 +9,7 @@ import pytest
 from svc_testlib import EDGE_YAML
 from thermal_edge.bus import DecodedFrame, SensorStatus
 from thermal_edge.config import load_config
+from thermal_edge.lptn import Role, load_model
 from thermal_edge.service.clock import FrameClock, first_boundary
 from thermal_edge.service.inputs import InputAccumulator
 
@@ -27,9 +28,14 @@ def ambient(t: float, amb=25.0, status=0) -> DecodedFrame:
                  INV_S_Coolant=int(SensorStatus.NOT_FITTED))
 
 
+def accumulator(cfg) -> InputAccumulator:  # type: ignore[no-untyped-def]
+    """The accumulator as the service builds it: with its model's input roles."""
+    return InputAccumulator(cfg, load_model(cfg.model.path).input_roles)
+
+
 @pytest.fixture
 def acc() -> InputAccumulator:
-    return InputAccumulator(load_config(EDGE_YAML))
+    return accumulator(load_config(EDGE_YAML))
 
 
 def test_current_is_the_root_mean_square_over_every_frame(acc):
@@ -69,7 +75,7 @@ def test_rms_mode_uses_the_phase_current_signal(tmp_path):
     raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
     raw["codec"]["dbc"] = str(REPO / "dbc" / "thermal_edge.dbc")
     raw["signals"]["inputs"]["i_rms"] = {"frame": "INV_Currents", "reduce": "rms", "signal": "INV_IphRms"}
-    acc = InputAccumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    acc = accumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
     vals = [10.0, 20.0, 30.0]
     for k, v in enumerate(vals):
         acc.add(frame("INV_Currents", k * 0.01, INV_Id=0.0, INV_Iq=0.0, INV_IphRms=v), k * 0.01)
@@ -104,7 +110,7 @@ def test_not_fitted_is_a_fault_only_for_a_required_sensor(tmp_path):
     raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
     raw["codec"]["dbc"] = str(REPO / "dbc" / "thermal_edge.dbc")
     raw["signals"]["sensors"]["housing"]["required"] = False
-    acc = InputAccumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    acc = accumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
     nf = int(SensorStatus.NOT_FITTED)
     acc.add(ambient(0.1), 0.1)
     acc.add(stator(0.1, s_hous=nf, hous=math.nan), 0.1)
@@ -176,3 +182,23 @@ def test_absurd_currents_and_speeds_are_bad_readings_left_out_of_the_mean(acc):
     acc.add(frame("INV_Mechanics", 12.2, INV_Speed=-6000.0, INV_Torque=0.0, INV_Udc=560.0), 12.2)
     ti = acc.take(13.0)
     assert not ti.faults and ti.inputs["i_rms"] == pytest.approx(119.9) and ti.inputs["speed_rpm"] == -6000.0
+
+
+def test_an_absurd_torque_is_a_bad_reading_left_out_of_the_mean(acc):
+    """The torque signal's +-3276.8 Nm (beyond 3 x the 220 Nm maximum torque, the range the
+    torque input is found by its role in the model): left out of the tick's mean, the input faulty
+    (``out_of_range``) and counted, as an absurd current or speed is."""
+    cfg = load_config(EDGE_YAML)
+    torque = load_model(cfg.model.path).find_input(Role.TORQUE)
+    assert cfg.signals.valid_torque_factor * cfg.derating.max_torque_nm == 660.0
+    values = [100.0, 3276.7, 100.0, -3276.8, 100.0, 659.0]
+    for k, v in enumerate(values):
+        acc.add(frame("INV_Mechanics", 20.0 + 0.1 * k, INV_Speed=900.0, INV_Torque=v, INV_Udc=560.0), 20.0 + 0.1 * k)
+    acc.add(frame("INV_Currents", 20.5, INV_Id=0.0, INV_Iq=20.0, INV_IphRms=0.0), 20.5)
+    acc.add(stator(20.5), 20.5)
+    acc.add(ambient(20.5), 20.5)
+    ti = acc.take(21.0)
+    assert ti.inputs[torque] == pytest.approx(np.mean([v for v in values if abs(v) <= 660.0]))
+    assert ti.faults == {torque: "out_of_range"}
+    assert acc.bad_readings["out_of_range"] == 1
+

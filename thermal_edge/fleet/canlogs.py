@@ -21,14 +21,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..shipped import config_path
 from ..bus.codec import FrameCodec
 from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig, load_config
 from ..data import Run, RunError
+from ..lptn import load_model
 from ..service.clock import FrameClock
 from ..service.inputs import InputAccumulator, TickInputs
+from ..shipped import config_path
 
 __all__ = ["CAN_LOG_SUFFIXES", "DEFAULT_CONFIG", "is_can_log", "read_can_runs"]
 
@@ -96,7 +97,8 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
     source = str(path)
     runs: list[Run] = []
     ticks: list[TickInputs] = []
-    acc, clock = InputAccumulator(cfg), FrameClock(cfg.clock.tick_s)
+    roles = load_model(cfg.model.path).input_roles  # which input is the current, the speed, the torque
+    acc, clock = InputAccumulator(cfg, roles), FrameClock(cfg.clock.tick_s)
     last = -math.inf
     frames = 0
     try:
@@ -106,7 +108,7 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
                 run = _rows(ticks, cfg, source, len(runs))
                 if run is not None:
                     runs.append(run)
-                ticks, acc, clock = [], InputAccumulator(cfg), FrameClock(cfg.clock.tick_s)
+                ticks, acc, clock = [], InputAccumulator(cfg, roles), FrameClock(cfg.clock.tick_s)
             last = max(last, ts)
             ticks += [acc.take(b) for b in clock.observe(ts)]
             acc.add(frame, clock.now())

@@ -93,7 +93,7 @@ class ThermalEngine:
         self.adaptation = Adaptation(m, config.adaptation, self.dt, self.frame_mode, config.state.max_decisions,
                                      restored, worker_mode)
         theta = self.adaptation.theta
-        self.accumulator = InputAccumulator(config)
+        self.accumulator = InputAccumulator(config, m.input_roles)
         self.kt = float(config.kt(m))  # type: ignore[arg-type]
         self.policy = DeratingPolicy(config.derating, self.kt, self.dt, config.transmit.bus_silence_s)
         self.sensor_rows = {s: m.node_index(m.sensors[s]) for s in config.sensors}

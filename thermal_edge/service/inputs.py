@@ -12,7 +12,7 @@ Per tick (the frames of ``[t - period, t)``):
 A frame type that has not arrived for longer than its timeout makes its inputs *stale*; a sensor
 reporting open/short circuit or "not fitted", or a value outside the plausible range, is *faulty*
 (a sensor marked ``required: false`` is then only unmeasured). A current or speed frame outside its
-plausible range (:func:`input_ranges`) is left out of the tick's mean and makes the input faulty
+plausible range (:func:`input_ranges`; the torque too) is left out of the tick's mean and makes the input faulty
 (``out_of_range``) for that tick: a physically absurd value is a bad reading, not a load for the model. An input with
 no fresh value keeps its last value (the model must keep running) and is flagged. Bad readings
 are counted by kind in :attr:`InputAccumulator.bad_readings`.
@@ -27,6 +27,7 @@ from typing import Mapping
 from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus
 from ..config import EdgeConfig, InputSignal, SensorSignal
+from ..lptn import Role
 
 __all__ = ["FAULT_KINDS", "InputAccumulator", "TickInputs", "input_ranges"]
 
@@ -97,14 +98,24 @@ _STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatu
 FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck")
 
 
-def input_ranges(config: EdgeConfig) -> dict[str, tuple[float, float]]:
-    """The plausible range of each checked mean/rms input, per frame: ``i_rms`` in A from 0 to
-    ``signals.valid_current_factor`` x ``derating.max_current_a``, ``speed_rpm`` within
-    +-``signals.valid_speed_rpm``."""
-    sig = config.signals
-    ranges = {"i_rms": (0.0, sig.valid_current_factor * config.derating.max_current_a),
-              "speed_rpm": (-sig.valid_speed_rpm, sig.valid_speed_rpm)}
-    return {k: r for k, r in ranges.items() if k in config.inputs and config.inputs[k].reduce != "latest"}
+def input_ranges(config: EdgeConfig, roles: Mapping[str, Role]) -> dict[str, tuple[float, float]]:
+    """The plausible range of each checked mean/rms input, per frame, found by its role in the
+    model: the current (A rms) from 0 to ``signals.valid_current_factor`` x
+    ``derating.max_current_a``, the speed within +-``signals.valid_speed_rpm`` rpm, the torque
+    within +-``signals.valid_torque_factor`` x ``derating.max_torque_nm`` Nm.
+
+    Parameters
+    ----------
+    config : EdgeConfig
+    roles : mapping of str to Role
+        The model's inputs and their roles (:attr:`~thermal_edge.lptn.Model.input_roles`).
+    """
+    sig, der = config.signals, config.derating
+    by_role = {Role.CURRENT: (0.0, sig.valid_current_factor * der.max_current_a),
+               Role.SPEED: (-sig.valid_speed_rpm, sig.valid_speed_rpm),
+               Role.TORQUE: (-sig.valid_torque_factor * der.max_torque_nm, sig.valid_torque_factor * der.max_torque_nm)}
+    return {name: by_role[role] for name, role in roles.items()
+            if role in by_role and name in config.inputs and config.inputs[name].reduce != "latest"}
 
 
 class InputAccumulator:
@@ -114,9 +125,11 @@ class InputAccumulator:
     ----------
     config : EdgeConfig
         Signal mapping (``signals``), plausible range and frame timeouts.
+    roles : mapping of str to Role
+        The model's inputs and their roles (which input is the current, the speed, the torque).
     """
 
-    def __init__(self, config: EdgeConfig) -> None:
+    def __init__(self, config: EdgeConfig, roles: Mapping[str, Role]) -> None:
         self.config = config
         self.lo, self.hi = config.valid_range_c
         self.reduced: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce != "latest"}
@@ -132,7 +145,7 @@ class InputAccumulator:
             self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signal, spec.status)))
         self._sum = {k: 0.0 for k in self.reduced}
         self._n = {k: 0 for k in self.reduced}
-        self.ranges = input_ranges(config)
+        self.ranges = input_ranges(config, roles)
         self._implausible: set[str] = set()  # checked inputs with a frame out of range this tick
         self._was_implausible: set[str] = set()  # ... and in the last tick (a fault is counted when it starts)
         self._held = {k: math.nan for k in config.inputs}

@@ -332,11 +332,13 @@ def stuck_sensors(full: bool) -> Iterator[Case]:
 ABSURD_INPUTS = {"current_1000a": ("INV_Currents", {"INV_Iq": 1000.0 * 2 ** 0.5, "INV_IphRms": 1000.0}),
                  "current_1638a_dq_max": ("INV_Currents", {"INV_Id": 1638.35, "INV_Iq": 1638.35, "INV_IphRms": 1638.35}),
                  "speed_plus_16000rpm": ("INV_Mechanics", {"INV_Speed": 16000.0}),
-                 "speed_minus_16000rpm": ("INV_Mechanics", {"INV_Speed": -16000.0})}
+                 "speed_minus_16000rpm": ("INV_Mechanics", {"INV_Speed": -16000.0}),
+                 "torque_plus_3276nm": ("INV_Mechanics", {"INV_Torque": 3276.7}),
+                 "torque_minus_3276nm": ("INV_Mechanics", {"INV_Torque": -3276.8})}
 
 
 def absurd_inputs(full: bool) -> Iterator[Case]:
-    """Physically absurd currents and speeds (valid frames, plausible CRC and counter): the safe limit
+    """Physically absurd currents, speeds and torques (valid frames, plausible CRC and counter): the safe limit
     with ``sensor_fault`` within a frame cycle, a tick and margin, and one ``out_of_range`` bad reading;
     never a model fault (before: not counted, and a model fault a second later)."""
     hold = 4.0 if full else 2.5
