@@ -281,14 +281,17 @@ def stuck_bound_s(idle_c: float) -> float:
     import numpy as np
 
     from ...config import FaultConfig
-    from ...lptn import Stepper, load_model
+    from ...lptn import Role, Stepper, load_model
 
     k = float(EDGE["derating"].get("faults", {}).get("stuck_model_k", FaultConfig().stuck_model_k))
     model = load_model(service_config_path(*Path(EDGE["model"]["path"]).parts))
     st = Stepper(model, model.nominal(), 1.0)
     rows = [model.node_index(n) for n in model.sensors.values()]
     T = np.full(len(model.nodes), idle_c)
-    u = {"speed_rpm": 900.0, "i_rms": 40.0, "torque_nm": 224.0, "ambient_c": idle_c}
+    u = model.at_rest({c: idle_c for c in model.temperature_inputs})
+    u.update({model.input_name(Role.SPEED): 900.0, model.input_name(Role.CURRENT): 40.0})
+    if model.find_input(Role.TORQUE) is not None:
+        u[model.input_name(Role.TORQUE)] = 224.0
     for n in range(1, 3601):
         T, _ = st.step(T, u)
         if max(abs(T[r] - idle_c) for r in rows) >= k:
