@@ -80,3 +80,24 @@ def test_allowed_table_has_no_cycle():
 
     for p in ALLOWED:
         visit(p)
+
+
+def test_input_names_are_written_only_in_the_vocabulary():
+    """The usual input column names (``i_rms``, ``speed_rpm`` ...) are written in
+    ``lptn/vocabulary.py`` and the model files only; code finds an input by its role. Read from the
+    source (ast string constants), not by a grep of comments and docstrings."""
+    from thermal_edge.lptn.vocabulary import DEFAULT_COLUMNS
+
+    names = set(DEFAULT_COLUMNS.values())
+    found = []
+    for f in PKG.rglob("*.py"):
+        if f.relative_to(PKG).as_posix() == "lptn/vocabulary.py":
+            continue
+        tree = ast.parse(f.read_text(encoding="utf-8"))
+        docstrings = {id(n.body[0].value) for n in ast.walk(tree)
+                      if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and n.body
+                      and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and node.value in names and id(node) not in docstrings:
+                found.append(f"{f.relative_to(PKG)}:{node.lineno} {node.value!r}")
+    assert found == []
