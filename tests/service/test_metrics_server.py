@@ -7,6 +7,7 @@ import threading
 import time
 import urllib.request
 
+import pytest
 from prometheus_client import CollectorRegistry, Counter
 
 from thermal_edge.bench.faults.bus import open_connections
@@ -119,8 +120,6 @@ def test_a_client_that_never_finishes_its_request_is_cut_off():
 def test_the_default_endpoint_cannot_be_reached_from_beyond_the_host():
     """Bound to 127.0.0.1 as configured by default: a connection to the host's own network address
     (as a client on the network would make) is refused, one to loopback is served."""
-    import pytest
-
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         try:
             s.connect(("198.51.100.1", 9))  # route lookup only, nothing is sent
@@ -146,3 +145,35 @@ def test_the_default_endpoint_cannot_be_reached_from_beyond_the_host():
         assert _scrape(port) == ""  # an empty registry, but served on loopback
     finally:
         server.close()
+
+
+@pytest.mark.parametrize("request_bytes", [b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n", b"GET /metrics HTTP/1.0\n\n",
+                                           b"GET /metrics?name[]=probe_total HTTP/1.1\r\nAccept-Encoding: gzip\r\n\r\n"],
+                         ids=["crlf", "bare-lf", "gzip-and-filter"])
+def test_a_request_typed_by_hand_is_answered_as_prometheus_client_answers_it(request_bytes):
+    """The answer is prometheus_client's own (content, encoding, ``name[]``), read back with the
+    standard library; a request with bare LF line ends (``printf ... | nc``) is answered too."""
+    import gzip
+
+    reg = CollectorRegistry()
+    Counter("probe", "a probe", registry=reg).inc(3)
+    Counter("other", "another", registry=reg).inc(1)
+    server = MetricsServer(reg, "127.0.0.1", 0)
+    try:
+        with socket.create_connection(("127.0.0.1", server.address[1]), timeout=5) as s:
+            s.sendall(request_bytes)
+            data = b""
+            while chunk := s.recv(65536):
+                data += chunk
+        head, _, body = data.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 200 OK")
+        headers = dict(line.split(": ", 1) for line in head.decode().split("\r\n")[1:])
+        assert int(headers["Content-Length"]) == len(body)
+        if headers.get("Content-Encoding") == "gzip":
+            body = gzip.decompress(body)
+        text = body.decode()
+        assert "probe_total 3.0" in text
+        assert ("other_total" in text) == (b"name[]" not in request_bytes)
+    finally:
+        server.close()
+

@@ -62,9 +62,16 @@ class _Connection:
         self.answered = False  # a response was queued (the connection is no longer waiting)
 
 
+def _head_end(buf: bytes) -> int:
+    """Where the request head in ``buf`` ends (before its blank line), or -1: lines end in CRLF, or
+    in a bare LF, which RFC 9112 lets a server accept (a hand-typed ``printf`` or ``nc`` request)."""
+    ends = [i for i in (buf.find(b"\r\n\r\n"), buf.find(b"\n\n")) if i >= 0]
+    return min(ends, default=-1)
+
+
 def _environ(head: bytes) -> dict[str, Any] | None:
     """The WSGI environment of a request head (request line and headers), or None if malformed."""
-    lines = head.decode("latin-1").split("\r\n")
+    lines = [line.rstrip("\r") for line in head.decode("latin-1").split("\n")]
     parts = lines[0].split()
     if len(parts) != 3 or not parts[2].startswith("HTTP/"):
         return None
@@ -198,7 +205,7 @@ class MetricsServer:
         if conn.answered:  # after the answer: read and discard until the client closes
             return
         conn.inbuf += data
-        end = conn.inbuf.find(b"\r\n\r\n")
+        end = _head_end(conn.inbuf)
         if end < 0:
             if len(conn.inbuf) > MAX_REQUEST_BYTES:
                 self._answer(conn, _response("431 Request Header Fields Too Large", [], b""))
