@@ -9,7 +9,7 @@
         res = vm.python("import can; ...", timeout=120)
 
 Each call boots the VM afresh (about 6 s under software emulation), runs the
-command in the host's tree (read-only, cwd /work/main) and powers off.  When
+command in the host's tree (read-only, cwd: the tree these tests belong to) and powers off.  When
 the VM cannot be had (not root, apt-get failed, qemu missing, kernel without
 vcan, boot failed, THERMAL_EDGE_VM=0) every test using ``vm`` is skipped with
 the reason.  Inside the guest (``THERMAL_EDGE_IN_VM=1``) ``vm`` skips too, so a

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import vmrun  # tests/vm is on sys.path (conftest.py)
 
-VENV_PY = "/work/main/.venv/bin/python"
-DBC = "/work/main/dbc/thermal_edge.dbc"
+VENV_PY = vmrun.DEFAULT_PYTHON
+DBC = str(Path(vmrun.DEFAULT_CWD) / "dbc" / "thermal_edge.dbc")
 
 #: Shell snippet: wait until some socket receives everything on vcan0, i.e. candump has bound.
 WAIT_FOR_RECEIVER = vmrun.SH_WAIT_FOR_RECEIVER

@@ -33,7 +33,7 @@ Command line::
     python tests/vm/vmrun.py [--timeout S] [--cwd DIR] [--accel auto|kvm|tcg] -- CMD...
 
 Inside the guest the command runs as root with ``cwd`` (default
-``/work/main``), ``/tmp`` a fresh tmpfs, ``HOME=/tmp/home``, the host tree
+the source tree this file belongs to), ``/tmp`` a fresh tmpfs, ``HOME=/tmp/home``, the host tree
 read-only (Python writes no bytecode: ``PYTHONDONTWRITEBYTECODE=1``) and
 ``$VM_ARTIFACTS`` a writable directory whose files come back in
 ``Result.artifacts``; files given to ``run(files=...)`` are in ``$VM_FILES``.
@@ -116,8 +116,10 @@ APT_PACKAGES: dict[str, str] = {
 GUEST_SHARE = "/tmp/vmshare"
 #: scheduling priority of qemu when run as root (negative: before the host's other processes)
 QEMU_NICE = -10
-DEFAULT_CWD = "/work/main"
-DEFAULT_PYTHON = "/work/main/.venv/bin/python"
+#: the source tree these tests belong to and its venv (the guest sees the host's root, so the same
+#: paths): a clone elsewhere tests itself, not another checkout
+DEFAULT_CWD = str(Path(__file__).resolve().parents[2])
+DEFAULT_PYTHON = str(Path(DEFAULT_CWD) / ".venv" / "bin" / "python")
 MARK = "@@VM:"
 
 _HERE = Path(__file__).resolve().parent
