@@ -5,6 +5,7 @@ import resource
 import socket
 import threading
 import time
+import urllib.error
 import urllib.request
 
 import pytest
@@ -174,6 +175,35 @@ def test_a_request_typed_by_hand_is_answered_as_prometheus_client_answers_it(req
         text = body.decode()
         assert "probe_total 3.0" in text
         assert ("other_total" in text) == (b"name[]" not in request_bytes)
+    finally:
+        server.close()
+
+
+def test_a_failing_collector_costs_its_request_a_500_and_the_endpoint_serves_on():
+    class Flaky:
+        fail = True
+
+        def collect(self):  # type: ignore[no-untyped-def]
+            if Flaky.fail:
+                raise RuntimeError("collector broke")
+            yield from Counter("probe", "a probe", registry=None).collect()
+
+    reg = CollectorRegistry()
+    reg.register(Flaky())
+    server = MetricsServer(reg, "127.0.0.1", 0)
+    try:
+        idle = open_connections(server.address[1], 3)  # other connections, open meanwhile
+        time.sleep(0.2)
+        with pytest.raises(urllib.error.HTTPError) as err:
+            _scrape(server.address[1])
+        assert err.value.code == 500
+        Flaky.fail = False
+        assert "probe_total 0.0" in _scrape(server.address[1])
+        for s in idle:  # still open: nothing to read, no end of stream (the failure closed no other connection)
+            with pytest.raises(BlockingIOError):
+                s.recv(1)
+        for s in idle:
+            s.close()
     finally:
         server.close()
 

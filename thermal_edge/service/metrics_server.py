@@ -215,8 +215,13 @@ class MetricsServer:
             self._answer(conn, _response("400 Bad Request", [], b""))
             return
         captured: list[Any] = []
-        body = b"".join(self._app(env, lambda status, headers, exc_info=None: captured.extend((status, headers))))
-        self._answer(conn, _response(captured[0], captured[1], body, head_only=env["REQUEST_METHOD"] == "HEAD"))
+        try:
+            body = b"".join(self._app(env, lambda status, headers, exc_info=None: captured.extend((status, headers))))
+            status, headers = captured[0], captured[1]
+        except Exception:  # a collector that fails: this request gets a 500, the others are untouched
+            log.warning("metrics endpoint: collecting the metrics failed", exc_info=True)
+            status, headers, body = "500 Internal Server Error", [], b""
+        self._answer(conn, _response(status, headers, body, head_only=env["REQUEST_METHOD"] == "HEAD"))
 
     def _answer(self, conn: _Connection, payload: bytes) -> None:
         conn.answered = True
