@@ -34,6 +34,8 @@ STARTS: dict[str, dict[str, float]] = {
     "R_c_sy_x1.5": {"R_c_sy": 1.5},
     "C_sw_x0.6": {"C_sw": 0.6},
     "R_sy_sw_x1.6": {"R_sy_sw": 1.6},
+    "R_c_sy_x0.6": {"R_c_sy": 0.6},
+    "R_sy_sw_x0.7": {"R_sy_sw": 0.7},
     "C_sy_x1.4": {"C_sy": 1.4},
     "stator_together": {"R_c_sy": 1.5, "C_sw": 0.71, "R_sy_sw": 0.7, "C_sy": 1.4},
     "unidentifiable_C_pm_x1.5": {"C_pm": 1.5},
