@@ -11,8 +11,8 @@ Per tick (the frames of ``[t - period, t)``):
 
 A frame type that has not arrived for longer than its timeout makes its inputs *stale*; a sensor
 reporting open/short circuit or "not fitted", or a value outside the plausible range, is *faulty*
-(a sensor marked ``required: false`` is then only unmeasured). A current or speed frame outside its
-plausible range (:func:`input_ranges`; the torque too) is left out of the tick's mean and makes the input faulty
+(a sensor marked ``required: false`` is then only unmeasured). A current, speed or torque frame outside
+its plausible range (:func:`input_ranges`) is left out of the tick's mean and makes the input faulty
 (``out_of_range``) for that tick: a physically absurd value is a bad reading, not a load for the model. An input with
 no fresh value keeps its last value (the model must keep running) and is flagged. Bad readings
 are counted by kind in :attr:`InputAccumulator.bad_readings`.
