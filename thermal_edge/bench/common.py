@@ -6,7 +6,6 @@ import time
 from typing import Callable, Protocol, Sequence
 
 
-
 class Progress(Protocol):
     """How a benchmark reports how far it is: ``progress(stage, done, total, unit)``.
 

@@ -89,8 +89,7 @@ def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | 
         return {"skipped": f"{path} not found"}
     base = load_model(config_path("machines", "paderborn4.yaml"), data_dir=data_dir)
     sets = dict(sets or {})
-    base.check_parameters(sets)
-    if sets:
+    if sets:  # with_parameters refuses an unknown name or a value outside the bounds
         base = base.with_parameters(sets)
     run_ = read_run(path, "paderborn")
     chosen = starts or STARTS

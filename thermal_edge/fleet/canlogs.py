@@ -26,7 +26,7 @@ from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig, load_config
 from ..data import Run, RunError
-from ..lptn import load_model
+from ..lptn import Role, load_model
 from ..service.clock import FrameClock
 from ..service.inputs import InputAccumulator, TickInputs
 from ..shipped import config_path
@@ -51,6 +51,12 @@ def is_can_log(path: str | os.PathLike[str]) -> bool:
 @functools.lru_cache(maxsize=4)
 def _config(path: str) -> EdgeConfig:
     return load_config(path)
+
+
+@functools.lru_cache(maxsize=4)
+def _input_roles(model_path: str) -> dict[str, Role]:
+    """Which of the model's inputs is the current, the speed, the torque: loaded once per model, not per log."""
+    return dict(load_model(model_path).input_roles)
 
 
 def _rows(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int) -> Run | None:
@@ -97,7 +103,7 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
     source = str(path)
     runs: list[Run] = []
     ticks: list[TickInputs] = []
-    roles = load_model(cfg.model.path).input_roles  # which input is the current, the speed, the torque
+    roles = _input_roles(str(cfg.model.path))
     acc, clock = InputAccumulator(cfg, roles), FrameClock(cfg.clock.tick_s)
     last = -math.inf
     frames = 0

@@ -120,7 +120,8 @@ class MetricsServer:
         self._selector = selectors.DefaultSelector()
         self._selector.register(self._listener, selectors.EVENT_READ)
         self._selector.register(self._wake_r, selectors.EVENT_READ)
-        self._open: dict[int, _Connection] = {}  # by file number, in order of arrival
+        # by file number, in order of arrival, hence of deadline (arrival + IDLE_TIMEOUT_S)
+        self._open: dict[int, _Connection] = {}
         self._stopping = False
         #: connections closed without an answer (dropped for a newer one, or too slow)
         self.rejected = 0
@@ -151,7 +152,8 @@ class MetricsServer:
     def _serve(self) -> None:
         while not self._stopping:
             now = time.monotonic()
-            wait = min((c.deadline for c in self._open.values()), default=now + 1.0) - now
+            oldest = next(iter(self._open.values()), None)  # the earliest deadline: they follow arrival
+            wait = (oldest.deadline if oldest is not None else now + 1.0) - now
             try:
                 events = self._selector.select(min(1.0, max(0.0, wait)))
                 for key, mask in events:
@@ -250,7 +252,11 @@ class MetricsServer:
             self._selector.modify(conn.sock, selectors.EVENT_READ, conn)
 
     def _expire(self, now: float) -> None:
-        for conn in [c for c in self._open.values() if c.deadline <= now]:
+        """Close the connections past their deadline: the oldest ones, as ``_open`` keeps arrival order."""
+        while self._open:
+            conn = next(iter(self._open.values()))
+            if conn.deadline > now:
+                return
             self._close(conn)
 
     def _close(self, conn: _Connection) -> None:

@@ -288,10 +288,9 @@ def stuck_bound_s(idle_c: float) -> float:
     st = Stepper(model, model.nominal(), 1.0)
     rows = [model.node_index(n) for n in model.sensors.values()]
     T = np.full(len(model.nodes), idle_c)
-    u = model.at_rest({c: idle_c for c in model.temperature_inputs})
-    u.update({model.input_name(Role.SPEED): 900.0, model.input_name(Role.CURRENT): 40.0})
-    if model.find_input(Role.TORQUE) is not None:
-        u[model.input_name(Role.TORQUE)] = 224.0
+    u = model.at_rest({c: idle_c for c in model.temperature_inputs})  # every input, the speed ...
+    loads = {Role.SPEED: 900.0, Role.CURRENT: 40.0, Role.TORQUE: 224.0}  # ... current and torque set
+    u.update({name: loads[role] for name, role in model.input_roles.items() if role in loads})
     for n in range(1, 3601):
         T, _ = st.step(T, u)
         if max(abs(T[r] - idle_c) for r in rows) >= k:
