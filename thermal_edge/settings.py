@@ -119,9 +119,10 @@ class AdapterConfig:
         Sensors the adapter learns from; default: all the model's sensors present.
     max_rel_std : float
         A parameter is offered to the optimiser only if the window pins it down to this relative
-        standard deviation (Fisher information, all adaptable parameters free). The one
-        identifiability threshold: the parameter bands and the ``parameter_identifiable`` metric
-        (and offline calibration) judge by it too.
+        standard deviation (Fisher information, all adaptable parameters free, the residuals
+        counted as independent: whether the excitation and sensors separate it; the reported
+        bands count their correlation in time). The one identifiability threshold: the
+        ``parameter_identifiable`` metric (and offline calibration) judge by it too.
     """
 
     period_s: float = setting(180.0, positive=True)

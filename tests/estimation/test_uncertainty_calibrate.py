@@ -7,7 +7,7 @@ import pytest
 from thermal_edge.estimation.calibrate import calibrate, write_calibrated
 from thermal_edge.estimation.common import ParamSpace, decimate, window_from_arrays
 from thermal_edge.estimation.objective import Objective
-from thermal_edge.estimation.uncertainty import estimate_uncertainty
+from thermal_edge.estimation.uncertainty import estimate_uncertainty, integrated_autocorrelation
 from thermal_edge.lptn import Simulator, load_model
 
 from conftest import ROOT  # noqa: E402  (tests/estimation is on sys.path under pytest's rootdir)
@@ -22,12 +22,16 @@ def test_covariance_matches_the_textbook_formula_and_flags_what_sensors_cannot_s
     phi = np.log(obj.space.values())
     ev = obj.evaluate(phi)
     unc = estimate_uncertainty(obj, ev)
-    # independent: σ² (JᵀJ)⁻¹ from the stacked unweighted residual Jacobian (uniform weights)
+    # independent: σ² (JᵀJ / τ)⁻¹ from the stacked unweighted residual Jacobian (uniform weights),
+    # τ by the direct sums of Sokal's estimator; the gate's σ with τ = 1
     J = ev.jac.reshape(-1, len(names))
     r = ev.residuals.ravel()
     s2 = float(r @ r) / (len(r) - len(names))
+    tau = _tau_direct(ev.residuals)
     assert unc.sigma2 == pytest.approx(s2, rel=1e-9)
-    assert unc.cov == pytest.approx(s2 * np.linalg.inv(J.T @ J), rel=1e-6)
+    assert unc.tau == pytest.approx(tau, rel=1e-9)
+    assert unc.cov == pytest.approx(s2 * tau * np.linalg.inv(J.T @ J), rel=1e-6)
+    assert unc.rel_std_independent == pytest.approx(np.sqrt(np.diag(s2 * np.linalg.inv(J.T @ J))), rel=1e-6)
     # noise is 0.1 K with 0.1 K steps: the residual σ at the true parameters is about that
     assert 0.08 < np.sqrt(unc.sigma2) < 0.13
     # with all 14 parameters free, the housing path is pinned and the slot winding's
@@ -40,6 +44,49 @@ def test_covariance_matches_the_textbook_formula_and_flags_what_sensors_cannot_s
     S = Simulator(pm10kw).simulate(pm10kw.nominal(), win.inputs, win.dt, win.T0, wrt=names).S
     band = unc.node_band(S[-1] * obj.space.values()[None, :])
     assert band.shape == (len(pm10kw.nodes),) and np.all(band >= 0)
+
+
+def _tau_direct(r: np.ndarray, c: float = 5.0) -> float:
+    """Sokal's integrated autocorrelation time by explicit lag sums, sensors pooled by their
+    residuals' sum of squares (the definition, no FFT)."""
+    taus, weights = [], []
+    for x in np.asarray(r, dtype=float).T:
+        y = x - x.mean()
+        c0 = float(y @ y)
+        tau, m = 1.0, 0
+        while m < len(y) - 1:
+            m += 1
+            tau += 2.0 * float(y[:-m] @ y[m:]) / c0
+            if m >= c * tau:
+                break
+        taus.append(tau)
+        weights.append(float(x @ x))
+    return max(float(np.average(taus, weights=weights)), 1.0)
+
+
+def test_autocorrelation_time_of_an_ar1_process_is_its_theoretical_value():
+    """AR(1) residuals x_k = a x_{k−1} + e_k have τ = (1 + a)/(1 − a): 1 (white), 3, 19; the
+    Fisher covariance of a mean fitted to them then grows by τ, as the variance of their mean does."""
+    rng = np.random.default_rng(3)
+    for a, expected in ((0.0, 1.0), (0.5, 3.0), (0.9, 19.0)):
+        e = rng.normal(size=(40_000, 2))
+        x = np.empty_like(e)
+        x[0] = e[0]
+        for k in range(1, len(e)):
+            x[k] = a * x[k - 1] + e[k]
+        got = integrated_autocorrelation(x)
+        assert got == pytest.approx(expected, rel=0.15), (a, got)
+        assert got == pytest.approx(_tau_direct(x), rel=1e-9)
+    # anti-correlated residuals never narrow the bound below white noise's
+    assert integrated_autocorrelation(np.tile([1.0, -1.0], 500)) == 1.0
+    # masked samples count as zero residual; a column with too few readings is left out
+    mask = np.ones((200, 2), dtype=bool)
+    mask[:, 1] = False
+    mask[:2, 1] = True
+    r = rng.normal(size=(200, 2))
+    r[:, 0] = np.convolve(r[:, 0], np.ones(5) / 5, mode="same")  # τ well above 1
+    assert integrated_autocorrelation(r, mask) == pytest.approx(integrated_autocorrelation(r[:, :1]), rel=1e-12)
+    assert integrated_autocorrelation(r, mask) > 3.0
 
 
 def test_write_calibrated_keeps_comments_and_moves_data_dir(tmp_path):

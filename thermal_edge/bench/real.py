@@ -8,7 +8,9 @@ be): stator-side parameters off by 30–60 %, one at a time and together, and on
 a parameter the sensors cannot identify (the magnet capacity) is wrong. Per start and target:
 the online trace, the same with the starting parameters fixed, the observer, and its 95 % band
 coverage; the joint EKF from the same start (its final parameters judged open loop over the run,
-as the paper's Fig. 12 compares them) and the median adaptation step time.
+as the paper's Fig. 12 compares them), the median adaptation step time, and how closely the
+whole run pins down each final parameter (its relative σ, the residuals' correlation in time
+counted: :mod:`thermal_edge.estimation.uncertainty`).
 """
 from __future__ import annotations
 
@@ -67,6 +69,11 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     out["final_params"] = final
     reference = {**nominal, **sets}
     out["final_vs_published_pct"] = {k: 100.0 * (v / reference[k] - 1.0) for k, v in final.items()}  # type: ignore[union-attr]
+    # how closely the whole run pins each final value down, its residuals' correlation counted:
+    # a parameter is identifiable to within 10 % only where this is well under 10 %
+    unc = rep["result"].adapter.current_uncertainty()  # type: ignore[union-attr]
+    out["final_rel_std_pct"] = {n: 100.0 * float(r) for n, r in zip(unc.names, unc.rel_std)}
+    out["autocorrelation_samples"] = unc.tau
     out["ekf_params_vs_published_pct"] = {k: 100.0 * (float(ek.theta[model.parameter_index([k])[0]]) / reference[k] - 1.0)
                                           for k in ek.names}
     out["mean"] = rep["mean"]

@@ -213,7 +213,9 @@ def run_real(args: argparse.Namespace) -> int:
             + [["mean", "", st["mean"]["fixed_mse"], st["mean"]["mse"], st["mean"]["observer_mse"],
                 st["mean"]["fixed_observer_mse"], "", ""]],
         ))
-        print("final vs published: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["final_vs_published_pct"].items())
+        sd = st["final_rel_std_pct"]
+        print("final vs published (± 1σ the run allows): "
+              + ", ".join(f"{k} {v:+.1f} % (±{sd[k]:.1f} %)" for k, v in st["final_vs_published_pct"].items())
               + "; EKF: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["ekf_params_vs_published_pct"].items()))
     return 0
 

@@ -15,8 +15,8 @@ COLUMNS: dict[str, str] = {
     "name": "string",  # parameter or sensor name
     "value": "float64",  # parameter: fitted value (its unit); sensor: RMS error, K
     "nominal": "float64",  # parameter: the design's (start) value
-    "rel_std": "float64",  # parameter: 1σ of log θ (Fisher information, a lower bound)
-    "identifiable": "bool",  # parameter: rel_std below the calibration's limit
+    "rel_std": "float64",  # parameter: 1σ of log θ (Fisher information, the residuals' correlation counted)
+    "identifiable": "bool",  # parameter: 1σ as if the residuals were independent below the calibration's limit
     "mse_k2": "float64",  # sensor: mean squared error, K²
     "rms_k": "float64",  # sensor: RMS error, K
     "max_abs_k": "float64",  # sensor: largest absolute error, K

@@ -175,11 +175,11 @@ class _LiveCollector(Collector):
             yield fault
             val = GaugeMetricFamily(P + "parameter_value", "Adaptable parameter value (unit in the label)",
                                     labels=LABELS["parameter_value"])
-            band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information)",
+            band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information, the residuals' correlation in time counted)",
                                      labels=LABELS["parameter_band"])
             ident = GaugeMetricFamily(P + "parameter_identifiable",
-                                      "1 if the sensors at hand pin the parameter down (relative sd below adaptation.max_rel_std, "
-                                      "the adapter's own gate)",
+                                      "1 if the sensors at hand pin the parameter down (relative sd as if the residuals were independent "
+                                      "below adaptation.max_rel_std: the adapter's own gate)",
                                       labels=LABELS["parameter_identifiable"])
             units = {p.name: p.unit for p in model.parameters}
             param_bands, identifiable = eng.adaptation.parameter_bands()
