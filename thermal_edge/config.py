@@ -184,7 +184,9 @@ class ClockConfig:
     """``clock:`` -- what drives the 1 Hz tick: ``wall`` (hardware) or ``frame`` timestamps."""
 
     mode: str = setting("wall", choices=CLOCK_MODES)
-    tick_s: float = setting(1.0, positive=True, max=10.0)  # stale inputs are judged once a tick
+    # stale inputs are judged once a tick; a tick costs ~5 ms of CPU (observer, look-ahead), so
+    # below 0.1 s the loop cannot keep up (0.001 s: every input falsely stale, SIGTERM unanswered)
+    tick_s: float = setting(1.0, min=0.1, max=10.0)
     max_catchup_s: float = setting(300.0, positive=True)
 
 
@@ -257,7 +259,7 @@ class FaultConfig:
     hold_max_s: float = setting(960.0, positive=True)
     #: a required sensor is stuck (a sensor fault) when its reading stayed within ``stuck_still_k``
     #: (two steps of a PT100's 0.1 K resolution) while the open-loop prediction, stepped with the measured
-    #: losses, moved its node by ``stuck_model_k`` or more, within the last
+    #: losses, heated its node by ``stuck_model_k`` or more, within the last
     #: ``stuck_window_s`` (10 min, against the machine's slowest time constant of about 70 min)
     stuck_window_s: float = setting(600.0, positive=True)
     stuck_model_k: float = setting(5.0, positive=True)
@@ -352,8 +354,9 @@ class TransmitConfig:
 
     hot_spot_limit: str = "hot_spot"
     magnet_limit: str = "magnet"
-    limits_period_s: float = setting(0.1, positive=True, check=_within_inverter_timeout)
-    status_period_s: float = setting(1.0, positive=True)
+    # at least 10 ms: faster is a flood (1 µs sent 3,700 TE_Limits/s, most of a 500 kbit/s bus)
+    limits_period_s: float = setting(0.1, min=0.01, check=_within_inverter_timeout)
+    status_period_s: float = setting(1.0, min=0.1)  # three frames each period
     bus_silence_s: float = setting(1.0, positive=True)
 
 

@@ -216,6 +216,12 @@ BROKEN = [
      "must be at most 6553.5, the largest value TE_TorqueLimit carries"),
     ("no hold after a model fault", _set("derating.faults.hold_s", 0), "derating.faults.hold_s", "must be positive"),
     ("a tick of a day", _set("clock.tick_s", 86400), "clock.tick_s", "must be at most 10"),
+    # a black-box client's finding F5/F6: periods that passed --check and then starved or flooded
+    ("a tick of a millisecond", _set("clock.tick_s", 0.001), "clock.tick_s", "must be at least 0.1, got 0.001"),
+    ("TE_Limits every microsecond", _set("transmit.limits_period_s", 1e-6), "transmit.limits_period_s",
+     "must be at least 0.01"),
+    ("status frames every microsecond", _set("transmit.status_period_s", 1e-6), "transmit.status_period_s",
+     "must be at least 0.1"),
 ]
 # the checks that need more than the file also hold when the service starts (not only with --check)
 AT_START = {"limits period above the inverter timeout", "state.dir is a file", "state.dir under a file",

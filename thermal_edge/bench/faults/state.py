@@ -385,6 +385,10 @@ def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
         "max_current_a_above_the_dbc": set_("derating.max_current_a", 5000.0),
         "model_fault_hold_zero": set_("derating.faults.hold_s", 0),
         "tick_a_day": set_("clock.tick_s", 86400),
+        # black-box findings F5/F6: passed --check, then every input falsely stale / the bus flooded
+        "tick_a_millisecond": set_("clock.tick_s", 0.001),
+        "limits_every_microsecond": set_("transmit.limits_period_s", 1e-6),
+        "status_every_microsecond": set_("transmit.status_period_s", 1e-6),
         "a_section_twice": (yaml.safe_dump(base, sort_keys=False) + "bus:\n  interface: virtual\n").encode(),
         "nested_5000_deep": b"bus: " + b"[" * 5000 + b"]" * 5000 + b"\n",
         "yaml_syntax_error": b"bus: [unclosed\n",
