@@ -181,3 +181,44 @@ def test_no_stuck_sensor_on_the_paderborn_run():
         moved = {s: float(traj.node(n)[k] - traj.node(n)[k - 1]) for s, n in model.sensors.items()}
         found.update(check.observe(float(run.t[k]), y, moved))
     assert found == {}
+
+
+def test_only_a_model_that_heats_the_node_makes_a_still_reading_stuck():
+    """The evidence is the model's rise over the still stretch, summed here independently of the
+    detector's running minimum: 8 K of cooling under a still reading is no evidence (the reading is
+    on the hot side, withholding it would hide heat); 5 K of heating is."""
+    from thermal_edge.config import FaultConfig
+    from thermal_edge.service.health import StuckSensors
+
+    fc = FaultConfig()
+    cooling, heating = StuckSensors(fc, ["w"]), StuckSensors(fc, ["w"])
+    d = 0.25  # the model heats the node by 0.25 K a tick under a still reading
+    latched_at = None
+    for k in range(1, 40):
+        cooling.observe(float(k), {"w": 170.0}, {"w": -8.0 if k == 2 else -0.5})
+        if heating.observe(float(k), {"w": 40.0}, {"w": d}) and latched_at is None:
+            latched_at = k
+    assert cooling.stuck == {}
+    # a move is the change since the previous tick: over the readings of ticks 1..k the node rose (k - 1) d
+    expected = next(k for k in range(1, 40) if (k - 1) * d >= fc.stuck_model_k)
+    assert latched_at == expected and heating.stuck == {"w": 40.0}
+
+
+def test_a_winding_reading_stepping_above_its_max_on_a_cold_machine_gives_zero_and_is_never_withheld(tmp_path, model):
+    """A black-box client's finding F1: the end-winding PT100 steps from 25 to 170 degC (status valid,
+    inside the valid range) while the other sensors stay at 25 degC. The model restarts from that
+    reading and cools the node towards its neighbours; the reading was then withheld as stuck, the hot
+    spot's upper band fell to 54 degC and the limit rose to 9.5 A. The reading is above the hot spot's
+    max (155 degC): 0 A once the measured floor holds it (FLOOR_TICKS readings), for as long as it does."""
+    from thermal_edge.service.derating import FLOOR_TICKS
+
+    eng = ThermalEngine(_engine_config(tmp_path), model, None, worker_mode="sync")
+    cold = np.full(len(model.nodes), 25.0)
+    hot = cold.copy()
+    hot[model.node_index(model.sensors["end_winding"])] = 170.0
+    for k in range(1, 31):
+        _feed(eng, model, 1000.0 + k, cold, i=5.0, speed=900.0)
+    outs = [_feed(eng, model, 1030.0 + k, hot, i=5.0, speed=900.0) for k in range(1, 91)]
+    assert all(o.limits.current_a == 0.0 for o in outs[FLOOR_TICKS:]), [o.limits.current_a for o in outs]
+    assert "end_winding" not in eng.stuck.stuck
+    assert all(o.faults.get("end_winding") != "stuck" for o in outs)

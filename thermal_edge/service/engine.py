@@ -10,7 +10,7 @@ Per tick ``t`` (the frames of ``[t - Δt, t)`` accumulated by :class:`.inputs.In
    reaction-time current (the open-loop state re-derived once, with them); a due decision is
    requested from the worker;
 5. the health of the inputs and the model (:mod:`.health`): the reasons that force the safe limit
-   (a reading that sits still while the open-loop step moves its node is stuck: a sensor fault);
+   (a reading that sits still while the open-loop step heats its node is stuck: a sensor fault);
 6. **derating** (:mod:`.derating`) from the upper band, the reaction-time current (a short look-ahead
    over ``derating.reaction_time_s``), the readings of the sensors that bound a limited node from
    below, and the forced reasons; the 30 min look-ahead goes to ``TE_Forecast`` as advice;

@@ -10,7 +10,7 @@
   persists does not get full power back after every hold. It also keeps the window of squared
   open-loop prediction errors over the adaptation period, whose RMS is ``TE_PredErrRms``;
 - the sensors' plausibility over time (:class:`StuckSensors`): a reading that sits still while the
-  model, stepped with the measured losses, moves its node by several kelvin is stuck (frozen), a
+  model, stepped with the measured losses, heats its node by several kelvin is stuck (frozen), a
   sensor fault (kind ``stuck``) until the reading moves again.
 """
 from __future__ import annotations
@@ -139,11 +139,19 @@ class StuckSensors:
 
     A healthy PT100 at a steady state sits still too, but then the model predicts no change either.
     Per sensor with a reading: the latest stretch (within the last ``stuck_window_s``) over which the
-    readings stayed within ``stuck_still_k``, and the range of the model's path of the sensor's node
-    over it (the sum of the open-loop prediction's one-step changes with the tick's measured losses:
-    a change the losses drive, not a restart or new parameters). A path spanning
-    ``stuck_model_k`` or more over such a stretch latches the sensor as stuck; it stays stuck (its reading withheld, a sensor fault if it is
-    required) until the reading leaves the value it froze at by more than ``stuck_still_k``.
+    readings stayed within ``stuck_still_k``, and the model's path of the sensor's node over it (the
+    sum of the open-loop prediction's one-step changes with the tick's measured losses: a change the
+    losses drive, not a restart or new parameters). A path that *rose* ``stuck_model_k`` or more
+    over such a stretch latches the sensor as stuck; it stays stuck (its reading withheld, a sensor
+    fault if it is required) until the reading leaves the value it froze at by more than
+    ``stuck_still_k``.
+
+    Only a rise is evidence. A reading that stands still while its node heats reads cold, which is
+    the danger; one that stands still while the model's node cools reads hot, which costs headroom
+    and nothing else, and withholding it would hide a hot machine: a winding PT100 stepping to
+    170 °C restarted the model from that reading, the model's node relaxed 8 K towards its cooler
+    neighbours in a second, and the reading was withheld as stuck, leaving the hot spot's band at
+    54 °C and the limit at 9.5 A (a black-box client's finding F1).
 
     Parameters
     ----------
@@ -199,11 +207,11 @@ class StuckSensors:
                 run.clear()
                 continue
             run.add(t, v, d, fc.stuck_still_k, t - fc.stuck_window_s)
-            model_k = run.p_max.value - run.p_min.value
-            if model_k >= fc.stuck_model_k:
+            rise_k = run.path - run.p_min.value
+            if rise_k >= fc.stuck_model_k:
                 self._frozen[s] = v
                 new[s] = (f"reading within {run.v_max.value - run.v_min.value:.1f} K at {v:.1f} degC for "
-                          f"{t - run.since:.0f} s while the model moved its node {model_k:.1f} K with the measured losses")
+                          f"{t - run.since:.0f} s while the model heated its node {rise_k:.1f} K with the measured losses")
         return new
 
     def restart(self) -> None:
@@ -237,12 +245,13 @@ class _Extreme:
 
 class _StillRun:
     """The latest stretch of one sensor's ticks over which its reading stayed within a band, with the
-    extremes of the reading and of the model's path (cumulative one-step change) over it: amortised
-    O(1) a tick (the stretch that ends at the next tick starts no earlier than this one)."""
+    extremes of the reading and the lowest point of the model's path (cumulative one-step change)
+    over it: amortised O(1) a tick (the stretch that ends at the next tick starts no earlier than
+    this one)."""
 
     def __init__(self) -> None:
         self.ts: deque[float] = deque()
-        self.v_min, self.v_max, self.p_min, self.p_max = _Extreme(-1), _Extreme(1), _Extreme(-1), _Extreme(1)
+        self.v_min, self.v_max, self.p_min = _Extreme(-1), _Extreme(1), _Extreme(-1)
         self.path = 0.0
         self.n = 0  # sequence number of the next tick
         self.first = 0  # sequence number of the stretch's first tick
@@ -256,19 +265,19 @@ class _StillRun:
         """A tick at ``t`` with reading ``v`` and the model's one-step change ``d``; the stretch keeps
         its ticks after ``not_before`` over which the reading stays within ``band``."""
         self.path += d
-        for e, x in ((self.v_min, v), (self.v_max, v), (self.p_min, self.path), (self.p_max, self.path)):
+        for e, x in ((self.v_min, v), (self.v_max, v), (self.p_min, self.path)):
             e.push(self.n, x)
         self.ts.append(t)
         self.n += 1
         while self.ts[0] <= not_before or self.v_max.value - self.v_min.value > band:
             self.ts.popleft()
             self.first += 1
-            for e in (self.v_min, self.v_max, self.p_min, self.p_max):
+            for e in (self.v_min, self.v_max, self.p_min):
                 e.drop_before(self.first)
 
     def clear(self) -> None:
         self.ts.clear()
-        for e in (self.v_min, self.v_max, self.p_min, self.p_max):
+        for e in (self.v_min, self.v_max, self.p_min):
             e.q.clear()
         self.path = 0.0
         self.first = self.n
