@@ -51,6 +51,7 @@ async def test_two_processes_over_udp_multicast(udp_port):
         assert f.counter == i % 16
         assert f.signals["INV_IphRms"] == pytest.approx(i * 0.1)
     assert te.stats.own_echo > 0  # our TE_Limits came back through multicast loopback and were ignored
+    assert te.stats.foreign_own_id == 0  # ... each recognised as ours by its data
     assert stats.received.get("TE_Limits", 0) == 0
 
     # the peer: its hop_limit=7 was overridden, it got our limits, ignored its own echoes
@@ -90,3 +91,42 @@ async def test_kernel_drops_counted_exactly(udp_port):
     if result["sender_late"] == 0:
         assert result["missing_uncounted"] == 0
     assert result["unknown_id"] == result["rx_messages"] - result["received"]
+
+
+async def test_another_node_sending_this_nodes_limits_is_counted_logged_recorded_never_obeyed(udp_port, tmp_path, caplog):
+    """A black-box client's finding F4: TE_Limits from another node (valid CRC and counter, 0 A)
+    went only into ``own_echo``, with no log line, and not into the recording: a second source of
+    limits on the bus was invisible. Our own echoes (sent every 20 ms meanwhile) stay echoes."""
+    import can
+
+    from thermal_edge.bus import create_bus
+
+    n = 50
+    rec = tmp_path / "rec.log"
+    queue: asyncio.Queue = asyncio.Queue()
+    te = CanTransport({"interface": "udp_multicast", "port": udp_port, "node": "TE", "record_path": str(rec)},
+                      FrameCodec(DBC_PATH), queue=queue)
+    other = create_bus({"interface": "udp_multicast", "port": udp_port})
+    limits_id = te.codec.frame_id("TE_Limits")
+    try:
+        async with te:
+            te.start_cyclic("TE_Limits", lambda: LIMITS, period_s=0.02)
+            await asyncio.sleep(0.2)
+            for k in range(n):
+                other.send(can.Message(arbitration_id=limits_id, data=te.codec.encode(
+                    "TE_Limits", {**LIMITS, "TE_CurrentLimit": 0.0}, counter=k % 16), is_extended_id=False))
+                await asyncio.sleep(0.005)
+            await asyncio.sleep(0.2)
+    finally:
+        other.shutdown()
+    foreign = te.stats.foreign_own_id
+    assert 0.9 * n <= foreign <= n, foreign  # more than sent: an echo taken for a foreign frame
+    assert te.stats.own_echo > 0
+    received = [ln for ln in rec.read_text().splitlines() if f" {limits_id:03X}#" in ln and ln.rstrip().endswith(" R")]
+    assert len(received) == foreign
+    errors = [r for r in caplog.records if r.levelname == "ERROR" and "sent by another node" in r.getMessage()]
+    assert len(errors) == 1 and "TE_Limits" in errors[0].getMessage()  # once per 10 s, not per frame
+    frames = []
+    while not queue.empty():
+        frames.append(queue.get_nowait())
+    assert not any(f.name == "TE_Limits" for f in frames)  # never decoded, never obeyed

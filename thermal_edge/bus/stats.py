@@ -115,8 +115,11 @@ class TransportStats:
         Received messages the bus could not turn into a CAN message (a datagram that is not
         python-can's format, a malformed frame); each is skipped, the bus stays open.
     own_echo : int
-        Received messages ignored because this node transmits that identifier
-        (``udp_multicast`` loops a sender's own frames back).
+        Received messages ignored as this node's own frames looped back (``udp_multicast``
+        loops a sender's frames back): one of its identifiers with data it sent.
+    foreign_own_id : int
+        Received messages with one of this node's identifiers and data it did not send: another
+        node sends this node's frames (two sources of ``TE_Limits``); never obeyed, logged.
     provider_errors : int
         Cyclic-frame providers that raised or returned unusable signals.
     fallback_sent : int
@@ -136,6 +139,7 @@ class TransportStats:
     rx_messages: int = 0
     rx_undecodable: int = 0
     own_echo: int = 0
+    foreign_own_id: int = 0
     provider_errors: int = 0
     fallback_sent: int = 0
     cyclic_overruns: int = 0

@@ -57,6 +57,9 @@ RX_HANDLE_SLICE = 256
 RX_PENDING_MAX = 20_000
 #: Least time between two warnings about undecodable messages, s (the count is exact).
 RX_WARN_INTERVAL_S = 10.0
+#: frames remembered per own identifier to tell our echoes from another node's frames (TE_Limits
+#: at 10 ms is 64 frames in 0.64 s: an echo comes back within milliseconds)
+ECHO_MEMORY = 64
 #: Time a reader thread blocks in one receive, s (how fast it notices a stop).
 RX_THREAD_POLL_S = 0.1
 
@@ -140,6 +143,13 @@ class CanTransport:
         self._rx_error_run = 0
         self._rx_warned_at = -float("inf")
         self._rx_unreported = 0
+        # the data of the last frames sent per own identifier: a frame received with one of them
+        # is our echo only if it carries data we sent (udp_multicast loops every send back);
+        # anything else is another node sending this node's frames
+        self._sent: dict[int, collections.deque[bytes]] = {i: collections.deque(maxlen=ECHO_MEMORY) for i in self._own_ids}
+        self._sent_lock = threading.Lock()  # senders' threads append, the loop matches
+        self._foreign_warned_at = -float("inf")
+        self._foreign_unreported = 0
         self._consumer: asyncio.Task[None] | None = None
         self._supervisor: asyncio.Task[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -483,7 +493,10 @@ class CanTransport:
     def _handle(self, msg: can.Message) -> Awaitable[Any] | None:
         """Check, record and decode one message; the callback's awaitable, if it returned one."""
         if msg.arbitration_id in self._own_ids and not msg.is_extended_id:
-            self.stats.own_echo += 1
+            if self._is_echo(msg):
+                self.stats.own_echo += 1
+            else:
+                self._foreign(msg)
             return None
         self.stats.rx_messages += 1
         if self._recorder is not None:
@@ -509,6 +522,34 @@ class CanTransport:
             if inspect.isawaitable(result):
                 return result
         return None
+
+    def _is_echo(self, msg: can.Message) -> bool:
+        """Whether ``msg`` (one of this node's identifiers) carries data this node sent; each send
+        answers one echo."""
+        data = bytes(msg.data)
+        with self._sent_lock:
+            sent = self._sent.get(msg.arbitration_id)
+            if sent is None or data not in sent:
+                return False
+            sent.remove(data)
+            return True
+
+    def _foreign(self, msg: can.Message) -> None:
+        """Another node sends a frame of this node (two sources of ``TE_Limits`` on one bus: the
+        inverter may obey either): counted, recorded as received, logged at ERROR at most every
+        ``RX_WARN_INTERVAL_S``. Never obeyed: nothing here listens for commands."""
+        self.stats.foreign_own_id += 1
+        self._foreign_unreported += 1
+        if self._recorder is not None:
+            msg.is_rx = True
+            self._recorder.write(msg)
+        now = time.monotonic()
+        if now - self._foreign_warned_at >= RX_WARN_INTERVAL_S:
+            name = self.codec.frame_name(msg.arbitration_id)  # an own identifier: in the DBC
+            log.error("CAN bus %s: %d frame(s) 0x%03X (%s) sent by another node, though this node sends them "
+                      "(last data %s): two senders of %s on one bus", self._describe(), self._foreign_unreported,
+                      msg.arbitration_id, name, bytes(msg.data).hex(" "), name)
+            self._foreign_warned_at, self._foreign_unreported = now, 0
 
     # -------------------------------------------------------------- transmit
     def send_raw(self, arbitration_id: int, data: bytes) -> bool:
@@ -538,6 +579,10 @@ class CanTransport:
         except Exception:  # a broken clock must not stop TE_Limits
             ts = time.time()
         msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False, is_rx=False, timestamp=ts)
+        sent = self._sent.get(arbitration_id)
+        if sent is not None:  # before the send: its echo may be read before send() returns
+            with self._sent_lock:
+                sent.append(bytes(data))
         try:
             bus.send(msg, timeout=self.config.send_timeout_s)
         except can.CanTimeoutError as exc:

@@ -126,6 +126,23 @@ def bad_frames(full: bool) -> Iterator[Case]:
         resync = int(metric(m1, "thermal_edge_frames_resynced_total") - metric(m0, "thermal_edge_frames_resynced_total"))
         yield Case.of("counter_jump", "bad frames", n, f"{real} frames left out, {counted} counted lost, {resync} resyncs",
                       common_checks(b, t0, time.time()), abs(real - counted) + max(0, _lost(sent0, m0, sent1, m1)))
+        # another node sends TE_Limits (valid counter and CRC, 0 A): the inverter may obey either
+        # source, so each must be seen (counted apart from our echoes; a black-box client's finding
+        # F4: it went into the echo count, with no log line); unseen ones are unsafe
+        sent0, m0 = _counts(b)
+        t0 = time.time()
+        for k in range(n):
+            b.inverter.inject(wire.datagram(wire.TE_LIMITS_ID, wire.encode(
+                "TE_Limits", {"TE_TorqueLimit": 0, "TE_CurrentLimit": 0, "TE_DerateActive": 1, "TE_DerateReason": 4}, k)))
+            time.sleep(0.15)
+        time.sleep(SETTLE_S)
+        sent1, m1 = _counts(b)
+        key = "thermal_edge_transport_foreign_own_id_total"
+        seen = int(metric(m1, key) - metric(m0, key))
+        c = common_checks(b, t0, time.time())
+        c.add(n - seen, f"{n - seen} of {n} foreign TE_Limits not counted as another node's")
+        yield Case.of("foreign_te_limits", "bad frames", n, f"{seen} of {n} counted as sent by another node",
+                      c, _lost(sent0, m0, sent1, m1))
 
 
 def floods(full: bool) -> Iterator[Case]:
