@@ -106,6 +106,10 @@ CORRUPT_STATE = [
     ("T holds null", lambda m: edited(m, T=[None] * len(m.nodes)), "T[0]: expected a number"),
     ("T is an object", lambda m: edited(m, T={"a": 1}), "T: expected a list"),
     ("temperatures of 900 degC", lambda m: edited(m, T=[900.0] * len(m.nodes)), "temperatures outside"),
+    # well-formed but no machine's state (a black-box client's doctored file, used as it was)
+    ("the magnet at -99 degC", lambda m: edited(m, T=[-99.0 if "magnet" in n else 40.0 for n in m.nodes]),
+     "temperatures outside -60..500 degC"),
+    ("every variance zero", lambda m: with_p(m, [[0.0] * len(m.nodes) for _ in m.nodes]), "P has a variance of zero or less"),
     ("P of the wrong shape", lambda m: with_p(m, [[1.0]]), "P is not"),
     ("P rows not lists", lambda m: with_p(m, [1.0] * len(m.nodes)), "P[0]: expected a list"),
     ("node list of another order", other_nodes, "node list differs"),

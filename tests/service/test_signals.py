@@ -92,6 +92,26 @@ def test_a_sighup_while_the_service_starts_does_not_kill_it(tmp_path, bed):
         svc.kill(signal.SIGKILL)
 
 
+def test_a_sigterm_while_the_service_starts_is_a_clean_stop(tmp_path, bed):
+    """A black-box client's finding: a SIGTERM in the first 1.5 s (imports, model, state) ended the
+    process by the signal's default action (exit -15), with no log line. Now it is remembered and
+    honoured once the service runs: exit 0, said in the log, the state saved."""
+    _, _, (group, port) = bed
+    sd = tmp_path / "state"
+    svc = Service(edge_config(sd, group, port), tmp_path, "early-term")
+    svc.start()
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not svc.log_text().strip() and time.monotonic() < deadline and svc.alive():
+            time.sleep(0.01)
+        svc.kill(signal.SIGTERM)
+        assert svc.proc is not None and svc.proc.wait(30) == 0, svc.log_text()[-2000:]
+        assert log_lines(svc, "received SIGTERM while starting: stopping"), svc.log_text()[-2000:]
+        assert log_lines(svc, "stopped, state saved to", str(sd / STATE)) and (sd / STATE).exists()
+    finally:
+        svc.kill(signal.SIGKILL)
+
+
 def test_sigquit_stops_cleanly_with_the_state_saved(tmp_path, bed):
     start, _, _ = bed
     sd = tmp_path / "state"

@@ -70,8 +70,11 @@ MAX_VALUES = 250_000
 MAX_NUMBER_CHARS = 40
 #: Corrupt files kept (moved aside) for forensics; older ones are deleted.
 KEEP_CORRUPT = 3
-#: Temperatures a saved state may hold, degC (beyond them the file is not a machine's state).
-T_RANGE_C = (-100.0, 500.0)
+#: Temperatures a saved state may hold, degC (beyond them the file is not a machine's state). No
+#: machine runs below -40 degC ambient (the floor of a PT100's valid range in edge.yaml); a state
+#: colder than -60 degC would start the estimate of the unmeasured rotor far below the truth (a
+#: black-box client held the magnet at -99 degC under a 130 degC stator and it went onto the bus).
+T_RANGE_C = (-60.0, 500.0)
 
 _CORRUPT_PREFIX = f"{FILENAME}.corrupt-"
 # what a save in progress leaves when killed: this module's temporary name and the earlier ``.state.json.<pid>.tmp``
@@ -311,8 +314,10 @@ class PersistedState:
                 raise StateError("sigma has a negative value")
             if st.P and (len(st.P) != n or any(len(r) != n for r in st.P)):
                 raise StateError(f"P is not {n} x {n}")
-            if st.P and any(st.P[i][i] < 0 for i in range(n)):
-                raise StateError("P has a negative variance")
+            if st.P and any(st.P[i][i] <= 0 for i in range(n)):
+                # the observer adds process noise every tick: no saved estimate is exact, and a zero
+                # variance would keep readings from ever correcting the node
+                raise StateError("P has a variance of zero or less (no estimate is exact)")
             lo, hi = T_RANGE_C
             if not all(lo < x < hi for x in st.T + st.T_pred):
                 raise StateError(f"temperatures outside {lo:g}..{hi:g} degC")

@@ -39,7 +39,7 @@ from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS
                           TeState)
 from ..config import EdgeConfig
 from ..lptn import Model
-from ..process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS, STOP_SIGNALS
+from ..process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS, STOP_SIGNALS, stop_requested_while_starting
 from .clock import FrameClock, WallClock
 from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
@@ -210,6 +210,10 @@ class EdgeService:
                     installed.append(sig)
                 except (NotImplementedError, RuntimeError, ValueError):
                     pass
+            early = stop_requested_while_starting()
+            if early is not None:
+                log.info("received %s while starting: stopping", early.name)
+                stop.set()
         try:
             await self.start()
             await stop.wait()

@@ -256,6 +256,7 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
     valid = _valid_state(seed)
     digits = b'{"format": "thermal_edge.state", "version": 1, "model": "pm10kw", "saved_at": 1' + b"0" * 5000 + b', "parameters": {}}'
     roundoff = dict(seed["parameters"], c_p_ew=299.99999999999994)
+    cold_magnet = [-99.0 if "magnet" in n else x for n, x in zip(seed["nodes"], seed["T"])]
     return {
         "nested_brackets_100k": (write(b"[" * 100_000), False),
         "nested_objects_100k": (write(b'{"a":' * 100_000), False),
@@ -280,6 +281,10 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         "fifo": (fifo, False),
         "temp_file_left_over": (temp_left, True),
         "parameter_at_bound_roundoff": (with_(parameters=roundoff), True),
+        # well-formed but no machine's state (a black-box client's doctored file: the magnet at
+        # -99 degC, every variance zero; it was used as it was and went onto the bus)
+        "magnet_at_minus_99c": (with_(T=cold_magnet, T_pred=cold_magnet), False),
+        "zero_covariance": (with_(P=[[0.0] * len(seed["T"]) for _ in seed["T"]], sigma=[0.0] * len(seed["T"])), False),
         # a model update renamed or removed a parameter: the others are kept (black-box finding 9)
         "unknown_parameter_name": (with_(parameters=dict(seed["parameters"], R_nosuch=1.0)), True),
     }
@@ -617,6 +622,26 @@ def persist(full: bool) -> Iterator[Case]:
             c.add(int(code != 0), f"start {k}: exit {code}")
         yield Case.of("signal_SIGHUP_while_starting", "signals", rounds, f"{up} of {rounds} start(s) sent TE_Limits "
                       "after the SIGHUP", c)
+        # SIGTERM while the service starts: a clean stop, said in the log (a black-box client's
+        # finding: the signal's default action ended it, exit -15, no line)
+        c = Check()
+        codes = []
+        for k in range(rounds):
+            svc = Service(raw, r.workdir, f"early-term{k}")
+            svc.start()
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while not svc.log_text().strip() and time.monotonic() < deadline and svc.alive():
+                time.sleep(0.01)
+            svc.kill(signal.SIGTERM)
+            assert svc.proc is not None
+            try:
+                code = svc.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                code = svc.stop()
+            codes.append(code)
+            c.add(int(code != 0), f"start {k}: exit {code}")
+            c.add(int("received SIGTERM while starting: stopping" not in svc.log_text()), f"start {k}: no log line")
+        yield Case.of("signal_SIGTERM_while_starting", "signals", rounds, f"exit {codes}", c)
         # SIGQUIT: a clean stop with the state saved
         c = Check()
         lost = 0
