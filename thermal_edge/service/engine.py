@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -35,6 +36,7 @@ from ..bus.frames import DerateReason, TeState
 from ..config import EdgeConfig
 from ..lptn import Model, load_model
 from .adaptation import Adaptation, AdaptationResult
+from .clock import FrameClockStats
 from .derating import DeratingPolicy, LimitSpec, MeasuredFloor, NodeBand, bounding_sensors
 from .estimate import StateEstimate
 from .events import SafetyEvents
@@ -125,6 +127,8 @@ class ThermalEngine:
         self._last: TickOutput | None = None
         self._ticks = 0
         self._gaps = 0
+        #: the frame clock's counters (:class:`.clock.FrameClockStats`), from its first boundaries on
+        self.frame_clock: FrameClockStats | None = None
 
     # -- read-only views ---------------------------------------------------------------------------
     @property
@@ -169,11 +173,14 @@ class ThermalEngine:
             self._start_t = t
         self.accumulator.add(frame, t)
 
-    def ticks_for(self, boundaries: list[float]) -> list[float]:
+    def ticks_for(self, boundaries: Sequence[float]) -> Sequence[float]:
         """Frame clock: the ticks to run for the boundaries a frame's timestamp crossed (oldest
-        first). More than ``clock.max_catchup_s`` of them is a gap in the frames: it is bridged
-        (:meth:`bridge_gap`) and only the last boundary is ticked. The caller runs the ticks, then
-        adds the frame."""
+        first; :class:`.clock.Boundaries`, constant in memory however many). More than
+        ``clock.max_catchup_s`` of them is a gap in the frames: it is bridged (:meth:`bridge_gap`)
+        and only the last boundary is ticked. The caller runs the ticks, then adds the frame."""
+        stats = getattr(boundaries, "stats", None)
+        if stats is not None:  # the frame clock's counters, for the metrics
+            self.frame_clock = stats
         if len(boundaries) * self.dt > self.config.clock.max_catchup_s:
             self.bridge_gap(boundaries[-1] - self.dt)
             return boundaries[-1:]
@@ -189,8 +196,8 @@ class ThermalEngine:
         self._gaps += 1
         self.accumulator.reset()
         self.stuck.restart()
+        gap = t_to - self._last_t if self._last_t is not None else math.nan
         if self.estimate.initialized and self._last_t is not None:
-            gap = t_to - self._last_t
             try:
                 self.estimate.bridge(gap, self.adaptation.theta, self._last_inputs)
             except Exception as exc:
@@ -198,7 +205,8 @@ class ThermalEngine:
             self._prev_sample = None
             self.adaptation.restart()
         self._last_t = t_to
-        log.warning("no frames for %.0f s: state cooled over the gap, adaptation history restarted", t_to)
+        log.warning("no frames for %.0f s (frame clock to %.3f): state cooled over the gap, adaptation history restarted",
+                    gap, t_to)
 
     # -- the tick -----------------------------------------------------------------------------------
     def tick(self, t: float) -> TickOutput:

@@ -5,6 +5,12 @@ as in the live service, with the **frame-timestamp clock** (ticks at the boundar
 timestamps cross) and the adapter run synchronously, its results applied at the same tick as in
 a live frame-clock run. A log recorded by a live frame-clock run therefore replays to the same
 estimates, tick by tick.
+
+Timestamps out of order are judged as the live frame clock judges them (:class:`.clock.FrameClock`):
+jitter of less than a tick is used and counted; a jump back of a tick or more that the frames
+after it keep to is a new segment, joined on without a gap (ticked through, nothing dropped); a
+jump that they contradict is a corrupt stamp, ignored for the clock. The summary says how many of
+each (:func:`format_summary`).
 """
 from __future__ import annotations
 
@@ -26,7 +32,7 @@ from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
 from .persistence import PersistedState
 
-__all__ = ["ReplayResult", "format_summary", "replay_candump", "replay_summary"]
+__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_summary"]
 
 
 @dataclass
@@ -52,6 +58,9 @@ class ReplayResult:
     frames: int
     malformed_lines: int
     outputs: list[TickOutput] = field(default_factory=list)
+    #: the frame clock's counters (:meth:`.clock.FrameClockStats.as_dict`), ``gaps`` (bridged by the
+    #: engine) and ``judging`` (frames of a jump the log ended before judging)
+    clock: dict[str, float] = field(default_factory=dict)
 
     def node(self, name: str) -> np.ndarray:
         return self.estimate[:, self.nodes.index(name)]
@@ -85,7 +94,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     codec = FrameCodec(cfg.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=cfg.codec.resync_after_cycles)
     cfg.check_dbc(codec)
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
-    clock = FrameClock(cfg.clock.tick_s)
+    clock = FrameClock(cfg.clock.tick_s, cfg.clock.max_catchup_s)
     reader = FrameLogReader(Path(path), codec, include_tx=False)
     outs: list[TickOutput] = []
     n_frames = 0
@@ -110,6 +119,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
         state=np.array([int(o.state) for o in outs]), pred_err_rms=np.array([o.pred_err_rms for o in outs]),
         decisions=engine.adaptation.decisions, parameters=engine.adaptation.values(), frame_stats=codec.stats.as_dict(),
         frames=n_frames, malformed_lines=len(reader.malformed_lines), outputs=outs if keep_outputs else [],
+        clock={**clock.stats.as_dict(), "gaps": engine.gaps, "judging": clock.judging},
     )
 
 
@@ -140,6 +150,7 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
         "frames_dropped": {k: int(res.frame_stats[k]) for k in DROP_REASONS},
         "adaptations": {"decisions": len(res.decisions), "accepted": sum(1 for d in res.decisions if d.get("accepted"))},
         "parameters": res.parameters,
+        "frame_clock": res.clock,
     }
     if len(res.t):
         out["t_first"], out["t_last"] = float(res.t[0]), float(res.t[-1])
@@ -149,11 +160,35 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
     return out
 
 
+def clock_line(c: Mapping[str, float]) -> str:
+    """One line of what the frame clock did with timestamps out of order and gaps."""
+    behind, jitter = int(c.get("behind", 0)), int(c.get("jitter", 0))
+    parts = [f"{behind} frames stamped behind the clock (at most {c.get('behind_max_s', 0.0):.3f} s)"
+             if behind else "no frame stamped behind the clock"]
+    if jitter:
+        parts.append(f"{jitter} of them by less than a tick (used, clock unchanged)")
+    if c.get("joined"):
+        parts.append(f"{int(c['joined'])} jump(s) back of a tick or more kept to by the frames after: new segment(s) "
+                     f"joined on without a gap ({c.get('joined_s', 0.0):.3f} s taken out), ticked through, nothing dropped")
+    if c.get("ignored"):
+        parts.append(f"{int(c['ignored'])} jump(s) contradicted by the frames after: corrupt stamps, "
+                     f"{int(c.get('ignored_frames', 0))} frame(s) ignored for the clock (data used)")
+    if c.get("ahead"):
+        parts.append(f"{int(c['ahead'])} jump(s) ahead beyond max_catchup_s kept to by the frames after")
+    if c.get("gaps"):
+        parts.append(f"{int(c['gaps'])} gap(s) bridged by cooling the state")
+    if c.get("judging"):
+        parts.append(f"{int(c['judging'])} frame(s) at the end after a jump not yet judged (not ticked)")
+    return "frame clock: " + "; ".join(parts)
+
+
 def format_summary(s: dict[str, Any]) -> str:
     """Human-readable lines of :func:`replay_summary`."""
     lines = [f"{s['log']}: {s['frames']} frames, {s['ticks']} ticks of model {s['model']}; "
              f"lost {s['frames_lost']}, dropped {sum(s['frames_dropped'].values())}, malformed lines {s['malformed_lines']}",
              f"adaptations: {s['adaptations']['accepted']} accepted of {s['adaptations']['decisions']} decisions"]
+    if "frame_clock" in s:
+        lines.append(clock_line(s["frame_clock"]))
     if "max_estimate_c" in s:
         lines.append("peak estimates: " + ", ".join(f"{k} {v:.1f} °C" for k, v in s["max_estimate_c"].items())
                      + f"; lowest current limit {s['min_current_limit_a']:.1f} A")

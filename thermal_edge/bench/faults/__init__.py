@@ -16,11 +16,11 @@ from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from typing import Any
 
-from . import bus, state
+from . import bus, clock, state
 from .harness import Case
 
 #: group name -> cases of the group (``full``: the full lengths and counts)
-GROUPS: dict[str, Callable[[bool], Iterator[Case]]] = {**bus.GROUPS, **state.GROUPS}
+GROUPS: dict[str, Callable[[bool], Iterator[Case]]] = {**bus.GROUPS, **state.GROUPS, **clock.GROUPS}
 
 
 def run(full: bool = False, only: list[str] | None = None, progress: bool = True) -> dict[str, Any]:
