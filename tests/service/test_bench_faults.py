@@ -26,7 +26,7 @@ KNOWN_DEFECTS: dict[str, str] = {
 #: marked slow (make test-all; the bench itself runs them all)
 FAST = ("bad_frames", "security", "metrics")
 SLOW = ("floods", "stale", "bus", "sensors", "stuck", "absurd", "band", "configs", "states", "crash", "load", "soak",
-        "persist")
+        "persist", "clock")
 
 
 def _gaps_only(case: dict) -> bool:
@@ -76,7 +76,8 @@ def test_the_lists_hold_the_issue_counts(tmp_path) -> None:
     assert {"bad_crc", "short_dlc", "unknown_id", "extended_id", "remote_frame", "error_frame", "can_fd", "not_msgpack",
             "classic_12_bytes", "std_id_0x800", "remote_with_data"} <= set(wire.BAD_KINDS)
     assert wire.UNDECODABLE <= set(wire.BAD_KINDS)
-    seed = {"format": "thermal_edge.state", "parameters": {}, "T": [25.0] * 39}
+    seed = {"format": "thermal_edge.state", "parameters": {}, "T": [25.0] * 39,
+            "nodes": ["magnet"] + [f"n{k}" for k in range(38)]}
     assert len(state._state_variants(seed, full=False)) >= 15
     assert len(state._config_variants(harness.edge_config(tmp_path, "ff15::1", 1), tmp_path)) >= 20
     assert set(bus.SENSORS) == {"slot_winding", "end_winding", "housing"} and "not_fitted" in bus.SENSOR_FAULTS

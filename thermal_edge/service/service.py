@@ -101,7 +101,7 @@ class EdgeService:
         self.store.probe()  # an unwritable state directory: ERROR, counted; the service protects on and retries
         self.engine = ThermalEngine(config, self.model, restored, worker_mode)
         self.frame_mode = config.clock.mode == "frame"
-        self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s) if self.frame_mode else WallClock(config.clock.tick_s)
+        self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s, config.clock.max_catchup_s) if self.frame_mode else WallClock(config.clock.tick_s)
         self.metrics = ServiceMetrics(registry)
         self.notifier = notifier if notifier is not None else SystemdNotifier()
         self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,

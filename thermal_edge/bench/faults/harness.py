@@ -284,6 +284,21 @@ class Service:
                     return int(line.split()[1]) * 1024
         return 0
 
+    def catches(self, sig: int, timeout: float = START_TIMEOUT_S) -> bool:
+        """Wait until the process has a handler for ``sig`` (``SigCgt`` in ``/proc/<pid>/status``);
+        False if it exits or ``timeout`` passes first."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and self.alive():
+            try:
+                status = Path(f"/proc/{self.pid}/status").read_text()
+            except OSError:
+                return False
+            caught = next((int(ln.split()[1], 16) for ln in status.splitlines() if ln.startswith("SigCgt:")), 0)
+            if caught >> (sig - 1) & 1:
+                return True
+            time.sleep(0.002)
+        return False
+
     def kill(self, sig: int = signal.SIGKILL) -> None:
         if self.alive():
             assert self.proc is not None
