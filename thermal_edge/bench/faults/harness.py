@@ -304,12 +304,12 @@ class Service:
             assert self.proc is not None
             self.proc.send_signal(sig)
 
-    def stop(self, timeout: float = 20.0) -> int | None:
-        """SIGTERM, then SIGKILL after ``timeout``; the exit code."""
+    def stop(self, timeout: float = 20.0, sig: int = signal.SIGTERM) -> int | None:
+        """``sig`` (a stop signal), then SIGKILL after ``timeout``; the exit code."""
         if self.proc is None:
             return None
         if self.alive():
-            self.proc.send_signal(signal.SIGTERM)
+            self.proc.send_signal(sig)
             try:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:

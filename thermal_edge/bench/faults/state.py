@@ -632,12 +632,7 @@ def persist(full: bool) -> Iterator[Case]:
             svc = Service(raw, r.workdir, f"early-term{k}")
             svc.start()
             svc.catches(signal.SIGTERM)
-            svc.kill(signal.SIGTERM)
-            assert svc.proc is not None
-            try:
-                code = svc.proc.wait(30)
-            except subprocess.TimeoutExpired:
-                code = svc.stop()
+            code = svc.stop(30)
             codes.append(code)
             c.add(int(code != 0), f"start {k}: exit {code}")
             c.add(int("received SIGTERM while starting: stopping" not in svc.log_text()),
@@ -651,12 +646,7 @@ def persist(full: bool) -> Iterator[Case]:
             svc, first = r.start(raw)
             time.sleep(1.0)
             before = (sd / STATE).stat().st_mtime_ns
-            svc.kill(signal.SIGQUIT)
-            assert svc.proc is not None
-            try:
-                code = svc.proc.wait(20)
-            except subprocess.TimeoutExpired:
-                code = svc.stop()
+            code = svc.stop(20, signal.SIGQUIT)
             codes.append(code)
             c.add(int(code != 0), f"SIGQUIT exit {code}")
             c.add(svc.tracebacks(), "traceback")
