@@ -18,6 +18,14 @@ def frame(name: str, t: float, **signals: float) -> DecodedFrame:
     return DecodedFrame(name, 0, dict(signals), 0, t)
 
 
+def zoh_mean(times: list[float], values: list[float | None], t_end: float) -> float:
+    """The mean over time of values held from their frame to the next (None: a bad frame, whose
+    time counts for nothing) up to ``t_end``, by explicit durations."""
+    ends = [*times[1:], t_end]
+    kept = [(v, e - t) for t, e, v in zip(times, ends, values) if v is not None]
+    return sum(v * d for v, d in kept) / sum(d for _, d in kept)
+
+
 def stator(t: float, slot=60.0, end=62.0, hous=40.0, s_slot=0, s_end=0, s_hous=0) -> DecodedFrame:
     return frame("INV_StatorTemps", t, INV_T_WindingSlot=slot, INV_T_EndWinding=end, INV_T_Housing=hous,
                  INV_S_WindingSlot=s_slot, INV_S_EndWinding=s_end, INV_S_Housing=s_hous)
@@ -76,10 +84,12 @@ def test_rms_mode_uses_the_phase_current_signal(tmp_path):
     raw["codec"]["dbc"] = str(REPO / "dbc" / "thermal_edge.dbc")
     raw["signals"]["inputs"]["i_rms"] = {"frame": "INV_Currents", "reduce": "rms", "signal": "INV_IphRms"}
     acc = accumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
-    vals = [10.0, 20.0, 30.0]
-    for k, v in enumerate(vals):
-        acc.add(frame("INV_Currents", k * 0.01, INV_Id=0.0, INV_Iq=0.0, INV_IphRms=v), k * 0.01)
-    assert acc.take(1.0).inputs["i_rms"] == pytest.approx(math.sqrt(np.mean(np.square(vals))))
+    vals, times = [10.0, 20.0, 30.0], [0.0, 0.01, 0.02]
+    for t, v in zip(times, vals):
+        acc.add(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=0.0, INV_IphRms=v), t)
+    # the mean square over time: the last value holds the rest of the tick
+    expected = math.sqrt(zoh_mean(times, list(np.square(vals)), 1.0))
+    assert acc.take(1.0).inputs["i_rms"] == pytest.approx(expected) and expected > 29.0
 
 
 def test_sensor_faults_are_flagged_and_counted(acc):
@@ -181,7 +191,9 @@ def test_absurd_currents_and_speeds_are_bad_readings_left_out_of_the_mean(acc):
     acc.add(frame("INV_Currents", 12.2, INV_Id=0.0, INV_Iq=119.9 * math.sqrt(2), INV_IphRms=0.0), 12.2)
     acc.add(frame("INV_Mechanics", 12.2, INV_Speed=-6000.0, INV_Torque=0.0, INV_Udc=560.0), 12.2)
     ti = acc.take(13.0)
-    assert not ti.faults and ti.inputs["i_rms"] == pytest.approx(119.9) and ti.inputs["speed_rpm"] == -6000.0
+    # the speed held 900 rpm from its last frame (10.9 s) until 12.2 s: 0.2 s of this tick
+    assert not ti.faults and ti.inputs["i_rms"] == pytest.approx(119.9)
+    assert ti.inputs["speed_rpm"] == pytest.approx(zoh_mean([12.0, 12.2], [900.0, -6000.0], 13.0))
 
 
 def test_an_absurd_torque_is_a_bad_reading_left_out_of_the_mean(acc):
@@ -192,13 +204,40 @@ def test_an_absurd_torque_is_a_bad_reading_left_out_of_the_mean(acc):
     torque = load_model(cfg.model.path).find_input(Role.TORQUE)
     assert cfg.signals.valid_torque_factor * cfg.derating.max_torque_nm == 660.0
     values = [100.0, 3276.7, 100.0, -3276.8, 100.0, 659.0]
-    for k, v in enumerate(values):
-        acc.add(frame("INV_Mechanics", 20.0 + 0.1 * k, INV_Speed=900.0, INV_Torque=v, INV_Udc=560.0), 20.0 + 0.1 * k)
+    times = [20.0 + 0.1 * k for k in range(len(values))]
+    for t, v in zip(times, values):
+        acc.add(frame("INV_Mechanics", t, INV_Speed=900.0, INV_Torque=v, INV_Udc=560.0), t)
     acc.add(frame("INV_Currents", 20.5, INV_Id=0.0, INV_Iq=20.0, INV_IphRms=0.0), 20.5)
     acc.add(stator(20.5), 20.5)
     acc.add(ambient(20.5), 20.5)
     ti = acc.take(21.0)
-    assert ti.inputs[torque] == pytest.approx(np.mean([v for v in values if abs(v) <= 660.0]))
+    assert ti.inputs[torque] == pytest.approx(zoh_mean(times, [v if abs(v) <= 660.0 else None for v in values], 21.0))
     assert ti.faults == {torque: "out_of_range"}
     assert acc.bad_readings["out_of_range"] == 1
 
+
+
+def test_a_burst_of_frames_weighs_the_time_it_spans_not_its_count(acc):
+    """A black-box client's finding: 40 A rms every 10 ms, and once a second 2,000 INV_Currents
+    frames at 0 A within 2 ms (valid counters and CRC). Averaged per frame the model saw 8.7 A (a
+    21st of the copper loss) and the limit rose to the maximum; over time it is 40 A within the
+    burst's share of the second."""
+    t0 = 100.0
+    acc.take(t0)
+    times, values = [], []
+    for k in range(100):  # the inverter's 10 ms cycle
+        t = t0 + 0.01 * k
+        times.append(t)
+        values.append(40.0)
+        acc.add(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=40.0 * math.sqrt(2), INV_IphRms=40.0), t)
+        if k == 50:  # the burst, between two inverter frames
+            for j in range(2000):
+                tb = t + 1e-6 * (j + 1)
+                times.append(tb)
+                values.append(0.0)
+                acc.add(frame("INV_Currents", tb, INV_Id=0.0, INV_Iq=0.0, INV_IphRms=0.0), tb)
+    i_rms = acc.take(t0 + 1.0).inputs["i_rms"]
+    per_frame = math.sqrt(np.mean(np.square(values)))
+    assert per_frame < 10.0  # what the frame count alone gives
+    assert i_rms == pytest.approx(math.sqrt(zoh_mean(times, list(np.square(values)), t0 + 1.0)))
+    assert i_rms > 39.0

@@ -2,11 +2,18 @@
 
 Per tick (the frames of ``[t - period, t)``):
 
-- currents: the **mean of i²** over every current frame (copper loss needs the mean square, not
-  the square of the mean): ``dq_rms`` gives ``i_rms = sqrt(mean(i_d² + i_q²) / 2)`` from the d/q
-  peak amplitudes, ``rms`` gives ``sqrt(mean(x²))`` of one signal (e.g. ``INV_IphRms``);
-- ``mean`` inputs (speed, torque): the mean over the tick's frames (optionally rounded to a
-  resolution, which keeps the model's per-operating-point matrix cache effective);
+- currents: the **mean of i²** over the tick (copper loss needs the mean square, not the square
+  of the mean): ``dq_rms`` gives ``i_rms = sqrt(mean(i_d² + i_q²) / 2)`` from the d/q peak
+  amplitudes, ``rms`` gives ``sqrt(mean(x²))`` of one signal (e.g. ``INV_IphRms``);
+- ``mean`` inputs (speed, torque): the mean over the tick (optionally rounded to a resolution,
+  which keeps the model's per-operating-point matrix cache effective).
+
+The means are over **time**, not over frames: each frame's value holds until the next frame of
+its input (zero-order hold), and the tick's mean weighs it by that time. A burst of frames
+therefore weighs what the milliseconds it spans weigh: counted per frame, 2,000 frames at 0 A
+sent once a second beside a steady 40 A made the model see 8.7 A, the limit rose to the
+maximum and the stuck-sensor check went blind (a black-box client's finding). A tick whose
+frames all carry one time stamp has no durations to weigh: its frames count alike.
 - ``latest`` inputs (ambient) and the sensors: the latest valid reading, with its age and status.
 
 A frame type that has not arrived for longer than its timeout makes its inputs *stale*; a sensor
@@ -143,8 +150,12 @@ class InputAccumulator:
             self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signals[0], spec.status)))
         for name, spec in self.sensors.items():
             self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signal, spec.status)))
-        self._sum = {k: 0.0 for k in self.reduced}
+        self._sum = {k: 0.0 for k in self.reduced}  # Σ x over the tick's frames (no durations to weigh)
         self._n = {k: 0 for k in self.reduced}
+        self._area = {k: 0.0 for k in self.reduced}  # ∫ x dt over the tick, each value held until the next frame
+        self._span = {k: 0.0 for k in self.reduced}  # the time that integral covers, s
+        self._hold: dict[str, tuple[float, float] | None] = dict.fromkeys(self.reduced)  # (value, since t)
+        self._tick_start: float | None = None
         self.ranges = input_ranges(config, roles)
         self._implausible: set[str] = set()  # checked inputs with a frame out of range this tick
         self._was_implausible: set[str] = set()  # ... and in the last tick (a fault is counted when it starts)
@@ -172,7 +183,7 @@ class InputAccumulator:
             for kind, arg in actions:
                 if kind == "reduce":
                     name, spec = arg  # type: ignore[misc]
-                    self._reduce(name, spec, sig)
+                    self._reduce(name, spec, sig, t)
                 else:
                     name, signal, status = arg  # type: ignore[misc]
                     self._latest_value(name, signal, status, sig, t)
@@ -182,7 +193,18 @@ class InputAccumulator:
         self._last_frame_t[frame.name] = t
         self._frames[frame.name] += 1
 
-    def _reduce(self, name: str, spec: InputSignal, sig: Mapping[str, float]) -> None:
+    def _integrate(self, name: str, t: float) -> None:
+        """Add the held value of ``name`` over (its start or the tick's, whichever later, ``t``]."""
+        hold = self._hold[name]
+        if hold is None:
+            return
+        x, since = hold
+        start = since if self._tick_start is None else max(since, self._tick_start)
+        if t > start:
+            self._area[name] += x * (t - start)
+            self._span[name] += t - start
+
+    def _reduce(self, name: str, spec: InputSignal, sig: Mapping[str, float], t: float) -> None:
         if spec.reduce == "dq_rms":
             d, q = float(sig[spec.signals[0]]), float(sig[spec.signals[1]])
             x = 0.5 * (d * d + q * q)
@@ -190,6 +212,8 @@ class InputAccumulator:
             x = float(sig[spec.signals[0]])
             if spec.reduce == "rms":
                 x = x * x
+        self._integrate(name, t)
+        self._hold[name] = None  # a bad frame holds nothing: its time is left out of the mean
         if not math.isfinite(x):
             self.bad_readings["no_value"] += 1
             return
@@ -199,6 +223,7 @@ class InputAccumulator:
             if not rng[0] <= v <= rng[1]:
                 self._implausible.add(name)
                 return
+        self._hold[name] = (x, t)
         self._sum[name] += x
         self._n[name] += 1
 
@@ -231,15 +256,18 @@ class InputAccumulator:
         for name, spec in self.reduced.items():
             n = self._n[name]
             if n:
-                mean = self._sum[name] / n
+                self._integrate(name, t)
+                span = self._span[name]
+                mean = self._area[name] / span if span > 0 else self._sum[name] / n
                 v = math.sqrt(max(mean, 0.0)) if spec.reduce in ("rms", "dq_rms") else mean
                 if spec.resolution:
                     v = round(v / spec.resolution) * spec.resolution
                 self._held[name] = v
                 fresh.add(name)
             inputs[name] = self._held[name]
-            self._sum[name] = 0.0
+            self._sum[name] = self._area[name] = self._span[name] = 0.0
             self._n[name] = 0
+        self._tick_start = t
         ages: dict[str, float] = {}
         status: dict[str, int | None] = {}
         faults: dict[str, str] = dict.fromkeys(sorted(self._implausible), "out_of_range")
@@ -284,6 +312,7 @@ class InputAccumulator:
     def reset(self) -> None:
         """Forget the per-tick sums (after a gap)."""
         for k in self._sum:
-            self._sum[k] = 0.0
+            self._sum[k] = self._area[k] = self._span[k] = 0.0
             self._n[k] = 0
+            self._hold[k] = None
         self._implausible.clear()

@@ -400,6 +400,18 @@ class Inverter:
             data = wire.encode(name, self.signals[name], k)
             self.sock.sendto(wire.datagram(self.ids[name], data), (self.group, self.port))
 
+    def burst(self, name: str, signals: dict[str, float], n: int) -> None:
+        """``n`` frames of ``name`` with ``signals`` at once, counters continuing (valid frames,
+        far above their cycle); the regular signals after them."""
+        with self.lock:
+            regular = self.signals[name]
+            self.signals[name] = signals
+            try:
+                for _ in range(n):
+                    self._send_locked(name)
+            finally:
+                self.signals[name] = regular
+
     def inject(self, payload: bytes) -> None:
         self.sock.sendto(payload, (self.group, self.port))
 
