@@ -142,6 +142,13 @@ def _bus(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> BusCo
         raise ConfigError(f"{sec.fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
 
 
+#: The longest tick, s (``clock.tick_s``).
+MAX_TICK_S = 10.0
+#: The longest a frame (``timeouts``) or the whole bus (``transmit.bus_silence_s``) may be missing
+#: before the safe limit, s.
+MAX_SILENCE_S = 10.0
+
+
 def _within_inverter_timeout(v: float) -> str | None:
     if v > MAX_LIMITS_PERIOD_S:
         return (f"must be at most {MAX_LIMITS_PERIOD_S:g} s (the inverter drops TE_Limits after "
@@ -186,7 +193,7 @@ class ClockConfig:
     mode: str = setting("wall", choices=CLOCK_MODES)
     # stale inputs are judged once a tick; a tick costs ~5 ms of CPU (observer, look-ahead), so
     # below 0.1 s the loop cannot keep up (0.001 s: every input falsely stale, SIGTERM unanswered)
-    tick_s: float = setting(1.0, min=0.1, max=10.0)
+    tick_s: float = setting(1.0, min=0.1, max=MAX_TICK_S)
     max_catchup_s: float = setting(300.0, positive=True)
 
 
@@ -251,7 +258,9 @@ class FaultConfig:
     innovation_k: float = setting(15.0, positive=True)
     innovation_ticks: int = setting(5, min=1)
     prediction_error_k: float = setting(40.0, positive=True)
-    hold_s: float = setting(30.0, positive=True)  # 0 would hand a diverged model back at once
+    # at least the longest tick: a hold shorter than a tick never reaches the bus (0 and 1e-9 s
+    # handed a diverged model back at once; the limit kept rising after the fault)
+    hold_s: float = setting(30.0, min=MAX_TICK_S)
     #: a model fault within this long after the previous hold ended is the same cause recurring: the
     #: hold doubles each time, up to ``hold_max_s`` (black-box finding 2: one cause faulted every 153 s,
     #: 122 s of each at full power, for as long as it lasted)
@@ -357,7 +366,7 @@ class TransmitConfig:
     # at least 10 ms: faster is a flood (1 µs sent 3,700 TE_Limits/s, most of a 500 kbit/s bus)
     limits_period_s: float = setting(0.1, min=0.01, check=_within_inverter_timeout)
     status_period_s: float = setting(1.0, min=0.1)  # three frames each period
-    bus_silence_s: float = setting(1.0, positive=True)
+    bus_silence_s: float = setting(1.0, positive=True, max=MAX_SILENCE_S)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -370,7 +379,10 @@ class EdgeConfig:
     model: ModelConfig
     clock: ClockConfig = field(default_factory=ClockConfig)
     signals: SignalsConfig
-    timeouts: dict[str, float] = setting(default_factory=dict, positive=True)
+    # at most 10 s: beyond it the model runs blind on the last values for longer than protection
+    # can allow (1e9 passed --check and switched stale-input protection off: the limit rose with
+    # every inverter frame gone)
+    timeouts: dict[str, float] = setting(default_factory=dict, positive=True, max=MAX_SILENCE_S)
     derating: DeratingConfig
     lookahead: LookaheadConfig = field(default_factory=LookaheadConfig)
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)

@@ -214,7 +214,11 @@ BROKEN = [
      "must be at most 3276.75, the largest value TE_CurrentLimit carries in thermal_edge.dbc; got 5000"),
     ("maximum torque the DBC cannot carry", _set("derating.max_torque_nm", 10000), "derating.max_torque_nm",
      "must be at most 6553.5, the largest value TE_TorqueLimit carries"),
-    ("no hold after a model fault", _set("derating.faults.hold_s", 0), "derating.faults.hold_s", "must be positive"),
+    ("no hold after a model fault", _set("derating.faults.hold_s", 0), "derating.faults.hold_s", "must be at least 10, got 0"),
+    # a black-box client's findings: values that passed --check and switched protection off
+    ("a hold shorter than a tick", _set("derating.faults.hold_s", 1e-9), "derating.faults.hold_s", "must be at least 10"),
+    ("a frame timeout of 1e9 s", _set("timeouts.INV_StatorTemps", 1e9), "timeouts.INV_StatorTemps", "must be at most 10"),
+    ("bus silence of 1e9 s", _set("transmit.bus_silence_s", 1e9), "transmit.bus_silence_s", "must be at most 10"),
     ("a tick of a day", _set("clock.tick_s", 86400), "clock.tick_s", "must be at most 10"),
     # a black-box client's finding F5/F6: periods that passed --check and then starved or flooded
     ("a tick of a millisecond", _set("clock.tick_s", 0.001), "clock.tick_s", "must be at least 0.1, got 0.001"),
