@@ -183,7 +183,7 @@ class CodecConfig:
     # the service's own choice, below the codec's 1000: an inverter frame missing for longer than 8
     # cycles is a sender that paused or changed its rate (its input goes stale), not a run of lost frames
     # that time stamps could count (they over-counted a 10 Hz feed of 10 ms frames by a wrap per frame)
-    resync_after_cycles: float = setting(8.0, positive=True)
+    resync_after_cycles: float = setting(8.0, positive=True, max=1000.0)
 
 
 @dataclass(frozen=True)
@@ -194,7 +194,7 @@ class ClockConfig:
     # stale inputs are judged once a tick; a tick costs ~5 ms of CPU (observer, look-ahead), so
     # below 0.1 s the loop cannot keep up (0.001 s: every input falsely stale, SIGTERM unanswered)
     tick_s: float = setting(1.0, min=0.1, max=MAX_TICK_S)
-    max_catchup_s: float = setting(300.0, positive=True)
+    max_catchup_s: float = setting(300.0, positive=True, max=3600.0)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -240,7 +240,7 @@ class SignalsConfig:
     #: the current input ``i_rms`` above this multiple of ``derating.max_current_a`` is implausible (the
     #: input's fault, ``out_of_range``): the inverter obeys TE_CurrentLimit <= max_current_a and a drive's
     #: short-time peak is 2-2.5x its rated current; the d/q signals carry up to 1638 A
-    valid_current_factor: float = setting(3.0, positive=True)
+    valid_current_factor: float = setting(3.0, positive=True, max=10.0)
     #: the speed input ``speed_rpm`` beyond +-this is implausible: about 5x the pm10kw's base speed (its
     #: back-EMF, kt 5.6 Nm/A, reaches the 560 V DC link's phase voltage at ~1170 rpm; field weakening of
     #: a surface PM machine rarely reaches 4x); the signal carries +-16000 rpm
@@ -248,16 +248,19 @@ class SignalsConfig:
     #: the torque input beyond +-this multiple of ``derating.max_torque_nm`` is implausible (the
     #: inverter obeys TE_TorqueLimit <= max_torque_nm; its estimate overshoots in transients, not by
     #: 3x); the signal carries +-3276.8 Nm
-    valid_torque_factor: float = setting(3.0, positive=True)
+    valid_torque_factor: float = setting(3.0, positive=True, max=10.0)
 
 
 @dataclass(frozen=True)
 class FaultConfig:
-    """``derating.faults:`` -- when the model counts as diverged, and when a sensor is stuck."""
+    """``derating.faults:`` -- when the model counts as diverged, and when a sensor is stuck.
 
-    innovation_k: float = setting(15.0, positive=True)
+    Every threshold has an upper bound that keeps its check able to fire: 1e9 passed ``--check``
+    and switched the check off (a second black-box round)."""
+
+    innovation_k: float = setting(15.0, positive=True, max=100.0)
     innovation_ticks: int = setting(5, min=1)
-    prediction_error_k: float = setting(40.0, positive=True)
+    prediction_error_k: float = setting(40.0, positive=True, max=200.0)
     # at least the longest tick: a hold shorter than a tick never reaches the bus (0 and 1e-9 s
     # handed a diverged model back at once; the limit kept rising after the fault)
     hold_s: float = setting(30.0, min=MAX_TICK_S)
@@ -270,8 +273,8 @@ class FaultConfig:
     #: (two steps of a PT100's 0.1 K resolution) while the open-loop prediction, stepped with the measured
     #: losses, heated its node by ``stuck_model_k`` or more, within the last
     #: ``stuck_window_s`` (10 min, against the machine's slowest time constant of about 70 min)
-    stuck_window_s: float = setting(600.0, positive=True)
-    stuck_model_k: float = setting(5.0, positive=True)
+    stuck_window_s: float = setting(600.0, positive=True, max=3600.0)
+    stuck_model_k: float = setting(5.0, positive=True, max=50.0)
     stuck_still_k: float = setting(0.2, min=0.0)
 
 
@@ -527,6 +530,14 @@ class EdgeConfig:
                 for sig in wanted:
                     if sig not in signals:
                         raise self.error(key, f"frame {spec.frame} has no signal {sig!r}")
+        # a frame the model reads with no timeout never goes stale: its last values would drive the
+        # model and the limit however long it is gone (a second black-box round: `timeouts: {}` passed)
+        read = {spec.frame: f"signals.{section}.{name}" for section, items in (("inputs", self.inputs), ("sensors", self.sensors))
+                for name, spec in items.items()}
+        for frame, key in read.items():
+            if frame not in self.timeouts:
+                raise self.error(f"timeouts.{frame}", f"missing: {key} reads frame {frame}, which needs a timeout "
+                                 f"(at most {MAX_SILENCE_S:g} s) to be judged stale when it stops")
         for frame in self.timeouts:
             try:
                 codec.frame_id(frame)

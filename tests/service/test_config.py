@@ -219,6 +219,13 @@ BROKEN = [
     ("a hold shorter than a tick", _set("derating.faults.hold_s", 1e-9), "derating.faults.hold_s", "must be at least 10"),
     ("a frame timeout of 1e9 s", _set("timeouts.INV_StatorTemps", 1e9), "timeouts.INV_StatorTemps", "must be at most 10"),
     ("bus silence of 1e9 s", _set("transmit.bus_silence_s", 1e9), "transmit.bus_silence_s", "must be at most 10"),
+    ("no timeouts at all", _set("timeouts", {}), "timeouts.INV_Currents",
+     "missing: signals.inputs.i_rms reads frame INV_Currents, which needs a timeout"),
+    ("model-fault threshold of 1e9 K", _set("derating.faults.prediction_error_k", 1e9), "derating.faults.prediction_error_k",
+     "must be at most 200"),
+    ("stuck check of 1e9 K", _set("derating.faults.stuck_model_k", 1e9), "derating.faults.stuck_model_k", "must be at most 50"),
+    ("plausible current of 1e9 x the maximum", _set("signals.valid_current_factor", 1e9), "signals.valid_current_factor",
+     "must be at most 10"),
     ("a tick of a day", _set("clock.tick_s", 86400), "clock.tick_s", "must be at most 10"),
     # a black-box client's finding F5/F6: periods that passed --check and then starved or flooded
     ("a tick of a millisecond", _set("clock.tick_s", 0.001), "clock.tick_s", "must be at least 0.1, got 0.001"),

@@ -399,6 +399,8 @@ def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
         "hold_a_nanosecond": set_("derating.faults.hold_s", 1e-9),
         "stator_timeout_1e9_s": set_("timeouts.INV_StatorTemps", 1e9),
         "bus_silence_1e9_s": set_("transmit.bus_silence_s", 1e9),
+        "no_timeouts": set_("timeouts", {}),
+        "model_fault_threshold_1e9_k": set_("derating.faults.prediction_error_k", 1e9),
         "a_section_twice": (yaml.safe_dump(base, sort_keys=False) + "bus:\n  interface: virtual\n").encode(),
         "nested_5000_deep": b"bus: " + b"[" * 5000 + b"]" * 5000 + b"\n",
         "yaml_syntax_error": b"bus: [unclosed\n",
