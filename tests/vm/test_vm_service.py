@@ -55,6 +55,33 @@ def codec():
     return FrameCodec(DBC)
 
 
+def lost_without_loss(d: Path) -> int:
+    """How many frames the service may count lost in the emulator's part of the capture (up to
+    its last INV_Currents) though every one arrived, from the capture itself: 16 (a counter wrap)
+    for each frame delivered after a later one of its identifier (on an SMP guest vcan may swap two
+    frames when the sender moves between CPUs; their kernel time stamps keep the true order: the
+    4-bit counter then reads as a jump of 15), and the missing cycles of each stall of 16 cycles or
+    more (the emulator descheduled in a TCG guest on a busy host). 0 on a quiet host."""
+    c = codec()
+    frames = parse_candump((d / "candump-all.log").read_text())
+    n_cur = json.loads((d / "emulator-summary.json").read_text())["frames_sent"]["INV_Currents"]
+    cur = [t for t, _, fid, _ in frames if fid == c.frame_id("INV_Currents")]
+    t_end = cur[n_cur - 1]
+    by_id: dict[int, list[float]] = {}
+    for t, _, fid, _ in frames:
+        if fid < 0x200 and t <= t_end:  # the emulator's frames, in the order delivered
+            by_id.setdefault(fid, []).append(t)
+    total = 0
+    for fid, ts in by_id.items():
+        cycle = c.cycle_time_s(fid) or 0.0
+        for a, b in zip(ts, ts[1:]):
+            if b < a:
+                total += 16
+            elif cycle and round((b - a) / cycle) >= 16:
+                total += round((b - a) / cycle) - 1
+    return total
+
+
 def host_feed() -> tuple[dict, dict[str, dict[str, float]]]:
     """{frame: {"id": "0A0", "hex": [16 payloads, counter 0..15]}} and the values the DBC gives back."""
     enc, dec = codec(), codec()
@@ -149,10 +176,11 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
     assert received == sent, (received, sent)
     for reason in ("crc", "counter_repeat", "unknown_id", "dlc", "decode_error"):
         assert metric(a1, "thermal_edge_frames_dropped_total", reason=reason) == 0, reason
-    assert msum(a1, "thermal_edge_frames_lost_all_total") == 0
+    frames = parse_candump((d / "candump-all.log").read_text())
+    bound = lost_without_loss(d)  # every frame arrived (received == sent)
+    assert msum(a1, "thermal_edge_frames_lost_all_total") <= bound, bound
     assert summary["rx_lost"] == 0 and sum(summary["rx_dropped"].values()) == 0 and summary["send_failures"] == 0
     assert summary["frames_received"].get("TE_Limits", 0) > 0 and summary["frames_received"].get("TE_Status", 0) > 0
-    frames = parse_candump((d / "candump-all.log").read_text())
     assert frames and all(ch == "vcan0" for _, ch, _, _ in frames)
     c = codec()
     lim_id, cur_id = c.frame_id("TE_Limits"), c.frame_id("INV_Currents")
@@ -304,7 +332,7 @@ def test_can_utils_client_cansend_candump_cantools(scenario):
     rep = replay_summary(d / "candump-all.log", cfg)
     print("replay of the capture: " + json.dumps({k: v for k, v in rep.items() if k not in ("parameters",)})[:1500])
     assert rep["frames"] > 0 and rep["ticks"] >= EMU_S * 0.8
-    assert rep["malformed_lines"] == 0 and rep["frames_lost"] == 0
+    assert rep["malformed_lines"] == 0 and rep["frames_lost"] <= lost_without_loss(d)
     assert sum(rep["frames_dropped"].values()) == 0, rep["frames_dropped"]
     rec = d / "service-can.log"
     if rec.exists():
