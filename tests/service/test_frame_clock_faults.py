@@ -257,12 +257,13 @@ def test_metrics_show_the_frame_clock_counters(engine_config) -> None:  # type: 
     from thermal_edge.service.metrics import ServiceMetrics
 
     eng = ThermalEngine(engine_config, worker_mode="sync")
+    c = FrameClock(1.0)
+    eng.frame_clock = c.stats  # as the service wires its frame clock
     m = ServiceMetrics()
     m.attach(eng)
     try:
         text = m.text()
         assert "thermal_edge_frame_clock_behind_total 0.0" in text  # from the first scrape
-        c = FrameClock(1.0)
         stamps = [100.0, 100.5, 100.4, 101.2, 60.0, 60.5, 61.1, 61.5, 62.3]  # jitter, then 41.2 s back
         behind = 0
         top = -math.inf

@@ -101,13 +101,12 @@ class Boundaries(Sequence[float]):
     """Tick boundaries ``k * period`` for the ``k`` of a :class:`range`, in constant memory
     whatever their number (a timestamp years ahead crosses billions): ``len()``, iteration,
     indexing and slicing (a slice is a :class:`Boundaries` again), equal to any sequence of the
-    same values. ``stats`` is the clock's :class:`FrameClockStats` (None for an empty result
-    made without a clock)."""
+    same values."""
 
-    __slots__ = ("_ks", "period", "stats")
+    __slots__ = ("_ks", "period")
 
-    def __init__(self, ks: range, period: float, stats: FrameClockStats | None = None) -> None:
-        self._ks, self.period, self.stats = ks, float(period), stats
+    def __init__(self, ks: range, period: float) -> None:
+        self._ks, self.period = ks, float(period)
 
     def __len__(self) -> int:
         return len(self._ks)
@@ -120,7 +119,7 @@ class Boundaries(Sequence[float]):
 
     def __getitem__(self, i: int | slice) -> float | Boundaries:
         if isinstance(i, slice):
-            return Boundaries(self._ks[i], self.period, self.stats)
+            return Boundaries(self._ks[i], self.period)
         return self._ks[i] * self.period
 
     def __iter__(self) -> Iterator[float]:
@@ -177,7 +176,7 @@ class FrameClock(Clock):
         self._k_next = 0  # the next boundary is _k_next * period
         self._offset = 0.0  # clock time = timestamp + offset (joined segments)
         self._jump: list[float] | None = None  # a jump being judged: [first, last clock time, frames]
-        self._none = Boundaries(range(0), self.period, self.stats)
+        self._none = Boundaries(range(0), self.period)
 
     @property
     def started(self) -> bool:
@@ -240,7 +239,7 @@ class FrameClock(Clock):
             k_last += 1
         ks = range(self._k_next, k_last + 1)
         self._k_next = k_last + 1
-        return Boundaries(ks, p, self.stats)
+        return Boundaries(ks, p)
 
     def _take_jump(self) -> Boundaries:
         assert self._jump is not None and self._now is not None

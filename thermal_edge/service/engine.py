@@ -127,7 +127,8 @@ class ThermalEngine:
         self._last: TickOutput | None = None
         self._ticks = 0
         self._gaps = 0
-        #: the frame clock's counters (:class:`.clock.FrameClockStats`), from its first boundaries on
+        #: the frame clock's counters (:class:`.clock.FrameClockStats`; set by whoever runs the frame
+        #: clock, for the metrics; None with the wall clock)
         self.frame_clock: FrameClockStats | None = None
 
     # -- read-only views ---------------------------------------------------------------------------
@@ -178,9 +179,6 @@ class ThermalEngine:
         first; :class:`.clock.Boundaries`, constant in memory however many). More than
         ``clock.max_catchup_s`` of them is a gap in the frames: it is bridged (:meth:`bridge_gap`)
         and only the last boundary is ticked. The caller runs the ticks, then adds the frame."""
-        stats = getattr(boundaries, "stats", None)
-        if stats is not None:  # the frame clock's counters, for the metrics
-            self.frame_clock = stats
         if len(boundaries) * self.dt > self.config.clock.max_catchup_s:
             self.bridge_gap(boundaries[-1] - self.dt)
             return boundaries[-1:]

@@ -208,18 +208,18 @@ class _LiveCollector(Collector):
                 ("frame_gaps", eng.gaps, "Gaps in the frame clock bridged by cooling the state"),
             ):
                 yield CounterMetricFamily(P + name, doc, value=value)
-            if eng.frame_mode:  # timestamps out of order (the wall clock does not read them)
-                fc = eng.frame_clock
+            fc = eng.frame_clock
+            if fc is not None:  # timestamps out of order (only the frame clock reads them)
                 yield CounterMetricFamily(P + "frame_clock_behind", "Frames stamped earlier than the frame clock (time "
-                                          "going backwards; their data is used)", value=fc.behind if fc else 0)
+                                          "going backwards; their data is used)", value=fc.behind)
                 yield GaugeMetricFamily(P + "frame_clock_behind_max_seconds", "Largest step back of a frame's timestamp "
-                                        "behind the frame clock", value=fc.behind_max_s if fc else 0.0)
+                                        "behind the frame clock", value=fc.behind_max_s)
                 jumps = CounterMetricFamily(P + "frame_clock_jumps", "Timestamp jumps (a tick or more back, more than "
                                             "clock.max_catchup_s ahead), by what the frames after them said: joined (back, "
                                             "a new segment ticked on without a gap), ahead (a gap), ignored (a corrupt stamp)",
                                             labels=LABELS["frame_clock_jumps"])
                 for outcome in ("joined", "ahead", "ignored"):
-                    jumps.add_metric([outcome], getattr(fc, outcome) if fc else 0)
+                    jumps.add_metric([outcome], getattr(fc, outcome))
                 yield jumps
             acc = eng.accumulator
             bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=LABELS["bad_readings"])

@@ -102,6 +102,8 @@ class EdgeService:
         self.engine = ThermalEngine(config, self.model, restored, worker_mode)
         self.frame_mode = config.clock.mode == "frame"
         self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s, config.clock.max_catchup_s) if self.frame_mode else WallClock(config.clock.tick_s)
+        if isinstance(self.clock, FrameClock):
+            self.engine.frame_clock = self.clock.stats
         self.metrics = ServiceMetrics(registry)
         self.notifier = notifier if notifier is not None else SystemdNotifier()
         self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
