@@ -5,14 +5,14 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast test-all venv clean
+.PHONY: demo test test-fast test-all lint venv clean
 
 venv: $(STAMP)
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -e '.[test,lint]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -30,6 +30,11 @@ test-fast: $(STAMP)
 # everything, the slow sweeps included (discovery over all effects, installed service, VM bench)
 test-all: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q
+
+# the code's own declarations checked: ruff (style, imports, bugs) and mypy (types)
+lint: $(STAMP)
+	$(BIN)/ruff check thermal_edge tests
+	$(BIN)/mypy
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -1,8 +1,10 @@
 """The ``thermal-edge`` command: one module per sub-command in :mod:`thermal_edge.commands`,
 imported only when chosen.
 
-Bad input (a broken model, cycle, run or config file) exits with status 2 and one line naming
-the file and key; it never prints a traceback.
+Bad input (a broken model, cycle, run or config file, a bad option) raises a
+:class:`~thermal_edge.errors.ThermalEdgeError`: it exits with status 2 and one line naming the
+file, key or option and the cause. Anything else is a bug and shows its traceback (exit 1);
+``--debug`` shows the traceback of a user error too.
 """
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 
 from . import __version__  # noqa: E402
-from .commands import COMMANDS, add_commands, user_errors  # noqa: E402
+from .commands import COMMANDS, add_commands  # noqa: E402
+from .errors import ThermalEdgeError  # noqa: E402
 
 
 def chosen_command(argv: list[str]) -> str | None:
@@ -36,6 +39,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         description="Online-adapted LPTN thermal protection for PM machines: CAN in, derating out.",
     )
     parser.add_argument("--version", action="version", version=f"thermal-edge {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an error caused by the input too")
     add_commands(parser, chosen_command(sys.argv[1:] if argv is None else argv))
     return parser
 
@@ -49,8 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:  # output piped into head & co.
         sys.stderr.close()
         return 0
-    except Exception as exc:
-        if not isinstance(exc, user_errors()):
+    except ThermalEdgeError as exc:
+        if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"thermal-edge {args.command}: error: {msg}", file=sys.stderr)

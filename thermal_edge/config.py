@@ -24,13 +24,15 @@ import os
 import tempfile
 import types
 import typing
+from collections.abc import Iterable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
 
 from .bus.busconfig import BusConfig, BusConfigError
 from .bus.frames import TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
+from .errors import ThermalEdgeError
 from .settings import AdapterConfig, setting, spec_of
 from .yamlfile import YamlProblem, parse_yaml
 
@@ -77,7 +79,7 @@ MAX_LIMITS_PERIOD_S = INVERTER_LIMITS_TIMEOUT_S / 2
 MAX_DECISIONS = 5000
 
 
-class ConfigError(ValueError):
+class ConfigError(ThermalEdgeError, ValueError):
     """An invalid service configuration; the message names the file and the key."""
 
 
@@ -87,7 +89,7 @@ def default_reason(name: str) -> DerateReason:
 
 
 # -- readers and checks of fields that are not a plain value (used by the declarations below) ---
-def _str_list(sec: "_Section", k: str) -> tuple[str, ...] | None:
+def _str_list(sec: _Section, k: str) -> tuple[str, ...] | None:
     v = sec.value(k)
     if v is None:
         return None
@@ -98,7 +100,7 @@ def _str_list(sec: "_Section", k: str) -> tuple[str, ...] | None:
     return tuple(v)
 
 
-def _input_signals(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> tuple[str, ...]:
+def _input_signals(sec: _Section, k: str, values: dict[str, Any], default: Any) -> tuple[str, ...]:
     """``signals: [d, q]`` with ``reduce: dq_rms``, else one ``signal: NAME``."""
     reduce = values["reduce"]
     if reduce == "dq_rms":
@@ -114,12 +116,12 @@ def _input_signals(sec: "_Section", k: str, values: dict[str, Any], default: Any
     return (sig,)
 
 
-def _reason(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> DerateReason:
+def _reason(sec: _Section, k: str, values: dict[str, Any], default: Any) -> DerateReason:
     v = sec.string(k, sec.value(k), choices=tuple(REASON_NAMES))
     return REASON_NAMES[v] if v is not None else default_reason(values["name"])
 
 
-def _range_c(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> tuple[float, float]:
+def _range_c(sec: _Section, k: str, values: dict[str, Any], default: Any) -> tuple[float, float]:
     rng = sec.value(k)
     if rng is None:
         return default
@@ -129,7 +131,7 @@ def _range_c(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> t
     return float(rng[0]), float(rng[1])
 
 
-def _bus(sec: "_Section", k: str, values: dict[str, Any], default: Any) -> BusConfig:
+def _bus(sec: _Section, k: str, values: dict[str, Any], default: Any) -> BusConfig:
     """BusConfig checks its own keys (the interface's keyword arguments, or ``options:``)."""
     raw = sec.value(k)
     raw = {} if raw is None else raw
@@ -632,7 +634,7 @@ def field_default(f: dataclasses.Field[Any]) -> Any:
     return MISSING
 
 
-def _read(cls: type, sec: "_Section", given: Mapping[str, Any] | None = None, *, whole: bool = True) -> Any:
+def _read(cls: type, sec: _Section, given: Mapping[str, Any] | None = None, *, whole: bool = True) -> Any:
     """A ``cls`` from the section: every field by its declared type, default and :class:`Spec`.
 
     ``whole``: the section is ``cls`` alone (its unknown keys refused, before any value is read,
@@ -658,7 +660,7 @@ def _read(cls: type, sec: "_Section", given: Mapping[str, Any] | None = None, *,
     return out
 
 
-def _value(sec: "_Section", f: dataclasses.Field[Any], tp: Any) -> Any:
+def _value(sec: _Section, f: dataclasses.Field[Any], tp: Any) -> Any:
     k, spec = f.name, spec_of(f)
     tp = without_none(tp)
     if dataclasses.is_dataclass(tp):
@@ -698,17 +700,17 @@ def _value(sec: "_Section", f: dataclasses.Field[Any], tp: Any) -> Any:
 
 
 # -- rules between fields (not defaults: those are in the declarations) ------------------------
-def _check_derating(d: DeratingConfig, sec: "_Section") -> None:
+def _check_derating(d: DeratingConfig, sec: _Section) -> None:
     if d.safe_current_a > d.max_current_a:
         raise sec.fail("safe_current_a", f"must not exceed max_current_a ({d.max_current_a:g}), got {d.safe_current_a:g}")
 
 
-def _check_limit(lim: LimitConfig, sec: "_Section") -> None:
+def _check_limit(lim: LimitConfig, sec: _Section) -> None:
     if lim.warn_c is not None and lim.max_c is not None and not lim.max_c > lim.warn_c:
         raise sec.fail("max_c", f"must be above warn_c ({lim.warn_c:g}), got {lim.max_c:g}")
 
 
-def _check_signals(s: SignalsConfig, sec: "_Section") -> None:
+def _check_signals(s: SignalsConfig, sec: _Section) -> None:
     if not s.inputs:
         raise sec.fail("inputs", "map at least the model's inputs to CAN signals")
     if not s.sensors:
@@ -742,7 +744,7 @@ class _Section:
         """The raw value of ``k`` (None when left out or null)."""
         return self.raw.get(k)
 
-    def sub(self, k: str) -> "_Section":
+    def sub(self, k: str) -> _Section:
         return _Section(self.fname, self.key(k), self.raw.get(k), self.base)
 
     def refuse_unknown(self, known: set[str]) -> None:

@@ -15,12 +15,13 @@ import csv
 import math
 import os
 import re
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .errors import ThermalEdgeError
 from .lptn.vocabulary import Role
 
 FORMATS = ("csv", "paderborn")
@@ -36,7 +37,7 @@ PADERBORN_COLUMNS = {
 }
 
 
-class RunError(ValueError):
+class RunError(ThermalEdgeError, ValueError):
     """A run file that cannot be read; the message names the file (and row or column)."""
 
 
@@ -72,7 +73,7 @@ class Run:
         except KeyError:
             raise RunError(f"{self.source}: no column {name!r} (has: {', '.join(self.columns)})") from None
 
-    def slice(self, start: int, stop: int) -> "Run":
+    def slice(self, start: int, stop: int) -> Run:
         """Samples ``start:stop`` as a new run (views, not copies)."""
         return Run(self.t[start:stop], {k: v[start:stop] for k, v in self.columns.items()}, self.source, dict(self.meta))
 

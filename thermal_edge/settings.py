@@ -12,8 +12,9 @@ package nor scipy.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import MISSING, dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 __all__ = ["METHODS", "WEIGHTINGS", "AdapterConfig", "Spec", "setting", "spec_of"]
 

@@ -12,10 +12,12 @@ from typing import Any
 
 import yaml
 
+from .errors import ThermalEdgeError
+
 __all__ = ["YamlProblem", "parse_yaml"]
 
 
-class YamlProblem(ValueError):
+class YamlProblem(ThermalEdgeError, ValueError):
     """The text is not a document this reader accepts; the message says why and where (line)."""
 
 

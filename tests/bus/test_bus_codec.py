@@ -6,11 +6,10 @@ import math
 import random
 
 import pytest
+from bus_testlib import DBC_PATH, crc8_bitwise
 
 from thermal_edge.bus import DerateReason, FrameCodec, FrameEncodeError, SensorStatus
 from thermal_edge.bus.stats import DROP_REASONS
-
-from bus_testlib import DBC_PATH, crc8_bitwise
 
 
 def _bits(data: bytes, start: int, length: int, signed: bool = False) -> int:

@@ -3,10 +3,9 @@
 import can
 import pytest
 import yaml
+from bus_testlib import REPO
 
 from thermal_edge.bus import BusConfig, BusConfigError, bus_kwargs
-
-from bus_testlib import REPO
 
 
 def test_socketcan_receive_queue_is_enlarged():

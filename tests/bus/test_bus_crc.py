@@ -5,10 +5,9 @@ from __future__ import annotations
 import random
 
 import pytest
+from bus_testlib import crc8_bitwise
 
 from thermal_edge.bus.crc import crc8_sae_j1850, data_id, frame_crc
-
-from bus_testlib import crc8_bitwise
 
 
 def crc8_polydiv(data: bytes) -> int:

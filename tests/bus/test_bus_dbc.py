@@ -7,11 +7,10 @@ import re
 
 import cantools
 import pytest
+from bus_testlib import DBC_PATH, MATRIX_PATH
 
 from thermal_edge.bus import DerateReason, SensorStatus, TeState
 from thermal_edge.bus.frames import DEFAULT_DBC_PATH
-
-from bus_testlib import DBC_PATH, MATRIX_PATH
 
 
 @pytest.fixture(scope="module")

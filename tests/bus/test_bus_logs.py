@@ -13,11 +13,20 @@ import sys
 
 import can
 import pytest
-
-from thermal_edge.bus import (BusConfig, BusConfigError, CanTransport, FrameCodec, FrameLogReader, LogFormatError,
-                              LogRecorder, log_messages, read_log, readable_suffixes)
-
 from bus_testlib import DBC_PATH, REPO
+
+from thermal_edge.bus import (
+    BusConfig,
+    BusConfigError,
+    CanTransport,
+    FrameCodec,
+    FrameLogReader,
+    LogFormatError,
+    LogRecorder,
+    log_messages,
+    read_log,
+    readable_suffixes,
+)
 
 INV_FRAMES = {
     "INV_Currents": dict(INV_Id=-12.35, INV_Iq=250.0, INV_IphRms=180.55),
@@ -261,7 +270,7 @@ def test_recording_rotates_at_its_cap_and_keeps_n_files(tmp_path, virtual_channe
     # with room for every file, nothing is lost and the files read back in order
     path2 = tmp_path / "all" / f"can{suffix}"
     te2 = _record(path2, virtual_channel, record_max_bytes=cap // 4, record_keep=1000)
-    parts = sorted(path2.parent.glob(f"can_*_#*"), key=lambda p: int(re.search(r"#(\d+)", p.name).group(1)))
+    parts = sorted(path2.parent.glob("can_*_#*"), key=lambda p: int(re.search(r"#(\d+)", p.name).group(1)))
     assert len(parts) >= 2
     frames = [f for p in [*parts, path2] for f in read_log(p, FrameCodec(DBC_PATH))]
     assert len(frames) == te2.written == 2 * 4 * ROUNDS

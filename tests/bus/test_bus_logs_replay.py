@@ -8,13 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from bus_testlib import REPO
 
 from thermal_edge.bus import read_log, readable_suffixes
 from thermal_edge.config import load_config
 from thermal_edge.service import replay_candump
 from thermal_edge.sim.inverter import write_log
-
-from bus_testlib import REPO
 
 MODEL = REPO / "config" / "machines" / "pm10kw.yaml"
 CYCLE = REPO / "config" / "cycles" / "rated_heat_cool.yaml"

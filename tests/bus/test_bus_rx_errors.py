@@ -16,11 +16,10 @@ import time
 import can
 import msgpack
 import pytest
+from bus_testlib import DBC_PATH
 
 from thermal_edge.bus import DEFAULT_UDP_MULTICAST_GROUP, CanTransport, DerateReason, FrameCodec
 from thermal_edge.bus.transport import RX_ERROR_RUN_LIMIT
-
-from bus_testlib import DBC_PATH
 
 LIMITS = dict(TE_TorqueLimit=50.0, TE_CurrentLimit=30.0, TE_DerateActive=0, TE_DerateReason=DerateReason.NONE)
 

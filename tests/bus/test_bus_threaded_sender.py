@@ -13,10 +13,9 @@ import time
 
 import can
 import pytest
+from bus_testlib import DBC_PATH
 
 from thermal_edge.bus import BusConfig, CanTransport, DerateReason, FrameCodec, create_bus
-
-from bus_testlib import DBC_PATH
 
 LIMITS = dict(TE_TorqueLimit=80.0, TE_CurrentLimit=40.0, TE_DerateActive=0, TE_DerateReason=DerateReason.NONE)
 

@@ -7,6 +7,7 @@ import logging
 
 import can
 import pytest
+from bus_testlib import DBC_PATH
 
 from thermal_edge.bus import (
     DEFAULT_UDP_MULTICAST_GROUP,
@@ -18,8 +19,6 @@ from thermal_edge.bus import (
     bus_kwargs,
     create_bus,
 )
-
-from bus_testlib import DBC_PATH
 
 LIMITS = dict(TE_TorqueLimit=120.5, TE_CurrentLimit=88.25, TE_DerateActive=1, TE_DerateReason=DerateReason.WINDING)
 SAFE = dict(TE_TorqueLimit=20.0, TE_CurrentLimit=10.0, TE_DerateActive=1, TE_DerateReason=DerateReason.MODEL_FAULT)

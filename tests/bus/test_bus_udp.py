@@ -10,10 +10,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from bus_testlib import DBC_PATH, REPO
 
 from thermal_edge.bus import CanTransport, DerateReason, FrameCodec
-
-from bus_testlib import DBC_PATH, REPO
 
 PEER = Path(__file__).with_name("udp_peer.py")
 N_FRAMES = 200

@@ -58,7 +58,7 @@ def main() -> int:
         while time.monotonic() < until:
             try:
                 notes.append((time.monotonic() - t0, sock.recv(4096).decode()))
-            except socket.timeout:
+            except TimeoutError:
                 pass
 
     deadline = time.monotonic() + 400

@@ -6,9 +6,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import yaml
-
 import deploylib as dl
+import yaml
 
 COMPOSE = dl.DEPLOY / "compose.yaml"
 

@@ -8,7 +8,6 @@ import json
 import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
 import sys
@@ -16,9 +15,8 @@ import time
 import zipfile
 from pathlib import Path
 
-import pytest
-
 import deploylib as dl
+import pytest
 
 DOCKERFILE = dl.REPO / "Dockerfile"
 DOCKERIGNORE = dl.REPO / ".dockerignore"

@@ -5,13 +5,13 @@ from __future__ import annotations
 import json
 import re
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
-
-import pytest
-import yaml
+from typing import Any
 
 import deploylib as dl
+import pytest
+import yaml
 
 GRAFANA = dl.DEPLOY / "grafana"
 DASHBOARD = GRAFANA / "dashboards" / "thermal-edge.json"

@@ -13,15 +13,13 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
+import deploylib as dl
 import pytest
 import yaml
-
-import deploylib as dl
 
 README = dl.REPO / "README.md"
 

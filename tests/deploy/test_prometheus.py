@@ -7,10 +7,9 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import deploylib as dl
 import pytest
 import yaml
-
-import deploylib as dl
 
 PROM = dl.DEPLOY / "prometheus"
 CONFIG = PROM / "prometheus.yml"

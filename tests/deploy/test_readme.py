@@ -8,9 +8,8 @@ import re
 import sys
 from types import ModuleType
 
-import pytest
-
 import deploylib as dl
+import pytest
 
 README = dl.REPO / "README.md"
 HINT = "regenerate: python deploy/gen_docs.py --update README.md"

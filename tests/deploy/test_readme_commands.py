@@ -18,9 +18,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 import deploylib as dl
+import pytest
 
 from thermal_edge.cli import build_parser
 

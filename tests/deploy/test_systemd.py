@@ -17,9 +17,8 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-
 import deploylib as dl
+import pytest
 from vmrun import apt_install  # tests/vm is on sys.path (conftest.py)
 
 UNIT = dl.DEPLOY / "systemd" / "thermal-edge.service"
@@ -192,7 +191,7 @@ def test_notify_ready_then_watchdog(tmp_path: Path) -> None:
                 break
             try:
                 data = sock.recv(4096).decode()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             msgs.append((time.monotonic(), data))
             pings += sum(1 for l in data.splitlines() if l == "WATCHDOG=1")
@@ -202,7 +201,7 @@ def test_notify_ready_then_watchdog(tmp_path: Path) -> None:
         while time.monotonic() < end:
             try:
                 msgs.append((time.monotonic(), sock.recv(4096).decode()))
-            except socket.timeout:
+            except TimeoutError:
                 if proc.poll() is not None:
                     break
         rc = proc.wait(timeout=30)

@@ -6,11 +6,9 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
-
-import pytest
 
 import deploylib as dl
+import pytest
 
 pytestmark = [pytest.mark.vm, pytest.mark.slow]
 

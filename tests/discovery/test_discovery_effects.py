@@ -8,10 +8,9 @@ import yaml
 
 from thermal_edge.discovery import effects as E
 from thermal_edge.discovery import hidden, yamlpatch
+from thermal_edge.discovery.bench import PM10KW, REPO, UNOBSERVABLE
 from thermal_edge.lptn import ModelError, Simulator, steady_state
 from thermal_edge.sim.cycles import cycle_run, load_cycle
-
-from thermal_edge.discovery.bench import PM10KW, REPO, UNOBSERVABLE
 
 REFS = {"n_ref": 1200.0, "i_ref": 23.0}
 

@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from thermal_edge.data import Run
 from thermal_edge.estimation.observer import Observer
 from thermal_edge.lptn import Role
-from thermal_edge.data import Run
 from thermal_edge.sim.plant import simulate_plant
 
 #: the service's upper band: estimate + 1.96 σ (config/edge.yaml derating.band_z)

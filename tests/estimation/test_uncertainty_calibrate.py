@@ -3,14 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import ROOT  # noqa: E402  (tests/estimation is on sys.path under pytest's rootdir)
 
 from thermal_edge.estimation.calibrate import calibrate, write_calibrated
 from thermal_edge.estimation.common import ParamSpace, decimate, window_from_arrays
 from thermal_edge.estimation.objective import Objective
 from thermal_edge.estimation.uncertainty import estimate_uncertainty, integrated_autocorrelation
-from thermal_edge.lptn import Simulator, load_model
-
-from conftest import ROOT  # noqa: E402  (tests/estimation is on sys.path under pytest's rootdir)
+from thermal_edge.lptn import Simulator
 
 
 def test_covariance_matches_the_textbook_formula_and_flags_what_sensors_cannot_see(pm10kw, varied_1h):

@@ -8,13 +8,13 @@ import shutil
 import numpy as np
 import pytest
 
-from thermal_edge.shipped import config_path
 from thermal_edge.data import RunError, write_run
 from thermal_edge.fleet.canlogs import read_can_runs
 from thermal_edge.fleet.evaluate import evaluate_machine
 from thermal_edge.fleet.runs import find_machines
 from thermal_edge.fleet.task import read_machine_runs
 from thermal_edge.lptn import Role, load_model
+from thermal_edge.shipped import config_path
 from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
 
 MODEL = config_path("machines", "pm10kw.yaml")

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from thermal_edge.shipped import config_path
-from thermal_edge.data import RunError, read_run
+from thermal_edge.data import RunError
 from thermal_edge.fleet.results import read_table, row, write_table
 from thermal_edge.fleet.runs import find_machines
 from thermal_edge.fleet.screen import MAD_SCALE, screen
 from thermal_edge.lptn import load_model
+from thermal_edge.shipped import config_path
 from thermal_edge.sim.cycles import load_cycle
 from thermal_edge.sim.fleet import FAULTS, SPREAD_REL, SPREAD_TRUNC, machine_run, plan_fleet
 

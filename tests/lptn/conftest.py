@@ -21,8 +21,8 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
-
 from lptn_ref import PADERBORN_DIR, PADERBORN_YAML, PM10KW_YAML, require_paderborn, require_pm10kw, tiny_plus_raw, tiny_raw
+
 from thermal_edge.lptn import load_model
 from thermal_edge.lptn.loader import build_model
 

@@ -12,12 +12,11 @@ import re
 
 import numpy as np
 import pytest
+from lptn_ref import Assembly, law_env, pm10kw_inputs, reference_run, tiny_inputs, tiny_raw
 from scipy.linalg import expm, expm_frechet
 
 from thermal_edge.lptn import Network, Simulator, UnstableDiscretisation, discretise
 from thermal_edge.lptn.loader import build_model
-
-from lptn_ref import Assembly, law_env, pm10kw_inputs, reference_run, tiny_inputs, tiny_raw
 
 
 def op_of(model, inputs, k=0):

@@ -12,13 +12,12 @@ import math
 
 import numpy as np
 import pytest
+from lptn_ref import Assembly
 from scipy.integrate import dblquad, quad
 
 from thermal_edge.lptn import steady_state
 from thermal_edge.lptn.expr import evaluate_const
 from thermal_edge.lptn.loader import build_model
-
-from lptn_ref import Assembly
 
 T_A, T_B = 40.0, 25.0  # the two held face temperatures, °C
 TINY_R = 1e-9

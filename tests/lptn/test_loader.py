@@ -11,11 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from lptn_ref import tiny_plus_raw, tiny_raw
 
 from thermal_edge.lptn import ModelError, ParameterError, load_model
 from thermal_edge.lptn.expr import evaluate_const
-
-from lptn_ref import tiny_plus_raw, tiny_raw
 
 
 def write(tmp_path: Path, raw, name: str = "bad_model.yaml") -> Path:

@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 
 from thermal_edge.lptn import (
-    Discrete, EulerDerivatives, Network, ZohDerivatives, discretise,
+    Discrete,
+    EulerDerivatives,
+    Network,
+    ZohDerivatives,
+    discretise,
 )
 from thermal_edge.lptn.losses import LossLaws
 

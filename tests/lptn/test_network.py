@@ -10,12 +10,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+from lptn_ref import Assembly, law_env, pm10kw_inputs, tiny_inputs, tiny_plus_raw
 
 from thermal_edge.lptn import Network, NotPassive, Simulator, discretise, initial_state, steady_state
 from thermal_edge.lptn.expr import Num
 from thermal_edge.lptn.loader import build_model
-
-from lptn_ref import Assembly, law_env, pm10kw_inputs, tiny_inputs, tiny_plus_raw
 
 MID = ("/radial", "/circ", "/axial")
 

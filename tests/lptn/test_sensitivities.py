@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from lptn_ref import Assembly, pm10kw_inputs, tiny_inputs, tiny_raw
 
 from thermal_edge.lptn import Simulator
-
-from lptn_ref import Assembly, pm10kw_inputs, tiny_inputs, tiny_raw
 
 REL_STEP = 1e-4
 REL_TOL = 1e-5

@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 import yaml
-
 from lptn_ref import MACHINES, tiny_plus_raw
+
 from thermal_edge.lptn import DEFAULT_COLUMNS, NodeRole, Role, Stepper, cool_down, load_model
 from thermal_edge.lptn.loader import build_model
 from thermal_edge.lptn.vocabulary import FRAME, STATOR_IRON, parse_role

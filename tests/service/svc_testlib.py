@@ -194,7 +194,7 @@ class NotifySocket:
                 continue
             try:
                 self.messages.append(self.sock.recv(4096).decode())
-            except socket.timeout:
+            except TimeoutError:
                 continue
         return any(text in m for m in list(self.messages))
 
@@ -209,7 +209,7 @@ class NotifySocket:
             while self._running:
                 try:
                     self.messages.append(self.sock.recv(4096).decode())
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 except OSError:
                     return
@@ -222,7 +222,7 @@ class NotifySocket:
         try:
             while True:
                 self.messages.append(self.sock.recv(4096).decode())
-        except (BlockingIOError, socket.timeout):
+        except (TimeoutError, BlockingIOError):
             pass
         self.sock.settimeout(0.1)
         return self.messages

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 import yaml
-
 from cli_in_process import te_here
 from svc_testlib import EDGE_YAML, REPO, env, write_yaml
+
 from thermal_edge.bus import DEFAULT_DBC_PATH, FrameCodec
 from thermal_edge.config import ConfigError, config_from_mapping, load_config
 from thermal_edge.estimation.adapter import AdapterConfig

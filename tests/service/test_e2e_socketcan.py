@@ -10,7 +10,6 @@ import os
 import socket
 
 import pytest
-
 from svc_testlib import edge_raw, emulator_config, write_yaml
 
 

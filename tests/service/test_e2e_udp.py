@@ -15,9 +15,23 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-
-from svc_testlib import (REPO, NotifySocket, edge_raw, emulator_cmd, env, final_parameters, free_tcp_port, heldout_rms,
-                         metric_sum, open_loop_true_max, scrape, start_service, table4_model_params, wait_until, write_yaml)
+from svc_testlib import (
+    REPO,
+    NotifySocket,
+    edge_raw,
+    emulator_cmd,
+    env,
+    final_parameters,
+    free_tcp_port,
+    heldout_rms,
+    metric_sum,
+    open_loop_true_max,
+    scrape,
+    start_service,
+    table4_model_params,
+    wait_until,
+    write_yaml,
+)
 
 
 @dataclass

@@ -15,9 +15,21 @@ from typing import Any
 
 import numpy as np
 import pytest
+from svc_testlib import (
+    DBC,
+    REPO,
+    T0,
+    async_wait_until,
+    edge_raw,
+    emulator_config,
+    env,
+    final_parameters,
+    heldout_rms,
+    open_loop_true_max,
+    table4_model_params,
+    write_yaml,
+)
 
-from svc_testlib import (DBC, REPO, T0, async_wait_until, edge_raw, emulator_config, env, final_parameters, heldout_rms, open_loop_true_max,
-                         table4_model_params, write_yaml)
 from thermal_edge.config import load_config
 from thermal_edge.service import EdgeService, replay_candump
 from thermal_edge.sim.inverter import InverterEmulator
@@ -158,8 +170,8 @@ def test_metrics_cover_the_service(run):
 
 
 def _model():
-    from thermal_edge.lptn import load_model
-
     from svc_testlib import MODEL
+
+    from thermal_edge.lptn import load_model
 
     return load_model(MODEL)

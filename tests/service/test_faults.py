@@ -10,8 +10,8 @@ import time
 import can
 import numpy as np
 import pytest
-
 from svc_testlib import MAX_LEAD_S, PLANT_DT_S, running, scrape, sim_until
+
 from thermal_edge.bus import DerateReason, FrameCodec, SensorStatus, TeState
 
 SAFE = 10.0
@@ -164,6 +164,7 @@ async def test_diverged_model_forces_the_safe_limit_with_model_fault(tmp_path, c
 def test_non_finite_state_is_a_model_fault(tmp_path, model):
     """The engine alone: a NaN in the state (numerical breakdown) forces the safe limit at the next tick."""
     from test_persistence import _engine_config, _feed
+
     from thermal_edge.lptn import steady_state
     from thermal_edge.service.engine import ThermalEngine
 
@@ -183,6 +184,7 @@ def test_model_fault_reports_the_error_that_caused_it(tmp_path, model):
     """The tick that faults on the open-loop prediction error reports that error (the readings'
     60 K offset), not the error against the state re-initialised from those readings."""
     from test_persistence import _engine_config, _feed
+
     from thermal_edge.lptn import steady_state
     from thermal_edge.service.engine import ThermalEngine
 

@@ -15,11 +15,10 @@ import math
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import pytest
-
 from svc_testlib import CYCLES, MODEL, REPO, edge_raw, env, write_yaml
+
 from thermal_edge.config import load_config
 from thermal_edge.service.clock import FrameClock
 

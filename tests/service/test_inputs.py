@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 import pytest
-
 from svc_testlib import EDGE_YAML
+
 from thermal_edge.bus import DecodedFrame, SensorStatus
 from thermal_edge.config import load_config
 from thermal_edge.lptn import Role, load_model
@@ -76,7 +76,6 @@ def test_current_is_the_root_mean_square_over_every_frame(acc):
 
 def test_rms_mode_uses_the_phase_current_signal(tmp_path):
     import yaml
-
     from svc_testlib import REPO, write_yaml
 
     raw = yaml.safe_load(EDGE_YAML.read_text())
@@ -113,7 +112,6 @@ def test_sensor_faults_are_flagged_and_counted(acc):
 
 def test_not_fitted_is_a_fault_only_for_a_required_sensor(tmp_path):
     import yaml
-
     from svc_testlib import REPO, write_yaml
 
     raw = yaml.safe_load(EDGE_YAML.read_text())

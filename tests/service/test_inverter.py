@@ -9,8 +9,8 @@ import time
 import can
 import numpy as np
 import pytest
-
 from svc_testlib import CYCLES, DBC, MODEL
+
 from thermal_edge.bus import DecodedFrame, FrameCodec
 from thermal_edge.lptn import load_model
 from thermal_edge.service.clock import FrameClock

@@ -100,6 +100,7 @@ async def test_safety_events_reach_the_journal_with_their_priorities(tmp_path, c
     """The service's own log lines, on a stream the journal would read, during a sensor fault and its
     recovery: each event once, with the priority ``journalctl -p`` filters on."""
     from svc_testlib import running, sim_until
+
     from thermal_edge.bus import SensorStatus
 
     path = tmp_path / "stderr"

@@ -129,8 +129,9 @@ def test_the_default_endpoint_cannot_be_reached_from_beyond_the_host():
             own = "127.0.0.1"
     if own.startswith("127."):
         pytest.skip("this host has no non-loopback IPv4 address to connect to")
-    from thermal_edge.config import load_config
     from svc_testlib import EDGE_YAML
+
+    from thermal_edge.config import load_config
 
     address = load_config(EDGE_YAML).metrics.address
     assert address == "127.0.0.1"

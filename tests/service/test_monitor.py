@@ -9,8 +9,8 @@ import sys
 import can
 import cantools
 import pytest
-
 from svc_testlib import DBC, env, running, scrape, sim_until
+
 from thermal_edge.bus import DerateReason, FrameCodec, TeState
 from thermal_edge.monitor.snapshot import FrameWatch, from_metrics
 from thermal_edge.monitor.view import render

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
-
 from svc_testlib import DBC, edge_raw, write_yaml
+
 from thermal_edge.bus import DerateReason, FrameCodec, TeState
 from thermal_edge.config import DeratingConfig, load_config
 from thermal_edge.service.derating import STALL_TICKS, DeratingPolicy, Limits, NodeBand

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from svc_testlib import EDGE_YAML, REPO, write_yaml
+
 from thermal_edge.bus import DecodedFrame
 from thermal_edge.config import config_from_mapping
 from thermal_edge.lptn import Simulator, cool_down, steady_state

@@ -7,8 +7,8 @@ import sys
 import cantools
 import numpy as np
 import pytest
-
 from svc_testlib import CYCLES, DBC, MODEL, REPO, edge_raw, env, write_yaml
+
 from thermal_edge.bus import read_log as read_candump
 from thermal_edge.config import load_config
 from thermal_edge.service import replay_candump

@@ -10,9 +10,7 @@ import time
 
 import numpy as np
 import pytest
-
-from svc_testlib import (MODEL, REPO, T0, NotifySocket, edge_raw, emulator_cmd, env, start_service, wait_until,
-                         write_yaml)
+from svc_testlib import MODEL, REPO, T0, NotifySocket, edge_raw, emulator_cmd, env, start_service, wait_until, write_yaml
 
 
 def saved_at(path) -> float:

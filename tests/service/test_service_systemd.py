@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 
 from svc_testlib import NotifySocket
+
 from thermal_edge.service.systemd import SystemdNotifier
 
 

@@ -22,8 +22,18 @@ from pathlib import Path
 
 import pytest
 
-from thermal_edge.bench.faults.harness import (GAP_S, START_TIMEOUT_S, Inverter, Monitor, Service, edge_config,
-                                               free_port, gaps, metric, unique_group)
+from thermal_edge.bench.faults.harness import (
+    GAP_S,
+    START_TIMEOUT_S,
+    Inverter,
+    Monitor,
+    Service,
+    edge_config,
+    free_port,
+    gaps,
+    metric,
+    unique_group,
+)
 from thermal_edge.process_signals import EXIT_STATE_NOT_SAVED
 
 STATE = "state.json"

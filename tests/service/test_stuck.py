@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from svc_testlib import MAX_LEAD_S, PLANT_DT_S, running, sim_until
 from test_persistence import _engine_config, _feed
+
 from thermal_edge.bus import DerateReason, TeState
 from thermal_edge.lptn import Stepper, steady_state
 from thermal_edge.service.engine import ThermalEngine

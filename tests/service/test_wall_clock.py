@@ -7,8 +7,8 @@ import time
 import urllib.request
 
 import pytest
-
 from svc_testlib import NotifySocket, edge_raw, emulator_config, write_yaml
+
 from thermal_edge.bus import DerateReason
 from thermal_edge.config import load_config
 from thermal_edge.service import EdgeService

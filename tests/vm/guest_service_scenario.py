@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shlex
 import signal
 import socket
 import subprocess
@@ -134,7 +133,7 @@ def main() -> int:
         try:
             if "READY=1" in sock.recv(4096).decode():
                 ready_s = round(time.monotonic() - T0, 2)
-        except socket.timeout:
+        except TimeoutError:
             pass
     ev(f"service READY at {ready_s}")
     result: dict = {"kernel": kernel, "vcan0": link, "ready_s": ready_s}

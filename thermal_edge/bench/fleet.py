@@ -21,8 +21,9 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from ..fleet.calibrate import calibrate_machine
 from ..fleet.cluster import connect, map_machines
@@ -30,9 +31,9 @@ from ..fleet.runs import find_machines
 from ..fleet.screen import THRESHOLD, screen
 from ..fleet.task import cached_model, warm
 from ..lptn import load_model
+from ..shipped import config_path
 from ..sim.cycles import load_cycle
 from ..sim.fleet import FAULTY, plan_fleet, read_manifest, write_machine, write_manifest
-from ..shipped import config_path
 from ..text_table import table
 from .common import Progress, no_progress
 

@@ -21,8 +21,8 @@ import numpy as np
 
 from ..lptn import Role, Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
-from ..sim.cycles import cycle_run, load_cycle
 from ..shipped import config_path
+from ..sim.cycles import cycle_run, load_cycle
 from .common import Progress, no_progress, timed, timed_together
 
 

@@ -32,9 +32,9 @@ from ..estimation.predict import open_loop
 from ..estimation.screening import screen
 from ..estimation.sqp import fit_sqp
 from ..lptn import Model, Simulator, load_model
+from ..shipped import ROOT, config_path
 from ..sim.cycles import cycle_run, load_cycle
 from ..sim.plant import PlantResult, simulate_plant
-from ..shipped import ROOT, config_path
 from .common import Progress, no_progress, sample_counter
 
 TABLE4 = {"k_r_sw": +4.0, "k_c_sw": +1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}

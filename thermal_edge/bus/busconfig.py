@@ -28,6 +28,7 @@ from typing import Any
 import can
 import can.interfaces
 
+from ..errors import ThermalEdgeError
 from .logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES, LogFormatError, check_recording
 from .udp import RECEIVE_QUEUE_BYTES, LocalUdpMulticastBus, enlarge_receive_queue
 
@@ -60,7 +61,7 @@ _NO_BITRATE_INTERFACES = frozenset({"virtual", "udp_multicast"})
 _OWN_BUS_CLASSES: dict[str, type[can.BusABC]] = {"udp_multicast": LocalUdpMulticastBus}
 
 
-class BusConfigError(ValueError):
+class BusConfigError(ThermalEdgeError, ValueError):
     """The bus configuration is invalid.
 
     Attributes

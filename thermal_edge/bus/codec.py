@@ -26,6 +26,7 @@ import cantools
 from cantools.database.can import Message as _DbcMessage
 from cantools.database.can import Signal as _DbcSignal
 
+from ..errors import ThermalEdgeError
 from .crc import frame_crc, frame_crc_function
 from .frames import COUNTER_SUFFIX, CRC_SUFFIX, DEFAULT_DBC_PATH
 from .stats import FrameStats
@@ -74,11 +75,11 @@ def _keeps_cycle(pace: tuple[float, int] | None, cycle: float) -> bool:
     return pace is not None and pace[1] >= _PACE_MIN_GAPS and _PACE_BAND[0] <= pace[0] / cycle <= _PACE_BAND[1]
 
 
-class DbcError(ValueError):
+class DbcError(ThermalEdgeError, ValueError):
     """The DBC cannot be loaded or breaks the conventions of the CAN matrix."""
 
 
-class FrameEncodeError(ValueError):
+class FrameEncodeError(ThermalEdgeError, ValueError):
     """Signals given to :meth:`FrameCodec.encode` do not fit the frame."""
 
 

@@ -33,8 +33,8 @@ import shutil
 import threading
 import time
 from collections import deque
-from datetime import datetime
 from collections.abc import Iterable, Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import IO, Any
 
@@ -42,6 +42,7 @@ import can
 from can.io.logger import MESSAGE_WRITERS, SizedRotatingLogger
 from can.io.player import MESSAGE_READERS
 
+from ..errors import ThermalEdgeError
 from .codec import DecodedFrame, FrameCodec
 
 __all__ = [
@@ -82,7 +83,7 @@ _CANDUMP_LINE = re.compile(
 )
 
 
-class LogFormatError(ValueError):
+class LogFormatError(ThermalEdgeError, ValueError):
     """A file is not a CAN log of the format its suffix names (the message names file and line)."""
 
 

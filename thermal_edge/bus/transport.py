@@ -185,7 +185,7 @@ class CanTransport:
             raise RuntimeError("transport not started")
         try:
             await asyncio.wait_for(self._connected.wait(), timeout)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             return False
         return True
 

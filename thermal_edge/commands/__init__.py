@@ -12,7 +12,7 @@ import importlib
 from dataclasses import dataclass
 from types import ModuleType
 
-__all__ = ["COMMANDS", "Command", "add_commands", "user_errors"]
+__all__ = ["COMMANDS", "Command", "add_commands"]
 
 
 @dataclass(frozen=True)
@@ -49,16 +49,3 @@ def add_commands(parser: argparse.ArgumentParser, chosen: str | None) -> None:
             command.load().register(sub)  # (its parser's help line is never shown: it is chosen)
         else:  # listed; its arguments are known once it is chosen
             sub.add_parser(command.name, help=command.help, add_help=False)
-
-
-def user_errors() -> tuple[type[BaseException], ...]:
-    """Errors caused by the user's input: reported in one line, exit status 2 (imported when an
-    error is to be judged: by then the command has loaded the modules that raise them)."""
-    from ..bus import LogFormatError
-    from ..config import ConfigError
-    from ..data import RunError
-    from ..lptn import ExprError, ModelError, NotPassive, UnstableDiscretisation
-    from ..sim.cycles import CycleError
-
-    return (ModelError, RunError, CycleError, ExprError, UnstableDiscretisation, NotPassive, ConfigError,
-            LogFormatError, KeyError, FileNotFoundError)

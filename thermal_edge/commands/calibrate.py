@@ -12,9 +12,9 @@ import sys
 
 import numpy as np
 
-from ..text_table import table
 from ..data import FORMATS
 from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
+from ..text_table import table
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets
 from .progress import bar
 from .runs import read_checked

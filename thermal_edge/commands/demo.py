@@ -48,9 +48,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    from ..config import ConfigError, config_from_mapping
     import yaml
 
+    from ..config import ConfigError, config_from_mapping
     from ..lptn import load_model
     from ..service import EdgeService, status_line
     from ..sim.inverter import EmulatorConfig, InverterEmulator, table4_parameters

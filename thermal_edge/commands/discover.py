@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from ..data import FORMATS
+from ..errors import UsageError
 from .common import add_set_arg, parse_sets
 from .runs import read_checked, require_finite_prediction
 
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if args.list_effects:
         return list_effects(args)
     if not args.run:
-        raise KeyError("--run is required (or --list-effects)")
+        raise UsageError("--run is required (or --list-effects)")
     from ..discovery import effects as E
     from ..discovery import hidden, workflow
 

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ..data import FORMATS, RunError
+from ..errors import UsageError
 from .common import add_model_args
 from .runs import read_checked
 
@@ -97,7 +98,7 @@ def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]
     from ..lptn import load_model
 
     if not args.runs:
-        raise KeyError("no RUNS given (files, machine directories or globs)")
+        raise UsageError("no RUNS given (files, machine directories or globs)")
     machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
     model = load_model(args.model, data_dir=args.data_dir)
     sensors = _names(getattr(args, "sensors", None))
@@ -200,7 +201,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
                 fitted.setdefault(r["machine"], {})[r["name"]] = r["value"]
         missing = [m.id for m in machines if m.id not in fitted]
         if missing:
-            raise KeyError(f"{args.calibrated}: no parameters for machine(s) {', '.join(missing[:5])}")
+            raise UsageError(f"{args.calibrated}: no parameters for machine(s) {', '.join(missing[:5])}")
         params = [fitted[m.id] for m in machines]
     with connect(args.scheduler, args.workers) as client:
         per = map_machines(client, evaluate_machine, machines, params, progress=args.progress, desc="evaluate",
@@ -223,12 +224,12 @@ def run_screen(args: argparse.Namespace) -> int:
     require_fleet_extra()
     if args.table:
         if args.runs:
-            raise KeyError("give either RUNS or --table, not both")
+            raise UsageError("give either RUNS or --table, not both")
         rows = [r for r in read_table(args.table) if r["kind"] in ("parameter", "error")]
         intro = [f"`thermal-edge fleet screen` of the calibration table `{args.table}`."]
     else:
         if not args.model:
-            raise KeyError("--model is required to calibrate RUNS (or screen a calibration with --table)")
+            raise UsageError("--model is required to calibrate RUNS (or screen a calibration with --table)")
         machines, refused = _machines(args)
         with connect(args.scheduler, args.workers) as client:
             rows = refused + _calibrate_rows(args, client, machines)
@@ -255,7 +256,7 @@ def simulate_fleet(args: argparse.Namespace) -> int:
     from ..sim.fleet import plan_fleet, write_machine, write_manifest
 
     if args.format != "csv" or args.effect or getattr(args, "set", None):
-        raise KeyError("--fleet writes run CSVs of the model's design: no --format can, --effect or --set")
+        raise UsageError("--fleet writes run CSVs of the model's design: no --format can, --effect or --set")
     model = load_model(args.model, data_dir=args.data_dir)
     cycle = load_cycle(args.cycle)
     duration = args.duration if args.duration is not None else cycle.duration_s

@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..shipped import config_path
 from ..data import FORMATS, Run, RunError, write_run
+from ..errors import UsageError
 from ..estimation.adapter import AdapterConfig
 from ..estimation.online import OnlineResult, online_report, run_online
 from ..estimation.predict import open_loop
@@ -34,6 +34,7 @@ from ..lptn import Model
 from ..lptn.vocabulary import Role
 from ..plots import missing
 from ..service.replay import format_summary, replay_summary
+from ..shipped import config_path
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
 from .progress import bar
 from .runs import read_checked, require_finite, require_finite_prediction
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
         return 0
     if not args.model:
-        raise KeyError("--model is required for CSV runs")
+        raise UsageError("--model is required for CSV runs")
     model = model_with_sets(model_from_args(args), args.set)
     sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip()) if args.sensors else None
     rec, data = read_checked(args.run, args.format, model, sensors if args.adapt else None)

@@ -15,6 +15,7 @@ import shlex
 from ..data import write_run
 from ..discovery import effects as E
 from ..discovery import hidden
+from ..errors import UsageError
 from ..sim.cycles import cycle_run, load_cycle
 from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     cycle = load_cycle(args.cycle)
     kt = model.drive.get("kt_nm_per_arms")
     if kt is None:
-        raise KeyError(f"model {model.name} has no drive.kt_nm_per_arms: cannot turn torque into current")
+        raise UsageError(f"model {model.name} has no drive.kt_nm_per_arms: cannot turn torque into current")
     inputs = cycle_run(cycle, kt, args.duration)
     cmd = ["thermal-edge", "simulate", "--model", args.model, "--cycle", args.cycle]
     for e in args.effect:
@@ -122,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
 def run_can_log(args: argparse.Namespace) -> int:
     """The inverter's frames of a simulated run (open loop: no service answers) as a CAN log."""
     if args.effect:
-        raise KeyError("--effect is not supported with --format can (the emulator plays the model file)")
+        raise UsageError("--effect is not supported with --format can (the emulator plays the model file)")
     from ..lptn import load_model
 
     sets = parse_sets(load_model(args.model, data_dir=args.data_dir), args.set)

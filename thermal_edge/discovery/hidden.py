@@ -14,17 +14,17 @@ from __future__ import annotations
 
 import copy
 import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..data import Run
 from ..lptn import Model, ModelError
-from ..sim.plant import simulate_plant
 from ..lptn.loader import build_model, read_yaml
+from ..sim.plant import simulate_plant
 from . import effects as E
-
 
 MIN_GAP_K = 1.0  # K: the smallest gap (RMS, some sensor) a default magnitude must open
 

@@ -9,15 +9,18 @@ If the layout defeats the patch, :func:`render` falls back to a plain dump of th
 from __future__ import annotations
 
 import re
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import yaml
+
+from ..errors import ThermalEdgeError
 
 LIST_SECTIONS = ("nodes", "points", "conductances", "losses")
 MAP_SECTIONS = ("parameters", "sensors")
 
 
-class PatchError(ValueError):
+class PatchError(ThermalEdgeError, ValueError):
     """The original text could not be patched to the augmented document."""
 
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import os
 import re
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import differential_evolution, minimize
@@ -23,7 +23,6 @@ from .common import ParamSpace, decimate, window_from_arrays
 from .objective import Objective
 from .predict import initial_from_run, model_inputs, sensor_columns
 from .uncertainty import Uncertainty, estimate_uncertainty
-
 
 #: Differential evolution's own convergence test: the population's spread of objective values
 #: below this share of their mean (scipy's ``tol``; its default).

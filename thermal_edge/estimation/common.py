@@ -6,8 +6,8 @@ Parameters are optimised in ``φ = log θ`` within ``[log L, log U]`` so that a 
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 

@@ -9,8 +9,8 @@ EKF moves states and parameters together, so its parameters are judged open-loop
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 

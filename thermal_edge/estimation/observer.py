@@ -25,7 +25,7 @@ without it the band would reflect state noise only and be optimistic wherever th
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 

@@ -9,11 +9,13 @@ package imports them only where it uses them, so that the edge service never nee
 """
 from __future__ import annotations
 
+from ..errors import ThermalEdgeError
+
 #: what to tell the user when the extra is missing
 INSTALL_HINT = "pip install thermal-edge[fleet]"
 
 
-class MissingExtra(RuntimeError):
+class MissingExtra(ThermalEdgeError, RuntimeError):
     """Dask or pyarrow is not installed; the message says how to install the extra."""
 
 

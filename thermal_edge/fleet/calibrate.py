@@ -9,7 +9,8 @@ thermal dynamics (the inputs averaged over each step, currents as RMS).
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -7,7 +7,8 @@ of every run (each predicted from its own measured initial state) pooled per sen
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 

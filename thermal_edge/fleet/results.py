@@ -6,7 +6,8 @@ Columns that do not apply to a row's kind are null. Written as Parquet with pyar
 from __future__ import annotations
 
 import os
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 #: column -> pyarrow type name; the order is the table's
 COLUMNS: dict[str, str] = {

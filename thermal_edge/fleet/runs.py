@@ -12,9 +12,9 @@ from __future__ import annotations
 import csv
 import glob
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from ..bus.logs import GZIP_SUFFIXES
 from ..data import RunError

@@ -10,7 +10,8 @@ from __future__ import annotations
 import functools
 import resource
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from ..data import Run, read_run
 from ..lptn import Model, load_model

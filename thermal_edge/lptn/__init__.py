@@ -7,7 +7,13 @@ Load a machine model, simulate it, and get exact parameter sensitivities::
     traj = sim.simulate(model.nominal(), inputs, dt=1.0, T0=T0, wrt=model.adaptable)
 """
 from .discretise import (
-    Discrete, DiscreteDerivatives, EulerDerivatives, NotPassive, UnstableDiscretisation, ZohDerivatives, discretise,
+    Discrete,
+    DiscreteDerivatives,
+    EulerDerivatives,
+    NotPassive,
+    UnstableDiscretisation,
+    ZohDerivatives,
+    discretise,
 )
 from .expr import ExprError, parse
 from .loader import load_model

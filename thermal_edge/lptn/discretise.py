@@ -21,19 +21,20 @@ without derivatives, :class:`ZohDerivatives` or :class:`EulerDerivatives` with t
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
+from ..errors import ThermalEdgeError
 from .network import Continuous
 
 
-class UnstableDiscretisation(ValueError):
+class UnstableDiscretisation(ThermalEdgeError, ValueError):
     """Explicit Euler would diverge at the requested step."""
 
 
-class NotPassive(ValueError):
+class NotPassive(ThermalEdgeError, ValueError):
     """The network's system matrix is not negative definite (a node not tied to any boundary, or a
     non-passive T-model)."""
 

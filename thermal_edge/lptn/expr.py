@@ -16,10 +16,12 @@ compiles to a closure over numpy arrays, so a law evaluates on whole time series
 from __future__ import annotations
 
 import re
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Callable, Mapping
 
 import numpy as np
+
+from ..errors import ThermalEdgeError
 
 Env = Mapping[str, object]
 Compiled = Callable[[Env], object]
@@ -28,7 +30,7 @@ FUNCTIONS_1 = {"exp": np.exp, "log": np.log, "sqrt": np.sqrt, "tanh": np.tanh, "
 FUNCTIONS_2 = {"min": np.minimum, "max": np.maximum}
 
 
-class ExprError(ValueError):
+class ExprError(ThermalEdgeError, ValueError):
     """A law that does not parse, names something unknown or cannot be differentiated."""
 
 
@@ -39,7 +41,7 @@ class Expr:
         """Names this expression depends on."""
         raise NotImplementedError
 
-    def diff(self, name: str) -> "Expr":
+    def diff(self, name: str) -> Expr:
         """Exact derivative with respect to ``name``."""
         raise NotImplementedError
 
@@ -47,7 +49,7 @@ class Expr:
         """Closure evaluating the expression from a mapping of names to floats or arrays."""
         raise NotImplementedError
 
-    def substitute(self, values: Mapping[str, "Expr"]) -> "Expr":
+    def substitute(self, values: Mapping[str, Expr]) -> Expr:
         """Replace names by expressions (used to inline constants and derived inputs)."""
         raise NotImplementedError
 
@@ -55,28 +57,28 @@ class Expr:
         return isinstance(self, Num)
 
     # operator sugar used when building element laws in code
-    def __add__(self, o: "Expr | float") -> "Expr":
+    def __add__(self, o: Expr | float) -> Expr:
         return add(self, as_expr(o))
 
-    def __radd__(self, o: float) -> "Expr":
+    def __radd__(self, o: float) -> Expr:
         return add(as_expr(o), self)
 
-    def __sub__(self, o: "Expr | float") -> "Expr":
+    def __sub__(self, o: Expr | float) -> Expr:
         return sub(self, as_expr(o))
 
-    def __mul__(self, o: "Expr | float") -> "Expr":
+    def __mul__(self, o: Expr | float) -> Expr:
         return mul(self, as_expr(o))
 
-    def __rmul__(self, o: float) -> "Expr":
+    def __rmul__(self, o: float) -> Expr:
         return mul(as_expr(o), self)
 
-    def __truediv__(self, o: "Expr | float") -> "Expr":
+    def __truediv__(self, o: Expr | float) -> Expr:
         return div(self, as_expr(o))
 
-    def __rtruediv__(self, o: float) -> "Expr":
+    def __rtruediv__(self, o: float) -> Expr:
         return div(as_expr(o), self)
 
-    def __neg__(self) -> "Expr":
+    def __neg__(self) -> Expr:
         return neg(self)
 
 
@@ -239,7 +241,7 @@ class Call(Expr):
 ZERO, ONE = Num(0.0), Num(1.0)
 
 
-def as_expr(x: "Expr | float | int | str") -> Expr:
+def as_expr(x: Expr | float | int | str) -> Expr:
     """Numbers become :class:`Num`, strings are parsed, expressions pass through."""
     if isinstance(x, Expr):
         return x
@@ -461,7 +463,7 @@ def parse(text: str | float | int, tables: Mapping[str, object] | None = None) -
     return e
 
 
-def is_affine(e: Expr, names: "set[str] | frozenset[str]") -> bool:
+def is_affine(e: Expr, names: set[str] | frozenset[str]) -> bool:
     """Whether ``e`` is affine in ``names`` by its structure (sums, products with factors free of
     ``names``, division by such factors); functions of ``names`` (``abs``, ``sign``, ``min``, …)
     are not, even where their derivative happens to be constant.

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import os
 from collections import Counter
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from ..yamlfile import YamlProblem, parse_yaml
 from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances

@@ -11,7 +11,7 @@ from ``T``, scalars for one state (n,) or series for a batch (B, n).
 """
 from __future__ import annotations
 
-from typing import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 

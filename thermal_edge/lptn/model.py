@@ -7,17 +7,18 @@ from __future__ import annotations
 
 import difflib
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 
+from ..errors import ThermalEdgeError
 from .expr import Expr
 from .vocabulary import NodeRole, Role
 
 
-class ModelError(ValueError):
+class ModelError(ThermalEdgeError, ValueError):
     """A machine model file that is invalid; the message names the file and the key."""
 
 
@@ -26,7 +27,7 @@ class ModelError(ValueError):
 BOUND_ROUNDOFF_REL = 1e-9
 
 
-class ParameterError(ValueError):
+class ParameterError(ThermalEdgeError, ValueError):
     """A parameter value outside its bounds, not a finite number, or an unknown parameter name.
 
     The message names the parameter, the value and the bounds (or, for an unknown name, the
@@ -217,7 +218,7 @@ class Model:
             np.array([p.upper for p in self.parameters], dtype=float),
         )
 
-    def parameter_index(self, names: "list[str] | tuple[str, ...]") -> np.ndarray:
+    def parameter_index(self, names: list[str] | tuple[str, ...]) -> np.ndarray:
         """Indices of the named parameters; raises ``KeyError`` naming an unknown one."""
         idx = {p.name: i for i, p in enumerate(self.parameters)}
         missing = [n for n in names if n not in idx]
@@ -280,7 +281,7 @@ class Model:
                     out[name] = float(bound)
         return out
 
-    def with_parameters(self, values: Mapping[str, float], *, widen_bounds: bool = False) -> "Model":
+    def with_parameters(self, values: Mapping[str, float], *, widen_bounds: bool = False) -> Model:
         """A copy whose nominal values are replaced.
 
         Parameters

@@ -11,11 +11,10 @@ with ``A = −(L_DD − L_DQ X)``, ``X = L_QQ⁻¹ L_QD`` and ``W = [K_DU − X�
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
-
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 

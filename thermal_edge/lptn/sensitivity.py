@@ -22,7 +22,8 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chose
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -402,7 +403,7 @@ class _ModePairs(NamedTuple):
     any_close: np.ndarray
 
     @classmethod
-    def of(cls, mu: np.ndarray) -> "_ModePairs":
+    def of(cls, mu: np.ndarray) -> _ModePairs:
         n = mu.shape[1]
         diff = mu[:, :, None] - np.concatenate([mu, np.ones((len(mu), 1))], axis=1)[:, None, :]
         close = np.abs(diff) < CLOSE

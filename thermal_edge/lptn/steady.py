@@ -8,7 +8,7 @@ the measured nodes and the boundaries), which is the physical guess for a machin
 """
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 

@@ -7,7 +7,7 @@ exact operating point, and the cache is dropped when the parameters change.
 from __future__ import annotations
 
 from collections import OrderedDict
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 

@@ -13,8 +13,15 @@ import urllib.request
 from dataclasses import dataclass, field
 
 from ..bus.codec import DecodedFrame
-from ..bus.frames import (TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, TIME_TO_LIMIT_NOT_WITHIN_HORIZON_S,
-                          DerateReason, TeState)
+from ..bus.frames import (
+    TE_ESTIMATES,
+    TE_FORECAST,
+    TE_LIMITS,
+    TE_STATUS,
+    TIME_TO_LIMIT_NOT_WITHIN_HORIZON_S,
+    DerateReason,
+    TeState,
+)
 
 __all__ = ["FrameWatch", "NodeView", "SensorView", "Snapshot", "fetch_metrics", "from_metrics"]
 

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus

@@ -19,8 +19,8 @@ where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoin
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 

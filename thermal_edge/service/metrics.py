@@ -17,7 +17,8 @@ from __future__ import annotations
 import logging
 import math
 import platform
-from typing import TYPE_CHECKING, Any, Callable, Iterable
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, StateSetMetricFamily
@@ -65,7 +66,7 @@ LABELS: dict[str, tuple[str, ...]] = {
 SENT_FRAMES = (TE_LIMITS, TE_ESTIMATES, TE_FORECAST, TE_STATUS)
 
 
-def _with_known(counts: "dict[str, int]", known: Iterable[str]) -> list[tuple[str, int]]:
+def _with_known(counts: dict[str, int], known: Iterable[str]) -> list[tuple[str, int]]:
     """Counts per label value, every known value present (0 if not counted yet), known ones first."""
     out = {k: 0 for k in known}
     out.update(counts)
@@ -75,13 +76,13 @@ def _with_known(counts: "dict[str, int]", known: Iterable[str]) -> list[tuple[st
 class _LiveCollector(Collector):
     """Reads the latest tick and the frame counters at scrape time."""
 
-    def __init__(self, metrics: "ServiceMetrics") -> None:
+    def __init__(self, metrics: ServiceMetrics) -> None:
         self.m = metrics
 
     def collect(self) -> Iterable[Any]:
         m = self.m
         eng = m.engine
-        out: "TickOutput | None" = eng.last if eng is not None else None
+        out: TickOutput | None = eng.last if eng is not None else None
         model = eng.model if eng is not None else None
         if out is not None and model is not None:
             est = GaugeMetricFamily(P + "node_estimate_celsius", "Best estimate (observer) of each node's temperature",
@@ -298,7 +299,7 @@ class ServiceMetrics:
 
     def __init__(self, registry: CollectorRegistry | None = None) -> None:
         self.registry = registry if registry is not None else CollectorRegistry()
-        self.engine: "ThermalEngine | None" = None
+        self.engine: ThermalEngine | None = None
         self.codec: Any = None
         self.transport_stats: Any = None
         self.store: Any = None
@@ -319,7 +320,7 @@ class ServiceMetrics:
         r.register(_LiveCollector(self))
         self._server: MetricsServer | None = None
 
-    def attach(self, engine: "ThermalEngine", codec: Any = None, transport_stats: Any = None, store: Any = None) -> None:
+    def attach(self, engine: ThermalEngine, codec: Any = None, transport_stats: Any = None, store: Any = None) -> None:
         self.engine, self.codec, self.transport_stats, self.store = engine, codec, transport_stats, store
         self.info.info({
             "version": __version__,
@@ -328,7 +329,7 @@ class ServiceMetrics:
             "clock": engine.config.clock.mode,
         })
 
-    def observe_tick(self, out: "TickOutput", lateness_s: float | None = None) -> None:
+    def observe_tick(self, out: TickOutput, lateness_s: float | None = None) -> None:
         self.tick_duration.observe(out.compute_s)
         self.tick_wall.observe(out.wall_s)
         if lateness_s is not None:

@@ -43,12 +43,14 @@ import re
 import shutil
 import stat
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
+from ..errors import ThermalEdgeError
 from ..lptn import Model, ParameterError
 
 __all__ = ["PersistedState", "StateError", "StateStore", "decode"]
@@ -82,7 +84,7 @@ _TEMP_RE = re.compile(rf"^(?:{re.escape(FILENAME)}\.tmp.*|\.{re.escape(FILENAME)
 _QUOTE, _OPEN, _CLOSE, _SEPARATORS = ord('"'), b"[{", b"]}", b",:"
 
 
-class StateError(ValueError):
+class StateError(ThermalEdgeError, ValueError):
     """A state file that cannot be used (the message says why)."""
 
 
@@ -139,7 +141,7 @@ def _parse_constant(text: str) -> Any:
     raise StateError(f"{text} is not a number")
 
 
-def decode(data: bytes, model: Model, dropped: list[str] | None = None) -> "PersistedState":
+def decode(data: bytes, model: Model, dropped: list[str] | None = None) -> PersistedState:
     """Bytes of a state file -> a validated state for ``model``; the one check of load and save.
 
     Parameters
@@ -248,7 +250,7 @@ class PersistedState:
         return {"format": FORMAT, "version": VERSION, **self.__dict__}
 
     @classmethod
-    def from_json(cls, raw: Any, model: Model, dropped: list[str] | None = None) -> "PersistedState":
+    def from_json(cls, raw: Any, model: Model, dropped: list[str] | None = None) -> PersistedState:
         """Validate a parsed state file into a state for ``model``.
 
         Every field is type-checked; parameters are checked against the model's bounds after

@@ -15,16 +15,17 @@ each (:func:`format_summary`).
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from ..bus.codec import FrameCodec
-from ..bus.stats import DROP_REASONS
 from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader
+from ..bus.stats import DROP_REASONS
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
 from ..lptn import Model
 from .clock import FrameClock

@@ -34,17 +34,16 @@ from prometheus_client import CollectorRegistry
 
 from ..bus.busconfig import create_bus as bus_factory
 from ..bus.codec import DecodedFrame, FrameCodec
+from ..bus.frames import DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
 from ..bus.transport import CanTransport
-from ..bus.frames import (DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason,
-                          TeState)
 from ..config import EdgeConfig
 from ..lptn import Model
 from ..process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS, STOP_SIGNALS, stop_requested_while_starting
 from .clock import FrameClock, WallClock
 from .engine import ThermalEngine, load_service_model
-from .outputs import TickOutput
 from .memory import limit_heap_retention
 from .metrics import ServiceMetrics
+from .outputs import TickOutput
 from .persistence import StateStore
 from .systemd import SystemdNotifier
 

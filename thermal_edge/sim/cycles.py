@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from ..data import Run
+from ..errors import ThermalEdgeError
 from ..lptn.loader import read_yaml
 from ..lptn.vocabulary import DEFAULT_COLUMNS, Role
 
@@ -24,7 +26,7 @@ SPEED, TORQUE, AMBIENT, COOLANT = (DEFAULT_COLUMNS[r] for r in (Role.SPEED, Role
 FIELDS = (SPEED, TORQUE, AMBIENT, COOLANT)
 
 
-class CycleError(ValueError):
+class CycleError(ThermalEdgeError, ValueError):
     """An invalid cycle file; the message names the file and the key."""
 
 

@@ -43,16 +43,26 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
 from ..bus.busconfig import BusConfig, create_bus, interface_keywords
 from ..bus.codec import DecodedFrame, FrameCodec
-from ..bus.frames import (DEFAULT_DBC_PATH, INV_AMBIENT_TEMPS, INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS,
-                          TE_ESTIMATES, TE_LIMITS, TE_STATUS, SensorStatus)
+from ..bus.frames import (
+    DEFAULT_DBC_PATH,
+    INV_AMBIENT_TEMPS,
+    INV_CURRENTS,
+    INV_MECHANICS,
+    INV_STATOR_TEMPS,
+    TE_ESTIMATES,
+    TE_LIMITS,
+    TE_STATUS,
+    SensorStatus,
+)
 from ..bus.logs import LogRecorder
 from ..lptn import Model, Role, load_model
 from .cycles import AMBIENT, COOLANT, SPEED, TORQUE, cycle_run, load_cycle

@@ -4,8 +4,8 @@ started at rest, stepped in time (the inverter emulator) or run over a whole run
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
