@@ -11,10 +11,10 @@ chosen) uses :data:`DEFAULT_COLUMNS`: the one place the usual column names are w
 from __future__ import annotations
 
 import difflib
-from enum import Enum
+from enum import StrEnum
 
 
-class Role(str, Enum):
+class Role(StrEnum):
     """What an input column measures (its unit is part of the role)."""
 
     CURRENT = "current"  #: RMS phase current, A (≥ 0)
@@ -49,7 +49,7 @@ DEFAULT_COLUMNS: dict[Role, str] = {
 }
 
 
-class NodeRole(str, Enum):
+class NodeRole(StrEnum):
     """What part of the machine a node is (several nodes may share a role)."""
 
     WINDING = "winding"  #: copper: slot or end winding, coil
