@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import statistics
 import time
+from typing import Any
 
 import numpy as np
 
@@ -40,7 +41,7 @@ def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt
 
 
 def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None = None, hours: float = 3.0,
-        progress: Progress = no_progress) -> dict[str, object]:
+        progress: Progress = no_progress) -> dict[str, Any]:
     """Time both Jacobians (``repeat`` rounds) and check the analytic one; ``progress`` as it goes."""
     model = load_model(model_path or config_path("machines", "pm10kw.yaml"))
     cycle = load_cycle(cycle_path or config_path("cycles", "varied_drive.yaml"))
@@ -83,6 +84,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
     sim.simulate(theta, cols, dt, T0, wrt=wrt)  # warm-up (imports, caches of numpy)
     (t_an, times_an, S), (t_st, _, S_st), (t_num, times_num, _), (t_sim, _, _) = timed_together(
         [analytic, analytic_stepped, forward, lambda: sim.simulate(theta, cols, dt, T0)], repeat, progress)
+    assert isinstance(S, np.ndarray) and isinstance(S_st, np.ndarray)
 
     # accuracy: fourth-order central differences (step 1 % of the value: the simulation's own
     # round-off, ~1e-10 K, swamps smaller steps), relative error on entries above 1 % of that

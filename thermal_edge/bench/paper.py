@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,7 +51,7 @@ def _rms(model: Model, T: np.ndarray, run_cols: dict, sel: np.ndarray | slice = 
     return float(np.sqrt(np.mean(e[np.isfinite(e)] ** 2)))
 
 
-def e1(model: Model, progress: Progress = no_progress) -> dict[str, object]:
+def e1(model: Model, progress: Progress = no_progress) -> dict[str, Any]:
     true = model.nominal()[model.parameter_index(["R_e_hous"])[0]]
     plant = _plant(model, "paper_600rpm_70nm.yaml", seed=11)
     start = model.with_parameters({"R_e_hous": 6.1})
@@ -101,7 +102,7 @@ def e2(model: Model, progress: Progress = no_progress) -> tuple[dict[str, object
         th[start.parameter_index(names_)] = values
         return th
 
-    methods: dict[str, dict[str, object]] = {}
+    methods: dict[str, dict[str, Any]] = {}
     t0 = time.perf_counter()
     out = run_online(start, train.run, AdapterConfig(), T0=train.truth.T[0],
                      progress=sample_counter(progress, "E2 online", len(train.run)))
@@ -172,7 +173,7 @@ def e2(model: Model, progress: Progress = no_progress) -> tuple[dict[str, object
     return res, float(np.median(times))
 
 
-def e3(data_dir: Path = PADERBORN, progress: Progress = no_progress) -> dict[str, object]:
+def e3(data_dir: Path = PADERBORN, progress: Progress = no_progress) -> dict[str, Any]:
     run_path = data_dir / "run_a.csv"
     if not run_path.exists():
         return {"skipped": f"{run_path} not found"}
@@ -197,7 +198,7 @@ def e3(data_dir: Path = PADERBORN, progress: Progress = no_progress) -> dict[str
     }
 
 
-def run(progress: Progress = no_progress) -> dict[str, object]:
+def run(progress: Progress = no_progress) -> dict[str, Any]:
     """E1, E2, the step timing and E3; ``progress`` counts samples replayed, methods and steps."""
     model = load_model(config_path("machines", "pm10kw.yaml"))
     e2res, step = e2(model, progress)

@@ -16,10 +16,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from ..data import read_run
+from ..data import Run, read_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
@@ -49,7 +50,7 @@ def adapter_config() -> AdapterConfig:
     return AdapterConfig(sensors=SENSORS, decimate=8)
 
 
-def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str, float],  # type: ignore[no-untyped-def]
+def one_start(base: Model, run: Run, factors: Mapping[str, float], sets: Mapping[str, float],
               progress: Callable[[int], object] | None = None) -> dict[str, object]:
     """Every figure of one start (see the module docstring); ``progress`` as
     :func:`~thermal_edge.estimation.online.online_report`'s (twice the run's samples)."""
@@ -60,7 +61,7 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     ek = run_ekf(model, model_inputs(model, run), {s: run.columns[s] for s in SENSORS}, run.dt,
                  initial_from_run(model, run), update_s=60.0)
     _, ek_scores = open_loop(model, run, theta=ek.theta)
-    for s, v in rep["targets"].items():  # type: ignore[union-attr]
+    for s, v in rep["targets"].items():
         i = model.node_index(model.sensors[s])
         y = run.columns[s]
         ok = np.isfinite(y)
@@ -68,25 +69,25 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     final = rep["final_params"]
     out["final_params"] = final
     reference = {**nominal, **sets}
-    out["final_vs_published_pct"] = {k: 100.0 * (v / reference[k] - 1.0) for k, v in final.items()}  # type: ignore[union-attr]
+    out["final_vs_published_pct"] = {k: 100.0 * (v / reference[k] - 1.0) for k, v in final.items()}
     # how closely the whole run pins each final value down, its residuals' correlation counted:
     # a parameter is identifiable to within 10 % only where this is well under 10 %
-    unc = rep["result"].adapter.current_uncertainty()  # type: ignore[union-attr]
+    unc = rep["result"].adapter.current_uncertainty()
     out["final_rel_std_pct"] = {n: 100.0 * float(r) for n, r in zip(unc.names, unc.rel_std)}
     out["autocorrelation_samples"] = unc.tau
     out["ekf_params_vs_published_pct"] = {k: 100.0 * (float(ek.theta[model.parameter_index([k])[0]]) / reference[k] - 1.0)
                                           for k in ek.names}
     out["mean"] = rep["mean"]
     ds = rep["decisions"]
-    out["decisions"] = len(ds)  # type: ignore[arg-type]
-    out["promoted"] = sum(1 for d in ds if d.accepted)  # type: ignore[union-attr]
+    out["decisions"] = len(ds)
+    out["promoted"] = sum(1 for d in ds if d.accepted)
     out["adapt_step_median_s"] = rep["adapt_step_median_s"]
     out["ekf_wall_s"] = ek.wall_s
     return out
 
 
 def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | None = None,
-        sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> dict[str, object]:
+        sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> dict[str, Any]:
     """All starts; ``{"skipped": why}`` when the data is absent. ``sets`` overrides parameters of
     the published model first (``--set``; the command names a bad one, here an unknown name or a
     value outside its bounds raises :class:`~thermal_edge.lptn.ParameterError`). ``progress``

@@ -24,13 +24,16 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from ..shipped import ROOT, config_path
 from .common import Progress, no_progress
+
+if TYPE_CHECKING:
+    from ..config import EdgeConfig
 
 RATES = (2000, 4000, 6000, 8000, 10000, 12000, 14000, 16000, 20000, 24000, 28000, 32000)
 
@@ -48,7 +51,7 @@ def rss_mb() -> float:
 
 
 def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt: bool = True, table4: bool = True,
-            **sections: Any):  # type: ignore[no-untyped-def]
+            **sections: Any) -> EdgeConfig:
     from ..config import config_from_mapping
     from ..lptn import load_model
     from ..sim.inverter import table4_parameters

@@ -10,7 +10,7 @@ from .common import add_set_arg, check_sets, split_sets
 from .progress import StageBars
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
     j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")

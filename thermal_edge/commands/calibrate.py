@@ -20,7 +20,7 @@ from .progress import bar
 from .runs import read_checked
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("calibrate", help="offline fit of the model to recorded runs", description=__doc__)
     add_model_args(p)
     p.add_argument("--run", required=True, nargs="+", help="recorded run(s)")

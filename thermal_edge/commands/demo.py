@@ -23,7 +23,7 @@ from pathlib import Path
 from ..shipped import config_path
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("demo", description=__doc__,  # (its help line: thermal_edge.commands.COMMANDS)
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default=str(config_path("edge.yaml")), help="service configuration (default config/edge.yaml)")

@@ -21,7 +21,7 @@ from .common import add_set_arg, parse_sets
 from .runs import read_checked, require_finite_prediction
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("discover", help="find, name and add the physical effect a model lacks", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, help="machine model file (config/machines/*.yaml)")

@@ -46,7 +46,7 @@ def _effects_help() -> str:
     return "\n".join(lines)
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("simulate", help="simulate the machine over a drive cycle", description=__doc__,
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)

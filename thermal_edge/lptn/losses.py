@@ -93,7 +93,7 @@ class LossLaws:
                 out[..., j, i] = f(e)
         return out
 
-    def dtheta(self, env: Mapping[str, Value], T: np.ndarray | None, wrt: Sequence[int],
+    def dtheta(self, env: Mapping[str, Value], T: np.ndarray | None, wrt: Sequence[int] | np.ndarray,
                batch: int | None = None) -> np.ndarray:
         """``∂P/∂θ`` (W per parameter unit) for the parameter indices ``wrt``: (n_loss, p), or
         (B, n_loss, p) for ``batch=B`` samples (arguments as :meth:`power`)."""

@@ -272,8 +272,8 @@ class ThermalEngine:
         moved = {s: float(x_now[r] - x_prev[r]) for s, r in self.sensor_rows.items()}
         newly = self.stuck.observe(t, readings, moved)
         if newly:
-            for s, why in sorted(newly.items()):
-                log.error("sensor %s stuck at t=%.0f: %s; its reading is withheld%s", s, t, why,
+            for s, stuck_why in sorted(newly.items()):
+                log.error("sensor %s stuck at t=%.0f: %s; its reading is withheld%s", s, t, stuck_why,
                           "; safe limit" if self.config.sensors[s].required else "")
                 self.accumulator.bad_readings["stuck"] += 1
             self._withhold_stuck(ti, [])
@@ -360,8 +360,8 @@ class ThermalEngine:
                 react_a = math.nan  # the policy treats it as a model fault
             if self.lookahead is not None and ti is not None:
                 try:
-                    r = self.lookahead.compute(upper, u)
-                    la_a, ttl = r.current_a, r.time_to_limit_s
+                    ahead = self.lookahead.compute(upper, u)
+                    la_a, ttl = ahead.current_a, ahead.time_to_limit_s
                 except Exception as exc:
                     log.warning("look-ahead failed: %s", exc)
                     la_a = math.nan

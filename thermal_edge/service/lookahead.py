@@ -85,7 +85,7 @@ class Lookahead:
         bounds = set(model.boundaries.values())
         used = set(self.stepper.net.matrix_inputs) | _loss_inputs(model)
         self._key_inputs = tuple(k for k in model.inputs if k in used and k != self.current_input and k not in bounds)
-        self._cache: dict[tuple[float, ...], tuple[np.ndarray, ...]] = {}
+        self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.cache_size = 64  # operating points (each ~75 kB for 60 checkpoints)
 
     def set_parameters(self, theta: np.ndarray) -> None:

@@ -27,7 +27,7 @@ import logging
 import math
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from prometheus_client import CollectorRegistry
@@ -244,7 +244,7 @@ class EdgeService:
         self.engine.add_frame(frame, time.time())
         return None
 
-    async def _frame_ticks(self, boundaries: list[float], frame: DecodedFrame) -> None:
+    async def _frame_ticks(self, boundaries: Sequence[float], frame: DecodedFrame) -> None:
         for b in self.engine.ticks_for(boundaries):
             await self._run_tick(b, None)
         self.engine.add_frame(frame, self.clock.now())
