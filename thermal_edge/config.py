@@ -663,12 +663,12 @@ def _read(cls: type, sec: _Section, given: Mapping[str, Any] | None = None, *, w
 def _value(sec: _Section, f: dataclasses.Field[Any], tp: Any) -> Any:
     k, spec = f.name, spec_of(f)
     tp = without_none(tp)
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return _read(tp, sec.sub(k))
     if typing.get_origin(tp) is dict:
         entry = typing.get_args(tp)[1]
         sub = sec.sub(k)
-        if dataclasses.is_dataclass(entry):  # named entries: the key is the name
+        if isinstance(entry, type) and dataclasses.is_dataclass(entry):  # named entries: the key is the name
             return {name: _read(entry, sub.sub(name), {"name": name}) for name in list(sub.raw)}
         return {name: sub.number(name, sub.value(name), spec, required=True) for name in list(sub.raw)}
     if typing.get_origin(tp) is tuple:

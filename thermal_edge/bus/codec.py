@@ -156,7 +156,7 @@ class _FrameSpec:
     crc_name: str
     cycle_time_s: float | None
     senders: frozenset[str]
-    crc: Callable[[bytes], int]
+    crc: Callable[[bytes | bytearray], int]
     by_name: dict[str, _SignalSpec] = field(default_factory=dict)
 
 
@@ -206,7 +206,7 @@ def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
     for sig in msg.signals:
         if sig.byte_order != "little_endian":
             raise DbcError(f"{where}: signal {sig.name} is big-endian; the CAN matrix uses little-endian only")
-    cycle = msg.cycle_time
+    cycle: int | float | str | None = msg.cycle_time  # a DBC attribute's value may be of any of these
     if cycle is None and msg.dbc is not None and _CYCLE_ATTRIBUTE in msg.dbc.attributes:
         cycle = msg.dbc.attributes[_CYCLE_ATTRIBUTE].value
     specs = tuple(_signal_spec(s) for s in msg.signals if s.name not in (counter_name, crc_name))
@@ -275,11 +275,12 @@ class FrameCodec:
     ) -> None:
         self._path = Path(dbc_path)
         try:
-            self._db = cantools.database.load_file(str(self._path), strict=True)
+            db = cantools.database.load_file(str(self._path), strict=True)
         except Exception as exc:  # cantools raises many types; report one line
             raise DbcError(f"{self._path}: cannot load DBC: {exc}") from exc
-        if not isinstance(self._db, cantools.database.can.Database):
+        if not isinstance(db, cantools.database.can.Database):
             raise DbcError(f"{self._path}: not a CAN database")
+        self._db = db
         self._frames: dict[int, _FrameSpec] = {}
         self._by_name: dict[str, _FrameSpec] = {}
         for msg in self._db.messages:
@@ -577,7 +578,7 @@ class FrameCodec:
                     if lost:
                         self.stats.lost += lost
                         self.stats.lost_by_frame[spec.name] += lost
-                    if owed is not None and ts is not None:
+                    if owed is not None and ts is not None and cycle:  # owed wraps were counted from the cycle
                         owed_wraps, t_gap, periods = owed[0], owed[1], owed[2] + n
                         if ts - t_gap < (periods - _WRAP_EARLY_CYCLES) * cycle:
                             # ahead of the cadence by more than jitter: the sender was late and is

@@ -85,7 +85,7 @@ def data_id(can_id: int) -> int:
     return DATA_ID_BASE + can_id
 
 
-def frame_crc_function(can_id: int) -> Callable[[bytes], int]:
+def frame_crc_function(can_id: int) -> Callable[[bytes | bytearray], int]:
     """The frame CRC of one identifier as a function of the payload, the data ID pre-computed.
 
     Parameters
@@ -104,7 +104,7 @@ def frame_crc_function(can_id: int) -> Callable[[bytes], int]:
     seed = t[t[CRC8_SAE_J1850_INIT ^ (did & 0xFF)] ^ (did >> 8)]
     xorout = CRC8_SAE_J1850_XOROUT
 
-    def crc(p: bytes) -> int:
+    def crc(p: bytes | bytearray) -> int:
         return t[t[t[t[t[t[t[seed ^ p[0]] ^ p[1]] ^ p[2]] ^ p[3]] ^ p[4]] ^ p[5]] ^ p[6]] ^ xorout
 
     return crc

@@ -109,6 +109,7 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
     frames = 0
     try:
         for frame in FrameLogReader(path, codec, include_tx=False):
+            assert frame.timestamp is not None  # python-can's log readers stamp every message
             ts = float(frame.timestamp)
             if ts - last > silence and ticks:  # the drive was silent: this stretch ends
                 run = _rows(ticks, cfg, source, len(runs))

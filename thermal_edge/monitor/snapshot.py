@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import time
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from ..bus.codec import DecodedFrame
@@ -189,7 +190,8 @@ class FrameWatch:
         Monotonic time in s (tests).
     """
 
-    def __init__(self, source: str, cycle_s: dict[str, float] | None = None, clock=time.monotonic) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, source: str, cycle_s: dict[str, float] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.snapshot = Snapshot(source)
         self.cycle_s = dict(cycle_s or {})
         self._clock = clock

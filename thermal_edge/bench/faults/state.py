@@ -225,7 +225,11 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
     must be kept with its parameters)."""
 
     def write(data: bytes) -> Callable[[Path], None]:
-        return lambda d: (d.mkdir(parents=True, exist_ok=True), (d / STATE).write_bytes(data))  # type: ignore[func-returns-value]
+        def put(d: Path) -> None:
+            d.mkdir(parents=True, exist_ok=True)
+            (d / STATE).write_bytes(data)
+
+        return put
 
     def with_(**kw: Any) -> Callable[[Path], None]:
         return write(json.dumps({**seed, **kw}).encode())
@@ -247,7 +251,11 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         (d / STATE).mkdir(parents=True)
 
     def symlink(target: str) -> Callable[[Path], None]:
-        return lambda d: (d.mkdir(parents=True, exist_ok=True), os.symlink(target, d / STATE))  # type: ignore[func-returns-value]
+        def link(d: Path) -> None:
+            d.mkdir(parents=True, exist_ok=True)
+            os.symlink(target, d / STATE)
+
+        return link
 
     def fifo(d: Path) -> None:
         d.mkdir(parents=True, exist_ok=True)
