@@ -434,10 +434,10 @@ class EdgeConfig:
                 raise self.error(f"signals.sensors.{name}",
                                  f"model {model.name} has no sensor {name!r} (has: {', '.join(model.sensors)})")
         limit_names = {lim.name for lim in model.limits}
-        for name, lim in self.derating.limits.items():
+        for name in self.derating.limits:
             if name not in limit_names:
-                raise self.error(f"derating.limits.{name}",
-                                 f"model {model.name} has no limited node {name!r} (has: {', '.join(sorted(limit_names)) or 'none'})")
+                have = ", ".join(sorted(limit_names)) or "none"
+                raise self.error(f"derating.limits.{name}", f"model {model.name} has no limited node {name!r} (has: {have})")
         for lim in model.limits:
             warn, mx = self.limit_band(lim)
             if not mx > warn:
@@ -595,7 +595,7 @@ def without_none(tp: Any) -> Any:
     args = typing.get_args(tp)
     if typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
         rest = tuple(a for a in args if a is not type(None))
-        return rest[0] if len(rest) == 1 else typing.Union[rest]
+        return rest[0] if len(rest) == 1 else typing.Union[rest]  # noqa: UP007  # built at run time from a tuple of types
     return tp
 
 

@@ -101,6 +101,7 @@ def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | 
         base = base.with_parameters(sets)
     run_ = read_run(path, "paderborn")
     chosen = starts or STARTS
-    res = {name: one_start(base, run_, f, sets, sample_counter(progress, f"start {k + 1} of {len(chosen)} ({name})", 2 * len(run_)))
+    res = {name: one_start(base, run_, f, sets,
+                           sample_counter(progress, f"start {k + 1} of {len(chosen)} ({name})", 2 * len(run_)))
            for k, (name, f) in enumerate(chosen.items())}
     return {"run": str(path), "adapted_from": list(SENSORS), "starts": res}

@@ -141,8 +141,10 @@ def _sender(port: int, rate: float, seconds: float) -> None:
 
     codec = FrameCodec()
     bus = create_bus({"interface": "udp_multicast", "port": port})
-    cur = [codec.encode("INV_Currents", {"INV_Id": 0.0, "INV_Iq": 30.0 + k % 7, "INV_IphRms": 21.0}, counter=k) for k in range(16)]
-    mech = [codec.encode("INV_Mechanics", {"INV_Speed": 900.0, "INV_Torque": 120.0, "INV_Udc": 560.0}, counter=k) for k in range(16)]
+    cur = [codec.encode("INV_Currents", {"INV_Id": 0.0, "INV_Iq": 30.0 + k % 7, "INV_IphRms": 21.0}, counter=k)
+           for k in range(16)]
+    mech = [codec.encode("INV_Mechanics", {"INV_Speed": 900.0, "INV_Torque": 120.0, "INV_Udc": 560.0}, counter=k)
+            for k in range(16)]
     stat = [codec.encode("INV_StatorTemps", {"INV_T_WindingSlot": 60.0, "INV_T_EndWinding": 62.0, "INV_T_Housing": 45.0,
                                              "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0, "INV_S_Housing": 0}, counter=k)
             for k in range(16)]
@@ -190,7 +192,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
         with tempfile.TemporaryDirectory() as tmp:
             cfg = _config(Path(tmp), {"interface": "udp_multicast", "port": port}, clock="wall", adapt=False)
 
-            async def one() -> dict[str, Any]:
+            async def one(cfg: EdgeConfig, port: int, rate: int) -> dict[str, Any]:
                 svc = EdgeService(cfg, serve_metrics=False)
                 await svc.start()
                 st = svc.codec.stats
@@ -210,7 +212,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
                 await svc.stop()
                 return res
 
-            r = asyncio.run(one())
+            r = asyncio.run(one(cfg, port, rate))
         # lossless and sustained: every frame accepted, the service kept up (backlog under 50 ms of frames
         # when the sender stopped) and the ticks stayed on time
         r["lossless"] = (r["received"] == r["sent"] and r["lost"] == 0 and r["dropped"] == 0

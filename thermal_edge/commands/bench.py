@@ -13,8 +13,10 @@ from .progress import StageBars
 def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
-    j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
-    j.add_argument("--repeat", type=int, default=7, help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
+    j = which.add_parser("jacobian",
+                         help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
+    j.add_argument("--repeat", type=int, default=7,
+                   help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
     j.add_argument("--hours", type=float, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
     j.add_argument("--json", action="store_true", help="print one JSON object")
     j.set_defaults(func=run_jacobian)

@@ -73,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
     print(f"objective (mean squared error, K²): start {res.objective_start:.4g}, after global search "
           f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "
-          f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; residual σ {np.sqrt(unc.sigma2):.3f} K, "
+          f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; "
+          f"residual σ {np.sqrt(unc.sigma2):.3f} K, "
           f"correlated over {unc.tau:.3g} samples (± counts it; identifiable: as if independent)")
     print(f"wrote {args.out}")
     return 0

@@ -41,7 +41,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--metrics-port", type=int, default=9108)
     p.add_argument("--state-dir", default=None,
                    help="state directory, kept (default: a fresh temporary one, removed when the demo ends)")
-    p.add_argument("--record", default=None, help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, .mf4, .csv)")
+    p.add_argument("--record", default=None,
+                   help="record the bus traffic to this CAN log "
+                        "(format by suffix: .log candump -L, .asc, .blf, .trc, .mf4, .csv)")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
 

@@ -56,7 +56,8 @@ def list_effects(args: argparse.Namespace) -> int:
     for name, eff in E.CATALOGUE.items():
         tg = E.targets(ctx, eff)
         params = ", ".join(f"{p.short} [{p.unit}] default {p.default:g}" + ("" if p.primary else " (shape)") for p in eff.params)
-        where = "not applicable" if not tg else ("no target" if tg == [None] else f"{len(tg)} targets: " + ", ".join(map(str, tg)))
+        where = ("not applicable" if not tg
+                 else "no target" if tg == [None] else f"{len(tg)} targets: " + ", ".join(map(str, tg)))
         print(f"{name}: {eff.doc}\n    parameters: {params}\n    {where}")
     return 0
 

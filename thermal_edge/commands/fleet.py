@@ -70,7 +70,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     common(s, model_required=False)
     fit(s)
     s.add_argument("--table", help="screen this fleet calibrate table instead of calibrating RUNS")
-    s.add_argument("--threshold", type=float, default=THRESHOLD, help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
+    s.add_argument("--threshold", type=float, default=THRESHOLD,
+                   help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
     s.set_defaults(func=run_screen)
 
 

@@ -3,8 +3,8 @@ last period; above a threshold, screen and optimise the adaptable parameters on 
 window. The optimised candidate does not replace the parameters in use (the *champion*) at once:
 it becomes a *challenger*, judged only on data it was not fitted to. At the following decisions
 both predict every sample recorded since, period by period open loop from the recorded state at
-each period's start (as the online trace is scored); the challenger is promoted when its squared error over the seen sensors is lower
-by more than a margin that accounts for the sensor noise and the length of the evidence
+each period's start (as the online trace is scored); the challenger is promoted when its squared
+error over the seen sensors is lower by more than a margin that accounts for the sensor noise and the length of the evidence
 (:func:`judge`), dropped when it is worse by that margin or when ``validate_s`` of evidence has
 not decided it. A candidate judged on its own window would pass by fitting noise and the present
 operating point (``reference/findings.md`` §6). Every decision is recorded with its evidence.

@@ -122,7 +122,8 @@ class ThermalEngine:
         self._restart_info: dict[str, float] = {}
         self._start_t: float | None = None
         self._last_t: float | None = None
-        self._prev_sample: tuple[float, dict[str, float], np.ndarray] | None = None  # (t, measured, observer estimate) at last tick
+        # (t, measured, observer estimate) at the last tick
+        self._prev_sample: tuple[float, dict[str, float], np.ndarray] | None = None
         self._last_inputs: dict[str, float] = dict(restored.inputs) if restored is not None else {}
         self._last: TickOutput | None = None
         self._ticks = 0

@@ -13,8 +13,8 @@ checkpoint ``k`` of the horizon is
 where ``c_k`` follows from the present (upper-band) state with the current-independent losses and
 ``d_k`` from the loss per ampere² starting at zero. Each limited node ``l`` then allows
 ``i² <= (max_l - c_k,l) / d_k,l`` at every checkpoint: the look-ahead current is the square root
-of the smallest bound (and the limit it belongs to binds). No search. The time to limit at the present ``i²`` is the first checkpoint
-where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
+of the smallest bound (and the limit it belongs to binds). No search. The time to limit at the
+present ``i²`` is the first checkpoint where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
 """
 from __future__ import annotations
 

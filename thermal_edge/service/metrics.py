@@ -103,7 +103,8 @@ class _LiveCollector(Collector):
             meas = GaugeMetricFamily(P + "sensor_measurement_celsius", "Latest usable reading of each sensor",
                                      labels=LABELS["sensor_measurement_celsius"])
             err = GaugeMetricFamily(P + "prediction_error_celsius",
-                                    "Open-loop prediction minus reading, per sensor (last tick)", labels=LABELS["prediction_error_celsius"])
+                                    "Open-loop prediction minus reading, per sensor (last tick)",
+                                    labels=LABELS["prediction_error_celsius"])
             for s, v in out.measured.items():
                 node = model.sensors.get(s, "")
                 if math.isfinite(v):
@@ -177,10 +178,13 @@ class _LiveCollector(Collector):
             yield fault
             val = GaugeMetricFamily(P + "parameter_value", "Adaptable parameter value (unit in the label)",
                                     labels=LABELS["parameter_value"])
-            band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information, the residuals' correlation in time counted)",
+            band = GaugeMetricFamily(P + "parameter_band",
+                                     "95 % band of an adaptable parameter "
+                                     "(Fisher information, the residuals' correlation in time counted)",
                                      labels=LABELS["parameter_band"])
             ident = GaugeMetricFamily(P + "parameter_identifiable",
-                                      "1 if the sensors at hand pin the parameter down (relative sd as if the residuals were independent "
+                                      "1 if the sensors at hand pin the parameter down "
+                                      "(relative sd as if the residuals were independent "
                                       "below adaptation.max_rel_std: the adapter's own gate)",
                                       labels=LABELS["parameter_identifiable"])
             units = {p.name: p.unit for p in model.parameters}
@@ -234,7 +238,8 @@ class _LiveCollector(Collector):
         if codec is not None:
             st = codec.stats
             received = eng.config.timeouts if eng is not None else ()  # the inverter's frames the service needs
-            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)", labels=LABELS["frames_received"])
+            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)",
+                                     labels=LABELS["frames_received"])
             for k, v in _with_known(st.received, received):
                 rx.add_metric([k], v)
             yield rx
@@ -246,7 +251,8 @@ class _LiveCollector(Collector):
             for r in DROP_REASONS:
                 dr.add_metric([r], getattr(st, r))
             yield dr
-            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter", labels=LABELS["frames_lost"])
+            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter",
+                                       labels=LABELS["frames_lost"])
             for k, v in _with_known(st.lost_by_frame, received):
                 lost.add_metric([k], v)
             yield lost

@@ -306,7 +306,8 @@ def sensor_faults(full: bool) -> Iterator[Case]:
                 t_clear = time.time()
                 with inv.lock:
                     inv.signals["INV_StatorTemps"] = dict(normal)
-                did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; {_recovery(b, t_clear)}"
+                did = (f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(b.monitor.read(), t0, t_clear)}; "
+                       f"{_recovery(b, t_clear)}")
                 yield Case.of(f"{which}_{fault}", "faulty sensors", 1, did, common_checks(b, t0, t_clear, safe_from=t0 + delay))
 
 
@@ -361,7 +362,8 @@ def stuck_sensors(full: bool) -> Iterator[Case]:
         c = common_checks(b, t0, t1, safe_from=t0 + bound)
         other = sum(1 for t, r in zip(lim.t, lim.reason) if t0 + bound <= t <= t1 and r != int(DerateReason.SENSOR_FAULT))
         c.add(other, f"{other} TE_Limits after {bound:.0f} s without the sensor_fault reason")
-        stuck = int(metric(m1, 'thermal_edge_bad_readings_total{kind="stuck"}') - metric(m0, 'thermal_edge_bad_readings_total{kind="stuck"}'))
+        stuck_key = 'thermal_edge_bad_readings_total{kind="stuck"}'
+        stuck = int(metric(m1, stuck_key) - metric(m0, stuck_key))
         c.add(0 if stuck >= 1 else 1, "no stuck bad reading counted")
         did = f"{_safe_after(b, t0, t1, bound)}; {reasons_in(lim, t0, t1)}; {stuck} stuck reading(s) counted; "
         with inv.lock:  # the readings come alive (and the load goes): the fault clears
@@ -405,7 +407,8 @@ def absurd_inputs(full: bool) -> Iterator[Case]:
             key = 'thermal_edge_bad_readings_total{kind="out_of_range"}'
             counted = int(metric(m1, key) - metric(m0, key))
             c.add(0 if counted >= 1 else 1, "no out_of_range bad reading counted")
-            other = sum(1 for t, r in zip(lim.t, lim.reason) if t0 + delay <= t <= t_clear and r != int(DerateReason.SENSOR_FAULT))
+            other = sum(1 for t, r in zip(lim.t, lim.reason)
+                        if t0 + delay <= t <= t_clear and r != int(DerateReason.SENSOR_FAULT))
             c.add(other, f"{other} TE_Limits without the sensor_fault reason")
             did = f"{_safe_after(b, t0, t_clear, delay)}; {reasons_in(lim, t0, t_clear)}; {counted} counted out of range; "
             did += _recovery(b, t_clear)
@@ -557,7 +560,8 @@ def security(full: bool) -> Iterator[Case]:
         others = [s for s in tcp if s[2] != b.service.metrics_port]
         c.add(len(others), "a TCP listener that is not the metrics server")
         yield Case.of("no_command_listener", "security", len(tcp),
-                      f"TCP listeners other than metrics: {len(others)}; UDP: " + ", ".join(f"[{a}]:{p}" for _, a, p, _ in udp), c)
+                      f"TCP listeners other than metrics: {len(others)}; UDP: "
+                      + ", ".join(f"[{a}]:{p}" for _, a, p, _ in udp), c)
         targets = [("127.0.0.1", socket.AF_INET), ("::1", socket.AF_INET6)]
         targets += [(a, socket.AF_INET6 if ":" in a else socket.AF_INET) for a in _host_addresses()]
         for addr, family in targets:

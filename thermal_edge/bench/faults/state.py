@@ -262,7 +262,8 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         os.mkfifo(d / STATE)
 
     valid = _valid_state(seed)
-    digits = b'{"format": "thermal_edge.state", "version": 1, "model": "pm10kw", "saved_at": 1' + b"0" * 5000 + b', "parameters": {}}'
+    digits = (b'{"format": "thermal_edge.state", "version": 1, "model": "pm10kw", "saved_at": 1' + b"0" * 5000
+              + b', "parameters": {}}')
     roundoff = dict(seed["parameters"], c_p_ew=299.99999999999994)
     cold_magnet = [-99.0 if "magnet" in n else x for n, x in zip(seed["nodes"], seed["T"])]
     return {
@@ -300,8 +301,9 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
 
 def corrupt_states(full: bool) -> Iterator[Case]:
     """Each corrupt or foreign state file: the service starts, sends TE_Limits after at most 1 s more
-    CPU time than a clean start (CPU, not wall time: the shared machine's load varies), moves the file aside (or, if usable, keeps its parameters), stays below the unit's
-    MemoryMax; and a usable file survives a SIGTERM and the next start."""
+    CPU time than a clean start (CPU, not wall time: the shared machine's load varies), moves the
+    file aside (or, if usable, keeps its parameters), stays below the unit's MemoryMax; and a usable
+    file survives a SIGTERM and the next start."""
     cap = unit_memory_max_bytes()
     with rig("states") as r:
         seed_dir = r.workdir / "seed"
