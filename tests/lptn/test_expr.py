@@ -226,7 +226,8 @@ class Gen:
         r = self.rng
         kind = str(
             r.choice(
-                ["+", "-", "*", "/", "neg", "exp", "log", "sqrt", "tanh", "abs", "sign", "min", "max", "powc", "powi", "powv", "cpow"]
+                ["+", "-", "*", "/", "neg", "exp", "log", "sqrt", "tanh", "abs", "sign", "min", "max",
+                 "powc", "powi", "powv", "cpow"]
             )
         )
         a = self.expr(depth - 1)

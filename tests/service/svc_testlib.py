@@ -322,7 +322,8 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
     cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
     svc = EdgeService(cfg)
     await svc.start()
-    emu = InverterEmulator(emulator_config(duration_s=duration, speed=speed, max_lead_s=MAX_LEAD_S, cycle_path=cfg.model.path.parents[1] / "cycles" / "rated_heat_cool.yaml"),
+    cycle = cfg.model.path.parents[1] / "cycles" / "rated_heat_cool.yaml"
+    emu = InverterEmulator(emulator_config(duration_s=duration, speed=speed, max_lead_s=MAX_LEAD_S, cycle_path=cycle),
                            {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
     task = asyncio.get_running_loop().create_task(emu.run())
     try:
