@@ -9,9 +9,9 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import pytest  # noqa: E402
+import pytest
 
-from thermal_edge.discovery import bench, hidden  # noqa: E402
+from thermal_edge.discovery import bench, hidden
 
 
 @pytest.fixture(scope="session")

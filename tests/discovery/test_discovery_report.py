@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from thermal_edge.discovery import bench, report, workflow  # noqa: E402
-from thermal_edge.lptn import Role  # noqa: E402
+from thermal_edge.discovery import bench, report, workflow
+from thermal_edge.lptn import Role
 
 SHORT = 7200.0  # s, as in test_discovery_workflow
 

@@ -147,7 +147,7 @@ def test_run_command_rejects_a_broken_config_with_one_line(tmp_path):
     assert lines == ["thermal-edge run: error: edge.yaml: derating.safe_current_a: must be positive, got -3"], proc.stderr
 
 
-def _set(path: str, value):  # type: ignore[no-untyped-def]
+def _set(path: str, value):
     """An edit of the raw configuration: set the dotted ``path`` (creating sections) to ``value``."""
     def edit(raw: dict, tmp: Path) -> None:
         *parents, last = path.split(".")
@@ -163,7 +163,7 @@ def _a_file(tmp: Path) -> str:
     return str(tmp / "a_file")
 
 
-def _rename(section: str, old: str, new: str):  # type: ignore[no-untyped-def]
+def _rename(section: str, old: str, new: str):
     def edit(raw: dict, tmp: Path) -> None:
         d = raw[section] if section else raw
         d[new] = d.pop(old)

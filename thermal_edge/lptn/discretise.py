@@ -101,11 +101,12 @@ class DiscreteDerivatives(Discrete):
         """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each);
         (p, n, n) for a single one."""
         self.build_dphit(ops)
-        if np.ndim(ops) == 0:
-            return self._dense[int(ops)]  # type: ignore[arg-type]
-        if not len(ops):  # type: ignore[arg-type]
+        ops = np.asarray(ops)
+        if ops.ndim == 0:
+            return self._dense[int(ops)]
+        if not len(ops):
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
-        return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
+        return np.stack([self._dense[int(o)] for o in ops])
 
     def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p) from ``y = V⁻¹ T + Ht w`` (B, n) and

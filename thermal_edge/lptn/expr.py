@@ -321,8 +321,9 @@ def power(a: Expr, b: Expr) -> Expr:
 
 
 def call(fn: str, *args: Expr, table: Table | None = None) -> Expr:
-    if table is None and all(isinstance(a, Num) for a in args):
-        vals = [a.value for a in args]  # type: ignore[attr-defined]
+    nums = [a for a in args if isinstance(a, Num)]
+    if table is None and len(nums) == len(args):
+        vals = [a.value for a in nums]
         if fn in FUNCTIONS_1:
             return Num(float(FUNCTIONS_1[fn](vals[0])))
         if fn in FUNCTIONS_2:

@@ -274,8 +274,8 @@ class InputAccumulator:
             inputs[name] = slot.value
             ages[name] = t - slot.t
             status[name] = slot.status
-            if slot.fault or slot.tick_fault:
-                faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
+            if (fault := slot.fault or slot.tick_fault):
+                faults[name] = fault
             slot.tick_fault = None
             if slot.t > t - self.config.clock.tick_s:
                 fresh.add(name)
@@ -288,8 +288,8 @@ class InputAccumulator:
             limit = timeouts.get(sensor.frame)
             usable = slot.fault is None and math.isfinite(slot.value) and (limit is None or ages[name] <= limit)
             measured[name] = slot.value if usable else math.nan
-            if (slot.fault or slot.tick_fault) and sensor.required:
-                faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
+            if (fault := slot.fault or slot.tick_fault) and sensor.required:
+                faults[name] = fault
             slot.tick_fault = None
         never = self.started_t if self.started_t is not None else -math.inf  # a frame not seen yet: since the start
         stale = [f for f, limit in timeouts.items() if t - self._last_frame_t.get(f, never) > limit]

@@ -84,7 +84,7 @@ class _LiveCollector(Collector):
         eng = m.engine
         out: TickOutput | None = eng.last if eng is not None else None
         model = eng.model if eng is not None else None
-        if out is not None and model is not None:
+        if eng is not None and out is not None and model is not None:
             est = GaugeMetricFamily(P + "node_estimate_celsius", "Best estimate (observer) of each node's temperature",
                                     labels=LABELS["node_estimate_celsius"])
             sig = GaugeMetricFamily(P + "node_estimate_stddev_celsius", "Standard deviation of each node's estimate",
@@ -125,7 +125,7 @@ class _LiveCollector(Collector):
             yield inp
             lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
                                     labels=LABELS["limited_node_celsius"])
-            for b, ln in zip(out.bands, eng.limited_nodes):  # type: ignore[union-attr]
+            for b, ln in zip(out.bands, eng.limited_nodes):
                 node = model.nodes[ln.row]
                 lim.add_metric([ln.name, node, "estimate"], b.estimate_c)
                 lim.add_metric([ln.name, node, "upper"], b.upper_c)
@@ -152,8 +152,8 @@ class _LiveCollector(Collector):
             yield GaugeMetricFamily(P + "last_tick_timestamp_seconds", "Clock time of the last tick", value=out.t)
             age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
                                     labels=LABELS["sensor_age_seconds"])
-            for s in eng.config.sensors:  # type: ignore[union-attr]
-                a = eng.accumulator.last_valid_t(s)  # type: ignore[union-attr]
+            for s in eng.config.sensors:
+                a = eng.accumulator.last_valid_t(s)
                 if math.isfinite(a):
                     age.add_metric([s], out.t - a)
             yield age
