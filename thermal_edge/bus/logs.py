@@ -165,7 +165,7 @@ class _CheckedLines:
 
 def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, str]]) -> can.io.generic.MessageReader:
     if suffix == ".log":
-        return can.CanutilsLogReader(_CheckedLines(path, strict, malformed))  # type: ignore[arg-type]
+        return can.CanutilsLogReader(_CheckedLines(path, strict, malformed))  # type: ignore[arg-type]  # it only iterates lines
     # python-can's registry, opened here because can.LogReader drops the keyword arguments of a
     # .gz file (4.6.1), and ASC needs one: absolute times, the header's start plus each offset
     kwargs = {"relative_timestamp": False} if suffix == ".asc" else {}
