@@ -119,7 +119,7 @@ def simulate(tables: Tables, inputs: dict[str, np.ndarray], bearing_w: float = 0
     for k in range(len(t) - 1):
         u = (inputs["speed_rpm"][k], inputs["i_rms"][k], inputs["torque_nm"][k], inputs["ambient_c"][k],
              inputs["coolant_c"][k])
-        sol = solve_ivp(lambda _t, y: derivative(y, *u, tables, bearing_w), (t[k], t[k + 1]), T, method="LSODA",
+        sol = solve_ivp(lambda _t, y, u=u: derivative(y, *u, tables, bearing_w), (t[k], t[k + 1]), T, method="LSODA",
                         rtol=1e-8, atol=1e-8)
         T = sol.y[:, -1]
         out[k + 1] = T

@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import paderborn_sim as SIM  # noqa: E402  (beside this file)
 import pytest
 
 from thermal_edge.data import read_run
@@ -19,8 +20,6 @@ from thermal_edge.discovery import effects as E
 from thermal_edge.discovery import hidden, workflow
 from thermal_edge.discovery import signature as S
 from thermal_edge.shipped import config_path
-
-import paderborn_sim as SIM  # noqa: E402  (beside this file)
 
 PADERBORN_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "paderborn"
 PADERBORN4 = config_path("machines", "paderborn4.yaml")

@@ -160,9 +160,9 @@ def run(args: argparse.Namespace) -> int:
                       f"{sep['node']} would ({sep['node_winner_c']:.1f} vs {sep['node_runner_up_c']:.1f} °C)")
     if disc.signature is not None:
         print(f"the residual {disc.signature.describe()} (held-out, reading - model)")
-    for n in d["not_placeable"]:  # type: ignore[union-attr]
-        fits = {True: "; it would fit the residual's signature", False: "", None: ""}[n["fits_signature"]]
-        print(f"not placeable: {n['effect']} ({n['reason']}){fits}")
+    for n in disc.not_placeable:
+        fits = disc.signature is not None and disc.signature.fits(n.effect.explains)
+        print(f"not placeable: {n.effect.name} ({n.reason})" + ("; it would fit the residual's signature" if fits else ""))
     g = d["gap_detail"]
     if g and g["worst_sensor"]:
         print(f"unexplained gap {g['gap_k']:.3f} K ({g['ratio']:.0f}x the noise floor), largest on {g['worst_sensor']}; "

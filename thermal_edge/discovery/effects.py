@@ -594,7 +594,7 @@ class NotPlaceable:
 
 def not_placeable(ctx: Context, names: Sequence[str] | None = None) -> list[NotPlaceable]:
     """The catalogue effects (of ``names``, default all) that have no target on the model."""
-    out = []
+    out: list[NotPlaceable] = []
     for name in names or CATALOGUE:
         eff = get(name)
         if not targets(ctx, eff):
