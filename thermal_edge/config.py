@@ -10,7 +10,8 @@ model and the DBC (model inputs and sensors mapped, signal names present). Every
 ``edge.yaml: derating.safe_current_a: must be positive, got -3``.
 
 Relative paths in the file (model, state directory, recording) are relative to the directory of
-the configuration file.
+the configuration file; ``model.path`` may instead name a model that ships with the package
+(``pm10kw``), used when no file of that name is beside the configuration.
 """
 from __future__ import annotations
 
@@ -34,6 +35,7 @@ from .bus.frames import TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .errors import ThermalEdgeError
 from .settings import AdapterConfig, setting, spec_of
+from .shipped import MACHINES, find
 from .yamlfile import YamlProblem, parse_yaml
 
 #: Errors making ``state.dir`` that the file system's state or permissions decide, not the configuration:
@@ -833,6 +835,11 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     fname = p.name if p is not None else "<config>"
     base = p.resolve().parent if p is not None else Path.cwd()
     cfg: EdgeConfig = _read(EdgeConfig, _Section(fname, "", raw, base), {"path": p})
+    model_path = cfg.model.path
+    if model_path.parent == base and not model_path.exists():  # a bare name: a packaged model of that name
+        packaged = find(MACHINES, model_path.name)
+        if packaged is not None:
+            cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, path=packaged))
     rec = cfg.recording
     if rec.candump is not None and cfg.bus.record_path is None:
         try:
