@@ -233,7 +233,8 @@ class ThermalEdgePolicy(_Policy):
 
 # ----------------------------------------------------------------------------------------------
 def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
-    """``config/edge.yaml`` as the service runs it here: frame clock, no bus I/O, no metrics."""
+    """The packaged example ``edge.yaml`` (or ``config_file``) as the service runs it here: frame
+    clock, no bus I/O, no metrics."""
     import yaml
 
     from ..config import config_from_mapping
@@ -247,10 +248,7 @@ def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
     raw["recording"] = {}
     slow = max(CURRENT_PERIOD_S, TEMPERATURE_PERIOD_S)
     raw["timeouts"] = {k: max(float(v), 3 * slow) for k, v in (raw.get("timeouts") or {}).items()}
-    model = raw.get("model") or {}
-    if model.get("path") and not Path(model["path"]).is_absolute():
-        raw["model"] = {**model, "path": str(path.parent / model["path"])}
-    return config_from_mapping(raw, path)
+    return config_from_mapping(raw, path)  # relative paths (and a packaged model's name) as from the file
 
 
 def plant_for(service_model: Any, case: Case) -> Any:

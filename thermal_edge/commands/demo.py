@@ -75,12 +75,11 @@ def run(args: argparse.Namespace) -> int:
     raw["timeouts"] = {k: max(float(v), 5 * slow) for k, v in (raw.get("timeouts") or {}).items()}
     raw["recording"] = {"candump": args.record} if args.record else {}
     try:
-        model_path = raw.get("model", {}).get("path")
-        base = cfg_path.resolve().parent
-        plant_model = load_model(base / model_path if model_path else config_path("machines", "pm10kw.yaml"))
+        config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
+        plant_model = load_model(config.model.path)
         if args.table4:
             raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
-        config = config_from_mapping(raw, cfg_path)
+            config = config_from_mapping(raw, cfg_path)
         service = EdgeService(config)
     except (ConfigError, KeyError, ValueError) as exc:
         print(f"thermal-edge demo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
