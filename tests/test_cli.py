@@ -62,6 +62,21 @@ def test_packaged_model_and_cycle_by_name_are_the_files(tmp_path):
     assert rows(by_name) == rows(by_path) and len(read_run(by_name)) == 601
 
 
+def test_bench_real_finds_the_data_by_option_or_variable_and_skips_visibly(tmp_path):
+    """``bench real`` reads the Paderborn data from ``--data-dir``, else ``$THERMAL_EDGE_DATA_DIR``,
+    else ``../shared/data/paderborn`` of the working directory, and says where it looked."""
+    by_option = cli("bench", "real", "--data-dir", str(tmp_path / "a"))
+    by_variable = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "bench", "real"], capture_output=True, text=True,
+                                 cwd=tmp_path, env={**ENV, "THERMAL_EDGE_DATA_DIR": str(tmp_path / "b")}, timeout=300)
+    env = {k: v for k, v in ENV.items() if k != "THERMAL_EDGE_DATA_DIR"}
+    by_default = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "bench", "real"], capture_output=True, text=True,
+                                cwd=tmp_path, env=env, timeout=300)
+    for out, where in ((by_option, tmp_path / "a"), (by_variable, tmp_path / "b"),
+                       (by_default, Path("..") / "shared" / "data" / "paderborn")):
+        assert out.returncode == 0, out.stderr
+        assert f"bench real skipped: {where / 'run_a.csv'} not found" in out.stdout
+
+
 def test_broken_model_names_file_and_key(tmp_path):
     bad = tmp_path / "broken.yaml"
     text = (ROOT / "config" / "machines" / "pm10kw.yaml").read_text().replace("value: 9.1", "value: -9.1", 1)

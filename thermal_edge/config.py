@@ -1,4 +1,5 @@
-"""The service configuration (``config/edge.yaml``): YAML -> validated, typed dataclasses.
+"""The service configuration (``edge.yaml``): YAML -> validated, typed dataclasses.
+``thermal-edge config example`` prints the packaged example to start from.
 
 The dataclasses below are the one home of every setting: its type, its default and what the file
 may give for it (:func:`thermal_edge.settings.setting`: range, choices, a check). :func:`load_config`

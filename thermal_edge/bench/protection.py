@@ -4,7 +4,7 @@ policy delivers, and whether it ever lets the machine overheat.
 The closed loop runs on the simulated machine in one process, on the frame clock: the inverter
 emulator's plant and frames (:class:`..sim.inverter.InverterEmulator`, stepped directly, no bus),
 and for ``thermal_edge`` the service's own :class:`..service.engine.ThermalEngine` (model,
-observer, online adaptation in the tick, the derating policy) configured by ``config/edge.yaml``.
+observer, online adaptation in the tick, the derating policy) configured by the packaged example ``edge.yaml``.
 The limits it sends are encoded and decoded with the DBC (the inverter obeys the quantised
 values); the inverter's frames reach the policies as signals, not encoded (the emulator's readings
 are already noisy and quantised like the DBC's, and encoding 20 frames a tick would double the

@@ -17,7 +17,7 @@ LOG_LEVELS = ("debug", "info", "notice", "warning", "error")
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("run", description=__doc__)  # (its help line: thermal_edge.commands.COMMANDS)
-    p.add_argument("--config", required=True, help="service configuration (config/edge.yaml)")
+    p.add_argument("--config", required=True, help="service configuration (start from `thermal-edge config example`)")
     p.add_argument("--log-level", default=os.environ.get("THERMAL_EDGE_LOG_LEVEL", "info"), choices=LOG_LEVELS,
                    help="log level (default info; env THERMAL_EDGE_LOG_LEVEL)")
     p.add_argument("--check", action="store_true", help="validate the configuration, model and DBC, then exit")

@@ -80,7 +80,7 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
         The log; its suffix names the format.
     config : path-like or EdgeConfig, optional
         The service configuration whose ``signals:``, ``timeouts:``, ``codec:`` and tick period
-        are used (default :data:`DEFAULT_CONFIG`, the shipped ``config/edge.yaml``).
+        are used (default :data:`DEFAULT_CONFIG`, the packaged example ``edge.yaml``).
 
     Returns
     -------
