@@ -125,14 +125,31 @@ def test_invalid_yaml_and_missing_file(tmp_path):
         load_config(tmp_path / "nope.yaml")
 
 
-def test_relative_paths_resolve_against_the_config_directory():
-    cfg = load_config(EDGE_YAML)
-    assert cfg.model.path == (REPO / "config" / "machines" / "pm10kw.yaml")
+def test_model_path_a_file_beside_the_config_before_a_packaged_name(tmp_path):
+    """``model.path``: a file relative to the configuration wins; a bare name with no such file is the
+    packaged model (``pm10kw`` or ``pm10kw.yaml``); anything else stays the path it names."""
+    raw = yaml.safe_load(EDGE_YAML.read_text())
+    packaged = (REPO / "thermal_edge" / "resources" / "machines" / "pm10kw.yaml").resolve()
+
+    def model_path(ref: str) -> Path:
+        return config_from_mapping({**raw, "model": {"path": ref}}, tmp_path / "edge.yaml").model.path
+
+    assert model_path("pm10kw").resolve() == packaged
+    assert model_path("pm10kw.yaml").resolve() == packaged
+    assert model_path("sub/pm10kw.yaml") == tmp_path / "sub" / "pm10kw.yaml"  # a path, never a name
+    assert model_path("pm11") == tmp_path / "pm11"  # unknown: loading it names the missing file
+    (tmp_path / "pm10kw.yaml").write_text("a user's own model\n")
+    assert model_path("pm10kw.yaml") == tmp_path / "pm10kw.yaml"
+
+
+def test_relative_paths_resolve_against_the_config_directory(tmp_path):
+    cfg = load_config(EDGE_YAML)  # its model by name: the packaged file
+    assert cfg.model.path.resolve() == (REPO / "config" / "machines" / "pm10kw.yaml").resolve()
     assert cfg.codec.dbc is None  # the packaged DBC
     raw = yaml.safe_load(EDGE_YAML.read_text())
     raw["codec"]["dbc"] = "../dbc/thermal_edge.dbc"
-    cfg = config_from_mapping(raw, EDGE_YAML)
-    assert cfg.codec.dbc.resolve() == (REPO / "dbc" / "thermal_edge.dbc").resolve()
+    cfg = config_from_mapping(raw, tmp_path / "etc" / "edge.yaml")
+    assert cfg.codec.dbc.resolve() == (tmp_path / "dbc" / "thermal_edge.dbc").resolve()
 
 
 def test_run_command_rejects_a_broken_config_with_one_line(tmp_path):
