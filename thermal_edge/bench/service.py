@@ -176,10 +176,8 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
 
     results: list[dict[str, Any]] = []
     best = 0
-    # the sender imports this same package, from wherever this process imported it (a wheel's
-    # site-packages or a checkout on sys.path)
-    here = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": here + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    # the sender: this interpreter, this environment and working directory, so it imports this same package
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     for k, rate in enumerate(rates):
         progress("frame rates", k, len(rates), "rate")
         import socket
