@@ -101,6 +101,15 @@ _STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatu
                  int(SensorStatus.NOT_FITTED): "not_fitted"}
 
 
+def _age(t: float, t_reading: float) -> float:
+    """Seconds from a reading (clock time ``t_reading``) to the tick ending at ``t``; never negative.
+
+    On the wall clock a tick runs a moment after its boundary ``t`` and takes the readings that
+    arrived meanwhile: such a reading is the tick's freshest, age 0, not one from the future.
+    """
+    return max(0.0, t - t_reading)
+
+
 #: Every kind of rejected reading, in the order metrics list them.
 FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck")
 
@@ -276,7 +285,7 @@ class InputAccumulator:
         for name in self.latest_inputs:
             slot = self._latest[name]
             inputs[name] = slot.value
-            ages[name] = t - slot.t
+            ages[name] = _age(t, slot.t)
             status[name] = slot.status
             if slot.fault or slot.tick_fault:
                 faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
@@ -287,7 +296,7 @@ class InputAccumulator:
         timeouts = self.config.timeouts
         for name, spec in self.sensors.items():
             slot = self._latest[name]
-            ages[name] = t - slot.t
+            ages[name] = _age(t, slot.t)
             status[name] = slot.status
             limit = timeouts.get(spec.frame)
             usable = slot.fault is None and math.isfinite(slot.value) and (limit is None or ages[name] <= limit)
