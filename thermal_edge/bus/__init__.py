@@ -10,7 +10,7 @@ Knows ``dbc/thermal_edge.dbc`` and nothing of the thermal model.
   asyncio task or in its own thread.
 - :class:`BusConfig`, :func:`create_bus` -- python-can bus from a checked configuration
   (unknown keys and interfaces named with the closest valid one).
-- :class:`LocalUdpMulticastBus` -- ``udp_multicast`` on loopback only, hop limit 0: nothing
+- :class:`LocalUdpMulticastBus` -- ``udp_multicast`` of this host only, hop limit 0: nothing
   leaves this host, nothing from beyond it is received.
 - :class:`LogRecorder`, :class:`FrameLogReader`, :func:`read_log` -- CAN logs in every format
   python-can knows (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``), by suffix;
