@@ -70,6 +70,16 @@ class FrameProtection:
         """Neither counter nor CRC."""
         return self.counter is None and self.crc is None
 
+    def unseen(self) -> list[str]:
+        """What a receiver cannot detect on a frame with this protection (empty: nothing more than
+        the CAN matrix's frames)."""
+        out = []
+        if self.counter is None:
+            out.append("a frozen or repeating sender, lost frames (no alive counter)")
+        if self.crc is None:
+            out.append("a corrupted payload that passed the CAN controller (no CRC)")
+        return out
+
     def describe(self) -> str:
         """One line for messages: ``counter X, CRC crc8_... over data ID 0x10A0`` or ``none``."""
         parts = []
