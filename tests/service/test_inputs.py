@@ -289,3 +289,32 @@ def test_sensor_age_metric_is_the_ticks_own_age_whatever_arrived_since(tmp_path)
             assert a == pytest.approx(102.0 - last_stator) and a >= 0
     finally:
         eng.close()
+
+
+@pytest.mark.parametrize("dq, turns", [("amplitude_invariant", 2 / 3), ("power_invariant", math.sqrt(2 / 3)),
+                                       ("rms_scaled", 2 / 3 / math.sqrt(2))])
+def test_each_dq_convention_gives_the_rms_of_the_phase_currents(tmp_path, dq, turns):
+    """d/q currents from three phase currents by the convention's Clarke/Park transform (scaled by
+    ``turns``); the RMS phase current over the tick must be that of the phase currents themselves."""
+    import yaml
+    from svc_testlib import REPO, write_yaml
+
+    raw = yaml.safe_load(EDGE_YAML.read_text())
+    raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
+    raw["signals"]["inputs"]["i_rms"]["dq"] = dq
+    acc = accumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    times = np.arange(100) * 0.01
+    amplitude = 30 + 10 * np.sin(times * 7)  # a current that varies within the tick
+    squares = []
+    for t, a in zip(times, amplitude):
+        theta = 2 * math.pi * 50 * t
+        abc = [a * math.cos(theta - k * 2 * math.pi / 3) for k in range(3)]
+        # Clarke then Park, rotating with the current: i_q carries it
+        alpha = turns * (abc[0] - 0.5 * abc[1] - 0.5 * abc[2])
+        beta = turns * (math.sqrt(3) / 2) * (abc[1] - abc[2])
+        d = alpha * math.cos(theta) + beta * math.sin(theta)
+        q = -alpha * math.sin(theta) + beta * math.cos(theta)
+        squares.append(sum(x * x for x in abc) / 3)  # the phases' mean square at this instant
+        acc.add(frame("INV_Currents", 10.0 + t, INV_Id=d, INV_Iq=q, INV_IphRms=0.0), 10.0 + t)
+    expected = math.sqrt(zoh_mean(list(10.0 + times), squares, 11.0))
+    assert acc.take(11.0).inputs["i_rms"] == pytest.approx(expected, rel=1e-9)
