@@ -240,3 +240,51 @@ def test_the_dq_convention_matters(limits):
     wrong = _time_to_limit(limits["foreign, d/q taken as amplitude-invariant"])
     common = [t for t in set(native) & set(wrong) if T0 + 3 <= t < T0 + DROP_S]
     assert common and all(wrong[t] < 0.6 * native[t] for t in common)
+
+
+# -- the guide's commands ------------------------------------------------------------------------------
+GUIDE = REPO / "docs" / "guide" / "connect-your-inverter.md"
+
+
+def _blocks(kind: str) -> list[str]:
+    import re
+
+    return re.findall(rf"```{kind}\n(.*?)```", GUIDE.read_text(), re.S)
+
+
+def test_the_guides_check_command_prints_what_the_guide_shows():
+    import shlex
+
+    from cli_in_process import te_here
+
+    consoles = _blocks("console")
+    assert consoles
+    for block in consoles:
+        command, *shown = block.rstrip("\n").split("\n")
+        assert command.startswith("$ thermal-edge ")
+        args = [str(REPO / a) if a.startswith("config/") else a for a in shlex.split(command[2:])[1:]]
+        proc = te_here(*args)
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.rstrip("\n").split("\n") == shown
+
+
+def test_the_guides_refusal_is_the_one_the_check_gives(tmp_path):
+    from cli_in_process import te_here
+
+    (shown,) = [b.strip() for b in _blocks("text")]
+    raw = yaml.safe_load((EXAMPLE / "edge.yaml").read_text())
+    raw["codec"]["dbc"] = str(FOREIGN_DBC)
+    raw["model"]["path"] = str((EXAMPLE / raw["model"]["path"]).resolve())
+    raw["state"]["dir"] = str(tmp_path / "state")
+    del raw["codec"]["protection"]["MC7_Motion"]
+    proc = te_here("run", "--check", "--config", write_yaml(tmp_path / "edge.yaml", raw))
+    assert proc.returncode == 2 and proc.stderr.strip() == shown
+
+
+def test_the_guides_edge_yaml_is_the_examples():
+    """The guide's excerpt of the MC-7's edge.yaml says what the example file says."""
+    excerpts = [yaml.safe_load(b) for b in _blocks("yaml")]
+    excerpt = next(e for e in excerpts if "signals" in e)
+    example = yaml.safe_load((EXAMPLE / "edge.yaml").read_text())
+    for key in ("codec", "signals", "timeouts"):
+        assert excerpt[key] == example[key], key

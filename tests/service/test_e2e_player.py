@@ -48,10 +48,8 @@ def test_can_player_replays_a_recording_into_the_running_service(tmp_path, udp_p
     svc = start_service(write_yaml(tmp_path / "edge.yaml", raw), log=tmp_path / "service.log")
     try:
         assert wait_until(lambda: _up(mport), 60), (tmp_path / "service.log").read_text()
-        player = subprocess.run(
-            [sys.executable, "-m", "can.player", "-i", "udp_multicast", "--bus-kwargs", f"port={udp_port}", "hop_limit=0",
-             "-c", DEFAULT_UDP_MULTICAST_GROUP, str(log)],
-            env=env(), cwd=str(REPO), capture_output=True, text=True, timeout=120)
+        player = subprocess.run(_guides_player_command(udp_port, log), env=env(), cwd=str(REPO), capture_output=True,
+                                text=True, timeout=120)
         assert player.returncode == 0, player.stderr
 
         def received() -> dict[str, float]:
@@ -68,6 +66,20 @@ def test_can_player_replays_a_recording_into_the_running_service(tmp_path, udp_p
         if svc.poll() is None:
             svc.kill()
             svc.wait()
+
+
+def _guides_player_command(port: int, log: Path) -> list[str]:
+    """The guide's ``python -m can.player`` command (docs/guide/connect-your-inverter.md), on the
+    test's port and recording."""
+    import re
+    import shlex
+
+    (line,) = re.findall(r"^python -m can\.player .*$", (REPO / "docs" / "guide" / "connect-your-inverter.md").read_text(),
+                         re.M)
+    words = shlex.split(line)
+    assert "hop_limit=0" in words and words[words.index("-c") + 1] == DEFAULT_UDP_MULTICAST_GROUP
+    words = [f"port={port}" if w.startswith("port=") else str(log) if w == "drive.log" else w for w in words]
+    return [sys.executable, *words[1:]]
 
 
 def _up(port: int) -> bool:
