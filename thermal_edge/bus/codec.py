@@ -706,7 +706,7 @@ class FrameCodec:
             with self._lock:
                 self.stats.count_drop("dlc", spec.name)
             return None
-        if spec.crc is not None and payload[spec.crc_byte] != spec.crc(payload):
+        if spec.crc is not None and payload[spec.crc_byte] != spec.crc(bytes(payload)):
             with self._lock:
                 self.stats.count_drop("crc", spec.name)
             return None
@@ -723,15 +723,20 @@ class FrameCodec:
                 elif s.identity:
                     values[s.name] = r
                 else:
-                    values[s.name] = round(r * s.scale + s.offset, s.decimals)  # type: ignore[arg-type]  # fast: integers
+                    values[s.name] = round(r * s.scale + s.offset, s.decimals)
             if spec.counter is not None:
                 counter = (word >> spec.counter.start) & spec.counter.mask
         else:  # big-endian or float signals: cantools unpacks the raw values
             raws = spec.message.decode(bytes(payload), decode_choices=False, scaling=False)
+            assert isinstance(raws, dict)  # a plain frame (containers are left out at load)
             for s in spec.signals:
-                values[s.name] = _physical(s, raws[s.name])
+                raw = raws[s.name]
+                assert isinstance(raw, (int, float))  # raw values (no choices decoded)
+                values[s.name] = _physical(s, raw)
             if spec.counter is not None:
-                counter = int(raws[spec.counter.name])
+                raw = raws[spec.counter.name]
+                assert isinstance(raw, int)
+                counter = raw
         ts = float(timestamp) if timestamp is not None else None
         if spec.counter is None:  # nothing to judge: repeats and losses cannot be seen
             with self._lock:
