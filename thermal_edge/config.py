@@ -27,7 +27,7 @@ import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .bus.busconfig import BusConfig, BusConfigError
 from .bus.crc import CRC8_ALGORITHMS
@@ -37,6 +37,9 @@ from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
 from .settings import AdapterConfig, setting, spec_of
 from .yamlfile import YamlProblem, parse_yaml
+
+if TYPE_CHECKING:
+    from .bus.codec import FrameCodec
 
 #: Errors making ``state.dir`` that the file system's state or permissions decide, not the configuration:
 #: the service starts without persistence and says so (:meth:`EdgeConfig.check_state_dir`).
@@ -240,7 +243,7 @@ class CodecConfig:
     # that time stamps could count (they over-counted a 10 Hz feed of 10 ms frames by a wrap per frame)
     resync_after_cycles: float = setting(8.0, positive=True, max=1000.0)
 
-    def frame_codec(self, fname: str = "<config>", **kwargs: Any) -> Any:
+    def frame_codec(self, fname: str = "<config>", **kwargs: Any) -> FrameCodec:
         """The service's :class:`~thermal_edge.bus.codec.FrameCodec`: the inverter's frames from
         :attr:`dbc` with their :attr:`protection`, the service's own from the shipped DBC.
 
