@@ -255,7 +255,7 @@ def test_a_reading_that_arrives_after_the_boundary_is_age_zero_not_negative(acc)
 
 def test_sensor_age_metric_is_the_ticks_own_age_whatever_arrived_since(tmp_path):
     """``thermal_edge_sensor_age_seconds`` between two ticks: a reading that came after the last
-    tick must not make the age negative (it was scraped as last tick time minus the newest reading)."""
+    tick must not make the age negative (as the last tick's time minus the newest reading would)."""
     from prometheus_client.parser import text_string_to_metric_families
     from svc_testlib import edge_raw, write_yaml
 
