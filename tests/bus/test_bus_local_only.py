@@ -184,3 +184,4 @@ def test_ipv6_group_needs_a_multicast_route_on_loopback(udp_port):
         assert bus.socket.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF) == socket.if_nametoindex("lo")
     finally:
         bus.shutdown()
+
