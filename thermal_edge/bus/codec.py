@@ -594,7 +594,8 @@ class FrameCodec:
             raise FrameEncodeError(f"{spec.name}: missing signal(s) {', '.join(missing)}")
         raw: dict[str, int | float] = {s.name: self._raw_value(spec, s, signals[s.name]) for s in spec.signals}
         if spec.crc is not None:
-            raw[spec.protection.crc] = 0  # type: ignore[union-attr, index]  # a CRC is declared with it
+            assert spec.protection is not None and spec.protection.crc is not None  # a CRC is declared with it
+            raw[spec.protection.crc] = 0
         with self._lock:
             value = 0
             if spec.counter is not None:
