@@ -8,12 +8,13 @@ import shutil
 import numpy as np
 import pytest
 
+from thermal_edge.config import load_config
 from thermal_edge.data import RunError, write_run
-from thermal_edge.fleet.canlogs import read_can_runs
 from thermal_edge.fleet.evaluate import evaluate_machine
 from thermal_edge.fleet.runs import find_machines
 from thermal_edge.fleet.task import read_machine_runs
 from thermal_edge.lptn import Role, load_model
+from thermal_edge.service.logruns import read_log_runs
 from thermal_edge.shipped import config_path
 from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
 
@@ -21,6 +22,11 @@ MODEL = config_path("machines", "pm10kw.yaml")
 CYCLE = config_path("cycles", "rated_heat_cool.yaml")
 T0 = 1_700_000_000.0
 DURATION_S = 600.0
+
+
+def read_can_runs(path):
+    """The runs of a CAN log decoded with the shipped service configuration (the fleet's default)."""
+    return read_log_runs(path, load_config(config_path("edge.yaml")))
 
 
 def _emulate(path, **cfg) -> InverterEmulator:

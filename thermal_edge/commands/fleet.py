@@ -92,7 +92,7 @@ def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]
     is refused, :class:`~thermal_edge.data.RunError` with the first reason. Prints the first
     :data:`SUMMARY_FILES` runs' summaries and a total.
     """
-    from ..fleet.canlogs import is_can_log
+    from ..service.logruns import is_can_log
     from ..fleet.results import row
     from ..fleet.runs import find_machines
     from ..lptn import load_model
