@@ -114,11 +114,9 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     ------
     RunError
         The file is no CAN log of its suffix's format, or holds not two complete ticks of the
-        configuration's signals.
+        configuration's signals, or does not exist.
     ConfigError
         The configuration's CAN matrix lacks a frame or signal its ``signals:`` name.
-    FileNotFoundError
-        No such file.
     """
     codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
     config.check_dbc(codec)
@@ -152,6 +150,8 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
             out.frames += 1
     except LogFormatError as exc:
         raise RunError(str(exc)) from None
+    except FileNotFoundError:
+        raise RunError(f"{path}: no such CAN log") from None
     close_stretch()
     stats = codec.stats.as_dict()
     out.dropped = {k: int(v) for k, v in stats.items() if k in DROP_REASONS and v}
