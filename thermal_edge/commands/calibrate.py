@@ -20,7 +20,7 @@ from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from ..text_table import table
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets
 from .progress import bar
-from .runs import CAN_FORMAT, add_can_args, read_checked_runs
+from .runs import add_can_args, read_checked_runs
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]

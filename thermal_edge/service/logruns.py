@@ -28,8 +28,8 @@ import numpy as np
 
 from ..bus.codec import FrameCodec
 from ..bus.frames import DEFAULT_DBC_PATH
-from ..bus.stats import DROP_REASONS
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
+from ..bus.stats import DROP_REASONS
 from ..config import EdgeConfig
 from ..data import Run, RunError
 from ..lptn import load_model
