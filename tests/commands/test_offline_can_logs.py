@@ -1,0 +1,231 @@
+"""From a CAN recording to everything offline: a log recorded by ``thermal-edge demo --record`` is
+exported to a run CSV (checked against a reduction of the log's frames made here, with cantools and
+numpy), replayed with ``--plot``/``--out``, and ``calibrate`` and ``discover`` give the same result
+on the log as on its run CSV, within what the CSV's rounding can move."""
+from __future__ import annotations
+
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cantools
+import numpy as np
+import pytest
+from cmd_testlib import te_here
+
+from thermal_edge.config import load_config
+from thermal_edge.data import read_run
+from thermal_edge.lptn import load_model
+from thermal_edge.shipped import config_path
+
+CONFIG = config_path("edge.yaml")
+MODEL = config_path("machines", "pm10kw.yaml")
+DBC = Path(__file__).resolve().parents[2] / "thermal_edge" / "bus" / "thermal_edge.dbc"
+#: simulated seconds recorded: the overload cycle's first load step, heating from ambient
+DURATION_S = 300
+#: the run CSV's values have 6 significant digits: each is off by at most this, relative
+CSV_REL = 5e-6
+_LINE = re.compile(r"^\((?P<ts>[\d.]+)\)\s+\S+\s+(?P<id>[0-9A-Fa-f]+)#(?P<data>[0-9A-Fa-f]*)\s+(?P<dir>[RT])$")
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    """A short closed-loop run of the demo, its bus traffic recorded as a candump -L log."""
+    d = tmp_path_factory.mktemp("recording")
+    log = d / "drive.log"
+    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "demo", "--duration", str(DURATION_S), "--speed", "100",
+                        "--quiet", "--metrics-port", "0", "--record", str(log)],
+                       capture_output=True, text=True, timeout=300, cwd=d,
+                       env={"OPENBLAS_NUM_THREADS": "1", "PATH": "/usr/bin:/bin", "TMPDIR": str(d)})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert log.stat().st_size > 0
+    return log
+
+
+@pytest.fixture(scope="module")
+def exported(recording) -> Path:
+    out = recording.with_name("run.csv")
+    r = te_here("export", recording, "--config", CONFIG, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "0 dropped by the integrity checks" in r.stderr, r.stderr
+    return out
+
+
+def _reduce_frames(log: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The per-tick run the service should see, computed here from the log's received frames:
+    ticks at whole seconds crossed by the frames' stamps; the current the RMS of the d/q amplitudes
+    over each tick's time (each frame's value held until the next), speed (rounded to 1 rpm) and
+    torque the same time means; the temperatures the latest reading before the tick's end. Ticks
+    before every input had a frame are left out."""
+    cfg = load_config(CONFIG)
+    db = cantools.database.load_file(str(DBC))
+    frames: dict[str, list[tuple[float, dict]]] = {}
+    for line in log.read_text().splitlines():
+        m = _LINE.match(line.strip())
+        assert m, line
+        if m["dir"] != "R":  # the service's own frames
+            continue
+        msg = db.get_message_by_frame_id(int(m["id"], 16))
+        frames.setdefault(msg.name, []).append((float(m["ts"]), msg.decode(bytes.fromhex(m["data"]), decode_choices=False)))
+    first_ts = min(v[0][0] for v in frames.values())
+    last_ts = max(v[-1][0] for v in frames.values())
+    ticks = np.arange(math.floor(first_ts) + 1, math.floor(last_ts) + 1, dtype=float)
+    series = {}
+    for name, spec in cfg.inputs.items():
+        ts = np.array([f[0] for f in frames[spec.frame]])
+        sig = [f[1] for f in frames[spec.frame]]
+        if spec.reduce == "dq_rms":
+            x = np.array([0.5 * (s[spec.signals[0]] ** 2 + s[spec.signals[1]] ** 2) for s in sig])
+        else:
+            x = np.array([s[spec.signals[0]] for s in sig], dtype=float)
+        series[name] = (spec, ts, x)
+    start = max(ts[0] for _, ts, _ in series.values())
+    ticks = ticks[ticks > start]  # a frame stamped on a boundary belongs to the tick after it
+    cols: dict[str, np.ndarray] = {}
+    for name, (spec, ts, x) in series.items():
+        if spec.reduce == "latest":
+            cols[name] = x[np.searchsorted(ts, ticks, side="left") - 1]
+            continue
+        ends = np.append(ts[1:], np.inf)
+        vals = []
+        for t in ticks:
+            dur = np.clip(np.minimum(ends, t) - np.maximum(ts, t - 1.0), 0.0, None)
+            mean = float(np.sum(x * dur) / np.sum(dur))
+            v = math.sqrt(mean) if spec.reduce in ("rms", "dq_rms") else mean
+            vals.append(round(v / spec.resolution) * spec.resolution if spec.resolution else v)
+        cols[name] = np.array(vals)
+    for name, spec in cfg.sensors.items():
+        ts = np.array([f[0] for f in frames[spec.frame]])
+        x = np.array([f[1][spec.signal] for f in frames[spec.frame]], dtype=float)
+        cols[name] = x[np.searchsorted(ts, ticks, side="left") - 1]
+    return ticks, cols
+
+
+def test_export_is_the_ticks_of_the_logs_frames(recording, exported):
+    cfg = load_config(CONFIG)
+    header = next(line for line in exported.read_text().splitlines() if not line.startswith("#"))
+    assert header.split(",") == ["t", *cfg.inputs, *cfg.sensors]
+    run = read_run(exported)
+    ticks, cols = _reduce_frames(recording)
+    assert len(run) == len(ticks) and DURATION_S - 3 <= len(ticks) <= DURATION_S
+    np.testing.assert_array_equal(run.t, ticks - ticks[0])
+    for name, expected in cols.items():
+        np.testing.assert_allclose(run.column(name), expected, rtol=CSV_REL, atol=1e-12, err_msg=name)
+
+
+def _error_k(log_run, csv_run, model) -> float:
+    """How far, K, the CSV's rounding can move a predicted or measured temperature: the readings'
+    own rounding, and the prediction's through the inputs' (copper loss ~ i², so twice the
+    current's relative rounding, on the largest temperature rise of the run)."""
+    sensors = [s for s in model.sensors if s in csv_run.columns]
+    t_max = max(float(np.nanmax(np.abs(csv_run.column(s)))) for s in sensors)
+    rise = max(float(np.nanmax(csv_run.column(s)) - np.nanmin(csv_run.column(s))) for s in sensors)
+    measured = max(float(np.nanmax(np.abs(log_run.column(s) - csv_run.column(s)))) for s in sensors)
+    assert measured <= CSV_REL * t_max
+    return CSV_REL * t_max + 2 * CSV_REL * rise
+
+
+def _fit(out: Path, stdout: str, names: list[str]) -> tuple[dict[str, float], dict[str, float], float, dict[str, str]]:
+    """The fitted values (the written model), their 1σ, the residual σ and the identifiable column
+    (the printed table)."""
+    model = load_model(out)
+    values = {n: v for n, v in zip(model.parameter_names, model.nominal()) if n in names}
+    rows = {m[1]: (float(m[2]) / 100, m[3])
+            for m in re.finditer(r"^\s*(\S+)\s+\S+\s+\S+\s+\S+\s+\S+\s+(\S+)\s+(yes|no)$", stdout, re.M)}
+    sigma = float(re.search(r"residual σ (\S+) K", stdout)[1])
+    return values, {n: rows[n][0] * abs(values[n]) for n in names}, sigma, {n: rows[n][1] for n in names}
+
+
+def test_calibrate_on_the_log_and_on_its_csv_agree(recording, exported, tmp_path):
+    from thermal_edge.service.logruns import read_log_runs
+
+    names = ["R_e_hous", "k_r_sw"]
+    common = ["--model", MODEL, "--params", ",".join(names), "--generations", "3", "--popsize", "5"]
+    a = te_here("calibrate", *common, "--run", recording, "--format", "can", "--config", CONFIG, "--out", tmp_path / "a.yaml")
+    b = te_here("calibrate", *common, "--run", exported, "--out", tmp_path / "b.yaml")
+    assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
+    assert re.search(r"drive\.log: \d+ frames of the drive's CAN matrix, 0 dropped", a.stdout), a.stdout
+    va, sa, sigma, ia = _fit(tmp_path / "a.yaml", a.stdout, names)
+    vb, _, _, ib = _fit(tmp_path / "b.yaml", b.stdout, names)
+    assert ia == ib
+    # the rounding moves every residual by at most eps: the fit (least squares, N residuals) moves
+    # a parameter by at most its 1σ / σ_residual x sqrt(N) x eps (Cauchy-Schwarz on the
+    # linearised solution; the printed 1σ counts correlated residuals, so it is the larger)
+    model = load_model(MODEL)
+    (log_run,) = read_log_runs(recording, load_config(CONFIG))
+    eps = _error_k(log_run, read_run(exported), model)
+    n_res = len(log_run) * len(model.sensors)
+    for n in names:
+        tol = sa[n] / sigma * math.sqrt(n_res) * eps
+        assert abs(va[n] - vb[n]) <= tol, (n, va[n], vb[n], tol)
+
+
+def test_discover_on_the_log_and_on_its_csv_agree(recording, exported):
+    from thermal_edge.service.logruns import read_log_runs
+
+    a = te_here("discover", "--model", MODEL, "--run", recording, "--format", "can", "--max-rounds", "1", "--json")
+    b = te_here("discover", "--model", MODEL, "--run", exported, "--max-rounds", "1", "--json")
+    assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
+    da, db = json.loads(a.stdout), json.loads(b.stdout)
+    assert da["verdict"] == db["verdict"] and da["effects_added"] == db["effects_added"]
+    # a gap is an RMS of residuals: the rounding moves it by at most eps (the refit's shift of the
+    # optimum changes it only to second order)
+    (log_run,) = read_log_runs(recording, load_config(CONFIG))
+    eps = _error_k(log_run, read_run(exported), load_model(MODEL))
+    for key in ("gap_before", "gap_after", "gap_nominal"):
+        assert abs(da[key] - db[key]) <= eps, (key, da[key], db[key], eps)
+    for s, v in da["per_sensor_after"].items():
+        assert abs(v - db["per_sensor_after"][s]) <= eps * math.sqrt(len(da["per_sensor_after"])), s
+
+
+def test_replay_of_the_log_plots_and_writes_the_services_ticks(recording, exported, tmp_path):
+    png, out = tmp_path / "replay.png", tmp_path / "ticks.csv"
+    r = te_here("replay", "--format", "can", "--run", recording, "--config", CONFIG, "--plot", png, "--out", out, "--json")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    ticks = read_run(out)
+    assert len(ticks) == summary["ticks"]
+    model = load_model(MODEL)
+    for s in model.sensors:
+        assert {f"{s}_{k}" for k in ("measured", "predicted", "observer", "band_low", "band_high")} <= set(ticks.columns)
+    assert {"current_limit_a", "state", "reason", "adaptation", *model.inputs} <= set(ticks.columns)
+    # the readings the service used are the exported run's, tick for tick (the replay also has
+    # the ticks before every input had a value)
+    run = read_run(exported)
+    tail = slice(len(ticks) - len(run), None)
+    for s in model.sensors:
+        np.testing.assert_allclose(ticks.column(f"{s}_measured")[tail], run.column(s), rtol=CSV_REL, err_msg=s)
+    np.testing.assert_allclose(ticks.column(model.inputs[0])[tail], run.column(model.inputs[0]), rtol=2 * CSV_REL)
+
+
+def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording, tmp_path):
+    later = "\n".join(re.sub(r"^\((\d+)", lambda m: f"({int(m[1]) + 3600}", line)
+                      for line in recording.read_text().splitlines())
+    both = tmp_path / "both.log"
+    both.write_text(recording.read_text() + later + "\n")
+    r = te_here("export", both, "--out", tmp_path / "run.csv")
+    assert r.returncode == 0, r.stderr
+    first, second = read_run(tmp_path / "run.csv"), read_run(tmp_path / "run-1.csv")
+    assert len(first) == len(second) > 0
+    d = te_here("discover", "--model", MODEL, "--run", both, "--format", "can")
+    assert d.returncode == 2 and "2 runs" in d.stderr and "thermal-edge export" in d.stderr, d.stderr
+
+
+@pytest.mark.parametrize("args, says", [
+    (["export", "missing.log", "--out", "x.csv"], "missing.log: no such CAN log"),
+    (["export", "LOG", "--out", "no/such/dir/x.csv"], "--out no/such/dir/x.csv: no such directory"),
+    (["export", "LOG", "--out", "x.parquet"], "must end in .csv"),
+    (["export", "run.txt", "--out", "x.csv"], "run.txt: unknown CAN log format"),
+    (["calibrate", "--model", str(MODEL), "--run", "missing.blf", "--format", "can", "--out", "x.yaml"],
+     "missing.blf: no such CAN log"),
+])
+def test_export_and_calibrate_refuse_with_one_line(recording, tmp_path, monkeypatch, args, says):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "run.txt").write_text("t,i_rms\n0,1\n")
+    r = te_here(*[str(recording) if a == "LOG" else a for a in args])
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
