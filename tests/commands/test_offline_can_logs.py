@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import subprocess
 import sys
@@ -25,7 +26,7 @@ CONFIG = config_path("edge.yaml")
 MODEL = config_path("machines", "pm10kw.yaml")
 DBC = Path(__file__).resolve().parents[2] / "thermal_edge" / "bus" / "thermal_edge.dbc"
 #: simulated seconds recorded: the overload cycle's first load step, heating from ambient
-DURATION_S = 300
+DURATION_S = 150
 #: the run CSV's values have 6 significant digits: each is off by at most this, relative
 CSV_REL = 5e-6
 _LINE = re.compile(r"^\((?P<ts>[\d.]+)\)\s+\S+\s+(?P<id>[0-9A-Fa-f]+)#(?P<data>[0-9A-Fa-f]*)\s+(?P<dir>[RT])$")
@@ -36,7 +37,7 @@ def recording(tmp_path_factory) -> Path:
     """A short closed-loop run of the demo, its bus traffic recorded as a candump -L log."""
     d = tmp_path_factory.mktemp("recording")
     log = d / "drive.log"
-    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "demo", "--duration", str(DURATION_S), "--speed", "100",
+    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "demo", "--duration", str(DURATION_S), "--speed", "150",
                         "--quiet", "--metrics-port", "0", "--record", str(log)],
                        capture_output=True, text=True, timeout=300, cwd=d,
                        env={"OPENBLAS_NUM_THREADS": "1", "PATH": "/usr/bin:/bin", "TMPDIR": str(d)})
@@ -104,6 +105,7 @@ def _reduce_frames(log: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     return ticks, cols
 
 
+@pytest.mark.slow  # a demo run (about 10 s) and the commands on it
 def test_export_is_the_ticks_of_the_logs_frames(recording, exported):
     cfg = load_config(CONFIG)
     header = next(line for line in exported.read_text().splitlines() if not line.startswith("#"))
@@ -139,6 +141,7 @@ def _fit(out: Path, stdout: str, names: list[str]) -> tuple[dict[str, float], di
     return values, {n: rows[n][0] * abs(values[n]) for n in names}, sigma, {n: rows[n][1] for n in names}
 
 
+@pytest.mark.slow  # a demo run (about 10 s) and the commands on it
 def test_calibrate_on_the_log_and_on_its_csv_agree(recording, exported, tmp_path):
     from thermal_edge.service.logruns import read_log_runs
 
@@ -163,6 +166,7 @@ def test_calibrate_on_the_log_and_on_its_csv_agree(recording, exported, tmp_path
         assert abs(va[n] - vb[n]) <= tol, (n, va[n], vb[n], tol)
 
 
+@pytest.mark.slow  # a demo run (about 10 s) and the commands on it
 def test_discover_on_the_log_and_on_its_csv_agree(recording, exported):
     from thermal_edge.service.logruns import read_log_runs
 
@@ -181,6 +185,7 @@ def test_discover_on_the_log_and_on_its_csv_agree(recording, exported):
         assert abs(v - db["per_sensor_after"][s]) <= eps * math.sqrt(len(da["per_sensor_after"])), s
 
 
+@pytest.mark.slow  # a demo run (about 10 s) and the commands on it
 def test_replay_of_the_log_plots_and_writes_the_services_ticks(recording, exported, tmp_path):
     png, out = tmp_path / "replay.png", tmp_path / "ticks.csv"
     r = te_here("replay", "--format", "can", "--run", recording, "--config", CONFIG, "--plot", png, "--out", out, "--json")
@@ -203,6 +208,7 @@ def test_replay_of_the_log_plots_and_writes_the_services_ticks(recording, export
     np.testing.assert_allclose(ticks.column(model.inputs[0])[tail], run.column(model.inputs[0]), rtol=2 * CSV_REL)
 
 
+@pytest.mark.slow  # a demo run (about 10 s) and the commands on it
 def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording, tmp_path):
     later = "\n".join(re.sub(r"^\((\d+)", lambda m: f"({int(m[1]) + 3600}", line)
                       for line in recording.read_text().splitlines())
@@ -224,8 +230,71 @@ def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording
     (["calibrate", "--model", str(MODEL), "--run", "missing.blf", "--format", "can", "--out", "x.yaml"],
      "missing.blf: no such CAN log"),
 ])
-def test_export_and_calibrate_refuse_with_one_line(recording, tmp_path, monkeypatch, args, says):
+def test_export_and_calibrate_refuse_with_one_line(tmp_path, monkeypatch, args, says):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "run.txt").write_text("t,i_rms\n0,1\n")
-    r = te_here(*[str(recording) if a == "LOG" else a for a in args])
+    (tmp_path / "drive.log").write_text("(1700000000.000000) can0 7FF#00 R\n")
+    r = te_here(*["drive.log" if a == "LOG" else a for a in args])
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
+
+
+def test_the_simulators_can_log_exports_one_row_per_tick(tmp_path):
+    """``simulate --format can`` (no service answers: open loop) to a BLF, exported: one row per
+    whole second crossed after every input's first frame, counted from the frames' stamps."""
+    import can
+
+    log, out = tmp_path / "sim.blf", tmp_path / "sim.csv"
+    r = te_here("simulate", "--model", MODEL, "--cycle", config_path("cycles", "rated_heat_cool.yaml"), "--format", "can",
+                "--duration", "40", "--t0", "1700000000.25", "--out", log)
+    assert r.returncode == 0, r.stderr
+    r = te_here("export", log, "--out", out)
+    assert r.returncode == 0, r.stderr
+    cfg = load_config(CONFIG)
+    db = cantools.database.load_file(str(DBC))
+    first: dict[str, float] = {}
+    last = -math.inf
+    with can.BLFReader(str(log)) as reader:
+        for msg in reader:
+            name = db.get_message_by_frame_id(msg.arbitration_id).name
+            first.setdefault(name, msg.timestamp)
+            last = max(last, msg.timestamp)
+    start = max(first[spec.frame] for spec in cfg.inputs.values())
+    expected = math.floor(last) - math.floor(start)  # whole seconds T with start < T <= last
+    run = read_run(out)
+    assert list(run.columns) == [*cfg.inputs, *cfg.sensors]
+    assert len(run) == expected and expected >= 38
+
+
+GUIDE = Path(__file__).resolve().parents[2] / "docs" / "guide" / "offline-from-can-logs.md"
+
+
+def _guide_blocks(kind: str) -> list[str]:
+    """The guide's fenced blocks of one kind (``sh``, ``text``), in order."""
+    return re.findall(rf"^```{kind}\n(.*?)^```$", GUIDE.read_text(encoding="utf-8"), re.M | re.S)
+
+
+@pytest.mark.slow  # the guide's demo recording and every command on it (about 40 s)
+def test_the_guides_commands_run_and_print_what_it_shows(tmp_path):
+    root = Path(__file__).resolve().parents[2]
+    port = subprocess.run([sys.executable, "-c", "import socket; s = socket.socket(); s.bind(('127.0.0.1', 0)); "
+                           "print(s.getsockname()[1])"], capture_output=True, text=True).stdout.strip()
+    outputs = {}
+    for block in _guide_blocks("sh"):
+        (line,) = block.strip().splitlines()
+        argv = line.split()
+        assert argv[0] == "thermal-edge", line
+        argv = [str(root / a) if a.startswith("config/") else a for a in argv[1:]]
+        if argv[0] == "demo":  # the metrics port of a test: another may be busy
+            argv += ["--metrics-port", port]
+        r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", *argv], capture_output=True, text=True,
+                           timeout=600, cwd=tmp_path, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+        assert r.returncode == 0, (line, r.stderr[-2000:])
+        outputs[argv[0]] = r.stdout + r.stderr
+    assert {"demo", "export", "replay", "calibrate", "discover"} <= set(outputs)
+    png = (tmp_path / "replay.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "calibrated.yaml").stat().st_size > 0 and (tmp_path / "ticks.csv").stat().st_size > 0
+    (shown,) = _guide_blocks("text")
+    for expected in shown.strip().splitlines():  # the counts vary by a tick or so: numbers are any number
+        pattern = re.sub(r"\d+", r"\\d+", re.escape(expected))
+        assert re.search(pattern, outputs["export"]), (expected, outputs["export"])

@@ -72,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
     raw["state"] = {**(raw.get("state") or {}), "dir": state_dir}
     slow = max(args.current_period, args.temperature_period)
     raw["timeouts"] = {k: max(float(v), 5 * slow) for k, v in (raw.get("timeouts") or {}).items()}
-    raw["recording"] = {"candump": args.record} if args.record else {}
+    # a relative --record is relative to where the user is, not to the configuration file
+    raw["recording"] = {"candump": str(Path(args.record).resolve())} if args.record else {}
     try:
         model_path = raw.get("model", {}).get("path")
         base = cfg_path.resolve().parent
