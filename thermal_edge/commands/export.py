@@ -20,7 +20,7 @@ from ..errors import UsageError
 from ..shipped import config_path
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("export", help="a CAN log as run CSVs (one sample per tick, as the service saw it)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("log", metavar="LOG", help="the CAN log (format by suffix)")

@@ -93,17 +93,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"thermal-edge replay: error: {why}", file=sys.stderr)
         return 2
     if args.format in ("can", "candump"):
-        res, service_model = replay_log(args.run, args.config, args.model, sets=split_sets(args.set),
-                                        keep_outputs=bool(args.plot or args.out))
-        summary = summarise(args.run, res, service_model)
+        replayed, service_model = replay_log(args.run, args.config, args.model, sets=split_sets(args.set),
+                                             keep_outputs=bool(args.plot or args.out))
+        summary = summarise(args.run, replayed, service_model)
         if not summary["frames"]:
             raise RunError(f"{args.run}: no CAN frame read ({summary['malformed_lines']} malformed lines): "
                            "not a CAN log of the drive, or an empty one")
-        if (args.plot or args.out) and len(res.t) < 2:
-            raise RunError(f"{args.run}: {len(res.t)} ticks: nothing to plot or write")
+        if (args.plot or args.out) and len(replayed.t) < 2:
+            raise RunError(f"{args.run}: {len(replayed.t)} ticks: nothing to plot or write")
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
         if args.plot or args.out:
-            _service_outputs(args, service_model, res)
+            _service_outputs(args, service_model, replayed)
         return 0
     if not args.model:
         raise UsageError("--model is required for CSV runs")

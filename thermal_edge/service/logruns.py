@@ -29,7 +29,6 @@ import numpy as np
 from ..bus.codec import FrameCodec
 from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
-from ..bus.stats import DROP_REASONS
 from ..config import EdgeConfig
 from ..data import Run, RunError
 from ..lptn import load_model
@@ -46,7 +45,7 @@ CAN_LOG_SUFFIXES = tuple(s for s in readable_suffixes() if s != ".csv")
 def is_can_log(path: str | os.PathLike[str]) -> bool:
     """True for a file whose suffix names a CAN log format the bus module reads (not ``.csv``)."""
     try:
-        return log_suffix(path) != ".csv"
+        return log_suffix(Path(path)) != ".csv"
     except LogFormatError:
         return False
 
@@ -135,9 +134,11 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
         if run is not None:
             out.runs.append(run)
 
-    reader = FrameLogReader(path, codec, include_tx=False)
+    reader = FrameLogReader(Path(path), codec, include_tx=False)
     try:
         for frame in reader:
+            if frame.timestamp is None:  # no time, no tick (python-can's "none"; the recorder never writes it)
+                continue
             ts = float(frame.timestamp)
             # the drive was silent (judged on the stamps, before the clock would bridge the gap):
             # this stretch ends
@@ -153,8 +154,7 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     except FileNotFoundError:
         raise RunError(f"{path}: no such CAN log") from None
     close_stretch()
-    stats = codec.stats.as_dict()
-    out.dropped = {k: int(v) for k, v in stats.items() if k in DROP_REASONS and v}
+    out.dropped = {k: v for k, v in codec.stats.dropped.items() if v}
     out.malformed_lines = len(reader.malformed_lines)
     if not out.runs:
         raise RunError(f"{Path(path)}: {out.frames} frames of the configuration's CAN matrix, not two complete "
