@@ -98,7 +98,8 @@ def log_line(got: LogRuns) -> str:
     ticks = sum(len(r) for r in got.runs)
     return (f"{got.frames} frames of the drive's CAN matrix, {dropped} dropped by the integrity checks{why}, "
             f"{got.malformed_lines} damaged lines skipped; {len(got.runs)} run(s) of {ticks} ticks in all"
-            + (f" ({got.ticks_left_out} ticks left out: before every input had a value)" if got.ticks_left_out else ""))
+            + (f" ({got.ticks_left_out} ticks left out: before every input had a value, or in stretches of fewer "
+               "than two complete ticks)" if got.ticks_left_out else ""))
 
 
 def _checked(run: Run, path: str, fmt: str, model: Model, sensors: Sequence[str] | None) -> tuple[Run, str]:

@@ -15,7 +15,9 @@ sees exactly what the service on the drive saw, one row per tick.
 A log with silences (the drive off, the service restarted) gives one run per stretch of traffic:
 a silence longer than the longest frame timeout of the configuration ends a run (its inputs would
 be stale). Ticks before every input has had a value are left out; a sensor without a usable
-reading (stale, faulty, out of the plausible range) is NaN.
+reading (stale, faulty, out of the plausible range) is NaN. A reading the live service would have
+withheld as stuck (its plausibility check over time, :class:`.health.StuckSensors`) is kept: the
+run is the data, and judging the model against it is the offline commands' job.
 """
 from __future__ import annotations
 
