@@ -229,6 +229,9 @@ def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording
     (["export", "run.txt", "--out", "x.csv"], "run.txt: unknown CAN log format"),
     (["calibrate", "--model", str(MODEL), "--run", "missing.blf", "--format", "can", "--out", "x.yaml"],
      "missing.blf: no such CAN log"),
+    (["replay", "--format", "can", "--run", "LOG", "--adapt"], "--adapt: not for a CAN log"),
+    (["replay", "--format", "can", "--run", "LOG", "--threshold", "0.2"], "--threshold: not for a CAN log"),
+    (["replay", "--format", "can", "--run", "LOG", "--method", "euler"], "--method: not for a CAN log"),
 ])
 def test_export_and_calibrate_refuse_with_one_line(tmp_path, monkeypatch, args, says):
     monkeypatch.chdir(tmp_path)

@@ -88,11 +88,28 @@ def _check_outputs(args: argparse.Namespace) -> str | None:
     return None
 
 
+#: options of the model run over a CSV run, with their defaults: a CAN log is replayed by the
+#: service itself, whose observer and adapter the configuration sets (``observer:``, ``adaptation:``)
+CSV_ONLY = {"adapt": False, "sensors": None, "period": AdapterConfig.period_s, "threshold": AdapterConfig.threshold_k,
+            "decimate": AdapterConfig.decimate, "method": None, "max_substep": None, "data_dir": None}
+
+
+def _refuse_csv_options(args: argparse.Namespace) -> None:
+    """A CAN log is replayed as the service runs: an option of the CSV replay given with it would
+    be ignored without a word, so it is refused."""
+    given = [k for k, default in CSV_ONLY.items() if getattr(args, k, default) != default]
+    if given:
+        opt = "--" + given[0].replace("_", "-")
+        raise UsageError(f"{opt}: not for a CAN log (--format can): the service replays it as its configuration "
+                         f"{args.config} says (adaptation: and observer:); {opt} is for a CSV run")
+
+
 def run(args: argparse.Namespace) -> int:
     if (why := _check_outputs(args)):
         print(f"thermal-edge replay: error: {why}", file=sys.stderr)
         return 2
     if args.format in ("can", "candump"):
+        _refuse_csv_options(args)
         replayed, service_model = replay_log(args.run, args.config, args.model, sets=split_sets(args.set),
                                              keep_outputs=bool(args.plot or args.out))
         summary = summarise(args.run, replayed, service_model)
