@@ -127,3 +127,15 @@ def test_fleet_evaluate_on_can_logs_finds_the_faulty_housing(logs):
     assert max(rms["m1"].values()) < 0.3  # the model is this machine: noise and steps only
     # the housing-to-ambient path is off: the housing sensor errs most, and well above the noise
     assert rms["m2"]["housing"] == max(rms["m2"].values()) and rms["m2"]["housing"] > 3 * rms["m1"]["housing"], rms
+
+
+def test_a_broken_config_for_the_can_logs_is_refused_before_any_task(logs, tmp_path):
+    from cli_in_process import te_here
+
+    d = logs[0]
+    broken = tmp_path / "edge.yaml"
+    broken.write_text("signals: [not, a, mapping]\n")
+    r = te_here("fleet", "evaluate", "--model", MODEL, str(d / "m1"), "--config", broken, "--out", tmp_path / "x.parquet",
+                "--workers", "1", "--no-progress")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "edge.yaml" in r.stderr, r.stderr
+    assert not (tmp_path / "x.parquet").exists()
