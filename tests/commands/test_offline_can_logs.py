@@ -229,6 +229,8 @@ def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording
     (["export", "run.txt", "--out", "x.csv"], "run.txt: unknown CAN log format"),
     (["calibrate", "--model", str(MODEL), "--run", "missing.blf", "--format", "can", "--out", "x.yaml"],
      "missing.blf: no such CAN log"),
+    (["calibrate", "--model", str(config_path("machines", "paderborn4.yaml")), "--run", "SIM", "--format", "can",
+      "--out", "x.yaml"], "a CAN log's columns are the inputs and sensors that the signals: of"),
     (["replay", "--format", "can", "--run", "LOG", "--adapt"], "--adapt: not for a CAN log"),
     (["replay", "--format", "can", "--run", "LOG", "--threshold", "0.2"], "--threshold: not for a CAN log"),
     (["replay", "--format", "can", "--run", "LOG", "--method", "euler"], "--method: not for a CAN log"),
@@ -237,7 +239,10 @@ def test_export_and_calibrate_refuse_with_one_line(tmp_path, monkeypatch, args, 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "run.txt").write_text("t,i_rms\n0,1\n")
     (tmp_path / "drive.log").write_text("(1700000000.000000) can0 7FF#00 R\n")
-    r = te_here(*["drive.log" if a == "LOG" else a for a in args])
+    if "SIM" in args:  # a log of the drive the example configuration maps
+        assert te_here("simulate", "--model", MODEL, "--cycle", config_path("cycles", "rated_heat_cool.yaml"), "--format",
+                       "can", "--duration", "5", "--out", "sim.log").returncode == 0
+    r = te_here(*["drive.log" if a == "LOG" else "sim.log" if a == "SIM" else a for a in args])
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
 
 

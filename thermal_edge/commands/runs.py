@@ -85,8 +85,13 @@ def read_checked_runs(path: str, fmt: str, model: Model, sensors: Sequence[str] 
     from ..config import load_config
     from ..service.logruns import log_runs
 
-    got = log_runs(path, load_config(config if config is not None else config_path("edge.yaml")))
-    out = [_checked(run, run.source, fmt, model, sensors) for run in got.runs]
+    cfg_path = config if config is not None else config_path("edge.yaml")
+    got = log_runs(path, load_config(cfg_path))
+    try:
+        out = [_checked(run, run.source, fmt, model, sensors) for run in got.runs]
+    except RunError as exc:  # the columns come from the configuration: say so
+        raise RunError(f"{exc}; a CAN log's columns are the inputs and sensors that the signals: of {cfg_path} "
+                       "map (give the configuration of this model with --config)") from None
     head = f"{path}: {log_line(got)}"
     return [(run, f"{head}\n{summary}" if i == 0 else summary) for i, (run, summary) in enumerate(out)]
 
