@@ -227,6 +227,9 @@ def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording
     (["export", "LOG", "--out", "no/such/dir/x.csv"], "--out no/such/dir/x.csv: no such directory"),
     (["export", "LOG", "--out", "x.parquet"], "must end in .csv"),
     (["export", "run.txt", "--out", "x.csv"], "run.txt: unknown CAN log format"),
+    (["export", "bad.asc", "--out", "x.csv"], "bad.asc: not one CAN frame read: an empty log, or not a .asc log"),
+    (["export", "empty.blf", "--out", "x.csv"], "empty.blf: not a .blf log"),
+    (["export", "LOG", "--out", "x.csv"], "drive.log: 0 frames of the configuration's CAN matrix, not two complete ticks"),
     (["calibrate", "--model", str(MODEL), "--run", "missing.blf", "--format", "can", "--out", "x.yaml"],
      "missing.blf: no such CAN log"),
     (["calibrate", "--model", str(config_path("machines", "paderborn4.yaml")), "--run", "SIM", "--format", "can",
@@ -239,6 +242,8 @@ def test_export_and_calibrate_refuse_with_one_line(tmp_path, monkeypatch, args, 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "run.txt").write_text("t,i_rms\n0,1\n")
     (tmp_path / "drive.log").write_text("(1700000000.000000) can0 7FF#00 R\n")
+    (tmp_path / "bad.asc").write_bytes(b"\x00\x01 not an asc file")
+    (tmp_path / "empty.blf").write_bytes(b"")
     if "SIM" in args:  # a log of the drive the example configuration maps
         assert te_here("simulate", "--model", MODEL, "--cycle", config_path("cycles", "rated_heat_cool.yaml"), "--format",
                        "can", "--duration", "5", "--out", "sim.log").returncode == 0

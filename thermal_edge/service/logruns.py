@@ -158,6 +158,9 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     close_stretch()
     out.dropped = {k: v for k, v in codec.stats.dropped.items() if v}
     out.malformed_lines = len(reader.malformed_lines)
+    if not reader.messages_read:
+        raise RunError(f"{Path(path)}: not one CAN frame read: an empty log, or not a {log_suffix(Path(path))} log"
+                       + (f" ({out.malformed_lines} damaged lines)" if out.malformed_lines else ""))
     if not out.runs:
         raise RunError(f"{Path(path)}: {out.frames} frames of the configuration's CAN matrix, not two complete "
                        f"ticks of every input ({', '.join(config.inputs)}): no run in this CAN log")
