@@ -118,6 +118,25 @@ def test_export_is_the_ticks_of_the_logs_frames(recording, exported):
         np.testing.assert_allclose(run.column(name), expected, rtol=CSV_REL, atol=1e-12, err_msg=name)
 
 
+@pytest.mark.slow  # a demo run (about 10 s) and the commands on it
+@pytest.mark.parametrize("suffix", [".blf", ".asc.gz", ".csv"])
+def test_the_recording_in_another_format_exports_the_same_run(recording, exported, tmp_path, suffix):
+    """python-can's own converter (``can.LogReader`` into ``can.Logger``) writes the recording in
+    another format; its export is the same run (the formats keep the timestamps to 1 µs or better)."""
+    import can
+
+    other = tmp_path / f"drive{suffix}"
+    with can.Logger(str(other)) as writer:
+        for msg in can.LogReader(str(recording)):
+            writer.on_message_received(msg)
+    r = te_here("export", other, "--out", tmp_path / "other.csv")
+    assert r.returncode == 0, r.stderr
+    a, b = read_run(exported), read_run(tmp_path / "other.csv")
+    np.testing.assert_array_equal(a.t, b.t)
+    for c in a.columns:
+        np.testing.assert_array_equal(a.columns[c], b.columns[c], err_msg=c)
+
+
 def _error_k(log_run, csv_run, model) -> float:
     """How far, K, the CSV's rounding can move a predicted or measured temperature: the readings'
     own rounding, and the prediction's through the inputs' (copper loss ~ i², so twice the

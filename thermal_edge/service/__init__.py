@@ -21,7 +21,8 @@ Modules, one job each:
 - :mod:`.metrics` -- Prometheus metrics;
 - :mod:`.systemd` -- ``sd_notify`` readiness, status and watchdog;
 - :mod:`.service` -- the asyncio service;
-- :mod:`.replay` -- a candump log through the pipeline.
+- :mod:`.replay` -- a candump log through the pipeline;
+- :mod:`.logruns` -- a CAN log as runs: the inputs and readings per tick, as the service saw them.
 """
 from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
