@@ -3,7 +3,9 @@
 Every offline command that reads a recorded run (``replay``, ``calibrate``, ``discover``,
 ``fleet``) goes through :func:`read_checked`: the file is read (:func:`thermal_edge.data.read_run`),
 the model's inputs and sensors are looked up in it, units that cannot be right are refused
-(:func:`thermal_edge.data.check_run`), and a one-line summary says what will be used. A result
+(:func:`thermal_edge.data.check_run`), and a one-line summary says what will be used. A CAN log
+(``--format can``) is read into runs by the service's pipeline (:func:`read_checked_runs`,
+:mod:`thermal_edge.service.logruns`) and each run checked the same way. A result
 that is not finite (a law of the model that overflows) is refused by :func:`require_finite`
 instead of being printed as ``inf`` or ``nan``.
 """
