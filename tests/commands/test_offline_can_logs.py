@@ -307,7 +307,6 @@ def _guide_blocks(kind: str) -> list[str]:
 
 @pytest.mark.slow  # the guide's demo recording and every command on it (about 40 s)
 def test_the_guides_commands_run_and_print_what_it_shows(tmp_path):
-    root = Path(__file__).resolve().parents[2]
     port = subprocess.run([sys.executable, "-c", "import socket; s = socket.socket(); s.bind(('127.0.0.1', 0)); "
                            "print(s.getsockname()[1])"], capture_output=True, text=True).stdout.strip()
     outputs = {}
@@ -315,7 +314,8 @@ def test_the_guides_commands_run_and_print_what_it_shows(tmp_path):
         (line,) = block.strip().splitlines()
         argv = line.split()
         assert argv[0] == "thermal-edge", line
-        argv = [str(root / a) if a.startswith("config/") else a for a in argv[1:]]
+        # the shipped files the guide names by their place in the source tree
+        argv = [str(config_path(*a.split("/")[1:])) if a.startswith("config/") else a for a in argv[1:]]
         if argv[0] == "demo":  # the metrics port of a test: another may be busy
             argv += ["--metrics-port", port]
         r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", *argv], capture_output=True, text=True,
