@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from cmd_testlib import te_here
 
+from thermal_edge.bus.frames import DEFAULT_DBC_PATH
 from thermal_edge.config import load_config
 from thermal_edge.data import read_run
 from thermal_edge.lptn import load_model
@@ -24,7 +25,7 @@ from thermal_edge.shipped import config_path
 
 CONFIG = config_path("edge.yaml")
 MODEL = config_path("machines", "pm10kw.yaml")
-DBC = Path(__file__).resolve().parents[2] / "thermal_edge" / "bus" / "thermal_edge.dbc"
+DBC = DEFAULT_DBC_PATH  # the CAN matrix the example configuration names (codec.dbc: null)
 #: simulated seconds recorded: the overload cycle's first load step, heating from ambient
 DURATION_S = 150
 #: the run CSV's values have 6 significant digits: each is off by at most this, relative
