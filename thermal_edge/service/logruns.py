@@ -21,6 +21,7 @@ run is the data, and judging the model against it is the offline commands' job.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass, field
@@ -33,7 +34,7 @@ from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig
 from ..data import Run, RunError
-from ..lptn import load_model
+from ..lptn import Role, load_model
 from .clock import FrameClock
 from .inputs import InputAccumulator, TickInputs
 
@@ -76,6 +77,13 @@ class LogRuns:
     dropped: dict[str, int] = field(default_factory=dict)
     malformed_lines: int = 0
     ticks_left_out: int = 0
+
+
+@functools.lru_cache(maxsize=4)
+def _input_roles(model_path: str, mtime_ns: int) -> dict[str, Role]:
+    """Which of the model's inputs is the current, the speed, the torque: the model loaded once per
+    file version, not once per log (a fleet reads many logs of one model)."""
+    return dict(load_model(model_path).input_roles)
 
 
 def _run(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int) -> tuple[Run | None, int]:
@@ -121,7 +129,8 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     """
     codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
     config.check_dbc(codec)
-    roles = dict(load_model(config.model.path).input_roles)
+    path_m = Path(config.model.path)
+    roles = _input_roles(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
     tick_s, catchup = config.clock.tick_s, config.clock.max_catchup_s
     silence = max(config.timeouts.values(), default=tick_s)
     source = str(path)
