@@ -145,8 +145,8 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
         if run is not None:
             out.runs.append(run)
 
-    reader = FrameLogReader(Path(path), codec, include_tx=False)
     try:
+        reader = FrameLogReader(Path(path), codec, include_tx=False)
         for frame in reader:
             if frame.timestamp is None:  # no time, no tick (python-can's "none"; the recorder never writes it)
                 continue
