@@ -3,8 +3,8 @@
 A CAN log (``.log`` candump -L, ``.asc``, ``.blf``, ``.trc``, python-can's ``.csv``, ``.mf4`` with
 asammdf; the text formats gzipped too: :mod:`thermal_edge.bus.logs`) holds frames, not samples.
 The service configuration decides everything the live service decides: the CAN matrix and its
-integrity checks (``codec:``, :class:`~thermal_edge.bus.codec.FrameCodec`: a frame with a bad CRC
-or counter is dropped here as on the drive), which frame and signal is which model input and sensor
+integrity checks (``codec:``, :class:`~thermal_edge.bus.codec.FrameCodec` with each frame's declared protection: a
+frame with a bad CRC or counter is dropped here as on the drive), which frame and signal is which model input and sensor
 (``signals:``), the tick period and the frame clock (``clock:``, :class:`.clock.FrameClock`: ticks
 where the frames' timestamps cross a tick boundary, timestamps out of order judged as live), and
 the input accumulation (:class:`.inputs.InputAccumulator`: the time mean of i² for the current,
@@ -29,8 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bus.codec import FrameCodec
-from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig
 from ..data import Run, RunError
@@ -127,7 +125,7 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     ConfigError
         The configuration's CAN matrix lacks a frame or signal its ``signals:`` name.
     """
-    codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
+    codec = config.codec.frame_codec(config.fname)
     config.check_dbc(codec)
     path_m = Path(config.model.path)
     roles = _input_roles(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
