@@ -15,7 +15,7 @@ from pathlib import Path
 import cantools
 import numpy as np
 import pytest
-from cmd_testlib import te_here
+from cmd_testlib import MODELS, te_here
 
 from thermal_edge.bus.frames import DEFAULT_DBC_PATH
 from thermal_edge.config import load_config
@@ -252,7 +252,7 @@ def test_a_log_with_a_silence_exports_two_runs_and_discover_refuses_it(recording
     (["export", "LOG", "--out", "x.csv"], "drive.log: 0 frames of the configuration's CAN matrix, not two complete ticks"),
     (["calibrate", "--model", str(MODEL), "--run", "missing.blf", "--format", "can", "--out", "x.yaml"],
      "missing.blf: no such CAN log"),
-    (["calibrate", "--model", str(config_path("machines", "paderborn4.yaml")), "--run", "SIM", "--format", "can",
+    (["calibrate", "--model", str(MODELS / "other_sensors.yaml"), "--run", "SIM", "--format", "can",
       "--out", "x.yaml"], "a CAN log's columns are the inputs and sensors that the signals: of"),
     (["replay", "--format", "can", "--run", "LOG", "--adapt"], "--adapt: not for a CAN log"),
     (["replay", "--format", "can", "--run", "LOG", "--threshold", "0.2"], "--threshold: not for a CAN log"),
