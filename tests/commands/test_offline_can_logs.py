@@ -331,3 +331,58 @@ def test_the_guides_commands_run_and_print_what_it_shows(tmp_path):
     for expected in shown.strip().splitlines():  # the counts vary by a tick or so: numbers are any number
         pattern = re.sub(r"\d+", r"\\d+", re.escape(expected))
         assert re.search(pattern, outputs["export"]), (expected, outputs["export"])
+
+
+def test_a_foreign_inverters_recording_is_decoded_by_its_configuration(tmp_path):
+    """A recording of the Acme MC-7 (its own DBC, power-invariant d/q currents, no counter or CRC)
+    exported with its edge.yaml: the current is the RMS over each tick's time (i² averaged, not i),
+    converted by the configuration's d/q convention; with the example configuration of this
+    project's CAN matrix, the same log holds no frame of it."""
+    import can
+
+    example = config_path("examples", "acme-mc7", "edge.yaml")
+    db = cantools.database.load_file(str(config_path("examples", "acme-mc7", "acme-mc7.dbc")))
+    t0, seconds = 1_700_000_000.0, 12
+    currents, motion = db.get_message_by_name("MC7_Currents"), db.get_message_by_name("MC7_Motion")
+    stator, env = db.get_message_by_name("MC7_StatorTemps"), db.get_message_by_name("MC7_Environment")
+    log = tmp_path / "mc7.log"
+    sent: list[tuple[float, float]] = []  # (time, (i_d² + i_q²) / 3 as the frame carries it, DBC scaling and all)
+    with can.Logger(str(log)) as writer:
+        for k in range(seconds * 50):  # every 20 ms; the current alternates 10 A and 30 A rms
+            t = t0 + 0.005 + k * 0.02
+            i_rms = 10.0 if k % 2 == 0 else 30.0
+            mag = math.sqrt(3) * i_rms  # power invariant: i_d² + i_q² = 3 I_rms²
+            frames = [(currents, {"MC7_CurrentD": -mag * math.sin(0.4), "MC7_CurrentQ": mag * math.cos(0.4),
+                                  "MC7_DcLinkVoltage": 560.0}),
+                      (motion, {"MC7_MotorSpeed": 900.0, "MC7_TorqueEst": 50.0, "MC7_OperatingState": 2})]
+            if k % 10 == 0:
+                frames.append((stator, {"MC7_TempWindingU": 100.0 + k / 10, "MC7_TempWindingV": 101.0,
+                                        "MC7_TempWindingW": 101.0}))
+            if k % 25 == 0:
+                frames.append((env, {"MC7_TempHousing": 60.0, "MC7_TempCoolantIn": 30.0, "MC7_TempAmbient": 25.0,
+                                     "MC7_TempPowerStage": 50.0}))
+            data = currents.encode(frames[0][1])
+            dq = currents.decode(data)
+            sent.append((t, (dq["MC7_CurrentD"] ** 2 + dq["MC7_CurrentQ"] ** 2) / 3))
+            for msg, values in frames:
+                writer.on_message_received(can.Message(timestamp=t, arbitration_id=msg.frame_id, is_extended_id=False,
+                                                       data=msg.encode(values), channel="can0", is_rx=True))
+    r = te_here("export", log, "--config", example, "--out", tmp_path / "mc7.csv")
+    assert r.returncode == 0, r.stderr
+    run = read_run(tmp_path / "mc7.csv")
+    assert len(run) == seconds - 1  # the whole seconds after the first frames, up to the last
+    # each frame's i² held until the next, averaged over the tick's second: about sqrt(500) A (25
+    # frames at 10 A, 25 at 30 A), not the mean current 20 A
+    ts, x = np.array([a for a, _ in sent]), np.array([b for _, b in sent])
+    ends = np.append(ts[1:], np.inf)
+    ticks = t0 + np.arange(1, seconds)
+    expected = [math.sqrt(np.sum(x * np.clip(np.minimum(ends, T) - np.maximum(ts, T - 1), 0, None)) / np.sum(
+        np.clip(np.minimum(ends, T) - np.maximum(ts, T - 1), 0, None))) for T in ticks]
+    np.testing.assert_allclose(run.column("i_rms"), expected, rtol=CSV_REL)
+    np.testing.assert_allclose(run.column("i_rms"), math.sqrt(500.0), rtol=0.01)
+    np.testing.assert_allclose(run.column("housing"), 60.0)
+    # the tick ending at t0 + n reads the last stator frame before it: sent at t0 + n - 0.195 (every
+    # 0.2 s from t0 + 0.005, 1 K warmer each), the 5 n - 1 th
+    np.testing.assert_allclose(run.column("slot_winding"), 100.0 + 5 * np.arange(1, seconds) - 1, atol=0.06)
+    r = te_here("export", log, "--out", tmp_path / "native.csv")
+    assert r.returncode == 2 and "0 frames of the configuration's CAN matrix" in r.stderr, r.stderr
