@@ -153,7 +153,8 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
         spread = np.inf
     gain = 1.0 - (1.0 - min_gain) * min(share, 1.0)
     margin = max(noise, spread, gain * max(mse - noise_k**2, 0.0))
-    worse = any(v[1] > v[0] + tolerance_k for v in rms.values())
+    overall = float(np.sqrt(mse))
+    worse = any(v[1] > v[0] + tolerance_k and v[1] > overall for v in rms.values())
     if mean > margin and not worse:
         outcome = "promote"
     elif (len(per) > 1 and mean < -max(noise, spread)) or final:
