@@ -104,7 +104,8 @@ class AdapterConfig:
     validate_s : float
         Most evidence (s, recorded after the fit) a challenger is judged on; undecided by then, it
         is dropped. It is promoted only if, besides the margin, no single sensor's RMS error over
-        the evidence grows by more than ``sensor_tolerance_k`` (K).
+        the evidence grows by more than ``sensor_tolerance_k`` (K) to above the parameters in
+        use's RMS error over all the sensors.
     noise_k : float
         Sensor noise σ (K) assumed in the promotion margin.
     promote_z : float

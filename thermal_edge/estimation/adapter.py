@@ -74,6 +74,10 @@ class Decision:
     evidence_s: float = 0.0  # length of the evidence it was judged on, s
     improvement_k2: float = float("nan")  # champion MSE − challenger MSE over the evidence, K²
     margin_k2: float = float("nan")  # what the improvement had to exceed, K²
+    #: what became of the judged challenger: "promoted", "dropped", "undecided" ("" if none was judged)
+    verdict: str = ""
+    #: why a judged challenger was dropped ("not better", "predicts housing worse", ...; "" otherwise)
+    refusal: str = ""
 
     def as_dict(self) -> dict[str, object]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -89,6 +93,7 @@ class Verdict:
     champion_rms: dict[str, float]
     challenger_rms: dict[str, float]
     samples: int
+    vetoed_by: tuple[str, ...] = ()  # the sensors that veto a promotion (see :func:`judge`)
 
 
 def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarray], noise_k: float, z: float,
@@ -116,10 +121,16 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
       overwhelming or persist. (Noise cannot be removed: a share of it would stop a model that
       is already the machine from ever being improved.)
 
-    Promoted when all margins are met and no sensor's RMS error grows by more than
-    ``tolerance_k``; dropped as soon as the challenger is worse by the noise and consistency
-    margins (or by the noise margin alone over a single period), or when the full evidence is in
-    and it is not promoted; otherwise the verdict waits for more evidence.
+    Promoted when all margins are met and no sensor vetoes it. A sensor vetoes when its RMS error
+    grows by more than ``tolerance_k`` *and* ends above the champion's RMS error over all sensors:
+    a model that is not yet the machine balances its errors over the sensors, so a challenger
+    that removes most of the error of the windings may leave the housing, which the champion
+    happened to predict better than the rest, a little worse; refusing that (a Pareto test)
+    keeps every sensor at the champion's larger error. What is never accepted is a sensor left
+    worse than the model in use predicts on average. Dropped as soon as the challenger is worse
+    by the noise and consistency margins (or by the noise margin alone over a single period), or
+    when the full evidence is in and it is not promoted; otherwise the verdict waits for more
+    evidence.
     """
     final = share >= 1.0
     names = [s for s in champion if s in challenger]
@@ -154,14 +165,14 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
     gain = 1.0 - (1.0 - min_gain) * min(share, 1.0)
     margin = max(noise, spread, gain * max(mse - noise_k**2, 0.0))
     overall = float(np.sqrt(mse))
-    worse = any(v[1] > v[0] + tolerance_k and v[1] > overall for v in rms.values())
-    if mean > margin and not worse:
+    vetoed = tuple(s for s, v in rms.items() if v[1] > v[0] + tolerance_k and v[1] > overall)
+    if mean > margin and not vetoed:
         outcome = "promote"
     elif (len(per) > 1 and mean < -max(noise, spread)) or final:
         outcome = "drop"
     else:
         outcome = "wait"
-    return Verdict(outcome, mean, margin, champ, chal, int(rows.sum()))
+    return Verdict(outcome, mean, margin, champ, chal, int(rows.sum()), vetoed)
 
 
 class _Ring:
@@ -399,16 +410,19 @@ class OnlineAdapter:
             self.iterate = None
             d.accepted = True
             d.params = vals
+            d.verdict = "promoted"
             d.reason = f"challenger promoted: better on the {ev}"
         elif v.outcome == "drop":
             self.challenger = None
             if v.improvement_k2 < 0:  # refuted: the search restarts from the parameters in use
                 self.iterate = None
-            worse = [s for s in v.champion_rms if v.challenger_rms[s] > v.champion_rms[s] + cfg.sensor_tolerance_k]
-            why = f"predicts {', '.join(worse)} worse" if worse else "not better"
+            why = f"predicts {', '.join(v.vetoed_by)} worse" if v.vetoed_by else "not better"
+            d.verdict, d.refusal = "dropped", why
             d.reason = f"challenger dropped ({why}) on the {ev}"
         else:
-            d.reason = f"challenger undecided on the {ev}"
+            d.verdict = "undecided"
+            wait = "one period: waiting for the next" if not np.isfinite(v.margin_k2) else f"margin {v.margin_k2:.3g} K²"
+            d.reason = f"challenger undecided on the {d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs {wait}"
 
     def _done(self, d: Decision, t0: float) -> Decision:
         d.duration_s = time.perf_counter() - t0
