@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 
 from ..shipped import config_path
-from .protection import T0, Case, ThermalEdgePolicy, closed_loop, edge_config, emulator_for
+from .protection import PLANT_DT_S, T0, Case, ThermalEdgePolicy, closed_loop, edge_config, emulator_for
 
 __all__ = ["SCENARIOS", "AdaptationBench", "Promotion", "Scenario", "ScenarioResult", "run", "run_scenario"]
 
@@ -113,6 +113,7 @@ class ScenarioResult:
     start: dict[str, float]
     rel_std: dict[str, float]  # what the scenario's data allows (1σ, relative) at the plant's parameters
     peak_hot_spot_c: float
+    derated_s: float  # plant time with the limits reduced (derating active)
     wall_s: float
 
     @property
@@ -239,6 +240,7 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
         hs_row = plant.node_index(hs.node)
         samples: list[tuple[float, float]] = []
         peak = [-math.inf]
+        derated = [0.0]
         next_sample = [SAMPLE_S]
 
         def observe(emu_: Any, pol_: Any) -> None:
@@ -246,6 +248,8 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
             out = pol_.last_out
             if out is None:
                 return
+            if out.limits.active:
+                derated[0] += PLANT_DT_S
             el = out.t - T0
             if el + 1e-9 >= next_sample[0]:
                 samples.append((el, float(out.pred_err_rms)))
@@ -304,7 +308,8 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
         name=scenario.name, doc=scenario.doc, learn=bool(start_values), pred_err_k=samples, final_pred_err_k=final_err,
         within_1k_from_s=within, promotions=promotions, decisions=len(decisions), outcomes=outcomes, refusals=refusals,
         final=final, plant={n: float(nominal[n]) for n in names}, start={n: float(start[n]) for n in names},
-        rel_std={n: rel[n] for n in names if n in rel}, peak_hot_spot_c=peak[0], wall_s=time.perf_counter() - w0,
+        rel_std={n: rel[n] for n in names if n in rel}, peak_hot_spot_c=peak[0], derated_s=derated[0],
+        wall_s=time.perf_counter() - w0,
     )
 
 
@@ -329,13 +334,13 @@ def summary_rows(res: AdaptationBench) -> list[list[object]]:
         worst = max((abs(r.param_errors_pct[k]) for k in ident), default=math.nan)
         harmed = sum(p.harmed for p in r.promotions)
         rows.append([r.name, round(r.final_pred_err_k, 2), hms(r.within_1k_from_s), len(r.promotions), harmed,
-                     sum(1 for _ in r.refusals), len(ident), round(worst, 1), round(r.peak_hot_spot_c, 1),
+                     sum(1 for _ in r.refusals), len(ident), round(worst, 1), round(r.peak_hot_spot_c, 1), hms(r.derated_s),
                      round(r.wall_s), "yes" if r.passed else "NO"])
     return rows
 
 
 SUMMARY_HEADERS = ["scenario", "final err K", "within 1 K from", "promoted", "next hour worse", "dropped",
-                   "identifiable", "worst of them %", "peak hot spot °C", "wall s", "pass"]
+                   "identifiable", "worst of them %", "peak hot spot °C", "derated for", "wall s", "pass"]
 
 
 def hms(t: float) -> str:
