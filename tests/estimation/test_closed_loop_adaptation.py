@@ -108,4 +108,4 @@ def test_the_demo_scenario_that_stalled_learns_in_closed_loop():
     assert r.final_pred_err_k <= ab.WITHIN_K and math.isfinite(r.within_1k_from_s)
     # the housing's resistance to ambient (the slowest mode, 5.1 at the start) learned to 5 %
     assert abs(r.final["R_e_hous"] / r.plant["R_e_hous"] - 1.0) < 0.05
-    assert r.derated_s > 600.0  # the closed loop: the limits held the machine back
+    assert r.derated_s > 0.0 and r.peak_hot_spot_c > 140.0  # closed loop: the hot spot near its limit, derated
