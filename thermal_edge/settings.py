@@ -83,6 +83,8 @@ class AdapterConfig:
         RMS prediction error over the last period above which the adapter optimises, K (about
         the sensor noise: a fit only makes a challenger, judged out of sample, so fitting often
         costs CPU, not accuracy; with 0.25 K the adapter stopped short in ``bench paper`` E2).
+        The open-loop error over the last ``validate_s`` above it triggers a fit too (slow
+        modes a period does not show).
     window_s : float
         History window used for estimation, s.
     min_window_s : float

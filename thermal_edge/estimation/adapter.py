@@ -3,12 +3,21 @@ last period; above a threshold, screen and optimise the adaptable parameters on 
 window. The optimised candidate does not replace the parameters in use (the *champion*) at once:
 it becomes a *challenger*, judged only on data it was not fitted to. At the following decisions
 both predict every sample recorded since, period by period open loop from the recorded state at
-each period's start (as the online trace is scored); the challenger is promoted when its squared error over the seen sensors is lower
-by more than a margin that accounts for the sensor noise and the length of the evidence
-(:func:`judge`), dropped when it is worse by that margin or when ``validate_s`` of evidence has
-not decided it. A candidate judged on its own window would pass by fitting noise and the present
-operating point (``reference/findings.md`` §6). Every decision is recorded with its evidence.
+each period's start (as the online trace is scored); the challenger is promoted when its squared
+error over the seen sensors is lower by more than a margin that accounts for the sensor noise and
+the length of the evidence (:func:`judge`), dropped when it is worse by that margin or when
+``validate_s`` of evidence has not decided it. A candidate judged on its own window would pass by
+fitting noise and the present operating point. Every decision is recorded with its evidence.
 The evidence is counted in periods, not samples: one period never decides, either way.
+
+A fit is triggered when the last period's error or the open-loop error over the last
+``validate_s`` (from the recorded state then) exceeds ``threshold_k``: a period of a few minutes
+predicted from corrected temperatures does not show the slow modes (the housing's time constant
+is hours), and the service predicts open loop over its look-ahead (30 min). With only the
+period's error a model whose short-term prediction is within the noise stopped adapting while
+its open-loop prediction drifted by 1 K over a cold light duty. The challenger is still judged
+period by period: judged open loop over all its evidence, it promoted candidates on the real
+machine that made the online trace worse from every wrong start.
 
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
@@ -57,8 +66,9 @@ class Decision:
     """
 
     t: float
-    error_before_k: float  # RMS over the last period with the current parameters
-    triggered: bool
+    error_before_k: float  # RMS over the last period with the current parameters, K
+    triggered: bool = False
+    horizon_error_k: float = float("nan")  # RMS open loop over the last validate_s with them, K
     accepted: bool = False
     candidate_error_k: float = float("nan")
     current_error_k: float = float("nan")
@@ -320,18 +330,22 @@ class OnlineAdapter:
     # -- the decision ------------------------------------------------------------------------
     def decide(self, t: float) -> Decision:
         """Judge a pending challenger on the data recorded since its fit, then, if none is
-        pending and the last period's error is above the threshold, fit a new challenger."""
+        pending and the last period's error or the open-loop error over the last ``validate_s``
+        is above the threshold, fit a new challenger."""
         cfg = self.config
         t0 = time.perf_counter()
         self.last_decision_t = t
         err = self.recent_error(t - cfg.period_s)
-        d = Decision(t=t, error_before_k=err, triggered=bool(err > cfg.threshold_k))
+        t_hist0 = float(self.history.arrays()[0][0]) if len(self.history) else t
+        d = Decision(t=t, error_before_k=err, horizon_error_k=self.recent_error(max(t_hist0, t - cfg.validate_s)))
+        above = bool(err > cfg.threshold_k or d.horizon_error_k > cfg.threshold_k)
+        d.triggered = above
         if self.challenger is not None:
             d.triggered = True
             self._judge(d, t)
             if self.challenger is not None:
                 return self._done(d, t0)
-        if not err > cfg.threshold_k:
+        if not above:
             if not d.reason:
                 d.reason = "error below threshold" if np.isfinite(err) else "no readings in the last period"
             return self._done(d, t0)
