@@ -109,3 +109,24 @@ def test_the_demo_scenario_that_stalled_learns_in_closed_loop():
     # the housing's resistance to ambient (the slowest mode, 5.1 at the start) learned to 5 %
     assert abs(r.final["R_e_hous"] / r.plant["R_e_hous"] - 1.0) < 0.05
     assert r.derated_s > 0.0 and r.peak_hot_spot_c > 140.0  # closed loop: the hot spot near its limit, derated
+
+
+def test_a_restart_shows_what_the_saved_decisions_left(tmp_path: Path):
+    from thermal_edge.bench.protection import edge_config
+    from thermal_edge.service.adaptation import Adaptation
+    from thermal_edge.service.engine import load_service_model
+    from thermal_edge.service.persistence import PersistedState
+
+    cfg = edge_config(tmp_path)
+    model = load_service_model(cfg)
+    dropped = Decision(t=100.0, error_before_k=1.0, triggered=True, verdict="dropped", refusal="not better",
+                       reason="challenger dropped (not better) on the 1800 s after its fit; challenger fitted")
+    waiting = Decision(t=280.0, error_before_k=1.0, triggered=True, verdict="undecided")
+    saved = PersistedState(model=model.name, saved_at=300.0, parameters={},
+                           decisions=[dropped.as_dict(), waiting.as_dict()])
+    ad = Adaptation(model, cfg.adaptation, 1.0, True, 500, saved, worker_mode="sync")
+    try:
+        assert ad.status == "waiting_for_evidence"
+        assert ad.last_refusal == (100.0, "not better", "challenger dropped (not better) on the 1800 s after its fit")
+    finally:
+        ad.close()

@@ -325,6 +325,13 @@ class Adaptation:
         self._pending: tuple[int, float] | None = None  # (request id, apply at)
         self._status = "starting" if config.enabled else "off"
         self._last_refusal: tuple[float, str, str] | None = None  # (t, why, the decision's reason)
+        if config.enabled and self._decisions:  # restored: what the saved decisions left
+            self._status = decision_status(self._decisions[-1])
+            for rec in reversed(self._decisions):
+                if rec.get("verdict") == "dropped":
+                    self._last_refusal = (float(rec.get("t") or 0.0), str(rec.get("refusal") or ""),
+                                          str(rec.get("reason") or "").split(";")[0])
+                    break
 
     # -- read-only views -------------------------------------------------------------------------
     @property
