@@ -394,6 +394,7 @@ class ThermalEngine:
             stale=stale, faults=faults, new_results=list(new_results or []),
             hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit), reaction_a=react_a,
             adapt_status=self.adaptation.status, adapt_refusal=refusal[1] if refusal is not None else "",
+            ages=dict(ti.ages) if ti is not None else {},
         )
 
     def placeholder(self, t: float) -> TickOutput:
