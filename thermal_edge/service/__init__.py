@@ -27,7 +27,7 @@ Modules, one job each:
 from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
 from .replay import ReplayResult, replay_candump
-from .service import EdgeService, status_line
+from .service import EdgeService, adapt_phrase, status_line
 
 __all__ = ["EdgeService", "ReplayResult", "ThermalEngine", "TickOutput", "load_service_model", "replay_candump",
-           "status_line"]
+           "adapt_phrase", "status_line"]
