@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 from ...bus.frames import DerateReason
-from ...shipped import ROOT
 from . import wire
 from .harness import (
     EDGE,
@@ -37,6 +36,7 @@ from .harness import (
     received,
     service_config_path,
 )
+from .wire import ROOT
 
 SETTLE_S = 0.4  # after a case, before its counters are read: the last frames in flight
 INIT_S = 3.0  # s into the full-bus flood from which ticks are judged

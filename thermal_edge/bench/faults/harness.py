@@ -28,8 +28,9 @@ from typing import Any, Self
 
 import yaml
 
-from ...shipped import ROOT, config_path
+from ...shipped import config_path
 from . import wire
+from .wire import ROOT
 
 GAP_S = 0.3  # the inverter drops TE_Limits after this long
 RESOLUTION_A = 0.05  # TE_CurrentLimit's factor: a limit equal to a bound may read one step above

@@ -22,7 +22,6 @@ from typing import Any
 import yaml
 
 from ...process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS
-from ...shipped import ROOT
 from . import wire
 from .harness import (
     HOT_SPOT_BAND,
@@ -44,6 +43,7 @@ from .harness import (
     unique_group,
     unit_memory_max_bytes,
 )
+from .wire import ROOT
 
 STATE = "state.json"
 LEARNED_SCALE = 1.2  # learned parameters: the nominal value moved by this factor (inside the bounds)
