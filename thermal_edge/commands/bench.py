@@ -53,6 +53,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(rl)
     add_set_arg(rl)
     rl.set_defaults(func=run_real)
+    mg = which.add_parser("magnet", help="magnet temperature from the inverter's voltages on the real Paderborn machine: "
+                                         "commissioned on the first part, scored on the rest against the LPTN")
+    mg.add_argument("--fit-minutes", type=float, action="append", default=None, metavar="MIN",
+                    help="commissioning part, minutes from the start (repeatable; default 20, 30 and 60)")
+    mg.add_argument("--json", action="store_true", help="print one JSON object")
+    add_data_dir_arg(mg)
+    mg.set_defaults(func=run_magnet)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
@@ -230,6 +237,46 @@ def run_real(args: argparse.Namespace) -> int:
         print("final vs published (± 1σ the run allows): "
               + ", ".join(f"{k} {v:+.1f} % (±{sd[k]:.1f} %)" for k, v in st["final_vs_published_pct"].items())
               + "; EKF: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["ekf_params_vs_published_pct"].items()))
+    return 0
+
+
+def run_magnet(args: argparse.Namespace) -> int:
+    from ..bench import magnet
+    from ..errors import UsageError
+
+    minutes = tuple(args.fit_minutes or magnet.FIT_MINUTES)
+    bad = [m for m in minutes if not 5.0 <= m <= 100.0]
+    if bad:
+        raise UsageError(f"--fit-minutes {bad[0]:g}: between 5 and 100 (the run is 125 min; the rest is scored)")
+    with StageBars("bench magnet") as progress:
+        r = magnet.run(args.data_dir, fit_minutes=minutes, progress=progress)
+    if args.json:
+        print(json.dumps(r, indent=2, default=float))
+        return 0
+    if "skipped" in r:
+        print(f"bench magnet skipped: {r['skipped']}")
+        return 0
+    parts = r["parts"]
+    print(f"Paderborn {r['run']}: magnet temperature from the inverter's voltages (p = {r['pole_pairs']}), "
+          "commissioned on the first MIN minutes, scored on the rest; observer: the LPTN with "
+          "stator_winding + stator_yoke; published LPTN open loop on the whole run: "
+          f"{r['published_lptn_mse']:g} K2")
+    print(table(
+        ["commissioned on", "informative", "flux RMS K", "flux cover", "LPTN open loop MSE", "observer MSE",
+         "fused MSE", "observer cover", "fused cover", "used", "refused"],
+        [[f"{m} min", f"{p['informative_share'] * 100:.0f} %", p["flux_rms_k"], p["flux_coverage"], p["open_loop_mse"],
+          p["observer_mse"], p["fused_mse"], p["observer_coverage"], p["fused_coverage"], p["used"], p["refused"]]
+         for m, p in parts.items()],
+    ))
+    print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
+    for m, p in parts.items():
+        sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
+        st = ", ".join(f"{s} {v['observer']:.2f} -> {v['fused']:.2f}" for s, v in p["stator_mse"].items())
+        print(f"{m} min: tempco {p['tempco_pct_per_k']:+.3f} %/K, psi20 {p['params']['psi20']:.4f} Wb, "
+              f"Ld0 {p['params']['ld0'] * 1e3:.3f} mH, R20 {p['params']['r20'] * 1e3:.1f} mOhm, "
+              f"V_err {p['params']['v_err']:+.2f} V; sigma by current at {p['speed_min_rpm']:.0f} rpm and up: {sig}; "
+              f"error correlation {p['tau_s']:.0f} s; magnet MSE where informative: observer "
+              f"{p['observer_mse_informative']:.2f}, fused {p['fused_mse_informative']:.2f}; stator MSE observer -> fused: {st}")
     return 0
 
 

@@ -187,6 +187,12 @@ class FluxModel:
             & (sig <= self.sigma_max_k) & np.isfinite(T)
         return np.asarray(T), np.where(ok, sig, np.inf), np.asarray(ok)
 
+    def sigma_table(self, speed_rpm: float) -> dict[str, float]:
+        """The variance table as σ (K) per current bin (``"a-b A"``) at this speed, the parameters'
+        part left out."""
+        wb = abs(float(omega_el(np.asarray(speed_rpm), self.pole_pairs)) * self.params["beta"])
+        return {f"{b * self.bin_a:g}-{(b + 1) * self.bin_a:g} A": float(np.sqrt(v)) / wb for b, v in sorted(self.var_u.items())}
+
     def _gradient(self, e: Electrical, T: np.ndarray, ia: np.ndarray) -> np.ndarray:
         """``∂T/∂θ`` over :data:`PARAMS` (..., 8)."""
         p = self.params

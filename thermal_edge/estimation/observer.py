@@ -21,6 +21,13 @@ model file's ``spread``). Their effect on the temperatures is ``∂T⁺/∂φ_j 
 
 A node the sensors barely see (the magnets) keeps the band its parameters' spread implies;
 without it the band would reflect state noise only and be optimistic wherever the model is.
+
+A direct estimate of one node from elsewhere (the magnet temperature from the inverter's voltages,
+:mod:`thermal_edge.estimation.flux`) enters through :meth:`Observer.update_node` with its own
+variance. Its gain uses the whole band (state and parameters' part): the magnet's band is mostly
+the parameters' part, and a gain from the state part alone would barely move it. The update
+refuses an estimate whose 95 % band does not overlap the model's: a wrong electrical calibration
+must not pull the magnet down; the refusals are counted.
 """
 from __future__ import annotations
 
@@ -87,6 +94,9 @@ class Observer:
         # the loss feedback enters the covariance only where a law reads a temperature or a considered parameter
         self._loss_feedback = laws.temperature_dependent or any(int(i) in law.d for law in laws.laws for i in self.cidx)
         self._dcache: OrderedDict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        #: direct node estimates used and refused by :meth:`update_node`
+        self.node_updates_used = 0
+        self.node_updates_refused = 0
 
     @property
     def P(self) -> np.ndarray:
@@ -180,6 +190,37 @@ class Observer:
         self.Pa = 0.5 * (self.Pa + self.Pa.T)
         self.S = self.S - K[:n] @ self.S[idx, :]
         return self.T
+
+    def update_node(self, node: int, value: float, var: float, z: float = 1.959963984540054) -> bool:
+        """Correct the estimate with a direct estimate ``value`` (°C, variance ``var`` K²) of node
+        index ``node``; returns whether it was used.
+
+        Refused (and counted in :attr:`node_updates_refused`) when it disagrees with the model
+        beyond both 95 % bands: ``|value − T̂| > z (σ_model + σ_value)``, or when ``var`` is not a
+        finite positive number (an uninformative operating point). The gain is the optimal one for
+        the whole covariance ``P + S Σ Sᵀ``; the update ``A = I − K e_nodeᵀ`` is applied to the
+        state part (Joseph form, ``+ var K Kᵀ``) and to ``S``, so the two parts again sum to the
+        covariance of the corrected estimate.
+        """
+        if not (np.isfinite(value) and np.isfinite(var) and var > 0.0):
+            return False
+        n, m = self._n, len(self.Pa)
+        C = self.covariance()
+        s_model = float(np.sqrt(max(C[node, node], 0.0)))
+        nu = float(value) - float(self.T[node])
+        if abs(nu) > z * (s_model + float(np.sqrt(var))):
+            self.node_updates_refused += 1
+            return False
+        K = np.zeros(m)
+        K[:n] = C[:, node] / (C[node, node] + var)
+        self.T = self.T + K[:n] * nu
+        A = np.eye(m)
+        A[:, node] -= K
+        self.Pa = A @ self.Pa @ A.T + var * np.outer(K, K)
+        self.Pa = 0.5 * (self.Pa + self.Pa.T)
+        self.S = self.S - np.outer(K[:n], self.S[node, :])
+        self.node_updates_used += 1
+        return True
 
     def std(self) -> np.ndarray:
         """Standard deviation of each node's estimate, K (state and parameter uncertainty)."""
