@@ -56,7 +56,8 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
     traj, _ = open_loop(model, run_)
     progress("observer", 0, 1 + len(fit_minutes), "run")
     base = run_fused(model, run_, SENSORS, None, node)
-    out: dict[str, object] = {"run": str(path), "pole_pairs": POLE_PAIRS, "priors": PRIORS, "parts": {}}
+    parts: dict[str, dict[str, object]] = {}
+    out: dict[str, object] = {"run": str(path), "pole_pairs": POLE_PAIRS, "priors": PRIORS, "parts": parts}
     for k, minutes in enumerate(fit_minutes):
         progress("fused", k + 1, 1 + len(fit_minutes), "run")
         n = int(round(minutes * 60.0 / run_.dt))
@@ -65,11 +66,7 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
         rest = np.arange(len(run_)) >= n
         ok = rest & np.isfinite(fu.flux_sigma)
         y = tm[rest]
-
-        def mse(x: np.ndarray) -> float:
-            return float(np.mean((x[rest] - y) ** 2))
-
-        out["parts"][f"{minutes:g}"] = {  # type: ignore[index]
+        parts[f"{minutes:g}"] = {
             "fit_samples": n, "scored_samples": int(rest.sum()),
             "params": fm.params, "param_sigma": fm.sigma, "tempco_pct_per_k": 100.0 * fm.tempco_per_k,
             "sigma_table_k": fm.sigma_table(float(np.median(np.abs(e.speed_rpm[:n])))),
@@ -77,9 +74,9 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
             "informative_share": float(ok.sum() / rest.sum()),
             "flux_rms_k": float(np.sqrt(np.mean((fu.flux_c[ok] - tm[ok]) ** 2))) if ok.any() else float("nan"),
             "flux_coverage": band_coverage(fu.flux_c[ok], fu.flux_sigma[ok], tm[ok]) if ok.any() else float("nan"),
-            "open_loop_mse": mse(traj.node(node)),
-            "observer_mse": mse(base.estimate[:, i]),
-            "fused_mse": mse(fu.estimate[:, i]),
+            "open_loop_mse": mse_of(traj.node(node), tm, rest),
+            "observer_mse": mse_of(base.estimate[:, i], tm, rest),
+            "fused_mse": mse_of(fu.estimate[:, i], tm, rest),
             "observer_coverage": band_coverage(base.estimate[rest, i], base.sigma[rest, i], y),
             "fused_coverage": band_coverage(fu.estimate[rest, i], fu.sigma[rest, i], y),
             "observer_mse_informative": float(np.mean((base.estimate[ok, i] - tm[ok]) ** 2)) if ok.any() else float("nan"),

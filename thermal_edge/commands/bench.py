@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from ..bench import jacobian, paper
 from ..text_table import table
@@ -256,7 +257,7 @@ def run_magnet(args: argparse.Namespace) -> int:
     if "skipped" in r:
         print(f"bench magnet skipped: {r['skipped']}")
         return 0
-    parts = r["parts"]
+    parts: dict[str, Any] = r["parts"]  # type: ignore[assignment]
     print(f"Paderborn {r['run']}: magnet temperature from the inverter's voltages (p = {r['pole_pairs']}), "
           "commissioned on the first MIN minutes, scored on the rest; observer: the LPTN with "
           "stator_winding + stator_yoke; published LPTN open loop on the whole run: "

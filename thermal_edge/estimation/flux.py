@@ -36,6 +36,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -212,17 +213,17 @@ class FluxModel:
         return d
 
     @staticmethod
-    def from_dict(d: Mapping[str, object]) -> FluxModel:
-        """Inverse of :meth:`as_dict`; :class:`FluxError` names a missing parameter."""
-        params = dict(d.get("params", {}))  # type: ignore[call-overload]
-        missing = [k for k in PARAMS if k not in params]
+    def from_dict(d: Mapping[str, Any]) -> FluxModel:
+        """Inverse of :meth:`as_dict`; :class:`FluxError` names a missing entry."""
+        params = dict(d.get("params", {}))
+        missing = [k for k in PARAMS if k not in params] + [k for k in ("pole_pairs", "bin_a", "speed_min_rpm") if k not in d]
         if missing:
-            raise FluxError(f"flux model: no parameter(s) {', '.join(missing)}")
-        var_u = {int(k): float(v) for k, v in dict(d.get("var_u", {})).items()}  # type: ignore[call-overload]
-        return FluxModel({k: float(params[k]) for k in PARAMS}, dict(d.get("sigma", {})),  # type: ignore[call-overload]
-                         int(d["pole_pairs"]), float(d["bin_a"]), var_u, float(d["speed_min_rpm"]),  # type: ignore[call-overload]
-                         float(d.get("sigma_max_k", 10.0)), float(d.get("tau_s", 0.0)),  # type: ignore[arg-type]
-                         [list(map(float, r)) for r in d.get("cov", [])])  # type: ignore[attr-defined]
+            raise FluxError(f"flux model: no {', '.join(missing)}")
+        return FluxModel({k: float(params[k]) for k in PARAMS}, {k: float(v) for k, v in dict(d.get("sigma", {})).items()},
+                         int(d["pole_pairs"]), float(d["bin_a"]),
+                         {int(k): float(v) for k, v in dict(d.get("var_u", {})).items()}, float(d["speed_min_rpm"]),
+                         float(d.get("sigma_max_k", 10.0)), float(d.get("tau_s", 0.0)),
+                         [[float(x) for x in row] for row in d.get("cov", [])])
 
 
 def _solve(aq: np.ndarray, ad: np.ndarray, uq: np.ndarray, ud: np.ndarray, mu: np.ndarray, sd: np.ndarray,
