@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from cli_in_process import te_here
+
 from thermal_edge.bench import magnet
 
 PADERBORN = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "paderborn"
@@ -29,6 +29,10 @@ def test_fused_magnet_no_worse_than_the_observer_on_the_real_machine():
     for s, v in p["stator_mse"].items():
         assert v["fused"] <= v["observer"] + 0.05, s
     assert np.isfinite(p["flux_rms_k"])
+    # the inductances 20 % off and the voltage error doubled: every estimate refused, the observer as before
+    w = p["wrong"]
+    assert w["refused"] > 0 and w["used"] == 0
+    assert w["fused_mse"] == pytest.approx(p["observer_mse"], abs=1e-12)
 
 
 def test_skips_visibly_without_the_data(tmp_path):

@@ -270,6 +270,11 @@ def run_magnet(args: argparse.Namespace) -> int:
          for m, p in parts.items()],
     ))
     print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
+    print(table(
+        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused"],
+        [[f"{m} min", p["wrong"]["flux_rms_k"], p["wrong"]["fused_mse"], p["wrong"]["fused_coverage"], p["wrong"]["used"],
+          p["wrong"]["refused"]] for m, p in parts.items()],
+    ))
     for m, p in parts.items():
         sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
         st = ", ".join(f"{s} {v['observer']:.2f} -> {v['fused']:.2f}" for s, v in p["stator_mse"].items())
