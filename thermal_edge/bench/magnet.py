@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import read_run
+from ..data import Run, read_run
 from ..estimation.flux import Electrical, FluxModel, fit_flux_model
 from ..estimation.fusion import run_fused
 from ..estimation.online import band_coverage
 from ..estimation.predict import open_loop
-from ..lptn import load_model
+from ..lptn import Model, load_model
 from ..shipped import config_path
 from .common import Progress, no_progress, paderborn_dir
 
@@ -95,7 +95,7 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
     return out
 
 
-def wrong_calibration(model, run_, fm: FluxModel, node: str, e: Electrical, n: int,  # type: ignore[no-untyped-def]
+def wrong_calibration(model: Model, run_: Run, fm: FluxModel, node: str, e: Electrical, n: int,
                       rest: np.ndarray) -> dict[str, float]:
     """The fused run with :data:`WRONG` applied to the commissioned model: how often the
     disagreement check refuses, and the magnet's MSE and band coverage on the rest."""
