@@ -121,3 +121,28 @@ def test_an_informative_estimate_narrows_the_magnet_band(pm10kw, heated):
     assert np.median(fused.sigma[300:, m]) < 0.5 * np.median(plain.sigma[300:, m])
     err = lambda r: np.sqrt(np.mean((r.estimate[300:, m] - truth[300:]) ** 2))  # noqa: E731
     assert err(fused) <= err(plain)
+
+
+def test_update_of_the_mean_of_two_nodes_is_the_kalman_update(pm10kw, heated):
+    obs = warmed(pm10kw, heated)
+    idx = [pm10kw.node_index("magnet_1"), pm10kw.node_index("magnet_2")]
+    h = np.zeros(len(obs.T))
+    h[idx] = 0.5
+    T0, C0 = obs.T.copy(), obs.covariance()
+    value, var = float(h @ T0) - 1.0, 0.5**2
+    assert obs.update_node(idx, value, var)
+    s = float(h @ C0 @ h) + var
+    gain = C0 @ h / s
+    np.testing.assert_allclose(obs.T, T0 + gain * (value - h @ T0), atol=1e-10)
+    np.testing.assert_allclose(obs.covariance(), C0 - np.outer(gain, h @ C0), atol=1e-9)
+
+
+def test_inflation_weakens_the_gain_not_the_check(pm10kw, heated):
+    obs = warmed(pm10kw, heated)
+    m = pm10kw.node_index(MAGNET)
+    T0, C0, s0 = obs.T.copy(), obs.covariance(), obs.std()[m]
+    far = float(T0[m]) + 1.96 * (s0 + 1.0) + 0.5  # outside both bands with σ 1 K, inside with σ 10 K
+    assert not obs.update_node(m, far, 1.0, inflate=100.0)
+    assert obs.update_node(m, float(T0[m]) + 1.0, 1.0, inflate=100.0)
+    gain = C0[:, m] / (C0[m, m] + 100.0)
+    np.testing.assert_allclose(obs.T, T0 + gain * 1.0, atol=1e-10)

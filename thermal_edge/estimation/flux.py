@@ -296,7 +296,9 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
         steady state (:func:`steady`).
     folds : int
         Forward cross-validation steps for the variance table (the run is cut into ``folds + 1``
-        contiguous blocks; each after the first is predicted by a fit on those before it).
+        contiguous blocks; each after the first is predicted by a fit on those before it). The
+        early fits have seen little: the table is conservative, the more so the narrower the
+        temperature range of the run's first part.
     bin_a : float
         Current-magnitude bin width of the variance table, A.
     min_samples : int

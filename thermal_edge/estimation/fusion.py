@@ -34,10 +34,11 @@ class FusedRun:
     informative: int
 
 
-def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | None, magnet_node: str,
+def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | None, magnet_node: str | Sequence[str],
               theta: np.ndarray | None = None, electrical: Electrical | None = None, flux_from: int = 0) -> FusedRun:
     """Replay ``run`` through the observer with the stator ``sensors`` and, where ``flux`` is given
-    and the operating point informative (and steady), the flux estimate of ``magnet_node`` (from
+    and the operating point informative (and steady), the flux estimate of ``magnet_node`` (or of
+    the mean of several magnet nodes: the flux linkage sees all magnets) (from
     sample ``flux_from`` on: a run whose first part commissioned the flux model is scored on the
     rest with only the rest's flux estimates).
 
@@ -48,7 +49,7 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     meas = {s: run.column(s) for s in sensors}
     N, n = len(run), len(model.nodes)
     obs = Observer(model, initial_from_run(model, run, theta), theta, dt)
-    m = model.node_index(magnet_node)
+    m = [model.node_index(magnet_node)] if isinstance(magnet_node, str) else [model.node_index(x) for x in magnet_node]
     est, sig = np.empty((N, n)), np.empty((N, n))
     fc, fs = np.full(N, np.nan), np.full(N, np.inf)
     if flux is not None:
@@ -64,6 +65,6 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
         obs.update({s: float(v[k]) for s, v in meas.items()})
         if flux is not None and np.isfinite(fs[k]):
-            used[k] = obs.update_node(m, float(fc[k]), float(fs[k]) ** 2 * inflate)
+            used[k] = obs.update_node(m, float(fc[k]), float(fs[k]) ** 2, inflate=inflate)
         est[k], sig[k] = obs.T, obs.std()
     return FusedRun(est, sig, fc, fs, used, obs.node_updates_refused, int(np.isfinite(fs).sum()))

@@ -191,34 +191,43 @@ class Observer:
         self.S = self.S - K[:n] @ self.S[idx, :]
         return self.T
 
-    def update_node(self, node: int, value: float, var: float, z: float = 1.959963984540054) -> bool:
+    def update_node(self, node: int | Sequence[int], value: float, var: float, inflate: float = 1.0,
+                    z: float = 1.959963984540054) -> bool:
         """Correct the estimate with a direct estimate ``value`` (°C, variance ``var`` K²) of node
-        index ``node``; returns whether it was used.
+        index ``node``, or of the mean of several nodes (the flux linkage sees all magnets, a
+        model may split them); returns whether it was used. ``inflate`` (≥ 1) weakens the update
+        to ``var · inflate`` without widening the check's band: an estimate whose errors are
+        correlated over ``inflate`` samples is one measurement per that many samples.
 
         Refused (and counted in :attr:`node_updates_refused`) when it disagrees with the model
-        beyond both 95 % bands: ``|value − T̂| > z (σ_model + σ_value)``, or when ``var`` is not a
+        beyond both 95 % bands: ``|value − h T̂| > z (σ_model + σ_value)``, or when ``var`` is not a
         finite positive number (an uninformative operating point). The gain is the optimal one for
-        the whole covariance ``P + S Σ Sᵀ``; the update ``A = I − K e_nodeᵀ`` is applied to the
-        state part (Joseph form, ``+ var K Kᵀ``) and to ``S``, so the two parts again sum to the
-        covariance of the corrected estimate.
+        the whole covariance ``C = P + S Σ Sᵀ``: ``K = C h / (hᵀ C h + r)``, ``r = var · inflate``;
+        the update ``A = I − K hᵀ`` is applied to the state part (Joseph form, ``+ r K Kᵀ``) and to ``S``,
+        so the two parts again sum to the covariance of the corrected estimate.
         """
         if not (np.isfinite(value) and np.isfinite(var) and var > 0.0):
             return False
         n, m = self._n, len(self.Pa)
+        idx = [int(node)] if isinstance(node, (int, np.integer)) else [int(i) for i in node]
+        h = np.zeros(n)
+        h[idx] = 1.0 / len(idx)
         C = self.covariance()
-        s_model = float(np.sqrt(max(C[node, node], 0.0)))
-        nu = float(value) - float(self.T[node])
-        if abs(nu) > z * (s_model + float(np.sqrt(var))):
+        Ch = C @ h
+        s2 = float(h @ Ch)
+        nu = float(value) - float(h @ self.T)
+        if abs(nu) > z * (float(np.sqrt(max(s2, 0.0))) + float(np.sqrt(var))):
             self.node_updates_refused += 1
             return False
         K = np.zeros(m)
-        K[:n] = C[:, node] / (C[node, node] + var)
+        r = var * max(float(inflate), 1.0)
+        K[:n] = Ch / (s2 + r)
         self.T = self.T + K[:n] * nu
         A = np.eye(m)
-        A[:, node] -= K
-        self.Pa = A @ self.Pa @ A.T + var * np.outer(K, K)
+        A[:, :n] -= np.outer(K, h)
+        self.Pa = A @ self.Pa @ A.T + r * np.outer(K, K)
         self.Pa = 0.5 * (self.Pa + self.Pa.T)
-        self.S = self.S - np.outer(K[:n], self.S[node, :])
+        self.S = self.S - np.outer(K[:n], h @ self.S)
         self.node_updates_used += 1
         return True
 
