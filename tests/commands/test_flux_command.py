@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from cli_in_process import te_here
 
 TRUE = {"r20": 0.018, "v_err": 1.5, "psi20": 0.11, "beta": -0.11 * 0.11 / 100.0, "ld0": 5e-4, "ld1": -6e-5,
@@ -41,11 +40,11 @@ def write_run(path: Path, seed: int, n: int = 1500) -> None:
 def test_calibrate_then_score(tmp_path):
     write_run(tmp_path / "fit.csv", 1)
     write_run(tmp_path / "use.csv", 2)
-    out = tmp_path / "flux.yaml"
+    out = tmp_path / "flux.json"
     r = te_here("flux", "calibrate", tmp_path / "fit.csv", "--pole-pairs", 4, "--out", out)
     assert r.returncode == 0, r.stderr
     assert "temperature coefficient of the flux linkage: -0.110 %/K" in r.stdout
-    saved = yaml.safe_load(out.read_text())
+    saved = json.loads(out.read_text())
     assert saved["params"]["psi20"] == pytest.approx(TRUE["psi20"], rel=0.01)
     assert saved["params"]["beta"] == pytest.approx(TRUE["beta"], rel=0.01)
     r = te_here("flux", "score", out, tmp_path / "use.csv", "--json")
@@ -64,6 +63,16 @@ def test_calibrate_then_score(tmp_path):
 ])
 def test_bad_options_are_one_line_errors(tmp_path, extra, message):
     write_run(tmp_path / "fit.csv", 1, n=200)
-    r = te_here("flux", "calibrate", tmp_path / "fit.csv", "--pole-pairs", 4, "--out", tmp_path / "f.yaml", *extra)
+    r = te_here("flux", "calibrate", tmp_path / "fit.csv", "--pole-pairs", 4, "--out", tmp_path / "f.json", *extra)
     assert r.returncode == 2
     assert message in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_score_of_a_file_that_is_not_a_flux_model(tmp_path):
+    write_run(tmp_path / "use.csv", 2, n=50)
+    (tmp_path / "f.json").write_text("{not json")
+    r = te_here("flux", "score", tmp_path / "f.json", tmp_path / "use.csv")
+    assert r.returncode == 2 and "not a file written by flux calibrate" in r.stderr
+    (tmp_path / "g.json").write_text('{"params": {}}')
+    r = te_here("flux", "score", tmp_path / "g.json", tmp_path / "use.csv")
+    assert r.returncode == 2 and "flux model: no r20" in r.stderr

@@ -2,10 +2,10 @@
 voltages on a recorded run with a measured magnet temperature, and score a commissioned estimate
 on another run.
 
-``flux calibrate RUN --out FLUX.yaml`` fits the electrical parameters (``R_s`` at 20 °C, the
+``flux calibrate RUN --out FLUX.json`` fits the electrical parameters (``R_s`` at 20 °C, the
 inverter's voltage error, ``ψ_PM`` and its temperature coefficient, ``L_d`` and ``L_q`` over the
 current) and the variance table, and prints them with the region where the estimate is
-informative. ``flux score FLUX.yaml RUN`` prints the estimate's error on a run where it is
+informative. ``flux score FLUX.json RUN`` prints the estimate's error on a run where it is
 informative.
 """
 from __future__ import annotations
@@ -16,15 +16,15 @@ import math
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from ..data import FORMATS, read_run
 from ..errors import UsageError
 from ..estimation.flux import PARAMS, UNITS, Electrical, FluxError, FluxModel, fit_flux_model
+from ..lptn import Role
 from ..text_table import table
-from ..yamlfile import parse_yaml
 
-COLUMNS = {"u_d": "u_d_v", "u_q": "u_q_v", "i_d": "i_d", "i_q": "i_q", "speed": "speed_rpm", "winding": "stator_winding"}
+COLUMNS = {"u_d": "u_d_v", "u_q": "u_q_v", "current_d": Role.CURRENT_D.default_column, "current_q": Role.CURRENT_Q.default_column,
+           "speed": Role.SPEED.default_column, "winding": "stator_winding"}
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     which = p.add_subparsers(dest="flux", required=True, metavar="ACTION")
     c = which.add_parser("calibrate", help="fit the electrical parameters and the variance table on a recorded run")
     c.add_argument("run", help="recorded run (CSV) with dq voltages and currents, speed, winding and magnet temperature")
-    c.add_argument("--out", required=True, help="write the commissioned estimate here (YAML)")
+    c.add_argument("--out", required=True, help="write the commissioned estimate here (JSON)")
     c.add_argument("--pole-pairs", type=int, required=True, help="pole pairs of the machine")
     c.add_argument("--prior", action="append", default=[], metavar="NAME=MEAN,SIGMA",
                    help=f"a parameter's prior ({', '.join(f'{k} [{UNITS[k]}]' for k in PARAMS)}); repeatable")
@@ -89,7 +89,7 @@ def main(args: argparse.Namespace) -> int:
             raise UsageError(f"--minutes {args.minutes:g}: fewer than two samples")
         head = Electrical(*(np.asarray(a)[:n] for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.speed_rpm, e.winding_c)))
         m = fit_flux_model(head, tm[:n], args.pole_pairs, run.dt, priors=_priors(args.prior), speed_min_rpm=args.speed_min)
-        Path(args.out).write_text(yaml.safe_dump(m.as_dict(), sort_keys=False))
+        Path(args.out).write_text(json.dumps(m.as_dict(), indent=1) + "\n")
         speed = float(np.median(np.abs(e.speed_rpm[:n][np.abs(e.speed_rpm[:n]) >= args.speed_min])))
         if args.json:
             print(json.dumps({**m.as_dict(), "tempco_pct_per_k": 100.0 * m.tempco_per_k,
@@ -104,7 +104,10 @@ def main(args: argparse.Namespace) -> int:
         print(f"informative from {m.speed_min_rpm:.0f} rpm, at these currents only (sigma at {speed:.0f} rpm): {sig}; "
               f"errors correlated over {m.tau_s:.0f} s")
         return 0
-    m = FluxModel.from_dict(parse_yaml(Path(args.flux_file).read_text()))
+    try:
+        m = FluxModel.from_dict(json.loads(Path(args.flux_file).read_text()))
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UsageError(f"{args.flux_file}: not a file written by flux calibrate ({exc})") from None
     T, s, ok = m.estimate(e)
     ok &= (run.t - run.t[0]) >= args.from_minute * 60.0
     ok &= np.isfinite(tm)

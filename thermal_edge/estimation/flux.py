@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ThermalEdgeError
+from ..lptn import Role
 
 #: copper's temperature coefficient of resistance near 20 °C, 1/K
 ALPHA_CU = 0.00393
@@ -84,10 +85,12 @@ class Electrical:
     winding_c: np.ndarray
 
     @staticmethod
-    def of(columns: Mapping[str, np.ndarray], u_d: str = "u_d_v", u_q: str = "u_q_v", i_d: str = "i_d",
-           i_q: str = "i_q", speed: str = "speed_rpm", winding: str = "stator_winding") -> Electrical:
-        """From a run's columns under these names; :class:`FluxError` names a missing one."""
-        names = (u_d, u_q, i_d, i_q, speed, winding)
+    def of(columns: Mapping[str, np.ndarray], u_d: str = "u_d_v", u_q: str = "u_q_v", i_d: str | None = None,
+           i_q: str | None = None, speed: str | None = None, winding: str = "stator_winding") -> Electrical:
+        """From a run's columns under these names (the currents and the speed by default under
+        their roles' usual names); :class:`FluxError` names a missing one."""
+        names = (u_d, u_q, i_d or Role.CURRENT_D.default_column, i_q or Role.CURRENT_Q.default_column,
+                 speed or Role.SPEED.default_column, winding)
         missing = [n for n in names if n not in columns]
         if missing:
             raise FluxError(f"no column(s) {', '.join(missing)} for the flux-linkage estimate")

@@ -18,8 +18,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimation.flux import ALPHA_CU, T_REF_C
-
 
 @dataclass(frozen=True)
 class Pmsm:
@@ -35,17 +33,21 @@ class Pmsm:
     v_dead: float = 3.0
     i_dead: float = 2.0
     noise_v: float = 0.3
+    #: copper's temperature coefficient of resistance, 1/K
+    alpha_cu: float = 3.93e-3
+    #: the reference temperature of ``r20`` and ``psi20``, °C
+    t_ref_c: float = 20.0
 
     def psi(self, magnet_c: np.ndarray) -> np.ndarray:
         """Permanent-magnet flux linkage at the magnet temperature, Wb."""
-        return self.psi20 * (1.0 + self.tempco * (np.asarray(magnet_c, dtype=float) - T_REF_C))
+        return self.psi20 * (1.0 + self.tempco * (np.asarray(magnet_c, dtype=float) - self.t_ref_c))
 
     def voltages(self, i_d: np.ndarray, i_q: np.ndarray, speed_rpm: np.ndarray, winding_c: np.ndarray,
                  magnet_c: np.ndarray, seed: int | None = 0) -> tuple[np.ndarray, np.ndarray]:
         """Commanded ``u_d``, ``u_q`` (V) at steady state; ``seed`` None: no noise."""
         i_d, i_q = np.asarray(i_d, dtype=float), np.asarray(i_q, dtype=float)
         w = np.asarray(speed_rpm, dtype=float) * (2.0 * np.pi / 60.0) * self.pole_pairs
-        r = self.r20 * (1.0 + ALPHA_CU * (np.asarray(winding_c, dtype=float) - T_REF_C))
+        r = self.r20 * (1.0 + self.alpha_cu * (np.asarray(winding_c, dtype=float) - self.t_ref_c))
         ia = np.hypot(i_d, i_q)
         sat = 1.0 / (1.0 + (ia / self.i_sat) ** 2)
         ld, lq = self.ld0 * sat, self.lq0 * sat
