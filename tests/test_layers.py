@@ -19,7 +19,7 @@ ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "text_table": set(),
     "lptn": {"yamlfile"},
-    "data": {"lptn"},
+    "data": {"lptn", "yamlfile"},
     "plots": set(),
     "bus": set(),
     "estimation": {"lptn", "data", "settings"},

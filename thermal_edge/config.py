@@ -34,7 +34,7 @@ from .bus.frames import TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .errors import ThermalEdgeError
 from .settings import AdapterConfig, setting, spec_of
-from .yamlfile import YamlProblem, parse_yaml
+from .yamlfile import read_document
 
 #: Errors making ``state.dir`` that the file system's state or permissions decide, not the configuration:
 #: the service starts without persistence and says so (:meth:`EdgeConfig.check_state_dir`).
@@ -814,17 +814,7 @@ def load_config(path: str | os.PathLike[str]) -> EdgeConfig:
         Unreadable file, invalid YAML, unknown or invalid key (the message names file and key).
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path.name}: not a UTF-8 text file") from None
-    try:
-        raw = parse_yaml(text)
-    except YamlProblem as exc:
-        raise ConfigError(f"{path.name}: {exc}") from None
-    return config_from_mapping(raw, path)
+    return config_from_mapping(read_document(path, ConfigError), path)
 
 
 def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) -> EdgeConfig:

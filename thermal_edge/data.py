@@ -23,6 +23,7 @@ import numpy as np
 
 from .errors import ThermalEdgeError
 from .lptn.vocabulary import Role
+from .yamlfile import SNIFF_BYTES, decode_text
 
 FORMATS = ("csv", "paderborn")
 PADERBORN_ROW_S = 2.5
@@ -80,11 +81,10 @@ class Run:
 
 #: A line of a ``candump -L`` log: ``(1700000000.000000) can0 123#11223344``.
 CANDUMP_LINE = re.compile(r"^\s*\(\d+\.\d+\)\s+\S+\s+[0-9A-Fa-f]+#")
-#: Bytes looked at to tell a binary file from a CSV.
-SNIFF_BYTES = 8192
-#: Encodings tried in turn: UTF-8 (a BOM is dropped), then Windows-1252, the usual test-bench
-#: export with "°C" or "Prüfstand" (it decodes every Latin-1 text byte the same way).
-ENCODINGS = ("utf-8-sig", "cp1252")
+#: Encodings of a run CSV: UTF-8 (the encoding policy of :mod:`thermal_edge.yamlfile`), else
+#: Windows-1252, the usual test-bench export with "°C" or "Prüfstand" (it decodes every Latin-1
+#: text byte the same way).
+FALLBACK_ENCODINGS = ("cp1252",)
 
 
 def _text(path: Path) -> str:
@@ -94,18 +94,10 @@ def _text(path: Path) -> str:
         raise RunError(f"{path}: is a directory, not a run file") from None
     except OSError as exc:
         raise RunError(f"{path}: cannot read: {exc.strerror}") from None
-    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
-        raise RunError(f"{path}: UTF-16 text (a spreadsheet's 'Unicode text' export); save it as UTF-8 or "
-                       "Windows-1252 CSV")
-    if b"\x00" in raw[:SNIFF_BYTES]:
+    if b"\x00" in raw[:SNIFF_BYTES] and raw[:2] not in (b"\xff\xfe", b"\xfe\xff"):
         raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads CAN logs "
                        "with --format can)")
-    for enc in ENCODINGS:
-        try:
-            return raw.decode(enc)
-        except UnicodeDecodeError:
-            continue
-    raise RunError(f"{path}: neither UTF-8 nor Windows-1252/Latin-1 text")
+    return decode_text(raw, str(path), RunError, FALLBACK_ENCODINGS)
 
 
 def _number(v: str, path: Path, line: int, column: str) -> float:

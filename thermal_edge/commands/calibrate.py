@@ -8,7 +8,6 @@ generations, or at ``--max-time``; SQP then polishes the best point within the t
 from __future__ import annotations
 
 import argparse
-import sys
 
 import numpy as np
 
@@ -16,6 +15,7 @@ from ..data import FORMATS
 from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from ..text_table import table
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets
+from .options import integer, names, output_file, positive_s
 from .progress import bar
 from .runs import read_checked
 
@@ -25,16 +25,16 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_model_args(p)
     p.add_argument("--run", required=True, nargs="+", help="recorded run(s)")
     p.add_argument("--format", default="csv", choices=FORMATS)
-    p.add_argument("--params", help="comma-separated parameters to fit (default: the adaptable ones)")
-    p.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
-    p.add_argument("--out", required=True, help="calibrated model file to write")
-    p.add_argument("--decimate", type=int, default=1, help="samples per optimiser step")
-    p.add_argument("--generations", type=int, default=30, help="differential-evolution generations, at most")
-    p.add_argument("--popsize", type=int, default=10)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--patience", type=int, default=PATIENCE,
+    p.add_argument("--params", type=names, help="comma-separated parameters to fit (default: the adaptable ones)")
+    p.add_argument("--sensors", type=names, help="comma-separated sensors to fit to (default: all in the runs)")
+    p.add_argument("--out", required=True, type=output_file, help="calibrated model file to write")
+    p.add_argument("--decimate", type=integer(1), default=1, help="samples per optimiser step")
+    p.add_argument("--generations", type=integer(1), default=30, help="differential-evolution generations, at most")
+    p.add_argument("--popsize", type=integer(1), default=10, help="population multiplier (default 10)")
+    p.add_argument("--seed", type=integer(0), default=0)
+    p.add_argument("--patience", type=integer(1), default=PATIENCE,
                    help=f"stop the global search after this many generations without improvement (default {PATIENCE})")
-    p.add_argument("--max-time", type=float, metavar="SECONDS", help="wall-time budget of the fit, s (default: none)")
+    p.add_argument("--max-time", type=positive_s, metavar="SECONDS", help="wall-time budget of the fit, s (default: none)")
     add_set_arg(p)
     p.set_defaults(func=run)
 
@@ -44,10 +44,6 @@ def _names(arg: str | None) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.max_time is not None and not args.max_time > 0:
-        print(f"thermal-edge calibrate: error: --max-time {args.max_time:g}: must be a positive number of seconds",
-              file=sys.stderr)
-        return 2
     model = model_from_args(args)
     sets = parse_sets(model, args.set)  # the starting values; written to --out with the fitted ones
     model = model.with_parameters(sets) if sets else model

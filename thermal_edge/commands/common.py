@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 
 from ..lptn import Model, ModelError, ParameterError, load_model
+from .options import positive_s
 
 
 def add_model_args(p: argparse.ArgumentParser, required: bool = True, discretisation: bool = False) -> None:
@@ -13,7 +14,7 @@ def add_model_args(p: argparse.ArgumentParser, required: bool = True, discretisa
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     if discretisation:
         p.add_argument("--method", choices=("zoh", "euler"), help="discretisation (default: the model's)")
-        p.add_argument("--max-substep", type=float, help="Euler sub-step limit, s (default: the model's)")
+        p.add_argument("--max-substep", type=positive_s, help="Euler sub-step limit, s (default: the model's)")
 
 
 def model_from_args(args: argparse.Namespace) -> Model:

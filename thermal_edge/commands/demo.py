@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from ..shipped import config_path
+from .options import frame_period_s, integer, ip_address, number, output_dir, output_file, positive_s
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -28,20 +29,22 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default=str(config_path("edge.yaml")), help="service configuration (default config/edge.yaml)")
     p.add_argument("--cycle", default=str(config_path("cycles", "overload.yaml")), help="drive cycle (default overload)")
-    p.add_argument("--speed", type=float, default=30.0,
+    p.add_argument("--speed", type=number(0, 10000, lo_open=True), default=30.0,
                    help="simulated seconds per wall second (default 30: the 3 h overload cycle in 6 min)")
-    p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the whole cycle)")
-    p.add_argument("--current-period", type=float, default=0.05,
+    p.add_argument("--duration", type=positive_s, default=None, help="simulated seconds (default: the whole cycle)")
+    p.add_argument("--current-period", type=frame_period_s, default=0.05,
                    help="INV_Currents/INV_Mechanics period in simulated s (default 0.05; the DBC's 0.01 at low speed)")
-    p.add_argument("--temperature-period", type=float, default=0.1, help="INV_*Temps period in simulated s")
+    p.add_argument("--temperature-period", type=frame_period_s, default=0.1, help="INV_*Temps period in simulated s")
     p.add_argument("--no-table4", dest="table4", action="store_false",
                    help="start the service's model at the plant's parameters (nothing to adapt)")
     p.add_argument("--open-loop", action="store_true", help="the machine ignores TE_Limits (to compare)")
-    p.add_argument("--metrics-address", default="127.0.0.1")
-    p.add_argument("--metrics-port", type=int, default=9108)
-    p.add_argument("--state-dir", default=None,
+    p.add_argument("--metrics-address", type=ip_address, default="127.0.0.1", help="address the metrics listen on")
+    p.add_argument("--metrics-port", type=integer(0, 65535), default=9108, help="metrics port (0: any free one)")
+    p.add_argument("--state-dir", type=output_dir, default=None,
                    help="state directory, kept (default: a fresh temporary one, removed when the demo ends)")
-    p.add_argument("--record", default=None, help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, .mf4, .csv)")
+    p.add_argument("--record", type=output_file, default=None,
+                   help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, "
+                        ".mf4, .csv)")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
 

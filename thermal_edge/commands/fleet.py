@@ -23,6 +23,7 @@ from typing import Any
 from ..data import FORMATS, RunError
 from ..errors import UsageError
 from .common import add_model_args
+from .options import integer, names, number, output_file
 from .runs import read_checked
 
 #: Run files whose summary is printed before a fleet job (the rest are counted).
@@ -42,21 +43,21 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         q.add_argument("runs", nargs="*", metavar="RUNS", help="run files, machine directories or globs")
         q.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
         q.add_argument("--id-column", help="take the machine id from this column (default: file or directory name)")
-        q.add_argument("--out", required=True, help="result table to write (Parquet)")
-        q.add_argument("--report", help="Markdown report to write (default: the table's name with .md)")
-        q.add_argument("--workers", type=int, help="local worker processes (default: one per core); with "
+        q.add_argument("--out", required=True, type=output_file, help="result table to write (Parquet)")
+        q.add_argument("--report", type=output_file, help="Markdown report to write (default: the table's name with .md)")
+        q.add_argument("--workers", type=integer(1), help="local worker processes (default: one per core); with "
                        "--scheduler, wait for this many workers")
         q.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
         q.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
     def fit(q: argparse.ArgumentParser) -> None:
-        q.add_argument("--params", help="comma-separated parameters to fit (default: the adaptable ones)")
-        q.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
-        q.add_argument("--decimate", type=int, default=DECIMATE, help=f"samples per optimiser step (default {DECIMATE})")
-        q.add_argument("--generations", type=int, default=GENERATIONS,
+        q.add_argument("--params", type=names, help="comma-separated parameters to fit (default: the adaptable ones)")
+        q.add_argument("--sensors", type=names, help="comma-separated sensors to fit to (default: all in the runs)")
+        q.add_argument("--decimate", type=integer(1), default=DECIMATE, help=f"samples per optimiser step (default {DECIMATE})")
+        q.add_argument("--generations", type=integer(1), default=GENERATIONS,
                        help=f"differential-evolution generations (default {GENERATIONS})")
-        q.add_argument("--popsize", type=int, default=POPSIZE, help=f"population multiplier (default {POPSIZE})")
-        q.add_argument("--seed", type=int, default=0)
+        q.add_argument("--popsize", type=integer(1), default=POPSIZE, help=f"population multiplier (default {POPSIZE})")
+        q.add_argument("--seed", type=integer(0), default=0)
 
     c = which.add_parser("calibrate", help="each machine's parameters from its own runs, with their uncertainty")
     common(c)
@@ -70,7 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     common(s, model_required=False)
     fit(s)
     s.add_argument("--table", help="screen this fleet calibrate table instead of calibrating RUNS")
-    s.add_argument("--threshold", type=float, default=THRESHOLD, help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
+    s.add_argument("--threshold", type=number(0, lo_open=True), default=THRESHOLD,
+                   help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
     s.set_defaults(func=run_screen)
 
 
@@ -243,10 +245,10 @@ def add_simulate_args(p: argparse.ArgumentParser) -> None:
     """``simulate --fleet N --faulty K``: the options ``thermal-edge simulate`` takes for a fleet."""
     from ..sim.fleet import FAULTY
 
-    p.add_argument("--fleet", type=int, metavar="N",
+    p.add_argument("--fleet", type=integer(1), metavar="N",
                    help="simulate a fleet of N machines of the model, one run CSV each, into the directory --out "
                         "(with manifest.json of their true parameters and faults; --seed seeds the fleet)")
-    p.add_argument("--faulty", type=int, default=FAULTY, help=f"--fleet: machines with a fault (default {FAULTY})")
+    p.add_argument("--faulty", type=integer(0), default=FAULTY, help=f"--fleet: machines with a fault (default {FAULTY})")
 
 
 def simulate_fleet(args: argparse.Namespace) -> int:

@@ -17,6 +17,8 @@ import argparse
 import sys
 import time
 
+from .options import integer, number
+
 DEFAULT_URL = "http://127.0.0.1:9108/metrics"
 CLEAR = "\x1b[H\x1b[2J"
 
@@ -29,9 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--config", help="edge.yaml whose bus: section names the bus (with --bus)")
     p.add_argument("--interface", help="python-can interface (with --bus; default: the config's)")
     p.add_argument("--channel", help="bus channel (with --bus; default: the config's)")
-    p.add_argument("--interval", type=float, default=1.0, help="seconds between refreshes (default 1)")
+    p.add_argument("--interval", type=number(0.05, 3600, unit="s"), default=1.0, help="seconds between refreshes (default 1)")
     p.add_argument("--once", action="store_true", help="print one screen and exit (bus: after listening one interval)")
-    p.add_argument("--count", type=int, default=0, help="stop after this many screens (default: until Ctrl-C)")
+    p.add_argument("--count", type=integer(0), default=0, help="stop after this many screens (default: until Ctrl-C)")
     p.set_defaults(func=run)
 
 

@@ -21,6 +21,7 @@ from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
 from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
+from .options import MAX_EPOCH_S, frame_period_s, integer, kelvin, number, output_file, positive_s
 from .progress import bar
 
 
@@ -51,23 +52,24 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)
     p.add_argument("--cycle", required=True, help="drive cycle file (config/cycles/*.yaml)")
-    p.add_argument("--out", required=True, help="output file: run CSV, or a CAN log with --format can")
+    p.add_argument("--out", required=True, type=output_file, help="output file: run CSV, or a CAN log with --format can")
     p.add_argument("--format", choices=("csv", "can", "candump"), default="csv",
                    help="csv: run CSV (default); can (old name: candump): the inverter's CAN frames as a log in "
                         "the format of --out's suffix: .log (candump -L, decodable with python -m cantools decode "
                         "dbc/thermal_edge.dbc), .asc, .blf, .trc, .mf4, .csv; .gz compresses the text formats")
-    p.add_argument("--current-period", type=float, default=0.01,
+    p.add_argument("--current-period", type=frame_period_s, default=0.01,
                    help="can: INV_Currents/INV_Mechanics period, s (default 0.01 as the DBC)")
-    p.add_argument("--temperature-period", type=float, default=0.1,
+    p.add_argument("--temperature-period", type=frame_period_s, default=0.1,
                    help="can: INV_StatorTemps/INV_AmbientTemps period, s (default 0.1)")
-    p.add_argument("--t0", type=float, default=1.7e9, help="can: timestamp of the first frame, s since the epoch")
-    p.add_argument("--duration", type=float, help="override the cycle's duration, s")
+    p.add_argument("--t0", type=number(0, MAX_EPOCH_S, unit="s"), default=1.7e9,
+                   help="can: timestamp of the first frame, s since the epoch")
+    p.add_argument("--duration", type=positive_s, help="override the cycle's duration, s")
     add_set_arg(p, "--param")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:TARGET][=PARAM=VALUE,...]",
                    help="hide a catalogue effect in the plant (repeatable; list below)")
-    p.add_argument("--noise", type=float, default=0.1, help="PT100 noise sigma, K (default 0.1)")
-    p.add_argument("--resolution", type=float, default=0.1, help="PT100 quantisation, K (default 0.1)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", type=kelvin, default=0.1, help="PT100 noise sigma, K (default 0.1)")
+    p.add_argument("--resolution", type=kelvin, default=0.1, help="PT100 quantisation, K (default 0.1)")
+    p.add_argument("--seed", type=integer(0), default=0)
     add_simulate_args(p)
     p.add_argument("--all-nodes", action="store_true", help="also write every node's true temperature (T_<node>)")
     p.set_defaults(func=run)

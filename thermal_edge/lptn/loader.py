@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ..yamlfile import YamlProblem, parse_yaml
+from ..yamlfile import read_document
 from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
 from .expr import Expr, ExprError, Num, evaluate_const, parse
 from .model import (
@@ -118,14 +118,9 @@ def load_model(path: str | os.PathLike[str], data_dir: str | os.PathLike[str] | 
 
 
 def read_yaml(path: str | os.PathLike[str], error: type[Exception]) -> Any:
-    """Parse a YAML file; a missing file or bad YAML raises ``error`` naming the file."""
-    path = Path(path)
-    try:
-        return parse_yaml(path.read_text())
-    except OSError as exc:
-        raise error(f"{path}: cannot read: {exc.strerror}") from None
-    except YamlProblem as exc:
-        raise error(f"{path.name}: {exc}") from None
+    """Parse a YAML file (UTF-8: :mod:`thermal_edge.yamlfile`'s encoding policy); a missing,
+    unreadable, binary or non-UTF-8 file or bad YAML raises ``error`` with one line naming the file."""
+    return read_document(path, error)
 
 
 def build_model(
