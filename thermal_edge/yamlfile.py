@@ -123,9 +123,10 @@ def decode_text(raw: bytes, name: str, error: type[Exception], fallback: tuple[s
                     "save the file as UTF-8") from None
 
 
-def read_text(path: str | os.PathLike[str], error: type[Exception], fallback: tuple[str, ...] = ()) -> str:
+def read_text(path: str | os.PathLike[str], error: type[Exception], fallback: tuple[str, ...] = (),
+              name: str | None = None) -> str:
     """The text of a file by the encoding policy; a missing or unreadable file raises ``error``
-    naming it (see :func:`decode_text`)."""
+    naming its path, a text problem naming ``name`` (default: the path; see :func:`decode_text`)."""
     p = Path(path)
     try:
         raw = p.read_bytes()
@@ -133,14 +134,16 @@ def read_text(path: str | os.PathLike[str], error: type[Exception], fallback: tu
         raise error(f"{p}: is a directory, not a file") from None
     except OSError as exc:
         raise error(f"{p}: cannot read: {exc.strerror or exc}") from None
-    return decode_text(raw, str(p), error, fallback)
+    return decode_text(raw, name or str(p), error, fallback)
 
 
 def read_document(path: str | os.PathLike[str], error: type[Exception]) -> Any:
     """A YAML file parsed (:func:`read_text`, then :func:`parse_yaml`); every problem raises
-    ``error`` with one line naming the file."""
-    text = read_text(path, error)
+    ``error`` with one line naming the file (its path when it cannot be read, else its name, as
+    the loaders name it with the key at fault)."""
+    name = Path(path).name
+    text = read_text(path, error, name=name)
     try:
         return parse_yaml(text)
     except YamlProblem as exc:
-        raise error(f"{path}: {exc}") from None
+        raise error(f"{name}: {exc}") from None

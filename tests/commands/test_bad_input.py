@@ -134,7 +134,7 @@ CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = 
     "--set outside the bounds": lambda tmp, g: (replay(g, "--set", "R_wh=9"), "--set R_wh=9", ["bound"]),
     "--plot with an unknown suffix": lambda tmp, g: (replay(g, "--plot", tmp / "f.txt"), "--plot", [".png"]),
     "--out with an unknown suffix": lambda tmp, g: (replay(g, "--out", tmp / "f.xlsx"), "--out", [".csv", ".parquet"]),
-    "--max-time not positive": lambda tmp, g: (calibrate(g, extra=("--max-time", "0")), "error: --max-time 0:", ["positive"]),
+    "--max-time not positive": lambda tmp, g: (calibrate(g, extra=("--max-time", "0")), "error: argument --max-time:", ["> 0 s"]),
 }
 
 

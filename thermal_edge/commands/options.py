@@ -50,13 +50,15 @@ def number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = 
             v = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number{f' {want}' if want else ''}, got {text!r}") from None
-        ok = math.isfinite(v)
-        if ok and lo is not None:
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"must be a finite number{f' {want}' if want else ''}, got {text!r}")
+        ok = True
+        if lo is not None:
             ok = v > lo if lo_open else v >= lo
         if ok and hi is not None:
             ok = v < hi if hi_open else v <= hi
         if not ok:
-            raise argparse.ArgumentTypeError(f"must be a finite number{f' {want}' if want else ''}, got {text!r}")
+            raise argparse.ArgumentTypeError(f"must be {want}, got {text!r}")
         return v
 
     parse.__name__ = "number"

@@ -83,7 +83,7 @@ def read_checked(path: str, fmt: str, model: Model, sensors: Sequence[str] | Non
         raise RunError(f"{path}: none of model {model.name}'s sensors ({', '.join(model.sensors)}) is a column "
                        f"of the run (it has: {', '.join(cols)}); the wrong model or the wrong file?")
     used_sensors = list(sensors) if sensors is not None else present
-    check_run(run, [*used_sensors, *model.temperature_inputs])
+    check_run(run, [*used_sensors, *model.temperature_inputs], dict(model.input_roles))
     run.dt  # uneven sample times are refused here, before anything is fitted  # noqa: B018
     summary = describe(run, [*model.inputs, *used_sensors])
     not_used = [s for s in model.sensors if s not in used_sensors]
