@@ -157,15 +157,16 @@ LIMIT = Plausible("degC", 20.0, 250.0, (KELVIN,), what="limit temperature")
 
 #: Plausible values of each input role, in the role's unit.
 PLAUSIBLE: dict[Role, Plausible] = {
-    # RMS: never negative; 3 kA covers the largest traction inverters
-    Role.CURRENT: Plausible("A", 0.0, 3000.0, (MILLIAMPERE,), what="RMS current"),
+    # RMS: never negative; 4 kA covers the largest traction inverters
+    Role.CURRENT: Plausible("A", 0.0, 4000.0, (MILLIAMPERE,), what="RMS current"),
     Role.CURRENT_D: Plausible("A", -5000.0, 5000.0, (MILLIAMPERE,), what="d-axis current"),
     Role.CURRENT_Q: Plausible("A", -5000.0, 5000.0, (MILLIAMPERE,), what="q-axis current"),
     # high-speed machines (spindles, turbo compressors) reach 100,000 rpm
     Role.SPEED: Plausible("rpm", -100000.0, 100000.0, what="speed"),
     Role.TORQUE: Plausible("Nm", -50000.0, 50000.0, what="torque"),
-    Role.AMBIENT: TEMPERATURE,
-    Role.COOLANT: TEMPERATURE,
+    # the air around a machine (a hot engine bay, a desert) stays below 100 degC, its coolant below 150 degC
+    Role.AMBIENT: Plausible("degC", -60.0, 100.0, (KELVIN,), whole_above=TEMPERATURE.whole_above, what="ambient temperature"),
+    Role.COOLANT: Plausible("degC", -60.0, 150.0, (KELVIN,), whole_above=TEMPERATURE.whole_above, what="coolant temperature"),
 }
 
 #: How a model file may write each role's unit (``inputs.<name>.unit``).
