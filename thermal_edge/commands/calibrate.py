@@ -17,7 +17,7 @@ from ..text_table import table
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets
 from .options import integer, names, output_file, positive_s
 from .progress import bar
-from .runs import read_checked
+from .runs import read_checked, require_finite_prediction
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
     runs = []
     for path in args.run:
         rec, summary = read_checked(path, args.format, model, _names(args.sensors))
+        require_finite_prediction(model, rec)  # a law that overflows on the run, named before the search
         print(summary, flush=True)
         runs.append(rec)
     with bar(args.generations, "calibrate: global search", "generation") as pb:
@@ -64,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = model.bounds()
     idx = model.parameter_index(res.names)
     unc = res.uncertainty
-    rows = [[n, res.start[i], res.values[i], lo[idx[i]], hi[idx[i]], 100 * unc.rel_std[i], "yes" if unc.identifiable[i] else "no"]
-            for i, n in enumerate(res.names)]
+    rows = [[n, res.start[i], res.values[i], lo[idx[i]], hi[idx[i]], 100 * unc.rel_std[i],
+             "yes" if unc.identifiable[i] else "not identifiable"] for i, n in enumerate(res.names)]
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
     print(f"objective (mean squared error, K²): start {res.objective_start:.4g}, after global search "
           f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "

@@ -15,12 +15,12 @@ import logging
 import math
 import os
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 from ..shipped import config_path
+from ..yamlfile import read_document
 from .options import frame_period_s, integer, ip_address, number, output_dir, output_file, positive_s
 
 
@@ -51,19 +51,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    import yaml
-
     from ..config import ConfigError, config_from_mapping
     from ..lptn import load_model
     from ..service import EdgeService, status_line
     from ..sim.inverter import EmulatorConfig, InverterEmulator, table4_parameters
 
     cfg_path = Path(args.config)
-    try:
-        raw = yaml.safe_load(cfg_path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        print(f"thermal-edge demo: error: {cfg_path}: {exc}", file=sys.stderr)
-        return 2
+    raw = read_document(cfg_path, ConfigError)
+    config_from_mapping(raw, cfg_path)  # the file as it is, each key checked and named, before the demo's changes
     channel = f"thermal-edge-demo-{os.getpid()}"
     own_dir = None if args.state_dir else tempfile.mkdtemp(prefix="thermal-edge-demo-")  # removed at the end
     state_dir = args.state_dir or own_dir
@@ -76,17 +71,13 @@ def run(args: argparse.Namespace) -> int:
     slow = max(args.current_period, args.temperature_period)
     raw["timeouts"] = {k: max(float(v), 5 * slow) for k, v in (raw.get("timeouts") or {}).items()}
     raw["recording"] = {"candump": args.record} if args.record else {}
-    try:
-        model_path = raw.get("model", {}).get("path")
-        base = cfg_path.resolve().parent
-        plant_model = load_model(base / model_path if model_path else config_path("machines", "pm10kw.yaml"))
-        if args.table4:
-            raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
-        config = config_from_mapping(raw, cfg_path)
-        service = EdgeService(config)
-    except (ConfigError, KeyError, ValueError) as exc:
-        print(f"thermal-edge demo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+    model_path = raw.get("model", {}).get("path")
+    base = cfg_path.resolve().parent
+    plant_model = load_model(base / model_path if model_path else config_path("machines", "pm10kw.yaml"))
+    if args.table4:
+        raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
+    config = config_from_mapping(raw, cfg_path)
+    service = EdgeService(config)
     emu_cfg = EmulatorConfig(model_path=plant_model.path or config_path("machines", "pm10kw.yaml"), cycle_path=args.cycle,
                              duration_s=args.duration, speed=args.speed, current_period_s=args.current_period,
                              temperature_period_s=args.temperature_period, plant_dt_s=max(0.1, args.current_period),

@@ -101,7 +101,10 @@ def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]
 
     if not args.runs:
         raise UsageError("no RUNS given (files, machine directories or globs)")
-    machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
+    try:
+        machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
+    except FileNotFoundError as exc:  # its message names the file, directory or glob
+        raise UsageError(f"RUNS: {exc}") from None
     model = load_model(args.model, data_dir=args.data_dir)
     sensors = _names(getattr(args, "sensors", None))
     ok, refused, errors, files, samples = [], [], [], 0, 0

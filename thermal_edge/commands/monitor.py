@@ -17,6 +17,7 @@ import argparse
 import sys
 import time
 
+from ..errors import UsageError
 from .options import integer, number
 
 DEFAULT_URL = "http://127.0.0.1:9108/metrics"
@@ -49,7 +50,7 @@ def _bus_config(args: argparse.Namespace) -> dict[str, object]:
     if args.channel:
         raw["channel"] = args.channel
     if "interface" not in raw:
-        raise SystemExit("thermal-edge monitor: error: --bus needs --config or --interface")
+        raise UsageError("--bus needs --config or --interface")
     return raw
 
 
@@ -91,15 +92,24 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int) -> int:
-    from ..bus import BusConfig, FrameCodec, create_bus
+    import can
+
+    from ..bus import BusConfig, BusConfigError, FrameCodec, create_bus
     from ..monitor.snapshot import FrameWatch
     from ..monitor.view import render
 
-    cfg = BusConfig.coerce(_bus_config(args))
+    try:
+        cfg = BusConfig.coerce(_bus_config(args))
+    except BusConfigError as exc:
+        raise UsageError(str(exc).strip().splitlines()[0]) from None
     codec = FrameCodec()
     cycles = {codec.frame_name(fid): c for fid in codec.frame_ids() if (c := codec.cycle_time_s(fid))}
     watch = FrameWatch(f"bus {cfg.interface}:{cfg.channel}", cycles)
-    bus = create_bus(cfg)
+    try:
+        bus = create_bus(cfg)
+    except (OSError, can.CanError, ImportError, ValueError) as exc:  # no such interface, no SocketCAN on this host
+        why = getattr(exc, "strerror", None) or str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UsageError(f"--bus: cannot open {cfg.interface} bus {cfg.channel!r}: {why}") from None
     try:
         next_t = time.monotonic() + args.interval
         while True:

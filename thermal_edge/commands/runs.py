@@ -98,8 +98,13 @@ def _did_you_mean(name: str, candidates: Sequence[str]) -> str:
     return f"; did you mean {close[0]!r}?" if close else ""
 
 
+#: A predicted node temperature beyond this, degC, is a law of the model out of bounds (far beyond
+#: any material's melting point), refused as the overflow it leads to instead of printed.
+DIVERGED_C = 1e4
+
+
 def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
-    """Refuse a node-temperature series that is not finite everywhere.
+    """Refuse a node-temperature series that is not finite everywhere or beyond :data:`DIVERGED_C`.
 
     Parameters
     ----------
@@ -117,12 +122,14 @@ def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
         One line naming the model file, the first node and sample that are not finite, and the
         inputs there: a loss or conductance law of the model overflows (or divides by zero).
     """
-    bad = ~np.isfinite(T)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(T) | (np.abs(T) > DIVERGED_C)
     if not bad.any():
         return
     k, i = (int(x) for x in np.argwhere(bad)[0])
     inputs = ", ".join(f"{c} = {run.columns[c][k]:g}" for c in model.inputs if c in run.columns)
-    raise ModelError(f"{model.path}: {what} is not finite from sample {k + 1} (t = {run.t[k]:g} s) on, node "
+    how = "is not finite" if not np.isfinite(T[k, i]) else f"diverges ({T[k, i]:.3g} degC)"
+    raise ModelError(f"{model.path}: {what} {how} from sample {k + 1} (t = {run.t[k]:g} s) on, node "
                      f"{model.nodes[i]!r}: a loss or conductance law overflows at {inputs}")
 
 
