@@ -101,7 +101,7 @@ def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int) -> int:
     try:
         cfg = BusConfig.coerce(_bus_config(args))
     except BusConfigError as exc:
-        raise UsageError(str(exc).strip().splitlines()[0]) from None
+        raise UsageError(f"--bus: {str(exc).strip().splitlines()[0]}") from None
     codec = FrameCodec()
     cycles = {codec.frame_name(fid): c for fid in codec.frame_ids() if (c := codec.cycle_time_s(fid))}
     watch = FrameWatch(f"bus {cfg.interface}:{cfg.channel}", cycles)

@@ -141,9 +141,18 @@ class Plausible:
         if not out.any():
             return None
         k = int(np.flatnonzero(np.isfinite(x) & ((x < self.lo) | (x > self.hi)))[0])
-        return k, f"{x[k]:g} {self.unit} is outside {self._range()}"
+        why = f"{x[k]:g} {self.unit} is outside {self._range()}"
+        inside = finite[~out]
+        for other in self.others:  # one sample in another unit: it converts into the span of the rest
+            y = float(other.convert(x[k]))
+            if inside.size and inside.min() - SPAN_MARGIN <= y <= inside.max() + SPAN_MARGIN:
+                return k, f"{why}; it looks like {other.name} ({y:.4g} {self.unit})"
+        return k, why
 
 
+#: How far a single value converted from another unit may lie outside the span of the rest of its
+#: series and still be named as given in that unit (in the series' unit: K, A).
+SPAN_MARGIN = 5.0
 #: Share of a series outside the plausible range from which the series, rather than a sample of
 #: it, is in the wrong unit (a current in mA idles in range, a spike is one sample).
 UNIT_SHARE = 0.1
