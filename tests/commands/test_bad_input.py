@@ -382,7 +382,7 @@ CONFIG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str
     "edge.yaml: safe current negative": lambda tmp, g: (
         check(_edge(tmp, lambda r: _put(r, "derating.safe_current_a", -10))), "derating.safe_current_a", ["positive"]),
     "edge.yaml: Latin-1 comment": lambda tmp, g: (
-        check(p := _latin1(_edge(tmp))), "edge.yaml", ["not UTF-8", "byte"]),
+        check(_latin1(_edge(tmp))), "edge.yaml", ["not UTF-8", "byte"]),
     "edge.yaml: binary": lambda tmp, g: (check(tmp / "bin.yaml"), "bin.yaml", ["binary file"]),
     "edge.yaml: missing": lambda tmp, g: (check(tmp / "nope.yaml"), str(tmp / "nope.yaml"), ["No such file"]),
     "edge.yaml: a list": lambda tmp, g: (check(_model(tmp, "list.yaml", text="- 1\n")), "list.yaml", ["mapping"]),
@@ -463,7 +463,10 @@ LOG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]
 
 
 # -- options: every numeric, list and path option, refused by the parser before any work -------------
-def _opt(command: list[str], option: str, value: str, fragment: str) -> Callable[[Path, Path], tuple[list[object], str, list[str]]]:
+Case = Callable[[Path, Path], tuple[list[object], str, list[str]]]
+
+
+def _opt(command: list[str], option: str, value: str, fragment: str) -> Case:
     def case(tmp: Path, g: Path) -> tuple[list[object], str, list[str]]:
         argv = [str(a).replace("{run}", str(g)).replace("{tmp}", str(tmp)) for a in command]
         v = value.replace("{tmp}", str(tmp))
@@ -503,7 +506,8 @@ OPTION_CASES = {
         (DISCOVER, "--train-fraction", "1", "< 1"), (DISCOVER, "--max-rounds", "0", ">= 1"),
         (DISCOVER, "--min-improvement", "1", "< 1"), (DISCOVER, "--min-improvement", "-0.1", ">= 0"),
         (DISCOVER, "--min-gain", "-1", ">= 0 K"), (DISCOVER, "--fit-step", "0", "> 0 s"),
-        (DISCOVER, "--out", "{tmp}/bin.csv", "existing file"), (DISCOVER, "--model-out", "{tmp}/missing/m.yaml", "does not exist"),
+        (DISCOVER, "--out", "{tmp}/bin.csv", "existing file"),
+        (DISCOVER, "--model-out", "{tmp}/missing/m.yaml", "does not exist"),
         (DISCOVER, "--effects", ",", "names"),
         (SIMULATE, "--duration", "-10", "> 0 s"), (SIMULATE, "--duration", "0", "> 0 s"), (SIMULATE, "--noise", "-1", ">= 0 K"),
         (SIMULATE, "--resolution", "nan", "finite"), (SIMULATE, "--current-period", "0", ">= 0.001 s"),
@@ -513,7 +517,8 @@ OPTION_CASES = {
         (DEMO, "--speed", "0", "> 0"), (DEMO, "--speed", "-1", "> 0"), (DEMO, "--speed", "nan", "finite"),
         (DEMO, "--duration", "0", "> 0 s"), (DEMO, "--current-period", "0", ">= 0.001 s"),
         (DEMO, "--metrics-port", "70000", "<= 65535"), (DEMO, "--metrics-port", "-1", ">= 0"),
-        (DEMO, "--metrics-address", "localhost", "not an IP address"), (DEMO, "--record", "{tmp}/missing/x.log", "does not exist"),
+        (DEMO, "--metrics-address", "localhost", "not an IP address"),
+        (DEMO, "--record", "{tmp}/missing/x.log", "does not exist"),
         (DEMO, "--state-dir", "{tmp}/bin.csv", "existing file"),
         (MONITOR, "--interval", "0", ">= 0.05 s"), (MONITOR, "--interval", "-1", ">= 0.05 s"), (MONITOR, "--count", "-1", ">= 0"),
         (FLEET, "--workers", "0", ">= 1"), (FLEET, "--generations", "-1", ">= 1"), (FLEET, "--popsize", "0", ">= 1"),
