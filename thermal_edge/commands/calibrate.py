@@ -14,7 +14,7 @@ import numpy as np
 from ..data import FORMATS
 from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from ..text_table import table
-from .common import add_model_args, add_set_arg, model_from_args, parse_sets
+from .common import add_model_args, add_set_arg, check_param_names, model_from_args, parse_sets
 from .options import integer, names, output_file, positive_s
 from .progress import bar
 from .runs import read_checked, require_finite_prediction
@@ -45,6 +45,7 @@ def _names(arg: str | None) -> list[str] | None:
 
 def run(args: argparse.Namespace) -> int:
     model = model_from_args(args)
+    check_param_names(model, _names(args.params))
     sets = parse_sets(model, args.set)  # the starting values; written to --out with the fitted ones
     model = model.with_parameters(sets) if sets else model
     runs = []

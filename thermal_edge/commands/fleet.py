@@ -22,7 +22,7 @@ from typing import Any
 
 from ..data import FORMATS, RunError
 from ..errors import UsageError
-from .common import add_model_args
+from .common import add_model_args, check_param_names
 from .options import integer, names, number, output_file
 from .runs import read_checked
 
@@ -106,6 +106,7 @@ def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]
     except FileNotFoundError as exc:  # its message names the file, directory or glob
         raise UsageError(f"RUNS: {exc}") from None
     model = load_model(args.model, data_dir=args.data_dir)
+    check_param_names(model, _names(getattr(args, "params", None)))
     sensors = _names(getattr(args, "sensors", None))
     ok, refused, errors, files, samples = [], [], [], 0, 0
     for m in machines:
@@ -146,6 +147,16 @@ def _guard(job: Any) -> Any:
             return 2
 
     return wrapped
+
+
+def _table(path: str, option: str) -> list[dict[str, Any]]:
+    """A fleet result table named by ``option``; a missing or unreadable one is a :class:`UsageError`."""
+    from ..fleet.results import read_table
+
+    try:
+        return read_table(path)
+    except OSError as exc:  # its message names the file
+        raise UsageError(f"{option} {exc}") from None
 
 
 def _calibrate_rows(args: argparse.Namespace, client: Any, machines: list[Any]) -> list[dict[str, Any]]:
@@ -194,14 +205,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from ..fleet import require_fleet_extra
     from ..fleet.cluster import connect, map_machines
     from ..fleet.evaluate import evaluate_machine
-    from ..fleet.results import read_table
-
     require_fleet_extra()
     machines, refused = _machines(args)
     params: list[dict[str, float] | None] = [None] * len(machines)
     if args.calibrated:
         fitted: dict[str, dict[str, float]] = {}
-        for r in read_table(args.calibrated):
+        for r in _table(args.calibrated, "--calibrated"):
             if r["kind"] == "parameter":
                 fitted.setdefault(r["machine"], {})[r["name"]] = r["value"]
         missing = [m.id for m in machines if m.id not in fitted]
@@ -223,14 +232,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
 def run_screen(args: argparse.Namespace) -> int:
     from ..fleet import require_fleet_extra
     from ..fleet.cluster import connect
-    from ..fleet.results import read_table
     from ..fleet.screen import screen
 
     require_fleet_extra()
     if args.table:
         if args.runs:
             raise UsageError("give either RUNS or --table, not both")
-        rows = [r for r in read_table(args.table) if r["kind"] in ("parameter", "error")]
+        rows = [r for r in _table(args.table, "--table") if r["kind"] in ("parameter", "error")]
         intro = [f"`thermal-edge fleet screen` of the calibration table `{args.table}`."]
     else:
         if not args.model:
@@ -267,7 +275,12 @@ def simulate_fleet(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else cycle.duration_s
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    specs = plan_fleet(model, args.fleet, args.faulty, args.seed)
+    if args.faulty > args.fleet:
+        raise UsageError(f"--faulty {args.faulty}: more than the --fleet of {args.fleet} machines")
+    try:
+        specs = plan_fleet(model, args.fleet, args.faulty, args.seed)
+    except KeyError as exc:  # the faults need parameters of the model the fleet is planned for
+        raise UsageError(f"--fleet: {exc.args[0] if exc.args else exc}") from None
     for spec in specs:
         write_machine(model, cycle, spec, out, duration, args.noise, args.resolution)
     write_manifest(out, args.model, args.cycle, specs, duration, args.seed)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 __all__ = ["MAX_EPOCH_S", "frame_period_s", "integer", "ip_address", "kelvin", "names", "number", "output_dir", "output_file",
-           "positive_s"]
+           "output_path", "positive_s"]
 
 #: Latest time stamp taken as seconds since the epoch (the year 2286); a larger one is in ms or µs.
 MAX_EPOCH_S = 1e10
@@ -131,6 +131,15 @@ def output_file(text: str) -> str:
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"{p} is a directory; give a file name")
     _parent_ok(p)
+    return text
+
+
+def output_path(text: str) -> str:
+    """A file or a directory to write (the command says which it makes): its parent exists and
+    is writable."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path")
+    _parent_ok(Path(text))
     return text
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import shlex
+from pathlib import Path
 
 from ..data import write_run
 from ..discovery import effects as E
@@ -21,7 +22,7 @@ from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
 from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
-from .options import MAX_EPOCH_S, frame_period_s, integer, kelvin, number, output_file, positive_s
+from .options import MAX_EPOCH_S, frame_period_s, integer, kelvin, number, output_path, positive_s
 from .progress import bar
 
 
@@ -52,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)
     p.add_argument("--cycle", required=True, help="drive cycle file (config/cycles/*.yaml)")
-    p.add_argument("--out", required=True, type=output_file, help="output file: run CSV, or a CAN log with --format can")
+    p.add_argument("--out", required=True, type=output_path, help="output file: run CSV, or a CAN log with --format can")
     p.add_argument("--format", choices=("csv", "can", "candump"), default="csv",
                    help="csv: run CSV (default); can (old name: candump): the inverter's CAN frames as a log in "
                         "the format of --out's suffix: .log (candump -L, decodable with python -m cantools decode "
@@ -78,6 +79,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 def run(args: argparse.Namespace) -> int:
     if args.fleet is not None:
         return simulate_fleet(args)
+    if Path(args.out).is_dir():
+        raise UsageError(f"--out {args.out}: a directory; give a file name (a directory is written with --fleet only)")
     if args.format in ("can", "candump"):
         return run_can_log(args)
     raw = hidden.read_document(args.model)
