@@ -527,6 +527,50 @@ OPTION_CASES = {
         (["run", "--config", "{tmp}/edge.yaml"], "--log-level", "loud", "invalid choice"),
     ]
 }
+OPTION_CASES.update({
+    "bench jacobian --repeat 0": _opt(["bench", "jacobian"], "--repeat", "0", ">= 1"),
+    "bench service --hours 0": _opt(["bench", "service"], "--hours", "0", ">= 0.0166667 h"),
+    "bench protection --jobs 0": _opt(["bench", "protection"], "--jobs", "0", ">= 1"),
+    "calibrate --params naming no parameter": lambda tmp, g: ([*calibrate(g), "--params", "R_hw"], "--params 'R_hw'",
+                                                              ["no such parameter", "did you mean 'R_wh'"]),
+    "fleet calibrate --params naming no parameter": lambda tmp, g: (
+        ["fleet", "calibrate", "--model", TWO_NODE, g, "--out", tmp / "f.parquet", "--params", "nope"], "--params 'nope'",
+        ["no such parameter"]),
+    "fleet evaluate --calibrated missing": lambda tmp, g: (
+        ["fleet", "evaluate", "--model", TWO_NODE, g, "--out", tmp / "f.parquet", "--calibrated", tmp / "nope.parquet"],
+        "--calibrated", ["nope.parquet", "no such result table"]),
+    "fleet screen --table missing": lambda tmp, g: (
+        ["fleet", "screen", "--table", tmp / "nope.parquet", "--out", tmp / "f.parquet"], "--table", ["no such result table"]),
+    "simulate --fleet of a model without the faults' parameters": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "fleet", "--fleet", "2", "--faulty", "1"],
+        "--fleet", ["has no parameter(s)"]),
+    "simulate --faulty above --fleet": lambda tmp, g: (
+        ["simulate", "--model", ROOT / "config" / "machines" / "pm10kw.yaml", "--cycle", CYCLE, "--out", tmp / "fleet",
+         "--fleet", "2", "--faulty", "5"], "--faulty 5", ["more than the --fleet"]),
+    "simulate --out a directory": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp],
+                                                   f"--out {tmp}", ["a directory"]),
+    "simulate --effect unknown": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv",
+                                                  "--effect", "nope"], "effect 'nope'", ["unknown"]),
+    "simulate --set not a number": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv",
+                                                    "--set", "R_wh=abc"], "--set 'R_wh=abc'", ["NAME=VALUE"]),
+    "replay --set an unknown parameter": lambda tmp, g: (replay(g, "--set", "nope=1"), "--set nope=1", ["no parameter"]),
+    "a cycle with a Latin-1 comment": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _latin1(_copy(CYCLE, tmp / "c.yaml")), "--out", tmp / "o.csv"],
+        "c.yaml", ["not UTF-8"]),
+    "no such cycle": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", tmp / "nope.yaml", "--out", tmp / "o.csv"],
+                                     str(tmp / "nope.yaml"), ["No such file"]),
+    "a model given as the cycle": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", TWO_NODE, "--out",
+                                                   tmp / "o.csv"], "two_node.yaml", ["segments"]),
+    "a binary cycle": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", tmp / "bin.yaml", "--out", tmp / "o.csv"],
+                                      "bin.yaml", ["binary file"]),
+})
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.write_bytes(src.read_bytes())
+    return dst
+
+
 OPTION_CASES["monitor --bus without a bus"] = lambda tmp, g: (["monitor", "--bus", "--once"], "--bus", ["--interface"])
 OPTION_CASES["monitor --bus where there is no such interface"] = lambda tmp, g: (
     ["monitor", "--bus", "--once", "--interface", "no_such_interface", "--channel", "x"], "--bus", ["no_such_interface"])
