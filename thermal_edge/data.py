@@ -229,10 +229,10 @@ def check_run(run: Run, temperatures: Sequence[str], inputs: Mapping[str, Role] 
         found = rule.series_problem(x)
         if found is None:
             continue
-        k, why = found
-        if k is None:
+        at, why = found
+        if at is None:
             raise RunError(f"{run.source}: column {name!r}: {why}")
-        raise RunError(f"{run.source}: column {name!r}, sample {k + 1} (t = {run.t[k]:g} s): {why}")
+        raise RunError(f"{run.source}: column {name!r}, sample {at + 1} (t = {run.t[at]:g} s): {why}")
 
 
 def describe(run: Run, used: Sequence[str]) -> str:

@@ -135,7 +135,7 @@ class Plausible:
         if whole or out.any():
             for other in self.others:
                 y = other.convert(finite)
-                if ((y >= self.lo) & (y <= self.hi)).all() and (whole or out.mean() >= UNIT_SHARE):
+                if bool(np.all((y >= self.lo) & (y <= self.hi))) and (whole or out.mean() >= UNIT_SHARE):
                     return None, (f"{finite.min():.6g} to {finite.max():.6g} looks like {other.name} "
                                   f"({float(np.min(y)):.4g} to {float(np.max(y)):.4g} {self.unit}); give it in {self.unit}")
         if not out.any():

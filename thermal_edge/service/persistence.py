@@ -319,13 +319,14 @@ class PersistedState:
             for arr, what in ((st.T, "T"), (st.T_pred, "T_pred")):
                 found = TEMPERATURE.series_problem(np.asarray(arr, dtype=float)) if arr else None
                 if found is not None:
-                    k, why = found
-                    where = what if k is None else f"{what}[{k}] (node {model.nodes[k]!r})"
-                    raise StateError(f"{where}: temperatures outside {TEMPERATURE.lo:g}..{TEMPERATURE.hi:g} degC: {why}")
+                    at, cause = found
+                    where = what if at is None else f"{what}[{at}] (node {model.nodes[at]!r})"
+                    raise StateError(f"{where}: temperatures outside {TEMPERATURE.lo:g}..{TEMPERATURE.hi:g} degC: {cause}")
         for name, v in st.inputs.items():
             role = model.input_roles.get(name)
-            if role is not None and (why := role.plausible.problem(v)):
-                raise StateError(f"inputs.{name}: {why}")
+            problem = role.plausible.problem(v) if role is not None else None
+            if problem:
+                raise StateError(f"inputs.{name}: {problem}")
         return st
 
 
