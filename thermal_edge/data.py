@@ -261,7 +261,7 @@ def write_run(path: str | os.PathLike[str], run: Run, comment: str = "") -> None
     path = Path(path)
     names = list(run.columns)
     data = np.column_stack([run.t] + [run.columns[k] for k in names])
-    with open(path, "w", newline="") as fh:
+    with open(path, "w", newline="", encoding="utf-8") as fh:
         for line in comment.splitlines():
             fh.write(f"# {line}\n")
         w = csv.writer(fh)

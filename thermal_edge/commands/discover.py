@@ -67,7 +67,7 @@ def _run_header(path: str) -> list[str]:
     """The comment lines at the top of a run CSV (how it was made), as shell comments."""
     out = []
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8", errors="replace") as fh:  # a Windows-1252 run too
             for line in fh:
                 if not line.startswith("#"):
                     break

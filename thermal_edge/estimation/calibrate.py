@@ -175,7 +175,7 @@ def write_calibrated(model_path: str | Path, values: dict[str, float], out_path:
     KeyError
         If a parameter's line is not in that form (the file is then left unwritten).
     """
-    lines = Path(model_path).read_text().splitlines()
+    lines = Path(model_path).read_text(encoding="utf-8").splitlines()
     out, in_params, done = [], False, set()
     for line in lines:
         if re.match(r"^\S", line):
@@ -193,4 +193,4 @@ def write_calibrated(model_path: str | Path, values: dict[str, float], out_path:
     if missing:
         raise KeyError(f"{model_path}: parameters.{sorted(missing)[0]}: not written as 'name: {{value: ..., ...}}'")
     header = [f"# calibrated by thermal-edge calibrate from {Path(model_path).name}" + (f": {note}" if note else "")]
-    Path(out_path).write_text("\n".join(header + out) + "\n")
+    Path(out_path).write_text("\n".join(header + out) + "\n", encoding="utf-8")
