@@ -571,6 +571,9 @@ def _copy(src: Path, dst: Path) -> Path:
     return dst
 
 
+OPTION_CASES["monitor --metrics not a URL"] = _opt(["monitor", "--once"], "--metrics", "notaurl", "http:// URL")
+OPTION_CASES["fleet screen --table not Parquet"] = lambda tmp, g: (
+    ["fleet", "screen", "--table", g, "--out", tmp / "f.parquet"], f"--table {g}", ["not a Parquet table"])
 OPTION_CASES["monitor --bus without a bus"] = lambda tmp, g: (["monitor", "--bus", "--once"], "--bus", ["--interface"])
 OPTION_CASES["monitor --bus where there is no such interface"] = lambda tmp, g: (
     ["monitor", "--bus", "--once", "--interface", "no_such_interface", "--channel", "x"], "--bus", ["no_such_interface"])

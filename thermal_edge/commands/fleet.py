@@ -155,8 +155,9 @@ def _table(path: str, option: str) -> list[dict[str, Any]]:
 
     try:
         return read_table(path)
-    except OSError as exc:  # its message names the file
-        raise UsageError(f"{option} {exc}") from None
+    except (OSError, KeyError, ValueError) as exc:  # missing, not a Parquet table: the message names the file
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
+        raise UsageError(f"{option} {str(msg).splitlines()[0]}") from None
 
 
 def _calibrate_rows(args: argparse.Namespace, client: Any, machines: list[Any]) -> list[dict[str, Any]]:

@@ -18,7 +18,7 @@ import sys
 import time
 
 from ..errors import UsageError
-from .options import integer, number
+from .options import http_url, integer, number
 
 DEFAULT_URL = "http://127.0.0.1:9108/metrics"
 CLEAR = "\x1b[H\x1b[2J"
@@ -27,7 +27,8 @@ CLEAR = "\x1b[H\x1b[2J"
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("monitor", help="live view of a running service (metrics or bus)", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--metrics", default=DEFAULT_URL, metavar="URL", help=f"metrics endpoint (default {DEFAULT_URL})")
+    p.add_argument("--metrics", type=http_url, default=DEFAULT_URL, metavar="URL",
+                   help=f"metrics endpoint (default {DEFAULT_URL})")
     p.add_argument("--bus", action="store_true", help="listen to the CAN bus instead of the metrics endpoint")
     p.add_argument("--config", help="edge.yaml whose bus: section names the bus (with --bus)")
     p.add_argument("--interface", help="python-can interface (with --bus; default: the config's)")

@@ -13,8 +13,8 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-__all__ = ["MAX_EPOCH_S", "frame_period_s", "integer", "ip_address", "kelvin", "names", "number", "output_dir", "output_file",
-           "output_path", "positive_s"]
+__all__ = ["MAX_EPOCH_S", "frame_period_s", "http_url", "integer", "ip_address", "kelvin", "names", "number", "output_dir",
+           "output_file", "output_path", "positive_s"]
 
 #: Latest time stamp taken as seconds since the epoch (the year 2286); a larger one is in ms or µs.
 MAX_EPOCH_S = 1e10
@@ -99,6 +99,16 @@ positive_s = number(0, lo_open=True, unit="s")
 frame_period_s = number(0.001, 10, unit="s")
 #: A non-negative temperature difference, K.
 kelvin = number(0, unit="K")
+
+
+def http_url(text: str) -> str:
+    """An ``http://`` or ``https://`` URL with a host."""
+    from urllib.parse import urlsplit
+
+    parts = urlsplit(text)
+    if parts.scheme not in ("http", "https") or not parts.netloc:
+        raise argparse.ArgumentTypeError(f"expected an http:// URL such as http://127.0.0.1:9108/metrics, got {text!r}")
+    return text
 
 
 def names(text: str) -> str:
