@@ -25,7 +25,7 @@ from .runs import read_checked, require_finite_prediction
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("discover", help="find, name and add the physical effect a model lacks", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", required=True, help="machine model file (config/machines/*.yaml)")
+    p.add_argument("--model", required=True, help="machine model: a file, or the name of a packaged one (pm10kw, paderborn4)")
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     p.add_argument("--run", help="recorded run (CSV)")
     p.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
@@ -58,7 +58,12 @@ def list_effects(args: argparse.Namespace) -> int:
     for name, eff in E.CATALOGUE.items():
         tg = E.targets(ctx, eff)
         params = ", ".join(f"{p.short} [{p.unit}] default {p.default:g}" + ("" if p.primary else " (shape)") for p in eff.params)
-        where = "not applicable" if not tg else ("no target" if tg == [None] else f"{len(tg)} targets: " + ", ".join(map(str, tg)))
+        if not tg:
+            where = f"not placeable: {E.unplaceable_reason(ctx, eff)}"
+        elif tg == [None]:
+            where = E.placement(ctx, eff) or "no target"
+        else:
+            where = f"{len(tg)} targets: " + ", ".join(map(str, tg))
         print(f"{name}: {eff.doc}\n    parameters: {params}\n    {where}")
     return 0
 
@@ -155,6 +160,11 @@ def run(args: argparse.Namespace) -> int:
             if not sep["sensors_separate"] and sep["node_separates"]:
                 print(f"  no sensor of this run separates them there ({sep['diff_k']:.2f} K apart); a sensor on "
                       f"{sep['node']} would ({sep['node_winner_c']:.1f} vs {sep['node_runner_up_c']:.1f} °C)")
+    if disc.signature is not None:
+        print(f"the residual {disc.signature.describe()} (held-out, reading - model)")
+    for n in disc.not_placeable:
+        fits = disc.signature is not None and disc.signature.fits(n.effect.explains)
+        print(f"not placeable: {n.effect.name} ({n.reason})" + ("; it would fit the residual's signature" if fits else ""))
     g = d["gap_detail"]
     if g and g["worst_sensor"]:
         print(f"unexplained gap {g['gap_k']:.3f} K ({g['ratio']:.0f}x the noise floor), largest on {g['worst_sensor']}; "
