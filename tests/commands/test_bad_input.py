@@ -553,6 +553,9 @@ OPTION_CASES.update({
                                                   "--effect", "nope"], "effect 'nope'", ["unknown"]),
     "simulate --set not a number": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv",
                                                     "--set", "R_wh=abc"], "--set 'R_wh=abc'", ["NAME=VALUE"]),
+    "simulate --effect of an absurd magnitude": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "60", "--out", tmp / "o.csv",
+         "--effect", "ambient_offset=dT=1e300"], "the simulated plant (with --effect)", ["diverges", "node 'winding'"]),
     "replay --set an unknown parameter": lambda tmp, g: (replay(g, "--set", "nope=1"), "--set nope=1", ["no parameter"]),
     "a cycle with a Latin-1 comment": lambda tmp, g: (
         ["simulate", "--model", TWO_NODE, "--cycle", _latin1(_copy(CYCLE, tmp / "c.yaml")), "--out", tmp / "o.csv"],

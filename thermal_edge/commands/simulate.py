@@ -13,6 +13,8 @@ import argparse
 import shlex
 from pathlib import Path
 
+import numpy as np
+
 from ..data import write_run
 from ..discovery import effects as E
 from ..discovery import hidden
@@ -24,6 +26,7 @@ from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
 from .options import MAX_EPOCH_S, frame_period_s, integer, kelvin, number, output_path, positive_s
 from .progress import bar
+from .runs import require_finite
 
 
 def _effects_help() -> str:
@@ -111,14 +114,17 @@ def run(args: argparse.Namespace) -> int:
         doc, resolved = hidden.plant_document(raw, args.effect, refs, build, inputs=inputs)
         plant = build(doc)
         desc = hidden.describe(resolved, refs)
-        gap = hidden.sensor_gap(model, plant, inputs)
+        with np.errstate(over="ignore", invalid="ignore"):  # an absurd magnitude: refused below, by node and sample
+            gap = hidden.sensor_gap(model, plant, inputs)
         if gap < hidden.MIN_GAP_K:  # even at its magnitude's bound: nothing for discover to find
             desc += (f"\nnote: the hidden effects move the sensors by at most {gap:.2f} K RMS (without noise, "
                      f"below {hidden.MIN_GAP_K:g} K): no sensor of the model may see them")
         comment += f"\n{desc}"
         print(desc)
-    res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
-                         seed=args.seed, all_nodes=args.all_nodes)
+    with np.errstate(over="ignore", invalid="ignore"):  # refused below, by node and sample
+        res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
+                             seed=args.seed, all_nodes=args.all_nodes)
+    require_finite(plant, inputs, res.truth.T, "the simulated plant" + (" (with --effect)" if args.effect else ""))
     write_run(args.out, res.run, comment=comment)
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
     print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; peak " +
