@@ -892,7 +892,10 @@ class _Section:
         if spec.min is not None and v < spec.min:
             raise self.fail(k, f"must be at least {spec.min:g}, got {v:g}")
         if spec.max is not None and v > spec.max:
-            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}")
+            seconds = k.endswith("_s") or self.prefix == "timeouts"  # a duration in s: 500 is 0.5 s typed in ms
+            hint = (f"; ms typed? {v:g} ms is {v / 1000:g} s" if seconds and (spec.min or 0) <= v / 1000 <= spec.max
+                    else "")
+            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}{hint}")
         return v
 
     def integer(self, k: str, v: Any, spec: Any) -> int:

@@ -377,6 +377,11 @@ CONFIG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str
         check(_edge(tmp, lambda r: _put(r, "bus.bitrate", 500))), "bus.bitrate", ["kbit/s typed?", "500000"]),
     "edge.yaml: bitrate of 10 Mbit/s": lambda tmp, g: (
         check(_edge(tmp, lambda r: _put(r, "bus.bitrate", 10_000_000))), "bus.bitrate", ["outside"]),
+    "edge.yaml: a timeout in ms": lambda tmp, g: (
+        check(_edge(tmp, lambda r: _put(r, "timeouts.INV_Currents", 500))), "timeouts.INV_Currents",
+        ["ms typed? 500 ms is 0.5 s"]),
+    "edge.yaml: tick in ms": lambda tmp, g: (
+        check(_edge(tmp, lambda r: _put(r, "clock.tick_s", 1000))), "clock.tick_s", ["ms typed? 1000 ms is 1 s"]),
     "edge.yaml: max current in mA": lambda tmp, g: (
         check(_edge(tmp, lambda r: _put(r, "derating.max_current_a", 40000))), "derating.max_current_a", ["looks like mA"]),
     "edge.yaml: safe current negative": lambda tmp, g: (
