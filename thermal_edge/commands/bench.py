@@ -8,15 +8,20 @@ from typing import Any
 from ..bench import jacobian, paper
 from ..text_table import table
 from .common import add_set_arg, check_sets, split_sets
+from .options import integer, number, positive_s
 from .progress import StageBars
+
+#: Hours of a simulated drive cycle a benchmark runs (a minute to a month).
+HOURS = number(1 / 60, 24 * 31, unit="h")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
     j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
-    j.add_argument("--repeat", type=int, default=7, help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
-    j.add_argument("--hours", type=float, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
+    j.add_argument("--repeat", type=integer(1), default=7,
+                   help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
+    j.add_argument("--hours", type=HOURS, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
     j.add_argument("--json", action="store_true", help="print one JSON object")
     j.set_defaults(func=run_jacobian)
     pp = which.add_parser("paper", help="the paper's experiments E1-E3, every method side by side")
@@ -24,9 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(pp)
     pp.set_defaults(func=run_paper)
     sv = which.add_parser("service", help="edge service: tick p50/p99 (idle, adapting), max lossless frame rate, RSS over 24 h")
-    sv.add_argument("--hours", type=float, default=24.0, help="simulated hours of the memory run (default 24)")
-    sv.add_argument("--ticks", type=int, default=600, help="ticks timed per tick benchmark (default 600)")
-    sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
+    sv.add_argument("--hours", type=HOURS, default=24.0, help="simulated hours of the memory run (default 24)")
+    sv.add_argument("--ticks", type=integer(1), default=600, help="ticks timed per tick benchmark (default 600)")
+    sv.add_argument("--fps-seconds", type=positive_s, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
     fa = which.add_parser("faults", help="the service as a black box against 100+ fault cases: what it did, frames or "
@@ -44,9 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
-    pr.add_argument("--duration", type=float, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
+    pr.add_argument("--duration", type=positive_s, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
     pr.add_argument("--cycle", default=None, help="drive cycle: a file or a packaged name (default: the packaged protection)")
-    pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
+    pr.add_argument("--jobs", type=integer(1), default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
     rl = which.add_parser("real", help="online adaptation on the real Paderborn machine from the published and wrong starts")
@@ -61,13 +66,21 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     mg.add_argument("--json", action="store_true", help="print one JSON object")
     add_data_dir_arg(mg)
     mg.set_defaults(func=run_magnet)
+    ad = which.add_parser("adaptation", help="online adaptation in closed loop on the simulated machine: the open-loop "
+                                             "error over time, promotions and refusals, final parameters, per scenario")
+    ad.add_argument("--scenario", action="append", default=None, metavar="NAME",
+                    help="run only this scenario (repeatable; default all: demo, quasi_steady, cold_light, varied, at_plant)")
+    ad.add_argument("--duration", type=float, default=None, help="simulated seconds per scenario (default 3 h)")
+    ad.add_argument("--json", action="store_true", help="print one JSON object")
+    ad.set_defaults(func=run_adaptation)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
-    fl.add_argument("--machines", type=int, default=MACHINES, help=f"simulated machines (default {MACHINES})")
-    fl.add_argument("--speed-machines", type=int, default=SPEED_MACHINES,
+    fl.add_argument("--machines", type=integer(1), default=MACHINES, help=f"simulated machines (default {MACHINES})")
+    fl.add_argument("--speed-machines", type=integer(1), default=SPEED_MACHINES,
                     help=f"machines timed with 1 and with 2 workers (default {SPEED_MACHINES})")
-    fl.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
+    fl.add_argument("--rounds", type=integer(1), default=ROUNDS,
+                    help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=run_fleet)
 
@@ -283,6 +296,49 @@ def run_magnet(args: argparse.Namespace) -> int:
               f"V_err {p['params']['v_err']:+.2f} V; sigma by current at {p['speed_min_rpm']:.0f} rpm and up: {sig}; "
               f"error correlation {p['tau_s']:.0f} s; magnet MSE where informative: observer "
               f"{p['observer_mse_informative']:.2f}, fused {p['fused_mse_informative']:.2f}; stator MSE observer -> fused: {st}")
+    return 0
+
+
+def run_adaptation(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from ..bench import adaptation as ab
+    from ..errors import UsageError
+
+    unknown = [n for n in args.scenario or [] if n not in ab.SCENARIOS]
+    if unknown:
+        raise UsageError(f"--scenario {unknown[0]}: unknown (known: {', '.join(ab.SCENARIOS)})")
+    if args.duration is not None and not args.duration >= 600:
+        raise UsageError(f"--duration {args.duration:g}: at least 600 s (the adapter needs history to decide on)")
+    chosen = [ab.SCENARIOS[n] for n in args.scenario] if args.scenario else list(ab.SCENARIOS.values())
+    if args.duration is not None:
+        chosen = [dataclasses.replace(s, duration_s=float(args.duration)) for s in chosen]
+    with StageBars("bench adaptation") as progress:
+        r = ab.run(chosen, progress=lambda name, done, total: progress(f"scenario {name}", done, total, "s"))
+    if args.json:
+        out = {"wall_s": r.wall_s, "passed": r.passed, "scenarios": {
+            k: {**dataclasses.asdict(v), "identifiable": v.identifiable, "param_errors_pct": v.param_errors_pct,
+                "passed": v.passed} for k, v in r.scenarios.items()}}
+        print(json.dumps(out, indent=2, default=float))
+        return 0
+    print("online adaptation in closed loop on the simulated machine (config/edge.yaml, frame clock); the plant is "
+          "the model file's nominal parameters")
+    for sc in r.scenarios.values():
+        print(f"  {sc.name}: {sc.doc}")
+    print()
+    print(table(ab.SUMMARY_HEADERS, ab.summary_rows(r)))
+    print(f"\nopen-loop prediction error (TE_PredErrRms, K) over time; pass: final <= {ab.WITHIN_K:g} K, identifiable "
+          f"parameters (1σ <= {100 * ab.IDENTIFIABLE_REL_STD:g} %) within {100 * ab.PARAM_TOLERANCE:g} %, no promotion that "
+          "makes the next hour worse; at the plant's parameters: no promotion")
+    print(table(*ab.error_rows(r)))
+    for sc in r.scenarios.values():
+        print(f"\n{sc.name}: {sc.decisions} decisions: " + ", ".join(f"{k} {v}" for k, v in sorted(sc.outcomes.items())))
+        if sc.promotions:
+            print(table(ab.PROMOTION_HEADERS, ab.promotion_rows(sc)))
+        for t_s, why in sc.refusals:
+            print(f"  {ab.hms(t_s)} {why}")
+        print(table(ab.PARAMETER_HEADERS, ab.parameter_rows(sc)))
+    print(f"\n{'every scenario passes' if r.passed else 'NOT every scenario passes'} ({r.wall_s:.0f} s)")
     return 0
 
 
