@@ -116,3 +116,18 @@ def test_round_trip_and_errors():
         fit_flux_model(e, 200.0 - t_m, P, dt=1.0, speed_min_rpm=0.0, priors={"beta": (1e-4, 1e-5)})
     with pytest.raises(FluxError, match="no pole_pairs"):
         FluxModel.from_dict({"params": TRUE, "bin_a": 20.0, "speed_min_rpm": 0.0})
+
+
+def test_sigma_grows_with_the_distance_from_the_runs_temperatures():
+    """σ² = table / (ω β)² + ((T − T_mean) β_spread / β)², written out here."""
+    m = true_model()
+    m.beta_spread, m.magnet_mean_c = 0.05 * abs(TRUE["beta"]), 60.0
+    t_m = np.array([60.0, 100.0, 140.0])
+    n = len(t_m)
+    i_d, i_q, rpm, t_w = np.full(n, -50.0), np.full(n, 40.0), np.full(n, 3000.0), np.full(n, 80.0)
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    T, s, ok = m.estimate(Electrical(u_d, u_q, i_d, i_q, rpm, t_w))
+    w_beta = 3000 * 2 * np.pi / 60 * P * abs(TRUE["beta"])
+    expected = np.sqrt(0.05**2 / w_beta**2 + ((t_m - 60.0) * 0.05) ** 2)
+    np.testing.assert_allclose(s, expected, rtol=1e-9)
+    assert ok.all() and s[0] < s[1] < s[2]

@@ -141,6 +141,14 @@ class FluxModel:
     cov : list of list
         Posterior covariance of :data:`PARAMS` (their units); its part of the estimate's variance
         is added to the table's (it grows away from the temperatures and currents of the run).
+    beta_spread : float
+        σ of ``β`` over the forward cross-validation's fits, Wb/K: how well the run really pins
+        the slope down (the posterior σ does not see the slope's confounding with the currents
+        and the winding temperature that move with the magnet's). Its part of the variance,
+        ``((T − magnet_mean_c) beta_spread / β)²``, grows with the distance from the run's
+        temperatures.
+    magnet_mean_c : float
+        The commissioning run's mean magnet temperature, °C.
     """
 
     params: dict[str, float]
@@ -152,6 +160,8 @@ class FluxModel:
     sigma_max_k: float = 10.0
     tau_s: float = 0.0
     cov: list[list[float]] = field(default_factory=list)
+    beta_spread: float = 0.0
+    magnet_mean_c: float = T_REF_C
     fit_info: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -186,6 +196,7 @@ class FluxModel:
             if self.cov:
                 g = self._gradient(e, T, ia)
                 var = var + np.einsum("...i,ij,...j->...", g, np.asarray(self.cov), g)
+            var = var + ((T - self.magnet_mean_c) * self.beta_spread / p["beta"]) ** 2
             sig = np.sqrt(var)
         ok = (np.abs(np.asarray(e.speed_rpm, dtype=float)) >= self.speed_min_rpm) & np.isfinite(sig) \
             & (sig <= self.sigma_max_k) & np.isfinite(T)
@@ -226,7 +237,8 @@ class FluxModel:
                          int(d["pole_pairs"]), float(d["bin_a"]),
                          {int(k): float(v) for k, v in dict(d.get("var_u", {})).items()}, float(d["speed_min_rpm"]),
                          float(d.get("sigma_max_k", 10.0)), float(d.get("tau_s", 0.0)),
-                         [[float(x) for x in row] for row in d.get("cov", [])])
+                         [[float(x) for x in row] for row in d.get("cov", [])],
+                         float(d.get("beta_spread", 0.0)), float(d.get("magnet_mean_c", T_REF_C)))
 
 
 def _solve(aq: np.ndarray, ad: np.ndarray, uq: np.ndarray, ud: np.ndarray, mu: np.ndarray, sd: np.ndarray,
@@ -339,9 +351,11 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     res_t = np.full(len(idx), np.nan)
     blocks = np.array_split(np.arange(len(idx)), folds + 1)
     w = omega_el(e.speed_rpm[idx], pole_pairs)
+    betas = []
     for j in range(1, len(blocks)):
         keep, blk = np.concatenate(blocks[:j]), blocks[j]
         th = _solve(aq[keep], ad[keep], uq[keep], ud[keep], mu, sd)[0]
+        betas.append(float(th[PARAMS.index("beta")]))
         res_u[blk] = uq[blk] - aq[blk] @ th
         res_t[blk] = res_u[blk] / (w[blk] * th[PARAMS.index("beta")])
     ia = np.hypot(e.i_d[idx], e.i_q[idx])
@@ -353,6 +367,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     model = FluxModel(params, {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(PARAMS)}, int(pole_pairs),
                       float(bin_a), var_u, float(np.percentile(np.abs(e.speed_rpm[idx]), 5.0)), float(sigma_max_k),
                       _autocorrelation_time(res_t, dt), cov.tolist(),
+                      float(np.std(betas + [float(theta[PARAMS.index("beta")])])), float(np.mean(magnet_c[idx])),
                       {"samples": float(len(idx)), "q_residual_v": sq, "d_residual_v": sdd,
                        "cv_rms_k": float(np.sqrt(np.mean(res_t**2)))})
     if params["beta"] >= 0.0:
