@@ -27,13 +27,6 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
-    fa = which.add_parser("faults", help="the service as a black box against 100+ fault cases: what it did, frames or "
-                                         "state lost, unsafe events")
-    fa.add_argument("--full", action="store_true", help="full lengths and counts (200 SIGKILLs, 60 s at 8,000 frames/s, "
-                                                        "a 7-day soak, ...); default: the short form")
-    fa.add_argument("--only", action="append", default=None, metavar="GROUP", help="run only this group (repeatable)")
-    fa.add_argument("--json", action="store_true", help="print one JSON object")
-    fa.set_defaults(func=run_faults)
     pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
                                              "thermal_edge, a PT100 derate, I2t and the oracle, per plant case")
     pr.add_argument("--case", action="append", default=None, metavar="NAME",
@@ -255,13 +248,3 @@ def run_protection(args: argparse.Namespace) -> int:
         print(line)
     return 0
 
-
-def run_faults(args: argparse.Namespace) -> int:
-    from ..bench import faults
-
-    r = faults.run(full=args.full, only=args.only)
-    if args.json:
-        print(json.dumps(r, indent=2, default=float))
-        return 0
-    print(faults.report_table(r))
-    return 0

@@ -21,8 +21,9 @@ from typing import Any
 
 import yaml
 
-from ...process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS
-from ...shipped import ROOT
+from thermal_edge.process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS
+
+from .. import ROOT
 from . import wire
 from .harness import (
     HOT_SPOT_BAND,
@@ -340,7 +341,7 @@ def corrupt_states(full: bool) -> Iterator[Case]:
 # ----------------------------------------------------------------------------------------------
 def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
     """Broken configurations: name -> the YAML mapping, or raw bytes, or None (no file at all)."""
-    from ...lptn import Role, load_model
+    from thermal_edge.lptn import Role, load_model
 
     current = load_model(base["model"]["path"]).input_name(Role.CURRENT)  # the input left unmapped
 
@@ -475,8 +476,8 @@ def soak(full: bool) -> Iterator[Case]:
     group, port = unique_group(), free_port()
     mon = Monitor(group, port, workdir)
     try:
-        from ...lptn import load_model
-        from ...sim.inverter import table4_parameters
+        from thermal_edge.lptn import load_model
+        from thermal_edge.sim.inverter import table4_parameters
 
         model = load_model(service_config_path("machines", "pm10kw.yaml"))
         raw = edge_config(workdir / "state", group, port, clock="frame", adapt=True,

@@ -24,7 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from ...shipped import ROOT
+from .. import ROOT
 from . import wire
 from .harness import (
     Bed,

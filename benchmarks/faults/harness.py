@@ -28,7 +28,9 @@ from typing import Any
 
 import yaml
 
-from ...shipped import ROOT, config_path
+from thermal_edge.shipped import config_path
+
+from .. import ROOT
 from . import wire
 
 GAP_S = 0.3  # the inverter drops TE_Limits after this long
@@ -145,7 +147,7 @@ class Monitor:
 
     def __init__(self, group: str, port: int, workdir: Path) -> None:
         self.path = workdir / f"limits-{port}.txt"
-        self.proc = subprocess.Popen([sys.executable, "-m", "thermal_edge.bench.faults.wire", "monitor", "--group", group,
+        self.proc = subprocess.Popen([sys.executable, "-m", "benchmarks.faults.wire", "monitor", "--group", group,
                                       "--port", str(port), "--out", str(self.path)], env=env(), cwd=str(ROOT),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._pos = 0
@@ -507,15 +509,29 @@ def runs_above(lim: Limits, t0: float, t1: float, bound: float, reasons: frozens
 
 @dataclass
 class Check:
-    """Unsafe events found by the common checks, and what they saw."""
+    """Unsafe events found by the checks, and what they saw; and performance targets missed.
+
+    An unsafe event breaks a promise the service makes whatever the host's load (a bound of the CAN
+    contract, a limit, a crash). A target is a performance figure a loaded host can push past
+    without the service being wrong (tick time, a gap tighter than the contract's); it is reported,
+    and counted apart.
+    """
 
     unsafe: int = 0
     notes: list[str] = field(default_factory=list)
+    missed: int = 0
+    missed_notes: list[str] = field(default_factory=list)
 
     def add(self, n: int, note: str) -> None:
         if n:
             self.unsafe += n
             self.notes.append(note)
+
+    def target(self, met: bool, note: str) -> None:
+        """A performance target: ``note`` says which and by how much when it was not ``met``."""
+        if not met:
+            self.missed += 1
+            self.missed_notes.append(note)
 
 
 def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = None, band_c: float | None = None,
@@ -570,7 +586,9 @@ def min_current(lim: Limits, t0: float, t1: float) -> float:
 @dataclass
 class Case:
     """One row of the bench: what was tried how often, what the service did, what was lost (frames
-    or persisted state items) and how many unsafe events were seen."""
+    or persisted state items), how many unsafe events were seen and how many performance targets
+    were missed. A ``control`` case is a fault the service cannot mask (the bench makes it itself):
+    it passes when the bench judges it unsafe, which shows that the checks can fail."""
 
     name: str
     group: str
@@ -579,8 +597,16 @@ class Case:
     lost: int = 0
     unsafe: int = 0
     seconds: float = 0.0
+    missed: int = 0
+    control: bool = False
+
+    @property
+    def passed(self) -> bool:
+        """Nothing lost and nothing unsafe; for a control case: judged unsafe."""
+        return self.unsafe > 0 if self.control else not (self.lost or self.unsafe)
 
     @classmethod
-    def of(cls, name: str, group: str, tried: int, did: str, check: Check, lost: int = 0) -> Case:
-        notes = "; ".join(check.notes)
-        return cls(name, group, tried, did + (f" | UNSAFE: {notes}" if notes else ""), int(lost), check.unsafe)
+    def of(cls, name: str, group: str, tried: int, did: str, check: Check, lost: int = 0, control: bool = False) -> Case:
+        notes, missed = "; ".join(check.notes), "; ".join(check.missed_notes)
+        did += (f" | UNSAFE: {notes}" if notes else "") + (f" | TARGET MISSED: {missed}" if missed else "")
+        return cls(name, group, tried, did, int(lost), check.unsafe, missed=check.missed, control=control)
