@@ -246,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nsimulated: {sum(r['pass'] for r in eff)}/{len(eff)} hidden-effect cases named first with >= 60 % shrink "
               f"(or named in a pair the run cannot separate: {sum(r['named_in_pair'] and not r['named_first'] for r in eff)}); "
               f"{sum(r['pass'] for r in unseen)}/{len(unseen)} effects no sensor sees end with no gap; "
-              f"{sum(r['pass'] for r in sim if not r['expected'])}/{len(sim) - len(eff) - len(unseen)} no-effect cases name none; "
+              f"{sum(r['pass'] for r in sim if not r['expected'])}/{len(sim) - len(eff) - len(unseen)} "
+              "no-effect cases name none; "
               f"wall max {max(r['wall_s'] for r in sim):.1f} s, median {float(np.median([r['wall_s'] for r in sim])):.1f} s")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))

@@ -2,7 +2,7 @@
 run``), on a ``udp_multicast`` group and port of its own (hop limit 0), with an independent
 ``TE_Limits`` monitor process, an inverter of the bench's own making and the safety checks.
 
-A check counts *unsafe events* (issue 14): a ``TE_Limits`` gap over 300 ms while the process lives,
+A check counts *unsafe events*: a ``TE_Limits`` gap over 300 ms while the process lives,
 a limit above the maximum, above the safe limit while an input is stale or a required sensor
 faulty, above the derating band at the measured winding temperature, and a crash.
 """
@@ -24,7 +24,7 @@ import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import yaml
 
@@ -358,7 +358,7 @@ class Inverter:
         self._hold = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
-    def start(self) -> Inverter:
+    def start(self) -> Self:
         self._thread.start()
         return self
 
@@ -545,7 +545,8 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
     end = t1 if alive else min(t1, time.time())
     g = gaps(lim, t0, end, gap_limit_s)
     c.add(len(g), f"{len(g)} TE_Limits gap(s) > {gap_limit_s * 1e3:.0f} ms (max {max(g, default=0) * 1e3:.0f} ms)")
-    over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque) if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
+    over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque)
+               if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
     c.add(over, f"{over} limit(s) above the maximum")
     bad_crc = sum(1 for t, ok in zip(lim.t, lim.crc_ok) if t0 <= t <= t1 and not ok)
     c.add(bad_crc, f"{bad_crc} TE_Limits with a bad CRC")
@@ -556,7 +557,7 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
             c.add(1, "no TE_Limits to derate with")
     if band_c is not None:
         # the configured band at a measured temperature is what is left when the model is not trusted
-        # (defect 9); a trusted model may give the headroom between warn and max (issue 15's policy),
+        # (the derating policy); a trusted model may give the headroom between warn and max,
         # but not past max: at a measured max every limit must be zero
         bound = band_limit_a(band_c)
         n = runs_above(lim, t0, t1, bound, None if bound <= 0 else forced_reasons())

@@ -201,7 +201,7 @@ def bad_frame(kind: str, k: int) -> bytes:
     raise ValueError(f"unknown bad frame kind {kind!r}")
 
 
-#: every kind of bad frame; those python-can cannot unpack (issue 14 defect 1) are the UNDECODABLE ones
+#: every kind of bad frame; those python-can cannot unpack are the UNDECODABLE ones
 BAD_KINDS = ("bad_crc", "short_dlc", "zero_dlc", "unknown_id", "extended_id", "remote_frame", "error_frame", "can_fd",
              "garbage_known_id", "te_id_spoof", "not_msgpack", "classic_12_bytes", "std_id_0x800", "remote_with_data",
              "empty_datagram", "msgpack_list", "msgpack_missing_fields", "huge_datagram")
