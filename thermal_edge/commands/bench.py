@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 
 from ..bench import jacobian, paper
 from ..text_table import table
@@ -59,26 +60,26 @@ def run_jacobian(args: argparse.Namespace) -> int:
     with StageBars("bench jacobian") as progress:
         r = jacobian.run(repeat=args.repeat, hours=args.hours, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2))
+        print(json.dumps(asdict(r), indent=2))
         return 0
-    print(f"Jacobian of {r['nodes']} nodes x {r['params']} parameters over {r['samples']} samples "
-          f"({r['operating_points']} distinct speeds, inputs held on {r['held_steps']} of "
-          f"{r['samples'] - 1} steps); median of {args.repeat}")
+    print(f"Jacobian of {r.nodes} nodes x {r.params} parameters over {r.samples} samples "
+          f"({r.operating_points} distinct speeds, inputs held on {r.held_steps} of "
+          f"{r.samples - 1} steps); median of {args.repeat}")
     print(table(
         ["method", "wall s", "vs analytic"],
         [
-            ["analytic (sim + sensitivities)", r["analytic_s"], "1.0x"],
-            ["analytic, every step stepped", r["analytic_stepped_s"], f"{r['analytic_stepped_s'] / r['analytic_s']:.1f}x slower"],
-            ["forward differences (p+1 sims)", r["numerical_s"], f"{r['speedup']:.1f}x slower"],
-            ["one simulation", r["simulation_s"], f"{r['simulation_s'] / r['analytic_s']:.2f}x"],
-            ["arithmetic limit (BLAS rate)", r["arith_limit_s"], f"{r['arith_limit_s'] / r['analytic_s']:.2f}x"],
+            ["analytic (sim + sensitivities)", r.analytic_s, "1.0x"],
+            ["analytic, every step stepped", r.analytic_stepped_s, f"{r.analytic_stepped_s / r.analytic_s:.1f}x slower"],
+            ["forward differences (p+1 sims)", r.numerical_s, f"{r.speedup:.1f}x slower"],
+            ["one simulation", r.simulation_s, f"{r.simulation_s / r.analytic_s:.2f}x"],
+            ["arithmetic limit (BLAS rate)", r.arith_limit_s, f"{r.arith_limit_s / r.analytic_s:.2f}x"],
         ],
     ))
-    rounds = ", ".join(f"{x:.2f}" for x in r["speedup_rounds"])
-    print(f"speed-up, median of the rounds' ratios: {r['speedup']:.2f}x (rounds: {rounds}; ratio of the medians "
-          f"{r['speedup_of_medians']:.2f}x)")
-    print(f"max relative error vs central differences: {r['max_rel_err']:.2e}; "
-          f"closed form vs stepped: {r['closed_vs_stepped_max_rel']:.1e} of the largest entry")
+    rounds = ", ".join(f"{x:.2f}" for x in r.speedup_rounds)
+    print(f"speed-up, median of the rounds' ratios: {r.speedup:.2f}x (rounds: {rounds}; ratio of the medians "
+          f"{r.speedup_of_medians:.2f}x)")
+    print(f"max relative error vs central differences: {r.max_rel_err:.2e}; "
+          f"closed form vs stepped: {r.closed_vs_stepped_max_rel:.1e} of the largest entry")
     return 0
 
 
@@ -131,23 +132,23 @@ def run_service(args: argparse.Namespace) -> int:
     with StageBars("bench service") as progress:
         r = service.run(hours=args.hours, ticks=args.ticks, fps_seconds=args.fps_seconds, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    t = r["targets"]
-    print(f"edge service, pm10kw (39 nodes), 1 Hz tick; {r['ticks_measured']} ticks timed per row")
+    t = r.targets
+    print(f"edge service, pm10kw (39 nodes), 1 Hz tick; {r.ticks_measured} ticks timed per row")
     print(table(
         ["measure", "value", "target"],
         [
-            ["tick p50, adapter idle (ms)", r["tick_p50_ms"], ""],
-            ["tick p99, adapter idle (ms)", r["tick_p99_ms"], ""],
-            ["tick p50, adaptation running (ms)", r["tick_p50_adapting_ms"], ""],
-            ["tick p99, adaptation running (ms)", r["tick_p99_adapting_ms"], f"<= {t['tick_p99_adapting_ms']:g}"],
-            ["max lossless inbound frames/s (udp_multicast)", r["max_lossless_fps"], f">= {t['max_lossless_fps']}"],
-            [f"RSS after {r['memory_run_hours']:g} h accelerated (MB)", r["rss_mb"], f"<= {t['rss_mb']:g}, flat"],
-            ["RSS growth after the first hour (MB)", r["rss_growth_mb"], "~0"],
+            ["tick p50, adapter idle (ms)", r.tick_p50_ms, ""],
+            ["tick p99, adapter idle (ms)", r.tick_p99_ms, ""],
+            ["tick p50, adaptation running (ms)", r.tick_p50_adapting_ms, ""],
+            ["tick p99, adaptation running (ms)", r.tick_p99_adapting_ms, f"<= {t['tick_p99_adapting_ms']:g}"],
+            ["max lossless inbound frames/s (udp_multicast)", r.max_lossless_fps, f">= {t['max_lossless_fps']}"],
+            [f"RSS after {r.memory_run_hours:g} h accelerated (MB)", r.rss_mb, f"<= {t['rss_mb']:g}, flat"],
+            ["RSS growth after the first hour (MB)", r.rss_growth_mb, "~0"],
         ],
     ))
-    print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r["rss_samples"]))
+    print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r.rss_samples))
     return 0
 
 
