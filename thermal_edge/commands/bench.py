@@ -87,9 +87,9 @@ def run_paper(args: argparse.Namespace) -> int:
     with StageBars("bench paper") as progress:
         r = paper.run(progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    e1 = r["e1"]
+    e1 = r.e1
     print("E1 (paper Figs. 9-10): only R_e_hous adapted, 600 rpm / 70 Nm, 3 h")
     print(table(
         ["", "R_e_hous K/W", "error %", "RMS last hour K"],
@@ -102,7 +102,7 @@ def run_paper(args: argparse.Namespace) -> int:
         ],
     ))
     print("R_e_hous over time: " + ", ".join(f"{p['t_s'] / 60:.0f} min {p['r_e_hous']:.3f}" for p in e1["trajectory"]))
-    e2 = r["e2"]
+    e2 = r.e2
     print(f"\nE2 (paper Table 4/5, Fig. 11): 14 parameters, Table 4 start; held-out RMS at the start "
           f"{e2['heldout_rms_start_k']:.2f} K, with the plant's own parameters {e2['heldout_rms_true_params_k']:.3f} K")
     print(table(
@@ -112,8 +112,8 @@ def run_paper(args: argparse.Namespace) -> int:
     ))
     print(f"numerical SQP / analytic SQP (same data, same cap): {e2['numerical_over_analytic_whole_data']:.1f}x; "
           f"numerical / proposed online total: {e2['numerical_over_proposed']:.1f}x (paper 4.3x)")
-    print(f"one online adaptation step (14 parameters, 3 h window): median {r['adapt_step_median_s']:.3f} s")
-    e3 = r["e3"]
+    print(f"one online adaptation step (14 parameters, 3 h window): median {r.adapt_step_median_s:.3f} s")
+    e3 = r.e3
     print("\nE3 (Paderborn run_a, adapted from stator_winding + stator_yoke only)")
     if "skipped" in e3:
         print(f"skipped: {e3['skipped']}")
@@ -164,7 +164,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         print(f"thermal-edge bench fleet: error: {exc}")
         return 2
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
     print(fleet.format_result(r))
     return 0
@@ -187,15 +187,15 @@ def run_real(args: argparse.Namespace) -> int:
     with StageBars("bench real") as progress:
         r = real.run(sets=sets, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    if "skipped" in r:
-        print(f"bench real skipped: {r['skipped']}")
+    if r.skipped is not None:
+        print(f"bench real skipped: {r.skipped}")
         return 0
-    print(f"Paderborn {r['run']}, adapted from {' + '.join(r['adapted_from'])} only; MSE K² per target "
+    print(f"Paderborn {r.run}, adapted from {' + '.join(r.adapted_from)} only; MSE K² per target "
           "(trace: each period predicted open loop from the observer's state; fixed: the same, parameters never "
           "changed; observer: live estimate; coverage: readings inside its 95 % band; EKF: its final parameters open loop)")
-    for name, st in r["starts"].items():
+    for name, st in r.starts.items():
         f = ", ".join(f"{k} x{v:g}" for k, v in st["factors"].items()) or "published parameters"
         print(f"\n{name} ({f}): {st['promoted']} challengers promoted; adaptation step median "
               f"{st['adapt_step_median_s']:.3f} s")
@@ -236,15 +236,15 @@ def run_protection(args: argparse.Namespace) -> int:
         print(f"thermal-edge bench protection: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    dur = "" if r["duration_s"] is None else f" (first {r['duration_s']:g} s)"
-    mx = ", ".join(f"{k} {v:g} degC" for k, v in r["max_c"].items())
-    print(f"closed loop on the simulated machine, cycle {Path(r['cycle']).stem}{dur}; "
-          f"reaction time {r['reaction_time_s']:g} s; max: {mx}")
+    dur = "" if r.duration_s is None else f" (first {r.duration_s:g} s)"
+    mx = ", ".join(f"{k} {v:g} degC" for k, v in r.max_c.items())
+    print(f"closed loop on the simulated machine, cycle {Path(r.cycle).stem}{dur}; "
+          f"reaction time {r.reaction_time_s:g} s; max: {mx}")
     print(table(protection.TABLE_HEADERS, protection.table_rows(r)))
-    print(f"thermal_edge: min share of the oracle {r['min_oracle_share_pct']:.1f} % (target >= 90), "
-          f"seconds over max {r['total_seconds_over_max']:g} (target 0)")
+    print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
+          f"seconds over max {r.total_seconds_over_max:g} (target 0)")
     for line in protection.verdicts(r):
         print(line)
     return 0
