@@ -69,7 +69,9 @@ def test_a_te_limits_pause_of_500_ms_fails_the_bench(udp_ok: None) -> None:
     assert case.control and case.passed and r.failed == []
     assert case.unsafe >= 1 and "TE_Limits gap(s) > 300 ms" in case.did, case.did
     longest_ms = float(case.did.split("longest TE_Limits gap ")[1].split(" ms")[0])
-    assert longest_ms >= 1e3 * control.PAUSE_S
+    # the frame in flight when the stop lands is stamped on receipt, the loopback's microseconds
+    # later: 10 ms is a generous allowance for that, not for the host's load
+    assert longest_ms >= 1e3 * control.PAUSE_S - 10
     ordinary = faults.Result(cases=[dataclasses.replace(case, control=False)])
     assert ordinary.unsafe >= 1 and len(_failures(ordinary)) == 1
 
