@@ -35,7 +35,7 @@ from .harness import (
     min_current,
     reasons_in,
     received,
-    service_config_path,
+    service_model_path,
 )
 
 SETTLE_S = 0.4  # after a case, before its counters are read: the last frames in flight
@@ -331,7 +331,7 @@ def stuck_bound_s(idle_c: float) -> float:
     from thermal_edge.lptn import Role, Stepper, load_model
 
     k = float(EDGE["derating"].get("faults", {}).get("stuck_model_k", FaultConfig().stuck_model_k))
-    model = load_model(service_config_path(*Path(EDGE["model"]["path"]).parts))
+    model = load_model(service_model_path())
     st = Stepper(model, model.nominal(), 1.0)
     rows = [model.node_index(n) for n in model.sensors.values()]
     T = np.full(len(model.nodes), idle_c)

@@ -28,7 +28,7 @@ from typing import Any, Self
 
 import yaml
 
-from thermal_edge.shipped import config_path
+from thermal_edge.shipped import MACHINES, config_path, find
 
 from .. import ROOT
 from . import wire
@@ -47,6 +47,17 @@ def service_config_path(*parts: str) -> Path:
     """A file under the ``config/`` directory of the service's source tree."""
     tree = os.environ.get(SERVICE_TREE_ENV)
     return Path(tree).joinpath("config", *parts) if tree else config_path(*parts)
+
+
+def service_model_path() -> Path:
+    """The model file the service's ``edge.yaml`` names: a path relative to that file, or the name
+    of a packaged model."""
+    edge = service_config_path("edge.yaml")
+    ref = yaml.safe_load(edge.read_text())["model"]["path"]
+    found = find(MACHINES, ref, base=edge.parent)
+    if found is None:
+        raise RuntimeError(f"{edge}: model.path {ref!r} is neither a file nor a packaged model")
+    return found
 
 
 def _edge() -> dict[str, Any]:

@@ -27,10 +27,9 @@ from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
 from ..estimation.predict import initial_from_run, model_inputs, open_loop
 from ..lptn import Model, load_model
-from ..shipped import ROOT, config_path
-from .common import Progress, no_progress, sample_counter
+from ..shipped import config_path
+from .common import Progress, no_progress, paderborn_dir, sample_counter
 
-PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
 SENSORS = ("stator_winding", "stator_yoke")
 #: starts: parameter -> factor on the published value
 STARTS: dict[str, dict[str, float]] = {
@@ -97,12 +96,14 @@ class RealResult:
     skipped: str | None = None  #: why nothing ran (the data are absent)
 
 
-def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | None = None,
+def run(data_dir: Path | None = None, starts: Mapping[str, Mapping[str, float]] | None = None,
         sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> RealResult:
     """All starts; :attr:`RealResult.skipped` says why when the data is absent. ``sets`` overrides parameters of
     the published model first (``--set``; the command names a bad one, here an unknown name or a
     value outside its bounds raises :class:`~thermal_edge.lptn.ParameterError`). ``progress``
-    counts the samples replayed, one stage per start."""
+    counts the samples replayed, one stage per start. ``data_dir``: the Paderborn data (default
+    :func:`~.common.paderborn_dir`)."""
+    data_dir = paderborn_dir(data_dir)
     path = data_dir / "run_a.csv"
     if not path.exists():
         return RealResult(skipped=f"{path} not found")
