@@ -19,7 +19,7 @@ ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "text_table": set(),
     "lptn": {"yamlfile"},
-    "data": {"lptn"},
+    "data": {"lptn", "yamlfile"},
     "plots": set(),
     "bus": set(),
     "estimation": {"lptn", "data", "settings"},
@@ -31,7 +31,7 @@ ALLOWED: dict[str, set[str]] = {
     "fleet": {"bus", "config", "data", "estimation", "lptn", "service", "sim", "settings", "shipped", "text_table"},
     "bench": {"bus", "config", "data", "estimation", "lptn", "service", "sim", "fleet", "settings", "shipped", "text_table"},
     "commands": {"bench", "bus", "config", "data", "discovery", "estimation", "fleet", "lptn", "monitor", "plots",
-                 "process_signals", "service", "settings", "shipped", "sim", "text_table"},
+                 "process_signals", "service", "settings", "shipped", "sim", "text_table", "yamlfile"},
     "cli": {"commands"},
     "__init__": set(),
 }

@@ -8,15 +8,20 @@ from dataclasses import asdict
 from ..bench import jacobian, paper
 from ..text_table import table
 from .common import add_set_arg, check_sets, split_sets
+from .options import integer, number, positive_s
 from .progress import StageBars
+
+#: Hours of a simulated drive cycle a benchmark runs (a minute to a month).
+HOURS = number(1 / 60, 24 * 31, unit="h")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
     j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
-    j.add_argument("--repeat", type=int, default=7, help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
-    j.add_argument("--hours", type=float, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
+    j.add_argument("--repeat", type=integer(1), default=7,
+                   help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
+    j.add_argument("--hours", type=HOURS, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
     j.add_argument("--json", action="store_true", help="print one JSON object")
     j.set_defaults(func=run_jacobian)
     pp = which.add_parser("paper", help="the paper's experiments E1-E3, every method side by side")
@@ -24,9 +29,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(pp)
     pp.set_defaults(func=run_paper)
     sv = which.add_parser("service", help="edge service: tick p50/p99 (idle, adapting), max lossless frame rate, RSS over 24 h")
-    sv.add_argument("--hours", type=float, default=24.0, help="simulated hours of the memory run (default 24)")
-    sv.add_argument("--ticks", type=int, default=600, help="ticks timed per tick benchmark (default 600)")
-    sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
+    sv.add_argument("--hours", type=HOURS, default=24.0, help="simulated hours of the memory run (default 24)")
+    sv.add_argument("--ticks", type=integer(1), default=600, help="ticks timed per tick benchmark (default 600)")
+    sv.add_argument("--fps-seconds", type=positive_s, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
     pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
@@ -37,9 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
-    pr.add_argument("--duration", type=float, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
+    pr.add_argument("--duration", type=positive_s, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
     pr.add_argument("--cycle", default=None, help="drive cycle: a file or a packaged name (default: the packaged protection)")
-    pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
+    pr.add_argument("--jobs", type=integer(1), default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
     rl = which.add_parser("real", help="online adaptation on the real Paderborn machine from the published and wrong starts")
@@ -57,10 +62,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
-    fl.add_argument("--machines", type=int, default=MACHINES, help=f"simulated machines (default {MACHINES})")
-    fl.add_argument("--speed-machines", type=int, default=SPEED_MACHINES,
+    fl.add_argument("--machines", type=integer(1), default=MACHINES, help=f"simulated machines (default {MACHINES})")
+    fl.add_argument("--speed-machines", type=integer(1), default=SPEED_MACHINES,
                     help=f"machines timed with 1 and with 2 workers (default {SPEED_MACHINES})")
-    fl.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
+    fl.add_argument("--rounds", type=integer(1), default=ROUNDS,
+                    help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=run_fleet)
 
