@@ -11,7 +11,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest
 
-from thermal_edge.discovery import bench, hidden
+from benchmarks import discovery as bench
+from thermal_edge.discovery import hidden
 
 
 @pytest.fixture(scope="session")

@@ -12,7 +12,8 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from thermal_edge.discovery import bench, report, workflow
+from benchmarks import discovery as bench
+from thermal_edge.discovery import report, workflow
 from thermal_edge.lptn import Role
 
 SHORT = 7200.0  # s, as in test_discovery_workflow

@@ -24,6 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from .. import ROOT
 from . import wire
 from .harness import (
     Bed,
@@ -39,7 +40,6 @@ from .harness import (
     thermal_edge_cmd,
     unit_memory_max_bytes,
 )
-from .wire import ROOT
 
 YEAR_2100 = 4102444800.0
 OBSERVE_S = 8.0  # watched after each fault (live)
