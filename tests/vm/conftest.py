@@ -90,7 +90,7 @@ def _summary_line() -> str | None:
     if "skip" in _state:
         return f"unavailable: {_state['skip']}"
     machine = _state.get("vm")
-    return machine.summary() if machine is not None else None  # type: ignore[attr-defined]
+    return machine.summary() if machine is not None else None
 
 
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
