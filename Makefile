@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast test-all lint venv clean
+.PHONY: demo test test-fast test-all lint docs venv clean
 
 venv: $(STAMP)
 
@@ -35,6 +35,17 @@ test-all: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check thermal_edge tests
 	$(BIN)/mypy
+
+# the manual: docs/ built by Sphinx into build/docs/html; a warning (a broken reference, a stale page, a
+# docstring that does not parse) fails the build; the reference pages are generated from their sources
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m sphinx -W --keep-going -n -q -b html docs build/docs/html
+	@echo "the manual: build/docs/html/index.html"
 
 clean:
 	rm -rf $(VENV) build *.egg-info
