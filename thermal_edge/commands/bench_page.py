@@ -56,13 +56,13 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def stamp(now: dt.datetime | None = None) -> Stamp:
-    """The stamp of a measurement made now on this host."""
+def stamp(code: str | None = None, now: dt.datetime | None = None) -> Stamp:
+    """The stamp of a measurement of ``code`` (default: :func:`code_version`) made now on this host."""
     now = now or dt.datetime.now(dt.UTC)
     host = (f"{platform.node()}: {cpu_model()}, {os.cpu_count()} logical CPUs, load average "
             f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} at the end; Python {platform.python_version()}, "
             f"{platform.system()} {platform.release()}")
-    return Stamp(code=code_version(), host=host, date=now.strftime("%Y-%m-%d %H:%M:%S UTC"))
+    return Stamp(code=code or code_version(), host=host, date=now.strftime("%Y-%m-%d %H:%M:%S UTC"))
 
 
 def render(title: str, command: str, output: str, st: Stamp) -> str:
@@ -109,10 +109,11 @@ def check_path(path: str) -> Path:
 def with_page(run: Callable[..., int], title: str, command: str, path: Path, *args: object) -> int:
     """Run a bench (``run(*args)``) with its standard output also captured; when it succeeds, write
     the page to ``path``. The page of a failed run is not written (a page shows a measurement)."""
+    code_measured = code_version()  # the code as it was loaded, before the tree can change under a long run
     tee = _Tee(sys.stdout)  # type: ignore[arg-type]
     with contextlib.redirect_stdout(tee):
         code = run(*args)
     if code == 0:
-        path.write_text(render(title, command, tee.buffer_.getvalue(), stamp()), encoding="utf-8")
+        path.write_text(render(title, command, tee.buffer_.getvalue(), stamp(code_measured)), encoding="utf-8")
         print(f"wrote {path}", file=sys.stderr)
     return code
