@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
-    fa = which.add_parser("faults", help="the service as a black box against 100+ fault cases: what it did, frames or "
+    fa = which.add_parser("faults", help="the service attacked from outside by 100+ fault cases: what it did, frames or "
                                          "state lost, unsafe events")
     fa.add_argument("--full", action="store_true", help="full lengths and counts (200 SIGKILLs, 60 s at 8,000 frames/s, "
                                                         "a 7-day soak, ...); default: the short form")

@@ -7,7 +7,7 @@ each period's start (as the online trace is scored); the challenger is promoted 
 by more than a margin that accounts for the sensor noise and the length of the evidence
 (:func:`judge`), dropped when it is worse by that margin or when ``validate_s`` of evidence has
 not decided it. A candidate judged on its own window would pass by fitting noise and the present
-operating point (``reference/findings.md`` §6). Every decision is recorded with its evidence.
+operating point. Every decision is recorded with its evidence.
 The evidence is counted in periods, not samples: one period never decides, either way.
 
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped

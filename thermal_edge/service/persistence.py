@@ -74,8 +74,8 @@ MAX_NUMBER_CHARS = 40
 KEEP_CORRUPT = 3
 #: Temperatures a saved state may hold, degC (beyond them the file is not a machine's state). No
 #: machine runs below -40 degC ambient (the floor of a PT100's valid range in edge.yaml); a state
-#: colder than -60 degC would start the estimate of the unmeasured rotor far below the truth (a
-#: black-box client held the magnet at -99 degC under a 130 degC stator and it went onto the bus).
+#: colder than -60 degC would start the estimate of the unmeasured rotor far below the truth (a file
+#: holding the magnet at -99 degC under a 130 degC stator would put that estimate onto the bus).
 T_RANGE_C = (-60.0, 500.0)
 
 _CORRUPT_PREFIX = f"{FILENAME}.corrupt-"
