@@ -10,8 +10,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-
 from cli_in_process import te_here
+
 from thermal_edge import __version__
 from thermal_edge.commands import bench_page
 
