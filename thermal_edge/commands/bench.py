@@ -75,7 +75,8 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.markdown is None:
         return int(args.bench_func(args))
     path = check_path(args.markdown)
-    shown = [a for a in sys.argv[1:] if a != "--debug"] if sys.argv[1:2] == ["bench"] else ["bench", args.bench]
+    argv = [a for a in sys.argv[1:] if a != "--debug"]  # the command as typed, when this process runs it
+    shown = argv if argv[:2] == ["bench", args.bench] else ["bench", args.bench]
     command = "thermal-edge " + " ".join(_drop_option(shown, "--markdown"))
     return with_page(args.bench_func, args.bench_title, command, path, args)
 
