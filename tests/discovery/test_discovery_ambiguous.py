@@ -44,13 +44,14 @@ def test_bearing_and_magnet_eddy_loss_are_reported_as_a_pair(tmp_path):
     assert all(len(e["centers"]) == len(e["winner"]) == len(e["runner_up"]) >= 2 for e in c["evidence"])
     sep = c["separating_condition"]
     assert sep is not None and sep["diff_k"] == pytest.approx(abs(sep["winner_c"] - sep["runner_up_c"]))
-    assert f"or {d['runner_up']} (this run cannot separate them)" in d["verdict"]
+    assert d["confusable"][0] == d["runner_up"]
+    assert "".join(f" or {c}" for c in d["confusable"]) + " (this run cannot separate them)" in d["verdict"]
     assert math.isclose(d["gap_noise_floor"], disc.noise_k)
     # most of the gap above the noise floor is gone
     assert d["gap_above_noise_after"] < 0.4 * d["gap_above_noise_before"]
     # the report says it, with the figures
     body = open(report.write(disc, tmp_path)).read()
-    assert "Not sure between two" in body and "Separating condition" in body
+    assert "Not sure between these" in body and "Separating condition" in body
     assert (tmp_path / "winner_vs_runner_up.png").exists() and (tmp_path / "temperature_time.png").exists()
 
 

@@ -56,7 +56,12 @@ def list_effects(args: argparse.Namespace) -> int:
     for name, eff in E.CATALOGUE.items():
         tg = E.targets(ctx, eff)
         params = ", ".join(f"{p.short} [{p.unit}] default {p.default:g}" + ("" if p.primary else " (shape)") for p in eff.params)
-        where = "not applicable" if not tg else ("no target" if tg == [None] else f"{len(tg)} targets: " + ", ".join(map(str, tg)))
+        if not tg:
+            where = f"not placeable: {E.unplaceable_reason(ctx, eff)}"
+        elif tg == [None]:
+            where = E.placement(ctx, eff) or "no target"
+        else:
+            where = f"{len(tg)} targets: " + ", ".join(map(str, tg))
         print(f"{name}: {eff.doc}\n    parameters: {params}\n    {where}")
     return 0
 
@@ -153,6 +158,11 @@ def run(args: argparse.Namespace) -> int:
             if not sep["sensors_separate"] and sep["node_separates"]:
                 print(f"  no sensor of this run separates them there ({sep['diff_k']:.2f} K apart); a sensor on "
                       f"{sep['node']} would ({sep['node_winner_c']:.1f} vs {sep['node_runner_up_c']:.1f} °C)")
+    if disc.signature is not None:
+        print(f"the residual {disc.signature.describe()} (held-out, reading - model)")
+    for n in disc.not_placeable:
+        fits = disc.signature is not None and disc.signature.fits(n.effect.explains)
+        print(f"not placeable: {n.effect.name} ({n.reason})" + ("; it would fit the residual's signature" if fits else ""))
     g = d["gap_detail"]
     if g and g["worst_sensor"]:
         print(f"unexplained gap {g['gap_k']:.3f} K ({g['ratio']:.0f}x the noise floor), largest on {g['worst_sensor']}; "

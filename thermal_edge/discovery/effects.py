@@ -28,8 +28,9 @@ effect[:target]                        law (X = the existing law)
 ``speed_convection:<conductance>``     ``g = X * (1 + k * s ** m)`` (``r`` laws are divided)
 ``iron_loss_frequency``                every stator iron loss ``X * (1 + k * s ** m)``
 ``magnet_eddy_loss``                   loss ``p * (s * current / i_ref) ** 2`` shared by the
-                                       magnet nodes
-``bearing_loss``                       loss ``p * s`` shared by the bearing-side nodes
+                                       magnet nodes (else the rotor iron)
+``bearing_loss``                       loss ``p * s`` shared by the bearing-side nodes (else
+                                       the rotor iron, else the magnets)
 ``housing_radiation``                  heat leaving the frame nodes ``eps_a * 5.67e-8 *
                                        ((T + 273.15)^4 - (T_amb + 273.15)^4)`` (shared by
                                        their conductance to ambient)
@@ -126,6 +127,10 @@ class Effect:
     moves_sensor: ClassVar[bool] = False
     #: the added law is not affine in the node temperatures (simulated step by step)
     nonaffine: ClassVar[bool] = False
+    #: where the effect's heat acts, by node role: the first group of roles the model has nodes
+    #: of is used (an ordered fallback to the nearest part the model represents); empty for
+    #: effects that act on a named target or on every node of one kind
+    places: ClassVar[tuple[frozenset[NodeRole], ...]] = ()
 
     def targets(self, ctx: Context) -> list[str | None]:
         """Every target in the model (``[None]`` when the effect applies and takes none, ``[]``
@@ -227,22 +232,32 @@ class IronLossFrequency(Effect):
 
 
 class MagnetEddyLoss(Effect):
+    #: eddy currents flow in the magnets; a model that lumps the magnets into its rotor iron gets
+    #: the loss there
+    places: ClassVar[tuple[frozenset[NodeRole], ...]] = (
+        frozenset({NodeRole.MAGNET}), frozenset({NodeRole.ROTOR_IRON}))
+
     def targets(self, ctx: Context) -> list[str | None]:
-        return [None] if ctx.speed and ctx.current and ctx.model.nodes_with(NodeRole.MAGNET) else []
+        return [None] if ctx.speed and ctx.current and placed_nodes(ctx, self) else []
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
-        nodes = ctx.model.nodes_with(NodeRole.MAGNET)
+        nodes = placed_nodes(ctx, self)
         x = f"abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])} * {ctx.current} / {_fmt(ctx.refs['i_ref'])}"
         for node in nodes:
             ed.add_loss(node, f"{P['p']} / {len(nodes)} * ({x}) ** 2")
 
 
 class BearingLoss(Effect):
+    #: the bearings sit in the end shields on the shaft; a model without those parts carries the
+    #: rotor's heat in its rotor iron, and a model whose rotor is its magnets in those
+    places: ClassVar[tuple[frozenset[NodeRole], ...]] = (
+        BEARING_SIDE, frozenset({NodeRole.ROTOR_IRON}), frozenset({NodeRole.MAGNET}))
+
     def targets(self, ctx: Context) -> list[str | None]:
-        return [None] if ctx.speed and ctx.model.nodes_with(*BEARING_SIDE) else []
+        return [None] if ctx.speed and placed_nodes(ctx, self) else []
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
-        nodes = ctx.model.nodes_with(*BEARING_SIDE)
+        nodes = placed_nodes(ctx, self)
         for node in nodes:
             ed.add_loss(node, f"{P['p']} / {len(nodes)} * abs({ctx.speed}) / {_fmt(ctx.refs['n_ref'])}")
 
@@ -521,6 +536,69 @@ def _iron_losses(ctx: Context) -> list[int]:
         free = set(parse(law, _dummy_tables(raw)).free())
         if free & speed_dep:
             out.append(i)
+    return out
+
+
+def placed_nodes(ctx: Context, effect: Effect) -> tuple[str, ...]:
+    """The nodes an effect with :attr:`Effect.places` acts on: those of the first role group in
+    its fallback order that the model has (empty when it has none of them)."""
+    for roles in effect.places:
+        nodes = ctx.model.nodes_with(*roles)
+        if nodes:
+            return nodes
+    return ()
+
+
+def placement(ctx: Context, effect: Effect) -> str:
+    """Where an applicable effect acts, in words (``"into pm (magnet: no shaft, end cap or rotor
+    iron node)"``); empty for effects with a named target."""
+    for k, roles in enumerate(effect.places):
+        nodes = ctx.model.nodes_with(*roles)
+        if nodes:
+            missing = sorted({r.value.replace("_", " ") for g in effect.places[:k] for r in g})
+            why = f": no {', '.join(missing)} node" if missing else ""
+            role_names = "/".join(sorted(r.value.replace("_", " ") for r in roles))
+            return f"into {', '.join(nodes)} ({role_names}{why})"
+    return ""
+
+
+def unplaceable_reason(ctx: Context, effect: Effect) -> str:
+    """Why an effect has no target on this model (one clause), for the report's "not placeable"."""
+    if effect.places:
+        wanted = " or ".join(r.value.replace("_", " ") for g in effect.places for r in sorted(g, key=lambda r: r.value))
+        if not ctx.speed and effect.explains.startswith("speed"):
+            return "the model has no speed input"
+        return f"the model has no {wanted} node"
+    if isinstance(effect, _FrameHeatOut):
+        amb = ambient_boundary(ctx.model)
+        where = f"joined to the {amb} boundary" if amb else "(and no ambient boundary)"
+        return f"the model has no frame node (housing or end cap) {where}"
+    if isinstance(effect, (SpeedConvection, IronLossFrequency)) and not ctx.speed:
+        return "the model has no speed input"
+    if isinstance(effect, IronLossFrequency):
+        return "the model has no speed-dependent loss at a stator iron (yoke, tooth) node"
+    if isinstance(effect, CopperTemperature):
+        return "the model has no loss at a winding node"
+    if isinstance(effect, MagnetEddyLoss) and not ctx.current:
+        return "the model has no current input"
+    return f"the model offers no {effect.target_kind} it acts on"
+
+
+@dataclass(frozen=True)
+class NotPlaceable:
+    """A catalogue effect the model cannot express, and why."""
+
+    effect: Effect
+    reason: str
+
+
+def not_placeable(ctx: Context, names: Sequence[str] | None = None) -> list[NotPlaceable]:
+    """The catalogue effects (of ``names``, default all) that have no target on the model."""
+    out: list[NotPlaceable] = []
+    for name in names or CATALOGUE:
+        eff = get(name)
+        if not targets(ctx, eff):
+            out.append(NotPlaceable(eff, unplaceable_reason(ctx, eff)))
     return out
 
 

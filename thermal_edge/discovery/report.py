@@ -266,10 +266,12 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
         if disc.ambiguous and disc.runner_up is not None:
             c = first.comparison
             assert c is not None
+            more = [r.fit.label for r in disc.confusable[1:]]
+            also = f" So do {', '.join(f'`{m}`' for m in more)}." if more else ""
             add("")
-            add(f"**Not sure between two:** `{c.b}` explains the residual nearly as well (held-out gap "
+            add(f"**Not sure between these:** `{c.b}` explains the residual nearly as well (held-out gap "
                 f"{c.gap_b:.3f} K against {c.gap_a:.3f} K, difference {c.gap_b - c.gap_a:+.4f} ± {c.se_diff:.4f} K; "
-                f"it achieves {c.share:.0%} of the winner's reduction of the gap). This run cannot separate them; "
+                f"it achieves {c.share:.0%} of the winner's reduction of the gap).{also} This run cannot separate them; "
                 + _separating_sentence(disc)
                 + "See section 6.")
         if len(disc.added) > 1:
@@ -283,7 +285,12 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
             f"{g.gap_k:.3f} K, {g.ratio:.0f}× the sensor noise floor ({g.noise_k:.3f} K), and no catalogue effect "
             f"lowers it by the required {100 * disc.options.min_improvement:.0f} % and {disc.options.min_gain_k:.2f} K "
             "(section 7: where and when, nearest candidates).")
-    else:
+    if disc.unexpressed and disc.signature is not None:
+        add("")
+        add(f"**Perhaps none of these:** {', '.join(f'`{n.effect.name}`' for n in disc.unexpressed)}, which this "
+            f"model cannot express ({disc.unexpressed[0].reason}), would fit the residual, which "
+            f"{disc.signature.describe()} (section 8).")
+    if not disc.named and not (g is not None and g.status == "unexplained"):
         add(f"**Verdict: no gap.** The refitted model predicts the held-out data to {disc.gap_before:.3f} K, within "
             f"the sensor noise floor ({disc.noise_k:.3f} K; no gap below {NO_GAP_TEXT}); no missing effect found.")
     add("")
@@ -440,6 +447,7 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
         add("")
     _comparison_section(disc, files, add)
     _gap_section(disc, add)
+    _signature_section(disc, add)
     if commands:
         add("## Reproduce")
         add("")
@@ -493,6 +501,42 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
     if "evidence" in files:
         add(f"![winner and runner-up against speed, current, ambient, time]({files['evidence']})")
         add("")
+
+
+def _signature_section(disc: Discovery, add) -> None:  # type: ignore[no-untyped-def]
+    """The residual's signature beside each candidate's, and the effects the model cannot express."""
+    sig = disc.signature
+    if sig is None:
+        return
+    add("## 8. The residual's signature, and what this model cannot express")
+    add("")
+    lag = f" seen through a {sig.lag_s / 60:.0f}-minute lag" if sig.lag_s > 0 else ""
+    add(f"What the refitted model misses on the held-out part (reading − model, mean over the sensors) "
+        f"**{sig.describe()}**: its change across the run's range of each variable{lag}, the other held "
+        f"constant, ± a block-jackknife standard error; beside it the same for each candidate's correction "
+        f"(its prediction − the refit's). A candidate with the residual's signature explains its shape.")
+    add("")
+    labels = sorted({k for d in sig.dependences for k in d.corrections})
+    rows = []
+    for d in sig.dependences:
+        held = f" (constant {d.held})" if d.held else ""
+        res = f"{d.change_k:+.3f} ± {d.se_k:.3f}" if np.isfinite(d.change_k) else "not varied"
+        rows.append([f"{d.variable}{held}", res] + [_f(d.corrections.get(k, float('nan'))) for k in labels])
+    add(_table(["variable", "residual K"] + [f"`{k}` K" for k in labels], rows))
+    add("")
+    if not disc.not_placeable:
+        add("Every catalogue effect can be placed on this model.")
+        add("")
+        return
+    add("Catalogue effects this model cannot express (they were not offered as candidates):")
+    add("")
+    rows = []
+    for n in disc.not_placeable:
+        fits = sig.fits(n.effect.explains)
+        rows.append([f"`{n.effect.name}`", n.reason, R.label(n.effect.explains),
+                     "not judged by speed, current, ambient" if fits is None else ("**yes**" if fits else "no")])
+    add(_table(["effect", "why not", "it would follow", "fits the residual's signature"], rows))
+    add("")
 
 
 def _separating_sentence(disc: Discovery) -> str:

@@ -55,6 +55,7 @@ from . import effects as E
 from . import fitting as F
 from . import judge as J
 from . import residuals as R
+from . import signature as S
 from . import yamlpatch
 
 
@@ -113,6 +114,8 @@ class Round:
     comparison: J.Comparison | None = None  # winner against runner-up (both must explain something)
     evidence: list[J.Evidence] = field(default_factory=list)
     point: J.Point | None = None  # steady operating point that separates winner and runner-up
+    #: every other candidate the winner cannot be separated from on this run (the runner-up first)
+    confusable: list[Ranked] = field(default_factory=list)
 
 
 @dataclass
@@ -132,6 +135,10 @@ class Discovery:
     final_analysis: R.Analysis | None = None
     options: Options = field(default_factory=Options)
     gap: J.GapStatus | None = None
+    #: catalogue effects the model cannot express (no node of the roles they act on, ...)
+    not_placeable: list[E.NotPlaceable] = field(default_factory=list)
+    #: how the first round's held-out residual depends on speed, current and ambient
+    signature: S.Signature | None = None
 
     @property
     def runner_up(self) -> Ranked | None:
@@ -143,19 +150,40 @@ class Discovery:
         return bool(self.named is not None and c is not None and c.ambiguous)
 
     @property
+    def confusable(self) -> list[Ranked]:
+        """The candidates the named effect cannot be separated from (empty when it is clear)."""
+        return self.rounds[0].confusable if self.ambiguous else []
+
+    @property
+    def unexpressed(self) -> list[E.NotPlaceable]:
+        """Effects the model cannot express whose predicted signature is the residual's: the
+        answer may be "none of the candidates"."""
+        sig = self.signature
+        if sig is None or (self.gap is not None and self.gap.status == "none"):
+            return []
+        return [n for n in self.not_placeable if sig.fits(n.effect.explains)]
+
+    @property
     def verdict(self) -> str:
         named, g = self.named, self.gap
         if named is not None:
             v = f"missing effect: {named.fit.label}"
-            if self.ambiguous and self.runner_up is not None:
-                v += f" or {self.runner_up.fit.label} (this run cannot separate them)"
+            if self.confusable:
+                v += "".join(f" or {r.fit.label}" for r in self.confusable) + " (this run cannot separate them)"
             if g is not None and g.status == "partly explained":
                 v += f"; a gap of {g.gap_k:.3f} K remains that the catalogue does not explain"
-            return v
+            return v + self._unexpressed_clause("would fit it too")
         if g is not None and g.status == "unexplained":
             return (f"no missing effect found: a gap of {g.gap_k:.3f} K ({g.ratio:.0f}x the noise floor) "
-                    "that the catalogue does not explain")
+                    "that the catalogue does not explain" + self._unexpressed_clause("would fit its signature"))
         return "no missing effect found: no gap (within the noise floor)"
+
+    def _unexpressed_clause(self, what: str) -> str:
+        un = self.unexpressed
+        if not un or self.signature is None:
+            return ""
+        names = " or ".join(n.effect.name for n in un)
+        return f"; but {names}, which this model cannot express, {what} (the residual {self.signature.describe()})"
 
     @property
     def added(self) -> list[Ranked]:
@@ -201,6 +229,11 @@ class Discovery:
             "verdict": self.verdict,
             "runner_up": self.runner_up.fit.label if self.runner_up else None,
             "ambiguous": self.ambiguous,
+            "confusable": [r.fit.label for r in self.confusable],
+            "not_placeable": [{"effect": n.effect.name, "reason": n.reason, "explains": n.effect.explains,
+                               "fits_signature": None if self.signature is None else self.signature.fits(n.effect.explains)}
+                              for n in self.not_placeable],
+            "signature": None if self.signature is None else self.signature.as_dict(),
             "gap_noise_floor": self.noise_k,
             "gap_status": self.gap.status if self.gap else None,
             "gap_detail": self._gap_dict(),
@@ -302,6 +335,8 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
     base.train_mse, base.heldout_mse, base.traj_T = F.heldout(model0, theta, data)
     say(f"held-out gap: nominal {nominal.gap:.3f} K, refitted ({len(fit_names)} parameters) {base.gap:.3f} K")
     rounds: list[Round] = []
+    not_placeable: list[E.NotPlaceable] = []
+    sig: S.Signature | None = None
     cur_raw, cur_nominal = raw, nominal
     added_labels: set[str] = set()
     for k in range(1, opt.max_rounds + 1):
@@ -361,6 +396,9 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
             ranked.append(Ranked(f, src, s.fraction, imp, crit, crit - ref_crit, ok, kpar, imp_n))
         ranked.sort(key=lambda r: (not r.accepted, r.criterion))
         rd = Round(k, base, analysis, scores, screen, ranked, ref_gap, n_eff)
+        if k == 1:
+            not_placeable = E.not_placeable(ctx, opt.effects)
+            sig = S.signature(base, data, {r.fit.label: r.fit for r in ranked if r.source != "control"})
         best = ranked[0] if ranked and ranked[0].accepted else None
         best = _runner_up(rd, best, data, opt, say)
         rd.winner = best
@@ -378,7 +416,8 @@ def discover(raw: dict[str, Any], run: Run, build: Callable[[dict[str, Any]], Mo
         say(f"round {k}: adding {best.fit.label}; refitted, held-out gap {ref_gap:.3f} -> {base.gap:.3f} K")
         cur_nominal = F.Fit("nominal", cur_raw, base.model, base.model.nominal(), ())
     final = base
-    disc = Discovery(model0.name, run.source, data, nominal, rounds, final, raw, options=opt)
+    disc = Discovery(model0.name, run.source, data, nominal, rounds, final, raw, options=opt,
+                     not_placeable=not_placeable, signature=sig)
     disc.noise_k = noise
     assert final.traj_T is not None
     disc.final_analysis = R.analyse(run, data.sensors, final.traj_T, data.split, final.model.boundaries, data.refs,
@@ -407,7 +446,7 @@ def _runner_up(rd: Round, best: Ranked | None, data: F.Data, opt: Options,
     others = [r for r in fits if r.fit.label != best.fit.label]
     ru = others[0] if others else None
     rd.runner_up = ru
-    if ru is None or not (ru.improvement >= opt.min_improvement or ru.improvement_above_noise >= opt.min_share_above_noise):
+    if ru is None or not _explains(ru, opt):
         return best  # the runner-up does not explain the residual: nothing to confuse
     bounds = dict(rd.base.model.boundaries)
     cmp = J.compare(best.fit, ru.fit, rd.reference_gap, data)
@@ -420,6 +459,9 @@ def _runner_up(rd: Round, best: Ranked | None, data: F.Data, opt: Options,
             cmp = J.compare(best.fit, ru.fit, rd.reference_gap, data)
             cmp.decided_by, cmp.ambiguous = decided, False
     rd.comparison = cmp
+    if cmp.ambiguous:
+        rd.confusable = [ru] + [r for r in others[1:] if _explains(r, opt) and
+                                J.compare(best.fit, r.fit, rd.reference_gap, data).ambiguous]
     rd.evidence = J.evidence(rd.base, best.fit, ru.fit, data, bounds)
     rd.point = J.separating_point(best.fit, ru.fit, data)
     say(f"round {rd.index}: runner-up {ru.fit.label} (held-out gap {ru.fit.gap:.3f} K vs {best.fit.gap:.3f} K, "
@@ -427,6 +469,11 @@ def _runner_up(rd: Round, best: Ranked | None, data: F.Data, opt: Options,
         ("; cannot be separated on this run" if cmp.ambiguous else "") +
         (f"; decided by held-out data at {cmp.decided_by}" if cmp.decided_by else ""))
     return best
+
+
+def _explains(r: Ranked, opt: Options) -> bool:
+    """A candidate removes enough of the gap to be an explanation at all."""
+    return bool(r.improvement >= opt.min_improvement or r.improvement_above_noise >= opt.min_share_above_noise)
 
 
 def _polish(fit: F.Fit, names: Sequence[str], data: F.Data, opt: Options, prior: dict[str, float]) -> F.Fit:
