@@ -33,9 +33,13 @@ def test_the_page_is_what_the_bench_printed(tmp_path):
     assert "Jacobian of 39 nodes x 14 parameters" in body.group(1)
     code = re.search(r"^- \*\*Code:\*\* (.*)$", text, re.M).group(1)
     if shutil.which("git") and (REPO / ".git").exists():
-        described = subprocess.run(["git", "-C", str(REPO), "describe", "--always", "--dirty"], capture_output=True,
+        described = subprocess.run(["git", "-C", str(REPO), "describe", "--always"], capture_output=True,
                                    text=True, check=True).stdout.strip()
-        assert code == f"commit {described}"
+        changed = subprocess.run(["git", "-C", str(REPO), "diff", "--name-only", "HEAD", "--", "thermal_edge"],
+                                 capture_output=True, text=True, check=True).stdout.strip()
+        untracked = subprocess.run(["git", "-C", str(REPO), "ls-files", "--others", "--exclude-standard", "thermal_edge"],
+                                   capture_output=True, text=True, check=True).stdout.strip()
+        assert code == f"commit {described}" + ("-dirty" if changed or untracked else "")
     date = dt.datetime.strptime(re.search(r"^- \*\*Date:\*\* (.*) UTC$", text, re.M).group(1), "%Y-%m-%d %H:%M:%S")
     assert before <= date.replace(tzinfo=dt.UTC) <= after
     host = re.search(r"^- \*\*Host:\*\* (.*)$", text, re.M).group(1)
@@ -55,6 +59,27 @@ def test_a_bad_path_is_refused_before_the_bench_runs(tmp_path, name, why):
 
 def test_outside_a_checkout_the_stamp_is_the_version(tmp_path):
     assert bench_page.code_version(tmp_path) == f"thermal-edge {__version__}"
+
+
+def test_a_page_elsewhere_in_the_tree_does_not_make_the_code_dirty(tmp_path):
+    """A checkout whose package is unchanged is clean though a docs page changed; a change in the
+    package makes it dirty (a scratch repository laid out like this one)."""
+    if not shutil.which("git"):
+        pytest.skip("no git")
+    repo = tmp_path / "repo"
+    (repo / "thermal_edge").mkdir(parents=True)
+    (repo / "docs").mkdir()
+    (repo / "thermal_edge" / "x.py").write_text("x = 1\n")
+    (repo / "docs" / "page.md").write_text("# Page\n")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "-A"], check=True)
+    subprocess.run([*git, "commit", "-qm", "one"], check=True)
+    head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    (repo / "docs" / "page.md").write_text("# Page, rewritten by a bench\n")
+    assert bench_page.code_version(repo / "thermal_edge") == f"commit {head}"
+    (repo / "thermal_edge" / "x.py").write_text("x = 2\n")
+    assert bench_page.code_version(repo / "thermal_edge") == f"commit {head}-dirty"
 
 
 def test_every_bench_takes_the_option():

@@ -30,16 +30,20 @@ class Stamp:
 
 
 def code_version(package_dir: Path = PACKAGE_DIR) -> str:
-    """``git describe --always --dirty`` when ``package_dir`` lies in a git checkout of this
-    repository (the package is run from the source tree), else the installed package's version."""
+    """``git describe --always`` when ``package_dir`` lies in a git checkout of this repository (the
+    package is run from the source tree), with ``-dirty`` when the package's files differ from that
+    commit (a page written by an earlier bench elsewhere in the tree does not count); else the
+    installed package's version."""
     try:
         top = subprocess.run(["git", "-C", str(package_dir), "rev-parse", "--show-toplevel"], capture_output=True,
                              text=True, timeout=10)
         if top.returncode == 0 and (Path(top.stdout.strip()) / "thermal_edge") == package_dir:
-            described = subprocess.run(["git", "-C", str(package_dir), "describe", "--always", "--dirty"],
+            described = subprocess.run(["git", "-C", str(package_dir), "describe", "--always"],
                                        capture_output=True, text=True, timeout=10)
-            if described.returncode == 0 and described.stdout.strip():
-                return f"commit {described.stdout.strip()}"
+            changed = subprocess.run(["git", "-C", str(package_dir), "status", "--porcelain", "--", "."],
+                                     capture_output=True, text=True, timeout=10)
+            if described.returncode == 0 and described.stdout.strip() and changed.returncode == 0:
+                return f"commit {described.stdout.strip()}{'-dirty' if changed.stdout.strip() else ''}"
     except (OSError, subprocess.SubprocessError):  # no git: the version is all there is to say
         pass
     return f"thermal-edge {__version__}"
