@@ -8,12 +8,14 @@
 #     -v /etc/thermal-edge:/etc/thermal-edge:ro -v thermal-edge-state:/var/lib/thermal-edge \
 #     thermal-edge
 #
-# The image carries a default /etc/thermal-edge (edge.yaml for can0, machines/pm10kw.yaml);
-# mount the drive's own directory over it. Simulated machine and demo: deploy/compose.yaml.
+# The image carries a default /etc/thermal-edge/edge.yaml (`thermal-edge config example`: can0, the
+# packaged pm10kw model by name); mount the drive's own directory over it (its edge.yaml names a
+# model file beside it or a packaged model). Simulated machine and demo: deploy/compose.yaml.
 
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 
-# ---- build: the same wheel the tests install (pip wheel of this repository) + its dependencies
+# ---- build: the same wheel the tests install (pip wheel of this repository) + its dependencies;
+# the package data (DBC, machine models, drive cycles, example edge.yaml) is inside the wheel
 FROM ${PYTHON_IMAGE} AS build
 WORKDIR /src
 COPY pyproject.toml README.md ./
@@ -39,12 +41,11 @@ RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
     python -m venv /opt/thermal-edge \
  && /opt/thermal-edge/bin/pip install --no-cache-dir --no-index --find-links /wheels /wheels/thermal_edge-*.whl
 
-# The machine models and edge.yaml in /etc/thermal-edge (the DBC ships inside the wheel), the
-# drive cycles for the simulated machine, an unprivileged user and its state directory.
-COPY config/machines/ /etc/thermal-edge/machines/
-COPY config/cycles/ /opt/thermal-edge/share/thermal-edge/cycles/
-COPY config/edge.yaml /etc/thermal-edge/edge.yaml
-RUN thermal-edge run --check --config /etc/thermal-edge/edge.yaml \
+# /etc/thermal-edge/edge.yaml from the wheel (checked as the service reads it), an unprivileged
+# user and its state directory.
+RUN install -d -m 0755 /etc/thermal-edge \
+ && thermal-edge config example > /etc/thermal-edge/edge.yaml \
+ && thermal-edge run --check --config /etc/thermal-edge/edge.yaml \
  && useradd --system --no-log-init --uid 10001 --user-group --home-dir /var/lib/thermal-edge \
       --no-create-home --shell /usr/sbin/nologin thermal-edge \
  && install -d -o 10001 -g 10001 -m 0750 /var/lib/thermal-edge

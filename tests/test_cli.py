@@ -30,8 +30,11 @@ def test_help_lists_the_commands():
 
 
 @pytest.mark.parametrize("args, needle", [
-    (["replay", "--model", "nope.yaml", "--run", "x.csv"], "nope.yaml: cannot read"),
+    (["replay", "--model", "nope.yaml", "--run", "x.csv"], "--model nope.yaml: no such file, nor a packaged model"),
     (["simulate", "--model", "config/machines/pm10kw.yaml", "--cycle", "nope.yaml", "--out", "/tmp/x.csv"], "nope.yaml"),
+    (["simulate", "--model", "pm11", "--cycle", "overload", "--out", "/tmp/x.csv"], "(packaged: paderborn4, pm10kw)"),
+    (["simulate", "--model", "pm10kw", "--cycle", "overlaod", "--out", "/tmp/x.csv"], "--cycle overlaod: no such file"),
+    (["demo", "--cycle", "sub/overload"], "packaged: heldout_drive, overload,"),
     (["simulate", "--model", "config/machines/pm10kw.yaml", "--cycle", "config/cycles/overload.yaml",
       "--out", "/tmp/x.csv", "--param", "R_e_hous"], "NAME=VALUE"),
 ])
@@ -40,6 +43,38 @@ def test_bad_input_is_one_line_and_exit_2(args, needle):
     assert out.returncode == 2
     assert needle in out.stderr and "Traceback" not in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1
+
+
+def test_packaged_model_and_cycle_by_name_are_the_files(tmp_path):
+    """``--model pm10kw --cycle rated_heat_cool`` from a directory without such files simulates
+    exactly what the packaged files' paths do."""
+    by_path, by_name = tmp_path / "path.csv", tmp_path / "name.csv"
+    common = ("--duration", "600", "--noise", "0", "--resolution", "0")
+    a = cli("simulate", "--model", str(ROOT / "config" / "machines" / "pm10kw.yaml"),
+            "--cycle", str(ROOT / "config" / "cycles" / "rated_heat_cool.yaml"), *common, "--out", str(by_path))
+    b = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "simulate", "--model", "pm10kw", "--cycle",
+                        "rated_heat_cool.yaml", *common, "--out", str(by_name)], capture_output=True, text=True,
+                       cwd=tmp_path, env=ENV, timeout=300)
+    assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr
+    def rows(p: Path) -> list[str]:  # the data (the header comment repeats the command line)
+        return [line for line in p.read_text().splitlines() if not line.startswith("#")]
+
+    assert rows(by_name) == rows(by_path) and len(read_run(by_name)) == 601
+
+
+def test_bench_real_finds_the_data_by_option_or_variable_and_skips_visibly(tmp_path):
+    """``bench real`` reads the Paderborn data from ``--data-dir``, else ``$THERMAL_EDGE_DATA_DIR``,
+    else ``../shared/data/paderborn`` of the working directory, and says where it looked."""
+    by_option = cli("bench", "real", "--data-dir", str(tmp_path / "a"))
+    by_variable = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "bench", "real"], capture_output=True, text=True,
+                                 cwd=tmp_path, env={**ENV, "THERMAL_EDGE_DATA_DIR": str(tmp_path / "b")}, timeout=300)
+    env = {k: v for k, v in ENV.items() if k != "THERMAL_EDGE_DATA_DIR"}
+    by_default = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "bench", "real"], capture_output=True, text=True,
+                                cwd=tmp_path, env=env, timeout=300)
+    for out, where in ((by_option, tmp_path / "a"), (by_variable, tmp_path / "b"),
+                       (by_default, Path("..") / "shared" / "data" / "paderborn")):
+        assert out.returncode == 0, out.stderr
+        assert f"bench real skipped: {where / 'run_a.csv'} not found" in out.stdout
 
 
 def test_broken_model_names_file_and_key(tmp_path):
@@ -70,7 +105,7 @@ def test_simulate_then_replay_round_trip(tmp_path):
 @pytest.mark.skipif(not (PADERBORN / "run_a.csv").exists(), reason=f"Paderborn data not found in {PADERBORN}")
 def test_paderborn_replay_reproduces_the_reference():
     out = cli("replay", "--model", "config/machines/paderborn4.yaml", "--run", str(PADERBORN / "run_a.csv"),
-              "--format", "paderborn", "--no-adapt", "--json")
+              "--data-dir", str(PADERBORN), "--format", "paderborn", "--no-adapt", "--json")
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert 1.6 <= res["mean_mse"] <= 2.0
@@ -81,7 +116,8 @@ def test_paderborn_replay_reproduces_the_reference():
 @pytest.mark.skipif(not (PADERBORN / "run_a.csv").exists(), reason=f"Paderborn data not found in {PADERBORN}")
 def test_paderborn_replay_with_adaptation_scores_unseen_sensors():
     out = cli("replay", "--model", "config/machines/paderborn4.yaml", "--run", str(PADERBORN / "run_a.csv"),
-              "--format", "paderborn", "--adapt", "--sensors", "stator_winding,stator_yoke", "--decimate", "8", "--json")
+              "--data-dir", str(PADERBORN), "--format", "paderborn", "--adapt", "--sensors", "stator_winding,stator_yoke",
+              "--decimate", "8", "--json")
     assert out.returncode == 0, out.stderr
     res = json.loads(out.stdout)
     assert set(res["mse"]) == {"pm", "stator_yoke", "stator_tooth", "stator_winding"}

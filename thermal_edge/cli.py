@@ -4,7 +4,8 @@ imported only when chosen.
 Bad input (a broken model, cycle, run or config file, a bad option) raises a
 :class:`~thermal_edge.errors.ThermalEdgeError`: it exits with status 2 and one line naming the
 file, key or option and the cause. Anything else is a bug and shows its traceback (exit 1);
-``--debug`` shows the traceback of a user error too.
+``--debug`` shows the traceback of a user error too. ``--model`` and ``--cycle`` take a file or
+the name of a model or drive cycle shipped with the package, on every command.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import argparse  # noqa: E402
 import sys  # noqa: E402
 
 from . import __version__  # noqa: E402
-from .commands import COMMANDS, add_commands  # noqa: E402
+from .commands import COMMANDS, add_commands, resolve_named_files  # noqa: E402
 from .errors import ThermalEdgeError  # noqa: E402
 
 
@@ -48,6 +49,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser(argv).parse_args(argv)
     try:
+        resolve_named_files(args)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130

@@ -1,4 +1,5 @@
-"""The service configuration (``config/edge.yaml``): YAML -> validated, typed dataclasses.
+"""The service configuration (``edge.yaml``): YAML -> validated, typed dataclasses.
+``thermal-edge config example`` prints the packaged example to start from.
 
 The dataclasses below are the one home of every setting: its type, its default and what the file
 may give for it (:func:`thermal_edge.settings.setting`: range, choices, a check). :func:`load_config`
@@ -10,7 +11,8 @@ model and the DBC (model inputs and sensors mapped, signal names present). Every
 ``edge.yaml: derating.safe_current_a: must be positive, got -3``.
 
 Relative paths in the file (model, state directory, recording) are relative to the directory of
-the configuration file.
+the configuration file; ``model.path`` may instead name a model that ships with the package
+(``pm10kw``), used when no file of that name is beside the configuration.
 """
 from __future__ import annotations
 
@@ -27,14 +29,20 @@ import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .bus.busconfig import BusConfig, BusConfigError
-from .bus.frames import TE_LIMITS, DerateReason
+from .bus.crc import CRC8_ALGORITHMS
+from .bus.frames import DEFAULT_DBC_PATH, TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
+from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
 from .settings import AdapterConfig, setting, spec_of
+from .shipped import MACHINES, find
 from .yamlfile import YamlProblem, parse_yaml
+
+if TYPE_CHECKING:
+    from .bus.codec import FrameCodec
 
 #: Errors making ``state.dir`` that the file system's state or permissions decide, not the configuration:
 #: the service starts without persistence and says so (:meth:`EdgeConfig.check_state_dir`).
@@ -67,6 +75,12 @@ __all__ = [
 ]
 
 REDUCTIONS = ("mean", "rms", "dq_rms", "latest")
+#: ``dq:`` of a ``dq_rms`` input: the scaling of the inverter's d/q transform, as the mean square of
+#: the phase current per unit of ``i_d² + i_q²``. Amplitude-invariant (Clarke with 2/3: |i_dq| is the
+#: phase current's peak) gives I_rms = sqrt((i_d² + i_q²) / 2); power-invariant (sqrt(2/3): i_d² + i_q²
+#: is the sum of the three phases' squares) sqrt((i_d² + i_q²) / 3); RMS-scaled (|i_dq| is the RMS
+#: phase current) sqrt(i_d² + i_q²).
+DQ_SQUARE_SHARE = {"amplitude_invariant": 1 / 2, "power_invariant": 1 / 3, "rms_scaled": 1.0}
 CLOCK_MODES = ("wall", "frame")
 WORKERS = ("thread", "sync")
 REASON_NAMES = {"winding": DerateReason.WINDING, "magnet": DerateReason.MAGNET}
@@ -114,6 +128,46 @@ def _input_signals(sec: _Section, k: str, values: dict[str, Any], default: Any) 
     if sec.has("signals"):
         raise sec.fail("signals", f"reduce: {reduce} takes one signal (signal: NAME)")
     return (sig,)
+
+
+def _dq(sec: _Section, k: str, values: dict[str, Any], default: Any) -> str:
+    """``dq:`` (the d/q transform's scaling) only with ``reduce: dq_rms``."""
+    v = sec.string(k, sec.value(k), choices=tuple(DQ_SQUARE_SHARE))
+    if v is not None and values["reduce"] != "dq_rms":
+        raise sec.fail(k, f"only with reduce: dq_rms (this input has reduce: {values['reduce']})")
+    return v if v is not None else default
+
+
+_PROTECTION_KEYS = ("counter", "crc", "crc_algorithm", "data_id")
+
+
+def _protection(sec: _Section, k: str, values: dict[str, Any], default: Any) -> dict[str, FrameProtection]:
+    """``codec.protection``: frame name -> ``none`` or ``{counter: SIGNAL, crc: SIGNAL, crc_algorithm:
+    NAME, data_id: N}`` (each part may be left out)."""
+    sub = sec.sub(k)
+    out: dict[str, FrameProtection] = {}
+    for frame, raw in sub.raw.items():
+        if isinstance(raw, str) and raw.strip().lower() == "none":
+            out[str(frame)] = FrameProtection()
+            continue
+        entry = sub.sub(str(frame))  # a mapping, else the error names the key
+        if not entry.raw:
+            raise entry.fail("", "give counter: and/or crc: (signal names), or none for a frame without protection")
+        entry.refuse_unknown(set(_PROTECTION_KEYS))
+        counter = entry.string("counter", entry.value("counter"))
+        crc = entry.string("crc", entry.value("crc"))
+        algorithm = entry.string("crc_algorithm", entry.value("crc_algorithm"), choices=tuple(CRC8_ALGORITHMS))
+        data_id = entry.value("data_id")
+        if data_id is not None and (isinstance(data_id, bool) or not isinstance(data_id, int) or not 0 <= data_id <= 0xFFFF):
+            raise entry.fail("data_id", f"expected a 16-bit integer (0 to 0xFFFF), got {data_id!r}")
+        if crc is None and (algorithm is not None or data_id is not None):
+            raise entry.fail("crc_algorithm" if algorithm is not None else "data_id", "needs crc: (the CRC signal)")
+        if crc is not None and algorithm is None:
+            raise entry.fail("crc_algorithm", f"required with crc: one of {', '.join(CRC8_ALGORITHMS)}")
+        if counter is None and crc is None:
+            raise entry.fail("", "give counter: and/or crc: (signal names), or none for a frame without protection")
+        out[str(frame)] = FrameProtection(counter, crc, algorithm or FrameProtection.crc_algorithm, data_id)
+    return out
 
 
 def _reason(sec: _Section, k: str, values: dict[str, Any], default: Any) -> DerateReason:
@@ -179,13 +233,44 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class CodecConfig:
-    """``codec:`` -- the DBC and the alive-counter resynchronisation gap (in cycle times)."""
+    """``codec:`` -- the DBC, each read frame's end-to-end protection and the alive-counter
+    resynchronisation gap (in cycle times)."""
 
+    #: the inverter's frames (null: the shipped CAN matrix); the service's own frames are always the matrix's
     dbc: Path | None = None
+    #: per frame of ``dbc`` without the CAN matrix's counter and CRC: ``none`` or ``{counter, crc,
+    #: crc_algorithm, data_id}`` (:class:`~thermal_edge.bus.protection.FrameProtection`)
+    protection: dict[str, FrameProtection] = setting(default_factory=dict, parse=_protection)
     # the service's own choice, below the codec's 1000: an inverter frame missing for longer than 8
     # cycles is a sender that paused or changed its rate (its input goes stale), not a run of lost frames
     # that time stamps could count (they over-counted a 10 Hz feed of 10 ms frames by a wrap per frame)
     resync_after_cycles: float = setting(8.0, positive=True, max=1000.0)
+
+    def frame_codec(self, fname: str = "<config>", **kwargs: Any) -> FrameCodec:
+        """The service's :class:`~thermal_edge.bus.codec.FrameCodec`: the inverter's frames from
+        :attr:`dbc` with their :attr:`protection`, the service's own from the shipped DBC.
+
+        Parameters
+        ----------
+        fname : str
+            The configuration's file name, for messages.
+        **kwargs
+            Passed to the codec (default ``resync_after_cycles`` from this section).
+
+        Raises
+        ------
+        ConfigError
+            A declared protection that does not fit its frame (``codec.protection.<frame>``).
+        DbcError
+            The DBC cannot be loaded or clashes with the service's own frames.
+        """
+        from .bus.codec import FrameCodec, ProtectionError
+
+        kwargs.setdefault("resync_after_cycles", self.resync_after_cycles)
+        try:
+            return FrameCodec(self.dbc or DEFAULT_DBC_PATH, protection=self.protection, service_frames=True, **kwargs)
+        except ProtectionError as exc:
+            raise ConfigError(f"{fname}: codec.protection.{exc.frame}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -207,6 +292,9 @@ class InputSignal:
     frame: str
     reduce: str = setting("mean", choices=REDUCTIONS)
     signals: tuple[str, ...] = setting(aliases=("signal",), parse=_input_signals)
+    #: ``dq_rms`` only: the scaling of the d/q transform (:data:`DQ_SQUARE_SHARE`); the CAN matrix's
+    #: INV_Id/INV_Iq are peak amplitudes (amplitude-invariant)
+    dq: str = setting("amplitude_invariant", parse=_dq)
     status: str | None = None
     resolution: float | None = setting(None, positive=True)
 
@@ -518,14 +606,21 @@ class EdgeConfig:
                 raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
 
     def check_dbc(self, codec: Any) -> None:
-        """Check that every mapped frame and signal exists in the DBC."""
+        """Check that every mapped frame and signal exists in the DBC and every read frame has a
+        known protection (the CAN matrix's, or declared under ``codec.protection``)."""
         for section, items in (("inputs", self.inputs), ("sensors", self.sensors)):
             for name, spec in items.items():
                 key = f"signals.{section}.{name}"
                 try:
                     signals = set(codec.signal_names(spec.frame))
                 except KeyError:
-                    raise self.error(f"{key}.frame", f"no frame {spec.frame!r} in {Path(codec.dbc_path).name}") from None
+                    why = codec.unsupported(spec.frame)
+                    raise self.error(f"{key}.frame", f"frame {spec.frame} of {Path(codec.dbc_path).name} cannot be read: {why}"
+                                     if why else f"no frame {spec.frame!r} in {Path(codec.dbc_path).name}") from None
+                if codec.protection(spec.frame) is None:
+                    raise self.error(f"codec.protection.{spec.frame}",
+                                     f"{key} reads {spec.frame}, and {codec.protection_problem(spec.frame)} (counter: "
+                                     "and/or crc: with crc_algorithm:, or none)")
                 wanted = list(spec.signals) if isinstance(spec, InputSignal) else [spec.signal]
                 if spec.status:
                     wanted.append(spec.status)
@@ -546,7 +641,7 @@ class EdgeConfig:
             except KeyError:
                 raise self.error(f"timeouts.{frame}", f"no frame {frame!r} in {Path(codec.dbc_path).name}") from None
         # a limit the DBC cannot carry would be sent saturated: not the configured one
-        limits = codec.database.get_message_by_name(TE_LIMITS)
+        limits = codec.message(TE_LIMITS)
         d = self.derating
         for key, value, signal in (("max_current_a", d.max_current_a, "TE_CurrentLimit"),
                                    ("safe_current_a", d.safe_current_a, "TE_CurrentLimit"),
@@ -833,6 +928,11 @@ def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) ->
     fname = p.name if p is not None else "<config>"
     base = p.resolve().parent if p is not None else Path.cwd()
     cfg: EdgeConfig = _read(EdgeConfig, _Section(fname, "", raw, base), {"path": p})
+    model_path = cfg.model.path
+    if model_path.parent == base and not model_path.exists():  # a bare name: a packaged model of that name
+        packaged = find(MACHINES, model_path.name)
+        if packaged is not None:
+            cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, path=packaged))
     rec = cfg.recording
     if rec.candump is not None and cfg.bus.record_path is None:
         try:

@@ -73,7 +73,7 @@ def spec_of(f: Any) -> Spec:
 
 @dataclass
 class AdapterConfig:
-    """Settings of the online adapter (``adaptation:`` in ``config/edge.yaml``).
+    """Settings of the online adapter (``adaptation:`` in ``edge.yaml``).
 
     Attributes
     ----------

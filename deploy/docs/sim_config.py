@@ -7,28 +7,27 @@ import yaml
 
 from .paths import EDGE_YAML
 
-#: paths inside the image (Dockerfile)
-IMAGE_ETC = "/etc/thermal-edge"
+#: the state directory inside the image (Dockerfile)
 IMAGE_STATE = "/var/lib/thermal-edge"
 
 
 def render_sim_config(edge_yaml: Path = EDGE_YAML) -> str:
     """``deploy/compose/edge-sim.yaml``: ``config/edge.yaml`` for the simulated machine of the compose
     demo -- udp_multicast bus, frame clock, the model started off by the paper's Table 4 variations
-    (as ``thermal-edge demo``), paths inside the image; every other setting as shipped."""
+    (as ``thermal-edge demo``), the packaged model by name, the state directory inside the image;
+    every other setting as shipped."""
+    from thermal_edge.config import load_config
     from thermal_edge.lptn import load_model
     from thermal_edge.sim.inverter import table4_parameters
 
     raw = yaml.safe_load(edge_yaml.read_text(encoding="utf-8"))
-    model_rel = Path(raw["model"]["path"])
-    model = load_model((edge_yaml.parent / model_rel).resolve())
+    model = load_model(load_config(edge_yaml).model.path)  # the model's name resolves in the image as here
     raw["bus"] = {"interface": "udp_multicast", "preserve_timestamps": True}
     codec = dict(raw.get("codec") or {})
     codec.pop("dbc", None)  # the DBC the package finds (installed there by the Dockerfile)
     codec["resync_after_cycles"] = 1000
     raw["codec"] = codec
-    raw["model"] = {**raw["model"], "path": f"{IMAGE_ETC}/{model_rel.as_posix()}",
-                    "parameters": {k: round(v, 6) for k, v in table4_parameters(model).items()}}
+    raw["model"] = {**raw["model"], "parameters": {k: round(v, 6) for k, v in table4_parameters(model).items()}}
     raw["clock"] = {**(raw.get("clock") or {}), "mode": "frame"}
     raw["metrics"] = {"enabled": True, "address": "127.0.0.1", "port": 9108}
     raw["state"] = {**(raw.get("state") or {}), "dir": IMAGE_STATE}

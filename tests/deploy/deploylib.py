@@ -231,25 +231,15 @@ def wait_metrics(svc: LiveService, ready: Any, timeout: float = 90.0) -> str:
     raise TimeoutError(f"service at {svc.url} not ready within {timeout:.0f} s\n{svc.log_tail()}")
 
 
-def image_path_to_repo(path: str) -> str:
-    """A path inside the image (Dockerfile) -> the file of this checkout it was copied from."""
-    for image_dir, repo_dir in (("/etc/thermal-edge/machines/", REPO / "config" / "machines"),
-                                ("/opt/thermal-edge/share/thermal-edge/cycles/", REPO / "config" / "cycles")):
-        if path.startswith(image_dir):
-            return str(repo_dir / path[len(image_dir):])
-    return path
-
-
 def compose_topology(workdir: Path, metrics_port: int, udp_port: int) -> tuple[Path, list[str]]:
     """deploy/compose.yaml's thermal-edge and simulated-machine, outside containers: the service's
-    config (deploy/compose/edge-sim.yaml) and the machine's command line, with the image's paths
-    mapped to this checkout, a free metrics port and a free udp_multicast port."""
+    config (deploy/compose/edge-sim.yaml) and the machine's command line, with the state directory,
+    a free metrics port and a free udp_multicast port (model and cycle are packaged ones, by name)."""
     compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
     svc, sim = compose["services"]["thermal-edge"], compose["services"]["simulated-machine"]
     cfg_in_image = svc["command"][svc["command"].index("--config") + 1]
     src = next(v.split(":")[0] for v in svc["volumes"] if v.split(":")[1] == cfg_in_image)
     raw = yaml.safe_load((DEPLOY / src).read_text())
-    raw["model"]["path"] = image_path_to_repo(raw["model"]["path"])
     raw["bus"] = {**raw["bus"], "port": udp_port}
     raw["metrics"] = {**raw["metrics"], "port": metrics_port}
     state = workdir / "state"
@@ -259,12 +249,7 @@ def compose_topology(workdir: Path, metrics_port: int, udp_port: int) -> tuple[P
     entry = list(sim["entrypoint"])
     assert entry[0] == "python"
     argv = [PY, *entry[1:]]
-    for a in sim["command"]:
-        if "=" in a:
-            k, v = a.split("=", 1)
-            argv.append(f"{k}={image_path_to_repo(v)}")
-        else:
-            argv.append(image_path_to_repo(a))
+    argv += sim["command"]
     argv.append(f"--port={udp_port}")
     return cfg, argv
 

@@ -9,6 +9,8 @@ from pathlib import Path
 import deploylib as dl
 import yaml
 
+from thermal_edge import shipped
+
 COMPOSE = dl.DEPLOY / "compose.yaml"
 
 
@@ -72,16 +74,11 @@ def test_service_runs_the_sim_config() -> None:
     assert sm["entrypoint"][-2:] == ["-m", "thermal_edge.sim.inverter"]
     assert arg(sm["command"], "--interface") == sim_cfg["bus"]["interface"]
     assert sim_cfg["clock"]["mode"] == "frame" or float(arg(sm["command"], "--speed") or 1) == 1.0
-    # the model and cycle paths exist in the image (Dockerfile COPY destinations)
-    dockerfile = (dl.REPO / "Dockerfile").read_text()
-    assert "COPY config/machines/ /etc/thermal-edge/machines/" in dockerfile
-    assert "COPY config/cycles/ /opt/thermal-edge/share/thermal-edge/cycles/" in dockerfile
+    # the model and the cycle are packaged ones, named: the image holds them inside the wheel
     model = arg(sm["command"], "--model")
     cycle = arg(sm["command"], "--cycle")
     assert model == sim_cfg["model"]["path"]
-    assert (dl.REPO / "config" / "machines" / Path(model).name).exists()
-    assert cycle.startswith("/opt/thermal-edge/share/thermal-edge/cycles/")
-    assert (dl.REPO / "config" / "cycles" / Path(cycle).name).exists()
+    assert model in shipped.names(shipped.MACHINES) and cycle in shipped.names(shipped.CYCLES)
     assert sm["depends_on"]["thermal-edge"]["condition"] in ("service_healthy", "service_started")
 
 

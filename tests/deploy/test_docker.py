@@ -129,7 +129,8 @@ def test_build_context_has_every_copied_path(tmp_path: Path) -> None:
 
 @pytest.mark.timeout(600)
 def test_wheel_of_the_build_context(tmp_path: Path) -> None:
-    """``pip wheel . --no-deps`` of the Docker build context: the package, the console script, the DBC."""
+    """``pip wheel . --no-deps`` of the Docker build context: the package, the console script and the
+    package data (the DBC, every machine model and drive cycle, the example edge.yaml), byte for byte."""
     ctx = dl.build_context(tmp_path / "ctx")
     out = tmp_path / "wheels"
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--quiet", "-w", str(out),
@@ -152,12 +153,14 @@ def test_wheel_of_the_build_context(tmp_path: Path) -> None:
                 "thermal_edge/sim/inverter.py", "thermal_edge/commands/run.py"):
         assert mod in names, mod
     assert ep["console_scripts"]["thermal-edge"].strip() == "thermal_edge.cli:main"
-    dbcs = [n for n in names if n.endswith(".dbc")]
-    if not dbcs:
-        pytest.xfail("the wheel carries no DBC: the service needs dbc/thermal_edge.dbc at run time; until it ships as "
-                     "package data the install (README, Dockerfile) copies it to thermal_edge.bus.frames.DEFAULT_DBC_PATH")
+    data = {"thermal_edge/bus/thermal_edge.dbc": dl.DBC}
+    resources = dl.REPO / "thermal_edge" / "resources"
+    data.update({f"thermal_edge/resources/{p.relative_to(resources).as_posix()}": p for p in resources.rglob("*.yaml")})
+    assert len(data) >= 1 + 1 + 2 + 6, sorted(data)  # DBC, edge.yaml, two models, six cycles (counted in the checkout)
     with zipfile.ZipFile(wheels[0]) as z:
-        assert any(z.read(n) == dl.DBC.read_bytes() for n in dbcs)
+        for name, src in data.items():
+            assert name in names, f"{name} missing from the wheel"
+            assert z.read(name) == src.read_bytes(), f"{name} differs from {src}"
 
 
 @pytest.mark.timeout(120)

@@ -38,6 +38,14 @@ def localise(script: str, root: Path) -> str:
     return s.replace("/etc/thermal-edge", str(root / "etc" / "thermal-edge"))
 
 
+def checkout(dest: Path) -> Path:
+    """A checkout as the edge computer gets it: what the image's build sees, and the repository's
+    ``config`` link to the package data (the install steps copy a model and edge.yaml from it)."""
+    src = dl.build_context(dest)
+    (src / "config").symlink_to(os.readlink(dl.REPO / "config"))
+    return src
+
+
 def clean_env(root: Path) -> dict[str, str]:
     e = dl.env()
     for k in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME"):
@@ -63,7 +71,7 @@ def python3_ok(env: dict[str, str]) -> str | None:
 def test_readme_install_steps_then_service_against_the_simulated_machine(tmp_path: Path) -> None:
     root = tmp_path / "root"
     (root / "home").mkdir(parents=True)
-    src = dl.build_context(tmp_path / "checkout")  # a checkout as the edge computer gets it
+    src = checkout(tmp_path / "checkout")
     env = clean_env(root)
     why = python3_ok(env)
     if why:
@@ -133,7 +141,7 @@ def test_installed_run_with_installed_emulator(tmp_path: Path) -> None:
     processes on a udp_multicast bus (the compose demo's topology; vcan0 on a bench)."""
     root = tmp_path / "root"
     (root / "home").mkdir(parents=True)
-    src = dl.build_context(tmp_path / "checkout")
+    src = checkout(tmp_path / "checkout")
     env = clean_env(root)
     why = python3_ok(env)
     if why:
@@ -164,7 +172,7 @@ def test_installed_run_with_installed_emulator(tmp_path: Path) -> None:
         dl.wait_metrics(live, lambda t: "thermal_edge_build_info" in t, timeout=90)
         procs.append(subprocess.Popen(
             [str(venv / "bin" / "python"), "-m", "thermal_edge.sim.inverter", "--interface", "udp_multicast", "--port",
-             str(udp_port), "--model", str(etc / "machines" / "pm10kw.yaml"), "--cycle", "config/cycles/overload.yaml",
+             str(udp_port), "--model", str(etc / "machines" / "pm10kw.yaml"), "--cycle", "overload",
              "--speed", "30", "--current-period", "0.05"], env=env, cwd=src, stdout=log_e.open("w"), stderr=subprocess.STDOUT))
         text = dl.wait_metrics(live, lambda t: (dl.sample_value(t, "thermal_edge_ticks_total") or 0) >= 30, timeout=120)
     finally:

@@ -3,6 +3,8 @@ issue names, and the 1σ the run allows for each final parameter (the residuals'
 counted) ordered as the physics says. Skips visibly without ``../shared/data/paderborn``."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -11,12 +13,13 @@ from thermal_edge.data import read_run
 from thermal_edge.lptn import load_model
 from thermal_edge.shipped import config_path
 
-RUN = real.PADERBORN / "run_a.csv"
+PADERBORN = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "paderborn"
+RUN = PADERBORN / "run_a.csv"
 
 
 @pytest.mark.skipif(not RUN.exists(), reason=f"{RUN} absent (the Paderborn data are never part of this repository)")
 def test_one_start_reports_every_figure_and_the_bands_the_run_allows():
-    base = load_model(config_path("machines", "paderborn4.yaml"), data_dir=real.PADERBORN)
+    base = load_model(config_path("machines", "paderborn4.yaml"), data_dir=PADERBORN)
     run = read_run(RUN, "paderborn").slice(0, 960)  # 40 min of 2.5 s rows
     out = real.one_start(base, run, {"R_c_sy": 1.5}, {})
     for target, seen in (("pm", False), ("stator_tooth", False), ("stator_yoke", True), ("stator_winding", True)):

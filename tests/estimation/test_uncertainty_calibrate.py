@@ -89,7 +89,10 @@ def test_autocorrelation_time_of_an_ar1_process_is_its_theoretical_value():
 
 
 def test_write_calibrated_keeps_comments_and_moves_data_dir(tmp_path):
-    src = ROOT / "config" / "machines" / "paderborn4.yaml"
+    src = tmp_path / "models" / "paderborn4.yaml"  # the packaged model with a data_dir relative to it
+    src.parent.mkdir()
+    src.write_text((ROOT / "config" / "machines" / "paderborn4.yaml").read_text().replace(
+        "\ntables:", "\ndata_dir: ../tables/paderborn\ntables:", 1))
     out = tmp_path / "sub" / "cal.yaml"
     out.parent.mkdir()
     write_calibrated(src, {"C_sy": 7000.0, "R_c_sy": 0.02}, out, note="test")
@@ -98,7 +101,7 @@ def test_write_calibrated_keeps_comments_and_moves_data_dir(tmp_path):
     assert "C_sy: {value: 7000, min: 1.5e3" in text and "R_c_sy: {value: 0.02," in text
     assert text.count("\n#") >= src.read_text().count("\n#")  # comments survive
     data_dir = next(line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith("data_dir:"))
-    original = (src.parent / "../../../shared/data/paderborn").resolve()
+    original = (tmp_path / "tables" / "paderborn").resolve()
     assert (out.parent / data_dir).resolve() == original
     with pytest.raises(KeyError, match="nope"):
         write_calibrated(src, {"nope": 1.0}, tmp_path / "x.yaml")

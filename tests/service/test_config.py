@@ -125,14 +125,31 @@ def test_invalid_yaml_and_missing_file(tmp_path):
         load_config(tmp_path / "nope.yaml")
 
 
-def test_relative_paths_resolve_against_the_config_directory():
-    cfg = load_config(EDGE_YAML)
-    assert cfg.model.path == (REPO / "config" / "machines" / "pm10kw.yaml")
+def test_model_path_a_file_beside_the_config_before_a_packaged_name(tmp_path):
+    """``model.path``: a file relative to the configuration wins; a bare name with no such file is the
+    packaged model (``pm10kw`` or ``pm10kw.yaml``); anything else stays the path it names."""
+    raw = yaml.safe_load(EDGE_YAML.read_text())
+    packaged = (REPO / "thermal_edge" / "resources" / "machines" / "pm10kw.yaml").resolve()
+
+    def model_path(ref: str) -> Path:
+        return config_from_mapping({**raw, "model": {"path": ref}}, tmp_path / "edge.yaml").model.path
+
+    assert model_path("pm10kw").resolve() == packaged
+    assert model_path("pm10kw.yaml").resolve() == packaged
+    assert model_path("sub/pm10kw.yaml") == tmp_path / "sub" / "pm10kw.yaml"  # a path, never a name
+    assert model_path("pm11") == tmp_path / "pm11"  # unknown: loading it names the missing file
+    (tmp_path / "pm10kw.yaml").write_text("a user's own model\n")
+    assert model_path("pm10kw.yaml") == tmp_path / "pm10kw.yaml"
+
+
+def test_relative_paths_resolve_against_the_config_directory(tmp_path):
+    cfg = load_config(EDGE_YAML)  # its model by name: the packaged file
+    assert cfg.model.path.resolve() == (REPO / "config" / "machines" / "pm10kw.yaml").resolve()
     assert cfg.codec.dbc is None  # the packaged DBC
     raw = yaml.safe_load(EDGE_YAML.read_text())
     raw["codec"]["dbc"] = "../dbc/thermal_edge.dbc"
-    cfg = config_from_mapping(raw, EDGE_YAML)
-    assert cfg.codec.dbc.resolve() == (REPO / "dbc" / "thermal_edge.dbc").resolve()
+    cfg = config_from_mapping(raw, tmp_path / "etc" / "edge.yaml")
+    assert cfg.codec.dbc.resolve() == (tmp_path / "dbc" / "thermal_edge.dbc").resolve()
 
 
 def test_run_command_rejects_a_broken_config_with_one_line(tmp_path):
@@ -301,3 +318,74 @@ def test_hand_typed_yaml_is_read_as_an_engineer_means_it(tmp_path, case, edit, w
     lines = proc.stderr.splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert lines[0].startswith("thermal-edge run: error: edge.yaml: ") and words in lines[0], lines[0]
+
+
+# -- another inverter's CAN matrix: codec.protection and the d/q convention ---------------------------
+EXAMPLE = REPO / "config" / "examples" / "acme-mc7"
+
+
+def example() -> dict:
+    """The Acme MC-7 example's edge.yaml, its relative paths made absolute."""
+    raw = yaml.safe_load((EXAMPLE / "edge.yaml").read_text())
+    raw["codec"]["dbc"] = str(EXAMPLE / "acme-mc7.dbc")
+    raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
+    return raw
+
+
+FOREIGN_BROKEN = [
+    ("protection left out", lambda r: r["codec"]["protection"].pop("MC7_Motion"), "codec.protection.MC7_Motion",
+     "signals.inputs.speed_rpm reads MC7_Motion, and it has neither the CAN matrix's MC7_Motion_Counter"),
+    ("protection of a missing frame", lambda r: r["codec"]["protection"].__setitem__("MC7_Motoin", "none"),
+     "codec.protection.MC7_Motoin", "no frame 'MC7_Motoin' to protect (did you mean 'MC7_Motion'?)"),
+    ("counter that is no signal", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"counter": "MC7_Alive"}),
+     "codec.protection.MC7_Motion", "no signal 'MC7_Alive' in the frame"),
+    ("CRC that spans two bytes", lambda r: r["codec"]["protection"].__setitem__(
+        "MC7_Motion", {"crc": "MC7_OperatingState", "crc_algorithm": "crc8_autosar"}),
+     "codec.protection.MC7_Motion", "must be an unsigned 8-bit signal filling one payload byte"),
+    ("CRC without its algorithm", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"crc": "X"}),
+     "codec.protection.MC7_Motion.crc_algorithm", "required with crc: one of crc8_sae_j1850"),
+    ("unknown CRC algorithm", lambda r: r["codec"]["protection"].__setitem__(
+        "MC7_Motion", {"crc": "X", "crc_algorithm": "crc16"}), "codec.protection.MC7_Motion.crc_algorithm", "must be one of"),
+    ("data ID beyond 16 bits", lambda r: r["codec"]["protection"].__setitem__(
+        "MC7_Motion", {"crc": "X", "crc_algorithm": "crc8_autosar", "data_id": 0x12345}),
+     "codec.protection.MC7_Motion.data_id", "16-bit integer"),
+    ("data ID without CRC", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"data_id": 5}),
+     "codec.protection.MC7_Motion.data_id", "needs crc:"),
+    ("misspelt protection key", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"countr": "X"}),
+     "codec.protection.MC7_Motion.countr", "unknown key (did you mean 'counter'?)"),
+    ("empty protection", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {}),
+     "codec.protection.MC7_Motion", "or none for a frame without protection"),
+    ("the service's own frame", lambda r: r["codec"]["protection"].__setitem__("TE_Limits", "none"),
+     "codec.protection.TE_Limits", "the service's own frame: it keeps the CAN matrix's protection"),
+    ("unknown d/q convention", lambda r: r["signals"]["inputs"]["i_rms"].__setitem__("dq", "peak"),
+     "signals.inputs.i_rms.dq", "must be one of amplitude_invariant, power_invariant, rms_scaled"),
+    ("d/q convention on a mean", lambda r: r["signals"]["inputs"]["speed_rpm"].__setitem__("dq", "power_invariant"),
+     "signals.inputs.speed_rpm.dq", "only with reduce: dq_rms"),
+    ("a 29-bit frame mapped", lambda r: r["signals"]["sensors"]["housing"].update(frame="MC7_Diagnostics",
+                                                                                  signal="MC7_FaultCode"),
+     "signals.sensors.housing.frame", "cannot be read: it has a 29-bit identifier"),
+]
+
+
+@pytest.mark.parametrize("case, edit, key, words", FOREIGN_BROKEN, ids=[c[0] for c in FOREIGN_BROKEN])
+def test_a_foreign_matrix_config_that_does_not_fit_exits_2_naming_the_key(tmp_path, case, edit, key, words):
+    raw = example()
+    raw["state"]["dir"] = str(tmp_path / "state")
+    edit(raw)
+    proc = _run(write_yaml(tmp_path / "broken.yaml", raw), "--check")
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith(f"thermal-edge run: error: broken.yaml: {key}: "), lines[0]
+    assert words in lines[0], lines[0]
+
+
+def test_the_example_declares_what_the_shipped_file_leaves_to_defaults(tmp_path):
+    cfg = config_from_mapping(example(), tmp_path / "edge.yaml")
+    assert cfg.inputs["i_rms"].dq == "power_invariant" and load_config(EDGE_YAML).inputs["i_rms"].dq == "amplitude_invariant"
+    assert set(cfg.codec.protection) == {"MC7_Currents", "MC7_Motion", "MC7_StatorTemps", "MC7_Environment"}
+    assert all(p.none for p in cfg.codec.protection.values())
+    raw = example()
+    raw["codec"]["protection"]["MC7_Motion"] = {"counter": "MC7_OperatingState"}  # 4 bits: a counter it could be
+    codec = config_from_mapping(raw, tmp_path / "edge.yaml").codec.frame_codec()
+    assert codec.protection("MC7_Motion").counter == "MC7_OperatingState"
+    assert "MC7_OperatingState" not in codec.signal_names("MC7_Motion")

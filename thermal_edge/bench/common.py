@@ -1,10 +1,26 @@
-"""Shared pieces of the benchmarks: progress and timing."""
+"""Shared pieces of the benchmarks: progress, timing, where the real data is."""
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Protocol
+
+#: the Paderborn data set (``run_a.csv`` and the tables of the packaged ``paderborn4`` model) is
+#: never part of the package: its directory comes from ``--data-dir``, else this variable (the one
+#: the model loader reads for table files), else :data:`PADERBORN_DEFAULT`
+DATA_DIR_ENV = "THERMAL_EDGE_DATA_DIR"
+#: relative to the working directory: a checkout beside the data set's ``shared/`` folder
+PADERBORN_DEFAULT = Path("..") / "shared" / "data" / "paderborn"
+
+
+def paderborn_dir(given: str | os.PathLike[str] | None = None) -> Path:
+    """The Paderborn data set's directory: ``given``, else ``$THERMAL_EDGE_DATA_DIR``, else
+    ``../shared/data/paderborn`` relative to the working directory (the benches skip, saying
+    where they looked, when ``run_a.csv`` is not there)."""
+    return Path(given or os.environ.get(DATA_DIR_ENV) or PADERBORN_DEFAULT)
 
 
 class Progress(Protocol):

@@ -32,13 +32,12 @@ from ..estimation.predict import open_loop
 from ..estimation.screening import screen
 from ..estimation.sqp import fit_sqp
 from ..lptn import Model, Simulator, load_model
-from ..shipped import ROOT, config_path
+from ..shipped import config_path
 from ..sim.cycles import cycle_run, load_cycle
 from ..sim.plant import PlantResult, simulate_plant
-from .common import Progress, no_progress, sample_counter
+from .common import Progress, no_progress, paderborn_dir, sample_counter
 
 TABLE4 = {"k_r_sw": +4.0, "k_c_sw": +1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
-PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
 
 
 def _plant(model: Model, cycle: str, seed: int) -> PlantResult:
@@ -172,7 +171,9 @@ def e2(model: Model, progress: Progress = no_progress) -> tuple[dict[str, object
     return res, float(np.median(times))
 
 
-def e3(data_dir: Path = PADERBORN, progress: Progress = no_progress) -> dict[str, object]:
+def e3(data_dir: Path | None = None, progress: Progress = no_progress) -> dict[str, object]:
+    """E3 on the Paderborn data in ``data_dir`` (default :func:`~.common.paderborn_dir`); skipped when absent."""
+    data_dir = paderborn_dir(data_dir)
     run_path = data_dir / "run_a.csv"
     if not run_path.exists():
         return {"skipped": f"{run_path} not found"}
@@ -197,8 +198,9 @@ def e3(data_dir: Path = PADERBORN, progress: Progress = no_progress) -> dict[str
     }
 
 
-def run(progress: Progress = no_progress) -> dict[str, object]:
-    """E1, E2, the step timing and E3; ``progress`` counts samples replayed, methods and steps."""
+def run(progress: Progress = no_progress, data_dir: Path | None = None) -> dict[str, object]:
+    """E1, E2, the step timing and E3 (Paderborn data in ``data_dir``, default
+    :func:`~.common.paderborn_dir`); ``progress`` counts samples replayed, methods and steps."""
     model = load_model(config_path("machines", "pm10kw.yaml"))
     e2res, step = e2(model, progress)
-    return {"e1": e1(model, progress), "e2": e2res, "adapt_step_median_s": step, "e3": e3(progress=progress)}
+    return {"e1": e1(model, progress), "e2": e2res, "adapt_step_median_s": step, "e3": e3(data_dir, progress=progress)}

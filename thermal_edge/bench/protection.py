@@ -4,7 +4,7 @@ policy delivers, and whether it ever lets the machine overheat.
 The closed loop runs on the simulated machine in one process, on the frame clock: the inverter
 emulator's plant and frames (:class:`..sim.inverter.InverterEmulator`, stepped directly, no bus),
 and for ``thermal_edge`` the service's own :class:`..service.engine.ThermalEngine` (model,
-observer, online adaptation in the tick, the derating policy) configured by ``config/edge.yaml``.
+observer, online adaptation in the tick, the derating policy) configured by the packaged example ``edge.yaml``.
 The limits it sends are encoded and decoded with the DBC (the inverter obeys the quantised
 values); the inverter's frames reach the policies as signals, not encoded (the emulator's readings
 are already noisy and quantised like the DBC's, and encoding 20 frames a tick would double the
@@ -233,7 +233,8 @@ class ThermalEdgePolicy(_Policy):
 
 # ----------------------------------------------------------------------------------------------
 def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
-    """``config/edge.yaml`` as the service runs it here: frame clock, no bus I/O, no metrics."""
+    """The packaged example ``edge.yaml`` (or ``config_file``) as the service runs it here: frame
+    clock, no bus I/O, no metrics."""
     import yaml
 
     from ..config import config_from_mapping
@@ -247,10 +248,7 @@ def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
     raw["recording"] = {}
     slow = max(CURRENT_PERIOD_S, TEMPERATURE_PERIOD_S)
     raw["timeouts"] = {k: max(float(v), 3 * slow) for k, v in (raw.get("timeouts") or {}).items()}
-    model = raw.get("model") or {}
-    if model.get("path") and not Path(model["path"]).is_absolute():
-        raw["model"] = {**model, "path": str(path.parent / model["path"])}
-    return config_from_mapping(raw, path)
+    return config_from_mapping(raw, path)  # relative paths (and a packaged model's name) as from the file
 
 
 def plant_for(service_model: Any, case: Case) -> Any:

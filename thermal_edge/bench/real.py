@@ -25,10 +25,9 @@ from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
 from ..estimation.predict import initial_from_run, model_inputs, open_loop
 from ..lptn import Model, load_model
-from ..shipped import ROOT, config_path
-from .common import Progress, no_progress, sample_counter
+from ..shipped import config_path
+from .common import Progress, no_progress, paderborn_dir, sample_counter
 
-PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"
 SENSORS = ("stator_winding", "stator_yoke")
 #: starts: parameter -> factor on the published value
 STARTS: dict[str, dict[str, float]] = {
@@ -85,12 +84,14 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     return out
 
 
-def run(data_dir: Path = PADERBORN, starts: Mapping[str, Mapping[str, float]] | None = None,
+def run(data_dir: Path | None = None, starts: Mapping[str, Mapping[str, float]] | None = None,
         sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> dict[str, object]:
     """All starts; ``{"skipped": why}`` when the data is absent. ``sets`` overrides parameters of
     the published model first (``--set``; the command names a bad one, here an unknown name or a
     value outside its bounds raises :class:`~thermal_edge.lptn.ParameterError`). ``progress``
-    counts the samples replayed, one stage per start."""
+    counts the samples replayed, one stage per start. ``data_dir``: the Paderborn data (default
+    :func:`~.common.paderborn_dir`)."""
+    data_dir = paderborn_dir(data_dir)
     path = data_dir / "run_a.csv"
     if not path.exists():
         return {"skipped": f"{path} not found"}

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ..shipped import ROOT, config_path
+from ..shipped import config_path
 from .common import Progress, no_progress
 
 RATES = (2000, 4000, 6000, 8000, 10000, 12000, 14000, 16000, 20000, 24000, 28000, 32000)
@@ -55,7 +55,7 @@ def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt
 
     raw = yaml.safe_load(config_path("edge.yaml").read_text())
     raw["bus"] = {**bus, "preserve_timestamps": True}
-    raw["codec"] = {"dbc": str(ROOT / "dbc" / "thermal_edge.dbc"), "resync_after_cycles": 1000}
+    raw["codec"] = {"dbc": None, "resync_after_cycles": 1000}  # the packaged DBC
     model = load_model(config_path("machines", "pm10kw.yaml"))
     raw["model"] = {"path": str(config_path("machines", "pm10kw.yaml")),
                     "parameters": table4_parameters(model) if table4 else {}}
@@ -176,7 +176,8 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
 
     results: list[dict[str, Any]] = []
     best = 0
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    # the sender: this interpreter, this environment and working directory, so it imports this same package
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     for k, rate in enumerate(rates):
         progress("frame rates", k, len(rates), "rate")
         import socket
@@ -193,7 +194,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
                 st = svc.codec.stats
                 proc = await asyncio.create_subprocess_exec(
                     sys.executable, "-m", "thermal_edge.bench.service", "--send", str(port), str(rate), str(seconds),
-                    stdout=asyncio.subprocess.PIPE, env=env, cwd=str(ROOT))
+                    stdout=asyncio.subprocess.PIPE, env=env)
                 names = ("INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps")
                 out, _ = await proc.communicate()
                 at_end = sum(st.received[k] for k in names)  # accepted when the sender stopped

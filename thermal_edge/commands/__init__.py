@@ -12,7 +12,7 @@ import importlib
 from dataclasses import dataclass
 from types import ModuleType
 
-__all__ = ["COMMANDS", "Command", "add_commands"]
+__all__ = ["COMMANDS", "Command", "add_commands", "resolve_named_files"]
 
 
 @dataclass(frozen=True)
@@ -37,6 +37,7 @@ COMMANDS = (
     Command("discover", "find, name and add the physical effect a model lacks", "discover"),
     Command("bench", "run a benchmark", "bench"),
     Command("fleet", "calibrate, evaluate and screen many machines' runs on Dask", "fleet"),
+    Command("config", "print the example service configuration (edge.yaml) to start from", "config"),
 )
 
 
@@ -49,3 +50,20 @@ def add_commands(parser: argparse.ArgumentParser, chosen: str | None) -> None:
             command.load().register(sub)  # (its parser's help line is never shown: it is chosen)
         else:  # listed; its arguments are known once it is chosen
             sub.add_parser(command.name, help=command.help, add_help=False)
+
+
+def resolve_named_files(args: argparse.Namespace) -> None:
+    """``--model`` and ``--cycle`` of whichever command takes them: a file as given, else the path of
+    the packaged model or drive cycle of that name (``pm10kw``, ``varied_drive``).
+
+    Raises
+    ------
+    UsageError
+        Neither a file nor a packaged name; the message lists the packaged names.
+    """
+    from ..shipped import cycle_file, model_file
+
+    for dest, resolve in (("model", model_file), ("cycle", cycle_file)):
+        value = getattr(args, dest, None)
+        if isinstance(value, str):
+            setattr(args, dest, resolve(value))

@@ -22,6 +22,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     j.set_defaults(func=run_jacobian)
     pp = which.add_parser("paper", help="the paper's experiments E1-E3, every method side by side")
     pp.add_argument("--json", action="store_true", help="print one JSON object")
+    add_data_dir_arg(pp)
     pp.set_defaults(func=run_paper)
     sv = which.add_parser("service", help="edge service: tick p50/p99 (idle, adapting), max lossless frame rate, RSS over 24 h")
     sv.add_argument("--hours", type=float, default=24.0, help="simulated hours of the memory run (default 24)")
@@ -45,12 +46,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
     pr.add_argument("--duration", type=float, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
-    pr.add_argument("--cycle", default=None, help="drive cycle file (default config/cycles/protection.yaml)")
+    pr.add_argument("--cycle", default=None, help="drive cycle: a file or a packaged name (default: the packaged protection)")
     pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
     rl = which.add_parser("real", help="online adaptation on the real Paderborn machine from the published and wrong starts")
     rl.add_argument("--json", action="store_true", help="print one JSON object")
+    add_data_dir_arg(rl)
     add_set_arg(rl)
     rl.set_defaults(func=run_real)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
@@ -94,6 +96,15 @@ def _drop_option(argv: list[str], option: str) -> list[str]:
     return out
 
 
+def add_data_dir_arg(p: argparse.ArgumentParser) -> None:
+    """``--data-dir``: the Paderborn data set (the bench's real-machine part is skipped without it)."""
+    from ..bench.common import DATA_DIR_ENV, PADERBORN_DEFAULT
+
+    p.add_argument("--data-dir", default=None,
+                   help=f"Paderborn data set directory (run_a.csv and the paderborn4 tables; default ${DATA_DIR_ENV}, "
+                        f"else {PADERBORN_DEFAULT} from the working directory; skipped when absent)")
+
+
 def run_jacobian(args: argparse.Namespace) -> int:
     with StageBars("bench jacobian") as progress:
         r = jacobian.run(repeat=args.repeat, hours=args.hours, progress=progress)
@@ -123,7 +134,7 @@ def run_jacobian(args: argparse.Namespace) -> int:
 
 def run_paper(args: argparse.Namespace) -> int:
     with StageBars("bench paper") as progress:
-        r = paper.run(progress=progress)
+        r = paper.run(progress=progress, data_dir=args.data_dir)
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0
@@ -210,20 +221,22 @@ def run_fleet(args: argparse.Namespace) -> int:
 
 def run_real(args: argparse.Namespace) -> int:
     from ..bench import real
+    from ..bench.common import paderborn_dir
     from ..lptn import load_model
     from ..shipped import config_path
     from .runs import read_checked
 
-    path = real.PADERBORN / "run_a.csv"
+    data_dir = paderborn_dir(args.data_dir)
+    path = data_dir / "run_a.csv"
     sets = split_sets(args.set)
     if path.exists():  # the bench's own data: checked and summarised as every offline run is
-        model = load_model(config_path("machines", "paderborn4.yaml"), data_dir=real.PADERBORN)
+        model = load_model(config_path("machines", "paderborn4.yaml"), data_dir=data_dir)
         sets = check_sets(model, sets)
         summary = read_checked(str(path), "paderborn", model, real.SENSORS)[1]
         if not args.json:
             print(summary, flush=True)
     with StageBars("bench real") as progress:
-        r = real.run(sets=sets, progress=progress)
+        r = real.run(data_dir, sets=sets, progress=progress)
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0

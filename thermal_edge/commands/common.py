@@ -9,7 +9,7 @@ from ..lptn import Model, ModelError, ParameterError, load_model
 def add_model_args(p: argparse.ArgumentParser, required: bool = True, discretisation: bool = False) -> None:
     """``--model`` and ``--data-dir``; with ``discretisation`` also ``--method`` and ``--max-substep``
     (only for commands that pass them on)."""
-    p.add_argument("--model", required=required, help="machine model file (config/machines/*.yaml)")
+    p.add_argument("--model", required=required, help="machine model: a file, or the name of a packaged one (pm10kw, paderborn4)")
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     if discretisation:
         p.add_argument("--method", choices=("zoh", "euler"), help="discretisation (default: the model's)")

@@ -1,6 +1,6 @@
 """``thermal-edge demo``: the edge service against the simulated machine, in one process.
 
-The service (``config/edge.yaml`` with a python-can ``virtual`` bus and the frame clock) and the
+The service (the packaged example ``edge.yaml`` with a python-can ``virtual`` bus and the frame clock) and the
 inverter emulator (the 10 kW machine over a drive cycle, closed loop: it obeys TE_Limits) run
 accelerated; by default the service's model starts off by the paper's Table 4 variations, so
 the online adaptation has something to do. Live metrics on http://127.0.0.1:9108/metrics and a
@@ -26,8 +26,9 @@ from ..shipped import config_path
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("demo", description=__doc__,  # (its help line: thermal_edge.commands.COMMANDS)
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", default=str(config_path("edge.yaml")), help="service configuration (default config/edge.yaml)")
-    p.add_argument("--cycle", default=str(config_path("cycles", "overload.yaml")), help="drive cycle (default overload)")
+    p.add_argument("--config", default=str(config_path("edge.yaml")),
+                   help="service configuration (default: the packaged example, `thermal-edge config example`)")
+    p.add_argument("--cycle", default="overload", help="drive cycle: a file or a packaged name (default overload)")
     p.add_argument("--speed", type=float, default=30.0,
                    help="simulated seconds per wall second (default 30: the 3 h overload cycle in 6 min)")
     p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the whole cycle)")
@@ -74,12 +75,11 @@ def run(args: argparse.Namespace) -> int:
     raw["timeouts"] = {k: max(float(v), 5 * slow) for k, v in (raw.get("timeouts") or {}).items()}
     raw["recording"] = {"candump": args.record} if args.record else {}
     try:
-        model_path = raw.get("model", {}).get("path")
-        base = cfg_path.resolve().parent
-        plant_model = load_model(base / model_path if model_path else config_path("machines", "pm10kw.yaml"))
+        config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
+        plant_model = load_model(config.model.path)
         if args.table4:
             raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
-        config = config_from_mapping(raw, cfg_path)
+            config = config_from_mapping(raw, cfg_path)
         service = EdgeService(config)
     except (ConfigError, KeyError, ValueError) as exc:
         print(f"thermal-edge demo: error: {str(exc).splitlines()[0]}", file=sys.stderr)

@@ -24,7 +24,7 @@ from .runs import read_checked, require_finite_prediction
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("discover", help="find, name and add the physical effect a model lacks", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--model", required=True, help="machine model file (config/machines/*.yaml)")
+    p.add_argument("--model", required=True, help="machine model: a file, or the name of a packaged one (pm10kw, paderborn4)")
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     p.add_argument("--run", help="recorded run (CSV)")
     p.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")

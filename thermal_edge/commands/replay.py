@@ -52,7 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--format", default="csv", choices=(*FORMATS, "can", "candump"),
                    help="run file format (default csv); can (old name: candump): a CAN log of any format by its suffix")
     p.add_argument("--config", default=str(config_path("edge.yaml")),
-                   help="can: the service configuration to replay with (default config/edge.yaml)")
+                   help="can: the service configuration to replay with (default: the packaged example)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--no-adapt", dest="adapt", action="store_false", help="open-loop prediction (default)")
     mode.add_argument("--adapt", dest="adapt", action="store_true", help="run the online adapter over the run")

@@ -50,7 +50,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("simulate", help="simulate the machine over a drive cycle", description=__doc__,
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)
-    p.add_argument("--cycle", required=True, help="drive cycle file (config/cycles/*.yaml)")
+    p.add_argument("--cycle", required=True,
+                   help="drive cycle: a file, or the name of a packaged one (varied_drive, overload, ...)")
     p.add_argument("--out", required=True, help="output file: run CSV, or a CAN log with --format can")
     p.add_argument("--format", choices=("csv", "can", "candump"), default="csv",
                    help="csv: run CSV (default); can (old name: candump): the inverter's CAN frames as a log in "

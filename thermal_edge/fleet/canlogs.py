@@ -21,8 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..bus.codec import FrameCodec
-from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig, load_config
 from ..data import Run, RunError
@@ -80,7 +78,7 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
         The log; its suffix names the format.
     config : path-like or EdgeConfig, optional
         The service configuration whose ``signals:``, ``timeouts:``, ``codec:`` and tick period
-        are used (default :data:`DEFAULT_CONFIG`, the shipped ``config/edge.yaml``).
+        are used (default :data:`DEFAULT_CONFIG`, the packaged example ``edge.yaml``).
 
     Returns
     -------
@@ -98,7 +96,7 @@ def read_can_runs(path: str | os.PathLike[str], config: str | os.PathLike[str] |
         No such file.
     """
     cfg = config if isinstance(config, EdgeConfig) else _config(str(config if config is not None else DEFAULT_CONFIG))
-    codec = FrameCodec(cfg.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=cfg.codec.resync_after_cycles)
+    codec = cfg.codec.frame_codec(cfg.fname)
     silence = max(cfg.timeouts.values(), default=cfg.clock.tick_s)
     source = str(path)
     runs: list[Run] = []

@@ -392,6 +392,7 @@ class ThermalEngine:
             adapt_rejected=ad.rejected, param_version=ad.version, forced=list(forced),
             stale=stale, faults=faults, new_results=list(new_results or []),
             hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit), reaction_a=react_a,
+            ages=dict(ti.ages) if ti is not None else {},
         )
 
     def placeholder(self, t: float) -> TickOutput:

@@ -152,9 +152,10 @@ class _LiveCollector(Collector):
             age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
                                     labels=LABELS["sensor_age_seconds"])
             for s in eng.config.sensors:  # type: ignore[union-attr]
-                a = eng.accumulator.last_valid_t(s)  # type: ignore[union-attr]
+                # the tick's own ages: the accumulator's latest reading may have come after the tick
+                a = out.ages.get(s, math.inf)
                 if math.isfinite(a):
-                    age.add_metric([s], out.t - a)
+                    age.add_metric([s], a)
             yield age
         if eng is not None and model is not None:
             # before the first tick: starting, nothing stale, no fault (as TE_Limits says)

@@ -22,8 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.codec import FrameCodec
-from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader
 from ..bus.stats import DROP_REASONS
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
@@ -92,7 +90,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     cfg = replace(config, clock=ClockConfig("frame", config.clock.tick_s, config.clock.max_catchup_s),
                   metrics=MetricsConfig(enabled=False))
     model = model if model is not None else load_service_model(cfg)
-    codec = FrameCodec(cfg.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=cfg.codec.resync_after_cycles)
+    codec = cfg.codec.frame_codec(cfg.fname)
     cfg.check_dbc(codec)
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s, cfg.clock.max_catchup_s)

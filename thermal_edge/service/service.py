@@ -33,8 +33,8 @@ from typing import Any
 from prometheus_client import CollectorRegistry
 
 from ..bus.busconfig import create_bus as bus_factory
-from ..bus.codec import DecodedFrame, FrameCodec
-from ..bus.frames import DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
+from ..bus.codec import DecodedFrame
+from ..bus.frames import TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
 from ..bus.transport import CanTransport
 from ..config import EdgeConfig
 from ..lptn import Model
@@ -93,7 +93,7 @@ class EdgeService:
                  worker_mode: str | None = None, bus_factory_fn: Callable[..., Any] = bus_factory) -> None:
         self.config = config
         self.model = model if model is not None else load_service_model(config)
-        self.codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
+        self.codec = config.codec.frame_codec(config.fname)
         config.check_dbc(self.codec)
         self.store = StateStore(config.state.dir, self.model)
         restored = self.store.load()

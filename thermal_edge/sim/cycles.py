@@ -1,4 +1,5 @@
-"""Drive cycles (``config/cycles/*.yaml``): segments of speed, torque and ambient, turned into a run.
+"""Drive cycles (a file, or a packaged one by name: :mod:`thermal_edge.shipped`): segments of speed,
+torque and ambient, turned into a run.
 
 A segment holds its speed (rpm), torque (Nm), ambient and coolant (°C) for ``duration_s``; with
 ``ramp_s`` it starts with a linear ramp from the previous segment's values. The simulated inverter

@@ -4,7 +4,7 @@ It sends ``INV_Currents`` and ``INV_Mechanics`` (every ``current_period_s``, the
 default) and ``INV_StatorTemps`` / ``INV_AmbientTemps`` (every ``temperature_period_s``, 100 ms)
 from a plant -- the machine model with its own parameters (e.g. the paper's Table 4 variations,
 or aging over time) -- with PT100 noise and quantisation and a drifting ambient, driven by a drive
-cycle from ``config/cycles/``.
+cycle (a file, or one shipped with the package: :mod:`thermal_edge.shipped`).
 
 Closed loop, it **obeys** the ``TE_Limits`` it receives: the torque demand of the cycle is clamped
 to the torque limit and to the current limit times the torque constant (i_d = 0 control). Without
@@ -64,7 +64,9 @@ from ..bus.frames import (
     SensorStatus,
 )
 from ..bus.logs import LogRecorder
+from ..errors import UsageError
 from ..lptn import Model, Role, load_model
+from ..shipped import CYCLES, MACHINES, config_path, cycle_file, model_file
 from .cycles import AMBIENT, COOLANT, SPEED, TORQUE, cycle_run, load_cycle
 from .plant import Plant
 from .sensors import pt100
@@ -73,7 +75,6 @@ __all__ = ["EmulatorConfig", "InverterEmulator", "TABLE4_VARIATIONS", "main", "w
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[2]
 #: frames due sooner than this are sent at once (accelerated runs: a sleep per frame would only add
 #: event-loop turns); later ones are slept for, so a real-time run sends at the DBC's cycle
 PACE_MIN_SLEEP_S = 0.001
@@ -106,8 +107,8 @@ def table4_parameters(model: Model, sign: float = 1.0) -> dict[str, float]:
 class EmulatorConfig:
     """Settings of the emulator (all times in simulated seconds unless marked wall)."""
 
-    model_path: str | Path = ROOT / "config" / "machines" / "pm10kw.yaml"
-    cycle_path: str | Path = ROOT / "config" / "cycles" / "overload.yaml"
+    model_path: str | Path = field(default_factory=lambda: config_path(MACHINES, "pm10kw.yaml"))
+    cycle_path: str | Path = field(default_factory=lambda: config_path(CYCLES, "overload.yaml"))
     params: dict[str, float] = field(default_factory=dict)  # the plant's parameters (absolute values)
     aging: dict[str, float] = field(default_factory=dict)  # relative change per simulated hour
     aging_update_s: float = 60.0
@@ -628,8 +629,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--interface", default="udp_multicast", help="python-can interface (default udp_multicast)")
     p.add_argument("--channel", default=None, help="bus channel (multicast group, virtual bus name, can0)")
     p.add_argument("--port", type=int, default=None, help="udp_multicast port")
-    p.add_argument("--model", default=str(ROOT / "config" / "machines" / "pm10kw.yaml"))
-    p.add_argument("--cycle", default=str(ROOT / "config" / "cycles" / "overload.yaml"))
+    p.add_argument("--model", default="pm10kw", help="machine model: a file or a packaged name (default pm10kw)")
+    p.add_argument("--cycle", default="overload", help="drive cycle: a file or a packaged name (default overload)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="plant parameter (repeatable)")
     p.add_argument("--table4", choices=("none", "plus", "minus"), default="none",
                    help="plant parameters = model nominal +/- the paper's Table 4 variations")
@@ -654,6 +655,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--trace", default=None, help="write the trace (npz) here")
     p.add_argument("--ready-file", default=None, help="touch this file once the bus is open")
     args = p.parse_args(argv)
+    try:
+        args.model, args.cycle = model_file(args.model), cycle_file(args.cycle)
+    except UsageError as exc:
+        p.error(str(exc))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s inverter: %(message)s")
     model = load_model(args.model)
     params = {}
