@@ -59,12 +59,19 @@ def commands() -> list[tuple[str, list[str]]]:
     out = []
     for where, text in shell_blocks():
         for k, line in enumerate(text.replace("\\\n", " ").splitlines()):
-            lex = shlex.shlex(line, posix=True, punctuation_chars="|&;")
+            lex = shlex.shlex(line, posix=True, punctuation_chars="|&;<>")
             lex.whitespace_split = True
             lex.commenters = "#"
             argv: list[str] = []
+            redirect = False
             for tok in [*lex, ";"]:
-                if tok in ("|", "&&", ";", "||"):
+                if redirect:  # the file of a redirection is not an argument
+                    redirect = False
+                elif tok in (">", ">>", "<", ">&", "&>"):
+                    redirect = True
+                    if argv and argv[-1].isdigit():  # 2> file: the descriptor is not an argument either
+                        argv.pop()
+                elif tok in ("|", "&&", ";", "||"):
                     if argv:
                         out.append((f"{where} (block), line {k + 1}", argv))
                     argv = []
