@@ -25,7 +25,7 @@ ALLOWED: dict[str, set[str]] = {
     "estimation": {"lptn", "data", "settings"},
     "config": {"bus", "lptn", "settings", "shipped", "yamlfile"},
     "sim": {"bus", "data", "lptn", "shipped"},
-    "service": {"bus", "config", "estimation", "lptn", "settings", "process_signals"},
+    "service": {"bus", "config", "data", "estimation", "lptn", "settings", "process_signals"},
     "discovery": {"data", "estimation", "lptn", "sim"},
     "monitor": {"bus"},
     "fleet": {"bus", "config", "data", "estimation", "lptn", "service", "sim", "settings", "shipped", "text_table"},

@@ -33,6 +33,7 @@ COMMANDS = (
     Command("monitor", "live view of a running service (metrics or bus)", "monitor"),
     Command("simulate", "simulate the machine over a drive cycle", "simulate"),
     Command("replay", "replay a recorded run through the model", "replay"),
+    Command("export", "a CAN log as run CSVs (one sample per tick, as the service saw it)", "export"),
     Command("calibrate", "offline fit of the model to recorded runs", "calibrate"),
     Command("discover", "find, name and add the physical effect a model lacks", "discover"),
     Command("bench", "run a benchmark", "bench"),

@@ -55,6 +55,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(rl)
     add_set_arg(rl)
     rl.set_defaults(func=run_real)
+    ad = which.add_parser("adaptation", help="online adaptation in closed loop on the simulated machine: the open-loop "
+                                             "error over time, promotions and refusals, final parameters, per scenario")
+    ad.add_argument("--scenario", action="append", default=None, metavar="NAME",
+                    help="run only this scenario (repeatable; default all: demo, quasi_steady, cold_light, varied, at_plant)")
+    ad.add_argument("--duration", type=float, default=None, help="simulated seconds per scenario (default 3 h)")
+    ad.add_argument("--json", action="store_true", help="print one JSON object")
+    ad.set_defaults(func=run_adaptation)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
@@ -262,6 +269,49 @@ def run_real(args: argparse.Namespace) -> int:
         print("final vs published (± 1σ the run allows): "
               + ", ".join(f"{k} {v:+.1f} % (±{sd[k]:.1f} %)" for k, v in st["final_vs_published_pct"].items())
               + "; EKF: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["ekf_params_vs_published_pct"].items()))
+    return 0
+
+
+def run_adaptation(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from ..bench import adaptation as ab
+    from ..errors import UsageError
+
+    unknown = [n for n in args.scenario or [] if n not in ab.SCENARIOS]
+    if unknown:
+        raise UsageError(f"--scenario {unknown[0]}: unknown (known: {', '.join(ab.SCENARIOS)})")
+    if args.duration is not None and not args.duration >= 600:
+        raise UsageError(f"--duration {args.duration:g}: at least 600 s (the adapter needs history to decide on)")
+    chosen = [ab.SCENARIOS[n] for n in args.scenario] if args.scenario else list(ab.SCENARIOS.values())
+    if args.duration is not None:
+        chosen = [dataclasses.replace(s, duration_s=float(args.duration)) for s in chosen]
+    with StageBars("bench adaptation") as progress:
+        r = ab.run(chosen, progress=lambda name, done, total: progress(f"scenario {name}", done, total, "s"))
+    if args.json:
+        out = {"wall_s": r.wall_s, "passed": r.passed, "scenarios": {
+            k: {**dataclasses.asdict(v), "identifiable": v.identifiable, "param_errors_pct": v.param_errors_pct,
+                "passed": v.passed} for k, v in r.scenarios.items()}}
+        print(json.dumps(out, indent=2, default=float))
+        return 0
+    print("online adaptation in closed loop on the simulated machine (config/edge.yaml, frame clock); the plant is "
+          "the model file's nominal parameters")
+    for sc in r.scenarios.values():
+        print(f"  {sc.name}: {sc.doc}")
+    print()
+    print(table(ab.SUMMARY_HEADERS, ab.summary_rows(r)))
+    print(f"\nopen-loop prediction error (TE_PredErrRms, K) over time; pass: final <= {ab.WITHIN_K:g} K, identifiable "
+          f"parameters (1σ <= {100 * ab.IDENTIFIABLE_REL_STD:g} %) within {100 * ab.PARAM_TOLERANCE:g} %, no promotion that "
+          "makes the next hour worse; at the plant's parameters: no promotion")
+    print(table(*ab.error_rows(r)))
+    for sc in r.scenarios.values():
+        print(f"\n{sc.name}: {sc.decisions} decisions: " + ", ".join(f"{k} {v}" for k, v in sorted(sc.outcomes.items())))
+        if sc.promotions:
+            print(table(ab.PROMOTION_HEADERS, ab.promotion_rows(sc)))
+        for t_s, why in sc.refusals:
+            print(f"  {ab.hms(t_s)} {why}")
+        print(table(ab.PARAMETER_HEADERS, ab.parameter_rows(sc)))
+    print(f"\n{'every scenario passes' if r.passed else 'NOT every scenario passes'} ({r.wall_s:.0f} s)")
     return 0
 
 

@@ -1,5 +1,8 @@
 """``thermal-edge calibrate``: fit a model's parameters offline to recorded runs (global search + SQP).
 
+A CAN log (``--format can``: candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``, by
+suffix) is read through the service's own pipeline with the service configuration ``--config``: one
+run per stretch of traffic, one sample per tick, as the service on the drive saw it.
 Every run is checked and summarised first (sample period, duration, columns used and ignored,
 ranges). The global search (differential evolution) stops at ``--generations``, when its
 population has converged, when the best objective has not improved for ``--patience``
@@ -17,14 +20,14 @@ from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from ..text_table import table
 from .common import add_model_args, add_set_arg, model_from_args, parse_sets
 from .progress import bar
-from .runs import read_checked
+from .runs import add_can_args, read_checked_runs
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("calibrate", help="offline fit of the model to recorded runs", description=__doc__)
     add_model_args(p)
-    p.add_argument("--run", required=True, nargs="+", help="recorded run(s)")
-    p.add_argument("--format", default="csv", choices=FORMATS)
+    p.add_argument("--run", required=True, nargs="+", help="recorded run(s), or CAN log(s) with --format can")
+    add_can_args(p, FORMATS)
     p.add_argument("--params", help="comma-separated parameters to fit (default: the adaptable ones)")
     p.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
     p.add_argument("--out", required=True, help="calibrated model file to write")
@@ -53,9 +56,9 @@ def run(args: argparse.Namespace) -> int:
     model = model.with_parameters(sets) if sets else model
     runs = []
     for path in args.run:
-        rec, summary = read_checked(path, args.format, model, _names(args.sensors))
-        print(summary, flush=True)
-        runs.append(rec)
+        for rec, summary in read_checked_runs(path, args.format, model, _names(args.sensors), args.config):
+            print(summary, flush=True)
+            runs.append(rec)
     with bar(args.generations, "calibrate: global search", "generation") as pb:
         def progress(done: int, total: int, best: float) -> None:
             pb.update(1)

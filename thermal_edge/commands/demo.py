@@ -19,6 +19,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from ..shipped import config_path
 
@@ -47,6 +48,27 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.set_defaults(func=run)
 
 
+def learned(engine: Any, plant: Any) -> str:
+    """What the adaptation learned: the final open-loop prediction error, promotions and refusals,
+    and every adapted parameter against the plant's value."""
+    from ..service import adapt_phrase
+
+    out = engine.last
+    err = f"{out.pred_err_rms:.2f} K" if out is not None and math.isfinite(out.pred_err_rms) else "--"
+    ad = engine.adaptation
+    decisions = ad.decisions
+    dropped = sum(1 for d in decisions if d.get("verdict") == "dropped")
+    plant_values = dict(zip(plant.parameter_names, plant.nominal()))
+    start = dict(zip(engine.model.parameter_names, engine.model.nominal()))
+    moved = [f"{k} {v:.4g} ({100 * (v / plant_values[k] - 1):+.1f} % vs plant)"
+             for k, v in ad.values().items() if k in plant_values and (v != start.get(k) or v != plant_values[k])]
+    refusal = ad.last_refusal
+    last = f"; last refusal: {refusal[1]}" if refusal is not None else ""
+    return (f"model: open-loop prediction error {err} at the end; {ad.counts.accepted} promoted, {dropped} refused{last}; "
+            f"now {adapt_phrase(ad.status, refusal[1] if refusal else '')}\n"
+            f"parameters: {', '.join(moved) if moved else 'as the plant'}")
+
+
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     import yaml
@@ -73,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     raw["state"] = {**(raw.get("state") or {}), "dir": state_dir}
     slow = max(args.current_period, args.temperature_period)
     raw["timeouts"] = {k: max(float(v), 5 * slow) for k, v in (raw.get("timeouts") or {}).items()}
-    raw["recording"] = {"candump": args.record} if args.record else {}
+    # a relative --record is relative to where the user is, not to the configuration file
+    raw["recording"] = {"candump": str(Path(args.record).resolve())} if args.record else {}
     try:
         config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
         plant_model = load_model(config.model.path)
@@ -130,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in summary.true_max_c.items())
         print(f"done: {summary.sim_seconds / 3600:.2f} h simulated in {summary.wall_seconds:.0f} s; plant peaks: {peaks}; "
               f"adaptations accepted {service.engine.adapt_accepted}/{service.engine.adapt_runs}")
+        print(learned(service.engine, plant_model))
         return 0
 
     try:

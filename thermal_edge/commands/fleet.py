@@ -22,6 +22,7 @@ from typing import Any
 
 from ..data import FORMATS, RunError
 from ..errors import UsageError
+from ..shipped import config_path
 from .common import add_model_args
 from .runs import read_checked
 
@@ -41,6 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         add_model_args(q, required=model_required)
         q.add_argument("runs", nargs="*", metavar="RUNS", help="run files, machine directories or globs")
         q.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
+        q.add_argument("--config", default=str(config_path("edge.yaml")),
+                       help="the service configuration whose CAN matrix, signal mapping and tick decode the CAN logs "
+                            "among RUNS (default: the example edge.yaml)")
         q.add_argument("--id-column", help="take the machine id from this column (default: file or directory name)")
         q.add_argument("--out", required=True, help="result table to write (Parquet)")
         q.add_argument("--report", help="Markdown report to write (default: the table's name with .md)")
@@ -92,15 +96,18 @@ def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]
     is refused, :class:`~thermal_edge.data.RunError` with the first reason. Prints the first
     :data:`SUMMARY_FILES` runs' summaries and a total.
     """
-    from ..fleet.canlogs import is_can_log
+    from ..config import load_config
     from ..fleet.results import row
     from ..fleet.runs import find_machines
     from ..lptn import load_model
+    from ..service.logruns import is_can_log
 
     if not args.runs:
         raise UsageError("no RUNS given (files, machine directories or globs)")
     machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
     model = load_model(args.model, data_dir=args.data_dir)
+    if any(is_can_log(f) for m in machines for f in m.runs):
+        load_config(args.config)  # a broken configuration is refused here, not by every worker
     sensors = _names(getattr(args, "sensors", None))
     ok, refused, errors, files, samples = [], [], [], 0, 0
     for m in machines:
@@ -150,7 +157,8 @@ def _calibrate_rows(args: argparse.Namespace, client: Any, machines: list[Any]) 
     per = map_machines(client, calibrate_machine, machines, progress=args.progress, desc="calibrate",
                        model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
                        id_column=args.id_column, params=_names(args.params), sensors=_names(args.sensors),
-                       decimation=args.decimate, generations=args.generations, popsize=args.popsize, seed=args.seed)
+                       decimation=args.decimate, generations=args.generations, popsize=args.popsize, seed=args.seed,
+                       can_config=_abs(args.config))
     return [r for rows in per for r in rows]
 
 
@@ -206,7 +214,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     with connect(args.scheduler, args.workers) as client:
         per = map_machines(client, evaluate_machine, machines, params, progress=args.progress, desc="evaluate",
                            model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
-                           id_column=args.id_column)
+                           id_column=args.id_column, can_config=_abs(args.config))
     rows = refused + [r for rs in per for r in rs]
     intro = _intro(args, machines, "evaluate") + [
         f"Each machine replayed with its own parameters from `{args.calibrated}`." if args.calibrated

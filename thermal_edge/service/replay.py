@@ -31,7 +31,7 @@ from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
 from .persistence import PersistedState
 
-__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_summary"]
+__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_log", "replay_summary", "summarise"]
 
 
 @dataclass
@@ -122,12 +122,14 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     )
 
 
-def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
-                   model_path: str | os.PathLike[str] | None = None,
-                   sets: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """``thermal-edge replay --format can``: replay a log with a service configuration and
-    summarise it (JSON-serialisable). ``model_path`` overrides the configuration's model, ``sets``
-    (``--set``, checked against the model's bounds) is merged into its ``model.parameters``.
+def replay_log(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
+               model_path: str | os.PathLike[str] | None = None, sets: Mapping[str, float] | None = None, *,
+               keep_outputs: bool = False) -> tuple[ReplayResult, Model]:
+    """Replay a log with a service configuration file: the result and the model it ran.
+
+    ``model_path`` overrides the configuration's model, ``sets`` (``--set``, checked against the
+    model's bounds) is merged into its ``model.parameters``; ``keep_outputs`` keeps every tick's
+    :class:`TickOutput`.
 
     Raises ``thermal_edge.config.ConfigError``, ``FileNotFoundError`` or
     ``thermal_edge.bus.LogFormatError`` with one-line messages.
@@ -140,7 +142,20 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
     if sets:
         cfg = replace(cfg, model=ModelConfig(cfg.model.path, {**cfg.model.parameters, **sets}))
     model = load_service_model(cfg)
-    res = replay_candump(path, cfg, model=model)
+    return replay_candump(path, cfg, model=model, keep_outputs=keep_outputs), model
+
+
+def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
+                   model_path: str | os.PathLike[str] | None = None,
+                   sets: Mapping[str, float] | None = None) -> dict[str, Any]:
+    """``thermal-edge replay --format can``: replay a log with a service configuration
+    (:func:`replay_log`) and summarise it (:func:`summarise`)."""
+    res, model = replay_log(path, config_path, model_path, sets)
+    return summarise(path, res, model)
+
+
+def summarise(path: str | os.PathLike[str], res: ReplayResult, model: Model) -> dict[str, Any]:
+    """The summary of a replay (JSON-serialisable): frames, ticks, drops, adaptations, peaks."""
     lim = {name: i for i, name in enumerate(res.nodes)}
     out: dict[str, Any] = {
         "log": str(path), "model": model.name, "frames": res.frames, "ticks": int(len(res.t)),

@@ -67,7 +67,16 @@ def status_line(out: TickOutput | None) -> str:
     err = f"{out.pred_err_rms:5.2f}" if math.isfinite(out.pred_err_rms) else "  -- "
     return (f"{stamp} {out.state.name.lower():9s} hot spot {t(hs.estimate_c if hs else None)}/{t(hs.upper_c if hs else None)} °C"
             f"  magnet {t(mg.estimate_c if mg else None)} °C  limit {out.limits.current_a:5.1f} A {out.limits.torque_nm:6.1f} Nm"
-            f"  reason {out.limits.reason.name.lower():10s} pred err {err} K  adapted {out.adapt_accepted}/{out.adapt_runs}")
+            f"  reason {out.limits.reason.name.lower():10s} pred err {err} K  adapted {out.adapt_accepted}/{out.adapt_runs}"
+            + (f"  model {adapt_phrase(out.adapt_status, out.adapt_refusal)}" if out.adapt_status else ""))
+
+
+def adapt_phrase(status: str, refusal: str = "") -> str:
+    """What the adaptation is doing, in words: "learning", "waiting for evidence", "refusing (not
+    better)", ... (``status`` one of :data:`.adaptation.ADAPT_STATUSES`)."""
+    if status == "refusing":
+        return f"refusing ({refusal})" if refusal else "refusing"
+    return status.replace("_", " ")
 
 
 class EdgeService:
