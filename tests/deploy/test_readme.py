@@ -266,7 +266,7 @@ def test_every_relative_link_of_the_readme_resolves() -> None:
 # ---- no history in the README, the manual or the package
 
 HISTORY = re.compile(r"session [0-9]|old code|black-box client|issue [0-9]+", re.I)
-MISSING_FILES = re.compile(r"DESIGN\.md|findings\.md|reference/[\w.-]+\.md")
+MISSING_FILES = re.compile(r"DESIGN\.md|findings\.md|reference/[\w.-]+\.(?:md|txt)")
 
 
 def _text_files() -> list[Path]:
@@ -287,7 +287,8 @@ def test_no_development_history_in_the_readme_the_manual_or_the_package() -> Non
 
 def test_no_module_cites_a_file_the_repository_lacks() -> None:
     found = []
-    for p in (dl.REPO / "thermal_edge").rglob("*.py"):
+    package = dl.REPO / "thermal_edge"
+    for p in [*package.rglob("*.py"), *package.rglob("*.yaml")]:  # the modules and the packaged files
         for n, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1):
             for m in MISSING_FILES.finditer(line):
                 if not [f for f in dl.REPO.rglob(Path(m.group(0)).name) if not {".venv", "build"} & set(f.parts)]:
