@@ -19,7 +19,7 @@ ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "text_table": set(),
     "lptn": {"yamlfile"},
-    "data": {"lptn"},
+    "data": {"lptn", "yamlfile"},
     "plots": set(),
     "bus": set(),
     "estimation": {"lptn", "data", "settings"},
@@ -32,7 +32,7 @@ ALLOWED: dict[str, set[str]] = {
     "bench": {"bus", "config", "data", "estimation", "lptn", "service", "sim", "fleet", "discovery", "settings",
               "process_signals", "shipped", "text_table"},
     "commands": {"bench", "bus", "config", "data", "discovery", "estimation", "fleet", "lptn", "monitor", "plots",
-                 "process_signals", "service", "settings", "shipped", "sim", "text_table"},
+                 "process_signals", "service", "settings", "shipped", "sim", "text_table", "yamlfile"},
     "cli": {"commands"},
     "__init__": set(),
 }

@@ -37,9 +37,10 @@ from .bus.frames import DEFAULT_DBC_PATH, TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
+from .lptn.vocabulary import LIMIT, TEMPERATURE, Role
 from .settings import AdapterConfig, setting, spec_of
 from .shipped import MACHINES, find
-from .yamlfile import YamlProblem, parse_yaml
+from .yamlfile import read_document
 
 if TYPE_CHECKING:
     from .bus.codec import FrameCodec
@@ -182,7 +183,19 @@ def _range_c(sec: _Section, k: str, values: dict[str, Any], default: Any) -> tup
     if (not isinstance(rng, list) or len(rng) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in rng)
             or not rng[0] < rng[1]):
         raise sec.fail(k, f"expected [low, high] in degC with low < high, got {rng!r}")
-    return float(rng[0]), float(rng[1])
+    lo, hi = float(rng[0]), float(rng[1])
+    for v in (lo, hi):
+        if (why := TEMPERATURE.problem(v)):
+            raise sec.fail(k, why)
+    # a valid range must take the readings of a machine at rest: else every cold start is a sensor fault
+    if not lo <= ROOM_C <= hi:
+        kelvin = "; kelvin? (give it in degC)" if lo > TEMPERATURE.whole_above else ""  # type: ignore[operator]
+        raise sec.fail(k, f"[{lo:g}, {hi:g}] degC does not contain {ROOM_C:g} degC, a machine at rest{kelvin}")
+    return lo, hi
+
+
+#: The temperature of a machine at rest indoors, degC: every sensor's valid range contains it.
+ROOM_C = 20.0
 
 
 def _bus(sec: _Section, k: str, values: dict[str, Any], default: Any) -> BusConfig:
@@ -192,10 +205,20 @@ def _bus(sec: _Section, k: str, values: dict[str, Any], default: Any) -> BusConf
     if not isinstance(raw, Mapping):
         raise sec.fail(k, f"expected a mapping, got {type(raw).__name__}")
     try:
-        return BusConfig.from_mapping({"node": "TE", **raw})
+        bus = BusConfig.from_mapping({"node": "TE", **raw})
     except (BusConfigError, TypeError, ValueError) as exc:  # BusConfigError names the key ("bus.chanel: ...")
         msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise ConfigError(f"{sec.fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
+    lo, hi = CAN_BITRATE_BPS
+    if bus.bitrate is not None and not lo <= bus.bitrate <= hi:
+        hint = f"; kbit/s typed? {bus.bitrate} kbit/s is {bus.bitrate * 1000}" if lo <= bus.bitrate * 1000 <= hi else ""
+        raise sec.fail(k + ".bitrate", f"{bus.bitrate} bit/s is outside the {lo:,} to {hi:,} bit/s of a CAN bus{hint}")
+    return bus
+
+
+#: Bit rates of a CAN bus (the arbitration rate of CAN FD too), bit/s: ISO 11898 from 10 kbit/s
+#: (low-speed buses run at 5 kbit/s at the least) to 1 Mbit/s.
+CAN_BITRATE_BPS = (5_000, 1_000_000)
 
 
 #: The longest tick, s (``clock.tick_s``).
@@ -796,11 +819,20 @@ def _value(sec: _Section, f: dataclasses.Field[Any], tp: Any) -> Any:
 
 # -- rules between fields (not defaults: those are in the declarations) ------------------------
 def _check_derating(d: DeratingConfig, sec: _Section) -> None:
+    for key, role in (("max_current_a", Role.CURRENT), ("safe_current_a", Role.CURRENT), ("max_torque_nm", Role.TORQUE),
+                      ("safe_torque_nm", Role.TORQUE)):
+        v = getattr(d, key)
+        if v is not None and (why := role.plausible.problem(v)):
+            raise sec.fail(key, why)
     if d.safe_current_a > d.max_current_a:
         raise sec.fail("safe_current_a", f"must not exceed max_current_a ({d.max_current_a:g}), got {d.safe_current_a:g}")
 
 
 def _check_limit(lim: LimitConfig, sec: _Section) -> None:
+    for key in ("warn_c", "max_c"):
+        v = getattr(lim, key)
+        if v is not None and (why := LIMIT.problem(v)):
+            raise sec.fail(key, why)
     if lim.warn_c is not None and lim.max_c is not None and not lim.max_c > lim.warn_c:
         raise sec.fail("max_c", f"must be above warn_c ({lim.warn_c:g}), got {lim.max_c:g}")
 
@@ -860,7 +892,10 @@ class _Section:
         if spec.min is not None and v < spec.min:
             raise self.fail(k, f"must be at least {spec.min:g}, got {v:g}")
         if spec.max is not None and v > spec.max:
-            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}")
+            seconds = k.endswith("_s") or self.prefix == "timeouts"  # a duration in s: 500 is 0.5 s typed in ms
+            hint = (f"; ms typed? {v:g} ms is {v / 1000:g} s" if seconds and (spec.min or 0) <= v / 1000 <= spec.max
+                    else "")
+            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}{hint}")
         return v
 
     def integer(self, k: str, v: Any, spec: Any) -> int:
@@ -909,17 +944,7 @@ def load_config(path: str | os.PathLike[str]) -> EdgeConfig:
         Unreadable file, invalid YAML, unknown or invalid key (the message names file and key).
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path.name}: not a UTF-8 text file") from None
-    try:
-        raw = parse_yaml(text)
-    except YamlProblem as exc:
-        raise ConfigError(f"{path.name}: {exc}") from None
-    return config_from_mapping(raw, path)
+    return config_from_mapping(read_document(path, ConfigError), path)
 
 
 def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) -> EdgeConfig:

@@ -35,6 +35,7 @@ COMMANDS = (
     Command("replay", "replay a recorded run through the model", "replay"),
     Command("export", "a CAN log as run CSVs (one sample per tick, as the service saw it)", "export"),
     Command("calibrate", "offline fit of the model to recorded runs", "calibrate"),
+    Command("flux", "commission the magnet-temperature estimate from the inverter's voltages", "flux"),
     Command("discover", "find, name and add the physical effect a model lacks", "discover"),
     Command("bench", "run a benchmark", "bench"),
     Command("fleet", "calibrate, evaluate and screen many machines' runs on Dask", "fleet"),

@@ -4,20 +4,26 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import Any
 
 from ..bench import jacobian, paper
 from ..text_table import table
 from .bench_page import check_path, with_page
 from .common import add_set_arg, check_sets, split_sets
+from .options import integer, number, positive_s
 from .progress import StageBars
+
+#: Hours of a simulated drive cycle a benchmark runs (a minute to a month).
+HOURS = number(1 / 60, 24 * 31, unit="h")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
     j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
-    j.add_argument("--repeat", type=int, default=7, help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
-    j.add_argument("--hours", type=float, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
+    j.add_argument("--repeat", type=integer(1), default=7,
+                   help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
+    j.add_argument("--hours", type=HOURS, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
     j.add_argument("--json", action="store_true", help="print one JSON object")
     j.set_defaults(func=run_jacobian)
     pp = which.add_parser("paper", help="the paper's experiments E1-E3, every method side by side")
@@ -25,9 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(pp)
     pp.set_defaults(func=run_paper)
     sv = which.add_parser("service", help="edge service: tick p50/p99 (idle, adapting), max lossless frame rate, RSS over 24 h")
-    sv.add_argument("--hours", type=float, default=24.0, help="simulated hours of the memory run (default 24)")
-    sv.add_argument("--ticks", type=int, default=600, help="ticks timed per tick benchmark (default 600)")
-    sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
+    sv.add_argument("--hours", type=HOURS, default=24.0, help="simulated hours of the memory run (default 24)")
+    sv.add_argument("--ticks", type=integer(1), default=600, help="ticks timed per tick benchmark (default 600)")
+    sv.add_argument("--fps-seconds", type=positive_s, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
     fa = which.add_parser("faults", help="the service attacked from outside by 100+ fault cases: what it did, frames or "
@@ -45,9 +51,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
-    pr.add_argument("--duration", type=float, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
+    pr.add_argument("--duration", type=positive_s, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
     pr.add_argument("--cycle", default=None, help="drive cycle: a file or a packaged name (default: the packaged protection)")
-    pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
+    pr.add_argument("--jobs", type=integer(1), default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
     rl = which.add_parser("real", help="online adaptation on the real Paderborn machine from the published and wrong starts")
@@ -55,6 +61,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(rl)
     add_set_arg(rl)
     rl.set_defaults(func=run_real)
+    mg = which.add_parser("magnet", help="magnet temperature from the inverter's voltages on the real Paderborn machine: "
+                                         "commissioned on the first part, scored on the rest against the LPTN")
+    mg.add_argument("--fit-minutes", type=float, action="append", default=None, metavar="MIN",
+                    help="commissioning part, minutes from the start (repeatable; default 20, 30 and 60)")
+    mg.add_argument("--json", action="store_true", help="print one JSON object")
+    add_data_dir_arg(mg)
+    mg.set_defaults(func=run_magnet)
     ad = which.add_parser("adaptation", help="online adaptation in closed loop on the simulated machine: the open-loop "
                                              "error over time, promotions and refusals, final parameters, per scenario")
     ad.add_argument("--scenario", action="append", default=None, metavar="NAME",
@@ -65,10 +78,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
-    fl.add_argument("--machines", type=int, default=MACHINES, help=f"simulated machines (default {MACHINES})")
-    fl.add_argument("--speed-machines", type=int, default=SPEED_MACHINES,
+    fl.add_argument("--machines", type=integer(1), default=MACHINES, help=f"simulated machines (default {MACHINES})")
+    fl.add_argument("--speed-machines", type=integer(1), default=SPEED_MACHINES,
                     help=f"machines timed with 1 and with 2 workers (default {SPEED_MACHINES})")
-    fl.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
+    fl.add_argument("--rounds", type=integer(1), default=ROUNDS,
+                    help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=run_fleet)
     for name, parser in which.choices.items():  # every bench can write what it prints as a page of the manual
@@ -269,6 +283,51 @@ def run_real(args: argparse.Namespace) -> int:
         print("final vs published (± 1σ the run allows): "
               + ", ".join(f"{k} {v:+.1f} % (±{sd[k]:.1f} %)" for k, v in st["final_vs_published_pct"].items())
               + "; EKF: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["ekf_params_vs_published_pct"].items()))
+    return 0
+
+
+def run_magnet(args: argparse.Namespace) -> int:
+    from ..bench import magnet
+    from ..errors import UsageError
+
+    minutes = tuple(args.fit_minutes or magnet.FIT_MINUTES)
+    bad = [m for m in minutes if not 5.0 <= m <= 100.0]
+    if bad:
+        raise UsageError(f"--fit-minutes {bad[0]:g}: between 5 and 100 (the run is 125 min; the rest is scored)")
+    with StageBars("bench magnet") as progress:
+        r = magnet.run(args.data_dir, fit_minutes=minutes, progress=progress)
+    if args.json:
+        print(json.dumps(r, indent=2, default=float))
+        return 0
+    if "skipped" in r:
+        print(f"bench magnet skipped: {r['skipped']}")
+        return 0
+    parts: dict[str, Any] = r["parts"]  # type: ignore[assignment]
+    print(f"Paderborn {r['run']}: magnet temperature from the inverter's voltages (p = {r['pole_pairs']}), "
+          "commissioned on the first MIN minutes, scored on the rest; observer: the LPTN with "
+          "stator_winding + stator_yoke; published LPTN open loop on the whole run: "
+          f"{r['published_lptn_mse']:g} K2")
+    print(table(
+        ["commissioned on", "informative", "flux RMS K", "flux cover", "LPTN open loop MSE", "observer MSE",
+         "fused MSE", "observer cover", "fused cover", "used", "refused"],
+        [[f"{m} min", f"{p['informative_share'] * 100:.0f} %", p["flux_rms_k"], p["flux_coverage"], p["open_loop_mse"],
+          p["observer_mse"], p["fused_mse"], p["observer_coverage"], p["fused_coverage"], p["used"], p["refused"]]
+         for m, p in parts.items()],
+    ))
+    print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
+    print(table(
+        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused"],
+        [[f"{m} min", p["wrong"]["flux_rms_k"], p["wrong"]["fused_mse"], p["wrong"]["fused_coverage"], p["wrong"]["used"],
+          p["wrong"]["refused"]] for m, p in parts.items()],
+    ))
+    for m, p in parts.items():
+        sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
+        st = ", ".join(f"{s} {v['observer']:.2f} -> {v['fused']:.2f}" for s, v in p["stator_mse"].items())
+        print(f"{m} min: tempco {p['tempco_pct_per_k']:+.3f} %/K, psi20 {p['params']['psi20']:.4f} Wb, "
+              f"Ld0 {p['params']['ld0'] * 1e3:.3f} mH, R20 {p['params']['r20'] * 1e3:.1f} mOhm, "
+              f"V_err {p['params']['v_err']:+.2f} V; sigma by current at {p['speed_min_rpm']:.0f} rpm and up: {sig}; "
+              f"error correlation {p['tau_s']:.0f} s; magnet MSE where informative: observer "
+              f"{p['observer_mse_informative']:.2f}, fused {p['fused_mse_informative']:.2f}; stator MSE observer -> fused: {st}")
     return 0
 
 

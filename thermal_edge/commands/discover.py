@@ -20,6 +20,7 @@ from pathlib import Path
 from ..data import FORMATS, RunError
 from ..errors import UsageError
 from .common import add_set_arg, parse_sets
+from .options import integer, kelvin, names, number, output_dir, output_file, positive_s
 from .runs import CAN_FORMAT, add_can_args, read_checked_runs, require_finite_prediction
 
 
@@ -30,17 +31,18 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     p.add_argument("--run", help="recorded run (CSV), or a CAN log with --format can")
     add_can_args(p, FORMATS)
-    p.add_argument("--sensors", help="comma-separated sensors to use (default: every model sensor the run has)")
-    p.add_argument("--out", help="directory for report.md, its figures and the augmented model")
-    p.add_argument("--model-out", help="path of the augmented model (default DIR/<model>+<effect>.yaml)")
+    p.add_argument("--sensors", type=names, help="comma-separated sensors to use (default: every model sensor the run has)")
+    p.add_argument("--out", type=output_dir, help="directory for report.md, its figures and the augmented model")
+    p.add_argument("--model-out", type=output_file, help="path of the augmented model (default DIR/<model>+<effect>.yaml)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--effects", help="comma-separated catalogue effects to consider (default: all)")
-    p.add_argument("--max-rounds", type=int, default=3, help="effects added at most (default 3)")
-    p.add_argument("--min-improvement", type=float, default=0.10,
+    p.add_argument("--effects", type=names, help="comma-separated catalogue effects to consider (default: all)")
+    p.add_argument("--max-rounds", type=integer(1), default=3, help="effects added at most (default 3)")
+    p.add_argument("--min-improvement", type=number(0, 1, hi_open=True), default=0.10,
                    help="relative held-out gap reduction a candidate must reach (default 0.10)")
-    p.add_argument("--min-gain", type=float, default=0.05, help="and absolute reduction, K (default 0.05)")
-    p.add_argument("--train-fraction", type=float, default=2 / 3, help="fitted share of the run (default 2/3)")
-    p.add_argument("--fit-step", type=float, default=5.0, help="step of the decimated fitting window, s (default 5)")
+    p.add_argument("--min-gain", type=kelvin, default=0.05, help="and absolute reduction, K (default 0.05)")
+    p.add_argument("--train-fraction", type=number(0, 1, lo_open=True, hi_open=True), default=2 / 3,
+                   help="fitted share of the run (default 2/3)")
+    p.add_argument("--fit-step", type=positive_s, default=5.0, help="step of the decimated fitting window, s (default 5)")
     p.add_argument("--no-report", action="store_true", help="with --out: write the model only, no report")
     p.add_argument("--list-effects", action="store_true", help="list the effect catalogue and the model's targets")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -72,7 +74,7 @@ def _run_header(path: str) -> list[str]:
     """The comment lines at the top of a run CSV (how it was made), as shell comments."""
     out = []
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8", errors="replace") as fh:  # a Windows-1252 run too
             for line in fh:
                 if not line.startswith("#"):
                     break

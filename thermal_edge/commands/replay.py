@@ -40,6 +40,7 @@ from ..plots import missing
 from ..service.replay import ReplayResult, format_summary, replay_log, summarise
 from ..shipped import config_path
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
+from .options import integer, kelvin, names, output_file, positive_s
 from .progress import bar
 from .runs import read_checked, require_finite, require_finite_prediction
 
@@ -60,12 +61,13 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--no-adapt", dest="adapt", action="store_false", help="open-loop prediction (default)")
     mode.add_argument("--adapt", dest="adapt", action="store_true", help="run the online adapter over the run")
-    p.add_argument("--sensors", help="comma-separated sensors the adapter may learn from (default: all)")
-    p.add_argument("--period", type=float, default=AdapterConfig.period_s, help="adaptation period, s")
-    p.add_argument("--threshold", type=float, default=AdapterConfig.threshold_k, help="adaptation threshold, K RMS")
-    p.add_argument("--decimate", type=int, default=AdapterConfig.decimate, help="samples per optimiser step")
-    p.add_argument("--plot", metavar="FILE.png", help="figure: measured, predicted and the observer's band per sensor")
-    p.add_argument("--out", metavar="FILE.csv",
+    p.add_argument("--sensors", type=names, help="comma-separated sensors the adapter may learn from (default: all)")
+    p.add_argument("--period", type=positive_s, default=AdapterConfig.period_s, help="adaptation period, s")
+    p.add_argument("--threshold", type=kelvin, default=AdapterConfig.threshold_k, help="adaptation threshold, K RMS")
+    p.add_argument("--decimate", type=integer(1), default=AdapterConfig.decimate, help="samples per optimiser step")
+    p.add_argument("--plot", type=output_file, metavar="FILE.png",
+                   help="figure: measured, predicted and the observer's band per sensor")
+    p.add_argument("--out", type=output_file, metavar="FILE.csv",
                    help="per-sample (can: per-tick) estimates, predictions and bands (.csv or .parquet)")
     add_set_arg(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")

@@ -141,7 +141,7 @@ def _checked(run: Run, path: str, fmt: str, model: Model, sensors: Sequence[str]
         raise RunError(f"{path}: none of model {model.name}'s sensors ({', '.join(model.sensors)}) is a column "
                        f"of the run (it has: {', '.join(cols)}); the wrong model or the wrong file?")
     used_sensors = list(sensors) if sensors is not None else present
-    check_run(run, [*used_sensors, *model.temperature_inputs])
+    check_run(run, [*used_sensors, *model.temperature_inputs], dict(model.input_roles))
     run.dt  # uneven sample times are refused here, before anything is fitted  # noqa: B018
     summary = describe(run, [*model.inputs, *used_sensors])
     not_used = [s for s in model.sensors if s not in used_sensors]
@@ -167,8 +167,13 @@ def _did_you_mean(name: str, candidates: Sequence[str]) -> str:
     return f"; did you mean {close[0]!r}?" if close else ""
 
 
+#: A predicted node temperature beyond this, degC, is a law of the model out of bounds (far beyond
+#: any material's melting point), refused as the overflow it leads to instead of printed.
+DIVERGED_C = 1e4
+
+
 def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
-    """Refuse a node-temperature series that is not finite everywhere.
+    """Refuse a node-temperature series that is not finite everywhere or beyond :data:`DIVERGED_C`.
 
     Parameters
     ----------
@@ -186,12 +191,14 @@ def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
         One line naming the model file, the first node and sample that are not finite, and the
         inputs there: a loss or conductance law of the model overflows (or divides by zero).
     """
-    bad = ~np.isfinite(T)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(T) | (np.abs(T) > DIVERGED_C)
     if not bad.any():
         return
     k, i = (int(x) for x in np.argwhere(bad)[0])
     inputs = ", ".join(f"{c} = {run.columns[c][k]:g}" for c in model.inputs if c in run.columns)
-    raise ModelError(f"{model.path}: {what} is not finite from sample {k + 1} (t = {run.t[k]:g} s) on, node "
+    how = "is not finite" if not np.isfinite(T[k, i]) else f"diverges ({T[k, i]:.3g} degC)"
+    raise ModelError(f"{model.path}: {what} {how} from sample {k + 1} (t = {run.t[k]:g} s) on, node "
                      f"{model.nodes[i]!r}: a loss or conductance law overflows at {inputs}")
 
 

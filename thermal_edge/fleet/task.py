@@ -76,7 +76,8 @@ def run_machine(job: Callable[[], list[dict[str, Any]]], machine: Machine) -> li
     try:
         rows = job()
     except Exception as exc:  # one machine's failure must not end the fleet's job; it is reported
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)  # not KeyError's repr quotes
+        msg = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
         rows = [row(machine=machine.id, kind="error", name=type(exc).__name__, message=msg, runs=";".join(machine.runs))]
     wall, cpu, mb = time.perf_counter() - t0, time.process_time() - c0, peak_mb()
     for r in rows:
