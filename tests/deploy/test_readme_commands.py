@@ -97,8 +97,17 @@ def test_the_readme_has_the_commands_this_file_checks():
 
 @pytest.mark.parametrize("where,argv", [c for c in commands() if program(c[1])[0] == "thermal-edge"],
                          ids=lambda v: " ".join(v)[:60] if isinstance(v, list) else v)
-def test_every_thermal_edge_command_parses(where, argv):
+def test_every_thermal_edge_command_parses(where, argv, tmp_path, monkeypatch):
     _, args = program(argv)
+    # as the page runs it: from a checkout, after the page's own `mkdir -p` (an --out checks its directory)
+    for entry in dl.REPO.iterdir():
+        if not entry.name.startswith(".") and entry.name != "out":
+            (tmp_path / entry.name).symlink_to(entry)
+    for _, made in commands():
+        if program(made)[0] == "mkdir":
+            for d in (a for a in program(made)[1] if not a.startswith("-")):
+                (tmp_path / d).mkdir(parents=True, exist_ok=True)
+    monkeypatch.chdir(tmp_path)
     err = io.StringIO()
     with contextlib.redirect_stderr(err):
         try:
