@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import asdict
 from typing import Any
 
 from ..bench import jacobian, paper
@@ -36,13 +37,6 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     sv.add_argument("--fps-seconds", type=positive_s, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
-    fa = which.add_parser("faults", help="the service attacked from outside by 100+ fault cases: what it did, frames or "
-                                         "state lost, unsafe events")
-    fa.add_argument("--full", action="store_true", help="full lengths and counts (200 SIGKILLs, 60 s at 8,000 frames/s, "
-                                                        "a 7-day soak, ...); default: the short form")
-    fa.add_argument("--only", action="append", default=None, metavar="GROUP", help="run only this group (repeatable)")
-    fa.add_argument("--json", action="store_true", help="print one JSON object")
-    fa.set_defaults(func=run_faults)
     pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
                                              "thermal_edge, a PT100 derate, I2t and the oracle, per plant case")
     pr.add_argument("--case", action="append", default=None, metavar="NAME",
@@ -130,26 +124,26 @@ def run_jacobian(args: argparse.Namespace) -> int:
     with StageBars("bench jacobian") as progress:
         r = jacobian.run(repeat=args.repeat, hours=args.hours, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2))
+        print(json.dumps(asdict(r), indent=2))
         return 0
-    print(f"Jacobian of {r['nodes']} nodes x {r['params']} parameters over {r['samples']} samples "
-          f"({r['operating_points']} distinct speeds, inputs held on {r['held_steps']} of "
-          f"{r['samples'] - 1} steps); median of {args.repeat}")
+    print(f"Jacobian of {r.nodes} nodes x {r.params} parameters over {r.samples} samples "
+          f"({r.operating_points} distinct speeds, inputs held on {r.held_steps} of "
+          f"{r.samples - 1} steps); median of {args.repeat}")
     print(table(
         ["method", "wall s", "vs analytic"],
         [
-            ["analytic (sim + sensitivities)", r["analytic_s"], "1.0x"],
-            ["analytic, every step stepped", r["analytic_stepped_s"], f"{r['analytic_stepped_s'] / r['analytic_s']:.1f}x slower"],
-            ["forward differences (p+1 sims)", r["numerical_s"], f"{r['speedup']:.1f}x slower"],
-            ["one simulation", r["simulation_s"], f"{r['simulation_s'] / r['analytic_s']:.2f}x"],
-            ["arithmetic limit (BLAS rate)", r["arith_limit_s"], f"{r['arith_limit_s'] / r['analytic_s']:.2f}x"],
+            ["analytic (sim + sensitivities)", r.analytic_s, "1.0x"],
+            ["analytic, every step stepped", r.analytic_stepped_s, f"{r.analytic_stepped_s / r.analytic_s:.1f}x slower"],
+            ["forward differences (p+1 sims)", r.numerical_s, f"{r.speedup:.1f}x slower"],
+            ["one simulation", r.simulation_s, f"{r.simulation_s / r.analytic_s:.2f}x"],
+            ["arithmetic limit (BLAS rate)", r.arith_limit_s, f"{r.arith_limit_s / r.analytic_s:.2f}x"],
         ],
     ))
-    rounds = ", ".join(f"{x:.2f}" for x in r["speedup_rounds"])
-    print(f"speed-up, median of the rounds' ratios: {r['speedup']:.2f}x (rounds: {rounds}; ratio of the medians "
-          f"{r['speedup_of_medians']:.2f}x)")
-    print(f"max relative error vs central differences: {r['max_rel_err']:.2e}; "
-          f"closed form vs stepped: {r['closed_vs_stepped_max_rel']:.1e} of the largest entry")
+    rounds = ", ".join(f"{x:.2f}" for x in r.speedup_rounds)
+    print(f"speed-up, median of the rounds' ratios: {r.speedup:.2f}x (rounds: {rounds}; ratio of the medians "
+          f"{r.speedup_of_medians:.2f}x)")
+    print(f"max relative error vs central differences: {r.max_rel_err:.2e}; "
+          f"closed form vs stepped: {r.closed_vs_stepped_max_rel:.1e} of the largest entry")
     return 0
 
 
@@ -157,9 +151,9 @@ def run_paper(args: argparse.Namespace) -> int:
     with StageBars("bench paper") as progress:
         r = paper.run(progress=progress, data_dir=args.data_dir)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    e1 = r["e1"]
+    e1 = r.e1
     print("E1 (paper Figs. 9-10): only R_e_hous adapted, 600 rpm / 70 Nm, 3 h")
     print(table(
         ["", "R_e_hous K/W", "error %", "RMS last hour K"],
@@ -172,7 +166,7 @@ def run_paper(args: argparse.Namespace) -> int:
         ],
     ))
     print("R_e_hous over time: " + ", ".join(f"{p['t_s'] / 60:.0f} min {p['r_e_hous']:.3f}" for p in e1["trajectory"]))
-    e2 = r["e2"]
+    e2 = r.e2
     print(f"\nE2 (paper Table 4/5, Fig. 11): 14 parameters, Table 4 start; held-out RMS at the start "
           f"{e2['heldout_rms_start_k']:.2f} K, with the plant's own parameters {e2['heldout_rms_true_params_k']:.3f} K")
     print(table(
@@ -182,8 +176,8 @@ def run_paper(args: argparse.Namespace) -> int:
     ))
     print(f"numerical SQP / analytic SQP (same data, same cap): {e2['numerical_over_analytic_whole_data']:.1f}x; "
           f"numerical / proposed online total: {e2['numerical_over_proposed']:.1f}x (paper 4.3x)")
-    print(f"one online adaptation step (14 parameters, 3 h window): median {r['adapt_step_median_s']:.3f} s")
-    e3 = r["e3"]
+    print(f"one online adaptation step (14 parameters, 3 h window): median {r.adapt_step_median_s:.3f} s")
+    e3 = r.e3
     print("\nE3 (Paderborn run_a, adapted from stator_winding + stator_yoke only)")
     if "skipped" in e3:
         print(f"skipped: {e3['skipped']}")
@@ -202,23 +196,23 @@ def run_service(args: argparse.Namespace) -> int:
     with StageBars("bench service") as progress:
         r = service.run(hours=args.hours, ticks=args.ticks, fps_seconds=args.fps_seconds, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    t = r["targets"]
-    print(f"edge service, pm10kw (39 nodes), 1 Hz tick; {r['ticks_measured']} ticks timed per row")
+    t = r.targets
+    print(f"edge service, pm10kw (39 nodes), 1 Hz tick; {r.ticks_measured} ticks timed per row")
     print(table(
         ["measure", "value", "target"],
         [
-            ["tick p50, adapter idle (ms)", r["tick_p50_ms"], ""],
-            ["tick p99, adapter idle (ms)", r["tick_p99_ms"], ""],
-            ["tick p50, adaptation running (ms)", r["tick_p50_adapting_ms"], ""],
-            ["tick p99, adaptation running (ms)", r["tick_p99_adapting_ms"], f"<= {t['tick_p99_adapting_ms']:g}"],
-            ["max lossless inbound frames/s (udp_multicast)", r["max_lossless_fps"], f">= {t['max_lossless_fps']}"],
-            [f"RSS after {r['memory_run_hours']:g} h accelerated (MB)", r["rss_mb"], f"<= {t['rss_mb']:g}, flat"],
-            ["RSS growth after the first hour (MB)", r["rss_growth_mb"], "~0"],
+            ["tick p50, adapter idle (ms)", r.tick_p50_ms, ""],
+            ["tick p99, adapter idle (ms)", r.tick_p99_ms, ""],
+            ["tick p50, adaptation running (ms)", r.tick_p50_adapting_ms, ""],
+            ["tick p99, adaptation running (ms)", r.tick_p99_adapting_ms, f"<= {t['tick_p99_adapting_ms']:g}"],
+            ["max lossless inbound frames/s (udp_multicast)", r.max_lossless_fps, f">= {t['max_lossless_fps']}"],
+            [f"RSS after {r.memory_run_hours:g} h accelerated (MB)", r.rss_mb, f"<= {t['rss_mb']:g}, flat"],
+            ["RSS growth after the first hour (MB)", r.rss_growth_mb, "~0"],
         ],
     ))
-    print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r["rss_samples"]))
+    print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r.rss_samples))
     return 0
 
 
@@ -234,7 +228,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         print(f"thermal-edge bench fleet: error: {exc}")
         return 2
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
     print(fleet.format_result(r))
     return 0
@@ -259,15 +253,15 @@ def run_real(args: argparse.Namespace) -> int:
     with StageBars("bench real") as progress:
         r = real.run(data_dir, sets=sets, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    if "skipped" in r:
-        print(f"bench real skipped: {r['skipped']}")
+    if r.skipped is not None:
+        print(f"bench real skipped: {r.skipped}")
         return 0
-    print(f"Paderborn {r['run']}, adapted from {' + '.join(r['adapted_from'])} only; MSE K² per target "
+    print(f"Paderborn {r.run}, adapted from {' + '.join(r.adapted_from)} only; MSE K² per target "
           "(trace: each period predicted open loop from the observer's state; fixed: the same, parameters never "
           "changed; observer: live estimate; coverage: readings inside its 95 % band; EKF: its final parameters open loop)")
-    for name, st in r["starts"].items():
+    for name, st in r.starts.items():
         f = ", ".join(f"{k} x{v:g}" for k, v in st["factors"].items()) or "published parameters"
         print(f"\n{name} ({f}): {st['promoted']} challengers promoted; adaptation step median "
               f"{st['adapt_step_median_s']:.3f} s")
@@ -396,26 +390,16 @@ def run_protection(args: argparse.Namespace) -> int:
         print(f"thermal-edge bench protection: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    dur = "" if r["duration_s"] is None else f" (first {r['duration_s']:g} s)"
-    mx = ", ".join(f"{k} {v:g} degC" for k, v in r["max_c"].items())
-    print(f"closed loop on the simulated machine, cycle {Path(r['cycle']).stem}{dur}; "
-          f"reaction time {r['reaction_time_s']:g} s; max: {mx}")
+    dur = "" if r.duration_s is None else f" (first {r.duration_s:g} s)"
+    mx = ", ".join(f"{k} {v:g} degC" for k, v in r.max_c.items())
+    print(f"closed loop on the simulated machine, cycle {Path(r.cycle).stem}{dur}; "
+          f"reaction time {r.reaction_time_s:g} s; max: {mx}")
     print(table(protection.TABLE_HEADERS, protection.table_rows(r)))
-    print(f"thermal_edge: min share of the oracle {r['min_oracle_share_pct']:.1f} % (target >= 90), "
-          f"seconds over max {r['total_seconds_over_max']:g} (target 0)")
+    print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
+          f"seconds over max {r.total_seconds_over_max:g} (target 0)")
     for line in protection.verdicts(r):
         print(line)
     return 0
 
-
-def run_faults(args: argparse.Namespace) -> int:
-    from ..bench import faults
-
-    r = faults.run(full=args.full, only=args.only)
-    if args.json:
-        print(json.dumps(r, indent=2, default=float))
-        return 0
-    print(faults.report_table(r))
-    return 0
