@@ -19,7 +19,7 @@ RUN = PADERBORN / "run_a.csv"
 @pytest.mark.skipif(not RUN.exists(), reason=f"{RUN} absent (the Paderborn data are never part of this repository)")
 def test_fused_magnet_no_worse_than_the_observer_on_the_real_machine():
     out = magnet.run(PADERBORN, fit_minutes=(20.0,))
-    p = out["parts"]["20"]
+    p = out.parts["20"]
     assert p["fit_samples"] == 480 and p["scored_samples"] == 3003 - 480
     assert 0.1 < p["informative_share"] < 0.5  # the loaded rest; the no-load cool-down is outside what it saw
     assert p["fused_mse"] <= p["observer_mse"]
@@ -36,7 +36,7 @@ def test_fused_magnet_no_worse_than_the_observer_on_the_real_machine():
 
 
 def test_skips_visibly_without_the_data(tmp_path):
-    assert magnet.run(tmp_path) == {"skipped": f"{tmp_path / 'run_a.csv'} not found"}
+    assert magnet.run(tmp_path).skipped == f"{tmp_path / 'run_a.csv'} not found"
     r = te_here("bench", "magnet", "--data-dir", tmp_path)
     assert r.returncode == 0
     assert r.stdout.strip() == f"bench magnet skipped: {tmp_path / 'run_a.csv'} not found"

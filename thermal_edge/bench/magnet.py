@@ -11,7 +11,7 @@ estimate is the observer's.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -44,13 +44,26 @@ def _head(e: Electrical, n: int) -> Electrical:
     return Electrical(e.u_d[:n], e.u_q[:n], e.i_d[:n], e.i_q[:n], e.speed_rpm[:n], e.winding_c[:n])
 
 
+@dataclass
+class MagnetResult:
+    """The bench's figures: per commissioning length (minutes, as text) the figures of
+    :func:`run`; ``skipped`` says why nothing ran (no data)."""
+
+    run: str = ""
+    pole_pairs: int = 0
+    priors: dict[str, Any] = field(default_factory=dict)
+    parts: dict[str, dict[str, Any]] = field(default_factory=dict)
+    published_lptn_mse: float = float("nan")
+    skipped: str | None = None
+
+
 def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUTES,
-        progress: Progress = no_progress) -> dict[str, Any]:
-    """Every figure per commissioning length; ``{"skipped": why}`` when the data is absent."""
+        progress: Progress = no_progress) -> MagnetResult:
+    """Every figure per commissioning length; ``skipped`` set when the data is absent."""
     data_dir = paderborn_dir(data_dir)
     path = data_dir / "run_a.csv"
     if not path.exists():
-        return {"skipped": f"{path} not found"}
+        return MagnetResult(skipped=f"{path} not found")
     model = load_model(config_path("machines", "paderborn4.yaml"), data_dir=data_dir)
     run_ = read_run(path, "paderborn")
     e = Electrical.of(run_.columns)
@@ -60,8 +73,7 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
     traj, _ = open_loop(model, run_)
     progress("observer", 0, 1 + len(fit_minutes), "run")
     base = run_fused(model, run_, SENSORS, None, node)
-    parts: dict[str, dict[str, object]] = {}
-    out: dict[str, object] = {"run": str(path), "pole_pairs": POLE_PAIRS, "priors": PRIORS, "parts": parts}
+    parts: dict[str, dict[str, Any]] = {}
     for k, minutes in enumerate(fit_minutes):
         progress("fused", k + 1, 1 + len(fit_minutes), "run")
         n = int(round(minutes * 60.0 / run_.dt))
@@ -92,8 +104,7 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
                            for s in ("stator_winding", "stator_yoke", "stator_tooth") if s in run_.columns},
         }
     progress("fused", 1 + len(fit_minutes), 1 + len(fit_minutes), "run")
-    out["published_lptn_mse"] = PUBLISHED_LPTN_MSE
-    return out
+    return MagnetResult(str(path), POLE_PAIRS, dict(PRIORS), parts, PUBLISHED_LPTN_MSE)
 
 
 def wrong_calibration(model: Model, run_: Run, fm: FluxModel, node: str, e: Electrical, n: int,

@@ -90,11 +90,8 @@ _PLAIN_CANDUMP_LINE = re.compile(r"^\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d+\]")
 _CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
 #: Latest time stamp taken as seconds since the epoch (the year 2286): a larger one is in ms or µs.
 MAX_EPOCH_S = 1e10
-#: Step back in time between two messages that counts as one, s: frames of several interfaces
-#: merged by a logger can be a little out of order.
-MAX_BACKSTEP_S = 1e-3
-#: Share of the first :data:`TIME_BASE_MESSAGES` steps that may go back: more is a reversed or
-#: shuffled log. A single jump back (a log concatenated from two recordings, a clock stepped while
+#: Share of the first :data:`TIME_BASE_MESSAGES` steps that may go back in time (frames of several
+#: interfaces merged by a logger can be a little out of order): more is a reversed or shuffled log. A single jump back (a log concatenated from two recordings, a clock stepped while
 #: recording) is not refused here: the frame clock judges it by the frames after it, as live.
 MAX_BACK_SHARE = 0.25
 #: Gaps between repeats of one frame that judge the time base: if the most frequent frame of the
@@ -316,7 +313,7 @@ class _TimeBase:
             return
         if self.last is not None:
             self.steps += 1
-            self.back += t < self.last - MAX_BACKSTEP_S
+            self.back += t < self.last
         self.last = t
         before = self.last_by_id.get(frame_id)
         self.last_by_id[frame_id] = t

@@ -292,16 +292,16 @@ def run_magnet(args: argparse.Namespace) -> int:
     with StageBars("bench magnet") as progress:
         r = magnet.run(args.data_dir, fit_minutes=minutes, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps({k: v for k, v in asdict(r).items() if v is not None or k != "skipped"}, indent=2, default=float))
         return 0
-    if "skipped" in r:
-        print(f"bench magnet skipped: {r['skipped']}")
+    if r.skipped is not None:
+        print(f"bench magnet skipped: {r.skipped}")
         return 0
-    parts: dict[str, Any] = r["parts"]
-    print(f"Paderborn {r['run']}: magnet temperature from the inverter's voltages (p = {r['pole_pairs']}), "
+    parts: dict[str, Any] = r.parts
+    print(f"Paderborn {r.run}: magnet temperature from the inverter's voltages (p = {r.pole_pairs}), "
           "commissioned on the first MIN minutes, scored on the rest; observer: the LPTN with "
           "stator_winding + stator_yoke; published LPTN open loop on the whole run: "
-          f"{r['published_lptn_mse']:g} K2")
+          f"{r.published_lptn_mse:g} K2")
     print(table(
         ["commissioned on", "informative", "flux RMS K", "flux cover", "LPTN open loop MSE", "observer MSE",
          "fused MSE", "observer cover", "fused cover", "used", "refused"],
