@@ -91,8 +91,9 @@ _CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
 #: Latest time stamp taken as seconds since the epoch (the year 2286): a larger one is in ms or µs.
 MAX_EPOCH_S = 1e10
 #: Share of the first :data:`TIME_BASE_MESSAGES` steps that may go back in time (frames of several
-#: interfaces merged by a logger can be a little out of order): more is a reversed or shuffled log. A single jump back (a log concatenated from two recordings, a clock stepped while
-#: recording) is not refused here: the frame clock judges it by the frames after it, as live.
+#: interfaces merged by a logger can be a little out of order): more is a reversed or shuffled log.
+#: A single jump back (a log concatenated from two recordings, a clock stepped while recording) is
+#: not refused here: the frame clock judges it by the frames after it, as live.
 MAX_BACK_SHARE = 0.25
 #: Gaps between repeats of one frame that judge the time base: if the most frequent frame of the
 #: first of them repeats less often than every :data:`MAX_MEDIAN_GAP_S` (median), the log is
