@@ -28,6 +28,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .discretise import DiscreteDerivatives
+from .stretch import solve_nodes
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -88,11 +89,16 @@ class Sensitivities:
         The losses and ``∂P/∂θ`` at any steps and temperatures (see :data:`AtSteps`).
     loss_nodes : ndarray of int
         The nodes whose temperatures the loss laws read.
+    slopes : ndarray (N-1, nl, len(loss_nodes)), optional
+        ``∂P/∂T`` of losses affine in temperature at each step (W/K): what the stretches run
+        vectorised in time need (:meth:`run`).
     """
 
     def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
-                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray) -> None:
+                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray,
+                 slopes: np.ndarray | None = None) -> None:
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
+        self.slopes = slopes
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
@@ -111,24 +117,25 @@ class Sensitivities:
         return d.forcing(o, y, np.einsum("...em,...m->...e", d.Yt[o], w))
 
     # -- runs ---------------------------------------------------------------------------------
-    def run(self, held: np.ndarray, closed: bool, rows: np.ndarray | None) -> np.ndarray:
+    def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None) -> np.ndarray:
         """``S`` (N, rows, p) (all nodes when ``rows`` is None).
 
-        ``held[k]`` is True where the inputs of step ``k`` equal those of step ``k − 1``;
-        ``closed`` allows the closed form over held runs (the losses are affine in temperature).
+        ``runs`` are the held runs ``(a, b)`` (steps ``a .. b−1``) to try in closed form
+        (:func:`held_runs`), ``spans`` the stretches at one operating point to run vectorised in
+        time (:func:`~thermal_edge.lptn.stretch.stretches`; they need ``slopes``); the other
+        steps are stepped.
         """
         N = self.T.shape[0]
         steps = N - 1
         keep = np.arange(self.n) if rows is None else np.asarray(rows, dtype=int)
         S = np.zeros((N, len(keep), self.p))
         s = np.zeros((self.n, self.p))
-        starts = np.nonzero(~held[:steps])[0] if steps > 0 else np.zeros(0, dtype=int)
-        bounds = list(starts) + [steps]
-        runs = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD] if closed else []
         forms = self._held_runs(runs, keep) if runs else []
         stepped = np.ones(steps, dtype=bool)
         for (a, b), form in zip(runs, forms):
             stepped[a:b] &= form is None
+        for a, b in spans:
+            stepped[a:b] = False
         # the steps the recursion takes one by one, their forcing BLOCK steps at a time (across
         # the gaps between held runs), consumed in order
         ks = np.nonzero(stepped)[0]
@@ -159,13 +166,36 @@ class Sensitivities:
         pending = 0  # first step not yet propagated
         longest = max((b - a for a, b in runs), default=0)
         work = np.empty((2 * self.n + 1, -(-longest // POW_BLOCK) * POW_BLOCK))
-        for (a, b), form in zip(runs, forms):
+        events = sorted([(a, b, form) for (a, b), form in zip(runs, forms) if form is not None]
+                        + [(a, b, None) for a, b in spans], key=lambda e: e[0])
+        for a, b, form in events:
+            s = step(pending, a, s)
             if form is None:
-                continue
-            s = form.apply(step(pending, a, s), S[a + 1: b + 1], work)
+                s = self._span(a, b, s, S[a + 1: b + 1], keep)
+            else:
+                s = form.apply(s, S[a + 1: b + 1], work)
             pending = b
         step(pending, steps, s)
         return S
+
+    def _span(self, a: int, b: int, s: np.ndarray, out: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """Steps ``a .. b−1`` at one operating point from ``S[a] = s`` (n, p), vectorised in time
+        (:func:`~thermal_edge.lptn.stretch.solve_nodes`): the forcing of all steps in one product,
+        then the filter. Fills ``out`` (b − a, rows, p); returns ``S[b]``."""
+        assert self.slopes is not None
+        d, o, n, p = self.d, int(self.ops[a]), self.n, self.p
+        V, Vi = d.basis(o)
+        ks = np.arange(a, b)
+        GP = d.Gam[o][:, self.nb:]
+        X = self.forcing(o, self.T[a:b], np.concatenate([self.U[a:b], self.P[a:b]], axis=1))  # (L, n, p)
+        dP = self.loss_theta(ks, self.T[a:b])
+        if np.any(dP):  # V⁻¹ Γ_P ∂P/∂θ
+            X += (Vi @ GP) @ dP
+        Om, xi = solve_nodes(V, Vi, d.phi[o], d.mu[o], GP, self.loss_nodes, np.ascontiguousarray(X.transpose(1, 0, 2)),
+                             s, self.slopes[a:b])
+        L = b - a
+        out[:] = (Om[keep] @ xi.reshape(n, L * p)).reshape(len(keep), L, p).transpose(1, 0, 2)
+        return Om @ xi[:, -1]
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:
         """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""
@@ -469,6 +499,16 @@ class _HeldRun:
             ia, ib, cc = self.extra
             rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k[:, None]) @ cc.reshape(len(ia), nr * p)
         return self.Om @ (self.muL[:, None] * sig0 + self.endG)
+
+
+def held_runs(held: np.ndarray, closed: bool) -> list[tuple[int, int]]:
+    """The runs ``(a, b)`` of steps ``a .. b−1`` with held inputs (``held``, :func:`held_steps`) at
+    least :data:`MIN_HELD` long; none unless ``closed`` (the closed form is allowed)."""
+    steps = len(held)
+    if not closed or not steps:
+        return []
+    bounds = list(np.nonzero(~held)[0]) + [steps]
+    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD]
 
 
 def held_steps(env: dict[str, object], steps: int) -> np.ndarray:
