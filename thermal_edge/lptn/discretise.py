@@ -107,20 +107,24 @@ class DiscreteDerivatives(Discrete):
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
         return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
 
-    def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray, left: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p) from ``y = V⁻¹ T + Ht w`` (B, n) and
         ``v = Yt w`` (B, e): ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``.
 
         ``o`` is one operating point for all rows (its dense ``dPhit``: one product for all rows
         and parameters) or one per row (B,), which each method does its own way
-        (:meth:`_forcing_rows`).
+        (:meth:`_forcing_rows`). With one operating point, ``left`` (n, n) gives the forcing in
+        another basis, ``left V⁻¹ (...)``, folded into the factors (no product per row).
         """
         p, B = self.dg.shape[1], len(y)
         if np.ndim(o) == 0:
             n = len(self.phi[o])
-            X = (self.dphit(o).reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
+            dp, low = self.dphit(o), self.phi[o][:, None] * self.Zh[o]
+            if left is not None:
+                dp, low = left @ dp, left @ low
+            X = (dp.reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
             lowv = (v[:, :, None] * self.dg[o].T).transpose(1, 0, 2).reshape(-1, B * p)  # (e, B p)
-            X -= self.phi[o][:, None] * (self.Zh[o] @ lowv).reshape(n, B, p).transpose(1, 0, 2)
+            X -= (low @ lowv).reshape(n, B, p).transpose(1, 0, 2)
             return X
         return self._forcing_rows(np.asarray(o), y, self.phi[o][:, :, None] * v[:, None, :])
 

@@ -104,7 +104,7 @@ class Sensitivities:
         self.n, self.p = T.shape[1], disc.dg.shape[1]
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
-    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray) -> np.ndarray:
+    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray, left: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ T + dΓ w)`` (B, n, p) for temperatures ``T`` (B, n) and inputs ``w`` (B, m) of
         ``Γ`` at operating point ``o`` (one for all rows, or one per row), in the modal basis of
         ``Φ`` there (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.forcing`). The losses' own
@@ -113,8 +113,12 @@ class Sensitivities:
         d = self.d
         _, Vi = d.basis(o)
         # y = V⁻¹ T + Ht w and v = Yt w, one row per step
-        y = np.einsum("...ac,...c->...a", Vi, T) + np.einsum("...am,...m->...a", d.Ht[o], w)
-        return d.forcing(o, y, np.einsum("...em,...m->...e", d.Yt[o], w))
+        if np.ndim(o) == 0:
+            y, v = T @ Vi.T + w @ d.Ht[o].T, w @ d.Yt[o].T
+        else:
+            y = np.einsum("...ac,...c->...a", Vi, T) + np.einsum("...am,...m->...a", d.Ht[o], w)
+            v = np.einsum("...em,...m->...e", d.Yt[o], w)
+        return d.forcing(o, y, v, left)
 
     # -- runs ---------------------------------------------------------------------------------
     def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None) -> np.ndarray:
@@ -187,15 +191,21 @@ class Sensitivities:
         V, Vi = d.basis(o)
         ks = np.arange(a, b)
         GP = d.Gam[o][:, self.nb:]
-        X = self.forcing(o, self.T[a:b], np.concatenate([self.U[a:b], self.P[a:b]], axis=1))  # (L, n, p)
+        w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
         dP = self.loss_theta(ks, self.T[a:b])
-        if np.any(dP):  # V⁻¹ Γ_P ∂P/∂θ
-            X += (Vi @ GP) @ dP
-        Om, xi = solve_nodes(V, Vi, d.phi[o], d.mu[o], GP, self.loss_nodes, np.ascontiguousarray(X.transpose(1, 0, 2)),
-                             s, self.slopes[a:b])
+        GPt = Vi @ GP
+
+        def forcing() -> np.ndarray:
+            """The forcing of all the stretch's steps (n, L, p) in the modal basis of ``Φ``."""
+            X = self.forcing(o, self.T[a:b], w)  # (L, n, p)
+            if np.any(dP):  # V⁻¹ Γ_P ∂P/∂θ
+                X += GPt @ dP
+            return np.ascontiguousarray(X.transpose(1, 0, 2))
+
+        xi = solve_nodes(V, Vi, d.mu[o], GP, self.loss_nodes, forcing, s, self.slopes[a:b])
         L = b - a
-        out[:] = (Om[keep] @ xi.reshape(n, L * p)).reshape(len(keep), L, p).transpose(1, 0, 2)
-        return Om @ xi[:, -1]
+        out[:] = (V[keep] @ xi.reshape(n, L * p)).reshape(len(keep), L, p).transpose(1, 0, 2)
+        return V @ xi[:, -1]
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:
         """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""

@@ -226,9 +226,10 @@ class Simulator:
             step(done, a)
             o = int(ops[a])
             V, Vi = d.basis(o)
-            Om, xi = solve_nodes(V, Vi, d.phi[o], d.mu[o], GP[o], self.tv, (Vi @ f[a:b].T)[:, :, None],
-                                 T[a][:, None], dPdT0[a:b])
-            T[a + 1: b + 1] = (Om @ xi[:, :, 0]).T
+            fa = f[a:b].T
+            xi = solve_nodes(V, Vi, d.mu[o], GP[o], self.tv, lambda: (Vi @ fa)[:, :, None],  # noqa: B023
+                             T[a][:, None], dPdT0[a:b])
+            T[a + 1: b + 1] = (V @ xi[:, :, 0]).T
             done = b
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T

@@ -6,34 +6,41 @@ sensitivities both follow
     x[k+1] = Φ x[k] + f[k] + Γ_P D[k] x[k][tv]
 
 with a forcing ``f`` known for the whole stretch in advance (inputs, or the sensitivities'
-``dΦ T + dΓ w``) and the temperature feedback of the losses ``D[k] = ∂P/∂T`` at step ``k`` (loss
-sources × loss nodes; it changes every step when the current does). In the modal basis of ``Φ``
-(``Φ = V diag(μ) V⁻¹`` with real ``0 < μ < 1``, :class:`~thermal_edge.lptn.discretise.Discrete`)
+``dΦ T + dΓ w``) and the temperature feedback of affine losses ``D[k] = ∂P/∂T`` at step ``k``
+(loss sources × loss nodes; it changes every step when the current does). In the modal basis of
+``Φ`` (``Φ = V diag(μ) V⁻¹`` with real ``0 ≤ μ < 1``, :class:`~thermal_edge.lptn.discretise.Discrete`)
 the open loop is ``n`` independent first-order filters, run in time by blocked matrix products
 (:func:`modal_scan`) over all modes and columns at once.
 
-The feedback enters only through the few loss nodes. Writing ``y[k] = E x[k]`` for their rows
-(``E = V[tv]``), the stretch is the fixed point of ``y = y₀ + 𝓛(D y)`` with ``𝓛`` the strictly
-causal filter from the loss inputs to the loss nodes. The iteration ``y ← y₀ + 𝓛(D y)`` is
-exact in the limit: its ``m``-th iterate equals the true ``y`` on the first ``m`` steps of the
-stretch (causality), and beyond them the error contracts by the loop gain ``‖𝓛‖·max‖D‖``
-(a resistance times ``∂P/∂T``: a few per cent for a copper loss). It stops when an iteration
-changes nothing at round-off (``ROUND_OFF`` of the largest entry); a stretch that does not
-converge within ``MAX_ITER`` iterations is reported so the caller can step it instead.
+The feedback is low-rank twice over, and solved exactly (no iteration):
+
+* in space: it reads only the loss nodes, ``y[k] = E x[k]`` with ``E = V[tv]`` (a few rows);
+* in time: the series ``D[k]`` has a small rank ``r`` (a copper loss ``∝ i²`` gives
+  ``D[k] = i[k]² C``: rank one), ``D[k] = Σ_ρ s[k, ρ] C_ρ`` from its singular value
+  decomposition (terms below round-off of the largest are dropped).
+
+So ``x = x₀ + 𝓛z`` with the open-loop response ``x₀`` and ``z[k] = (s[k, ρ] y[k])_ρ`` fed through
+``G C_ρ`` (``G = V⁻¹ Γ_P``). The loss nodes obey ``y = y₀ + E 𝓛 z``: lower block-triangular
+in time. It is solved in blocks of :data:`TIME_BLOCK` steps: inside a block a unit
+lower-triangular system of ``TIME_BLOCK · ntv`` unknowns (forward substitution: exact up to
+round-off, with the same operations the stepped recursion does, reordered), and the feedback's
+modal state ``q`` carried from block to block exactly. Then ``x = scan(f + G C z)``.
 """
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Callable
 
-#: an iteration that changes the loss nodes' values by less than this fraction of their
-#: largest magnitude has converged (the stepped recursion's own round-off is of this order)
-ROUND_OFF = 1e-14
-#: iterations of the feedback before a stretch is given back to the step-by-step recursion
-MAX_ITER = 40
+import numpy as np
+from scipy.linalg import solve_triangular
+
 #: shortest stretch of one operating point run vectorised (its set-up costs about this many steps)
 MIN_STRETCH = 32
 #: steps per block of :func:`modal_scan` (its flops grow with it, its passes over the blocks shrink)
 BLOCK = 16
+#: steps per block of the loss nodes' triangular solve
+TIME_BLOCK = 64
+#: terms of the feedback's time series below this fraction of the largest are round-off
+RANK_TOL = 1e-15
 
 
 def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
@@ -41,8 +48,8 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
 
     In blocks of :data:`BLOCK` steps: inside a block, each mode's response to the block's
     forcing is one product with the lower-triangular Toeplitz matrix of ``μ^(i−l)`` (a batched
-    matrix product over the modes); the states at the block starts follow the same recursion
-    with ``μ^BLOCK`` over the blocks' end values (this function, one level up).
+    matrix product); the states at the block starts follow the same recursion with ``μ^BLOCK``
+    over the blocks' end values (this function, one level up).
 
     Parameters
     ----------
@@ -68,93 +75,102 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
     i = np.arange(B)
     lag = i[:, None] - i[None, :]
     toep = np.where(lag >= 0, pw[:, np.maximum(lag, 0)], 0.0)  # (n, B, B)
-    fb = f.reshape(n, nb, B, c).transpose(0, 2, 1, 3).reshape(n, B, nb * c)
-    inner = (toep @ fb).reshape(n, B, nb, c)  # zero-state response inside each block
+    inner = np.matmul(toep[:, None], f.reshape(n, nb, B, c))  # zero-state response in each block
     if nb == 1:
         starts = x0[:, None]
     else:
-        ends = modal_scan(pw[:, B], np.ascontiguousarray(inner[:, B - 1, :-1]), x0)
+        ends = modal_scan(pw[:, B], np.ascontiguousarray(inner[:, :-1, B - 1]), x0)
         starts = np.concatenate([x0[:, None], ends], axis=1)  # (n, nb, c)
-    inner += pw[:, 1:, None, None] * starts[:, None]
-    return inner.transpose(0, 2, 1, 3).reshape(n, nb * B, c)[:, :L]
+    inner += pw[:, None, 1:, None] * starts[:, :, None]
+    return inner.reshape(n, nb * B, c)[:, :L]
 
 
-def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray | None = None,
-                  E: np.ndarray | None = None, D: np.ndarray | None = None) -> np.ndarray | None:
+def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
+                  D: np.ndarray) -> np.ndarray:
     """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch (see the module docstring).
 
     Parameters
     ----------
-    mu, f, x0 : see :func:`modal_scan` (``f`` is not modified).
-    G : ndarray (n, nl), optional
+    mu, f, x0 : see :func:`modal_scan`.
+    G : ndarray (n, nl)
         ``V⁻¹ Γ_P``: how each loss source enters the modes.
-    E : ndarray (ntv, n), optional
+    E : ndarray (ntv, n)
         ``V[tv]``: the loss nodes' temperatures from the modes.
-    D : ndarray (L, nl, ntv), optional
-        ``∂P/∂T`` at each step (W/K); without it (or all zero) the stretch is open loop.
+    D : ndarray (L, nl, ntv)
+        ``∂P/∂T`` at each step (W/K).
 
     Returns
     -------
-    ndarray (n, L, c) or None
-        ``x[1] .. x[L]``; None if the feedback did not converge to round-off (step it instead).
+    ndarray (n, L, c)
+        ``x[1] .. x[L]``.
     """
+    n, L, c = f.shape
+    ntv = E.shape[0]
+    D2 = D.reshape(L, -1)
+    cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
     x = modal_scan(mu, f, x0)
-    if D is None or G is None or E is None or not np.any(D):
+    if not len(cols):
         return x
+    U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
+    r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
+    s = U_[:, :r] * sv[:r]  # (L, r)
+    Wfull = np.zeros((r, D2.shape[1]))
+    Wfull[:, cols] = Wt[:r]
+    GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
+    # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1
+    B = TIME_BLOCK
+    nblk = -(-L // B)
+    y0 = np.zeros((nblk * B, ntv, c))
+    y0[0] = E @ x0
+    y0[1:L] = np.tensordot(E, x[:, : L - 1], axes=1).transpose(1, 0, 2)
+    sp = np.zeros((nblk * B, r))
+    sp[:L] = s
+    with np.errstate(under="ignore"):
+        pw = mu[None, :] ** np.arange(B + 1)[:, None]  # (B+1, n)
+    H = np.einsum("an,mn,nq->maq", E, pw[: B], GC).reshape(B, ntv, r, ntv)  # E diag(μ^m) G C_ρ
+    Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
+    R = (pw[B - 1:: -1][:B, :, None] * GC[None]).transpose(1, 0, 2).reshape(n, B * r * ntv)  # diag(μ^(B−1−l)) G C
+    i = np.arange(B)
+    lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
+    below = lag >= 0
+    # the block's coupling of step l into step i per unit s[l, ρ], laid out (ρ, i a, l b)
+    Hl = np.where(below[:, :, None, None, None], H[np.maximum(lag, 0)], 0.0)  # (i, l, a, ρ, b)
+    Hl = np.ascontiguousarray(Hl.transpose(3, 0, 2, 1, 4)).reshape(r, B * ntv, B, ntv)
+    muB = pw[B][:, None]
+    q = np.zeros((n, c))
+    z = np.empty((nblk * B, r * ntv, c))
+    eye = np.eye(B * ntv).reshape(B * ntv, B, ntv)
+    for j in range(nblk):
+        blk = slice(j * B, (j + 1) * B)
+        T = eye - Hl[0] * sp[blk, 0][:, None]
+        for k in range(1, r):
+            T -= Hl[k] * sp[blk, k][:, None]
+        T = T.reshape(B * ntv, B * ntv)
+        rhs = y0[blk].reshape(B * ntv, c) + Ep @ q
+        y = solve_triangular(T, rhs, lower=True, unit_diagonal=True, check_finite=False).reshape(B, ntv, c)
+        zb = (sp[blk][:, :, None, None] * y[:, None]).reshape(B, r * ntv, c)
+        z[blk] = zb
+        q = muB * q + R @ zb.reshape(B * r * ntv, c)
+    g = np.tensordot(GC, z[:L], axes=([1], [1]))  # (n, L, c)
+    return x + modal_scan(mu, g, np.zeros((n, c)))
 
-    def loss_nodes(x: np.ndarray) -> np.ndarray:
-        """``y[k] = E x[k]`` at ``k = 0 .. L−1`` (ntv, L, c)."""
-        y = np.tensordot(E, x[:, :-1], axes=1)
-        return np.concatenate([(E @ x0)[:, None], y], axis=1)
 
-    y = loss_nodes(x)
-    for _ in range(MAX_ITER):
-        u = np.einsum("klt,tkc->lkc", D, y)  # loss inputs (nl, L, c)
-        x = modal_scan(mu, f + np.tensordot(G, u, axes=1), x0)
-        y_new = loss_nodes(x)
-        change = float(np.max(np.abs(y_new - y)))
-        y = y_new
-        if change <= ROUND_OFF * float(np.max(np.abs(y))):
-            return x
-    return None
-
-
-def step_modal(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
-               D: np.ndarray) -> np.ndarray:
-    """:func:`solve_stretch` step by step (the same recursion, for a stretch the iteration does
-    not settle)."""
-    out = np.empty_like(f)
-    x = x0
-    for k in range(f.shape[1]):
-        x = mu[:, None] * x + f[:, k] + G @ (D[k] @ (E @ x))
-        out[:, k] = x
-    return out
-
-
-def solve_nodes(V: np.ndarray, Vi: np.ndarray, phi: np.ndarray, mu: np.ndarray, GP: np.ndarray,
-                tv: np.ndarray, f: np.ndarray, x0: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
+                forcing: Callable[[], np.ndarray], x0: np.ndarray, D: np.ndarray) -> np.ndarray:
     """A stretch of ``x[k+1] = (Φ + Γ_P D[k] E_tv) x[k] + V f[k]`` at one operating point.
-
-    The feedback's mean over the stretch, ``D̄``, is folded into the transition
-    ``M̄ = Φ + Γ_P D̄ E_tv``; in the modal basis of ``Φ``, scaled by ``r = √phi``, ``M̄`` is
-    symmetric (the loss laws read the node they heat, :class:`~thermal_edge.lptn.discretise.Discrete`),
-    so ``M̄ = Ω diag(μ̄) Ω⁻¹`` with real ``μ̄``. Only the departures ``D[k] − D̄`` (the noise of
-    the current) are left to the iteration of :func:`solve_stretch`, which then settles in a few
-    passes. Where ``M̄`` is not symmetrisable or the iteration does not settle, the stretch is
-    stepped in the modal basis of ``Φ`` (:func:`step_modal`).
 
     Parameters
     ----------
     V, Vi : ndarray (n, n)
         The modal basis ``V`` of ``Φ`` and ``V⁻¹`` at the operating point.
-    phi, mu : ndarray (n,)
-        ``(μ − 1)/λ`` and the eigenvalues ``μ`` of ``Φ``.
+    mu : ndarray (n,)
+        The eigenvalues ``μ`` of ``Φ``.
     GP : ndarray (n, nl)
         ``Γ_P``, K/W.
     tv : ndarray of int (ntv,)
         Nodes whose temperatures the loss laws read.
-    f : ndarray (n, L, c)
-        Forcing in the modal basis of ``Φ`` (``V⁻¹`` times node forcing).
+    forcing : callable
+        ``forcing()``: the forcing (n, L, c) of every step in the modal basis of ``Φ``.
     x0 : ndarray (n, c)
         State in node coordinates at the stretch's start.
     D : ndarray (L, nl, ntv)
@@ -162,29 +178,12 @@ def solve_nodes(V: np.ndarray, Vi: np.ndarray, phi: np.ndarray, mu: np.ndarray, 
 
     Returns
     -------
-    Om : ndarray (n, n)
-        Map from the returned modal states to node coordinates.
-    xi : ndarray (n, L, c)
-        Modal states at steps 1 .. L.
+    ndarray (n, L, c)
+        Modal states (``V⁻¹ x``) at steps 1 .. L.
     """
-    GPt = Vi @ GP
     if not len(tv) or not np.any(D):
-        return V, modal_scan(mu, f, Vi @ x0)
-    Dbar = D.mean(axis=0)
-    Mt = np.diag(mu) + GPt @ Dbar @ V[tv]  # M̄ in the modal basis of Φ
-    r = np.sqrt(phi)
-    Sym = Mt * r[None, :] / r[:, None]
-    asym = float(np.max(np.abs(Sym - Sym.T)) / np.max(np.abs(Sym)))
-    if asym < 1e-9:
-        mub, Q2 = np.linalg.eigh((Sym + Sym.T) / 2.0)
-        if mub.min() > -1e-12 and mub.max() < 1.0:
-            rQ2, Q2r = r[:, None] * Q2, Q2.T / r[None, :]
-            Om = V @ rQ2
-            xi = solve_stretch(np.maximum(mub, 0.0), np.tensordot(Q2r, f, axes=1), Q2r @ (Vi @ x0),
-                               Q2r @ GPt, Om[tv], D - Dbar)
-            if xi is not None:
-                return Om, xi
-    return V, step_modal(mu, f, Vi @ x0, GPt, V[tv], D)
+        return modal_scan(mu, forcing(), Vi @ x0)
+    return solve_stretch(np.maximum(mu, 0.0), forcing(), Vi @ x0, Vi @ GP, V[tv], D)
 
 
 def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH) -> list[tuple[int, int]]:
