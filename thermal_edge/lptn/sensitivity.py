@@ -202,10 +202,8 @@ class Sensitivities:
                 X += GPt @ dP
             return np.ascontiguousarray(X.transpose(1, 0, 2))
 
-        xi = solve_nodes(V, Vi, d.mu[o], GP, self.loss_nodes, forcing, s, self.slopes[a:b])
-        L = b - a
-        out[:] = (V[keep] @ xi.reshape(n, L * p)).reshape(len(keep), L, p).transpose(1, 0, 2)
-        return V @ xi[:, -1]
+        out[:], end = solve_nodes(V, Vi, d.mu[o], GP, self.loss_nodes, forcing, s, self.slopes[a:b], keep)
+        return end
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:
         """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""

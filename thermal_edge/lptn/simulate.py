@@ -227,9 +227,9 @@ class Simulator:
             o = int(ops[a])
             V, Vi = d.basis(o)
             fa = f[a:b].T
-            xi = solve_nodes(V, Vi, d.mu[o], GP[o], self.tv, lambda: (Vi @ fa)[:, :, None],  # noqa: B023
-                             T[a][:, None], dPdT0[a:b])
-            T[a + 1: b + 1] = (V @ xi[:, :, 0]).T
+            Ta, _ = solve_nodes(V, Vi, d.mu[o], GP[o], self.tv, lambda: (Vi @ fa)[:, :, None],  # noqa: B023
+                                T[a][:, None], dPdT0[a:b])
+            T[a + 1: b + 1] = Ta[:, :, 0]
             done = b
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T

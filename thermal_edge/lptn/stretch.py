@@ -31,14 +31,14 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dtrtrs
 
 #: shortest stretch of one operating point run vectorised (its set-up costs about this many steps)
 MIN_STRETCH = 32
 #: steps per block of :func:`modal_scan` (its flops grow with it, its passes over the blocks shrink)
 BLOCK = 16
 #: steps per block of the loss nodes' triangular solve
-TIME_BLOCK = 64
+TIME_BLOCK = 16
 #: terms of the feedback's time series below this fraction of the largest are round-off
 RANK_TOL = 1e-15
 
@@ -86,7 +86,7 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
 
 
 def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
-                  D: np.ndarray) -> np.ndarray:
+                  D: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch (see the module docstring).
 
     Parameters
@@ -98,65 +98,99 @@ def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, 
         ``V[tv]``: the loss nodes' temperatures from the modes.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step (W/K).
+    W : ndarray (nr, n)
+        The rows wanted at every step, from the modes.
 
     Returns
     -------
-    ndarray (n, L, c)
-        ``x[1] .. x[L]``.
+    rows : ndarray (nr, L, c)
+        ``W x[1] .. W x[L]``.
+    end : ndarray (n, c)
+        ``x[L]``.
     """
     n, L, c = f.shape
-    ntv = E.shape[0]
+    ntv, nr = E.shape[0], W.shape[0]
+    x = modal_scan(mu, f, x0)
+    rows = np.tensordot(W, x, axes=1)
+    end = x[:, -1].copy()
     D2 = D.reshape(L, -1)
     cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
-    x = modal_scan(mu, f, x0)
     if not len(cols):
-        return x
+        return rows, end
     U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
     r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
-    s = U_[:, :r] * sv[:r]  # (L, r)
     Wfull = np.zeros((r, D2.shape[1]))
     Wfull[:, cols] = Wt[:r]
     GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
-    # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1
     B = TIME_BLOCK
     nblk = -(-L // B)
+    m = r * ntv
+    # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, and s[k, ρ], padded to whole blocks
     y0 = np.zeros((nblk * B, ntv, c))
     y0[0] = E @ x0
     y0[1:L] = np.tensordot(E, x[:, : L - 1], axes=1).transpose(1, 0, 2)
     sp = np.zeros((nblk * B, r))
-    sp[:L] = s
+    sp[:L] = U_[:, :r] * sv[:r]
     with np.errstate(under="ignore"):
         pw = mu[None, :] ** np.arange(B + 1)[:, None]  # (B+1, n)
-    H = np.einsum("an,mn,nq->maq", E, pw[: B], GC).reshape(B, ntv, r, ntv)  # E diag(μ^m) G C_ρ
-    Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
-    R = (pw[B - 1:: -1][:B, :, None] * GC[None]).transpose(1, 0, 2).reshape(n, B * r * ntv)  # diag(μ^(B−1−l)) G C
     i = np.arange(B)
     lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
     below = lag >= 0
-    # the block's coupling of step l into step i per unit s[l, ρ], laid out (ρ, i a, l b)
-    Hl = np.where(below[:, :, None, None, None], H[np.maximum(lag, 0)], 0.0)  # (i, l, a, ρ, b)
-    Hl = np.ascontiguousarray(Hl.transpose(3, 0, 2, 1, 4)).reshape(r, B * ntv, B, ntv)
+
+    def toeplitz(P: np.ndarray) -> np.ndarray:
+        """``P diag(μ^(i−1−l)) G C`` for l < i, as (i, a, l, q) from ``P`` (a, n)."""
+        K = (P[None] * pw[:B, None, :]) @ GC  # (B, a, q)
+        return np.where(below[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
+
+    # every block's unit lower-triangular system for its loss-node values, at once (blk, B ntv, B ntv):
+    # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
+    He = toeplitz(E).reshape(B, ntv, B, r, ntv)
+    spb = sp.reshape(nblk, B, r)
+    A = np.zeros((nblk, B, ntv, B, ntv))
+    for k in range(r):
+        A -= He[None, :, :, :, k] * spb[:, None, None, :, k, None]
+    A = A.reshape(nblk, B * ntv, B * ntv)
+    A += np.eye(B * ntv)
+    At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
+    Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
+    R = (pw[B - 1:: -1][:B, :, None] * GC[None]).transpose(1, 0, 2).reshape(n, B * m)  # diag(μ^(B−1−l)) G C
     muB = pw[B][:, None]
     q = np.zeros((n, c))
-    z = np.empty((nblk * B, r * ntv, c))
-    eye = np.eye(B * ntv).reshape(B * ntv, B, ntv)
+    qs = np.empty((nblk, n, c))  # feedback modal state at each block's start
+    z = np.empty((nblk, B * m, c))
+    rhs0 = y0.reshape(nblk, B * ntv, c)
     for j in range(nblk):
-        blk = slice(j * B, (j + 1) * B)
-        T = eye - Hl[0] * sp[blk, 0][:, None]
-        for k in range(1, r):
-            T -= Hl[k] * sp[blk, k][:, None]
-        T = T.reshape(B * ntv, B * ntv)
-        rhs = y0[blk].reshape(B * ntv, c) + Ep @ q
-        y = solve_triangular(T, rhs, lower=True, unit_diagonal=True, check_finite=False).reshape(B, ntv, c)
-        zb = (sp[blk][:, :, None, None] * y[:, None]).reshape(B, r * ntv, c)
-        z[blk] = zb
-        q = muB * q + R @ zb.reshape(B * r * ntv, c)
-    g = np.tensordot(GC, z[:L], axes=([1], [1]))  # (n, L, c)
-    return x + modal_scan(mu, g, np.zeros((n, c)))
+        qs[j] = q
+        y, _ = dtrtrs(At[j], rhs0[j] + Ep @ q, lower=0, trans=1, unitdiag=1)
+        zb = (spb[j][:, :, None, None] * y.reshape(B, 1, ntv, c)).reshape(B * m, c)
+        z[j] = zb
+        q = muB * q + R @ zb
+    # the feedback's part of the wanted rows: from each block's start state and inside the block
+    Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
+    fb = (Wp @ qs.transpose(1, 0, 2).reshape(n, nblk * c)).reshape(B, nr, nblk, c)
+    fb += (_inputs_to_rows(W, pw, GC, B) @ z.transpose(1, 0, 2).reshape(B * m, nblk * c)).reshape(B, nr, nblk, c)
+    rows += fb.transpose(1, 2, 0, 3).reshape(nr, nblk * B, c)[:, :L]
+    end_fb = q if nblk * B == L else None
+    if end_fb is None:  # the last block is partial: its state at step L from its start and its inputs
+        last = L - (nblk - 1) * B
+        zl = z[-1].reshape(B, m, c)[:last]
+        end_fb = pw[last][:, None] * qs[-1] + np.tensordot(pw[last - 1:: -1][:last, :, None] * GC[None], zl, axes=([0, 2], [0, 1]))
+    return rows, end + end_fb
+
+
+def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np.ndarray:
+    """``W diag(μ^(i−l)) G C`` for ``l ≤ i`` (the state after step ``i`` of the block from input ``l``),
+    as (B nr, B m)."""
+    i = np.arange(B)
+    lag = i[:, None] - i[None, :]
+    K = (W[None] * pw[:B, None, :]) @ GC
+    full = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
+    return full.reshape(B * W.shape[0], B * GC.shape[1])
 
 
 def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
-                forcing: Callable[[], np.ndarray], x0: np.ndarray, D: np.ndarray) -> np.ndarray:
+                forcing: Callable[[], np.ndarray], x0: np.ndarray, D: np.ndarray,
+                keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A stretch of ``x[k+1] = (Φ + Γ_P D[k] E_tv) x[k] + V f[k]`` at one operating point.
 
     Parameters
@@ -175,15 +209,19 @@ def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, t
         State in node coordinates at the stretch's start.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step, W/K.
+    keep : ndarray of int, optional
+        The nodes wanted at every step (default all).
 
     Returns
     -------
-    ndarray (n, L, c)
-        Modal states (``V⁻¹ x``) at steps 1 .. L.
+    rows : ndarray (L, len(keep), c)
+        ``x[1] .. x[L]`` at the ``keep`` nodes.
+    end : ndarray (n, c)
+        ``x[L]`` at every node.
     """
-    if not len(tv) or not np.any(D):
-        return modal_scan(mu, forcing(), Vi @ x0)
-    return solve_stretch(np.maximum(mu, 0.0), forcing(), Vi @ x0, Vi @ GP, V[tv], D)
+    W = V if keep is None else V[keep]
+    rows, end = solve_stretch(np.maximum(mu, 0.0), forcing(), Vi @ x0, Vi @ GP, V[tv], D, W)
+    return rows.transpose(1, 0, 2), V @ end
 
 
 def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH) -> list[tuple[int, int]]:
