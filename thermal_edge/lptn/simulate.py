@@ -24,7 +24,7 @@ from .losses import LossLaws
 from .model import Model
 from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
-from .stretch import covered, solve_nodes, stretches
+from .stretch import covered, solve_nodes, stretches, varying_steps
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,13 +195,14 @@ class Simulator:
         # stretches of one operating point run vectorised in time (losses affine in T only: the
         # others are evaluated step by step); the sensitivities' own stretches leave the held
         # runs to their closed form
-        sim_spans = stretches(ops, np.ones(steps, dtype=bool)) if self.vectorised and not len(na) else []
+        varying = varying_steps(dPdT0[:steps]) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
+        sim_spans = stretches(ops, varying)
         sens_spans: list[tuple[int, int]] = []
         held_spans: list[tuple[int, int]] = []
         if names:
             held_spans = held_runs(held_steps(prep.env, steps), self.closed_form and not len(na))
             if self.vectorised and not len(na):
-                sens_spans = stretches(ops, ~covered(held_spans, steps))
+                sens_spans = stretches(ops, varying & ~covered(held_spans, steps))
         need = ~covered(sim_spans, steps)
         if names:
             need |= ~covered(sens_spans, steps)

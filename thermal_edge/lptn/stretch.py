@@ -153,18 +153,26 @@ def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, 
     A += np.eye(B * ntv)
     At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
     Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
-    R = (pw[B - 1:: -1][:B, :, None] * GC[None]).transpose(1, 0, 2).reshape(n, B * m)  # diag(μ^(B−1−l)) G C
+    # each block's carry from its loss-node values: Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
+    Rl = (pw[B - 1:: -1][:B, :, None] * GC[None]).reshape(B, n, r, ntv)  # (l, n, ρ, b)
+    Rj = np.zeros((nblk, n, B, ntv))
+    Rl = Rl.transpose(2, 1, 0, 3)  # (ρ, n, l, b)
+    for k in range(r):
+        Rj += Rl[k][None] * spb[:, None, :, k, None]
+    Rj = Rj.reshape(nblk, n, B * ntv)
     muB = pw[B][:, None]
     q = np.zeros((n, c))
     qs = np.empty((nblk, n, c))  # feedback modal state at each block's start
-    z = np.empty((nblk, B * m, c))
+    Y = np.empty((nblk, B * ntv, c))
     rhs0 = y0.reshape(nblk, B * ntv, c)
+    rhs = np.empty((B * ntv, c))
     for j in range(nblk):
         qs[j] = q
-        y, _ = dtrtrs(At[j], rhs0[j] + Ep @ q, lower=0, trans=1, unitdiag=1)
-        zb = (spb[j][:, :, None, None] * y.reshape(B, 1, ntv, c)).reshape(B * m, c)
-        z[j] = zb
-        q = muB * q + R @ zb
+        np.matmul(Ep, q, out=rhs)
+        rhs += rhs0[j]
+        Y[j] = dtrtrs(At[j], rhs, lower=0, trans=1, unitdiag=1)[0]
+        q = muB * q + Rj[j] @ Y[j]
+    z = (spb[:, :, :, None, None] * Y.reshape(nblk, B, 1, ntv, c)).reshape(nblk, B * m, c)
     # the feedback's part of the wanted rows: from each block's start state and inside the block
     Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
     fb = (Wp @ qs.transpose(1, 0, 2).reshape(n, nblk * c)).reshape(B, nr, nblk, c)
@@ -235,6 +243,23 @@ def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH)
     cut[1:-1] = (ops[1:] != ops[:-1]) | (eligible[1:] != eligible[:-1])
     bounds = np.nonzero(cut)[0]
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if eligible[a] and b - a >= min_len]
+
+
+def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
+    """Steps (L,) whose neighbourhood of ``window`` steps has the feedback ``D`` (L, ...) change on
+    at least a quarter of its steps: where a noisy current makes a transition per step. Elsewhere
+    (held inputs) the step-by-step recursion reuses one transition over many steps and is cheaper
+    than the vectorised stretch.
+
+    >>> varying_steps(np.array([1.0, 2, 3, 4, 4, 4, 4, 4]), window=4).tolist()
+    [True, True, True, True, True, True, False, False]
+    """
+    L = len(D)
+    change = np.zeros(L)
+    if L > 1:
+        change[1:] = np.any((D[1:] != D[:-1]).reshape(L - 1, -1), axis=1)
+    rate = np.convolve(change, np.ones(window) / window, mode="same")
+    return rate >= 0.25
 
 
 def covered(spans: list[tuple[int, int]], steps: int) -> np.ndarray:
