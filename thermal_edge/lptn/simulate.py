@@ -256,7 +256,7 @@ class Simulator:
         if not len(self.tv) or not np.any(dPdT) or not steps:
             return [Phi[o] for o in range(Phi.shape[0])], ops.tolist()
         ks = np.arange(steps) if need is None else np.nonzero(need[:steps])[0]
-        slopes = dPdT[ks].reshape(len(ks), -1)
+        slopes = dPdT[ks].reshape(len(ks), int(np.prod(dPdT.shape[1:])))
         on = ops[ks]
         # a new matrix where the operating point or the slopes change from the previous needed step
         change = np.ones(len(ks), dtype=bool)

@@ -258,8 +258,11 @@ def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
     change = np.zeros(L)
     if L > 1:
         change[1:] = np.any((D[1:] != D[:-1]).reshape(L - 1, -1), axis=1)
-    rate = np.convolve(change, np.ones(window) / window, mode="same")
-    return rate >= 0.25
+    # changes among the steps k − window/2 .. k + window/2 − 1 (clipped at the ends)
+    cs = np.concatenate([[0.0], np.cumsum(change)])
+    k = np.arange(L)
+    lo, hi = np.clip(k - window // 2, 0, L), np.clip(k + (window - window // 2), 0, L)
+    return 4 * (cs[hi] - cs[lo]) >= window
 
 
 def covered(spans: list[tuple[int, int]], steps: int) -> np.ndarray:
