@@ -124,6 +124,7 @@ def run_paper(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(r, indent=2, default=float))
         return 0
+    print(r["headline"] + "\n")
     e1 = r["e1"]
     print("E1 (paper Figs. 9-10): only R_e_hous adapted, 600 rpm / 70 Nm, 3 h")
     print(table(
