@@ -187,7 +187,7 @@ class Sensitivities:
         (:func:`~thermal_edge.lptn.stretch.solve_nodes`): the forcing of all steps in one product,
         then the filter. Fills ``out`` (b − a, rows, p); returns ``S[b]``."""
         assert self.slopes is not None
-        d, o, n, p = self.d, int(self.ops[a]), self.n, self.p
+        d, o = self.d, int(self.ops[a])
         V, Vi = d.basis(o)
         ks = np.arange(a, b)
         GP = d.Gam[o][:, self.nb:]

@@ -180,6 +180,7 @@ class Simulator:
         n, nb = self.n, prep.U.shape[1]
         GU, GP = d.Gam[:, :, :nb], d.Gam[:, :, nb:]
         P0, dPdT0 = self._loss_terms(prep.env, N, None)
+        assert dPdT0 is not None
         na = self.nonaffine
         P0[:, na] = 0.0  # laws not affine in T are evaluated per step instead
         dPdT0[:, na] = 0.0

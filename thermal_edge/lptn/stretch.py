@@ -82,7 +82,8 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
         ends = modal_scan(pw[:, B], np.ascontiguousarray(inner[:, :-1, B - 1]), x0)
         starts = np.concatenate([x0[:, None], ends], axis=1)  # (n, nb, c)
     inner += pw[:, None, 1:, None] * starts[:, :, None]
-    return inner.reshape(n, nb * B, c)[:, :L]
+    out: np.ndarray = inner.reshape(n, nb * B, c)[:, :L]
+    return out
 
 
 def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
@@ -182,7 +183,8 @@ def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, 
     if end_fb is None:  # the last block is partial: its state at step L from its start and its inputs
         last = L - (nblk - 1) * B
         zl = z[-1].reshape(B, m, c)[:last]
-        end_fb = pw[last][:, None] * qs[-1] + np.tensordot(pw[last - 1:: -1][:last, :, None] * GC[None], zl, axes=([0, 2], [0, 1]))
+        carry = pw[last - 1:: -1][:last, :, None] * GC[None]  # diag(μ^(last−1−l)) G C
+        end_fb = pw[last][:, None] * qs[-1] + np.tensordot(carry, zl, axes=([0, 2], [0, 1]))
     return rows, end + end_fb
 
 
@@ -262,7 +264,8 @@ def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
     cs = np.concatenate([[0.0], np.cumsum(change)])
     k = np.arange(L)
     lo, hi = np.clip(k - window // 2, 0, L), np.clip(k + (window - window // 2), 0, L)
-    return 4 * (cs[hi] - cs[lo]) >= window
+    busy: np.ndarray = 4 * (cs[hi] - cs[lo]) >= window
+    return busy
 
 
 def covered(spans: list[tuple[int, int]], steps: int) -> np.ndarray:
