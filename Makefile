@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast test-all lint venv clean
+.PHONY: demo test test-fast test-all test-deps bench-faults bench-discovery lint venv clean
 
 venv: $(STAMP)
 
@@ -18,8 +18,8 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/thermal-edge demo
 
-# the suite: everything but the long sweeps marked slow; the SocketCAN VM tests run when a VM
-# can be had (root + apt), else they skip and say why
+# the suite: everything but the long sweeps marked slow; the SocketCAN VM tests run when the
+# packages of `make test-deps` are there, else they skip and say why (the suite installs nothing)
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow"
 
@@ -31,9 +31,33 @@ test-fast: $(STAMP)
 test-all: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m pytest -q
 
+# Debian packages of the system-level tests, for a CI machine or a developer's (as root, once; the
+# suite itself never installs anything and skips those tests naming this target):
+# the SocketCAN VM of tests/vm (qemu, a distribution kernel with vcan, a static busybox, can-utils;
+# tests/vm/vmrun.py APT_PACKAGES) and systemd-analyze with the commands the units run
+# (tests/deploy/test_systemd.py). Installs only the packages that are missing: nothing when all are there.
+TEST_DEBS := qemu-system-x86 linux-image-amd64 busybox-static can-utils systemd kmod iproute2
+test-deps:
+	@missing=$$(for p in $(TEST_DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q 'ok installed' || echo $$p; done); \
+	missing=$$(echo $$missing); \
+	if [ -z "$$missing" ]; then echo "test-deps: all installed ($(TEST_DEBS))"; exit 0; fi; \
+	echo "test-deps: apt-get install $$missing"; \
+	export DEBIAN_FRONTEND=noninteractive; \
+	apt-get install -y -q --no-install-recommends $$missing || \
+	  { apt-get update -q && apt-get install -y -q --no-install-recommends $$missing; }
+
+# benchmarks that need the checkout (benchmarks/README.md); `thermal-edge bench` runs the others.
+# BENCH_ARGS passes options on, e.g. make bench-faults BENCH_ARGS="--only crash --json"
+BENCH_ARGS ?=
+bench-faults: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m benchmarks.faults $(BENCH_ARGS)
+
+bench-discovery: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m benchmarks.discovery $(BENCH_ARGS)
+
 # the code's own declarations checked: ruff (style, imports, bugs) and mypy (types)
 lint: $(STAMP)
-	$(BIN)/ruff check thermal_edge tests
+	$(BIN)/ruff check thermal_edge tests benchmarks
 	$(BIN)/mypy
 
 clean:

@@ -79,3 +79,23 @@ def test_the_summary_names_period_duration_columns_and_ranges(tmp_path):
     text = describe(read_run(path), ["i_rms", "housing"])
     assert "3 samples every 1 s" in text and "i_rms 10..12" in text and "housing 30.5..30.7" in text
     assert "ignored: speed_rpm, ambient_c" in text
+
+
+def test_the_encoding_policy_names_the_first_byte_that_is_not_utf8(tmp_path):
+    """Line, column and byte offset of the first byte that is not UTF-8, counted here another way
+    (the text before it); runs fall back to Windows-1252, models and configurations do not."""
+    import pytest
+
+    from thermal_edge.data import read_run
+    from thermal_edge.lptn import ModelError, load_model
+
+    text = "name: x\ninputs: {a: {}}\n# Gehäuse: Kühlung\n"
+    raw = text.encode("latin-1")
+    bad = raw.index("ä".encode("latin-1"))
+    line = raw[:bad].count(b"\n") + 1
+    column = bad - raw[:bad].rfind(b"\n")
+    (tmp_path / "m.yaml").write_bytes(raw)
+    with pytest.raises(ModelError, match=rf"^m\.yaml: line {line}, column {column} \(byte {bad}\): not UTF-8 \(byte 0xe4\)"):
+        load_model(tmp_path / "m.yaml")
+    (tmp_path / "r.csv").write_bytes("# Gehäuse\nt,x\n0,1\n1,2\n".encode("latin-1"))
+    assert read_run(tmp_path / "r.csv").columns["x"].tolist() == [1.0, 2.0]

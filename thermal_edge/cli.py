@@ -18,6 +18,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import sys  # noqa: E402
+import typing  # noqa: E402
 
 from . import __version__  # noqa: E402
 from .commands import COMMANDS, add_commands, resolve_named_files  # noqa: E402
@@ -32,10 +33,19 @@ def chosen_command(argv: list[str]) -> str | None:
     return first if first in names else None
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse's parser with its errors in one line, as every other user error: ``thermal-edge
+    replay: error: argument --threshold: ...`` and exit status 2 (``--help`` shows the usage).
+    Sub-command parsers are made of the same class."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser for ``argv`` (default ``sys.argv[1:]``): every command listed, the chosen one
     complete."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="thermal-edge",
         description="Online-adapted LPTN thermal protection for PM machines: CAN in, derating out.",
     )

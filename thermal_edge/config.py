@@ -29,15 +29,21 @@ import typing
 from collections.abc import Iterable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from .bus.busconfig import BusConfig, BusConfigError
-from .bus.frames import TE_LIMITS, DerateReason
+from .bus.crc import CRC8_ALGORITHMS
+from .bus.frames import DEFAULT_DBC_PATH, TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
+from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
+from .lptn.vocabulary import LIMIT, TEMPERATURE, Role
 from .settings import AdapterConfig, setting, spec_of
 from .shipped import MACHINES, find
-from .yamlfile import YamlProblem, parse_yaml
+from .yamlfile import read_document
+
+if TYPE_CHECKING:
+    from .bus.codec import FrameCodec
 
 #: Errors making ``state.dir`` that the file system's state or permissions decide, not the configuration:
 #: the service starts without persistence and says so (:meth:`EdgeConfig.check_state_dir`).
@@ -70,6 +76,12 @@ __all__ = [
 ]
 
 REDUCTIONS = ("mean", "rms", "dq_rms", "latest")
+#: ``dq:`` of a ``dq_rms`` input: the scaling of the inverter's d/q transform, as the mean square of
+#: the phase current per unit of ``i_d² + i_q²``. Amplitude-invariant (Clarke with 2/3: |i_dq| is the
+#: phase current's peak) gives I_rms = sqrt((i_d² + i_q²) / 2); power-invariant (sqrt(2/3): i_d² + i_q²
+#: is the sum of the three phases' squares) sqrt((i_d² + i_q²) / 3); RMS-scaled (|i_dq| is the RMS
+#: phase current) sqrt(i_d² + i_q²).
+DQ_SQUARE_SHARE = {"amplitude_invariant": 1 / 2, "power_invariant": 1 / 3, "rms_scaled": 1.0}
 CLOCK_MODES = ("wall", "frame")
 WORKERS = ("thread", "sync")
 REASON_NAMES = {"winding": DerateReason.WINDING, "magnet": DerateReason.MAGNET}
@@ -119,6 +131,46 @@ def _input_signals(sec: _Section, k: str, values: dict[str, Any], default: Any) 
     return (sig,)
 
 
+def _dq(sec: _Section, k: str, values: dict[str, Any], default: Any) -> str:
+    """``dq:`` (the d/q transform's scaling) only with ``reduce: dq_rms``."""
+    v = sec.string(k, sec.value(k), choices=tuple(DQ_SQUARE_SHARE))
+    if v is not None and values["reduce"] != "dq_rms":
+        raise sec.fail(k, f"only with reduce: dq_rms (this input has reduce: {values['reduce']})")
+    return v if v is not None else default
+
+
+_PROTECTION_KEYS = ("counter", "crc", "crc_algorithm", "data_id")
+
+
+def _protection(sec: _Section, k: str, values: dict[str, Any], default: Any) -> dict[str, FrameProtection]:
+    """``codec.protection``: frame name -> ``none`` or ``{counter: SIGNAL, crc: SIGNAL, crc_algorithm:
+    NAME, data_id: N}`` (each part may be left out)."""
+    sub = sec.sub(k)
+    out: dict[str, FrameProtection] = {}
+    for frame, raw in sub.raw.items():
+        if isinstance(raw, str) and raw.strip().lower() == "none":
+            out[str(frame)] = FrameProtection()
+            continue
+        entry = sub.sub(str(frame))  # a mapping, else the error names the key
+        if not entry.raw:
+            raise entry.fail("", "give counter: and/or crc: (signal names), or none for a frame without protection")
+        entry.refuse_unknown(set(_PROTECTION_KEYS))
+        counter = entry.string("counter", entry.value("counter"))
+        crc = entry.string("crc", entry.value("crc"))
+        algorithm = entry.string("crc_algorithm", entry.value("crc_algorithm"), choices=tuple(CRC8_ALGORITHMS))
+        data_id = entry.value("data_id")
+        if data_id is not None and (isinstance(data_id, bool) or not isinstance(data_id, int) or not 0 <= data_id <= 0xFFFF):
+            raise entry.fail("data_id", f"expected a 16-bit integer (0 to 0xFFFF), got {data_id!r}")
+        if crc is None and (algorithm is not None or data_id is not None):
+            raise entry.fail("crc_algorithm" if algorithm is not None else "data_id", "needs crc: (the CRC signal)")
+        if crc is not None and algorithm is None:
+            raise entry.fail("crc_algorithm", f"required with crc: one of {', '.join(CRC8_ALGORITHMS)}")
+        if counter is None and crc is None:
+            raise entry.fail("", "give counter: and/or crc: (signal names), or none for a frame without protection")
+        out[str(frame)] = FrameProtection(counter, crc, algorithm or FrameProtection.crc_algorithm, data_id)
+    return out
+
+
 def _reason(sec: _Section, k: str, values: dict[str, Any], default: Any) -> DerateReason:
     v = sec.string(k, sec.value(k), choices=tuple(REASON_NAMES))
     return REASON_NAMES[v] if v is not None else default_reason(values["name"])
@@ -131,7 +183,19 @@ def _range_c(sec: _Section, k: str, values: dict[str, Any], default: Any) -> tup
     if (not isinstance(rng, list) or len(rng) != 2 or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in rng)
             or not rng[0] < rng[1]):
         raise sec.fail(k, f"expected [low, high] in degC with low < high, got {rng!r}")
-    return float(rng[0]), float(rng[1])
+    lo, hi = float(rng[0]), float(rng[1])
+    for v in (lo, hi):
+        if (why := TEMPERATURE.problem(v)):
+            raise sec.fail(k, why)
+    # a valid range must take the readings of a machine at rest: else every cold start is a sensor fault
+    if not lo <= ROOM_C <= hi:
+        kelvin = "; kelvin? (give it in degC)" if lo > TEMPERATURE.whole_above else ""  # type: ignore[operator]
+        raise sec.fail(k, f"[{lo:g}, {hi:g}] degC does not contain {ROOM_C:g} degC, a machine at rest{kelvin}")
+    return lo, hi
+
+
+#: The temperature of a machine at rest indoors, degC: every sensor's valid range contains it.
+ROOM_C = 20.0
 
 
 def _bus(sec: _Section, k: str, values: dict[str, Any], default: Any) -> BusConfig:
@@ -141,10 +205,20 @@ def _bus(sec: _Section, k: str, values: dict[str, Any], default: Any) -> BusConf
     if not isinstance(raw, Mapping):
         raise sec.fail(k, f"expected a mapping, got {type(raw).__name__}")
     try:
-        return BusConfig.from_mapping({"node": "TE", **raw})
+        bus = BusConfig.from_mapping({"node": "TE", **raw})
     except (BusConfigError, TypeError, ValueError) as exc:  # BusConfigError names the key ("bus.chanel: ...")
         msg = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
         raise ConfigError(f"{sec.fname}: {msg if msg.startswith('bus') else 'bus: ' + msg}") from None
+    lo, hi = CAN_BITRATE_BPS
+    if bus.bitrate is not None and not lo <= bus.bitrate <= hi:
+        hint = f"; kbit/s typed? {bus.bitrate} kbit/s is {bus.bitrate * 1000}" if lo <= bus.bitrate * 1000 <= hi else ""
+        raise sec.fail(k + ".bitrate", f"{bus.bitrate} bit/s is outside the {lo:,} to {hi:,} bit/s of a CAN bus{hint}")
+    return bus
+
+
+#: Bit rates of a CAN bus (the arbitration rate of CAN FD too), bit/s: ISO 11898 from 10 kbit/s
+#: (low-speed buses run at 5 kbit/s at the least) to 1 Mbit/s.
+CAN_BITRATE_BPS = (5_000, 1_000_000)
 
 
 #: The longest tick, s (``clock.tick_s``).
@@ -182,13 +256,44 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class CodecConfig:
-    """``codec:`` -- the DBC and the alive-counter resynchronisation gap (in cycle times)."""
+    """``codec:`` -- the DBC, each read frame's end-to-end protection and the alive-counter
+    resynchronisation gap (in cycle times)."""
 
+    #: the inverter's frames (null: the shipped CAN matrix); the service's own frames are always the matrix's
     dbc: Path | None = None
+    #: per frame of ``dbc`` without the CAN matrix's counter and CRC: ``none`` or ``{counter, crc,
+    #: crc_algorithm, data_id}`` (:class:`~thermal_edge.bus.protection.FrameProtection`)
+    protection: dict[str, FrameProtection] = setting(default_factory=dict, parse=_protection)
     # the service's own choice, below the codec's 1000: an inverter frame missing for longer than 8
     # cycles is a sender that paused or changed its rate (its input goes stale), not a run of lost frames
     # that time stamps could count (they over-counted a 10 Hz feed of 10 ms frames by a wrap per frame)
     resync_after_cycles: float = setting(8.0, positive=True, max=1000.0)
+
+    def frame_codec(self, fname: str = "<config>", **kwargs: Any) -> FrameCodec:
+        """The service's :class:`~thermal_edge.bus.codec.FrameCodec`: the inverter's frames from
+        :attr:`dbc` with their :attr:`protection`, the service's own from the shipped DBC.
+
+        Parameters
+        ----------
+        fname : str
+            The configuration's file name, for messages.
+        **kwargs
+            Passed to the codec (default ``resync_after_cycles`` from this section).
+
+        Raises
+        ------
+        ConfigError
+            A declared protection that does not fit its frame (``codec.protection.<frame>``).
+        DbcError
+            The DBC cannot be loaded or clashes with the service's own frames.
+        """
+        from .bus.codec import FrameCodec, ProtectionError
+
+        kwargs.setdefault("resync_after_cycles", self.resync_after_cycles)
+        try:
+            return FrameCodec(self.dbc or DEFAULT_DBC_PATH, protection=self.protection, service_frames=True, **kwargs)
+        except ProtectionError as exc:
+            raise ConfigError(f"{fname}: codec.protection.{exc.frame}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -210,6 +315,9 @@ class InputSignal:
     frame: str
     reduce: str = setting("mean", choices=REDUCTIONS)
     signals: tuple[str, ...] = setting(aliases=("signal",), parse=_input_signals)
+    #: ``dq_rms`` only: the scaling of the d/q transform (:data:`DQ_SQUARE_SHARE`); the CAN matrix's
+    #: INV_Id/INV_Iq are peak amplitudes (amplitude-invariant)
+    dq: str = setting("amplitude_invariant", parse=_dq)
     status: str | None = None
     resolution: float | None = setting(None, positive=True)
 
@@ -521,14 +629,21 @@ class EdgeConfig:
                 raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
 
     def check_dbc(self, codec: Any) -> None:
-        """Check that every mapped frame and signal exists in the DBC."""
+        """Check that every mapped frame and signal exists in the DBC and every read frame has a
+        known protection (the CAN matrix's, or declared under ``codec.protection``)."""
         for section, items in (("inputs", self.inputs), ("sensors", self.sensors)):
             for name, spec in items.items():
                 key = f"signals.{section}.{name}"
                 try:
                     signals = set(codec.signal_names(spec.frame))
                 except KeyError:
-                    raise self.error(f"{key}.frame", f"no frame {spec.frame!r} in {Path(codec.dbc_path).name}") from None
+                    why = codec.unsupported(spec.frame)
+                    raise self.error(f"{key}.frame", f"frame {spec.frame} of {Path(codec.dbc_path).name} cannot be read: {why}"
+                                     if why else f"no frame {spec.frame!r} in {Path(codec.dbc_path).name}") from None
+                if codec.protection(spec.frame) is None:
+                    raise self.error(f"codec.protection.{spec.frame}",
+                                     f"{key} reads {spec.frame}, and {codec.protection_problem(spec.frame)} (counter: "
+                                     "and/or crc: with crc_algorithm:, or none)")
                 wanted = list(spec.signals) if isinstance(spec, InputSignal) else [spec.signal]
                 if spec.status:
                     wanted.append(spec.status)
@@ -549,7 +664,7 @@ class EdgeConfig:
             except KeyError:
                 raise self.error(f"timeouts.{frame}", f"no frame {frame!r} in {Path(codec.dbc_path).name}") from None
         # a limit the DBC cannot carry would be sent saturated: not the configured one
-        limits = codec.database.get_message_by_name(TE_LIMITS)
+        limits = codec.message(TE_LIMITS)
         d = self.derating
         for key, value, signal in (("max_current_a", d.max_current_a, "TE_CurrentLimit"),
                                    ("safe_current_a", d.safe_current_a, "TE_CurrentLimit"),
@@ -704,11 +819,20 @@ def _value(sec: _Section, f: dataclasses.Field[Any], tp: Any) -> Any:
 
 # -- rules between fields (not defaults: those are in the declarations) ------------------------
 def _check_derating(d: DeratingConfig, sec: _Section) -> None:
+    for key, role in (("max_current_a", Role.CURRENT), ("safe_current_a", Role.CURRENT), ("max_torque_nm", Role.TORQUE),
+                      ("safe_torque_nm", Role.TORQUE)):
+        v = getattr(d, key)
+        if v is not None and (why := role.plausible.problem(v)):
+            raise sec.fail(key, why)
     if d.safe_current_a > d.max_current_a:
         raise sec.fail("safe_current_a", f"must not exceed max_current_a ({d.max_current_a:g}), got {d.safe_current_a:g}")
 
 
 def _check_limit(lim: LimitConfig, sec: _Section) -> None:
+    for key in ("warn_c", "max_c"):
+        v = getattr(lim, key)
+        if v is not None and (why := LIMIT.problem(v)):
+            raise sec.fail(key, why)
     if lim.warn_c is not None and lim.max_c is not None and not lim.max_c > lim.warn_c:
         raise sec.fail("max_c", f"must be above warn_c ({lim.warn_c:g}), got {lim.max_c:g}")
 
@@ -768,7 +892,10 @@ class _Section:
         if spec.min is not None and v < spec.min:
             raise self.fail(k, f"must be at least {spec.min:g}, got {v:g}")
         if spec.max is not None and v > spec.max:
-            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}")
+            seconds = k.endswith("_s") or self.prefix == "timeouts"  # a duration in s: 500 is 0.5 s typed in ms
+            hint = (f"; ms typed? {v:g} ms is {v / 1000:g} s" if seconds and (spec.min or 0) <= v / 1000 <= spec.max
+                    else "")
+            raise self.fail(k, f"must be at most {spec.max:g}, got {v:g}{hint}")
         return v
 
     def integer(self, k: str, v: Any, spec: Any) -> int:
@@ -817,17 +944,7 @@ def load_config(path: str | os.PathLike[str]) -> EdgeConfig:
         Unreadable file, invalid YAML, unknown or invalid key (the message names file and key).
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path.name}: not a UTF-8 text file") from None
-    try:
-        raw = parse_yaml(text)
-    except YamlProblem as exc:
-        raise ConfigError(f"{path.name}: {exc}") from None
-    return config_from_mapping(raw, path)
+    return config_from_mapping(read_document(path, ConfigError), path)
 
 
 def config_from_mapping(raw: Any, path: str | os.PathLike[str] | None = None) -> EdgeConfig:

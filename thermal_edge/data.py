@@ -15,14 +15,15 @@ import csv
 import math
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .errors import ThermalEdgeError
-from .lptn.vocabulary import Role
+from .lptn.vocabulary import TEMPERATURE, Plausible, Role
+from .yamlfile import SNIFF_BYTES, decode_text
 
 FORMATS = ("csv", "paderborn")
 PADERBORN_ROW_S = 2.5
@@ -80,11 +81,12 @@ class Run:
 
 #: A line of a ``candump -L`` log: ``(1700000000.000000) can0 123#11223344``.
 CANDUMP_LINE = re.compile(r"^\s*\(\d+\.\d+\)\s+\S+\s+[0-9A-Fa-f]+#")
-#: Bytes looked at to tell a binary file from a CSV.
-SNIFF_BYTES = 8192
-#: Encodings tried in turn: UTF-8 (a BOM is dropped), then Windows-1252, the usual test-bench
-#: export with "°C" or "Prüfstand" (it decodes every Latin-1 text byte the same way).
-ENCODINGS = ("utf-8-sig", "cp1252")
+#: Separators of other exports, named in the message when a header is one column holding them.
+SEPARATORS = {";": "semicolons (';')", "\t": "tabs", "|": "vertical bars ('|')"}
+#: Encodings of a run CSV: UTF-8 (the encoding policy of :mod:`thermal_edge.yamlfile`), else
+#: Windows-1252, the usual test-bench export with "°C" or "Prüfstand" (it decodes every Latin-1
+#: text byte the same way).
+FALLBACK_ENCODINGS = ("cp1252",)
 
 
 def _text(path: Path) -> str:
@@ -94,18 +96,10 @@ def _text(path: Path) -> str:
         raise RunError(f"{path}: is a directory, not a run file") from None
     except OSError as exc:
         raise RunError(f"{path}: cannot read: {exc.strerror}") from None
-    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
-        raise RunError(f"{path}: UTF-16 text (a spreadsheet's 'Unicode text' export); save it as UTF-8 or "
-                       "Windows-1252 CSV")
-    if b"\x00" in raw[:SNIFF_BYTES]:
+    if b"\x00" in raw[:SNIFF_BYTES] and raw[:2] not in (b"\xff\xfe", b"\xfe\xff"):
         raise RunError(f"{path}: a binary file, not a CSV run (a CAN log? replay reads CAN logs "
                        "with --format can)")
-    for enc in ENCODINGS:
-        try:
-            return raw.decode(enc)
-        except UnicodeDecodeError:
-            continue
-    raise RunError(f"{path}: neither UTF-8 nor Windows-1252/Latin-1 text")
+    return decode_text(raw, str(path), RunError, FALLBACK_ENCODINGS)
 
 
 def _number(v: str, path: Path, line: int, column: str) -> float:
@@ -152,6 +146,11 @@ def read_run(path: str | os.PathLike[str], fmt: str = "csv") -> Run:
         raise RunError(f"{path}: line {numbered[0][0]}: a candump -L log, not a CSV run (replay reads it with "
                        "--format can)")
     header = [h.strip() for h in rows[0][1]]
+    if len(header) == 1:
+        for sep, name in SEPARATORS.items():
+            if sep in header[0]:
+                raise RunError(f"{path}: line {rows[0][0]}: one column {header[0][:40]!r}: the file is separated by "
+                               f"{name}; a run CSV is comma-separated (export it with ',' and a decimal point)")
     dupes = sorted({h for h in header if header.count(h) > 1})
     if dupes:
         raise RunError(f"{path}: line {rows[0][0]}: column(s) {', '.join(map(repr, dupes))} appear more than once")
@@ -183,16 +182,11 @@ def _paderborn(cols: dict[str, np.ndarray], source: str) -> Run:
     return Run(t, out, source, {"format": "paderborn"})
 
 
-#: Plausible temperatures of a machine and its surroundings, degC; outside: a unit or sensor error.
-TEMPERATURE_RANGE_C = (-60.0, 300.0)
-#: A temperature column whose every value lies above this, degC, is in kelvin: no machine stays
-#: above 200 degC for a whole run, and no recording in kelvin goes below 200 K (-73 degC).
-KELVIN_ABOVE = 200.0
 #: Longest plausible sample period of a thermal run, s (a 1 Hz model; a longer one is time in ms).
 MAX_SAMPLE_PERIOD_S = 60.0
 
 
-def check_run(run: Run, temperatures: Sequence[str]) -> None:
+def check_run(run: Run, temperatures: Sequence[str], inputs: Mapping[str, Role] | None = None) -> None:
     """Refuse a run whose units cannot be right before anything is fitted to it.
 
     Parameters
@@ -200,13 +194,18 @@ def check_run(run: Run, temperatures: Sequence[str]) -> None:
     run : Run
     temperatures : sequence of str
         The run's columns that hold temperatures in degC (the model's sensors, ``*_c`` inputs).
+    inputs : mapping of str to Role, optional
+        The run's input columns with their role: each is checked against the role's plausible
+        range (:data:`thermal_edge.lptn.vocabulary.PLAUSIBLE`) and must be measured at every
+        sample (the model needs every input at every step).
 
     Raises
     ------
     RunError
-        Time not in seconds (a sample period above :data:`MAX_SAMPLE_PERIOD_S`), a temperature
-        column in kelvin (every value above :data:`KELVIN_ABOVE`) or outside
-        :data:`TEMPERATURE_RANGE_C`; the message names the file, the column and the line.
+        Time not in seconds (a sample period above :data:`MAX_SAMPLE_PERIOD_S`), a column in
+        another unit (kelvin, mA: named), a value outside its role's plausible range (a spike, a
+        negative RMS current), an input not measured (NaN); the message names the file, the
+        column and the sample.
     """
     if len(run) < 2:
         raise RunError(f"{run.source}: {len(run)} sample(s): a run needs at least two")
@@ -214,20 +213,26 @@ def check_run(run: Run, temperatures: Sequence[str]) -> None:
     if dt > MAX_SAMPLE_PERIOD_S:
         raise RunError(f"{run.source}: column 't': sample period {dt:g} s; is the time in milliseconds? "
                        "(t must be in seconds)")
-    lo, hi = TEMPERATURE_RANGE_C
-    for name in temperatures:
+    checks: dict[str, Plausible] = {name: TEMPERATURE for name in temperatures}
+    for name, role in (inputs or {}).items():
+        checks[name] = role.plausible
+    for name, rule in checks.items():
         x = run.columns.get(name)
-        if x is None or not np.isfinite(x).any():
+        if x is None:
             continue
-        finite = x[np.isfinite(x)]
-        if finite.min() > KELVIN_ABOVE:
-            raise RunError(f"{run.source}: column {name!r}: {finite.min():.1f} to {finite.max():.1f}; "
-                           "kelvin? (temperatures must be in degC)")
-        out = np.flatnonzero(np.isfinite(x) & ((x < lo) | (x > hi)))
-        if out.size:
-            k = int(out[0])
-            raise RunError(f"{run.source}: column {name!r}, sample {k + 1} (t = {run.t[k]:g} s): {x[k]:g} degC is "
-                           f"outside the plausible {lo:g} to {hi:g} degC")
+        if inputs and name in inputs:
+            gap = np.flatnonzero(~np.isfinite(x))
+            if gap.size:
+                k = int(gap[0])
+                raise RunError(f"{run.source}: column {name!r}, sample {k + 1} (t = {run.t[k]:g} s): not measured "
+                               f"({x[k]:g}) in {gap.size} sample(s); the model needs its input {name!r} at every sample")
+        found = rule.series_problem(x)
+        if found is None:
+            continue
+        at, why = found
+        if at is None:
+            raise RunError(f"{run.source}: column {name!r}: {why}")
+        raise RunError(f"{run.source}: column {name!r}, sample {at + 1} (t = {run.t[at]:g} s): {why}")
 
 
 def describe(run: Run, used: Sequence[str]) -> str:
@@ -256,7 +261,7 @@ def write_run(path: str | os.PathLike[str], run: Run, comment: str = "") -> None
     path = Path(path)
     names = list(run.columns)
     data = np.column_stack([run.t] + [run.columns[k] for k in names])
-    with open(path, "w", newline="") as fh:
+    with open(path, "w", newline="", encoding="utf-8") as fh:
         for line in comment.splitlines():
             fh.write(f"# {line}\n")
         w = csv.writer(fh)

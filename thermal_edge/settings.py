@@ -83,6 +83,8 @@ class AdapterConfig:
         RMS prediction error over the last period above which the adapter optimises, K (about
         the sensor noise: a fit only makes a challenger, judged out of sample, so fitting often
         costs CPU, not accuracy; with 0.25 K the adapter stopped short in ``bench paper`` E2).
+        The open-loop error over the last ``validate_s`` above it triggers a fit too (slow
+        modes a period does not show).
     window_s : float
         History window used for estimation, s.
     min_window_s : float
@@ -104,7 +106,8 @@ class AdapterConfig:
     validate_s : float
         Most evidence (s, recorded after the fit) a challenger is judged on; undecided by then, it
         is dropped. It is promoted only if, besides the margin, no single sensor's RMS error over
-        the evidence grows by more than ``sensor_tolerance_k`` (K).
+        the evidence grows by more than ``sensor_tolerance_k`` (K) to above the parameters in
+        use's RMS error over all the sensors.
     noise_k : float
         Sensor noise σ (K) assumed in the promotion margin.
     promote_z : float

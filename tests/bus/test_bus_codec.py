@@ -372,9 +372,15 @@ def test_bad_dbc_is_reported_with_its_path(tmp_path):
     from thermal_edge.bus import DbcError
 
     bad = tmp_path / "bad.dbc"
-    bad.write_text(DBC_PATH.read_text().replace(" SG_ INV_Currents_CRC : 56|8@1+", " SG_ INV_Currents_CRC : 55|8@1+"))
-    with pytest.raises(DbcError, match="bad.dbc"):
+    bad.write_text(DBC_PATH.read_text().replace(" SG_ INV_Currents_CRC : 56|8@1+", " SG_ INV_Currents_CRC : 50|8@1+"))
+    with pytest.raises(DbcError, match="bad.dbc"):  # the CRC overlaps the counter
         FrameCodec(bad)
+    # a CRC where the matrix does not put it: the frame has no protection the codec knows, and says why
+    moved = tmp_path / "moved.dbc"
+    moved.write_text(DBC_PATH.read_text().replace(" SG_ INV_Currents_CRC : 56|8@1+", " SG_ INV_Currents_CRC : 55|8@1+"))
+    codec = FrameCodec(moved)
+    assert codec.protection("INV_Currents") is None and codec.protection("INV_Mechanics") is not None
+    assert "not where the CAN matrix puts them" in codec.protection_problem("INV_Currents")
     with pytest.raises(DbcError, match="missing.dbc"):
         FrameCodec(tmp_path / "missing.dbc")
 

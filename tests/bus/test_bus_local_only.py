@@ -1,9 +1,11 @@
-"""The ``udp_multicast`` bus of ``create_bus`` takes frames from this host only (issue 14, defect 7).
+"""The ``udp_multicast`` bus of ``create_bus`` takes frames from this host only.
 
 python-can's own bus binds 0.0.0.0 and joins the group on eth0: unicast datagrams to 127.0.0.1
-and to the host's own address, and multicasts arriving on eth0, were all taken as CAN frames.
-Each of these is sent here in python-can's wire format; none may be received, while a frame
-from a second bus of this host is.
+and to the host's own address, and multicasts from the network, are all taken as CAN frames.
+Here unicasts are sent in python-can's wire format and none may be received; a multicast whose
+source is not an address of this host is refused and counted; while a frame from a second bus
+of this host is received, on whichever interface it arrives (python-can's own bus sends through
+the default one).
 """
 
 from __future__ import annotations
@@ -72,9 +74,10 @@ def test_unicast_datagrams_are_not_received(udp_port, target):
         peer.shutdown()
 
 
-def test_multicast_arriving_on_a_network_interface_is_not_received(udp_port):
-    """A multicast to the group that comes in on eth0 (as one from the network would: sent here
-    through eth0 and looped back by the kernel on that interface) is not taken."""
+def test_multicast_from_this_host_through_a_network_interface_is_received(udp_port):
+    """A multicast that a process of this host sends through eth0 (as python-can's own bus does:
+    it sends through the default interface) comes back on eth0 with eth0's address as source:
+    a frame of this host, taken."""
     own = _own_address(socket.AF_INET)
     if own is None:
         pytest.skip("this host has no non-loopback IPv4 address")
@@ -84,15 +87,88 @@ def test_multicast_arriving_on_a_network_interface_is_not_received(udp_port):
             s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
             s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
             s.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(own))
-            # something else on this host listening on eth0, so that the kernel accepts the group there
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as listener:
-                listener.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
-                                    socket.inet_aton(DEFAULT_UDP_MULTICAST_GROUP) + socket.inet_aton(own))
-                for _ in range(5):
-                    s.sendto(pack_message(PROBE), (DEFAULT_UDP_MULTICAST_GROUP, udp_port))
-                assert _received(bus) == []
+            for _ in range(5):
+                s.sendto(pack_message(PROBE), (DEFAULT_UDP_MULTICAST_GROUP, udp_port))
+        got = _received(bus)
+        assert len(got) == 5 and all(bytes(m.data) == bytes(range(8)) for m in got)
+        assert bus.refused == 0
     finally:
         bus.shutdown()
+
+
+def test_a_stock_python_can_bus_of_this_host_is_heard(udp_port):
+    """python-can's own ``udp_multicast`` bus (default interface, hop limit 0) reaches ours."""
+    from can.interfaces.udp_multicast import UdpMulticastBus
+
+    bus = create_bus({"interface": "udp_multicast", "port": udp_port})
+    stock = UdpMulticastBus(channel=DEFAULT_UDP_MULTICAST_GROUP, port=udp_port, hop_limit=0)
+    try:
+        for k in range(7):
+            stock.send(can.Message(arbitration_id=0x0A0 + k, data=bytes([k] * 8), is_extended_id=False))
+        got = _received(bus)
+        assert [m.arbitration_id for m in got] == [0x0A0 + k for k in range(7)]
+    finally:
+        stock.shutdown()
+        bus.shutdown()
+
+
+class _ForgedSocket:
+    """Stands in for the bus's socket: hands out datagrams from given source addresses, as the
+    kernel would (this test cannot send from an address the host does not have)."""
+
+    def __init__(self, datagrams: list[tuple[bytes, tuple[str, int]]]) -> None:
+        self.datagrams = list(datagrams)
+
+    def recvmsg(self, bufsize: int, ancbufsize: int, flags: int = 0):  # type: ignore[no-untyped-def]
+        if not self.datagrams:
+            raise BlockingIOError
+        data, addr = self.datagrams.pop(0)
+        return data, [], 0, addr
+
+
+@pytest.mark.parametrize("source", ["198.51.100.7", "192.0.2.1", "203.0.113.9", "2001:db8::7", "fe80::1%lo", "", "garbage"])
+def test_a_datagram_from_an_address_of_another_host_is_refused_and_counted(udp_port, source):
+    bus = create_bus({"interface": "udp_multicast", "port": udp_port})
+    real = bus._multicast.sock
+    try:
+        own = _own_address(socket.AF_INET)
+        if source == "192.0.2.1" and own == source:
+            pytest.skip("this host has that address")
+        bus._multicast.sock = _ForgedSocket([(pack_message(PROBE), (source, 43113)) for _ in range(3)]
+                                            + [(pack_message(PROBE), ("127.0.0.1", 43113))])
+        got = [bus.recv(0) for _ in range(4)]
+        assert got[:3] == [None, None, None] and bus.refused == 3
+        assert got[3] is not None and got[3].arbitration_id == 0x0A0  # from this host: taken
+    finally:
+        bus._multicast.sock = real
+        bus.shutdown()
+
+
+def test_own_addresses_are_told_from_others_as_the_host_lists_them():
+    """:func:`is_own_address` against the host's own list of addresses (``ip -o addr``)."""
+    import ipaddress
+    import shutil
+    import subprocess
+
+    from thermal_edge.bus.udp import is_own_address
+
+    if shutil.which("ip") is None:
+        pytest.skip("no ip command to list this host's addresses")
+    listed = subprocess.run(["ip", "-o", "addr"], capture_output=True, text=True, check=True).stdout.split()
+    own = [w.split("/")[0] for i, w in enumerate(listed) if i and listed[i - 1] in ("inet", "inet6")]
+    own = [a for a in own if not ipaddress.ip_address(a).is_link_local]  # need a scope to be named
+    assert own
+    for address in own:
+        assert is_own_address(address), address
+    networks = [ipaddress.ip_interface(w) for i, w in enumerate(listed) if i and listed[i - 1] == "inet"]
+    for net in networks:  # other hosts of this host's own networks (all of 127/8 is this host's), and beyond
+        if net.ip.is_loopback:
+            continue
+        for other in list(net.network.hosts())[:4]:
+            assert is_own_address(str(other)) == (str(other) in own), other
+    for other in ("198.51.100.7", "8.8.8.8", "2001:db8::7", "224.0.0.1", "0.0.0.0", "not an address"):
+        assert not is_own_address(other), other
+    assert is_own_address("127.0.0.1") and is_own_address("127.3.4.5") and is_own_address("::1")
 
 
 def test_ipv6_group_needs_a_multicast_route_on_loopback(udp_port):
@@ -108,3 +184,4 @@ def test_ipv6_group_needs_a_multicast_route_on_loopback(udp_port):
         assert bus.socket.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF) == socket.if_nametoindex("lo")
     finally:
         bus.shutdown()
+

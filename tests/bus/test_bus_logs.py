@@ -133,7 +133,8 @@ def test_damaged_log(tmp_path, recorded_log):
     can_id, data = frame.split("#")
     corrupt = f"{ts} {ch} {can_id}#{int(data[:2], 16) ^ 0x01:02X}{data[2:]} {direction}"
     damaged = lines[:2] + [corrupt, lines[3], lines[4][:-9], "this is not candump", ""] + lines[5:]
-    damaged.append(f"(1700000000.000000) vcan0 {lines[-1].split()[2]}")  # repeat of the last frame, no R/T
+    last_t = lines[-1].split()[0]
+    damaged.append(f"{last_t} vcan0 {lines[-1].split()[2]}")  # repeat of the last frame, no R/T
     path = tmp_path / "damaged.log"
     path.write_text("\n".join(damaged) + "\n")
 
@@ -142,10 +143,14 @@ def test_damaged_log(tmp_path, recorded_log):
     frames = list(reader)
     assert [n for n, _ in reader.malformed_lines] == [5, 6]
     assert codec.stats.crc == 1
-    assert codec.stats.counter_repeat == 0 and codec.stats.counter_resync == 1  # the old timestamp resyncs
-    assert len(frames) == len(lines) - 2 + 1  # minus corrupt and truncated, plus the extra one
+    assert codec.stats.counter_repeat == 1  # the repeat of the last frame: its counter again
+    assert len(frames) == len(lines) - 2  # minus corrupt and truncated (the repeat is dropped)
     with pytest.raises(LogFormatError, match=r"damaged\.log:5:"):
         read_log(path, FrameCodec(DBC_PATH), strict=True)
+    # a frame stamped long before the one ahead of it: a log in the wrong order, not a frame to replay
+    path.write_text("\n".join([*damaged[:-1], f"(1700000000.000000) vcan0 {lines[-1].split()[2]}"]) + "\n")
+    with pytest.raises(LogFormatError, match=r"damaged\.log: message \d+: time runs backwards by"):
+        read_log(path, FrameCodec(DBC_PATH))
 
 
 def test_not_a_candump_log(tmp_path):
@@ -153,7 +158,7 @@ def test_not_a_candump_log(tmp_path):
     path.write_text("hello\nworld\n")
     with pytest.raises(LogFormatError, match=r"notes\.log:1:"):
         read_log(path)
-    with pytest.raises(FileNotFoundError, match="missing.log"):
+    with pytest.raises(LogFormatError, match="missing.log: no such CAN log"):
         read_log(tmp_path / "missing.log")
     empty = tmp_path / "empty.log"
     empty.write_text("")

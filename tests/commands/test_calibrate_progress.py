@@ -3,6 +3,7 @@ progress bar is drawn on a terminal only."""
 from __future__ import annotations
 
 import fcntl
+import importlib
 import os
 import pty
 import re
@@ -12,7 +13,7 @@ import sys
 import termios
 
 import pytest
-from cmd_testlib import TWO_NODE, te
+from cmd_testlib import TWO_NODE, te, te_here
 
 from thermal_edge.data import read_run
 from thermal_edge.estimation.calibrate import MIN_IMPROVEMENT, calibrate
@@ -72,12 +73,32 @@ def test_the_stop_rule_counts_generations_without_progress(good_run):
     assert res.objective_final <= res.objective_global <= res.objective_start
 
 
-def test_max_time_stops_the_search(good_run, tmp_path):
-    r = te("calibrate", "--model", TWO_NODE, "--run", good_run, "--out", tmp_path / "c.yaml", "--set", "R_ha=0.2",
-           "--generations", 1000, "--patience", 1000, "--popsize", 5, "--max-time", 1)
+class _SlowClock:
+    """A ``time`` module whose ``perf_counter`` advances :attr:`STEP_S` at every read: the fit reads
+    the clock once at its start and once after each generation, so ``--max-time 1`` is reached after
+    the third generation on any host, however fast."""
+
+    STEP_S = 0.4
+
+    def __init__(self) -> None:
+        self.reads = 0
+
+    def perf_counter(self) -> float:
+        self.reads += 1
+        return (self.reads - 1) * self.STEP_S
+
+
+def test_max_time_stops_the_search(good_run, tmp_path, monkeypatch):
+    """The time budget stops the global search where neither the generations nor the patience would."""
+    clock = _SlowClock()
+    monkeypatch.setattr(importlib.import_module("thermal_edge.estimation.calibrate"), "time", clock)
+    r = te_here("calibrate", "--model", TWO_NODE, "--run", good_run, "--out", tmp_path / "c.yaml", "--set", "R_ha=0.2",
+                "--generations", 1000, "--patience", 1000, "--popsize", 5, "--max-time", 1)
     assert r.returncode == 0, r.stderr
     m = _objective_line(r.stdout)
-    assert m.group(3) == "--max-time 1 s reached" and int(m.group(2)) < 1000
+    assert m.group(3) == "--max-time 1 s reached"
+    assert int(m.group(2)) == 3  # reads at 0.4, 0.8, 1.2 s after the start: the third reaches 1 s
+    assert clock.reads >= 5  # the start, three generations, the polish's first check (and the wall time)
 
 
 def test_the_progress_bar_on_a_terminal(good_run, tmp_path):

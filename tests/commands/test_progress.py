@@ -28,8 +28,8 @@ def test_jacobian_counts_every_round_and_every_parameter():
     rounds = [c for c in rec.calls if c[0] == "timed rounds"]
     diffs = [c for c in rec.calls if c[0] == "central differences"]
     # a count made from the result: the rounds it timed and the parameters it checked
-    assert [c[1] for c in rounds] == list(range(len(r["analytic_runs_s"]) + 1))  # type: ignore[arg-type]
-    assert [c[1] for c in diffs] == list(range(int(r["params"]) + 1))  # type: ignore[call-overload]
+    assert [c[1] for c in rounds] == list(range(len(r.analytic_runs_s) + 1))
+    assert [c[1] for c in diffs] == list(range(r.params + 1))
     assert all(c[2] == c[1] for c in (rounds[-1], diffs[-1]))  # each stage ends complete
 
 

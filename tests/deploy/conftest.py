@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-for _dir in (Path(__file__).parent, Path(__file__).parents[1] / "vm"):  # deploylib, vmrun (apt_install)
+for _dir in (Path(__file__).parent, Path(__file__).parents[1] / "vm"):  # deploylib, vmrun (INSTALL_TARGET)
     if str(_dir) not in sys.path:  # importable under any --import-mode
         sys.path.insert(0, str(_dir))
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import deploylib as dl
 import pytest
-from vmrun import apt_install  # tests/vm is on sys.path (conftest.py)
+from vmrun import INSTALL_TARGET  # tests/vm is on sys.path (conftest.py)
 
 UNIT = dl.DEPLOY / "systemd" / "thermal-edge.service"
 VCAN = dl.DEPLOY / "systemd" / "vcan.service"
@@ -59,26 +59,20 @@ def seconds(v: str) -> float:
 def systemd_analyze() -> str:
     exe = shutil.which("systemd-analyze")
     if exe is None:
-        apt_install(["systemd"], 600)
-        exe = shutil.which("systemd-analyze")
-    if exe is None:
-        pytest.skip("systemd-analyze not available (apt-get install systemd)")
+        pytest.skip(f"systemd-analyze not available (Debian package systemd: `sudo {INSTALL_TARGET}`)")
     return exe
 
 
-#: the commands the units run besides ours, and the Debian packages that bring them: ``verify``
-#: refuses a unit whose ExecStart is not executable (a clean machine has neither)
+#: the commands the units run besides ours, and the Debian packages that bring them (installed by
+#: INSTALL_TARGET): ``verify`` refuses a unit whose ExecStart is not executable (a clean machine has neither)
 UNIT_COMMANDS = {Path("/sbin/modprobe"): "kmod", Path("/sbin/ip"): "iproute2"}
 
 
 def unit_commands_present() -> None:
-    missing = [pkg for cmd, pkg in UNIT_COMMANDS.items() if not os.access(cmd, os.X_OK)]
+    missing = {str(cmd): pkg for cmd, pkg in UNIT_COMMANDS.items() if not os.access(cmd, os.X_OK)}
     if missing:
-        apt_install(missing, 600)
-    still = [str(cmd) for cmd in UNIT_COMMANDS if not os.access(cmd, os.X_OK)]
-    if still:
-        pytest.skip(f"{', '.join(still)} not on this machine (apt-get install {' '.join(UNIT_COMMANDS.values())}): "
-                    "systemd-analyze verify would refuse the units for it")
+        pytest.skip(f"{', '.join(missing)} not on this machine (Debian packages {' '.join(sorted(set(missing.values())))}: "
+                    f"`sudo {INSTALL_TARGET}`): systemd-analyze verify would refuse the units for it")
 
 
 @contextlib.contextmanager

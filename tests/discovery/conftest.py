@@ -11,7 +11,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import pytest  # noqa: E402
 
-from thermal_edge.discovery import bench, hidden  # noqa: E402
+from benchmarks import discovery as bench  # noqa: E402
+from thermal_edge.discovery import hidden  # noqa: E402
 
 
 @pytest.fixture(scope="session")

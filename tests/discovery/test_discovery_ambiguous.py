@@ -22,7 +22,8 @@ import math
 
 import pytest
 
-from thermal_edge.discovery import bench, judge, report, workflow
+from benchmarks import discovery as bench
+from thermal_edge.discovery import judge, report, workflow
 from thermal_edge.lptn import steady_state
 
 PAIR = {"bearing_loss", "magnet_eddy_loss"}

@@ -5,10 +5,11 @@ import json
 
 import pytest
 
+from benchmarks.discovery import PM10KW
 from thermal_edge.cli import main
-from thermal_edge.discovery.bench import PM10KW, REPO
+from thermal_edge.shipped import config_path
 
-CYCLE = REPO / "config" / "cycles" / "varied_drive.yaml"
+CYCLE = config_path("cycles", "varied_drive.yaml")
 
 
 def test_simulate_help_documents_the_effects(capsys):

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import yaml
 
+from benchmarks.discovery import PM10KW, UNOBSERVABLE
 from thermal_edge.discovery import effects as E
 from thermal_edge.discovery import hidden, yamlpatch
-from thermal_edge.discovery.bench import PM10KW, REPO, UNOBSERVABLE
 from thermal_edge.lptn import ModelError, Simulator, steady_state
+from thermal_edge.shipped import config_path
 from thermal_edge.sim.cycles import cycle_run, load_cycle
 
 REFS = {"n_ref": 1200.0, "i_ref": 23.0}
@@ -51,7 +52,7 @@ def _sim(model, inputs, theta=None):
 @pytest.fixture(scope="module")
 def short_inputs(pm10kw_build, pm10kw_raw):
     model = pm10kw_build(pm10kw_raw)
-    run = cycle_run(load_cycle(REPO / "config" / "cycles" / "varied_drive.yaml"), 5.6)
+    run = cycle_run(load_cycle(config_path("cycles", "varied_drive.yaml")), 5.6)
     idx = np.arange(0, len(run), 10)
     return {c: run.columns[c][idx] for c in model.inputs}
 
@@ -87,7 +88,7 @@ def test_default_magnitude_opens_a_visible_gap(spec, pm10kw_raw, pm10kw_build):
     at least 1 K RMS on some sensor over the cycle (raised automatically where the catalogue
     default is too small for the target)."""
     model = pm10kw_build(pm10kw_raw)
-    inputs = cycle_run(load_cycle(REPO / "config" / "cycles" / "varied_drive.yaml"), 5.6)
+    inputs = cycle_run(load_cycle(config_path("cycles", "varied_drive.yaml")), 5.6)
     refs = E.references(model, inputs.columns)
     doc, resolved = hidden.plant_document(pm10kw_raw, [spec], refs, pm10kw_build, inputs=inputs)
     assert hidden.sensor_gap(model, pm10kw_build(doc), inputs) >= 1.0, resolved
@@ -100,7 +101,7 @@ def test_a_joint_with_a_parallel_path_is_seen_by_no_sensor(spec, pm10kw_raw, pm1
     noise of the simulated PT100s (0.1 K RMS in 0.1 K steps: 0.104 K RMS) over the cycle, so
     simulated data with it carry no gap to find."""
     model = pm10kw_build(pm10kw_raw)
-    inputs = cycle_run(load_cycle(REPO / "config" / "cycles" / "varied_drive.yaml"), 5.6)
+    inputs = cycle_run(load_cycle(config_path("cycles", "varied_drive.yaml")), 5.6)
     refs = E.references(model, inputs.columns)
     doc, resolved = hidden.plant_document(pm10kw_raw, [spec], refs, pm10kw_build, inputs=inputs)
     cand, values = resolved[0]

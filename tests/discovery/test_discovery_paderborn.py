@@ -18,8 +18,9 @@ import math
 
 import pytest
 
-from thermal_edge.discovery import bench, workflow
+from benchmarks import discovery as bench
 from thermal_edge.discovery import judge as J
+from thermal_edge.discovery import workflow
 
 
 @pytest.fixture(scope="module")

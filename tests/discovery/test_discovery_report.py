@@ -12,7 +12,8 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from thermal_edge.discovery import bench, report, workflow  # noqa: E402
+from benchmarks import discovery as bench  # noqa: E402
+from thermal_edge.discovery import report, workflow  # noqa: E402
 from thermal_edge.lptn import Role  # noqa: E402
 
 SHORT = 7200.0  # s, as in test_discovery_workflow

@@ -5,15 +5,16 @@ named first with the held-out gap at least 60 % smaller, data with no hidden eff
 with "no missing effect found: no gap", and the score test must rank a hidden effect first. The
 sweep over the whole catalogue on both cycles, clean data on both, and an effect hidden where
 no sensor sees it (``bench.UNOBSERVABLE``: must end with "no gap", as clean data) are ``slow``;
-``python -m thermal_edge.discovery.bench`` prints the same cases as a table. The real-data cases are in
+``make bench-discovery`` (``benchmarks/discovery.py``) prints the same cases as a table. The real-data cases are in
 ``test_discovery_paderborn.py``, confusable effects in ``test_discovery_ambiguous.py``.
 """
 from __future__ import annotations
 
 import pytest
 
-from thermal_edge.discovery import bench, fitting, workflow
+from benchmarks import discovery as bench
 from thermal_edge.discovery import effects as E
+from thermal_edge.discovery import fitting, workflow
 
 SHORT = 7200.0  # s: 2 h of the 3 h cycles keep the normal suite fast; the slow sweep runs them whole
 

@@ -114,3 +114,35 @@ def test_calibration_recovers_a_perturbed_parameter(pm10kw, make_run):
     got = dict(zip(res.names, res.values))
     assert got["R_e_hous"] == pytest.approx(9.1, rel=0.02)
     assert res.objective_final < 0.1 * res.objective_start
+
+
+def test_a_window_of_a_few_samples_identifies_nothing():
+    """A fit that matches its few readings exactly (here: readings that are the model's own
+    prediction) has a residual variance of zero, so its covariance "pins" every parameter to
+    ±0 %: with fewer than MIN_RESIDUAL_DOF readings beyond the parameters none is identifiable;
+    the same exact match over 30 samples is (the counter-case)."""
+    from thermal_edge.estimation.uncertainty import MIN_RESIDUAL_DOF
+    from thermal_edge.lptn import load_model
+
+    model = load_model(ROOT / "tests" / "commands" / "models" / "two_node.yaml")
+    inputs = {"speed_rpm": np.full(40, 600.0), "i_rms": np.linspace(5.0, 25.0, 40), "ambient_c": np.full(40, 25.0)}
+
+    def gate(n: int) -> np.ndarray:
+        def objective(meas: dict[str, np.ndarray]) -> Objective:
+            win = window_from_arrays(model, {c: v[:n] for c, v in inputs.items()}, meas, np.array([25.0, 25.0]), 1.0)
+            return Objective(Simulator(model), ParamSpace(model, model.adaptable, model.nominal()), win, weighting="uniform")
+
+        phi = np.log(ParamSpace(model, model.adaptable, model.nominal()).values())
+        r0 = objective({s: np.zeros(n) for s in model.sensors}).evaluate(phi).residuals
+        best = None
+        for sign in (1.0, -1.0):  # readings equal to the prediction, whichever sign the residual has
+            obj = objective({s: sign * r0[:, j] for j, s in enumerate(model.sensors)})
+            ev = obj.evaluate(phi)
+            if best is None or np.abs(ev.residuals).max() < np.abs(best[1].residuals).max():
+                best = (obj, ev)
+        assert np.abs(best[1].residuals).max() < 1e-9
+        return estimate_uncertainty(*best).identifiable
+
+    assert 2 * len(model.sensors) - len(model.adaptable) < MIN_RESIDUAL_DOF
+    assert not gate(2).any()
+    assert gate(30).all()

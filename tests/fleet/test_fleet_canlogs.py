@@ -8,12 +8,13 @@ import shutil
 import numpy as np
 import pytest
 
+from thermal_edge.config import load_config
 from thermal_edge.data import RunError, write_run
-from thermal_edge.fleet.canlogs import read_can_runs
 from thermal_edge.fleet.evaluate import evaluate_machine
 from thermal_edge.fleet.runs import find_machines
 from thermal_edge.fleet.task import read_machine_runs
 from thermal_edge.lptn import Role, load_model
+from thermal_edge.service.logruns import read_log_runs
 from thermal_edge.shipped import config_path
 from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
 
@@ -21,6 +22,11 @@ MODEL = config_path("machines", "pm10kw.yaml")
 CYCLE = config_path("cycles", "rated_heat_cool.yaml")
 T0 = 1_700_000_000.0
 DURATION_S = 600.0
+
+
+def read_can_runs(path):
+    """The runs of a CAN log decoded with the shipped service configuration (the fleet's default)."""
+    return read_log_runs(path, load_config(config_path("edge.yaml")))
 
 
 def _emulate(path, **cfg) -> InverterEmulator:
@@ -121,3 +127,15 @@ def test_fleet_evaluate_on_can_logs_finds_the_faulty_housing(logs):
     assert max(rms["m1"].values()) < 0.3  # the model is this machine: noise and steps only
     # the housing-to-ambient path is off: the housing sensor errs most, and well above the noise
     assert rms["m2"]["housing"] == max(rms["m2"].values()) and rms["m2"]["housing"] > 3 * rms["m1"]["housing"], rms
+
+
+def test_a_broken_config_for_the_can_logs_is_refused_before_any_task(logs, tmp_path):
+    from cli_in_process import te_here
+
+    d = logs[0]
+    broken = tmp_path / "edge.yaml"
+    broken.write_text("signals: [not, a, mapping]\n")
+    r = te_here("fleet", "evaluate", "--model", MODEL, str(d / "m1"), "--config", broken, "--out", tmp_path / "x.parquet",
+                "--workers", "1", "--no-progress")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "edge.yaml" in r.stderr, r.stderr
+    assert not (tmp_path / "x.parquet").exists()

@@ -133,3 +133,14 @@ def test_a_faulty_housing_path_runs_hotter(tmp_path):
     b = machine_run(MODEL, cycle, hot, 1800.0)
     assert len(a) == 1801 and np.allclose(a.columns["speed_rpm"], b.columns["speed_rpm"])
     assert b.columns["housing"][-1] > a.columns["housing"][-1] + 0.5
+
+
+def test_an_error_row_carries_a_key_errors_message_without_quotes():
+    from thermal_edge.fleet.runs import Machine
+    from thermal_edge.fleet.task import run_machine
+
+    def job():
+        raise KeyError("model m has no parameter(s) R_x")
+
+    rows = run_machine(job, Machine("m1", ("a.csv",)))
+    assert rows[0]["message"] == "model m has no parameter(s) R_x"

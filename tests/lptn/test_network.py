@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from lptn_ref import Assembly, law_env, pm10kw_inputs, tiny_inputs, tiny_plus_raw
 
-from thermal_edge.lptn import Network, NotPassive, Simulator, discretise, initial_state, steady_state
+from thermal_edge.lptn import ModelError, Network, NotPassive, Simulator, discretise, initial_state, steady_state
 from thermal_edge.lptn.expr import Num
 from thermal_edge.lptn.loader import build_model
 
@@ -208,14 +208,24 @@ def _floating_raw(kind):
 
 
 @pytest.mark.parametrize("kind", ["island", "isolated"])
-def test_node_not_tied_to_a_boundary_is_not_passive(kind):
-    m = build_model(_floating_raw(kind), fname="floating.yaml")
+def test_node_not_tied_to_a_boundary_is_refused_by_the_loader(kind):
+    """The file and the node: its heat has no way out (the network would not be passive)."""
+    with pytest.raises(ModelError, match=r"^floating\.yaml: nodes\[\d+\]: node 'f1' is not connected to any boundary"):
+        build_model(_floating_raw(kind), fname="floating.yaml")
+
+
+def test_a_conductance_that_vanishes_is_not_passive():
+    """A conductance law that is zero at the parameters cuts a node off although the file
+    connects it: the network refuses it when it is made."""
+    raw = lumped_raw()
+    raw["parameters"]["g_off"] = {"value": 1.0, "min": 1e-9, "max": 2.0}
+    raw["nodes"].append({"name": "f1", "capacity": 100})
+    raw["conductances"].append({"between": ["f1", raw["nodes"][0]["name"]], "g": "g_off - 1"})
+    m = build_model(raw, fname="floating.yaml")
     n = len(m.nodes)
     inputs = {k: v[:5] for k, v in tiny_inputs(N=5, seed=23).items()}
     with pytest.raises(NotPassive, match="boundary"):
         Simulator(m, method="zoh").simulate(m.nominal(), inputs, 1.0, np.full(n, 25.0))
-    with pytest.raises(NotPassive):
-        Simulator(m, method="euler").simulate(m.nominal(), inputs, 1.0, np.full(n, 25.0))
     with pytest.raises(NotPassive):
         discretise(Network(m).continuous(m.nominal(), {"speed_rpm": np.array([100.0])}), 1.0)
 

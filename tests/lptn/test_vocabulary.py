@@ -96,3 +96,28 @@ def test_default_columns_name_every_role_once():
     assert set(DEFAULT_COLUMNS) == set(Role)
     assert len(set(DEFAULT_COLUMNS.values())) == len(Role)
     assert Role.CURRENT.default_column == "i_rms"
+
+
+def test_plausible_ranges_name_the_unit_a_value_looks_like():
+    """One value: kelvin named where the value converts into the range; a series: the unit when it
+    is the series' (10 % or more outside, all plausible converted, or every value above the kelvin
+    floor), else the first sample at fault."""
+    import numpy as np
+
+    from thermal_edge.lptn.vocabulary import LIMIT, TEMPERATURE, Role
+
+    assert LIMIT.problem(155.0) is None
+    assert "looks like kelvin (154.9 degC)" in LIMIT.problem(428.0)
+    assert "outside" in LIMIT.problem(5.0) and "kelvin" not in LIMIT.problem(5.0)
+    current = Role.CURRENT.plausible
+    idle_then_load_ma = np.r_[np.zeros(50), np.linspace(5000, 30000, 50)]  # half the run idles in range
+    assert current.series_problem(idle_then_load_ma)[0] is None
+    assert "looks like mA" in current.series_problem(idle_then_load_ma)[1]
+    spike = np.r_[np.linspace(5, 30, 200), 1e6, np.linspace(30, 5, 200)]
+    k, why = current.series_problem(spike)
+    assert k == 200 and "mA" not in why  # one sample: not the series' unit
+    at, why = Role.AMBIENT.plausible.series_problem(np.r_[np.full(100, 25.0), 298.15, np.full(100, 25.0)])
+    assert at == 100 and "looks like kelvin (25 degC)" in why  # one sample that converts into the rest's span
+    warm_kelvin = np.full(30, 300.15)  # each value alone a plausible degC (a hot machine)
+    assert TEMPERATURE.problem(290.0) is None and TEMPERATURE.series_problem(warm_kelvin)[0] is None
+    assert current.series_problem(np.array([0.0, np.nan, 12.0])) is None  # NaN: not measured, not judged here

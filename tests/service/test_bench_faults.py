@@ -1,26 +1,25 @@
-"""``bench faults`` in its short form, group by group: every case must lose nothing and show no
-unsafe event. The service runs as a black box (``thermal-edge run`` in its own process on a
-``udp_multicast`` group of its own, hop limit 0); the bench's frames, CRC and ``TE_Limits`` decoding
-come from the DBC through cantools, not from the project's codec.
+"""The fault bench (``benchmarks/faults``) in its short form, group by group: every case must lose
+nothing and show no unsafe event, or the test fails. The service runs as a black box
+(``thermal-edge run`` in its own process on a ``udp_multicast`` group of its own, hop limit 0); the
+bench's frames, CRC and ``TE_Limits`` decoding come from the DBC through cantools, not from the
+project's codec.
 
-A case that fails because of an issue-14 defect still being fixed is listed in
-:data:`KNOWN_DEFECTS` (and a case whose only failures are TE_Limits gaps counts as defect 5): its
-group's test then reports it as an expected failure, but any other failing case fails the test.
-Remove an entry (and :func:`_gaps_only`) once its defect is fixed.
+The bounds the bench judges safety by are the CAN contract's (``TE_Limits`` gaps over
+:data:`~benchmarks.faults.harness.GAP_S`, after which the inverter drops the limits) and the
+configured limits; none is widened for a busy host. Performance targets a busy host can miss
+without the service being wrong (tick time, gaps tighter than the contract's) are reported by the
+bench as targets missed and do not fail these tests. The control case shows that the judgement
+can fail: ``TE_Limits`` paused for 500 ms is judged unsafe.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import pytest
 
-from thermal_edge.bench import faults
-from thermal_edge.bench.faults import harness, wire
-
-_D5 = "issue 14 defect 5 (TE_Limits gaps over 300 ms under host load), being fixed"
-#: case name -> why it is expected to fail today (measured at 03:59 UTC on 2026-11-24; remove when fixed)
-KNOWN_DEFECTS: dict[str, str] = {
-}
+from benchmarks import faults
+from benchmarks.faults import control, harness, wire
 
 #: groups within the suite's budget (the whole suite must stay under 10 min on 2 cores); the rest are
 #: marked slow (make test-all; the bench itself runs them all)
@@ -29,27 +28,17 @@ SLOW = ("floods", "stale", "bus", "sensors", "stuck", "absurd", "band", "configs
         "persist", "clock")
 
 
-def _gaps_only(case: dict) -> bool:
-    """Whether a case's only failures are TE_Limits gaps over 300 ms (defect 5: seen intermittently
-    in any case while the shared machine is loaded, so not listed case by case)."""
-    notes = case["did"].split(" | UNSAFE: ", 1)[-1].split("; ")
-    return case["lost"] == 0 and all("TE_Limits gap(s) > 300 ms" in n for n in notes)
-
-
-def _known(case: dict) -> str | None:
-    return KNOWN_DEFECTS.get(case["name"]) or (_D5 if _gaps_only(case) else None)
+def _failures(r: faults.Result) -> list[str]:
+    """One line per case that did not pass (lost something, saw an unsafe event, a control not judged unsafe)."""
+    return [f"{c.name}: lost {c.lost}, unsafe {c.unsafe}: {c.did}" for c in r.failed]
 
 
 def _check_group(group: str) -> None:
     r = faults.run(only=[group], progress=False)
     print("\n" + faults.report_table(r))
-    assert r["total_cases"] >= 1
-    assert not any(c["name"].endswith("_bench_error") for c in r["cases"]), r["cases"]
-    bad = [c for c in r["cases"] if c["lost"] or c["unsafe"]]
-    unexpected = [c for c in bad if _known(c) is None]
-    assert not unexpected, "\n".join(f"{c['name']}: lost {c['lost']}, unsafe {c['unsafe']}: {c['did']}" for c in unexpected)
-    if bad:
-        pytest.xfail("; ".join(f"{c['name']} ({_known(c)})" for c in bad))
+    assert r.cases
+    assert not any(c.name.endswith("_bench_error") for c in r.cases), r.cases
+    assert _failures(r) == []
 
 
 @pytest.mark.parametrize("group", FAST)
@@ -65,13 +54,57 @@ def test_fault_group_short_slow(group: str, udp_ok: None) -> None:
 
 def test_every_group_is_in_the_suite() -> None:
     assert set(FAST) | set(SLOW) == set(faults.GROUPS)
+    assert set(faults.CONTROLS) == {"control"} and not set(faults.CONTROLS) & set(faults.GROUPS)
+
+
+def test_a_te_limits_pause_of_500_ms_fails_the_bench(udp_ok: None) -> None:
+    """The service stopped for 500 ms: the monitor sees ``TE_Limits`` missing for at least that
+    long, the bench counts it unsafe, and judged as an ordinary case it fails the check the group
+    tests make."""
+    r = faults.run(only=["control"], progress=False)
+    print("\n" + faults.report_table(r))
+    assert [c.name for c in r.cases] == ["te_limits_paused_500ms"]
+    case = r.cases[0]
+    assert control.PAUSE_S == 0.5 > harness.GAP_S
+    assert case.control and case.passed and r.failed == []
+    assert case.unsafe >= 1 and "TE_Limits gap(s) > 300 ms" in case.did, case.did
+    longest_ms = float(case.did.split("longest TE_Limits gap ")[1].split(" ms")[0])
+    # the frame in flight when the stop lands is stamped on receipt, the loopback's microseconds
+    # later: 10 ms is a generous allowance for that, not for the host's load
+    assert longest_ms >= 1e3 * control.PAUSE_S - 10
+    ordinary = faults.Result(cases=[dataclasses.replace(case, control=False)])
+    assert ordinary.unsafe >= 1 and len(_failures(ordinary)) == 1
+
+
+def test_the_result_counts_and_judges_its_cases() -> None:
+    """Totals leave the controls out; a control passes only when judged unsafe."""
+    cases = [harness.Case("a", "g", 1, "ok"), harness.Case("b", "g", 1, "x", lost=2),
+             harness.Case("c", "g", 1, "y", unsafe=1, missed=1), harness.Case("k", "control", 1, "z", unsafe=3, control=True),
+             harness.Case("m", "control", 1, "w", control=True)]
+    r = faults.Result(cases=cases)
+    assert (r.lost, r.unsafe, r.missed) == (2, 1, 1)
+    assert [c.name for c in r.failed] == ["b", "c", "m"]
+    assert r.to_dict()["failed"] == 3 and len(r.to_dict()["cases"]) == 5
+
+
+def test_a_missed_target_is_reported_apart_from_unsafe_events() -> None:
+    c = harness.Check()
+    c.add(0, "never shown")
+    c.target(True, "never shown either")
+    c.target(False, "tick p99 above 20 ms")
+    case = harness.Case.of("x", "load", 1, "did", c)
+    assert (case.unsafe, case.missed, case.passed) == (0, 1, True)
+    assert case.did == "did | TARGET MISSED: tick p99 above 20 ms"
+    c.add(2, "2 TE_Limits gap(s) > 300 ms")
+    case = harness.Case.of("x", "load", 1, "did", c)
+    assert (case.unsafe, case.passed) == (2, False) and "UNSAFE: 2 TE_Limits gap(s)" in case.did
 
 
 def test_the_lists_hold_the_issue_counts(tmp_path) -> None:
     """Every bad frame kind of the issues (the undecodable ones among them), ≥ 20 broken
     configurations, ≥ 15 corrupt or foreign state files, every sensor fault on each stator sensor
     (counted from the bench's own lists, without running anything)."""
-    from thermal_edge.bench.faults import bus, state
+    from benchmarks.faults import bus, state
 
     assert {"bad_crc", "short_dlc", "unknown_id", "extended_id", "remote_frame", "error_frame", "can_fd", "not_msgpack",
             "classic_12_bytes", "std_id_0x800", "remote_with_data"} <= set(wire.BAD_KINDS)
@@ -128,10 +161,3 @@ def test_monitor_stamps_te_limits_from_an_independent_socket(udp_ok: None, tmp_p
         assert all(0.03 < b - a < 0.2 for a, b in zip(lim.t, lim.t[1:]))
     finally:
         mon.close()
-
-
-def test_only_gap_failures_are_taken_for_defect_5() -> None:
-    gaps = "x | UNSAFE: 2 TE_Limits gap(s) > 300 ms (max 703 ms)"
-    assert _gaps_only({"lost": 0, "did": gaps})
-    assert not _gaps_only({"lost": 3, "did": gaps})
-    assert not _gaps_only({"lost": 0, "did": gaps + "; 1 limit(s) above the maximum"})

@@ -227,8 +227,8 @@ BROKEN = [
     ("metrics address a name", _set("metrics.address", "not an address"), "metrics.address", "not an IP address"),
     ("udp_multicast channel a unicast address", _set("bus", {"interface": "udp_multicast", "channel": "192.0.2.1"}),
      "bus.channel", "not a multicast group"),
-    ("maximum current the DBC cannot carry", _set("derating.max_current_a", 5000), "derating.max_current_a",
-     "must be at most 3276.75, the largest value TE_CurrentLimit carries in thermal_edge.dbc; got 5000"),
+    ("maximum current the DBC cannot carry", _set("derating.max_current_a", 3400), "derating.max_current_a",
+     "must be at most 3276.75, the largest value TE_CurrentLimit carries in thermal_edge.dbc; got 3400"),
     ("maximum torque the DBC cannot carry", _set("derating.max_torque_nm", 10000), "derating.max_torque_nm",
      "must be at most 6553.5, the largest value TE_TorqueLimit carries"),
     ("no hold after a model fault", _set("derating.faults.hold_s", 0), "derating.faults.hold_s", "must be at least 10, got 0"),
@@ -318,3 +318,74 @@ def test_hand_typed_yaml_is_read_as_an_engineer_means_it(tmp_path, case, edit, w
     lines = proc.stderr.splitlines()
     assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
     assert lines[0].startswith("thermal-edge run: error: edge.yaml: ") and words in lines[0], lines[0]
+
+
+# -- another inverter's CAN matrix: codec.protection and the d/q convention ---------------------------
+EXAMPLE = REPO / "config" / "examples" / "acme-mc7"
+
+
+def example() -> dict:
+    """The Acme MC-7 example's edge.yaml, its relative paths made absolute."""
+    raw = yaml.safe_load((EXAMPLE / "edge.yaml").read_text())
+    raw["codec"]["dbc"] = str(EXAMPLE / "acme-mc7.dbc")
+    raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
+    return raw
+
+
+FOREIGN_BROKEN = [
+    ("protection left out", lambda r: r["codec"]["protection"].pop("MC7_Motion"), "codec.protection.MC7_Motion",
+     "signals.inputs.speed_rpm reads MC7_Motion, and it has neither the CAN matrix's MC7_Motion_Counter"),
+    ("protection of a missing frame", lambda r: r["codec"]["protection"].__setitem__("MC7_Motoin", "none"),
+     "codec.protection.MC7_Motoin", "no frame 'MC7_Motoin' to protect (did you mean 'MC7_Motion'?)"),
+    ("counter that is no signal", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"counter": "MC7_Alive"}),
+     "codec.protection.MC7_Motion", "no signal 'MC7_Alive' in the frame"),
+    ("CRC that spans two bytes", lambda r: r["codec"]["protection"].__setitem__(
+        "MC7_Motion", {"crc": "MC7_OperatingState", "crc_algorithm": "crc8_autosar"}),
+     "codec.protection.MC7_Motion", "must be an unsigned 8-bit signal filling one payload byte"),
+    ("CRC without its algorithm", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"crc": "X"}),
+     "codec.protection.MC7_Motion.crc_algorithm", "required with crc: one of crc8_sae_j1850"),
+    ("unknown CRC algorithm", lambda r: r["codec"]["protection"].__setitem__(
+        "MC7_Motion", {"crc": "X", "crc_algorithm": "crc16"}), "codec.protection.MC7_Motion.crc_algorithm", "must be one of"),
+    ("data ID beyond 16 bits", lambda r: r["codec"]["protection"].__setitem__(
+        "MC7_Motion", {"crc": "X", "crc_algorithm": "crc8_autosar", "data_id": 0x12345}),
+     "codec.protection.MC7_Motion.data_id", "16-bit integer"),
+    ("data ID without CRC", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"data_id": 5}),
+     "codec.protection.MC7_Motion.data_id", "needs crc:"),
+    ("misspelt protection key", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {"countr": "X"}),
+     "codec.protection.MC7_Motion.countr", "unknown key (did you mean 'counter'?)"),
+    ("empty protection", lambda r: r["codec"]["protection"].__setitem__("MC7_Motion", {}),
+     "codec.protection.MC7_Motion", "or none for a frame without protection"),
+    ("the service's own frame", lambda r: r["codec"]["protection"].__setitem__("TE_Limits", "none"),
+     "codec.protection.TE_Limits", "the service's own frame: it keeps the CAN matrix's protection"),
+    ("unknown d/q convention", lambda r: r["signals"]["inputs"]["i_rms"].__setitem__("dq", "peak"),
+     "signals.inputs.i_rms.dq", "must be one of amplitude_invariant, power_invariant, rms_scaled"),
+    ("d/q convention on a mean", lambda r: r["signals"]["inputs"]["speed_rpm"].__setitem__("dq", "power_invariant"),
+     "signals.inputs.speed_rpm.dq", "only with reduce: dq_rms"),
+    ("a 29-bit frame mapped", lambda r: r["signals"]["sensors"]["housing"].update(frame="MC7_Diagnostics",
+                                                                                  signal="MC7_FaultCode"),
+     "signals.sensors.housing.frame", "cannot be read: it has a 29-bit identifier"),
+]
+
+
+@pytest.mark.parametrize("case, edit, key, words", FOREIGN_BROKEN, ids=[c[0] for c in FOREIGN_BROKEN])
+def test_a_foreign_matrix_config_that_does_not_fit_exits_2_naming_the_key(tmp_path, case, edit, key, words):
+    raw = example()
+    raw["state"]["dir"] = str(tmp_path / "state")
+    edit(raw)
+    proc = _run(write_yaml(tmp_path / "broken.yaml", raw), "--check")
+    lines = proc.stderr.splitlines()
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith(f"thermal-edge run: error: broken.yaml: {key}: "), lines[0]
+    assert words in lines[0], lines[0]
+
+
+def test_the_example_declares_what_the_shipped_file_leaves_to_defaults(tmp_path):
+    cfg = config_from_mapping(example(), tmp_path / "edge.yaml")
+    assert cfg.inputs["i_rms"].dq == "power_invariant" and load_config(EDGE_YAML).inputs["i_rms"].dq == "amplitude_invariant"
+    assert set(cfg.codec.protection) == {"MC7_Currents", "MC7_Motion", "MC7_StatorTemps", "MC7_Environment"}
+    assert all(p.none for p in cfg.codec.protection.values())
+    raw = example()
+    raw["codec"]["protection"]["MC7_Motion"] = {"counter": "MC7_OperatingState"}  # 4 bits: a counter it could be
+    codec = config_from_mapping(raw, tmp_path / "edge.yaml").codec.frame_codec()
+    assert codec.protection("MC7_Motion").counter == "MC7_OperatingState"
+    assert "MC7_OperatingState" not in codec.signal_names("MC7_Motion")

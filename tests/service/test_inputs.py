@@ -239,3 +239,82 @@ def test_a_burst_of_frames_weighs_the_time_it_spans_not_its_count(acc):
     assert per_frame < 10.0  # what the frame count alone gives
     assert i_rms == pytest.approx(math.sqrt(zoh_mean(times, list(np.square(values)), t0 + 1.0)))
     assert i_rms > 39.0
+
+
+def test_a_reading_that_arrives_after_the_boundary_is_age_zero_not_negative(acc):
+    """On the wall clock a tick runs a moment after its boundary and takes the readings that came
+    meanwhile: their age at the tick is 0, never negative."""
+    acc.add(stator(9.4), 9.4)
+    acc.add(ambient(9.4), 9.4)
+    assert acc.take(10.0).ages["slot_winding"] == pytest.approx(0.6)
+    acc.add(stator(11.003), 11.003)  # 3 ms after the boundary of the tick below, before it ran
+    ti = acc.take(11.0)
+    assert ti.ages["slot_winding"] == 0.0 and ti.ages["ambient_c"] == pytest.approx(1.6)
+    assert all(a >= 0 for a in ti.ages.values())
+
+
+def test_sensor_age_metric_is_the_ticks_own_age_whatever_arrived_since(tmp_path):
+    """``thermal_edge_sensor_age_seconds`` between two ticks: a reading that came after the last
+    tick must not make the age negative (as the last tick's time minus the newest reading would)."""
+    from prometheus_client.parser import text_string_to_metric_families
+    from svc_testlib import edge_raw, write_yaml
+
+    from thermal_edge.service.engine import ThermalEngine
+    from thermal_edge.service.metrics import ServiceMetrics
+
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", edge_raw(tmp_path / "state", {"interface": "virtual"},
+                                                                   table4=False, adapt=False)))
+    eng = ThermalEngine(cfg, worker_mode="sync")
+    m = ServiceMetrics()
+    m.attach(eng)
+    try:
+        last_stator = None
+        for k in range(30):  # 3 s of frames at 10 Hz, stator temperatures every 0.4 s, ticks each second
+            t = 100.0 + 0.1 * k
+            if k and k % 10 == 0:
+                eng.tick(t)
+            eng.add_frame(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=20.0, INV_IphRms=14.1), t)
+            eng.add_frame(frame("INV_Mechanics", t, INV_Speed=900.0, INV_Torque=50.0, INV_Udc=560.0), t)
+            eng.add_frame(ambient(t), t)
+            if k % 4 == 0:
+                eng.add_frame(stator(t), t)
+                if t < 102.0 - 1e-9:  # added before the tick at 102.0 ran
+                    last_stator = t
+        # the last tick was at 102.0; stator frames came at 102.0, 102.4 and 102.8 after it
+        ages = {s.labels["sensor"]: s.value for fam in text_string_to_metric_families(m.text())
+                for s in fam.samples if s.name == "thermal_edge_sensor_age_seconds"}
+        assert set(ages) == {"slot_winding", "end_winding", "housing"}
+        assert last_stator is not None
+        for a in ages.values():
+            assert a == pytest.approx(102.0 - last_stator) and a >= 0
+    finally:
+        eng.close()
+
+
+@pytest.mark.parametrize("dq, turns", [("amplitude_invariant", 2 / 3), ("power_invariant", math.sqrt(2 / 3)),
+                                       ("rms_scaled", 2 / 3 / math.sqrt(2))])
+def test_each_dq_convention_gives_the_rms_of_the_phase_currents(tmp_path, dq, turns):
+    """d/q currents from three phase currents by the convention's Clarke/Park transform (scaled by
+    ``turns``); the RMS phase current over the tick must be that of the phase currents themselves."""
+    import yaml
+    from svc_testlib import REPO, write_yaml
+
+    raw = yaml.safe_load(EDGE_YAML.read_text())
+    raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
+    raw["signals"]["inputs"]["i_rms"]["dq"] = dq
+    acc = accumulator(load_config(write_yaml(tmp_path / "edge.yaml", raw)))
+    times = np.arange(100) * 0.01
+    amplitude = 30 + 10 * np.sin(times * 7)  # a current that varies within the tick
+    squares = []
+    for t, a in zip(times, amplitude):
+        theta = 2 * math.pi * 50 * t
+        abc = [a * math.cos(theta - k * 2 * math.pi / 3) for k in range(3)]
+        # Clarke then Park, rotating with the current: i_q carries it
+        alpha = turns * (abc[0] - 0.5 * abc[1] - 0.5 * abc[2])
+        beta = turns * (math.sqrt(3) / 2) * (abc[1] - abc[2])
+        d = alpha * math.cos(theta) + beta * math.sin(theta)
+        q = -alpha * math.sin(theta) + beta * math.cos(theta)
+        squares.append(sum(x * x for x in abc) / 3)  # the phases' mean square at this instant
+        acc.add(frame("INV_Currents", 10.0 + t, INV_Id=d, INV_Iq=q, INV_IphRms=0.0), 10.0 + t)
+    expected = math.sqrt(zoh_mean(list(10.0 + times), squares, 11.0))
+    assert acc.take(11.0).inputs["i_rms"] == pytest.approx(expected, rel=1e-9)

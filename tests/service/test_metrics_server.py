@@ -11,7 +11,7 @@ import urllib.request
 import pytest
 from prometheus_client import CollectorRegistry, Counter
 
-from thermal_edge.bench.faults.bus import open_connections
+from benchmarks.faults.bus import open_connections
 from thermal_edge.service.metrics_server import IDLE_TIMEOUT_S, MAX_CONNECTIONS, MetricsServer
 
 

@@ -108,7 +108,10 @@ CORRUPT_STATE = [
     ("temperatures of 900 degC", lambda m: edited(m, T=[900.0] * len(m.nodes)), "temperatures outside"),
     # well-formed but no machine's state (a black-box client's doctored file, used as it was)
     ("the magnet at -99 degC", lambda m: edited(m, T=[-99.0 if "magnet" in n else 40.0 for n in m.nodes]),
-     "temperatures outside -60..500 degC"),
+     "temperatures outside -60..300 degC"),
+    ("a state in kelvin", lambda m: edited(m, T=[300.0 + k for k in range(len(m.nodes))]), "looks like kelvin"),
+    ("a cold state in kelvin", lambda m: edited(m, T=[293.0] * len(m.nodes)), "looks like kelvin"),
+    ("ambient input in kelvin", lambda m: edited(m, inputs={"ambient_c": 298.15}), "inputs.ambient_c"),
     ("every variance zero", lambda m: with_p(m, [[0.0] * len(m.nodes) for _ in m.nodes]), "P has a variance of zero or less"),
     ("P of the wrong shape", lambda m: with_p(m, [[1.0]]), "P is not"),
     ("P rows not lists", lambda m: with_p(m, [1.0] * len(m.nodes)), "P[0]: expected a list"),

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from thermal_edge.bench.faults.harness import (
+from benchmarks.faults.harness import (
     GAP_S,
     START_TIMEOUT_S,
     Inverter,

@@ -10,10 +10,11 @@
 
 Each call boots the VM afresh (about 6 s under software emulation), runs the
 command in the host's tree (read-only, cwd: the tree these tests belong to) and powers off.  When
-the VM cannot be had (not root, apt-get failed, qemu missing, kernel without
-vcan, boot failed, THERMAL_EDGE_VM=0) every test using ``vm`` is skipped with
-the reason.  Inside the guest (``THERMAL_EDGE_IN_VM=1``) ``vm`` skips too, so a
-``vm.pytest`` selection never tries to boot a VM within the VM.
+the VM cannot be had (qemu, the kernel, busybox or can-utils missing: ``make
+test-deps`` installs them; KVM/TCG boot failed; THERMAL_EDGE_VM=0) every test
+using ``vm`` is skipped with the reason, which names that target.  Inside the
+guest (``THERMAL_EDGE_IN_VM=1``) ``vm`` skips too, so a ``vm.pytest`` selection
+never tries to boot a VM within the VM.
 
 Every test collected below tests/vm gets the ``vm`` marker (``-m "not vm"``
 leaves them out).

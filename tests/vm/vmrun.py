@@ -13,7 +13,7 @@ qemu is killed.
 Importable::
 
     from vmrun import SH_WAIT_FOR_RECEIVER, VM, VMUnavailable
-    vm = VM().prepare()          # installs/finds everything, probes KVM, boots once; or VMUnavailable
+    vm = VM().prepare()          # finds everything, probes KVM, boots once; or VMUnavailable
     res = vm.run(f"candump -n 1 vcan0 & {SH_WAIT_FOR_RECEIVER}; cansend vcan0 123#00; wait", timeout=60)
     res.check()                  # AssertionError with all output unless exit status 0
     res = vm.pytest("tests/bus/test_bus_transport.py -k socketcan", timeout=300)  # pytest's exit status
@@ -41,12 +41,15 @@ read-only (Python writes no bytecode: ``PYTHONDONTWRITEBYTECODE=1``) and
 
 Environment knobs (host side): ``THERMAL_EDGE_VM=0`` disables the VM
 (``prepare`` raises VMUnavailable), ``THERMAL_EDGE_VM_ACCEL=auto|kvm|tcg``,
-``THERMAL_EDGE_VM_NO_INSTALL=1`` never runs apt-get,
 ``THERMAL_EDGE_VM_CACHE=DIR`` where initramfs images and the KVM probe
 verdict are cached (default ``$TMPDIR/thermal_edge-vm-cache``),
 ``THERMAL_EDGE_VM_MEM`` (MiB, default 1536), ``THERMAL_EDGE_VM_SMP`` (vCPUs,
 default min(2, host cores)), ``THERMAL_EDGE_VM_VERBOSE=1``
 echoes the guest console to stderr while it runs.
+
+The host's packages are never installed from here: ``make test-deps`` (as root, once per machine)
+installs the Debian packages of :data:`APT_PACKAGES`; without them ``prepare`` raises
+VMUnavailable naming what is missing and that target.
 
 Only the standard library is used, so the driver runs with any python3 >= 3.9.
 """
@@ -215,10 +218,6 @@ def _log(msg: str) -> None:
 # ---------------------------------------------------------------- host tools
 
 
-def _is_root() -> bool:
-    return hasattr(os, "geteuid") and os.geteuid() == 0
-
-
 def _elf_is_static(path: Path) -> bool:
     """True if ``path`` is an ELF executable without a program interpreter."""
     try:
@@ -328,58 +327,17 @@ def _missing_tools() -> dict[str, str]:
     return missing
 
 
-def _apt_get(args: list[str], timeout: float) -> subprocess.CompletedProcess:
-    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
-    return subprocess.run(
-        ["apt-get", "-y", "-q", *args],
-        env=env,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        timeout=timeout,
-    )
+#: the make target that installs :data:`APT_PACKAGES` (the suite never installs anything)
+INSTALL_TARGET = "make test-deps"
 
 
-def apt_install(pkgs: list[str], timeout: float = 1200.0) -> str | None:
-    """``apt-get install`` the Debian packages ``pkgs`` (after a failure: ``apt-get update`` and once
-    more); None when done, else why not. The callers check that what they need arrived."""
-    if not _is_root():
-        return f"not root, cannot apt-get install {' '.join(pkgs)}"
-    if shutil.which("apt-get") is None:
-        return f"no apt-get to install {' '.join(pkgs)}"
-    _log(f"apt-get install {' '.join(pkgs)}")
-    t0 = time.monotonic()
-    install_args = ["install", "--no-install-recommends", *pkgs]
-    try:
-        proc = _apt_get(install_args, timeout)
-        if proc.returncode != 0:
-            _log("apt-get install failed; running apt-get update and retrying")
-            upd = _apt_get(["update"], timeout)
-            proc = _apt_get(install_args, timeout)
-            if proc.returncode != 0:
-                tail = "\n".join((upd.stdout + proc.stdout).splitlines()[-15:])
-                return f"apt-get install {' '.join(pkgs)} failed:\n{tail}"
-    except subprocess.TimeoutExpired as exc:
-        return f"apt-get install {' '.join(pkgs)} timed out after {exc.timeout:.0f} s"
-    _log(f"apt-get done in {time.monotonic() - t0:.0f} s")
-    return None
-
-
-def ensure_tools(install: bool = True, timeout: float = 1200.0) -> None:
-    """Make qemu, a CAN-capable kernel, static busybox and can-utils available, or raise VMUnavailable."""
+def ensure_tools() -> None:
+    """Check that qemu, a CAN-capable kernel, static busybox and can-utils are there, or raise
+    VMUnavailable naming the missing Debian packages and :data:`INSTALL_TARGET`."""
     missing = _missing_tools()
-    if not missing:
-        return
-    what = "; ".join(f"{pkg} ({desc})" for pkg, desc in missing.items())
-    if not install or os.environ.get("THERMAL_EDGE_VM_NO_INSTALL") == "1":
-        raise VMUnavailable(f"missing and not installing (THERMAL_EDGE_VM_NO_INSTALL): {what}")
-    why = apt_install(sorted(missing), timeout)
-    if why is not None:
-        raise VMUnavailable(f"{why} (missing: {what})")
-    still = _missing_tools()
-    if still:
-        raise VMUnavailable("still missing after apt-get: " + "; ".join(f"{p} ({d})" for p, d in still.items()))
+    if missing:
+        what = "; ".join(f"{pkg} ({desc})" for pkg, desc in missing.items())
+        raise VMUnavailable(f"missing {what}: install them with `sudo {INSTALL_TARGET}`")
 
 
 # ---------------------------------------------------------------- initramfs
@@ -640,14 +598,12 @@ class VM:
         memory_mb: int | None = None,
         smp: int | None = None,
         accel: str | None = None,
-        install: bool = True,
         cache_dir: str | os.PathLike | None = None,
         verbose: bool | None = None,
     ) -> None:
         self.memory_mb = int(memory_mb or os.environ.get("THERMAL_EDGE_VM_MEM", 1536))
         self.smp = int(smp or os.environ.get("THERMAL_EDGE_VM_SMP") or min(2, os.cpu_count() or 1))
         self.accel_request = (accel or os.environ.get("THERMAL_EDGE_VM_ACCEL") or "auto").lower()
-        self.install = install
         self.cache_dir = Path(cache_dir) if cache_dir else None
         self.verbose = verbose if verbose is not None else os.environ.get("THERMAL_EDGE_VM_VERBOSE") == "1"
         self.kernel: Kernel | None = None
@@ -667,7 +623,7 @@ class VM:
     # -- setup
 
     def prepare(self) -> VM:
-        """Find/install everything, build the initramfs, pick KVM or TCG and boot once; or raise VMUnavailable."""
+        """Find everything, build the initramfs, pick KVM or TCG and boot once; or raise VMUnavailable."""
         if self.accel_request not in ("auto", "kvm", "tcg"):
             raise ValueError(f"accel must be auto, kvm or tcg, not {self.accel_request!r}")
         if os.environ.get("THERMAL_EDGE_VM", "").lower() in ("0", "no", "off", "false"):
@@ -675,7 +631,7 @@ class VM:
         if sys.platform != "linux":
             raise VMUnavailable(f"needs a Linux host, this is {sys.platform}")
         t0 = time.monotonic()
-        ensure_tools(self.install)
+        ensure_tools()
         self.qemu = find_qemu()
         kernel, why = find_kernel()
         if kernel is None:
@@ -972,7 +928,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cwd", default=DEFAULT_CWD, help="working directory in the guest")
     parser.add_argument("--accel", choices=("auto", "kvm", "tcg"), default=None)
     parser.add_argument("--mem", type=int, default=None, help="guest memory, MiB")
-    parser.add_argument("--no-install", action="store_true", help="never apt-get install")
     parser.add_argument("-v", "--verbose", action="store_true", help="echo the guest console")
     parser.add_argument("cmd", nargs=argparse.REMAINDER, help="-- CMD... (joined into a shell command line)")
     ns = parser.parse_args(argv)
@@ -980,7 +935,7 @@ def main(argv: list[str] | None = None) -> int:
     if not words:
         parser.error("no command given: vmrun.py -- CMD...")
     cmd = words[0] if len(words) == 1 else " ".join(shlex.quote(w) for w in words)
-    vm = VM(accel=ns.accel, memory_mb=ns.mem, install=not ns.no_install, verbose=ns.verbose)
+    vm = VM(accel=ns.accel, memory_mb=ns.mem, verbose=ns.verbose)
     try:
         vm.prepare()
     except VMUnavailable as exc:

@@ -22,6 +22,7 @@ import statistics
 import tempfile
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -80,10 +81,42 @@ def _calibrate(client: Any, machines: Sequence[Any], stage: str,
     return time.perf_counter() - t0, [r for rows in per for r in rows]
 
 
+@dataclass
+class FleetResult:
+    """``bench fleet``: cost, speed-up, memory and the outlier screen's hits (times in s, memory in MB)."""
+
+    machines: int
+    speed_machines: int  #: machines timed with 1 and with 2 workers
+    samples_per_machine: int
+    params: list[str]  #: the parameters fitted per machine
+    per_machine_s: float
+    per_machine_cpu_s: float
+    wall_1_worker_s: list[float]  #: by round
+    wall_2_workers_s: list[float]
+    speedup_2_workers: float  #: median of the rounds' ratios
+    speedup_rounds: list[float]
+    wall_fleet_2_workers_s: float
+    make_fleet_s: float
+    peak_worker_mb: float
+    errors: int  #: machines not processed
+    faulty_total: int
+    faulty_found: int  #: found with the right parameter
+    faulty_wrong_parameter: int
+    false_alarms: int
+    max_healthy_z: float
+    min_faulty_z: float
+    threshold: float
+    outliers: list[dict[str, Any]]
+    spread: list[dict[str, Any]]
+    load_avg_start: list[float]
+    load_avg_end: list[float]
+    projection: dict[str, Any]
+
+
 def run(machines: int = MACHINES, faulty: int = FAULTY, speed_machines: int = SPEED_MACHINES, rounds: int = ROUNDS,
         hours: float = 3.0, seed: int = 0, threshold: float = THRESHOLD, project_machines: int = 10_000,
         cluster_cores: Sequence[int] = CLUSTER_CORES, workdir: str | None = None,
-        progress: Progress = no_progress) -> dict[str, Any]:
+        progress: Progress = no_progress) -> FleetResult:
     """Run the fleet benchmark; see the module docstring. Times in s, memory in MB; ``progress``
     counts the machines of each part.
 
@@ -122,63 +155,63 @@ def run(machines: int = MACHINES, faulty: int = FAULTY, speed_machines: int = SP
     speedup = statistics.median(a / b for a, b in zip(t1s, t2s))
     day_s = per_machine_cpu_s * DAY_S / samples  # one machine-day at 1 Hz on a core of its own
     projection = [{"cores": c, "hours": project_machines * day_s / c / 3600.0} for c in cluster_cores]
-    return {
-        "machines": len(fleet),
-        "speed_machines": len(subset),
-        "samples_per_machine": samples,
-        "params": list(FLEET_PARAMS),
-        "per_machine_s": per_machine_s,
-        "per_machine_cpu_s": per_machine_cpu_s,
-        "wall_1_worker_s": t1s,
-        "wall_2_workers_s": t2s,
-        "speedup_2_workers": speedup,
-        "speedup_rounds": [a / b for a, b in zip(t1s, t2s)],
-        "wall_fleet_2_workers_s": t_all,
-        "make_fleet_s": make_s,
-        "peak_worker_mb": max(r["worker_peak_mb"] for r in rows),
-        "errors": sum(r["kind"] == "error" for r in rows),
-        "faulty_total": sum(1 for f in truth.values() if f),
-        "faulty_found": len(hits),
-        "faulty_wrong_parameter": len(wrong),
-        "false_alarms": len(false),
-        "max_healthy_z": max(abs(r["z"]) for r in rows if r["kind"] == "parameter" and not truth.get(r["machine"])),
-        "min_faulty_z": min((abs(o.z) for o in hits), default=float("nan")),
-        "threshold": threshold,
-        "outliers": [{"machine": o.machine, "parameter": o.parameter, "z": o.z, "ratio": o.ratio,
-                      "fault": (truth.get(o.machine) or {}).get("kind")} for o in outliers],
-        "spread": [{"parameter": s.parameter, "median": s.median, "spread_rel": s.spread_rel,
-                    "identifiable": s.identifiable} for s in spreads],
-        "load_avg_start": list(load_start),
-        "load_avg_end": list(load_end),
-        "projection": {"machines": project_machines, "day_s": DAY_S, "machine_day_core_s": day_s,
-                       "clusters": projection},
-    }
+    return FleetResult(
+        machines=len(fleet),
+        speed_machines=len(subset),
+        samples_per_machine=samples,
+        params=list(FLEET_PARAMS),
+        per_machine_s=per_machine_s,
+        per_machine_cpu_s=per_machine_cpu_s,
+        wall_1_worker_s=t1s,
+        wall_2_workers_s=t2s,
+        speedup_2_workers=speedup,
+        speedup_rounds=[a / b for a, b in zip(t1s, t2s)],
+        wall_fleet_2_workers_s=t_all,
+        make_fleet_s=make_s,
+        peak_worker_mb=max(r["worker_peak_mb"] for r in rows),
+        errors=sum(r["kind"] == "error" for r in rows),
+        faulty_total=sum(1 for f in truth.values() if f),
+        faulty_found=len(hits),
+        faulty_wrong_parameter=len(wrong),
+        false_alarms=len(false),
+        max_healthy_z=max(abs(r["z"]) for r in rows if r["kind"] == "parameter" and not truth.get(r["machine"])),
+        min_faulty_z=min((abs(o.z) for o in hits), default=float("nan")),
+        threshold=threshold,
+        outliers=[{"machine": o.machine, "parameter": o.parameter, "z": o.z, "ratio": o.ratio,
+                   "fault": (truth.get(o.machine) or {}).get("kind")} for o in outliers],
+        spread=[{"parameter": s.parameter, "median": s.median, "spread_rel": s.spread_rel,
+                 "identifiable": s.identifiable} for s in spreads],
+        load_avg_start=list(load_start),
+        load_avg_end=list(load_end),
+        projection={"machines": project_machines, "day_s": DAY_S, "machine_day_core_s": day_s,
+                    "clusters": projection},
+    )
 
 
-def format_result(r: dict[str, Any]) -> str:
+def format_result(r: FleetResult) -> str:
     """The benchmark's tables as text."""
-    p = r["projection"]
+    p = r.projection
     lines = [
-        f"fleet of {r['machines']} simulated pm10kw machines, {r['samples_per_machine']} samples (1 Hz) each; "
-        f"{len(r['params'])} parameters fitted per machine; load average {r['load_avg_start'][0]:.1f} at the start, "
-        f"{r['load_avg_end'][0]:.1f} at the end (2 cores)",
+        f"fleet of {r.machines} simulated pm10kw machines, {r.samples_per_machine} samples (1 Hz) each; "
+        f"{len(r.params)} parameters fitted per machine; load average {r.load_avg_start[0]:.1f} at the start, "
+        f"{r.load_avg_end[0]:.1f} at the end (2 cores)",
         table(["measure", "value"], [
-            ["per machine, 1 worker: wall (s)", r["per_machine_s"]],
-            ["per machine: CPU (s)", r["per_machine_cpu_s"]],
-            [f"{r['speed_machines']} machines, 1 worker (s), by round", ", ".join(f"{t:.1f}" for t in r["wall_1_worker_s"])],
-            [f"{r['speed_machines']} machines, 2 workers (s), by round", ", ".join(f"{t:.1f}" for t in r["wall_2_workers_s"])],
-            ["speed-up of 2 workers (median of the rounds)", r["speedup_2_workers"]],
-            [f"{r['machines']} machines, 2 workers (s)", r["wall_fleet_2_workers_s"]],
-            ["peak worker RSS (MB)", r["peak_worker_mb"]],
-            ["machines not processed", r["errors"]],
-            [f"faulty found, right parameter (|z| > {r['threshold']:g})", f"{r['faulty_found']} of {r['faulty_total']}"],
-            ["faulty named with another parameter", r["faulty_wrong_parameter"]],
-            ["false alarms (healthy machines)", r["false_alarms"]],
-            ["largest |z| of a healthy machine", r["max_healthy_z"]],
-            ["smallest |z| of a faulty machine found", r["min_faulty_z"]],
+            ["per machine, 1 worker: wall (s)", r.per_machine_s],
+            ["per machine: CPU (s)", r.per_machine_cpu_s],
+            [f"{r.speed_machines} machines, 1 worker (s), by round", ", ".join(f"{t:.1f}" for t in r.wall_1_worker_s)],
+            [f"{r.speed_machines} machines, 2 workers (s), by round", ", ".join(f"{t:.1f}" for t in r.wall_2_workers_s)],
+            ["speed-up of 2 workers (median of the rounds)", r.speedup_2_workers],
+            [f"{r.machines} machines, 2 workers (s)", r.wall_fleet_2_workers_s],
+            ["peak worker RSS (MB)", r.peak_worker_mb],
+            ["machines not processed", r.errors],
+            [f"faulty found, right parameter (|z| > {r.threshold:g})", f"{r.faulty_found} of {r.faulty_total}"],
+            ["faulty named with another parameter", r.faulty_wrong_parameter],
+            ["false alarms (healthy machines)", r.false_alarms],
+            ["largest |z| of a healthy machine", r.max_healthy_z],
+            ["smallest |z| of a faulty machine found", r.min_faulty_z],
         ]),
         table(["machine", "parameter", "z", "x fleet median", "true fault"],
-              [[o["machine"], o["parameter"], o["z"], o["ratio"], o["fault"] or "-"] for o in r["outliers"]]),
+              [[o["machine"], o["parameter"], o["z"], o["ratio"], o["fault"] or "-"] for o in r.outliers]),
         f"projection: {p['machines']} machines x 1 day at 1 Hz, {p['machine_day_core_s']:.1f} core-s per machine-day "
         "(the per-machine CPU time scaled by the samples; the tasks are independent)",
         table(["cluster cores", "hours"], [[c["cores"], c["hours"]] for c in p["clusters"]]),

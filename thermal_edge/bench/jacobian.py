@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import statistics
 import time
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +54,37 @@ def recorded_like(cols: dict[str, np.ndarray], current: str, speed: str, noise: 
     return out
 
 
+@dataclass
+class JacobianResult:
+    """What ``bench jacobian`` measured: times in s (medians of the rounds unless a list), errors relative."""
+
+    nodes: int
+    sensors: int
+    params: int
+    samples: int
+    operating_points: int  #: distinct speeds of the cycle
+    analytic_s: float
+    analytic_runs_s: list[float]
+    numerical_s: float
+    numerical_runs_s: list[float]
+    simulation_s: float
+    speedup: float  #: median over the rounds of forward differences / analytic
+    speedup_rounds: list[float]
+    speedup_of_medians: float
+    held_steps: int  #: steps whose inputs are held from the previous one
+    analytic_stepped_s: float
+    speedup_stepped: float
+    closed_vs_stepped_max_rel: float
+    max_rel_err: float  #: analytic vs central differences
+    flops: float
+    blas_gflops: float
+    arith_limit_s: float
+    analytic_over_limit: float
+    when: str
+    #: inputs that vary every sample: the same figures, the binning's effect and the agreement
+    varying: dict[str, Any] = field(default_factory=dict)
+
+
 def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt: float, T0: np.ndarray,
                        rel: float = 1e-2) -> np.ndarray:
     """Fourth-order central difference ``∂T/∂θ_i`` (N, n) with step ``rel · θ_i``."""
@@ -66,7 +99,7 @@ def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt
 
 
 def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None = None, hours: float = 3.0,
-        progress: Progress = no_progress) -> dict[str, object]:
+        progress: Progress = no_progress) -> JacobianResult:
     """Time both Jacobians (``repeat`` rounds) and check the analytic one; ``progress`` as it goes."""
     model = load_model(model_path or config_path("machines", "pm10kw.yaml"))
     cycle = load_cycle(cycle_path or config_path("cycles", "varied_drive.yaml"))
@@ -133,32 +166,32 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
     progress("central differences", p, p, "parameter")
 
     ratios = [t / a for t, a in zip(times_num, times_an)]  # each round's forward differences ÷ analytic
-    return {
-        "nodes": n,
-        "sensors": len(rows),
-        "params": p,
-        "samples": N,
-        "operating_points": int(len(np.unique(cols[model.input_name(Role.SPEED)]))),
-        "analytic_s": t_an,
-        "analytic_runs_s": times_an,
-        "numerical_s": t_num,
-        "numerical_runs_s": times_num,
-        "simulation_s": t_sim,
-        "speedup": statistics.median(ratios),
-        "speedup_rounds": ratios,
-        "speedup_of_medians": t_num / t_an,
-        "held_steps": int(np.count_nonzero(held_steps(sim.net.env(theta, cols), N - 1))),
-        "analytic_stepped_s": t_st,
-        "speedup_stepped": t_num / t_st,
-        "closed_vs_stepped_max_rel": float(np.max(np.abs(S - S_st)) / np.max(np.abs(S_st))),
-        "max_rel_err": max_rel,
-        "flops": flops,
-        "blas_gflops": rate / 1e9,
-        "arith_limit_s": flops / rate,
-        "analytic_over_limit": t_an / (flops / rate),
-        "varying": varying,
-        "when": time.strftime("%Y-%m-%dT%H:%M:%S"),
-    }
+    return JacobianResult(
+        nodes=n,
+        sensors=len(rows),
+        params=p,
+        samples=N,
+        operating_points=int(len(np.unique(cols[model.input_name(Role.SPEED)]))),
+        analytic_s=t_an,
+        analytic_runs_s=times_an,
+        numerical_s=t_num,
+        numerical_runs_s=times_num,
+        simulation_s=t_sim,
+        speedup=statistics.median(ratios),
+        speedup_rounds=ratios,
+        speedup_of_medians=t_num / t_an,
+        held_steps=int(np.count_nonzero(held_steps(sim.net.env(theta, cols), N - 1))),
+        analytic_stepped_s=t_st,
+        speedup_stepped=t_num / t_st,
+        closed_vs_stepped_max_rel=float(np.max(np.abs(S - S_st)) / np.max(np.abs(S_st))),
+        max_rel_err=max_rel,
+        flops=flops,
+        blas_gflops=rate / 1e9,
+        arith_limit_s=flops / rate,
+        analytic_over_limit=t_an / (flops / rate),
+        when=time.strftime("%Y-%m-%dT%H:%M:%S"),
+        varying=varying,
+    )
 
 
 def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarray, theta: np.ndarray,

@@ -17,7 +17,9 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -198,12 +200,25 @@ def e3(data_dir: Path | None = None, progress: Progress = no_progress) -> dict[s
     }
 
 
-def run(progress: Progress = no_progress, data_dir: Path | None = None) -> dict[str, object]:
+@dataclass
+class PaperResult:
+    """The paper's experiments as ``bench paper`` ran them (each experiment's figures by name)."""
+
+    e1: dict[str, Any]  #: only R_e_hous adapted (paper Figs. 9-10)
+    e2: dict[str, Any]  #: 14 parameters, every method (paper Tables 4-5, Fig. 11)
+    adapt_step_median_s: float  #: one online adaptation step, median, s
+    e3: dict[str, Any]  #: the Paderborn run (``{"skipped": why}`` without the data)
+
+    @property
+    def headline(self) -> str:
+        """The paper's headline figure, like for like: numerical over analytic SQP on the whole data."""
+        return (f"E2 like for like (whole data, same iteration cap): numerical SQP / analytic SQP "
+                f"{self.e2['numerical_over_analytic_whole_data']:.1f}x (paper 4.3x)")
+
+
+def run(progress: Progress = no_progress, data_dir: Path | None = None) -> PaperResult:
     """E1, E2, the step timing and E3 (Paderborn data in ``data_dir``, default
     :func:`~.common.paderborn_dir`); ``progress`` counts samples replayed, methods and steps."""
     model = load_model(config_path("machines", "pm10kw.yaml"))
     e2res, step = e2(model, progress)
-    headline = (f"E2 like for like (whole data, same iteration cap): numerical SQP / analytic SQP "
-                f"{e2res['numerical_over_analytic_whole_data']:.1f}x (paper 4.3x)")
-    return {"headline": headline, "e1": e1(model, progress), "e2": e2res, "adapt_step_median_s": step,
-            "e3": e3(data_dir, progress=progress)}
+    return PaperResult(e1(model, progress), e2res, step, e3(data_dir, progress=progress))

@@ -425,9 +425,26 @@ def _run_case_args(args: tuple[Case, tuple[str, ...], Path | None, float | None,
     return run_case(*args)
 
 
+@dataclass
+class ProtectionResult:
+    """``bench protection``: per case and policy the figures of :func:`run_case`, and the totals."""
+
+    cycle: str  #: the drive cycle file
+    duration_s: float | None  #: simulated seconds of it (None: all)
+    policies: list[str]
+    reaction_time_s: float
+    max_c: dict[str, float]  #: each limited node's maximum, degC
+    cases: dict[str, dict[str, Any]] = field(default_factory=dict)  #: case -> policy -> figures
+    case_docs: dict[str, str] = field(default_factory=dict)
+    min_oracle_share_pct: float | None = None  #: thermal_edge's worst share of the oracle
+    total_seconds_over_max: float | None = None  #: thermal_edge's, over all cases
+    totals: dict[str, dict[str, float]] = field(default_factory=dict)  #: policy -> seconds over max
+    wall_s: float = 0.0
+
+
 def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, cycle: Path | None = None,
         duration_s: float | None = None, config_file: Path | None = None, jobs: int = 1,
-        progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+        progress: Callable[[str], None] | None = None) -> ProtectionResult:
     """Every case, every policy; the figures and, for ``thermal_edge``, the worst share of the
     oracle and the total time over max.
 
@@ -445,20 +462,19 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
     cycle = cycle if cycle is not None else config_path("cycles", "protection.yaml")
     with tempfile.TemporaryDirectory(prefix="te-bench-protection-") as tmp:
         cfg = edge_config(Path(tmp), config_file)
-    res: dict[str, Any] = {"cycle": str(cycle), "duration_s": duration_s, "policies": list(policies),
-                           "reaction_time_s": cfg.derating.reaction_time_s, "max_c": {}, "cases": {}, "case_docs": {}}
+    res = ProtectionResult(str(cycle), duration_s, list(policies), cfg.derating.reaction_time_s, {})
     from ..service.engine import load_service_model
 
     for lim in load_service_model(cfg).limits:
-        res["max_c"][lim.name] = cfg.limit_band(lim)[1]
+        res.max_c[lim.name] = cfg.limit_band(lim)[1]
     w0 = time.perf_counter()
     done = 0
 
     def report(case: Case, r: dict[str, dict[str, Any]]) -> None:
         nonlocal done
         done += 1
-        res["cases"][case.name] = r
-        res["case_docs"][case.name] = case.doc
+        res.cases[case.name] = r
+        res.case_docs[case.name] = case.doc
         te = r.get("thermal_edge")
         te_txt = f": thermal_edge {te['oracle_share_pct']:.1f} % of the oracle, {te['seconds_over_max']:g} s over max" if te else ""
         say(f"bench protection: case {done}/{len(cases)} {case.name}{te_txt} ({time.perf_counter() - w0:.0f} s)")
@@ -473,35 +489,35 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
     else:
         for args in work:
             report(args[0], _run_case_args(args))
-    res["cases"] = {c.name: res["cases"][c.name] for c in cases}  # in the order asked
-    te_all = [c["thermal_edge"] for c in res["cases"].values() if "thermal_edge" in c]
+    res.cases = {c.name: res.cases[c.name] for c in cases}  # in the order asked
+    te_all = [c["thermal_edge"] for c in res.cases.values() if "thermal_edge" in c]
     if te_all:
-        res["min_oracle_share_pct"] = min(f["oracle_share_pct"] for f in te_all)
-        res["total_seconds_over_max"] = sum(f["seconds_over_max"] for f in te_all)
-    res["totals"] = {p: {"seconds_over_max": sum(c[p]["seconds_over_max"] for c in res["cases"].values() if p in c)}
-                     for p in policies}
-    res["wall_s"] = time.perf_counter() - w0
+        res.min_oracle_share_pct = min(f["oracle_share_pct"] for f in te_all)
+        res.total_seconds_over_max = sum(f["seconds_over_max"] for f in te_all)
+    res.totals = {p: {"seconds_over_max": sum(c[p]["seconds_over_max"] for c in res.cases.values() if p in c)}
+                  for p in policies}
+    res.wall_s = time.perf_counter() - w0
     return res
 
 
 TABLE_HEADERS = ["case", "policy", "headroom %", "of oracle %", "peak hot spot °C", "peak magnet °C", "s over max"]
 
 
-def table_rows(res: dict[str, Any]) -> list[list[Any]]:
+def table_rows(res: ProtectionResult) -> list[list[Any]]:
     """Rows of the bench's table: one per case and policy."""
     rows: list[list[Any]] = []
-    for case, by_policy in res["cases"].items():
+    for case, by_policy in res.cases.items():
         for p, f in by_policy.items():
             rows.append([case, p, round(f["headroom_pct"], 1), round(f["oracle_share_pct"], 1), round(f["peak_hot_spot_c"], 1),
                          round(f["peak_magnet_c"], 1), f["seconds_over_max"]])
     return rows
 
 
-def verdicts(res: dict[str, Any]) -> list[str]:
+def verdicts(res: ProtectionResult) -> list[str]:
     """Plain sentences: where a baseline overheats, and whether thermal_edge delivers more than each
     baseline that does not."""
     out = []
-    for case, by_policy in res["cases"].items():
+    for case, by_policy in res.cases.items():
         te = by_policy.get("thermal_edge")
         for p in ("pt100_linear", "i2t", "oracle"):
             f = by_policy.get(p)

@@ -15,7 +15,9 @@ counted: :mod:`thermal_edge.estimation.uncertainty`).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,9 +86,19 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     return out
 
 
+@dataclass
+class RealResult:
+    """``bench real``: each start's figures by name (:func:`one_start`), or why it was skipped."""
+
+    run: str = ""  #: the run file
+    adapted_from: list[str] = field(default_factory=list)  #: the sensors the adapter learns from
+    starts: dict[str, dict[str, Any]] = field(default_factory=dict)
+    skipped: str | None = None  #: why nothing ran (the data are absent)
+
+
 def run(data_dir: Path | None = None, starts: Mapping[str, Mapping[str, float]] | None = None,
-        sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> dict[str, object]:
-    """All starts; ``{"skipped": why}`` when the data is absent. ``sets`` overrides parameters of
+        sets: Mapping[str, float] | None = None, progress: Progress = no_progress) -> RealResult:
+    """All starts; :attr:`RealResult.skipped` says why when the data is absent. ``sets`` overrides parameters of
     the published model first (``--set``; the command names a bad one, here an unknown name or a
     value outside its bounds raises :class:`~thermal_edge.lptn.ParameterError`). ``progress``
     counts the samples replayed, one stage per start. ``data_dir``: the Paderborn data (default
@@ -94,7 +106,7 @@ def run(data_dir: Path | None = None, starts: Mapping[str, Mapping[str, float]] 
     data_dir = paderborn_dir(data_dir)
     path = data_dir / "run_a.csv"
     if not path.exists():
-        return {"skipped": f"{path} not found"}
+        return RealResult(skipped=f"{path} not found")
     base = load_model(config_path("machines", "paderborn4.yaml"), data_dir=data_dir)
     sets = dict(sets or {})
     if sets:  # with_parameters refuses an unknown name or a value outside the bounds
@@ -103,4 +115,4 @@ def run(data_dir: Path | None = None, starts: Mapping[str, Mapping[str, float]] 
     chosen = starts or STARTS
     res = {name: one_start(base, run_, f, sets, sample_counter(progress, f"start {k + 1} of {len(chosen)} ({name})", 2 * len(run_)))
            for k, (name, f) in enumerate(chosen.items())}
-    return {"run": str(path), "adapted_from": list(SENSORS), "starts": res}
+    return RealResult(str(path), list(SENSORS), res)

@@ -23,6 +23,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,31 @@ from ..shipped import config_path
 from .common import Progress, no_progress
 
 RATES = (2000, 4000, 6000, 8000, 10000, 12000, 14000, 16000, 20000, 24000, 28000, 32000)
+
+
+@dataclass
+class ServiceResult:
+    """What ``bench service`` measured: tick times in ms, frame rates in frames/s, memory in MB."""
+
+    tick_p50_ms: float
+    tick_p99_ms: float
+    tick_max_ms: float
+    tick_p50_adapting_ms: float
+    tick_p99_adapting_ms: float
+    tick_max_adapting_ms: float
+    adaptation_decisions_during: int
+    ticks_measured: int
+    max_lossless_fps: int
+    fps_runs: list[dict[str, Any]]  #: one per rate tried
+    fps_seconds_per_rate: float
+    rss_mb: float
+    rss_after_1h_mb: float
+    rss_growth_mb: float
+    rss_samples: list[tuple[float, float]]  #: (simulated hour, MB)
+    memory_run_hours: float
+    memory_run_wall_s: float
+    memory_run_adaptations: list[int]  #: [accepted, run]
+    targets: dict[str, float]
 
 
 def rss_mb() -> float:
@@ -269,22 +295,22 @@ def memory_run(hours: float = 24.0, current_period_s: float = 0.5, progress: Pro
 
 
 def run(hours: float = 24.0, ticks: int = 600, fps_seconds: float = 4.0, rates: tuple[int, ...] = RATES,
-        progress: Progress = no_progress) -> dict[str, Any]:
+        progress: Progress = no_progress) -> ServiceResult:
     """All four measures in turn (tick latency idle and adapting, frame rate, memory); ``progress`` per part."""
     idle = tick_latency(ticks, adapting=False, progress=progress)
     busy = tick_latency(ticks, adapting=True, progress=progress)
     fps = max_lossless_fps(rates, fps_seconds, progress)
     mem = memory_run(hours, progress=progress)
-    return {
-        "tick_p50_ms": idle["p50_ms"], "tick_p99_ms": idle["p99_ms"], "tick_max_ms": idle["max_ms"],
-        "tick_p50_adapting_ms": busy["p50_ms"], "tick_p99_adapting_ms": busy["p99_ms"], "tick_max_adapting_ms": busy["max_ms"],
-        "adaptation_decisions_during": busy["decisions"], "ticks_measured": idle["ticks"],
-        "max_lossless_fps": fps["max_lossless_fps"], "fps_runs": fps["runs"], "fps_seconds_per_rate": fps_seconds,
-        "rss_mb": mem["rss_mb"], "rss_after_1h_mb": mem["rss_after_1h_mb"], "rss_growth_mb": mem["rss_growth_mb"],
-        "rss_samples": mem["rss_samples"], "memory_run_hours": mem["hours"], "memory_run_wall_s": mem["wall_s"],
-        "memory_run_adaptations": [mem["accepted"], mem["runs"]],
-        "targets": {"tick_p99_adapting_ms": 20.0, "max_lossless_fps": 8000, "rss_mb": 150.0},
-    }
+    return ServiceResult(
+        tick_p50_ms=idle["p50_ms"], tick_p99_ms=idle["p99_ms"], tick_max_ms=idle["max_ms"],
+        tick_p50_adapting_ms=busy["p50_ms"], tick_p99_adapting_ms=busy["p99_ms"], tick_max_adapting_ms=busy["max_ms"],
+        adaptation_decisions_during=int(busy["decisions"]), ticks_measured=int(idle["ticks"]),
+        max_lossless_fps=fps["max_lossless_fps"], fps_runs=fps["runs"], fps_seconds_per_rate=fps_seconds,
+        rss_mb=mem["rss_mb"], rss_after_1h_mb=mem["rss_after_1h_mb"], rss_growth_mb=mem["rss_growth_mb"],
+        rss_samples=mem["rss_samples"], memory_run_hours=mem["hours"], memory_run_wall_s=mem["wall_s"],
+        memory_run_adaptations=[mem["accepted"], mem["runs"]],
+        targets={"tick_p99_adapting_ms": 20.0, "max_lossless_fps": 8000, "rss_mb": 150.0},
+    )
 
 
 if __name__ == "__main__":  # the frame sender process of max_lossless_fps

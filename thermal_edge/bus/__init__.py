@@ -1,16 +1,18 @@
 """CAN layer of thermal_edge: DBC codec with frame integrity, python-can transport, CAN logs.
 
-Knows ``dbc/thermal_edge.dbc`` and nothing of the thermal model.
+Knows ``dbc/thermal_edge.dbc`` (and any other DBC it is given) and nothing of the thermal model.
 
 - :class:`FrameCodec` -- encode (counter + CRC filled) / decode (DLC, CRC, counter
   checked; drops counted in :class:`FrameStats`; never raises).
+- :class:`FrameProtection` -- a frame's end-to-end protection: the CAN matrix's counter and CRC,
+  another counter or CRC-8 (:data:`CRC8_ALGORITHMS`), or none.
 - :class:`CanTransport` -- asyncio receive (batched; a bad message is counted, not a dead
   bus)/transmit/record on one bus, reconnecting.
 - :class:`CyclicSender` -- periodic frame from a provider, with fallback values, as an
   asyncio task or in its own thread.
 - :class:`BusConfig`, :func:`create_bus` -- python-can bus from a checked configuration
   (unknown keys and interfaces named with the closest valid one).
-- :class:`LocalUdpMulticastBus` -- ``udp_multicast`` on loopback only, hop limit 0: nothing
+- :class:`LocalUdpMulticastBus` -- ``udp_multicast`` of this host only, hop limit 0: nothing
   leaves this host, nothing from beyond it is received.
 - :class:`LogRecorder`, :class:`FrameLogReader`, :func:`read_log` -- CAN logs in every format
   python-can knows (candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``), by suffix;
@@ -26,8 +28,8 @@ from .busconfig import (
     bus_kwargs,
     create_bus,
 )
-from .codec import DbcError, DecodedFrame, FrameCodec, FrameEncodeError
-from .crc import crc8_sae_j1850, data_id, frame_crc
+from .codec import DbcError, DecodedFrame, FrameCodec, FrameEncodeError, ProtectionError
+from .crc import CRC8_ALGORITHMS, crc8_sae_j1850, data_id, frame_crc
 from .cyclic import CyclicSender
 from .frames import (
     DEFAULT_DBC_PATH,
@@ -47,11 +49,13 @@ from .frames import (
     TeState,
 )
 from .logs import FrameLogReader, LogFormatError, LogRecorder, log_messages, read_log, readable_suffixes
+from .protection import FrameProtection
 from .stats import DROP_REASONS, FrameStats, TransportStats
 from .transport import CanTransport
 from .udp import LocalUdpMulticastBus, UndecodableDatagram
 
 __all__ = [
+    "CRC8_ALGORITHMS",
     "DEFAULT_DBC_PATH",
     "DEFAULT_UDP_MULTICAST_GROUP",
     "DEFAULT_UDP_MULTICAST_PORT",
@@ -77,10 +81,12 @@ __all__ = [
     "FrameCodec",
     "FrameEncodeError",
     "FrameLogReader",
+    "FrameProtection",
     "FrameStats",
     "LocalUdpMulticastBus",
     "LogFormatError",
     "LogRecorder",
+    "ProtectionError",
     "SensorStatus",
     "TeState",
     "TransportStats",

@@ -1,8 +1,10 @@
 """Bus configuration and construction of the python-can bus.
 
 ``udp_multicast`` is opened as :class:`~thermal_edge.bus.udp.LocalUdpMulticastBus`: hop limit 0,
-bound to the group, joined and sent on the loopback interface only, so nothing leaves this host
-and nothing from beyond it is received. The channel must be a multicast group.
+bound to the group, sent on the loopback interface, taking only datagrams whose source is an
+address of this host (on whichever interface they arrive: a stock python-can bus of this host
+sends through the default one), so nothing leaves this host and nothing from beyond it is
+received. The channel must be a multicast group.
 
 A configuration is checked completely before anything is opened: an unknown key (named with
 the closest valid one), an interface python-can does not offer, a wrong type. The python-can

@@ -1,9 +1,15 @@
-"""Encode and decode the frames of ``dbc/thermal_edge.dbc`` with their protection.
+"""Encode and decode the frames of a DBC with their protection.
 
 :class:`FrameCodec` wraps the cantools database. ``encode`` fills the alive
 counter and the CRC; ``decode`` checks length, CRC and counter and never raises:
 a frame that fails a check is dropped (``None``) and counted by reason in a
 :class:`~thermal_edge.bus.stats.FrameStats`.
+
+Each frame's protection (:class:`~thermal_edge.bus.protection.FrameProtection`) is the CAN
+matrix's where the frame carries its ``<frame>_Counter`` (bit 48, 4 bits) and ``<frame>_CRC``
+(byte 7), else what the caller declares for it (another inverter's own matrix: another counter,
+another CRC, or none). With ``service_frames`` the service's own frames (``TE_*``) are always
+those of the shipped DBC, whatever DBC holds the inverter's frames.
 
 Values are in the DBC's physical units (A, rpm, Nm, V, degC, s, K). A
 temperature whose raw value is the DBC's ``NoValueRaw`` (0xFFF) decodes to NaN,
@@ -27,8 +33,9 @@ from cantools.database.can import Message as _DbcMessage
 from cantools.database.can import Signal as _DbcSignal
 
 from ..errors import ThermalEdgeError
-from .crc import frame_crc, frame_crc_function
-from .frames import COUNTER_SUFFIX, CRC_SUFFIX, DEFAULT_DBC_PATH
+from .crc import frame_crc_function, protection_crc_function
+from .frames import COUNTER_SUFFIX, CRC_SUFFIX, DEFAULT_DBC_PATH, NODE_THERMAL_EDGE
+from .protection import FrameProtection
 from .stats import FrameStats
 
 __all__ = [
@@ -37,6 +44,7 @@ __all__ = [
     "FrameCodec",
     "FrameEncodeError",
     "MessageLike",
+    "ProtectionError",
 ]
 
 log = logging.getLogger(__name__)
@@ -46,12 +54,14 @@ COUNTER_START_BIT, COUNTER_BITS = 48, 4
 CRC_START_BIT, CRC_BITS = 56, 8
 _NO_VALUE_ATTRIBUTE = "NoValueRaw"
 _CYCLE_ATTRIBUTE = "GenMsgCycleTime"
-#: Frame periods between two frames of an identifier from which their time stamps decide how
-#: often the 4-bit counter wrapped (3/4 of a wrap: bursts of up to 11 frames keep their count).
-_WRAP_FROM_PERIODS = 12.0
-#: Frame periods after a gap that added counter wraps during which the sender is watched for
-#: catching up (frames faster than its cycle); a late sender that does takes the wraps back.
-_CATCH_UP_PERIODS = 64
+#: Share of a counter wrap (frame periods between two frames of an identifier) from which their
+#: time stamps decide how often the counter wrapped (3/4: with the matrix's 4-bit counter, 12
+#: periods; bursts of up to 11 frames keep their count).
+_WRAP_FROM_SHARE = 0.75
+#: Counter wraps after a gap that added wraps during which the sender is watched for catching up
+#: (frames faster than its cycle; 64 periods of a 4-bit counter); a late sender that does takes the
+#: wraps back.
+_CATCH_UP_WRAPS = 4
 #: Frames over which a sender's time per frame is averaged (plain mean up to then, then running).
 _PACE_FRAMES = 64
 #: Gaps seen before the pace is trusted, and the band around the DBC cycle it must lie in.
@@ -77,6 +87,20 @@ def _keeps_cycle(pace: tuple[float, int] | None, cycle: float) -> bool:
 
 class DbcError(ThermalEdgeError, ValueError):
     """The DBC cannot be loaded or breaks the conventions of the CAN matrix."""
+
+
+class ProtectionError(DbcError):
+    """A frame's declared protection does not fit its DBC frame.
+
+    Attributes
+    ----------
+    frame : str
+        The frame's name (for a loader to name its key, ``codec.protection.<frame>``).
+    """
+
+    def __init__(self, frame: str, message: str) -> None:
+        super().__init__(message)
+        self.frame = frame
 
 
 class FrameEncodeError(ThermalEdgeError, ValueError):
@@ -110,7 +134,7 @@ class DecodedFrame:
         excluded). Temperatures without value are NaN; enumerations, flags and
         counts are ``int``.
     counter : int
-        Alive counter of the frame, 0..15.
+        Alive counter of the frame (0..15 on the matrix's frames); -1 for a frame without one.
     timestamp : float or None
         Reception (or log) time in seconds (POSIX epoch for live buses), if known.
     lost_before : int
@@ -136,8 +160,8 @@ class _SignalSpec:
     raw_max: int
     no_value_raw: int | None
     identity: bool  # factor 1, offset 0: physical value is the raw integer
-    decimals: int  # decimals of factor and offset: decoded values are rounded to them
-    # decoding without cantools (every signal of the matrix is little-endian, checked at load)
+    decimals: int | None  # decimals of factor and offset: decoded values are rounded to them (None: a float signal)
+    # decoding without cantools (little-endian integer signals: every signal of the matrix)
     start: int
     mask: int
     sign_bit: int  # 1 << (length - 1) for signed signals, 0 for unsigned
@@ -152,11 +176,15 @@ class _FrameSpec:
     length: int
     message: _DbcMessage
     signals: tuple[_SignalSpec, ...]
-    counter_name: str
-    crc_name: str
+    protection: FrameProtection | None  # None: not declared (decoded unchecked; the service refuses to read it)
+    undeclared: str  # why it has none
+    counter: _SignalSpec | None
+    counter_mod: int  # 2**counter width
+    crc_byte: int  # payload byte of the CRC (-1: none)
+    crc: Callable[[bytes], int] | None
+    fast: bool  # every signal a little-endian integer: decoded from one integer, without cantools
     cycle_time_s: float | None
     senders: frozenset[str]
-    crc: Callable[[bytes], int]
     by_name: dict[str, _SignalSpec] = field(default_factory=dict)
 
 
@@ -183,51 +211,146 @@ def _signal_spec(sig: _DbcSignal) -> _SignalSpec:
         no_value = value if value >= 0 else None
     raw_min, raw_max = _raw_limits(sig)
     identity = float(sig.scale) == 1.0 and float(sig.offset) == 0.0
-    decimals = max(0, *(-int(Decimal(str(v)).normalize().as_tuple().exponent) for v in (sig.scale, sig.offset)))
+    decimals = None if sig.is_float else max(
+        0, *(-int(Decimal(str(v)).normalize().as_tuple().exponent) for v in (sig.scale, sig.offset)))
     return _SignalSpec(sig.name, sig, raw_min, raw_max, no_value, identity, decimals, sig.start,
                        (1 << sig.length) - 1, (1 << (sig.length - 1)) if sig.is_signed else 0,
                        float(sig.scale), float(sig.offset))
 
 
-def _frame_spec(msg: _DbcMessage, path: Path) -> _FrameSpec:
-    where = f"{path}: frame {msg.name} (0x{msg.frame_id:03X})"
+def _unsupported(msg: _DbcMessage) -> str | None:
+    """Why the codec cannot use a frame of a DBC, None if it can."""
     if msg.is_extended_frame or msg.frame_id > 0x7FF:
-        raise DbcError(f"{where}: only 11-bit identifiers are allowed")
-    if msg.length != 8:
-        raise DbcError(f"{where}: DLC {msg.length}, the CAN matrix requires 8")
-    counter_name, crc_name = msg.name + COUNTER_SUFFIX, msg.name + CRC_SUFFIX
-    for name, start, bits in ((counter_name, COUNTER_START_BIT, COUNTER_BITS), (crc_name, CRC_START_BIT, CRC_BITS)):
-        try:
-            sig = msg.get_signal_by_name(name)
-        except KeyError:
-            raise DbcError(f"{where}: signal {name} missing") from None
-        if (sig.start, sig.length, sig.byte_order, sig.is_signed) != (start, bits, "little_endian", False):
-            raise DbcError(f"{where}: signal {name} must be unsigned little-endian at bit {start}, {bits} bits")
-    for sig in msg.signals:
-        if sig.byte_order != "little_endian":
-            raise DbcError(f"{where}: signal {sig.name} is big-endian; the CAN matrix uses little-endian only")
+        return "it has a 29-bit identifier (only 11-bit identifiers are supported)"
+    if msg.is_multiplexed():
+        return "it is multiplexed (not supported)"
+    if getattr(msg, "is_container", False):
+        return "it is a container frame (not supported)"
+    return None
+
+
+def _matrix_protection(msg: _DbcMessage) -> tuple[FrameProtection | None, str]:
+    """The CAN matrix's protection if the frame carries its counter and CRC where the matrix puts
+    them; else None and why not."""
+    sigs = {s.name: s for s in msg.signals}
+    counter, crc = sigs.get(msg.name + COUNTER_SUFFIX), sigs.get(msg.name + CRC_SUFFIX)
+    matrix = (f"the CAN matrix's {msg.name}{COUNTER_SUFFIX} (bit {COUNTER_START_BIT}, {COUNTER_BITS} bits) and "
+              f"{msg.name}{CRC_SUFFIX} (bit {CRC_START_BIT}, {CRC_BITS} bits, DLC 8)")
+    if counter is None or crc is None:
+        return None, f"it has neither {matrix} nor a declared protection"
+    if msg.length != 8 or (counter.start, counter.length, counter.byte_order, counter.is_signed) != (
+            COUNTER_START_BIT, COUNTER_BITS, "little_endian", False) or (
+            crc.start, crc.length, crc.byte_order, crc.is_signed) != (CRC_START_BIT, CRC_BITS, "little_endian", False):
+        return None, f"its counter and CRC are not where the CAN matrix puts them: {matrix}; declare its protection"
+    return FrameProtection.matrix(msg.name, msg.frame_id), ""
+
+
+def _crc_byte(msg: _DbcMessage, sig: _DbcSignal) -> int | None:
+    """The payload byte the 8-bit signal ``sig`` fills exactly, None if it spans two."""
+    zero = {s.name: 0 for s in msg.signals}
+    try:
+        probe = msg.encode({**zero, sig.name: 0xFF}, scaling=False, strict=False)
+    except Exception:
+        return None
+    full = [i for i, b in enumerate(probe) if b]
+    return full[0] if len(full) == 1 and probe[full[0]] == 0xFF else None
+
+
+def _frame_spec(msg: _DbcMessage, path: Path, protection: FrameProtection | None) -> _FrameSpec:
+    where = f"{path}: frame {msg.name} (0x{msg.frame_id:03X})"
+    undeclared = ""
+    if protection is None:
+        protection, undeclared = _matrix_protection(msg)
+    sigs = {s.name: s for s in msg.signals}
+
+    def bad(problem: str) -> ProtectionError:
+        return ProtectionError(msg.name, f"{where}: protection {protection.describe() if protection else 'none'}: "
+                               f"{problem}")
+
+    counter_sig = crc_sig = None
+    crc_byte, crc_fn = -1, None
+    if protection is not None and protection.counter is not None:
+        counter_sig = sigs.get(protection.counter)
+        if counter_sig is None:
+            raise bad(f"no signal {protection.counter!r} in the frame")
+        if counter_sig.is_signed or counter_sig.is_float or not 1 <= counter_sig.length <= 16 \
+                or float(counter_sig.scale) != 1.0 or float(counter_sig.offset) != 0.0:
+            raise bad(f"the counter {counter_sig.name} must be an unsigned integer of 1 to 16 bits, factor 1, offset 0")
+    if protection is not None and protection.crc is not None:
+        crc_sig = sigs.get(protection.crc)
+        if crc_sig is None:
+            raise bad(f"no signal {protection.crc!r} in the frame")
+        found = _crc_byte(msg, crc_sig) if crc_sig.length == 8 and not crc_sig.is_signed else None
+        if found is None:
+            raise bad(f"the CRC {crc_sig.name} must be an unsigned 8-bit signal filling one payload byte")
+        crc_byte = found
+        if protection == FrameProtection.matrix(msg.name, msg.frame_id) and crc_byte == 7 and msg.length == 8:
+            crc_fn = frame_crc_function(msg.frame_id)  # the matrix's: unrolled, the data ID pre-computed
+        else:
+            crc_fn = protection_crc_function(protection.crc_algorithm, protection.data_id, crc_byte)
+    skip = {s.name for s in (counter_sig, crc_sig) if s is not None}
+    specs = tuple(_signal_spec(s) for s in msg.signals if s.name not in skip)
+    fast = all(s.byte_order == "little_endian" and not s.is_float for s in msg.signals)
     cycle = msg.cycle_time
     if cycle is None and msg.dbc is not None and _CYCLE_ATTRIBUTE in msg.dbc.attributes:
         cycle = msg.dbc.attributes[_CYCLE_ATTRIBUTE].value
-    specs = tuple(_signal_spec(s) for s in msg.signals if s.name not in (counter_name, crc_name))
     return _FrameSpec(
         name=msg.name,
         frame_id=msg.frame_id,
         length=msg.length,
         message=msg,
         signals=specs,
-        counter_name=counter_name,
-        crc_name=crc_name,
+        protection=protection,
+        undeclared=undeclared,
+        counter=_signal_spec(counter_sig) if counter_sig is not None else None,
+        counter_mod=1 << counter_sig.length if counter_sig is not None else 0,
+        crc_byte=crc_byte,
+        crc=crc_fn,
+        fast=fast,
         cycle_time_s=float(cycle) / 1000.0 if cycle else None,
         senders=frozenset(msg.senders or ()),
-        crc=frame_crc_function(msg.frame_id),
         by_name={s.name: s for s in specs},
     )
+
+
+def _layout(msg: _DbcMessage) -> tuple[Any, ...]:
+    """What makes two DBC frames the same on the wire."""
+    return (msg.name, msg.frame_id, msg.length, tuple(sorted(
+        (s.name, s.start, s.length, s.byte_order, s.is_signed, float(s.scale), float(s.offset), s.minimum, s.maximum)
+        for s in msg.signals)))
+
+
+def _load_dbc(path: Path) -> cantools.database.can.Database:
+    try:
+        db = cantools.database.load_file(str(path), strict=True)
+    except Exception as exc:  # cantools raises many types; report one line
+        raise DbcError(f"{path}: cannot load DBC: {exc}") from exc
+    if not isinstance(db, cantools.database.can.Database):
+        raise DbcError(f"{path}: not a CAN database")
+    return db
 
 
 #: Cycle times after which a silent sender is taken to have restarted (its counter not judged): long
 #: enough that a real hole is counted as lost frames (from the time stamps), not forgiven.
 DEFAULT_RESYNC_AFTER_CYCLES = 1000.0
+
+
+def _physical(s: _SignalSpec, r: float) -> float:
+    """The physical value of a raw one (NaN for the signal's "no value" code)."""
+    if r == s.no_value_raw:
+        return math.nan
+    if s.identity:
+        return r
+    if s.decimals is None:
+        return r * s.scale + s.offset
+    return round(r * s.scale + s.offset, s.decimals)
+
+
+def _did_you_mean(word: str, candidates: set[str]) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(word, sorted(candidates), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 class FrameCodec:
@@ -237,7 +360,18 @@ class FrameCodec:
     ----------
     dbc_path : str or Path, optional
         The DBC to load (strict mode). Defaults to the project's
-        ``dbc/thermal_edge.dbc``.
+        ``dbc/thermal_edge.dbc``. Frames the codec cannot use (29-bit identifiers,
+        multiplexed) are left out and named by :meth:`unsupported`.
+    protection : mapping of str to FrameProtection, optional
+        Declared protection per frame name, for frames that do not carry the CAN
+        matrix's counter and CRC (``FrameProtection()``: none). A frame neither
+        declared nor the matrix's is decoded unchecked and :meth:`protection` says so
+        (None).
+    service_frames : bool, optional
+        Take the service's own frames (those the shipped DBC has node ``TE`` send)
+        from the shipped DBC, with the matrix's protection, beside the frames of
+        ``dbc_path``. A frame of ``dbc_path`` with the name or identifier of one of
+        them must be that very frame (a copy of the shipped DBC).
     stats : FrameStats, optional
         Where to count frames; a new one by default (see :attr:`stats`).
     resync_after_cycles : float, optional
@@ -256,7 +390,9 @@ class FrameCodec:
     Raises
     ------
     DbcError
-        If the DBC cannot be loaded or a frame lacks the counter/CRC layout.
+        If the DBC cannot be loaded, or clashes with the service's own frames.
+    ProtectionError
+        A declared protection that does not fit its frame (named in ``frame``).
 
     Notes
     -----
@@ -269,21 +405,48 @@ class FrameCodec:
         self,
         dbc_path: str | Path = DEFAULT_DBC_PATH,
         *,
+        protection: Mapping[str, FrameProtection] | None = None,
+        service_frames: bool = False,
         stats: FrameStats | None = None,
         resync_after_cycles: float = DEFAULT_RESYNC_AFTER_CYCLES,
         wraps_from_time: bool = True,
     ) -> None:
         self._path = Path(dbc_path)
-        try:
-            self._db = cantools.database.load_file(str(self._path), strict=True)
-        except Exception as exc:  # cantools raises many types; report one line
-            raise DbcError(f"{self._path}: cannot load DBC: {exc}") from exc
-        if not isinstance(self._db, cantools.database.can.Database):
-            raise DbcError(f"{self._path}: not a CAN database")
+        self._db = _load_dbc(self._path)
+        messages: list[tuple[_DbcMessage, Path]] = [(m, self._path) for m in self._db.messages]
+        own: set[str] = set()
+        if service_frames and self._path.resolve() != Path(DEFAULT_DBC_PATH).resolve():
+            shipped = [m for m in _load_dbc(Path(DEFAULT_DBC_PATH)).messages if NODE_THERMAL_EDGE in (m.senders or ())]
+            by_name, by_id = {m.name: m for m in shipped}, {m.frame_id: m for m in shipped}
+            for msg, _ in messages:
+                mine = by_name.get(msg.name) or by_id.get(msg.frame_id)
+                if mine is not None and _layout(msg) != _layout(mine):
+                    raise DbcError(f"{self._path}: frame {msg.name} (0x{msg.frame_id:03X}) clashes with the service's "
+                                   f"own frame {mine.name} (0x{mine.frame_id:03X}), which it sends as the CAN matrix "
+                                   "defines it: rename or remove it from this DBC")
+            messages = [(m, p) for m, p in messages if m.name not in by_name] + [(m, Path(DEFAULT_DBC_PATH)) for m in shipped]
+            own = set(by_name)
+        elif service_frames:
+            own = {m.name for m in self._db.messages if NODE_THERMAL_EDGE in (m.senders or ())}
+        declared = dict(protection or {})
+        names = {m.name for m, _ in messages}
+        for name in declared:
+            if name not in names:
+                raise ProtectionError(name, f"{self._path}: no frame {name!r} to protect{_did_you_mean(name, names)}")
+            if name in own:
+                raise ProtectionError(name, f"{self._path}: {name} is the service's own frame: it keeps the CAN "
+                                            "matrix's protection")
         self._frames: dict[int, _FrameSpec] = {}
         self._by_name: dict[str, _FrameSpec] = {}
-        for msg in self._db.messages:
-            spec = _frame_spec(msg, self._path)
+        self._unsupported: dict[str, str] = {}
+        for msg, path in messages:
+            why = _unsupported(msg)
+            if why is not None:
+                if msg.name in declared:
+                    raise ProtectionError(msg.name, f"{path}: frame {msg.name} cannot be read: {why}")
+                self._unsupported[msg.name] = why
+                continue
+            spec = _frame_spec(msg, path, declared.get(msg.name))
             self._frames[spec.frame_id] = spec
             self._by_name[spec.name] = spec
         self.stats: FrameStats = stats if stats is not None else FrameStats()
@@ -313,6 +476,23 @@ class FrameCodec:
             raise KeyError(f"frame {ref} is not in {self._path.name}")
         return spec
 
+    def unsupported(self, frame: str) -> str | None:
+        """Why a frame of the DBC was left out (``"it has a 29-bit identifier ..."``), None if it was not."""
+        return self._unsupported.get(frame)
+
+    def protection(self, frame: FrameRef) -> FrameProtection | None:
+        """The protection a frame is checked with (``FrameProtection()``: none declared); None for a
+        frame with neither the CAN matrix's counter and CRC nor a declaration (KeyError if unknown)."""
+        return self._spec(frame).protection
+
+    def protection_problem(self, frame: FrameRef) -> str:
+        """Why a frame has no protection (:meth:`protection` None), empty if it has one."""
+        return self._spec(frame).undeclared
+
+    def message(self, frame: FrameRef) -> _DbcMessage:
+        """The cantools message of a frame (KeyError if unknown)."""
+        return self._spec(frame).message
+
     def frame_id(self, frame: FrameRef) -> int:
         """CAN identifier of a frame given by name or identifier (KeyError if unknown)."""
         return self._spec(frame).frame_id
@@ -338,7 +518,7 @@ class FrameCodec:
         return frozenset(fid for fid, s in self._frames.items() if node in s.senders)
 
     # ------------------------------------------------------------------ encode
-    def _raw_value(self, frame: _FrameSpec, spec: _SignalSpec, value: Any) -> int:
+    def _raw_value(self, frame: _FrameSpec, spec: _SignalSpec, value: Any) -> int | float:
         sig = spec.signal
         if isinstance(value, str) or type(value).__name__ == "NamedSignalValue":
             try:
@@ -360,6 +540,8 @@ class FrameCodec:
             return spec.no_value_raw
         if math.isinf(x):  # deliberate saturation (e.g. TE_TimeToLimit = inf), not counted
             return spec.raw_max if x > 0 else spec.raw_min
+        if sig.is_float:
+            return (x - spec.offset) / spec.scale
         raw = round((x - float(sig.offset)) / float(sig.scale))
         if raw < spec.raw_min or raw > spec.raw_max:
             with self._lock:
@@ -401,29 +583,37 @@ class FrameCodec:
         spec = self._spec(frame)
         if not isinstance(signals, Mapping):
             raise FrameEncodeError(f"{spec.name}: signals must be a mapping, got {type(signals).__name__}")
-        unknown = set(signals) - set(spec.by_name) - {spec.counter_name, spec.crc_name}
+        protection_names = {s.name for s in (spec.counter,) if s is not None}
+        if spec.protection is not None and spec.protection.crc is not None:
+            protection_names.add(spec.protection.crc)
+        unknown = set(signals) - set(spec.by_name) - protection_names
         if unknown:
             raise FrameEncodeError(f"{spec.name}: unknown signal(s) {', '.join(sorted(unknown))}")
         missing = [s.name for s in spec.signals if s.name not in signals]
         if missing:
             raise FrameEncodeError(f"{spec.name}: missing signal(s) {', '.join(missing)}")
-        raw = {s.name: self._raw_value(spec, s, signals[s.name]) for s in spec.signals}
-        raw[spec.crc_name] = 0
+        raw: dict[str, int | float] = {s.name: self._raw_value(spec, s, signals[s.name]) for s in spec.signals}
+        if spec.crc is not None:
+            raw[spec.protection.crc] = 0  # type: ignore[union-attr, index]  # a CRC is declared with it
         with self._lock:
-            if counter is None:
-                value = self._tx_counter.get(spec.frame_id, 0)
-            else:
-                if not 0 <= int(counter) <= 15:
-                    raise FrameEncodeError(f"{spec.name}: counter {counter} outside 0..15")
-                value = int(counter)
-            raw[spec.counter_name] = value
+            value = 0
+            if spec.counter is not None:
+                if counter is None:
+                    value = self._tx_counter.get(spec.frame_id, 0)
+                else:
+                    if not 0 <= int(counter) < spec.counter_mod:
+                        raise FrameEncodeError(f"{spec.name}: counter {counter} outside 0..{spec.counter_mod - 1}")
+                    value = int(counter)
+                raw[spec.counter.name] = value
             try:
                 data = bytearray(spec.message.encode(raw, scaling=False, strict=True))
             except Exception as exc:
                 raise FrameEncodeError(f"{spec.name}: {exc}") from exc
-            self._tx_counter[spec.frame_id] = (value + 1) % 16
+            if spec.counter is not None:
+                self._tx_counter[spec.frame_id] = (value + 1) % spec.counter_mod
             self.stats.sent[spec.name] += 1
-        data[7] = frame_crc(spec.frame_id, data)
+        if spec.crc is not None:
+            data[spec.crc_byte] = spec.crc(bytes(data))
         return bytes(data)
 
     # ------------------------------------------------------------------ decode
@@ -516,24 +706,43 @@ class FrameCodec:
             with self._lock:
                 self.stats.count_drop("dlc", spec.name)
             return None
-        if payload[7] != spec.crc(payload):
+        if spec.crc is not None and payload[spec.crc_byte] != spec.crc(bytes(payload)):
             with self._lock:
                 self.stats.count_drop("crc", spec.name)
             return None
-        word = int.from_bytes(payload, "little")
         values: dict[str, float] = {}
-        for s in spec.signals:
-            r = (word >> s.start) & s.mask
-            if s.sign_bit and r & s.sign_bit:
-                r -= s.sign_bit << 1
-            if r == s.no_value_raw:
-                values[s.name] = math.nan
-            elif s.identity:
-                values[s.name] = r
-            else:
-                values[s.name] = round(r * s.scale + s.offset, s.decimals)
-        counter = (word >> COUNTER_START_BIT) & 0xF
+        counter = -1
+        if spec.fast:
+            word = int.from_bytes(payload, "little")
+            for s in spec.signals:
+                r = (word >> s.start) & s.mask
+                if s.sign_bit and r & s.sign_bit:
+                    r -= s.sign_bit << 1
+                if r == s.no_value_raw:  # _physical, inlined: the receive path's hot loop
+                    values[s.name] = math.nan
+                elif s.identity:
+                    values[s.name] = r
+                else:
+                    values[s.name] = round(r * s.scale + s.offset, s.decimals)
+            if spec.counter is not None:
+                counter = (word >> spec.counter.start) & spec.counter.mask
+        else:  # big-endian or float signals: cantools unpacks the raw values
+            raws = spec.message.decode(bytes(payload), decode_choices=False, scaling=False)
+            assert isinstance(raws, dict)  # a plain frame (containers are left out at load)
+            for s in spec.signals:
+                raw = raws[s.name]
+                assert isinstance(raw, (int, float))  # raw values (no choices decoded)
+                values[s.name] = _physical(s, raw)
+            if spec.counter is not None:
+                raw = raws[spec.counter.name]
+                assert isinstance(raw, int)
+                counter = raw
         ts = float(timestamp) if timestamp is not None else None
+        if spec.counter is None:  # nothing to judge: repeats and losses cannot be seen
+            with self._lock:
+                self.stats.received[spec.name] += 1
+            return DecodedFrame(spec.name, spec.frame_id, values, counter, ts, 0, bool(is_rx))
+        mod = spec.counter_mod
         with self._lock:
             lost = 0
             last = self._rx_last.get(spec.frame_id)
@@ -543,7 +752,7 @@ class FrameCodec:
             owed: tuple[int, float, int] | None = None
             if last is not None:
                 last_counter, last_ts, pace, owed = last
-                step = (counter - last_counter) % 16
+                step = (counter - last_counter) % mod
                 cycle = spec.cycle_time_s
                 dt = ts - last_ts if ts is not None and last_ts is not None else None
                 if dt is not None and cycle and abs(dt) > self._resync_after * cycle:
@@ -554,11 +763,11 @@ class FrameCodec:
                     # wraps that bring it nearest to the time stamps, once these span most of a
                     # wrap and the sender is seen to keep its DBC cycle; else the step alone
                     n, wraps = step, 0
-                    if (self._wraps_from_time and dt is not None and cycle and dt / cycle >= _WRAP_FROM_PERIODS
+                    if (self._wraps_from_time and dt is not None and cycle and dt / cycle >= _WRAP_FROM_SHARE * mod
                             and _keeps_cycle(pace, cycle)):
                         # rounded down: a sender that is late (a busy host) makes dt longer, never
                         # shorter, than its frame periods; only early jitter needs the allowance
-                        wraps = 16 * max(0, math.floor((dt / cycle - step + _WRAP_EARLY_CYCLES) / 16))
+                        wraps = mod * max(0, math.floor((dt / cycle - step + _WRAP_EARLY_CYCLES) / mod))
                         n += wraps
                     if n == 0 and dt is not None and pace is not None and pace[1] >= _PACE_MIN_GAPS \
                             and dt > _REPEAT_WITHIN_PACES * max(pace[0], cycle or 0.0):
@@ -586,7 +795,7 @@ class FrameCodec:
                             self.stats.lost_by_frame[spec.name] -= owed_wraps
                             owed = None
                         else:
-                            owed = (owed_wraps, t_gap, periods) if periods < _CATCH_UP_PERIODS else None
+                            owed = (owed_wraps, t_gap, periods) if periods < _CATCH_UP_WRAPS * mod else None
                     if wraps and ts is not None:
                         owed = (wraps, ts, 0)
                     if dt is not None:  # signed: jitter that reorders time stamps averages out

@@ -1,25 +1,37 @@
-"""CRC-8/SAE-J1850 and the frame protection CRC of the thermal_edge CAN matrix.
+"""CRC-8/SAE-J1850 and the frame protection CRC of the thermal_edge CAN matrix; the CRC-8
+algorithms an inverter's own frames may use.
 
-The CRC of every frame (byte 7) is CRC-8/SAE-J1850 -- polynomial 0x1D, initial
+The CRC of every frame of the matrix (byte 7) is CRC-8/SAE-J1850 -- polynomial 0x1D, initial
 value 0xFF, final XOR 0xFF, no reflection -- computed over the data ID's low
 byte, then its high byte, then payload bytes 0-6. The data ID is
 ``0x1000 + CAN identifier``. The check value over ``b"123456789"`` is 0x4B.
+
+A frame of another matrix declares its CRC (:class:`~thermal_edge.bus.protection.FrameProtection`):
+one of :data:`CRC8_ALGORITHMS` (named as in the CRC catalogue), over the data ID's low byte then
+its high byte (if it has one), then every payload byte but the CRC's own, in order
+(:func:`protection_crc_function`).
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 __all__ = [
+    "CRC8_ALGORITHMS",
     "CRC8_SAE_J1850_CHECK",
     "CRC8_SAE_J1850_INIT",
     "CRC8_SAE_J1850_POLY",
     "CRC8_SAE_J1850_XOROUT",
     "DATA_ID_BASE",
+    "Crc8Algorithm",
+    "crc8",
     "crc8_sae_j1850",
     "data_id",
     "frame_crc",
     "frame_crc_function",
+    "protection_crc_function",
 ]
 
 #: Generator polynomial x^8 + x^4 + x^3 + x^2 + 1 (normal form, top bit implicit).
@@ -131,3 +143,92 @@ def frame_crc(can_id: int, payload: bytes | bytearray | memoryview) -> int:
         raise ValueError(f"payload has {len(payload)} bytes, at least 7 are protected")
     did = data_id(can_id)
     return crc8_sae_j1850(bytes((did & 0xFF, did >> 8)) + payload[:7])
+
+
+@dataclass(frozen=True)
+class Crc8Algorithm:
+    """A non-reflected CRC-8 of the CRC catalogue (polynomial in normal form, top bit implicit).
+
+    Attributes
+    ----------
+    poly, init, xorout : int
+        Polynomial, initial register value, final XOR.
+    check : int
+        The CRC of the ASCII bytes ``"123456789"`` (the catalogue's check value).
+    """
+
+    poly: int
+    init: int
+    xorout: int
+    check: int
+
+
+#: The CRC-8 algorithms a frame may declare, by the name edge.yaml gives (``crc_algorithm``).
+CRC8_ALGORITHMS: dict[str, Crc8Algorithm] = {
+    "crc8_sae_j1850": Crc8Algorithm(0x1D, 0xFF, 0xFF, 0x4B),  # this CAN matrix's; AUTOSAR's CRC8
+    "crc8_autosar": Crc8Algorithm(0x2F, 0xFF, 0xFF, 0xDF),  # AUTOSAR's CRC8H2F
+    "crc8_gsm_a": Crc8Algorithm(0x1D, 0x00, 0x00, 0x37),  # SAE J1850's polynomial, zero init and XOR
+    "crc8_smbus": Crc8Algorithm(0x07, 0x00, 0x00, 0xF4),
+}
+
+
+@functools.cache
+def _table_of(poly: int) -> tuple[int, ...]:
+    return _make_table(poly)
+
+
+def crc8(algorithm: str, data: bytes | bytearray | memoryview | Iterable[int]) -> int:
+    """CRC-8 of a byte sequence with one of :data:`CRC8_ALGORITHMS`.
+
+    Parameters
+    ----------
+    algorithm : str
+        A key of :data:`CRC8_ALGORITHMS`.
+    data : bytes-like or iterable of int
+        The bytes to protect, each 0..255.
+
+    Returns
+    -------
+    int
+        The CRC, 0..255.
+    """
+    alg = CRC8_ALGORITHMS[algorithm]
+    table = _table_of(alg.poly)
+    reg = alg.init
+    for byte in bytes(data):
+        reg = table[reg ^ byte]
+    return reg ^ alg.xorout
+
+
+def protection_crc_function(algorithm: str, data_id_value: int | None, crc_byte: int) -> Callable[[bytes], int]:
+    """The CRC of a frame as a function of its payload: over the data ID's low byte then its high
+    byte (none without a data ID), then every payload byte but ``crc_byte``, in order.
+
+    Parameters
+    ----------
+    algorithm : str
+        A key of :data:`CRC8_ALGORITHMS`.
+    data_id_value : int or None
+        The frame's 16-bit data ID, None for none.
+    crc_byte : int
+        Index of the payload byte that holds the CRC.
+
+    Returns
+    -------
+    callable(bytes) -> int
+    """
+    alg = CRC8_ALGORITHMS[algorithm]
+    table = _table_of(alg.poly)
+    seed = alg.init
+    if data_id_value is not None:
+        seed = table[table[seed ^ (data_id_value & 0xFF)] ^ ((data_id_value >> 8) & 0xFF)]
+    xorout = alg.xorout
+
+    def crc(p: bytes) -> int:
+        reg = seed
+        for i, byte in enumerate(p):
+            if i != crc_byte:
+                reg = table[reg ^ byte]
+        return reg ^ xorout
+
+    return crc

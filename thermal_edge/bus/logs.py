@@ -83,6 +83,23 @@ _CANDUMP_LINE = re.compile(
 )
 
 
+#: A line of plain ``candump can0`` output (no ``-L``): ``  can0  123   [8]  11 22 33 44 55 66 77 88``.
+_PLAIN_CANDUMP_LINE = re.compile(r"^\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d+\]")
+#: The header python-can writes first in its CSV logs (and reads by position).
+_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
+#: Latest time stamp taken as seconds since the epoch (the year 2286): a larger one is in ms or µs.
+MAX_EPOCH_S = 1e10
+#: Largest step back in time a log may take, s: frames of several interfaces merged by a logger
+#: can be a little out of order; more is a reversed, shuffled or concatenated log.
+MAX_BACKSTEP_S = 1.0
+#: Gaps between repeats of one frame that judge the time base: if the most frequent frame of the
+#: first of them repeats less often than every :data:`MAX_MEDIAN_GAP_S` (median), the log is
+#: stamped in ms (a drive's bus carries frames every few ms; 10 ms frames stamped in ms look 10 s
+#: apart).
+TIME_BASE_MESSAGES = 200
+MAX_MEDIAN_GAP_S = 5.0
+
+
 class LogFormatError(ThermalEdgeError, ValueError):
     """A file is not a CAN log of the format its suffix names (the message names file and line)."""
 
@@ -154,6 +171,9 @@ class _CheckedLines:
             if _CANDUMP_LINE.match(text):
                 yield text
                 continue
+            if _PLAIN_CANDUMP_LINE.match(text):  # no time stamps: nothing can be replayed from it
+                raise LogFormatError(f"{self._path}:{lineno}: candump output without time stamps ({text[:40]!r}); "
+                                     "record with candump -L (the log format: '(time) can0 123#...')")
             if self._strict:
                 raise LogFormatError(f"{self._path}:{lineno}: not a candump -L line: {text[:80]!r}")
             self._malformed.append((lineno, text[:200]))
@@ -190,15 +210,20 @@ def log_messages(path: str | Path, *, strict: bool = False,
 
     Raises
     ------
-    FileNotFoundError
-        No such file.
     LogFormatError
-        Unknown suffix, or a non-empty file with not one readable message.
+        No such file; unknown suffix, or a non-empty file with not one readable message; plain
+        ``candump`` output (no ``-L``); a CSV that is not python-can's; a BLF cut short; time
+        stamps not in seconds since the epoch (ms or µs), or running backwards by more than
+        :data:`MAX_BACKSTEP_S`.
     """
     p = Path(path)
     suffix = log_suffix(p)
+    if not p.exists():
+        raise LogFormatError(f"{p}: no such CAN log")
     if not p.is_file():
-        raise FileNotFoundError(f"{p}: no such CAN log")
+        raise LogFormatError(f"{p}: not a file")
+    if suffix == ".csv":
+        _check_csv_header(p)
     bad = malformed if malformed is not None else []
     n = 0
     try:
@@ -207,6 +232,10 @@ def log_messages(path: str | Path, *, strict: bool = False,
         raise
     except Exception as exc:  # python-can refusing the header of a file that is no such log
         raise LogFormatError(f"{p}: not a {suffix} log: {type(exc).__name__}: {exc}") from None
+    if suffix == ".blf" and p.suffix.lower() != ".gz":
+        _check_blf_size(p, reader)
+    times = _TimeBase(p)
+    pending: list[can.Message] = []
     with reader:
         it = iter(reader)
         while True:
@@ -225,10 +254,80 @@ def log_messages(path: str | Path, *, strict: bool = False,
                 break
             msg.timestamp = round(float(msg.timestamp), _TIME_DECIMALS)
             n += 1
-            yield msg
+            times.check(msg.timestamp, n, msg.arbitration_id)
+            if times.judged:
+                yield from pending
+                pending.clear()
+                yield msg
+            else:  # held back until the time base is judged: nothing is replayed from a log in ms
+                pending.append(msg)
+    times.finish()
+    yield from pending
     if n == 0 and bad:
         lineno, text = bad[0]
         raise LogFormatError(f"{p}:{lineno}: not a {suffix} log: {text[:80]!r}")
+
+
+def _check_csv_header(p: Path) -> None:
+    """python-can's CSV log starts with its header; any other CSV (a run CSV) is refused by name."""
+    opener: Any = gzip.open if p.suffix.lower() == ".gz" else open
+    try:
+        with opener(p, "rt", encoding="utf-8", errors="replace") as fh:
+            first = fh.readline().strip()
+    except OSError as exc:
+        raise LogFormatError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    if first and first.replace(" ", "") != _CSV_HEADER:
+        raise LogFormatError(f"{p}:1: not python-can's CSV log (its header is {_CSV_HEADER!r}, this file's "
+                             f"{first[:40]!r}); a run CSV is read without --format can")
+
+
+def _check_blf_size(p: Path, reader: Any) -> None:
+    """A BLF whose header states a larger file than there is was cut short (python-can's reader
+    stops at the cut without a word)."""
+    stated, actual = int(getattr(reader, "file_size", 0) or 0), p.stat().st_size
+    if stated > actual:
+        raise LogFormatError(f"{p}: cut short: its header says {stated} bytes ({getattr(reader, 'object_count', '?')} "
+                             f"objects), the file has {actual}; copy the whole file")
+
+
+class _TimeBase:
+    """Checks that a log's time stamps are seconds since the epoch, in order (module constants)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.last: float | None = None
+        self.last_by_id: dict[int, float] = {}
+        self.gaps: dict[int, list[float]] = {}
+        self.collected = 0
+        self.judged = False
+
+    def check(self, t: float, n: int, frame_id: int) -> None:
+        if t > MAX_EPOCH_S:
+            raise LogFormatError(f"{self.path}: message {n}: time stamp {t:.6g} is after the year 2286 as seconds "
+                                 "since the epoch; stamped in ms or µs? (a CAN log's times are in s)")
+        if self.last is not None and t < self.last - MAX_BACKSTEP_S:
+            raise LogFormatError(f"{self.path}: message {n}: time runs backwards by {self.last - t:.6g} s "
+                                 f"({self.last:.6f} -> {t:.6f}); a reversed, shuffled or concatenated log?")
+        self.last = t if self.last is None else max(self.last, t)
+        if self.judged:
+            return
+        before = self.last_by_id.get(frame_id)
+        self.last_by_id[frame_id] = t
+        if before is not None:
+            self.gaps.setdefault(frame_id, []).append(t - before)
+            self.collected += 1
+            if self.collected >= TIME_BASE_MESSAGES:
+                self.finish()
+
+    def finish(self) -> None:
+        """Judge the time base by the fastest frame's period (the median of its gaps)."""
+        if self.judged:
+            return
+        periods = [sorted(g)[len(g) // 2] for g in self.gaps.values() if len(g) >= 5]
+        if periods and min(periods) > MAX_MEDIAN_GAP_S:
+            raise LogFormatError(f"{self.path}: its most frequent frame repeats every {min(periods):.6g} s (median); "
+                                 "stamped in ms? (a CAN log's times are in s)")
+        self.judged = self.collected >= TIME_BASE_MESSAGES
 
 
 class FrameLogReader:

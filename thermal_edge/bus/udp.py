@@ -1,4 +1,4 @@
-"""``udp_multicast`` kept on this host: python-can's wire format on a loopback-only socket.
+"""``udp_multicast`` kept on this host: python-can's wire format, frames from this host only.
 
 python-can's ``UdpMulticastBus`` binds its socket to the wildcard address and joins the group
 on the default interface (eth0), so unicast datagrams to 127.0.0.1 or to the host's own
@@ -7,14 +7,24 @@ speaks the same datagrams (msgpack, see ``can.interfaces.udp_multicast.utils``) 
 
 - binds to the group address itself: a unicast datagram to any address of the host never
   reaches it;
-- joins the group on the loopback interface only and turns ``IP_MULTICAST_ALL`` off, so the
-  kernel hands it only multicasts that came in on ``lo``, i.e. from this host;
-- sends through ``lo`` with hop limit (TTL) 0 and multicast loop on: nothing leaves the host.
+- sends through the loopback interface with hop limit (TTL) 0 and multicast loop on: nothing it
+  sends leaves the host;
+- takes a datagram as a frame only if its **source address is one of this host's own
+  addresses**, on whichever local interface it arrives. A stock python-can ``udp_multicast`` bus
+  on this host (``python -m can.player``, a user's script, with ``hop_limit=0``) sends through
+  the default interface, and the kernel loops its datagrams back *on that interface* with that
+  interface's address as source: to hear it, an IPv4 group is joined on every interface that
+  has an IPv4 address, and the source check keeps everything else out. Linux drops a packet
+  from the network that claims one of this host's addresses as its source (a "martian source";
+  unless ``net.ipv4.conf.*.accept_local`` is set), so the source address tells a sender of this
+  host from one beyond it. A refused datagram is counted (:attr:`LocalUdpMulticastBus.refused`),
+  not raised. Interfaces that appear after the bus opened are not joined.
 
-Another interface is used only if the configuration names it (``multicast_interface``).
-IPv6 groups need a multicast route on that interface; Linux's ``lo`` has none by default,
-so the default group is python-can's IPv4 one and an IPv6 group on ``lo`` is refused at open
-with the reason.
+Another interface is sent through only if the configuration names it (``multicast_interface``).
+IPv6 groups are joined on that one interface only (the IPv4 check above is what the widening
+relies on). They need a multicast route on it; Linux's ``lo`` has none by default, so the
+default group is python-can's IPv4 one and an IPv6 group on ``lo`` is refused at open with the
+reason.
 """
 
 from __future__ import annotations
@@ -34,7 +44,7 @@ from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.utils import is_msgpack_installed, unpack_message
 
 __all__ = ["LOOPBACK_INTERFACE", "RECEIVE_QUEUE_BYTES", "LocalUdpMulticastBus", "UndecodableDatagram",
-           "enlarge_receive_queue"]
+           "enlarge_receive_queue", "is_own_address"]
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +57,13 @@ _IP_MULTICAST_ALL = 49
 _IPV6_MULTICAST_ALL = 29
 _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
+#: ``struct ip_mreqn``: group, local address (any), interface index
+_IP_MREQN = struct.Struct("@4s4si")
+#: How long a source address judged own or foreign is believed before it is looked up again, s
+#: (an address the host gains or loses, e.g. by DHCP, is seen within this long).
+_SOURCE_VERDICT_S = 10.0
+#: Least time between two warnings about refused datagrams, s (the count is exact).
+_REFUSED_WARN_INTERVAL_S = 10.0
 
 
 #: kernel receive queue asked for, bytes (a CAN frame takes about 1 kB of it on SocketCAN)
@@ -97,6 +114,7 @@ class _LoopbackMulticastSocket:
                 sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
                 sock.bind((self.group, self.port))
                 sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, group_bin + socket.inet_aton(if_addr))
+                self.joined = [interface, *_join_other_interfaces(sock, group_bin, interface)]
                 self._destination: tuple[Any, ...] = (self.group, self.port)
             else:
                 index = socket.if_nametoindex(interface)
@@ -106,6 +124,7 @@ class _LoopbackMulticastSocket:
                 sock.setsockopt(socket.IPPROTO_IPV6, _IPV6_MULTICAST_ALL, 0)
                 sock.bind((self.group, self.port, 0, index))
                 sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, group_bin + struct.pack("@I", index))
+                self.joined = [interface]
                 self._destination = (self.group, self.port, 0, index)
                 _check_route(family, self._destination, index, interface)
         except OSError as exc:
@@ -135,17 +154,19 @@ class _LoopbackMulticastSocket:
         if sent < len(data):
             raise can.CanTimeoutError("udp_multicast datagram sent in part")
 
-    def recv(self) -> tuple[bytes, float] | None:
-        """One datagram and its kernel receive time (s), None if none is waiting (never blocks)."""
+    def recv(self) -> tuple[bytes, float, str] | None:
+        """One datagram, its kernel receive time (s) and its source address; None if none is
+        waiting (never blocks)."""
         try:
-            data, ancillary, _flags, _addr = self.sock.recvmsg(MAX_DATAGRAM_BYTES, self._ancillary, socket.MSG_DONTWAIT)
+            data, ancillary, _flags, addr = self.sock.recvmsg(MAX_DATAGRAM_BYTES, self._ancillary, socket.MSG_DONTWAIT)
         except (BlockingIOError, InterruptedError):
             return None
+        source = str(addr[0]) if addr else ""
         for level, kind, payload in ancillary:
             if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(payload) >= _TIMESPEC.size:
                 sec, nsec = _TIMESPEC.unpack_from(payload)
-                return data, sec + nsec * 1e-9
-        return data, time.time()
+                return data, sec + nsec * 1e-9, source
+        return data, time.time(), source
 
     def close(self) -> None:
         try:
@@ -164,6 +185,76 @@ def _ipv4_of_interface(name: str) -> str:
         except OSError as exc:
             raise OSError(exc.errno, f"interface {name!r} has no IPv4 address") from None
     return socket.inet_ntoa(packed[20:24])
+
+
+def _join_other_interfaces(sock: socket.socket, group_bin: bytes, joined: str) -> list[str]:
+    """Join an IPv4 group on every interface but ``joined`` that takes it (up, multicast, an IPv4
+    address); the names of those joined. An interface that refuses is skipped: nothing of this
+    host sends through it."""
+    out = []
+    for index, name in socket.if_nameindex():
+        if name == joined:
+            continue
+        try:
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, _IP_MREQN.pack(group_bin, bytes(4), index))
+        except OSError as exc:
+            log.debug("udp_multicast: group not joined on %s: %s", name, exc)
+            continue
+        out.append(name)
+    return out
+
+
+def is_own_address(address: str) -> bool:
+    """True if ``address`` is one of this host's own IP addresses.
+
+    A loopback address always is. For any other, the kernel's route to it decides: the route to
+    an address of this host is a local one whose preferred source is the address itself, while a
+    route to any other host has one of this host's addresses as source (``connect`` on a UDP
+    socket looks the route up and sends nothing).
+
+    Parameters
+    ----------
+    address : str
+        IPv4 or IPv6 address (an IPv6 one may carry ``%scope``).
+
+    Returns
+    -------
+    bool
+    """
+    try:
+        ip = ipaddress.ip_address(address.split("%", 1)[0])
+    except ValueError:
+        return False
+    if ip.is_loopback:
+        return True
+    if ip.is_multicast or ip.is_unspecified:
+        return False
+    family = socket.AF_INET6 if ip.version == 6 else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as probe:
+            target = socket.getaddrinfo(address, 9, family, socket.SOCK_DGRAM, 0, socket.AI_NUMERICHOST)[0][4]
+            probe.connect(target)
+            source = probe.getsockname()[0]
+    except OSError:  # no route: not an address of this host
+        return False
+    return bool(ipaddress.ip_address(str(source).split("%", 1)[0]) == ip)
+
+
+class _SourceCheck:
+    """:func:`is_own_address` with its verdicts remembered for :data:`_SOURCE_VERDICT_S`."""
+
+    def __init__(self) -> None:
+        self._verdicts: dict[str, tuple[bool, float]] = {}
+
+    def __call__(self, address: str) -> bool:
+        now = time.monotonic()
+        verdict = self._verdicts.get(address)
+        if verdict is None or now - verdict[1] > _SOURCE_VERDICT_S:
+            if len(self._verdicts) > 1024:  # a flood of forged sources must not grow it without bound
+                self._verdicts.clear()
+            verdict = (is_own_address(address), now)
+            self._verdicts[address] = verdict
+        return verdict[0]
 
 
 def _check_route(family: int, destination: tuple[Any, ...], index: int, interface: str) -> None:
@@ -199,7 +290,9 @@ class LocalUdpMulticastBus(UdpMulticastBus):
     rcvbuf_bytes : int
         Kernel receive queue asked for, bytes (0 keeps the system default).
     multicast_interface : str
-        Interface the group is joined on and sent through (default ``lo``: this host only).
+        Interface sent through (default ``lo``: this host only). The group is joined on it and,
+        for an IPv4 group, on every other interface too, for the datagrams of this host's own
+        addresses that the kernel loops back there (all others are refused).
     **kwargs
         Passed to ``can.BusABC`` (``can_filters`` ...).
 
@@ -239,6 +332,10 @@ class LocalUdpMulticastBus(UdpMulticastBus):
         self.preserve_timestamps = bool(preserve_timestamps)
         self.multicast_interface = multicast_interface
         self.channel_info = f"udp_multicast {self._multicast.group}:{port} on {multicast_interface}"
+        #: Datagrams refused because their source is not an address of this host.
+        self.refused = 0
+        self._own_source = _SourceCheck()
+        self._refused_warned_at = -float("inf")
 
     @property
     def socket(self) -> socket.socket:
@@ -259,7 +356,15 @@ class LocalUdpMulticastBus(UdpMulticastBus):
             raise can.CanOperationError(f"udp_multicast receive failed: {exc}") from exc
         if got is None:
             return None, False
-        data, kernel_ts = got
+        data, kernel_ts, source = got
+        if not self._own_source(source):
+            self.refused += 1
+            now = time.monotonic()
+            if now - self._refused_warned_at >= _REFUSED_WARN_INTERVAL_S:
+                self._refused_warned_at = now
+                log.warning("udp_multicast: datagram from %s refused: not an address of this host (%d refused so far)",
+                            source or "an unknown source", self.refused)
+            return None, False
         try:
             msg = unpack_message(data, check=True)
         except Exception as exc:

@@ -3,19 +3,26 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
+from typing import Any
 
 from ..bench import jacobian, paper
 from ..text_table import table
 from .common import add_set_arg, check_sets, split_sets
+from .options import integer, number, positive_s
 from .progress import StageBars
+
+#: Hours of a simulated drive cycle a benchmark runs (a minute to a month).
+HOURS = number(1 / 60, 24 * 31, unit="h")
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
     j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
-    j.add_argument("--repeat", type=int, default=7, help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
-    j.add_argument("--hours", type=float, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
+    j.add_argument("--repeat", type=integer(1), default=7,
+                   help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
+    j.add_argument("--hours", type=HOURS, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
     j.add_argument("--json", action="store_true", help="print one JSON object")
     j.set_defaults(func=run_jacobian)
     pp = which.add_parser("paper", help="the paper's experiments E1-E3, every method side by side")
@@ -23,18 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(pp)
     pp.set_defaults(func=run_paper)
     sv = which.add_parser("service", help="edge service: tick p50/p99 (idle, adapting), max lossless frame rate, RSS over 24 h")
-    sv.add_argument("--hours", type=float, default=24.0, help="simulated hours of the memory run (default 24)")
-    sv.add_argument("--ticks", type=int, default=600, help="ticks timed per tick benchmark (default 600)")
-    sv.add_argument("--fps-seconds", type=float, default=4.0, help="seconds sent at each frame rate (default 4)")
+    sv.add_argument("--hours", type=HOURS, default=24.0, help="simulated hours of the memory run (default 24)")
+    sv.add_argument("--ticks", type=integer(1), default=600, help="ticks timed per tick benchmark (default 600)")
+    sv.add_argument("--fps-seconds", type=positive_s, default=4.0, help="seconds sent at each frame rate (default 4)")
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
-    fa = which.add_parser("faults", help="the service as a black box against 100+ fault cases: what it did, frames or "
-                                         "state lost, unsafe events")
-    fa.add_argument("--full", action="store_true", help="full lengths and counts (200 SIGKILLs, 60 s at 8,000 frames/s, "
-                                                        "a 7-day soak, ...); default: the short form")
-    fa.add_argument("--only", action="append", default=None, metavar="GROUP", help="run only this group (repeatable)")
-    fa.add_argument("--json", action="store_true", help="print one JSON object")
-    fa.set_defaults(func=run_faults)
     pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
                                              "thermal_edge, a PT100 derate, I2t and the oracle, per plant case")
     pr.add_argument("--case", action="append", default=None, metavar="NAME",
@@ -43,9 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
-    pr.add_argument("--duration", type=float, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
+    pr.add_argument("--duration", type=positive_s, default=None, help="simulated seconds of the cycle (default: all of it, 2 h)")
     pr.add_argument("--cycle", default=None, help="drive cycle: a file or a packaged name (default: the packaged protection)")
-    pr.add_argument("--jobs", type=int, default=2, help="cases run in parallel processes (default 2)")
+    pr.add_argument("--jobs", type=integer(1), default=2, help="cases run in parallel processes (default 2)")
     pr.add_argument("--json", action="store_true", help="print one JSON object")
     pr.set_defaults(func=run_protection)
     rl = which.add_parser("real", help="online adaptation on the real Paderborn machine from the published and wrong starts")
@@ -53,13 +53,28 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_data_dir_arg(rl)
     add_set_arg(rl)
     rl.set_defaults(func=run_real)
+    mg = which.add_parser("magnet", help="magnet temperature from the inverter's voltages on the real Paderborn machine: "
+                                         "commissioned on the first part, scored on the rest against the LPTN")
+    mg.add_argument("--fit-minutes", type=float, action="append", default=None, metavar="MIN",
+                    help="commissioning part, minutes from the start (repeatable; default 20, 30 and 60)")
+    mg.add_argument("--json", action="store_true", help="print one JSON object")
+    add_data_dir_arg(mg)
+    mg.set_defaults(func=run_magnet)
+    ad = which.add_parser("adaptation", help="online adaptation in closed loop on the simulated machine: the open-loop "
+                                             "error over time, promotions and refusals, final parameters, per scenario")
+    ad.add_argument("--scenario", action="append", default=None, metavar="NAME",
+                    help="run only this scenario (repeatable; default all: demo, quasi_steady, cold_light, varied, at_plant)")
+    ad.add_argument("--duration", type=float, default=None, help="simulated seconds per scenario (default 3 h)")
+    ad.add_argument("--json", action="store_true", help="print one JSON object")
+    ad.set_defaults(func=run_adaptation)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
-    fl.add_argument("--machines", type=int, default=MACHINES, help=f"simulated machines (default {MACHINES})")
-    fl.add_argument("--speed-machines", type=int, default=SPEED_MACHINES,
+    fl.add_argument("--machines", type=integer(1), default=MACHINES, help=f"simulated machines (default {MACHINES})")
+    fl.add_argument("--speed-machines", type=integer(1), default=SPEED_MACHINES,
                     help=f"machines timed with 1 and with 2 workers (default {SPEED_MACHINES})")
-    fl.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
+    fl.add_argument("--rounds", type=integer(1), default=ROUNDS,
+                    help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=run_fleet)
 
@@ -77,27 +92,27 @@ def run_jacobian(args: argparse.Namespace) -> int:
     with StageBars("bench jacobian") as progress:
         r = jacobian.run(repeat=args.repeat, hours=args.hours, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2))
+        print(json.dumps(asdict(r), indent=2))
         return 0
-    print(f"Jacobian of {r['nodes']} nodes x {r['params']} parameters over {r['samples']} samples "
-          f"({r['operating_points']} distinct speeds, inputs held on {r['held_steps']} of "
-          f"{r['samples'] - 1} steps); median of {args.repeat}")
+    print(f"Jacobian of {r.nodes} nodes x {r.params} parameters over {r.samples} samples "
+          f"({r.operating_points} distinct speeds, inputs held on {r.held_steps} of "
+          f"{r.samples - 1} steps); median of {args.repeat}")
     print(table(
         ["method", "wall s", "vs analytic"],
         [
-            ["analytic (sim + sensitivities)", r["analytic_s"], "1.0x"],
-            ["analytic, every step stepped", r["analytic_stepped_s"], f"{r['analytic_stepped_s'] / r['analytic_s']:.1f}x slower"],
-            ["forward differences (p+1 sims)", r["numerical_s"], f"{r['speedup']:.1f}x slower"],
-            ["one simulation", r["simulation_s"], f"{r['simulation_s'] / r['analytic_s']:.2f}x"],
-            ["arithmetic limit (BLAS rate)", r["arith_limit_s"], f"{r['arith_limit_s'] / r['analytic_s']:.2f}x"],
+            ["analytic (sim + sensitivities)", r.analytic_s, "1.0x"],
+            ["analytic, every step stepped", r.analytic_stepped_s, f"{r.analytic_stepped_s / r.analytic_s:.1f}x slower"],
+            ["forward differences (p+1 sims)", r.numerical_s, f"{r.speedup:.1f}x slower"],
+            ["one simulation", r.simulation_s, f"{r.simulation_s / r.analytic_s:.2f}x"],
+            ["arithmetic limit (BLAS rate)", r.arith_limit_s, f"{r.arith_limit_s / r.analytic_s:.2f}x"],
         ],
     ))
-    rounds = ", ".join(f"{x:.2f}" for x in r["speedup_rounds"])
-    print(f"speed-up, median of the rounds' ratios: {r['speedup']:.2f}x (rounds: {rounds}; ratio of the medians "
-          f"{r['speedup_of_medians']:.2f}x)")
-    print(f"max relative error vs central differences: {r['max_rel_err']:.2e}; "
-          f"closed form vs stepped: {r['closed_vs_stepped_max_rel']:.1e} of the largest entry")
-    v = r["varying"]
+    rounds = ", ".join(f"{x:.2f}" for x in r.speedup_rounds)
+    print(f"speed-up, median of the rounds' ratios: {r.speedup:.2f}x (rounds: {rounds}; ratio of the medians "
+          f"{r.speedup_of_medians:.2f}x)")
+    print(f"max relative error vs central differences: {r.max_rel_err:.2e}; "
+          f"closed form vs stepped: {r.closed_vs_stepped_max_rel:.1e} of the largest entry")
+    v = r.varying
     print(f"\nInputs that vary every sample: relative noise {v['noise']:g} on current and speed, speed binned to "
           f"{v['speed_bin_rpm']:g} rpm ({v['operating_points']} operating points; binning changes the sensor "
           f"temperatures by at most {v['binning_max_err_k']:.2g} K over the first hour); median of {args.repeat}")
@@ -122,10 +137,10 @@ def run_paper(args: argparse.Namespace) -> int:
     with StageBars("bench paper") as progress:
         r = paper.run(progress=progress, data_dir=args.data_dir)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    print(r["headline"] + "\n")
-    e1 = r["e1"]
+    print(r.headline + "\n")
+    e1 = r.e1
     print("E1 (paper Figs. 9-10): only R_e_hous adapted, 600 rpm / 70 Nm, 3 h")
     print(table(
         ["", "R_e_hous K/W", "error %", "RMS last hour K"],
@@ -138,7 +153,7 @@ def run_paper(args: argparse.Namespace) -> int:
         ],
     ))
     print("R_e_hous over time: " + ", ".join(f"{p['t_s'] / 60:.0f} min {p['r_e_hous']:.3f}" for p in e1["trajectory"]))
-    e2 = r["e2"]
+    e2 = r.e2
     print(f"\nE2 (paper Table 4/5, Fig. 11): 14 parameters, Table 4 start; held-out RMS at the start "
           f"{e2['heldout_rms_start_k']:.2f} K, with the plant's own parameters {e2['heldout_rms_true_params_k']:.3f} K")
     print(table(
@@ -148,8 +163,8 @@ def run_paper(args: argparse.Namespace) -> int:
     ))
     print(f"numerical SQP / analytic SQP (same data, same cap): {e2['numerical_over_analytic_whole_data']:.1f}x; "
           f"numerical / proposed online total: {e2['numerical_over_proposed']:.1f}x (paper 4.3x)")
-    print(f"one online adaptation step (14 parameters, 3 h window): median {r['adapt_step_median_s']:.3f} s")
-    e3 = r["e3"]
+    print(f"one online adaptation step (14 parameters, 3 h window): median {r.adapt_step_median_s:.3f} s")
+    e3 = r.e3
     print("\nE3 (Paderborn run_a, adapted from stator_winding + stator_yoke only)")
     if "skipped" in e3:
         print(f"skipped: {e3['skipped']}")
@@ -168,23 +183,23 @@ def run_service(args: argparse.Namespace) -> int:
     with StageBars("bench service") as progress:
         r = service.run(hours=args.hours, ticks=args.ticks, fps_seconds=args.fps_seconds, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    t = r["targets"]
-    print(f"edge service, pm10kw (39 nodes), 1 Hz tick; {r['ticks_measured']} ticks timed per row")
+    t = r.targets
+    print(f"edge service, pm10kw (39 nodes), 1 Hz tick; {r.ticks_measured} ticks timed per row")
     print(table(
         ["measure", "value", "target"],
         [
-            ["tick p50, adapter idle (ms)", r["tick_p50_ms"], ""],
-            ["tick p99, adapter idle (ms)", r["tick_p99_ms"], ""],
-            ["tick p50, adaptation running (ms)", r["tick_p50_adapting_ms"], ""],
-            ["tick p99, adaptation running (ms)", r["tick_p99_adapting_ms"], f"<= {t['tick_p99_adapting_ms']:g}"],
-            ["max lossless inbound frames/s (udp_multicast)", r["max_lossless_fps"], f">= {t['max_lossless_fps']}"],
-            [f"RSS after {r['memory_run_hours']:g} h accelerated (MB)", r["rss_mb"], f"<= {t['rss_mb']:g}, flat"],
-            ["RSS growth after the first hour (MB)", r["rss_growth_mb"], "~0"],
+            ["tick p50, adapter idle (ms)", r.tick_p50_ms, ""],
+            ["tick p99, adapter idle (ms)", r.tick_p99_ms, ""],
+            ["tick p50, adaptation running (ms)", r.tick_p50_adapting_ms, ""],
+            ["tick p99, adaptation running (ms)", r.tick_p99_adapting_ms, f"<= {t['tick_p99_adapting_ms']:g}"],
+            ["max lossless inbound frames/s (udp_multicast)", r.max_lossless_fps, f">= {t['max_lossless_fps']}"],
+            [f"RSS after {r.memory_run_hours:g} h accelerated (MB)", r.rss_mb, f"<= {t['rss_mb']:g}, flat"],
+            ["RSS growth after the first hour (MB)", r.rss_growth_mb, "~0"],
         ],
     ))
-    print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r["rss_samples"]))
+    print("RSS by simulated hour: " + ", ".join(f"{h:g} h {m:.0f} MB" for h, m in r.rss_samples))
     return 0
 
 
@@ -200,7 +215,7 @@ def run_fleet(args: argparse.Namespace) -> int:
         print(f"thermal-edge bench fleet: error: {exc}")
         return 2
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
     print(fleet.format_result(r))
     return 0
@@ -225,15 +240,15 @@ def run_real(args: argparse.Namespace) -> int:
     with StageBars("bench real") as progress:
         r = real.run(data_dir, sets=sets, progress=progress)
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    if "skipped" in r:
-        print(f"bench real skipped: {r['skipped']}")
+    if r.skipped is not None:
+        print(f"bench real skipped: {r.skipped}")
         return 0
-    print(f"Paderborn {r['run']}, adapted from {' + '.join(r['adapted_from'])} only; MSE K² per target "
+    print(f"Paderborn {r.run}, adapted from {' + '.join(r.adapted_from)} only; MSE K² per target "
           "(trace: each period predicted open loop from the observer's state; fixed: the same, parameters never "
           "changed; observer: live estimate; coverage: readings inside its 95 % band; EKF: its final parameters open loop)")
-    for name, st in r["starts"].items():
+    for name, st in r.starts.items():
         f = ", ".join(f"{k} x{v:g}" for k, v in st["factors"].items()) or "published parameters"
         print(f"\n{name} ({f}): {st['promoted']} challengers promoted; adaptation step median "
               f"{st['adapt_step_median_s']:.3f} s")
@@ -249,6 +264,94 @@ def run_real(args: argparse.Namespace) -> int:
         print("final vs published (± 1σ the run allows): "
               + ", ".join(f"{k} {v:+.1f} % (±{sd[k]:.1f} %)" for k, v in st["final_vs_published_pct"].items())
               + "; EKF: " + ", ".join(f"{k} {v:+.1f} %" for k, v in st["ekf_params_vs_published_pct"].items()))
+    return 0
+
+
+def run_magnet(args: argparse.Namespace) -> int:
+    from ..bench import magnet
+    from ..errors import UsageError
+
+    minutes = tuple(args.fit_minutes or magnet.FIT_MINUTES)
+    bad = [m for m in minutes if not 5.0 <= m <= 100.0]
+    if bad:
+        raise UsageError(f"--fit-minutes {bad[0]:g}: between 5 and 100 (the run is 125 min; the rest is scored)")
+    with StageBars("bench magnet") as progress:
+        r = magnet.run(args.data_dir, fit_minutes=minutes, progress=progress)
+    if args.json:
+        print(json.dumps(r, indent=2, default=float))
+        return 0
+    if "skipped" in r:
+        print(f"bench magnet skipped: {r['skipped']}")
+        return 0
+    parts: dict[str, Any] = r["parts"]  # type: ignore[assignment]
+    print(f"Paderborn {r['run']}: magnet temperature from the inverter's voltages (p = {r['pole_pairs']}), "
+          "commissioned on the first MIN minutes, scored on the rest; observer: the LPTN with "
+          "stator_winding + stator_yoke; published LPTN open loop on the whole run: "
+          f"{r['published_lptn_mse']:g} K2")
+    print(table(
+        ["commissioned on", "informative", "flux RMS K", "flux cover", "LPTN open loop MSE", "observer MSE",
+         "fused MSE", "observer cover", "fused cover", "used", "refused"],
+        [[f"{m} min", f"{p['informative_share'] * 100:.0f} %", p["flux_rms_k"], p["flux_coverage"], p["open_loop_mse"],
+          p["observer_mse"], p["fused_mse"], p["observer_coverage"], p["fused_coverage"], p["used"], p["refused"]]
+         for m, p in parts.items()],
+    ))
+    print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
+    print(table(
+        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused"],
+        [[f"{m} min", p["wrong"]["flux_rms_k"], p["wrong"]["fused_mse"], p["wrong"]["fused_coverage"], p["wrong"]["used"],
+          p["wrong"]["refused"]] for m, p in parts.items()],
+    ))
+    for m, p in parts.items():
+        sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
+        st = ", ".join(f"{s} {v['observer']:.2f} -> {v['fused']:.2f}" for s, v in p["stator_mse"].items())
+        print(f"{m} min: tempco {p['tempco_pct_per_k']:+.3f} %/K, psi20 {p['params']['psi20']:.4f} Wb, "
+              f"Ld0 {p['params']['ld0'] * 1e3:.3f} mH, R20 {p['params']['r20'] * 1e3:.1f} mOhm, "
+              f"V_err {p['params']['v_err']:+.2f} V; sigma by current at {p['speed_min_rpm']:.0f} rpm and up: {sig}; "
+              f"error correlation {p['tau_s']:.0f} s; magnet MSE where informative: observer "
+              f"{p['observer_mse_informative']:.2f}, fused {p['fused_mse_informative']:.2f}; stator MSE observer -> fused: {st}")
+    return 0
+
+
+def run_adaptation(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from ..bench import adaptation as ab
+    from ..errors import UsageError
+
+    unknown = [n for n in args.scenario or [] if n not in ab.SCENARIOS]
+    if unknown:
+        raise UsageError(f"--scenario {unknown[0]}: unknown (known: {', '.join(ab.SCENARIOS)})")
+    if args.duration is not None and not args.duration >= 600:
+        raise UsageError(f"--duration {args.duration:g}: at least 600 s (the adapter needs history to decide on)")
+    chosen = [ab.SCENARIOS[n] for n in args.scenario] if args.scenario else list(ab.SCENARIOS.values())
+    if args.duration is not None:
+        chosen = [dataclasses.replace(s, duration_s=float(args.duration)) for s in chosen]
+    with StageBars("bench adaptation") as progress:
+        r = ab.run(chosen, progress=lambda name, done, total: progress(f"scenario {name}", done, total, "s"))
+    if args.json:
+        out = {"wall_s": r.wall_s, "passed": r.passed, "scenarios": {
+            k: {**dataclasses.asdict(v), "identifiable": v.identifiable, "param_errors_pct": v.param_errors_pct,
+                "passed": v.passed} for k, v in r.scenarios.items()}}
+        print(json.dumps(out, indent=2, default=float))
+        return 0
+    print("online adaptation in closed loop on the simulated machine (config/edge.yaml, frame clock); the plant is "
+          "the model file's nominal parameters")
+    for sc in r.scenarios.values():
+        print(f"  {sc.name}: {sc.doc}")
+    print()
+    print(table(ab.SUMMARY_HEADERS, ab.summary_rows(r)))
+    print(f"\nopen-loop prediction error (TE_PredErrRms, K) over time; pass: final <= {ab.WITHIN_K:g} K, identifiable "
+          f"parameters (1σ <= {100 * ab.IDENTIFIABLE_REL_STD:g} %) within {100 * ab.PARAM_TOLERANCE:g} %, no promotion that "
+          "makes the next hour worse; at the plant's parameters: no promotion")
+    print(table(*ab.error_rows(r)))
+    for sc in r.scenarios.values():
+        print(f"\n{sc.name}: {sc.decisions} decisions: " + ", ".join(f"{k} {v}" for k, v in sorted(sc.outcomes.items())))
+        if sc.promotions:
+            print(table(ab.PROMOTION_HEADERS, ab.promotion_rows(sc)))
+        for t_s, why in sc.refusals:
+            print(f"  {ab.hms(t_s)} {why}")
+        print(table(ab.PARAMETER_HEADERS, ab.parameter_rows(sc)))
+    print(f"\n{'every scenario passes' if r.passed else 'NOT every scenario passes'} ({r.wall_s:.0f} s)")
     return 0
 
 
@@ -274,26 +377,16 @@ def run_protection(args: argparse.Namespace) -> int:
         print(f"thermal-edge bench protection: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(r, indent=2, default=float))
+        print(json.dumps(asdict(r), indent=2, default=float))
         return 0
-    dur = "" if r["duration_s"] is None else f" (first {r['duration_s']:g} s)"
-    mx = ", ".join(f"{k} {v:g} degC" for k, v in r["max_c"].items())
-    print(f"closed loop on the simulated machine, cycle {Path(r['cycle']).stem}{dur}; "
-          f"reaction time {r['reaction_time_s']:g} s; max: {mx}")
+    dur = "" if r.duration_s is None else f" (first {r.duration_s:g} s)"
+    mx = ", ".join(f"{k} {v:g} degC" for k, v in r.max_c.items())
+    print(f"closed loop on the simulated machine, cycle {Path(r.cycle).stem}{dur}; "
+          f"reaction time {r.reaction_time_s:g} s; max: {mx}")
     print(table(protection.TABLE_HEADERS, protection.table_rows(r)))
-    print(f"thermal_edge: min share of the oracle {r['min_oracle_share_pct']:.1f} % (target >= 90), "
-          f"seconds over max {r['total_seconds_over_max']:g} (target 0)")
+    print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
+          f"seconds over max {r.total_seconds_over_max:g} (target 0)")
     for line in protection.verdicts(r):
         print(line)
     return 0
 
-
-def run_faults(args: argparse.Namespace) -> int:
-    from ..bench import faults
-
-    r = faults.run(full=args.full, only=args.only)
-    if args.json:
-        print(json.dumps(r, indent=2, default=float))
-        return 0
-    print(faults.report_table(r))
-    return 0

@@ -1,5 +1,8 @@
 """``thermal-edge calibrate``: fit a model's parameters offline to recorded runs (global search + SQP).
 
+A CAN log (``--format can``: candump ``.log``, ``.asc``, ``.blf``, ``.trc``, ``.csv``, ``.mf4``, by
+suffix) is read through the service's own pipeline with the service configuration ``--config``: one
+run per stretch of traffic, one sample per tick, as the service on the drive saw it.
 Every run is checked and summarised first (sample period, duration, columns used and ignored,
 ranges). The global search (differential evolution) stops at ``--generations``, when its
 population has converged, when the best objective has not improved for ``--patience``
@@ -8,33 +11,33 @@ generations, or at ``--max-time``; SQP then polishes the best point within the t
 from __future__ import annotations
 
 import argparse
-import sys
 
 import numpy as np
 
 from ..data import FORMATS
 from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from ..text_table import table
-from .common import add_model_args, add_set_arg, model_from_args, parse_sets
+from .common import add_model_args, add_set_arg, check_param_names, model_from_args, parse_sets
+from .options import integer, names, output_file, positive_s
 from .progress import bar
-from .runs import read_checked
+from .runs import add_can_args, read_checked_runs, require_finite_prediction
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("calibrate", help="offline fit of the model to recorded runs", description=__doc__)
     add_model_args(p)
-    p.add_argument("--run", required=True, nargs="+", help="recorded run(s)")
-    p.add_argument("--format", default="csv", choices=FORMATS)
-    p.add_argument("--params", help="comma-separated parameters to fit (default: the adaptable ones)")
-    p.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
-    p.add_argument("--out", required=True, help="calibrated model file to write")
-    p.add_argument("--decimate", type=int, default=1, help="samples per optimiser step")
-    p.add_argument("--generations", type=int, default=30, help="differential-evolution generations, at most")
-    p.add_argument("--popsize", type=int, default=10)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--patience", type=int, default=PATIENCE,
+    p.add_argument("--run", required=True, nargs="+", help="recorded run(s), or CAN log(s) with --format can")
+    add_can_args(p, FORMATS)
+    p.add_argument("--params", type=names, help="comma-separated parameters to fit (default: the adaptable ones)")
+    p.add_argument("--sensors", type=names, help="comma-separated sensors to fit to (default: all in the runs)")
+    p.add_argument("--out", required=True, type=output_file, help="calibrated model file to write")
+    p.add_argument("--decimate", type=integer(1), default=1, help="samples per optimiser step")
+    p.add_argument("--generations", type=integer(1), default=30, help="differential-evolution generations, at most")
+    p.add_argument("--popsize", type=integer(1), default=10, help="population multiplier (default 10)")
+    p.add_argument("--seed", type=integer(0), default=0)
+    p.add_argument("--patience", type=integer(1), default=PATIENCE,
                    help=f"stop the global search after this many generations without improvement (default {PATIENCE})")
-    p.add_argument("--max-time", type=float, metavar="SECONDS", help="wall-time budget of the fit, s (default: none)")
+    p.add_argument("--max-time", type=positive_s, metavar="SECONDS", help="wall-time budget of the fit, s (default: none)")
     add_set_arg(p)
     p.set_defaults(func=run)
 
@@ -44,18 +47,16 @@ def _names(arg: str | None) -> list[str] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.max_time is not None and not args.max_time > 0:
-        print(f"thermal-edge calibrate: error: --max-time {args.max_time:g}: must be a positive number of seconds",
-              file=sys.stderr)
-        return 2
     model = model_from_args(args)
+    check_param_names(model, _names(args.params))
     sets = parse_sets(model, args.set)  # the starting values; written to --out with the fitted ones
     model = model.with_parameters(sets) if sets else model
     runs = []
     for path in args.run:
-        rec, summary = read_checked(path, args.format, model, _names(args.sensors))
-        print(summary, flush=True)
-        runs.append(rec)
+        for rec, summary in read_checked_runs(path, args.format, model, _names(args.sensors), args.config):
+            require_finite_prediction(model, rec)  # a law that overflows on the run, named before the search
+            print(summary, flush=True)
+            runs.append(rec)
     with bar(args.generations, "calibrate: global search", "generation") as pb:
         def progress(done: int, total: int, best: float) -> None:
             pb.update(1)
@@ -68,8 +69,8 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = model.bounds()
     idx = model.parameter_index(res.names)
     unc = res.uncertainty
-    rows = [[n, res.start[i], res.values[i], lo[idx[i]], hi[idx[i]], 100 * unc.rel_std[i], "yes" if unc.identifiable[i] else "no"]
-            for i, n in enumerate(res.names)]
+    rows = [[n, res.start[i], res.values[i], lo[idx[i]], hi[idx[i]], 100 * unc.rel_std[i],
+             "yes" if unc.identifiable[i] else "not identifiable"] for i, n in enumerate(res.names)]
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
     print(f"objective (mean squared error, K²): start {res.objective_start:.4g}, after global search "
           f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 
+from ..errors import UsageError
 from ..lptn import Model, ModelError, ParameterError, load_model
+from .options import positive_s
 
 
 def add_model_args(p: argparse.ArgumentParser, required: bool = True, discretisation: bool = False) -> None:
@@ -13,7 +15,7 @@ def add_model_args(p: argparse.ArgumentParser, required: bool = True, discretisa
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
     if discretisation:
         p.add_argument("--method", choices=("zoh", "euler"), help="discretisation (default: the model's)")
-        p.add_argument("--max-substep", type=float, help="Euler sub-step limit, s (default: the model's)")
+        p.add_argument("--max-substep", type=positive_s, help="Euler sub-step limit, s (default: the model's)")
 
 
 def model_from_args(args: argparse.Namespace) -> Model:
@@ -62,3 +64,17 @@ def model_with_sets(model: Model, items: list[str]) -> Model:
     """The model with ``--set`` values as its nominal values (and the adapter's prior)."""
     sets = parse_sets(model, items)
     return model.with_parameters(sets) if sets else model
+
+
+def check_param_names(model: Model, names: list[str] | None, option: str = "--params") -> list[str] | None:
+    """``--params`` checked against the model: every name one of its parameters (a :class:`UsageError`
+    naming the option, the unknown name and the closest known one otherwise)."""
+    import difflib
+
+    known = [p.name for p in model.parameters]
+    for n in names or ():
+        if n not in known:
+            close = difflib.get_close_matches(n, known, n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]!r}?" if close else f" (has: {', '.join(known)})"
+            raise UsageError(f"{option} {n!r}: model {model.name} has no such parameter{hint}")
+    return names

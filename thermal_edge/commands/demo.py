@@ -15,12 +15,14 @@ import logging
 import math
 import os
 import shutil
-import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from ..shipped import config_path
+from ..yamlfile import read_document
+from .options import frame_period_s, integer, ip_address, number, output_dir, output_file, positive_s
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -29,39 +31,57 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p.add_argument("--config", default=str(config_path("edge.yaml")),
                    help="service configuration (default: the packaged example, `thermal-edge config example`)")
     p.add_argument("--cycle", default="overload", help="drive cycle: a file or a packaged name (default overload)")
-    p.add_argument("--speed", type=float, default=30.0,
+    p.add_argument("--speed", type=number(0, 10000, lo_open=True), default=30.0,
                    help="simulated seconds per wall second (default 30: the 3 h overload cycle in 6 min)")
-    p.add_argument("--duration", type=float, default=None, help="simulated seconds (default: the whole cycle)")
-    p.add_argument("--current-period", type=float, default=0.05,
+    p.add_argument("--duration", type=positive_s, default=None, help="simulated seconds (default: the whole cycle)")
+    p.add_argument("--current-period", type=frame_period_s, default=0.05,
                    help="INV_Currents/INV_Mechanics period in simulated s (default 0.05; the DBC's 0.01 at low speed)")
-    p.add_argument("--temperature-period", type=float, default=0.1, help="INV_*Temps period in simulated s")
+    p.add_argument("--temperature-period", type=frame_period_s, default=0.1, help="INV_*Temps period in simulated s")
     p.add_argument("--no-table4", dest="table4", action="store_false",
                    help="start the service's model at the plant's parameters (nothing to adapt)")
     p.add_argument("--open-loop", action="store_true", help="the machine ignores TE_Limits (to compare)")
-    p.add_argument("--metrics-address", default="127.0.0.1")
-    p.add_argument("--metrics-port", type=int, default=9108)
-    p.add_argument("--state-dir", default=None,
+    p.add_argument("--metrics-address", type=ip_address, default="127.0.0.1", help="address the metrics listen on")
+    p.add_argument("--metrics-port", type=integer(0, 65535), default=9108, help="metrics port (0: any free one)")
+    p.add_argument("--state-dir", type=output_dir, default=None,
                    help="state directory, kept (default: a fresh temporary one, removed when the demo ends)")
-    p.add_argument("--record", default=None, help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, .mf4, .csv)")
+    p.add_argument("--record", type=output_file, default=None,
+                   help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, "
+                        ".mf4, .csv)")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
 
 
+def learned(engine: Any, plant: Any) -> str:
+    """What the adaptation learned: the final open-loop prediction error, promotions and refusals,
+    and every adapted parameter against the plant's value."""
+    from ..service import adapt_phrase
+
+    out = engine.last
+    err = f"{out.pred_err_rms:.2f} K" if out is not None and math.isfinite(out.pred_err_rms) else "--"
+    ad = engine.adaptation
+    decisions = ad.decisions
+    dropped = sum(1 for d in decisions if d.get("verdict") == "dropped")
+    plant_values = dict(zip(plant.parameter_names, plant.nominal()))
+    start = dict(zip(engine.model.parameter_names, engine.model.nominal()))
+    moved = [f"{k} {v:.4g} ({100 * (v / plant_values[k] - 1):+.1f} % vs plant)"
+             for k, v in ad.values().items() if k in plant_values and (v != start.get(k) or v != plant_values[k])]
+    refusal = ad.last_refusal
+    last = f"; last refusal: {refusal[1]}" if refusal is not None else ""
+    return (f"model: open-loop prediction error {err} at the end; {ad.counts.accepted} promoted, {dropped} refused{last}; "
+            f"now {adapt_phrase(ad.status, refusal[1] if refusal else '')}\n"
+            f"parameters: {', '.join(moved) if moved else 'as the plant'}")
+
+
 def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    import yaml
-
     from ..config import ConfigError, config_from_mapping
     from ..lptn import load_model
     from ..service import EdgeService, status_line
     from ..sim.inverter import EmulatorConfig, InverterEmulator, table4_parameters
 
     cfg_path = Path(args.config)
-    try:
-        raw = yaml.safe_load(cfg_path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        print(f"thermal-edge demo: error: {cfg_path}: {exc}", file=sys.stderr)
-        return 2
+    raw = read_document(cfg_path, ConfigError)
+    config_from_mapping(raw, cfg_path)  # the file as it is, each key checked and named, before the demo's changes
     channel = f"thermal-edge-demo-{os.getpid()}"
     own_dir = None if args.state_dir else tempfile.mkdtemp(prefix="thermal-edge-demo-")  # removed at the end
     state_dir = args.state_dir or own_dir
@@ -73,17 +93,14 @@ def run(args: argparse.Namespace) -> int:
     raw["state"] = {**(raw.get("state") or {}), "dir": state_dir}
     slow = max(args.current_period, args.temperature_period)
     raw["timeouts"] = {k: max(float(v), 5 * slow) for k, v in (raw.get("timeouts") or {}).items()}
-    raw["recording"] = {"candump": args.record} if args.record else {}
-    try:
-        config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
-        plant_model = load_model(config.model.path)
-        if args.table4:
-            raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
-            config = config_from_mapping(raw, cfg_path)
-        service = EdgeService(config)
-    except (ConfigError, KeyError, ValueError) as exc:
-        print(f"thermal-edge demo: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+    # a relative --record is relative to where the user is, not to the configuration file
+    raw["recording"] = {"candump": str(Path(args.record).resolve())} if args.record else {}
+    config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
+    plant_model = load_model(config.model.path)
+    if args.table4:
+        raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
+        config = config_from_mapping(raw, cfg_path)
+    service = EdgeService(config)
     emu_cfg = EmulatorConfig(model_path=plant_model.path or config_path("machines", "pm10kw.yaml"), cycle_path=args.cycle,
                              duration_s=args.duration, speed=args.speed, current_period_s=args.current_period,
                              temperature_period_s=args.temperature_period, plant_dt_s=max(0.1, args.current_period),
@@ -130,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
         peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in summary.true_max_c.items())
         print(f"done: {summary.sim_seconds / 3600:.2f} h simulated in {summary.wall_seconds:.0f} s; plant peaks: {peaks}; "
               f"adaptations accepted {service.engine.adapt_accepted}/{service.engine.adapt_runs}")
+        print(learned(service.engine, plant_model))
         return 0
 
     try:

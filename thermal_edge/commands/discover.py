@@ -6,6 +6,8 @@ against the operating conditions, scores every catalogue effect on every applica
 repeats until no candidate improves the held-out gap significantly. With ``--out DIR`` it writes
 ``DIR/report.md`` (Markdown with PNG figures; needs matplotlib, the ``report`` extra) and the
 augmented model ``DIR/<model>+<effect>.yaml``. The effect catalogue: ``--list-effects``.
+A CAN log (``--format can``, any format python-can reads) is read through the service's own
+pipeline with the service configuration ``--config``: one sample per tick, as the service saw it.
 """
 from __future__ import annotations
 
@@ -15,10 +17,11 @@ import shlex
 import sys
 from pathlib import Path
 
-from ..data import FORMATS
+from ..data import FORMATS, RunError
 from ..errors import UsageError
 from .common import add_set_arg, parse_sets
-from .runs import read_checked, require_finite_prediction
+from .options import integer, kelvin, names, number, output_dir, output_file, positive_s
+from .runs import CAN_FORMAT, add_can_args, read_checked_runs, require_finite_prediction
 
 
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -26,19 +29,20 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, help="machine model: a file, or the name of a packaged one (pm10kw, paderborn4)")
     p.add_argument("--data-dir", help="directory of the model's table files (overrides the model's data_dir)")
-    p.add_argument("--run", help="recorded run (CSV)")
-    p.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
-    p.add_argument("--sensors", help="comma-separated sensors to use (default: every model sensor the run has)")
-    p.add_argument("--out", help="directory for report.md, its figures and the augmented model")
-    p.add_argument("--model-out", help="path of the augmented model (default DIR/<model>+<effect>.yaml)")
+    p.add_argument("--run", help="recorded run (CSV), or a CAN log with --format can")
+    add_can_args(p, FORMATS)
+    p.add_argument("--sensors", type=names, help="comma-separated sensors to use (default: every model sensor the run has)")
+    p.add_argument("--out", type=output_dir, help="directory for report.md, its figures and the augmented model")
+    p.add_argument("--model-out", type=output_file, help="path of the augmented model (default DIR/<model>+<effect>.yaml)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--effects", help="comma-separated catalogue effects to consider (default: all)")
-    p.add_argument("--max-rounds", type=int, default=3, help="effects added at most (default 3)")
-    p.add_argument("--min-improvement", type=float, default=0.10,
+    p.add_argument("--effects", type=names, help="comma-separated catalogue effects to consider (default: all)")
+    p.add_argument("--max-rounds", type=integer(1), default=3, help="effects added at most (default 3)")
+    p.add_argument("--min-improvement", type=number(0, 1, hi_open=True), default=0.10,
                    help="relative held-out gap reduction a candidate must reach (default 0.10)")
-    p.add_argument("--min-gain", type=float, default=0.05, help="and absolute reduction, K (default 0.05)")
-    p.add_argument("--train-fraction", type=float, default=2 / 3, help="fitted share of the run (default 2/3)")
-    p.add_argument("--fit-step", type=float, default=5.0, help="step of the decimated fitting window, s (default 5)")
+    p.add_argument("--min-gain", type=kelvin, default=0.05, help="and absolute reduction, K (default 0.05)")
+    p.add_argument("--train-fraction", type=number(0, 1, lo_open=True, hi_open=True), default=2 / 3,
+                   help="fitted share of the run (default 2/3)")
+    p.add_argument("--fit-step", type=positive_s, default=5.0, help="step of the decimated fitting window, s (default 5)")
     p.add_argument("--no-report", action="store_true", help="with --out: write the model only, no report")
     p.add_argument("--list-effects", action="store_true", help="list the effect catalogue and the model's targets")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -70,7 +74,7 @@ def _run_header(path: str) -> list[str]:
     """The comment lines at the top of a run CSV (how it was made), as shell comments."""
     out = []
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8", errors="replace") as fh:  # a Windows-1252 run too
             for line in fh:
                 if not line.startswith("#"):
                     break
@@ -94,7 +98,11 @@ def run(args: argparse.Namespace) -> int:
         raw["parameters"][k]["value"] = v
     sensors = [s.strip() for s in args.sensors.split(",") if s.strip()] if args.sensors else None
     model = build(raw)
-    rec, summary = read_checked(args.run, args.format, model, sensors)
+    got = read_checked_runs(args.run, args.format, model, sensors, args.config)
+    if len(got) > 1:
+        raise RunError(f"{args.run}: {len(got)} runs (stretches of traffic between silences), discover takes one: "
+                       "write them to run CSVs with thermal-edge export and give it one")
+    ((rec, summary),) = got
     require_finite_prediction(model, rec)
     if not args.json:
         print(summary, flush=True)
@@ -127,10 +135,13 @@ def run(args: argparse.Namespace) -> int:
             cmd = ["thermal-edge", "discover", "--model", args.model, "--run", args.run]
             if args.format != "csv":
                 cmd += ["--format", args.format]
+            if args.format == CAN_FORMAT:
+                cmd += ["--config", args.config]
             if args.sensors:
                 cmd += ["--sensors", args.sensors]
             cmd += ["--out", args.out]
-            disc.report = report.write(disc, out, _run_header(args.run) + [shlex.join(cmd)])
+            header = _run_header(args.run) if args.format != CAN_FORMAT else []  # a CAN log has no comment lines
+            disc.report = report.write(disc, out, header + [shlex.join(cmd)])
     elif args.model_out and disc.added:
         disc.model_out = workflow.write_model(disc, args.model_out, args.model)
     d = disc.as_dict()

@@ -22,7 +22,9 @@ from typing import Any
 
 from ..data import FORMATS, RunError
 from ..errors import UsageError
-from .common import add_model_args
+from ..shipped import config_path
+from .common import add_model_args, check_param_names
+from .options import integer, names, number, output_file
 from .runs import read_checked
 
 #: Run files whose summary is printed before a fleet job (the rest are counted).
@@ -41,22 +43,25 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         add_model_args(q, required=model_required)
         q.add_argument("runs", nargs="*", metavar="RUNS", help="run files, machine directories or globs")
         q.add_argument("--format", default="csv", choices=FORMATS, help="run file format (default csv)")
+        q.add_argument("--config", default=str(config_path("edge.yaml")),
+                       help="the service configuration whose CAN matrix, signal mapping and tick decode the CAN logs "
+                            "among RUNS (default: the example edge.yaml)")
         q.add_argument("--id-column", help="take the machine id from this column (default: file or directory name)")
-        q.add_argument("--out", required=True, help="result table to write (Parquet)")
-        q.add_argument("--report", help="Markdown report to write (default: the table's name with .md)")
-        q.add_argument("--workers", type=int, help="local worker processes (default: one per core); with "
+        q.add_argument("--out", required=True, type=output_file, help="result table to write (Parquet)")
+        q.add_argument("--report", type=output_file, help="Markdown report to write (default: the table's name with .md)")
+        q.add_argument("--workers", type=integer(1), help="local worker processes (default: one per core); with "
                        "--scheduler, wait for this many workers")
         q.add_argument("--scheduler", help="address of a running Dask scheduler, e.g. tcp://HOST:8786")
         q.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
 
     def fit(q: argparse.ArgumentParser) -> None:
-        q.add_argument("--params", help="comma-separated parameters to fit (default: the adaptable ones)")
-        q.add_argument("--sensors", help="comma-separated sensors to fit to (default: all in the runs)")
-        q.add_argument("--decimate", type=int, default=DECIMATE, help=f"samples per optimiser step (default {DECIMATE})")
-        q.add_argument("--generations", type=int, default=GENERATIONS,
+        q.add_argument("--params", type=names, help="comma-separated parameters to fit (default: the adaptable ones)")
+        q.add_argument("--sensors", type=names, help="comma-separated sensors to fit to (default: all in the runs)")
+        q.add_argument("--decimate", type=integer(1), default=DECIMATE, help=f"samples per optimiser step (default {DECIMATE})")
+        q.add_argument("--generations", type=integer(1), default=GENERATIONS,
                        help=f"differential-evolution generations (default {GENERATIONS})")
-        q.add_argument("--popsize", type=int, default=POPSIZE, help=f"population multiplier (default {POPSIZE})")
-        q.add_argument("--seed", type=int, default=0)
+        q.add_argument("--popsize", type=integer(1), default=POPSIZE, help=f"population multiplier (default {POPSIZE})")
+        q.add_argument("--seed", type=integer(0), default=0)
 
     c = which.add_parser("calibrate", help="each machine's parameters from its own runs, with their uncertainty")
     common(c)
@@ -70,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     common(s, model_required=False)
     fit(s)
     s.add_argument("--table", help="screen this fleet calibrate table instead of calibrating RUNS")
-    s.add_argument("--threshold", type=float, default=THRESHOLD, help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
+    s.add_argument("--threshold", type=number(0, lo_open=True), default=THRESHOLD,
+                   help=f"|z| above which a machine stands out (default {THRESHOLD:g})")
     s.set_defaults(func=run_screen)
 
 
@@ -92,15 +98,22 @@ def _machines(args: argparse.Namespace) -> tuple[list[Any], list[dict[str, Any]]
     is refused, :class:`~thermal_edge.data.RunError` with the first reason. Prints the first
     :data:`SUMMARY_FILES` runs' summaries and a total.
     """
-    from ..fleet.canlogs import is_can_log
+    from ..config import load_config
     from ..fleet.results import row
     from ..fleet.runs import find_machines
     from ..lptn import load_model
+    from ..service.logruns import is_can_log
 
     if not args.runs:
         raise UsageError("no RUNS given (files, machine directories or globs)")
-    machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
+    try:
+        machines = find_machines([_abs(r) or r for r in args.runs], args.id_column)
+    except FileNotFoundError as exc:  # its message names the file, directory or glob
+        raise UsageError(f"RUNS: {exc}") from None
     model = load_model(args.model, data_dir=args.data_dir)
+    if any(is_can_log(f) for m in machines for f in m.runs):
+        load_config(args.config)  # a broken configuration is refused here, not by every worker
+    check_param_names(model, _names(getattr(args, "params", None)))
     sensors = _names(getattr(args, "sensors", None))
     ok, refused, errors, files, samples = [], [], [], 0, 0
     for m in machines:
@@ -143,6 +156,17 @@ def _guard(job: Any) -> Any:
     return wrapped
 
 
+def _table(path: str, option: str) -> list[dict[str, Any]]:
+    """A fleet result table named by ``option``; a missing or unreadable one is a :class:`UsageError`."""
+    from ..fleet.results import read_table
+
+    try:
+        return read_table(path)
+    except (OSError, KeyError, ValueError) as exc:  # missing, not a Parquet table: the message names the file
+        msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else str(exc)
+        raise UsageError(f"{option} {str(msg).splitlines()[0]}") from None
+
+
 def _calibrate_rows(args: argparse.Namespace, client: Any, machines: list[Any]) -> list[dict[str, Any]]:
     from ..fleet.calibrate import calibrate_machine
     from ..fleet.cluster import map_machines
@@ -150,7 +174,8 @@ def _calibrate_rows(args: argparse.Namespace, client: Any, machines: list[Any]) 
     per = map_machines(client, calibrate_machine, machines, progress=args.progress, desc="calibrate",
                        model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
                        id_column=args.id_column, params=_names(args.params), sensors=_names(args.sensors),
-                       decimation=args.decimate, generations=args.generations, popsize=args.popsize, seed=args.seed)
+                       decimation=args.decimate, generations=args.generations, popsize=args.popsize, seed=args.seed,
+                       can_config=_abs(args.config))
     return [r for rows in per for r in rows]
 
 
@@ -189,14 +214,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     from ..fleet import require_fleet_extra
     from ..fleet.cluster import connect, map_machines
     from ..fleet.evaluate import evaluate_machine
-    from ..fleet.results import read_table
-
     require_fleet_extra()
     machines, refused = _machines(args)
     params: list[dict[str, float] | None] = [None] * len(machines)
     if args.calibrated:
         fitted: dict[str, dict[str, float]] = {}
-        for r in read_table(args.calibrated):
+        for r in _table(args.calibrated, "--calibrated"):
             if r["kind"] == "parameter":
                 fitted.setdefault(r["machine"], {})[r["name"]] = r["value"]
         missing = [m.id for m in machines if m.id not in fitted]
@@ -206,7 +229,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     with connect(args.scheduler, args.workers) as client:
         per = map_machines(client, evaluate_machine, machines, params, progress=args.progress, desc="evaluate",
                            model_path=_abs(args.model), data_dir=_abs(args.data_dir), fmt=args.format,
-                           id_column=args.id_column)
+                           id_column=args.id_column, can_config=_abs(args.config))
     rows = refused + [r for rs in per for r in rs]
     intro = _intro(args, machines, "evaluate") + [
         f"Each machine replayed with its own parameters from `{args.calibrated}`." if args.calibrated
@@ -218,14 +241,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
 def run_screen(args: argparse.Namespace) -> int:
     from ..fleet import require_fleet_extra
     from ..fleet.cluster import connect
-    from ..fleet.results import read_table
     from ..fleet.screen import screen
 
     require_fleet_extra()
     if args.table:
         if args.runs:
             raise UsageError("give either RUNS or --table, not both")
-        rows = [r for r in read_table(args.table) if r["kind"] in ("parameter", "error")]
+        rows = [r for r in _table(args.table, "--table") if r["kind"] in ("parameter", "error")]
         intro = [f"`thermal-edge fleet screen` of the calibration table `{args.table}`."]
     else:
         if not args.model:
@@ -243,10 +265,10 @@ def add_simulate_args(p: argparse.ArgumentParser) -> None:
     """``simulate --fleet N --faulty K``: the options ``thermal-edge simulate`` takes for a fleet."""
     from ..sim.fleet import FAULTY
 
-    p.add_argument("--fleet", type=int, metavar="N",
+    p.add_argument("--fleet", type=integer(1), metavar="N",
                    help="simulate a fleet of N machines of the model, one run CSV each, into the directory --out "
                         "(with manifest.json of their true parameters and faults; --seed seeds the fleet)")
-    p.add_argument("--faulty", type=int, default=FAULTY, help=f"--fleet: machines with a fault (default {FAULTY})")
+    p.add_argument("--faulty", type=integer(0), default=FAULTY, help=f"--fleet: machines with a fault (default {FAULTY})")
 
 
 def simulate_fleet(args: argparse.Namespace) -> int:
@@ -262,7 +284,12 @@ def simulate_fleet(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else cycle.duration_s
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    specs = plan_fleet(model, args.fleet, args.faulty, args.seed)
+    if args.faulty > args.fleet:
+        raise UsageError(f"--faulty {args.faulty}: more than the --fleet of {args.fleet} machines")
+    try:
+        specs = plan_fleet(model, args.fleet, args.faulty, args.seed)
+    except KeyError as exc:  # the faults need parameters of the model the fleet is planned for
+        raise UsageError(f"--fleet: {exc.args[0] if exc.args else exc}") from None
     for spec in specs:
         write_machine(model, cycle, spec, out, duration, args.noise, args.resolution)
     write_manifest(out, args.model, args.cycle, specs, duration, args.seed)

@@ -17,6 +17,9 @@ import argparse
 import sys
 import time
 
+from ..errors import UsageError
+from .options import http_url, integer, number
+
 DEFAULT_URL = "http://127.0.0.1:9108/metrics"
 CLEAR = "\x1b[H\x1b[2J"
 
@@ -24,14 +27,15 @@ CLEAR = "\x1b[H\x1b[2J"
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("monitor", help="live view of a running service (metrics or bus)", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--metrics", default=DEFAULT_URL, metavar="URL", help=f"metrics endpoint (default {DEFAULT_URL})")
+    p.add_argument("--metrics", type=http_url, default=DEFAULT_URL, metavar="URL",
+                   help=f"metrics endpoint (default {DEFAULT_URL})")
     p.add_argument("--bus", action="store_true", help="listen to the CAN bus instead of the metrics endpoint")
     p.add_argument("--config", help="edge.yaml whose bus: section names the bus (with --bus)")
     p.add_argument("--interface", help="python-can interface (with --bus; default: the config's)")
     p.add_argument("--channel", help="bus channel (with --bus; default: the config's)")
-    p.add_argument("--interval", type=float, default=1.0, help="seconds between refreshes (default 1)")
+    p.add_argument("--interval", type=number(0.05, 3600, unit="s"), default=1.0, help="seconds between refreshes (default 1)")
     p.add_argument("--once", action="store_true", help="print one screen and exit (bus: after listening one interval)")
-    p.add_argument("--count", type=int, default=0, help="stop after this many screens (default: until Ctrl-C)")
+    p.add_argument("--count", type=integer(0), default=0, help="stop after this many screens (default: until Ctrl-C)")
     p.set_defaults(func=run)
 
 
@@ -47,7 +51,7 @@ def _bus_config(args: argparse.Namespace) -> dict[str, object]:
     if args.channel:
         raw["channel"] = args.channel
     if "interface" not in raw:
-        raise SystemExit("thermal-edge monitor: error: --bus needs --config or --interface")
+        raise UsageError("--bus needs --config or --interface")
     return raw
 
 
@@ -89,15 +93,24 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int) -> int:
-    from ..bus import BusConfig, FrameCodec, create_bus
+    import can
+
+    from ..bus import BusConfig, BusConfigError, FrameCodec, create_bus
     from ..monitor.snapshot import FrameWatch
     from ..monitor.view import render
 
-    cfg = BusConfig.coerce(_bus_config(args))
+    try:
+        cfg = BusConfig.coerce(_bus_config(args))
+    except BusConfigError as exc:
+        raise UsageError(f"--bus: {str(exc).strip().splitlines()[0]}") from None
     codec = FrameCodec()
     cycles = {codec.frame_name(fid): c for fid in codec.frame_ids() if (c := codec.cycle_time_s(fid))}
     watch = FrameWatch(f"bus {cfg.interface}:{cfg.channel}", cycles)
-    bus = create_bus(cfg)
+    try:
+        bus = create_bus(cfg)
+    except (OSError, can.CanError, ImportError, ValueError) as exc:  # no such interface, no SocketCAN on this host
+        why = getattr(exc, "strerror", None) or str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UsageError(f"--bus: cannot open {cfg.interface} bus {cfg.channel!r}: {why}") from None
     try:
         next_t = time.monotonic() + args.interval
         while True:

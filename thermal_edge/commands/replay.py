@@ -12,7 +12,11 @@ matplotlib: the ``report`` extra); ``--out FILE.csv|.parquet`` writes the same p
 (Parquet needs pyarrow).
 A CAN log (``--format can``; old name ``candump``: ``.log`` candump -L, ``.asc``, ``.blf``,
 ``.trc``, ``.mf4``, ``.csv``, by suffix) goes through the service's own pipeline with the service
-configuration ``--config`` (frame timestamps as the clock) and is summarised.
+configuration ``--config`` (frame timestamps as the clock, the service's observer and adapter) and
+is summarised; ``--plot`` draws the service's estimates per tick (its observer's 95 % band, its
+open-loop prediction, the readings; the current limit it sent below) and ``--out`` writes them,
+with the inputs, the limit, the state and the derating reason of every tick. The model's inputs
+and readings alone, as a run CSV: ``thermal-edge export``.
 """
 from __future__ import annotations
 
@@ -33,9 +37,10 @@ from ..estimation.uncertainty import Z95
 from ..lptn import Model
 from ..lptn.vocabulary import Role
 from ..plots import missing
-from ..service.replay import format_summary, replay_summary
+from ..service.replay import ReplayResult, format_summary, replay_log, summarise
 from ..shipped import config_path
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
+from .options import integer, kelvin, names, output_file, positive_s
 from .progress import bar
 from .runs import read_checked, require_finite, require_finite_prediction
 
@@ -56,12 +61,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--no-adapt", dest="adapt", action="store_false", help="open-loop prediction (default)")
     mode.add_argument("--adapt", dest="adapt", action="store_true", help="run the online adapter over the run")
-    p.add_argument("--sensors", help="comma-separated sensors the adapter may learn from (default: all)")
-    p.add_argument("--period", type=float, default=AdapterConfig.period_s, help="adaptation period, s")
-    p.add_argument("--threshold", type=float, default=AdapterConfig.threshold_k, help="adaptation threshold, K RMS")
-    p.add_argument("--decimate", type=int, default=AdapterConfig.decimate, help="samples per optimiser step")
-    p.add_argument("--plot", metavar="FILE.png", help="figure: measured, predicted and the observer's band per sensor")
-    p.add_argument("--out", metavar="FILE.csv", help="per-sample estimates, predictions and bands (.csv or .parquet)")
+    p.add_argument("--sensors", type=names, help="comma-separated sensors the adapter may learn from (default: all)")
+    p.add_argument("--period", type=positive_s, default=AdapterConfig.period_s, help="adaptation period, s")
+    p.add_argument("--threshold", type=kelvin, default=AdapterConfig.threshold_k, help="adaptation threshold, K RMS")
+    p.add_argument("--decimate", type=integer(1), default=AdapterConfig.decimate, help="samples per optimiser step")
+    p.add_argument("--plot", type=output_file, metavar="FILE.png",
+                   help="figure: measured, predicted and the observer's band per sensor")
+    p.add_argument("--out", type=output_file, metavar="FILE.csv",
+                   help="per-sample (can: per-tick) estimates, predictions and bands (.csv or .parquet)")
     add_set_arg(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run, adapt=False)
@@ -80,9 +87,23 @@ def _check_outputs(args: argparse.Namespace) -> str | None:
             return f"--out {args.out}: the suffix must be one of {', '.join(EXPORTS)}"
         if EXPORTS[suffix] and (why := missing(EXPORTS[suffix])):
             return f"--out {args.out}: {why}"
-    if (args.plot or args.out) and args.format in ("can", "candump"):
-        return "--plot and --out need a CSV run (a CAN log is summarised only)"
     return None
+
+
+#: options of the model run over a CSV run, with their defaults: a CAN log is replayed by the
+#: service itself, whose observer and adapter the configuration sets (``observer:``, ``adaptation:``)
+CSV_ONLY = {"adapt": False, "sensors": None, "period": AdapterConfig.period_s, "threshold": AdapterConfig.threshold_k,
+            "decimate": AdapterConfig.decimate, "method": None, "max_substep": None, "data_dir": None}
+
+
+def _refuse_csv_options(args: argparse.Namespace) -> None:
+    """A CAN log is replayed as the service runs: an option of the CSV replay given with it would
+    be ignored without a word, so it is refused."""
+    given = [k for k, default in CSV_ONLY.items() if getattr(args, k, default) != default]
+    if given:
+        opt = "--" + given[0].replace("_", "-")
+        raise UsageError(f"{opt}: not for a CAN log (--format can): the service replays it as its configuration "
+                         f"{args.config} says (adaptation: and observer:); {opt} is for a CSV run")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -90,11 +111,18 @@ def run(args: argparse.Namespace) -> int:
         print(f"thermal-edge replay: error: {why}", file=sys.stderr)
         return 2
     if args.format in ("can", "candump"):
-        summary = replay_summary(args.run, args.config, args.model, sets=split_sets(args.set))
+        _refuse_csv_options(args)
+        replayed, service_model = replay_log(args.run, args.config, args.model, sets=split_sets(args.set),
+                                             keep_outputs=bool(args.plot or args.out))
+        summary = summarise(args.run, replayed, service_model)
         if not summary["frames"]:
             raise RunError(f"{args.run}: no CAN frame read ({summary['malformed_lines']} malformed lines): "
                            "not a CAN log of the drive, or an empty one")
+        if (args.plot or args.out) and len(replayed.t) < 2:
+            raise RunError(f"{args.run}: {len(replayed.t)} ticks: nothing to plot or write")
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
+        if args.plot or args.out:
+            _service_outputs(args, service_model, replayed)
         return 0
     if not args.model:
         raise UsageError("--model is required for CSV runs")
@@ -229,4 +257,77 @@ def _outputs(args: argparse.Namespace, model: Model, rec: Run, predicted: np.nda
         replay_figure(args.plot, f"{model.name} on {Path(args.run).name}, {mode}", rec.t, sensors,
                       rec.columns[speed] if speed else None, rec.columns[current] if current else None,
                       [(d.t, d.accepted) for d in obs.decisions if d.triggered])
+        print(f"wrote {args.plot}", file=sys.stderr)
+
+
+def per_tick(model: Model, res: ReplayResult) -> dict[str, np.ndarray]:
+    """The per-tick table of ``replay --format can --out``: what the service computed each tick.
+
+    The model's inputs as the tick accumulated them; per sensor ``<s>_measured`` (the reading the
+    tick used, NaN if none), ``<s>_predicted`` (the service's open-loop prediction),
+    ``<s>_observer`` (its observer's estimate) and ``<s>_band_low``/``<s>_band_high`` (the
+    observer's 95 % interval), degC; the same but measured for each limited node (``<limit>_…``);
+    ``current_limit_a`` (the limit sent, A rms), ``state`` and ``reason`` (the codes of
+    ``TE_State`` and the derating reason, DBC value tables); ``adaptation`` (0 no decision, 1 a
+    triggered decision, 2 accepted parameters).
+
+    Parameters
+    ----------
+    model : Model
+        The model the service ran.
+    res : ReplayResult
+        A replay with its outputs kept.
+    """
+    outs = res.outputs
+    cols: dict[str, np.ndarray] = {c: np.array([o.inputs.get(c, np.nan) for o in outs]) for c in model.inputs}
+
+    def node(prefix: str, i: int) -> None:
+        half = Z95 * res.sigma[:, i]
+        cols[f"{prefix}_predicted"] = res.prediction[:, i]
+        cols[f"{prefix}_observer"] = res.estimate[:, i]
+        cols[f"{prefix}_band_low"] = res.estimate[:, i] - half
+        cols[f"{prefix}_band_high"] = res.estimate[:, i] + half
+
+    for s, n in model.sensors.items():
+        if any(s in o.measured for o in outs):
+            cols[f"{s}_measured"] = np.array([o.measured.get(s, np.nan) for o in outs])
+            node(s, model.node_index(n))
+    for lim in model.limits:
+        node(lim.name, model.node_index(lim.node))
+    cols["current_limit_a"] = np.asarray(res.current_limit_a, dtype=float)
+    cols["state"] = np.asarray(res.state, dtype=float)
+    cols["reason"] = np.asarray(res.reason, dtype=float)
+    flag = np.zeros(len(outs))
+    for d in res.decisions:
+        if d.get("triggered"):
+            k = min(int(np.searchsorted(res.t, float(d["t"]))), len(outs) - 1)
+            flag[k] = 2.0 if d.get("accepted") else 1.0
+    cols["adaptation"] = flag
+    return cols
+
+
+def _service_outputs(args: argparse.Namespace, model: Model, res: ReplayResult) -> None:
+    """``--out`` and ``--plot`` of a CAN log's replay: the service's ticks, time from the first tick."""
+    cols = per_tick(model, res)
+    t = res.t - res.t[0]
+    if args.out:
+        if Path(args.out).suffix.lower() == ".parquet":
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            pq.write_table(pa.table({"t": t, **cols}), args.out)
+        else:
+            write_run(args.out, Run(t, cols, args.out),
+                      comment=f"thermal-edge replay of the CAN log {args.run} with model {model.name} and "
+                              f"{args.config}\nt: s from the first tick at {res.t[0]:.6f} s since the epoch")
+        print(f"wrote {args.out}: {len(t)} ticks, {len(cols) + 1} columns", file=sys.stderr)
+    if args.plot:
+        from ..plots.replay import replay_figure
+
+        sensors = {s: {k: cols[f"{s}_{k}"] for k in ("measured", "predicted", "observer", "band_low", "band_high")}
+                   for s in model.sensors if f"{s}_measured" in cols}
+        speed, current = model.find_input(Role.SPEED), model.find_input(Role.CURRENT)
+        decisions = [(float(d["t"]) - res.t[0], bool(d.get("accepted"))) for d in res.decisions if d.get("triggered")]
+        replay_figure(args.plot, f"{model.name} on {Path(args.run).name}, the service's replay", t, sensors,
+                      cols[speed] if speed else None, cols[current] if current else None, decisions)
         print(f"wrote {args.plot}", file=sys.stderr)

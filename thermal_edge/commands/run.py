@@ -57,11 +57,14 @@ def run(args: argparse.Namespace) -> int:
         try:
             if args.check:  # (the service checks the model itself when it starts)
                 config.check_model(model)
-                from ..bus import FrameCodec
-                from ..bus.frames import DEFAULT_DBC_PATH
-
-                config.check_dbc(FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH))
+                codec = config.codec.frame_codec(config.fname)
+                config.check_dbc(codec)
                 print(f"{config.fname}: ok (model {model.name}, {len(model.nodes)} nodes, bus {config.bus.interface})")
+                for frame, timeout in config.timeouts.items():  # what each read frame is checked for
+                    prot = codec.protection(frame)
+                    unseen = "; ".join(prot.unseen()) if prot is not None else ""
+                    print(f"  {frame}: protection {prot.describe() if prot is not None else 'none'}, stale after "
+                          f"{timeout:g} s" + (f"; not detected: {unseen}" if unseen else ""))
                 return 0
             service = EdgeService(config, model=model)
         except DbcError as exc:

@@ -3,19 +3,30 @@
 Every offline command that reads a recorded run (``replay``, ``calibrate``, ``discover``,
 ``fleet``) goes through :func:`read_checked`: the file is read (:func:`thermal_edge.data.read_run`),
 the model's inputs and sensors are looked up in it, units that cannot be right are refused
-(:func:`thermal_edge.data.check_run`), and a one-line summary says what will be used. A result
+(:func:`thermal_edge.data.check_run`), and a one-line summary says what will be used. A CAN log
+(``--format can``) is read into runs by the service's pipeline (:func:`read_checked_runs`,
+:mod:`thermal_edge.service.logruns`) and each run checked the same way. A result
 that is not finite (a law of the model that overflows) is refused by :func:`require_finite`
 instead of being printed as ``inf`` or ``nan``.
 """
 from __future__ import annotations
 
+import argparse
 import difflib
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..data import PADERBORN_COLUMNS, Run, RunError, check_run, describe, read_run
 from ..lptn import Model, ModelError
+from ..shipped import config_path
+
+if TYPE_CHECKING:
+    from ..service.logruns import LogRuns
+
+#: ``--format`` of a CAN log (any format python-can reads, by its suffix)
+CAN_FORMAT = "can"
 
 #: How alike a column name and a missing sensor's name must be to be called a misspelling
 #: (difflib ratio; "housng" and "housing" are 0.92, "housing" and "hot_spot" 0.53).
@@ -51,7 +62,54 @@ def read_checked(path: str, fmt: str, model: Model, sensors: Sequence[str] | Non
         missing (a misspelt sensor column is named with the sensor it resembles), no sensor of the
         model in the run, time not in seconds, temperatures not in degC, uneven sample times.
     """
-    run = read_run(path, fmt)
+    return _checked(read_run(path, fmt), path, fmt, model, sensors)
+
+
+def read_checked_runs(path: str, fmt: str, model: Model, sensors: Sequence[str] | None = None,
+                      config: str | None = None) -> list[tuple[Run, str]]:
+    """:func:`read_checked` for a run file or a CAN log (``fmt`` ``"can"``): a CAN log gives one
+    run per stretch of traffic, read through the service's pipeline with the service
+    configuration ``config`` (:func:`thermal_edge.service.logruns.log_runs`), each checked as a run
+    file is; the first summary line says what the log held.
+
+    Parameters
+    ----------
+    config : str, optional
+        ``fmt == "can"``: the service configuration (default: the shipped ``edge.yaml``).
+
+    Raises
+    ------
+    RunError, ConfigError
+        As :func:`read_checked`; a CAN log without two complete ticks of the configuration's inputs.
+    """
+    if fmt != CAN_FORMAT:
+        return [read_checked(path, fmt, model, sensors)]
+    from ..config import load_config
+    from ..service.logruns import log_runs
+
+    cfg_path = config if config is not None else config_path("edge.yaml")
+    got = log_runs(path, load_config(cfg_path))
+    try:
+        out = [_checked(run, run.source, fmt, model, sensors) for run in got.runs]
+    except RunError as exc:  # the columns come from the configuration: say so
+        raise RunError(f"{exc}; a CAN log's columns are the inputs and sensors that the signals: of {cfg_path} "
+                       "map (give the configuration of this model with --config)") from None
+    head = f"{path}: {log_line(got)}"
+    return [(run, f"{head}\n{summary}" if i == 0 else summary) for i, (run, summary) in enumerate(out)]
+
+
+def log_line(got: LogRuns) -> str:
+    """What a CAN log held: frames used and dropped, damaged lines, the runs and their ticks."""
+    dropped = sum(got.dropped.values())
+    why = f" ({', '.join(f'{k} {v}' for k, v in got.dropped.items())})" if dropped else ""
+    ticks = sum(len(r) for r in got.runs)
+    return (f"{got.frames} frames of the drive's CAN matrix, {dropped} dropped by the integrity checks{why}, "
+            f"{got.malformed_lines} damaged lines skipped; {len(got.runs)} run(s) of {ticks} ticks in all"
+            + (f" ({got.ticks_left_out} ticks left out: before every input had a value, or in stretches of fewer "
+               "than two complete ticks)" if got.ticks_left_out else ""))
+
+
+def _checked(run: Run, path: str, fmt: str, model: Model, sensors: Sequence[str] | None) -> tuple[Run, str]:
     cols = list(run.columns)
     missing = [c for c in model.inputs if c not in run.columns]
     if missing:
@@ -83,7 +141,7 @@ def read_checked(path: str, fmt: str, model: Model, sensors: Sequence[str] | Non
         raise RunError(f"{path}: none of model {model.name}'s sensors ({', '.join(model.sensors)}) is a column "
                        f"of the run (it has: {', '.join(cols)}); the wrong model or the wrong file?")
     used_sensors = list(sensors) if sensors is not None else present
-    check_run(run, [*used_sensors, *model.temperature_inputs])
+    check_run(run, [*used_sensors, *model.temperature_inputs], dict(model.input_roles))
     run.dt  # uneven sample times are refused here, before anything is fitted  # noqa: B018
     summary = describe(run, [*model.inputs, *used_sensors])
     not_used = [s for s in model.sensors if s not in used_sensors]
@@ -93,13 +151,29 @@ def read_checked(path: str, fmt: str, model: Model, sensors: Sequence[str] | Non
     return run, summary
 
 
+def add_can_args(p: argparse.ArgumentParser, formats: Sequence[str]) -> None:
+    """``--format`` (the run formats and ``can``) and ``--config`` (the service configuration that
+    decodes a CAN log)."""
+    p.add_argument("--format", default="csv", choices=(*formats, CAN_FORMAT),
+                   help="run file format (default csv); can: a CAN log of any format python-can reads, by its "
+                        "suffix (.log candump -L, .asc, .blf, .trc, .csv, .mf4), read as the service sees it")
+    p.add_argument("--config", default=str(config_path("edge.yaml")),
+                   help="can: the service configuration whose CAN matrix, signal mapping and tick decode the log "
+                        "(default: the example edge.yaml)")
+
+
 def _did_you_mean(name: str, candidates: Sequence[str]) -> str:
     close = difflib.get_close_matches(name, candidates, n=1, cutoff=TYPO_RATIO)
     return f"; did you mean {close[0]!r}?" if close else ""
 
 
+#: A predicted node temperature beyond this, degC, is a law of the model out of bounds (far beyond
+#: any material's melting point), refused as the overflow it leads to instead of printed.
+DIVERGED_C = 1e4
+
+
 def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
-    """Refuse a node-temperature series that is not finite everywhere.
+    """Refuse a node-temperature series that is not finite everywhere or beyond :data:`DIVERGED_C`.
 
     Parameters
     ----------
@@ -117,12 +191,14 @@ def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
         One line naming the model file, the first node and sample that are not finite, and the
         inputs there: a loss or conductance law of the model overflows (or divides by zero).
     """
-    bad = ~np.isfinite(T)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(T) | (np.abs(T) > DIVERGED_C)
     if not bad.any():
         return
     k, i = (int(x) for x in np.argwhere(bad)[0])
     inputs = ", ".join(f"{c} = {run.columns[c][k]:g}" for c in model.inputs if c in run.columns)
-    raise ModelError(f"{model.path}: {what} is not finite from sample {k + 1} (t = {run.t[k]:g} s) on, node "
+    how = "is not finite" if not np.isfinite(T[k, i]) else f"diverges ({T[k, i]:.3g} degC)"
+    raise ModelError(f"{model.path}: {what} {how} from sample {k + 1} (t = {run.t[k]:g} s) on, node "
                      f"{model.nodes[i]!r}: a loss or conductance law overflows at {inputs}")
 
 

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import argparse
 import shlex
+from pathlib import Path
+
+import numpy as np
 
 from ..data import write_run
 from ..discovery import effects as E
@@ -21,7 +24,9 @@ from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
 from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
+from .options import MAX_EPOCH_S, frame_period_s, integer, kelvin, number, output_path, positive_s
 from .progress import bar
+from .runs import require_finite
 
 
 def _effects_help() -> str:
@@ -52,23 +57,24 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     add_model_args(p)
     p.add_argument("--cycle", required=True,
                    help="drive cycle: a file, or the name of a packaged one (varied_drive, overload, ...)")
-    p.add_argument("--out", required=True, help="output file: run CSV, or a CAN log with --format can")
+    p.add_argument("--out", required=True, type=output_path, help="output file: run CSV, or a CAN log with --format can")
     p.add_argument("--format", choices=("csv", "can", "candump"), default="csv",
                    help="csv: run CSV (default); can (old name: candump): the inverter's CAN frames as a log in "
                         "the format of --out's suffix: .log (candump -L, decodable with python -m cantools decode "
                         "dbc/thermal_edge.dbc), .asc, .blf, .trc, .mf4, .csv; .gz compresses the text formats")
-    p.add_argument("--current-period", type=float, default=0.01,
+    p.add_argument("--current-period", type=frame_period_s, default=0.01,
                    help="can: INV_Currents/INV_Mechanics period, s (default 0.01 as the DBC)")
-    p.add_argument("--temperature-period", type=float, default=0.1,
+    p.add_argument("--temperature-period", type=frame_period_s, default=0.1,
                    help="can: INV_StatorTemps/INV_AmbientTemps period, s (default 0.1)")
-    p.add_argument("--t0", type=float, default=1.7e9, help="can: timestamp of the first frame, s since the epoch")
-    p.add_argument("--duration", type=float, help="override the cycle's duration, s")
+    p.add_argument("--t0", type=number(0, MAX_EPOCH_S, unit="s"), default=1.7e9,
+                   help="can: timestamp of the first frame, s since the epoch")
+    p.add_argument("--duration", type=positive_s, help="override the cycle's duration, s")
     add_set_arg(p, "--param")
     p.add_argument("--effect", action="append", default=[], metavar="NAME[:TARGET][=PARAM=VALUE,...]",
                    help="hide a catalogue effect in the plant (repeatable; list below)")
-    p.add_argument("--noise", type=float, default=0.1, help="PT100 noise sigma, K (default 0.1)")
-    p.add_argument("--resolution", type=float, default=0.1, help="PT100 quantisation, K (default 0.1)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", type=kelvin, default=0.1, help="PT100 noise sigma, K (default 0.1)")
+    p.add_argument("--resolution", type=kelvin, default=0.1, help="PT100 quantisation, K (default 0.1)")
+    p.add_argument("--seed", type=integer(0), default=0)
     add_simulate_args(p)
     p.add_argument("--all-nodes", action="store_true", help="also write every node's true temperature (T_<node>)")
     p.set_defaults(func=run)
@@ -77,6 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 def run(args: argparse.Namespace) -> int:
     if args.fleet is not None:
         return simulate_fleet(args)
+    if Path(args.out).is_dir():
+        raise UsageError(f"--out {args.out}: a directory; give a file name (a directory is written with --fleet only)")
     if args.format in ("can", "candump"):
         return run_can_log(args)
     raw = hidden.read_document(args.model)
@@ -106,14 +114,17 @@ def run(args: argparse.Namespace) -> int:
         doc, resolved = hidden.plant_document(raw, args.effect, refs, build, inputs=inputs)
         plant = build(doc)
         desc = hidden.describe(resolved, refs)
-        gap = hidden.sensor_gap(model, plant, inputs)
+        with np.errstate(over="ignore", invalid="ignore"):  # an absurd magnitude: refused below, by node and sample
+            gap = hidden.sensor_gap(model, plant, inputs)
         if gap < hidden.MIN_GAP_K:  # even at its magnitude's bound: nothing for discover to find
             desc += (f"\nnote: the hidden effects move the sensors by at most {gap:.2f} K RMS (without noise, "
                      f"below {hidden.MIN_GAP_K:g} K): no sensor of the model may see them")
         comment += f"\n{desc}"
         print(desc)
-    res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
-                         seed=args.seed, all_nodes=args.all_nodes)
+    with np.errstate(over="ignore", invalid="ignore"):  # refused below, by node and sample
+        res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
+                             seed=args.seed, all_nodes=args.all_nodes)
+    require_finite(plant, inputs, res.truth.T, "the simulated plant" + (" (with --effect)" if args.effect else ""))
     write_run(args.out, res.run, comment=comment)
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
     print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; peak " +

@@ -52,7 +52,7 @@ is named by the parameters its law uses (``R_e_hous``, ``h_gap0+h_gap1``) or by 
 frame) are read from the model file's ``role:`` of each node.
 
 Command line: ``thermal-edge discover --model M --run R [--format F] [--sensors a,b] [--out DIR]
-[--json]``; benchmark: ``python -m thermal_edge.discovery.bench``.
+[--json]``; benchmark (from the checkout): ``make bench-discovery``.
 """
 from .effects import CATALOGUE, Candidate, Effect, EffectError, parse_spec
 from .workflow import Discovery, Options, discover, write_model

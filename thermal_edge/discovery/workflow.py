@@ -515,7 +515,7 @@ def write_model(disc: Discovery, out: str | os.PathLike[str], model_path: str | 
     out = Path(out)
     docs = [copy.deepcopy(disc.raw0)] + [copy.deepcopy(r.fit.raw) for r in disc.added]
     labels = [r.fit.label for r in disc.added]
-    text = Path(model_path).read_text() if model_path else None
+    text = Path(model_path).read_text(encoding="utf-8") if model_path else None
     if "data_dir" in docs[0] and model_path is not None:
         orig = (Path(model_path).resolve().parent / str(docs[0]["data_dir"])).resolve()
         rel = os.path.relpath(orig, out.resolve().parent)
@@ -542,5 +542,5 @@ def write_model(disc: Discovery, out: str | os.PathLike[str], model_path: str | 
     if body is None:
         body = yamlpatch.render(None, docs[0], docs[-1], label, header)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(body)
+    out.write_text(body, encoding="utf-8")
     return str(out)

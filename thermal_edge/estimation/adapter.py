@@ -3,12 +3,21 @@ last period; above a threshold, screen and optimise the adaptable parameters on 
 window. The optimised candidate does not replace the parameters in use (the *champion*) at once:
 it becomes a *challenger*, judged only on data it was not fitted to. At the following decisions
 both predict every sample recorded since, period by period open loop from the recorded state at
-each period's start (as the online trace is scored); the challenger is promoted when its squared error over the seen sensors is lower
-by more than a margin that accounts for the sensor noise and the length of the evidence
-(:func:`judge`), dropped when it is worse by that margin or when ``validate_s`` of evidence has
-not decided it. A candidate judged on its own window would pass by fitting noise and the present
-operating point (``reference/findings.md`` §6). Every decision is recorded with its evidence.
+each period's start (as the online trace is scored); the challenger is promoted when its squared
+error over the seen sensors is lower by more than a margin that accounts for the sensor noise and
+the length of the evidence (:func:`judge`), dropped when it is worse by that margin or when
+``validate_s`` of evidence has not decided it. A candidate judged on its own window would pass by
+fitting noise and the present operating point. Every decision is recorded with its evidence.
 The evidence is counted in periods, not samples: one period never decides, either way.
+
+A fit is triggered when the last period's error or the open-loop error over the last
+``validate_s`` (from the recorded state then) exceeds ``threshold_k``: a period of a few minutes
+predicted from corrected temperatures does not show the slow modes (the housing's time constant
+is hours), and the service predicts open loop over its look-ahead (30 min). With only the
+period's error a model whose short-term prediction is within the noise stopped adapting while
+its open-loop prediction drifted by 1 K over a cold light duty. The challenger is still judged
+period by period: judged open loop over all its evidence, it promoted candidates on the real
+machine that made the online trace worse from every wrong start.
 
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
@@ -57,8 +66,9 @@ class Decision:
     """
 
     t: float
-    error_before_k: float  # RMS over the last period with the current parameters
-    triggered: bool
+    error_before_k: float  # RMS over the last period with the current parameters, K
+    triggered: bool = False
+    horizon_error_k: float = float("nan")  # RMS open loop over the last validate_s with them, K
     accepted: bool = False
     candidate_error_k: float = float("nan")
     current_error_k: float = float("nan")
@@ -74,6 +84,10 @@ class Decision:
     evidence_s: float = 0.0  # length of the evidence it was judged on, s
     improvement_k2: float = float("nan")  # champion MSE − challenger MSE over the evidence, K²
     margin_k2: float = float("nan")  # what the improvement had to exceed, K²
+    #: what became of the judged challenger: "promoted", "dropped", "undecided" ("" if none was judged)
+    verdict: str = ""
+    #: why a judged challenger was dropped ("not better", "predicts housing worse", ...; "" otherwise)
+    refusal: str = ""
 
     def as_dict(self) -> dict[str, object]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -89,6 +103,7 @@ class Verdict:
     champion_rms: dict[str, float]
     challenger_rms: dict[str, float]
     samples: int
+    vetoed_by: tuple[str, ...] = ()  # the sensors that veto a promotion (see :func:`judge`)
 
 
 def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarray], noise_k: float, z: float,
@@ -116,10 +131,16 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
       overwhelming or persist. (Noise cannot be removed: a share of it would stop a model that
       is already the machine from ever being improved.)
 
-    Promoted when all margins are met and no sensor's RMS error grows by more than
-    ``tolerance_k``; dropped as soon as the challenger is worse by the noise and consistency
-    margins (or by the noise margin alone over a single period), or when the full evidence is in
-    and it is not promoted; otherwise the verdict waits for more evidence.
+    Promoted when all margins are met and no sensor vetoes it. A sensor vetoes when its RMS error
+    grows by more than ``tolerance_k`` *and* ends above the champion's RMS error over all sensors:
+    a model that is not yet the machine balances its errors over the sensors, so a challenger
+    that removes most of the error of the windings may leave the housing, which the champion
+    happened to predict better than the rest, a little worse; refusing that (a Pareto test)
+    keeps every sensor at the champion's larger error. What is never accepted is a sensor left
+    worse than the model in use predicts on average. Dropped as soon as the challenger is worse
+    by the noise and consistency margins (or by the noise margin alone over a single period), or
+    when the full evidence is in and it is not promoted; otherwise the verdict waits for more
+    evidence.
     """
     final = share >= 1.0
     names = [s for s in champion if s in challenger]
@@ -153,14 +174,15 @@ def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarra
         spread = np.inf
     gain = 1.0 - (1.0 - min_gain) * min(share, 1.0)
     margin = max(noise, spread, gain * max(mse - noise_k**2, 0.0))
-    worse = any(v[1] > v[0] + tolerance_k for v in rms.values())
-    if mean > margin and not worse:
+    overall = float(np.sqrt(mse))
+    vetoed = tuple(s for s, v in rms.items() if v[1] > v[0] + tolerance_k and v[1] > overall)
+    if mean > margin and not vetoed:
         outcome = "promote"
     elif (len(per) > 1 and mean < -max(noise, spread)) or final:
         outcome = "drop"
     else:
         outcome = "wait"
-    return Verdict(outcome, mean, margin, champ, chal, int(rows.sum()))
+    return Verdict(outcome, mean, margin, champ, chal, int(rows.sum()), vetoed)
 
 
 class _Ring:
@@ -308,18 +330,22 @@ class OnlineAdapter:
     # -- the decision ------------------------------------------------------------------------
     def decide(self, t: float) -> Decision:
         """Judge a pending challenger on the data recorded since its fit, then, if none is
-        pending and the last period's error is above the threshold, fit a new challenger."""
+        pending and the last period's error or the open-loop error over the last ``validate_s``
+        is above the threshold, fit a new challenger."""
         cfg = self.config
         t0 = time.perf_counter()
         self.last_decision_t = t
         err = self.recent_error(t - cfg.period_s)
-        d = Decision(t=t, error_before_k=err, triggered=bool(err > cfg.threshold_k))
+        t_hist0 = float(self.history.arrays()[0][0]) if len(self.history) else t
+        d = Decision(t=t, error_before_k=err, horizon_error_k=self.recent_error(max(t_hist0, t - cfg.validate_s)))
+        above = bool(err > cfg.threshold_k or d.horizon_error_k > cfg.threshold_k)
+        d.triggered = above
         if self.challenger is not None:
             d.triggered = True
             self._judge(d, t)
             if self.challenger is not None:
                 return self._done(d, t0)
-        if not err > cfg.threshold_k:
+        if not above:
             if not d.reason:
                 d.reason = "error below threshold" if np.isfinite(err) else "no readings in the last period"
             return self._done(d, t0)
@@ -398,16 +424,19 @@ class OnlineAdapter:
             self.iterate = None
             d.accepted = True
             d.params = vals
+            d.verdict = "promoted"
             d.reason = f"challenger promoted: better on the {ev}"
         elif v.outcome == "drop":
             self.challenger = None
             if v.improvement_k2 < 0:  # refuted: the search restarts from the parameters in use
                 self.iterate = None
-            worse = [s for s in v.champion_rms if v.challenger_rms[s] > v.champion_rms[s] + cfg.sensor_tolerance_k]
-            why = f"predicts {', '.join(worse)} worse" if worse else "not better"
+            why = f"predicts {', '.join(v.vetoed_by)} worse" if v.vetoed_by else "not better"
+            d.verdict, d.refusal = "dropped", why
             d.reason = f"challenger dropped ({why}) on the {ev}"
         else:
-            d.reason = f"challenger undecided on the {ev}"
+            d.verdict = "undecided"
+            wait = "one period: waiting for the next" if not np.isfinite(v.margin_k2) else f"margin {v.margin_k2:.3g} K²"
+            d.reason = f"challenger undecided on the {d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs {wait}"
 
     def _done(self, d: Decision, t0: float) -> Decision:
         d.duration_s = time.perf_counter() - t0

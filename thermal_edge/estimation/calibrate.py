@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import differential_evolution, minimize
 
-from ..data import Run
+from ..data import Run, RunError
 from ..lptn import Model, ModelError, Simulator
 from .common import ParamSpace, decimate, window_from_arrays
 from .objective import Objective
 from .predict import initial_from_run, model_inputs, sensor_columns
-from .uncertainty import Uncertainty, estimate_uncertainty
+from .uncertainty import MIN_RESIDUAL_DOF, Uncertainty, estimate_uncertainty
 
 #: Differential evolution's own convergence test: the population's spread of objective values
 #: below this share of their mean (scipy's ``tol``; its default).
@@ -94,6 +94,9 @@ def calibrate(
     ------
     ModelError
         The objective at the starting parameters is not finite (a law of the model overflows).
+    RunError
+        The runs hold fewer than the parameters plus :data:`~.uncertainty.MIN_RESIDUAL_DOF`
+        readings: nothing could be told about the parameters.
     """
     t0 = time.perf_counter()
     names = tuple(names or model.adaptable)
@@ -104,6 +107,11 @@ def calibrate(
         meas = sensor_columns(model, run, sensors)
         win = window_from_arrays(model, model_inputs(model, run), meas, initial_from_run(model, run), run.dt, run.t)
         objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform"))
+    n_obs = sum(int(np.count_nonzero(np.isfinite(y))) for o in objs for y in o.window.measured.values())
+    if n_obs - len(names) < MIN_RESIDUAL_DOF:
+        raise RunError(f"{', '.join(r.source for r in runs)}: too short to calibrate: {n_obs} readings (samples x "
+                       f"sensors, {decimation} sample(s) per step) for {len(names)} parameters; at least "
+                       f"{len(names) + MIN_RESIDUAL_DOF} needed (with fewer the fit matches them whatever the parameters)")
     total = _Sum(objs)
     phi0 = np.log(space.values())
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -167,7 +175,7 @@ def write_calibrated(model_path: str | Path, values: dict[str, float], out_path:
     KeyError
         If a parameter's line is not in that form (the file is then left unwritten).
     """
-    lines = Path(model_path).read_text().splitlines()
+    lines = Path(model_path).read_text(encoding="utf-8").splitlines()
     out, in_params, done = [], False, set()
     for line in lines:
         if re.match(r"^\S", line):
@@ -185,4 +193,4 @@ def write_calibrated(model_path: str | Path, values: dict[str, float], out_path:
     if missing:
         raise KeyError(f"{model_path}: parameters.{sorted(missing)[0]}: not written as 'name: {{value: ..., ...}}'")
     header = [f"# calibrated by thermal-edge calibrate from {Path(model_path).name}" + (f": {note}" if note else "")]
-    Path(out_path).write_text("\n".join(header + out) + "\n")
+    Path(out_path).write_text("\n".join(header + out) + "\n", encoding="utf-8")

@@ -21,6 +21,13 @@ model file's ``spread``). Their effect on the temperatures is ``∂T⁺/∂φ_j 
 
 A node the sensors barely see (the magnets) keeps the band its parameters' spread implies;
 without it the band would reflect state noise only and be optimistic wherever the model is.
+
+A direct estimate of one node from elsewhere (the magnet temperature from the inverter's voltages,
+:mod:`thermal_edge.estimation.flux`) enters through :meth:`Observer.update_node` with its own
+variance. Its gain uses the whole band (state and parameters' part): the magnet's band is mostly
+the parameters' part, and a gain from the state part alone would barely move it. The update
+refuses an estimate whose 95 % band does not overlap the model's: a wrong electrical calibration
+must not pull the magnet down; the refusals are counted.
 """
 from __future__ import annotations
 
@@ -87,6 +94,9 @@ class Observer:
         # the loss feedback enters the covariance only where a law reads a temperature or a considered parameter
         self._loss_feedback = laws.temperature_dependent or any(int(i) in law.d for law in laws.laws for i in self.cidx)
         self._dcache: OrderedDict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        #: direct node estimates used and refused by :meth:`update_node`
+        self.node_updates_used = 0
+        self.node_updates_refused = 0
 
     @property
     def P(self) -> np.ndarray:
@@ -180,6 +190,46 @@ class Observer:
         self.Pa = 0.5 * (self.Pa + self.Pa.T)
         self.S = self.S - K[:n] @ self.S[idx, :]
         return self.T
+
+    def update_node(self, node: int | Sequence[int], value: float, var: float, inflate: float = 1.0,
+                    z: float = 1.959963984540054) -> bool:
+        """Correct the estimate with a direct estimate ``value`` (°C, variance ``var`` K²) of node
+        index ``node``, or of the mean of several nodes (the flux linkage sees all magnets, a
+        model may split them); returns whether it was used. ``inflate`` (≥ 1) weakens the update
+        to ``var · inflate`` without widening the check's band: an estimate whose errors are
+        correlated over ``inflate`` samples is one measurement per that many samples.
+
+        Refused (and counted in :attr:`node_updates_refused`) when it disagrees with the model
+        beyond both 95 % bands: ``|value − h T̂| > z (σ_model + σ_value)``, or when ``var`` is not a
+        finite positive number (an uninformative operating point). The gain is the optimal one for
+        the whole covariance ``C = P + S Σ Sᵀ``: ``K = C h / (hᵀ C h + r)``, ``r = var · inflate``;
+        the update ``A = I − K hᵀ`` is applied to the state part (Joseph form, ``+ r K Kᵀ``) and to ``S``,
+        so the two parts again sum to the covariance of the corrected estimate.
+        """
+        if not (np.isfinite(value) and np.isfinite(var) and var > 0.0):
+            return False
+        n, m = self._n, len(self.Pa)
+        idx = [int(node)] if isinstance(node, (int, np.integer)) else [int(i) for i in node]
+        h = np.zeros(n)
+        h[idx] = 1.0 / len(idx)
+        C = self.covariance()
+        Ch = C @ h
+        s2 = float(h @ Ch)
+        nu = float(value) - float(h @ self.T)
+        if abs(nu) > z * (float(np.sqrt(max(s2, 0.0))) + float(np.sqrt(var))):
+            self.node_updates_refused += 1
+            return False
+        K = np.zeros(m)
+        r = var * max(float(inflate), 1.0)
+        K[:n] = Ch / (s2 + r)
+        self.T = self.T + K[:n] * nu
+        A = np.eye(m)
+        A[:, :n] -= np.outer(K, h)
+        self.Pa = A @ self.Pa @ A.T + r * np.outer(K, K)
+        self.Pa = 0.5 * (self.Pa + self.Pa.T)
+        self.S = self.S - np.outer(K[:n], h @ self.S)
+        self.node_updates_used += 1
+        return True
 
     def std(self) -> np.ndarray:
         """Standard deviation of each node's estimate, K (state and parameter uncertainty)."""

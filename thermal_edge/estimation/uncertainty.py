@@ -32,6 +32,11 @@ Z95 = 1.959963984540054
 #: (``adaptation.max_rel_std``), which a configuration may change for the service: the adapter
 #: passes its configured value wherever it judges identifiability.
 MAX_REL_STD: float = AdapterConfig.max_rel_std
+#: Residual degrees of freedom (observations, samples x sensors, beyond the number of fitted
+#: parameters) below which no parameter is identifiable: a fit with nearly as many parameters as
+#: observations matches them whatever the parameters are, and its residual variance, hence every
+#: standard deviation, comes out near zero (two samples "pinned" three parameters to ±0.02 %).
+MIN_RESIDUAL_DOF = 20
 
 
 @dataclass
@@ -69,7 +74,8 @@ def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = MA
     residuals' correlation in time counted.
 
     A parameter is *identifiable* when its relative standard deviation, from the information as
-    if the residuals were independent, is below ``max_rel_std`` (default :data:`MAX_REL_STD`).
+    if the residuals were independent, is below ``max_rel_std`` (default :data:`MAX_REL_STD`),
+    and the window has at least :data:`MIN_RESIDUAL_DOF` observations more than parameters.
     """
     w = obj.w
     scale = w.size / max(float(w.sum()), 1e-300) if w.sum() > 0 else 1.0
@@ -85,7 +91,8 @@ def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = MA
     cov = sigma2 * np.linalg.pinv(data / tau + prior, rcond=1e-12)
     white = sigma2 * np.linalg.pinv(data + prior, rcond=1e-12)
     gate = np.sqrt(np.clip(np.diag(white), 0.0, None))
-    return Uncertainty(obj.space.names, cov, sigma2, gate < max_rel_std, tau, gate)
+    enough = n_obs - p >= MIN_RESIDUAL_DOF
+    return Uncertainty(obj.space.names, cov, sigma2, (gate < max_rel_std) & enough, tau, gate)
 
 
 def integrated_autocorrelation(r: np.ndarray, mask: np.ndarray | None = None, c: float = 5.0) -> float:

@@ -2,7 +2,7 @@
 
 A path (or a glob's match) that is a directory is one machine: its id is the directory's name and
 its runs are the run CSVs and the CAN logs in it (``*.csv``; ``*.log``, ``*.asc``, ``*.blf``,
-``*.trc``, gzipped or not: :mod:`.canlogs`). A file is one machine's run: the machine id is the
+``*.trc``, gzipped or not: :mod:`thermal_edge.service.logruns`). A file is one machine's run: the machine id is the
 file's name without its suffixes, or with ``id_column`` the value of that column in the file (a
 run CSV; then several files of one machine are grouped, and the column must hold one value per
 file). The run files themselves are read by the worker that processes the machine, not here.
@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ..bus.logs import GZIP_SUFFIXES
 from ..data import RunError
-from .canlogs import CAN_LOG_SUFFIXES, is_can_log
+from ..service.logruns import CAN_LOG_SUFFIXES, is_can_log
 
 #: run files in a machine's directory: run CSVs and CAN logs (gzipped too)
 RUN_GLOBS = ("*.csv", *(f"*{s}" for s in CAN_LOG_SUFFIXES), *(f"*{s}.gz" for s in CAN_LOG_SUFFIXES if s in GZIP_SUFFIXES))

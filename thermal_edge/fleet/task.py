@@ -13,9 +13,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from ..config import EdgeConfig, load_config
 from ..data import Run, read_run
 from ..lptn import Model, load_model
-from .canlogs import is_can_log, read_can_runs
+from ..service.logruns import is_can_log, read_log_runs
+from ..shipped import config_path
 from .results import row
 from .runs import Machine, format_id
 
@@ -26,26 +28,33 @@ def cached_model(model_path: str, data_dir: str | None) -> Model:
     return load_model(model_path, data_dir=data_dir)
 
 
+@functools.lru_cache(maxsize=4)
+def can_config(path: str | None) -> EdgeConfig:
+    """The service configuration that decodes the CAN logs (default: the shipped ``edge.yaml``),
+    loaded once per worker process."""
+    return load_config(path if path is not None else config_path("edge.yaml"))
+
+
 def warm(model_path: str, data_dir: str | None) -> str:
     """Load the model into this worker's cache (``client.run``) so timing starts warm; its name."""
     return cached_model(model_path, data_dir).name
 
 
-def read_machine_runs(machine: Machine, fmt: str, id_column: str | None, can_config: str | None = None) -> list[Run]:
+def read_machine_runs(machine: Machine, fmt: str, id_column: str | None, can_config_path: str | None = None) -> list[Run]:
     """The machine's runs; with ``id_column`` every row of its run CSVs must carry the machine's id.
 
     Parameters
     ----------
     fmt : str
         Format of the run CSVs (:data:`thermal_edge.data.FORMATS`).
-    can_config : str, optional
+    can_config_path : str, optional
         Service configuration whose ``signals:`` decode the CAN logs (default: the shipped one);
-        a CAN log gives a run per stretch of traffic (:func:`~.canlogs.read_can_runs`).
+        a CAN log gives a run per stretch of traffic (:func:`thermal_edge.service.logruns.log_runs`).
     """
     runs: list[Run] = []
     for path in machine.runs:
         if is_can_log(path):  # its machine is its file or directory name
-            runs += read_can_runs(path, can_config)
+            runs += read_log_runs(path, can_config(can_config_path))
             continue
         run = read_run(path, fmt)
         if id_column:
@@ -67,7 +76,8 @@ def run_machine(job: Callable[[], list[dict[str, Any]]], machine: Machine) -> li
     try:
         rows = job()
     except Exception as exc:  # one machine's failure must not end the fleet's job; it is reported
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)  # not KeyError's repr quotes
+        msg = text.strip().splitlines()[0] if text.strip() else type(exc).__name__
         rows = [row(machine=machine.id, kind="error", name=type(exc).__name__, message=msg, runs=";".join(machine.runs))]
     wall, cpu, mb = time.perf_counter() - t0, time.process_time() - c0, peak_mb()
     for r in rows:

@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from ..yamlfile import YamlProblem, parse_yaml
+from ..yamlfile import read_document
 from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
 from .expr import Expr, ExprError, Num, evaluate_const, parse
 from .model import (
@@ -25,7 +25,7 @@ from .model import (
     Parameter,
 )
 from .tables import Lookup, load_table
-from .vocabulary import NodeRole, Role, parse_role, temperature_name
+from .vocabulary import LIMIT, TEMPERATURE, UNIT_SPELLINGS, NodeRole, Role, parse_role, temperature_name, unit_problem
 
 MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
 
@@ -118,14 +118,9 @@ def load_model(path: str | os.PathLike[str], data_dir: str | os.PathLike[str] | 
 
 
 def read_yaml(path: str | os.PathLike[str], error: type[Exception]) -> Any:
-    """Parse a YAML file; a missing file or bad YAML raises ``error`` naming the file."""
-    path = Path(path)
-    try:
-        return parse_yaml(path.read_text())
-    except OSError as exc:
-        raise error(f"{path}: cannot read: {exc.strerror}") from None
-    except YamlProblem as exc:
-        raise error(f"{path.name}: {exc}") from None
+    """Parse a YAML file (UTF-8: :mod:`thermal_edge.yamlfile`'s encoding policy); a missing,
+    unreadable, binary or non-UTF-8 file or bad YAML raises ``error`` with one line naming the file."""
+    return read_document(path, error)
 
 
 def build_model(
@@ -177,6 +172,8 @@ def build_model(
         _only(ctx, spec, key, ("unit", "doc", "role"))
         if "role" in spec:
             role = ctx.role(f"{key}.role", spec["role"], Role)
+            if "unit" in spec and (why := unit_problem(role, str(spec["unit"]))):
+                raise ctx.fail(f"{key}.unit", why)
             if role in input_roles.values():
                 other = next(n for n, r in input_roles.items() if r is role)
                 raise ctx.fail(f"{key}.role", f"role {role.value!r} is already the role of input {other!r}")
@@ -201,6 +198,10 @@ def build_model(
         hi = ctx.number(f"{key}.max", _req(ctx, spec, "max", key))
         if not lo <= value <= hi:
             raise ctx.fail(key, f"value {value} outside [min, max] = [{lo}, {hi}]")
+        if str(spec.get("unit", "")).strip() in UNIT_SPELLINGS[TEMPERATURE.unit]:  # a temperature, degC
+            for what, v in (("value", value), ("min", lo), ("max", hi)):
+                if (why := TEMPERATURE.problem(v)):
+                    raise ctx.fail(f"{key}.{what}", why)
         spread = ctx.number(f"{key}.spread", spec["spread"]) if "spread" in spec else DEFAULT_SPREAD
         if spread < 0:
             raise ctx.fail(f"{key}.spread", f"must be >= 0 (relative σ of the value), got {spread}")
@@ -233,6 +234,7 @@ def build_model(
 
     conns = _list(ctx, raw.get("conductances"), "conductances")
     builder.connect(conns, pnames | op_names, boundaries)
+    builder.check_connected(boundaries)
 
     temp_names = {temperature_name(n) for n in builder.nodes}
     losses: list[Loss] = []
@@ -261,6 +263,9 @@ def build_model(
             raise ctx.fail(f"{key}.node", f"{node!r} is not a node with heat capacity")
         warn = ctx.number(f"{key}.warn_c", _req(ctx, spec, "warn_c", key))
         mx = ctx.number(f"{key}.max_c", _req(ctx, spec, "max_c", key))
+        for what, v in (("warn_c", warn), ("max_c", mx)):
+            if (why := LIMIT.problem(v)):
+                raise ctx.fail(f"{key}.{what}", why)
         if not warn < mx:
             raise ctx.fail(key, f"warn_c ({warn}) must be below max_c ({mx})")
         limits.append(Limit(k, node, warn, mx))
@@ -373,6 +378,32 @@ class _Builder:
             vals = [evaluate_const(x.substitute(nominal)) for x in (r_1, r_2, r_3)]
             if min(vals[0], vals[1]) + vals[2] <= 0:
                 raise ctx.fail(key, f"{d} T-model is not passive (R1={vals[0]:.3g}, R2={vals[1]:.3g}, R3={vals[2]:.3g})")
+
+    def check_connected(self, boundaries: Mapping[str, str]) -> None:
+        """Every node and point reaches a boundary through conductances (else its heat has no way
+        out: its temperature grows without bound and the network cannot be solved); with no
+        boundary at all, every node is connected to another at least."""
+        links: dict[str, set[str]] = {n: set() for n in (*self.nodes, *self.points, *boundaries)}
+        for e in self.edges:
+            links.setdefault(e.a, set()).add(e.b)
+            links.setdefault(e.b, set()).add(e.a)
+        if not boundaries:
+            for n in self.nodes:
+                if not links[n] and len(self.nodes) > 1:
+                    raise self.ctx.fail(self.names.get(n, "nodes"), f"node {n!r} is connected to nothing")
+            return
+        reached, todo = set(boundaries), list(boundaries)
+        while todo:
+            for m in links.get(todo.pop(), ()):
+                if m not in reached:
+                    reached.add(m)
+                    todo.append(m)
+        for n in (*self.nodes, *self.points):
+            if n not in reached:
+                kind = "node" if n in self.nodes else "point"
+                raise self.ctx.fail(self.names.get(n.split("/")[0], "conductances"),
+                                    f"{kind} {n!r} is not connected to any boundary ({', '.join(boundaries)}) through "
+                                    "conductances: its heat has no way out")
 
     def endpoint(self, key: str, ref: str, boundaries: Mapping[str, str]) -> str:
         if ref in self.faces or ref in self.nodes or ref in self.points or ref in boundaries:

@@ -11,7 +11,12 @@ chosen) uses :data:`DEFAULT_COLUMNS`: the one place the usual column names are w
 from __future__ import annotations
 
 import difflib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from enum import Enum
+
+import numpy as np
 
 
 class Role(str, Enum):
@@ -35,6 +40,11 @@ class Role(str, Enum):
         """The column name used for this role in data that has no model (:data:`DEFAULT_COLUMNS`)."""
         return DEFAULT_COLUMNS[self]
 
+    @property
+    def plausible(self) -> Plausible:
+        """The unit of this role's values and the range a machine's values lie in (:data:`PLAUSIBLE`)."""
+        return PLAUSIBLE[self]
+
 
 #: Column names of data without a model (simulated cycles, converted data sets): the only place
 #: these names are written outside the model files.
@@ -47,6 +57,151 @@ DEFAULT_COLUMNS: dict[Role, str] = {
     Role.AMBIENT: "ambient_c",
     Role.COOLANT: "coolant_c",
 }
+
+
+@dataclass(frozen=True)
+class OtherUnit:
+    """A unit a value is often given in by mistake, and how it converts: ``ours = x * scale + offset``."""
+
+    name: str
+    scale: float = 1.0
+    offset: float = 0.0
+
+    def convert(self, x: float | np.ndarray) -> float | np.ndarray:
+        return x * self.scale + self.offset
+
+
+KELVIN = OtherUnit("kelvin", 1.0, -273.15)
+MILLIAMPERE = OtherUnit("mA", 1e-3)
+
+
+@dataclass(frozen=True)
+class Plausible:
+    """The unit of a quantity and the range every value of a machine lies in; outside it a value
+    is a unit, scaling or sensor error, and when it is plausible in one of :attr:`others` the
+    message says that unit ("428 °C looks like kelvin").
+
+    Attributes
+    ----------
+    unit : str
+        The unit the package works in (what files and frames must give).
+    lo, hi : float
+        Inclusive bounds of a plausible value, in ``unit``.
+    others : tuple of OtherUnit
+        Units the value is often given in by mistake.
+    whole_above : float, optional
+        A whole series whose every value lies above this is in another unit, although each
+        value alone is plausible (temperatures: no machine stays above 200 °C for a whole run,
+        and no recording in kelvin goes below 200 K).
+    """
+
+    unit: str
+    lo: float
+    hi: float
+    others: tuple[OtherUnit, ...] = ()
+    whole_above: float | None = None
+    what: str = field(default="", compare=False)
+
+    def _range(self) -> str:
+        return f"the plausible {self.lo:g} to {self.hi:g} {self.unit}"
+
+    def problem(self, x: float) -> str | None:
+        """Why the single value ``x`` cannot be right (None: plausible), naming the unit it
+        looks like when it is plausible in one of :attr:`others`."""
+        if not math.isfinite(x):
+            return f"{x} is not a number"
+        if self.lo <= x <= self.hi:
+            return None
+        for other in self.others:
+            y = float(other.convert(x))
+            if self.lo <= y <= self.hi:
+                return f"{x:g} {self.unit} looks like {other.name} ({y:.4g} {self.unit}); give it in {self.unit}"
+        return f"{x:g} {self.unit} is outside {self._range()}"
+
+    def series_problem(self, x: np.ndarray) -> tuple[int | None, str] | None:
+        """Why the series ``x`` cannot be right, and the index of the value at fault (None when the
+        whole series is: a unit error); None when plausible. NaN (not measured) is skipped.
+
+        A whole series is in another unit when it is plausible there and either every value lies
+        above :attr:`whole_above` or at least :data:`UNIT_SHARE` of the values are outside the
+        range here; otherwise the first value outside the range is named (a spike, a sign error).
+        """
+        x = np.asarray(x, dtype=float)
+        finite = x[np.isfinite(x)]
+        if finite.size == 0:
+            return None
+        out = (finite < self.lo) | (finite > self.hi)
+        whole = self.whole_above is not None and bool(finite.min() > self.whole_above)
+        if whole or out.any():
+            for other in self.others:
+                y = other.convert(finite)
+                if bool(np.all((y >= self.lo) & (y <= self.hi))) and (whole or out.mean() >= UNIT_SHARE):
+                    return None, (f"{finite.min():.6g} to {finite.max():.6g} looks like {other.name} "
+                                  f"({float(np.min(y)):.4g} to {float(np.max(y)):.4g} {self.unit}); give it in {self.unit}")
+        if not out.any():
+            return None
+        k = int(np.flatnonzero(np.isfinite(x) & ((x < self.lo) | (x > self.hi)))[0])
+        why = f"{x[k]:g} {self.unit} is outside {self._range()}"
+        inside = finite[~out]
+        for other in self.others:  # one sample in another unit: it converts into the span of the rest
+            y = float(other.convert(x[k]))
+            if inside.size and inside.min() - SPAN_MARGIN <= y <= inside.max() + SPAN_MARGIN:
+                return k, f"{why}; it looks like {other.name} ({y:.4g} {self.unit})"
+        return k, why
+
+
+#: How far a single value converted from another unit may lie outside the span of the rest of its
+#: series and still be named as given in that unit (in the series' unit: K, A).
+SPAN_MARGIN = 5.0
+#: Share of a series outside the plausible range from which the series, rather than a sample of
+#: it, is in the wrong unit (a current in mA idles in range, a spike is one sample).
+UNIT_SHARE = 0.1
+
+#: Temperatures of a machine and its surroundings (nodes, sensors, ambient, coolant), °C. No
+#: machine runs below -60 °C; above 300 °C its insulation and magnets are destroyed.
+TEMPERATURE = Plausible("degC", -60.0, 300.0, (KELVIN,), whole_above=200.0, what="temperature")
+#: Derating limits (``warn_c``, ``max_c``) of a node, °C: insulation classes reach 240 °C and
+#: magnets less; below 20 °C a machine would derate at rest.
+LIMIT = Plausible("degC", 20.0, 250.0, (KELVIN,), what="limit temperature")
+
+#: Plausible values of each input role, in the role's unit.
+PLAUSIBLE: dict[Role, Plausible] = {
+    # RMS: never negative; 4 kA covers the largest traction inverters
+    Role.CURRENT: Plausible("A", 0.0, 4000.0, (MILLIAMPERE,), what="RMS current"),
+    Role.CURRENT_D: Plausible("A", -5000.0, 5000.0, (MILLIAMPERE,), what="d-axis current"),
+    Role.CURRENT_Q: Plausible("A", -5000.0, 5000.0, (MILLIAMPERE,), what="q-axis current"),
+    # high-speed machines (spindles, turbo compressors) reach 100,000 rpm
+    Role.SPEED: Plausible("rpm", -100000.0, 100000.0, what="speed"),
+    Role.TORQUE: Plausible("Nm", -50000.0, 50000.0, what="torque"),
+    # the air around a machine (a hot engine bay, a desert) stays below 100 degC, its coolant below 150 degC
+    Role.AMBIENT: Plausible("degC", -60.0, 100.0, (KELVIN,), whole_above=TEMPERATURE.whole_above, what="ambient temperature"),
+    Role.COOLANT: Plausible("degC", -60.0, 150.0, (KELVIN,), whole_above=TEMPERATURE.whole_above, what="coolant temperature"),
+}
+
+#: How a model file may write each role's unit (``inputs.<name>.unit``).
+UNIT_SPELLINGS: dict[str, frozenset[str]] = {
+    "A": frozenset({"A", "A rms", "Arms", "A_rms", "A RMS"}),
+    "rpm": frozenset({"rpm", "1/min", "min^-1", "r/min"}),
+    "Nm": frozenset({"Nm", "N m", "N*m", "N·m", "N.m"}),
+    "degC": frozenset({"degC", "°C", "C", "deg C", "celsius"}),
+}
+
+
+def unit_problem(role: Role, unit: str) -> str | None:
+    """Why ``unit`` (as a model file writes an input's unit) is not the unit of ``role``; None if it is."""
+    want = role.plausible.unit
+    if unit.strip() in UNIT_SPELLINGS.get(want, frozenset({want})):
+        return None
+    return f"{unit!r} is not the unit of role {role.value!r}: its values must be in {want}"
+
+
+def temperature_problems(values: Sequence[float]) -> str | None:
+    """Why a set of node temperatures (a saved state, °C) cannot be right; None when plausible."""
+    found = TEMPERATURE.series_problem(np.asarray(values, dtype=float))
+    if found is None:
+        return None
+    k, why = found
+    return why if k is None else f"value {k + 1}: {why}"
 
 
 class NodeRole(str, Enum):
@@ -100,6 +255,7 @@ def parse_role(value: object, kind: type[Role] | type[NodeRole]) -> Role | NodeR
 
 
 __all__ = [
-    "BEARING_SIDE", "DEFAULT_COLUMNS", "FRAME", "NodeRole", "Role", "STATOR_IRON", "TEMP_PREFIX", "parse_role",
-    "temperature_name",
+    "BEARING_SIDE", "DEFAULT_COLUMNS", "FRAME", "KELVIN", "LIMIT", "MILLIAMPERE", "PLAUSIBLE", "TEMPERATURE", "NodeRole",
+    "OtherUnit", "Plausible", "Role", "STATOR_IRON", "TEMP_PREFIX", "UNIT_SHARE", "UNIT_SPELLINGS", "parse_role",
+    "temperature_name", "temperature_problems", "unit_problem",
 ]

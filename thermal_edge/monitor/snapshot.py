@@ -73,6 +73,13 @@ class Snapshot:
         RMS open-loop prediction error of the last period (K).
     adapt_runs, adapt_accepted, adapt_rejected, param_version : int
         Adaptation counts (bus: runs and version only).
+    adapt_status : str
+        What the adaptation is doing ("fits", "waiting_for_evidence", "learning", "refusing", ...;
+        metrics only, "" when unknown).
+    adapt_refusal : str
+        Why the last challenger was dropped ("" if none was; metrics only).
+    adapt_refusal_t, tick_t : float
+        When it was dropped and the time of the last tick (s, the service's clock).
     sensors : list of SensorView
     stale : list of str
         Frames missing longer than their timeout (metrics), or not seen for 3 cycle times (bus).
@@ -96,6 +103,10 @@ class Snapshot:
     adapt_accepted: int | None = None
     adapt_rejected: int | None = None
     param_version: int | None = None
+    adapt_status: str = ""
+    adapt_refusal: str = ""
+    adapt_refusal_t: float = math.nan
+    tick_t: float = math.nan
     sensors: list[SensorView] = field(default_factory=list)
     stale: list[str] = field(default_factory=list)
     frame_ages: dict[str, float] = field(default_factory=dict)
@@ -159,6 +170,12 @@ def from_metrics(text: str, source: str = "metrics") -> Snapshot:
                 snap.adapt_rejected = int(v)
             elif key == "parameter_version":
                 snap.param_version = int(v)
+            elif key == "adaptation_status" and v:
+                snap.adapt_status = lab.get(name, "")
+            elif key == "adaptation_last_refusal_timestamp_seconds":
+                snap.adapt_refusal, snap.adapt_refusal_t = lab.get("reason", ""), v
+            elif key == "last_tick_timestamp_seconds":
+                snap.tick_t = v
             elif key == "sensor_measurement_celsius":
                 sensor(lab["sensor"]).measured_c = v
             elif key == "prediction_error_celsius":

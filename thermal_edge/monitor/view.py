@@ -48,6 +48,13 @@ def render(snap: Snapshot, now: float | None = None) -> str:
     if snap.param_version is not None:
         adapt.append(f"parameter version {snap.param_version}")
     lines.append(f"prediction error {_f(snap.pred_err_rms_k, '.2f')} K rms   adaptation: {', '.join(adapt) or '--'}")
+    if snap.adapt_status or snap.adapt_refusal:
+        status = snap.adapt_status.replace("_", " ") or "--"
+        refusal = ""
+        if snap.adapt_refusal:
+            ago = snap.tick_t - snap.adapt_refusal_t
+            refusal = f"   last refusal: {snap.adapt_refusal}" + (f" ({ago:.0f} s ago)" if math.isfinite(ago) else "")
+        lines.append(f"adaptation status: {status}{refusal}")
     if snap.sensors:
         lines.append("")
         lines.append("sensor          reading  pred-meas   age s  fault")

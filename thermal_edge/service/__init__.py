@@ -21,12 +21,13 @@ Modules, one job each:
 - :mod:`.metrics` -- Prometheus metrics;
 - :mod:`.systemd` -- ``sd_notify`` readiness, status and watchdog;
 - :mod:`.service` -- the asyncio service;
-- :mod:`.replay` -- a candump log through the pipeline.
+- :mod:`.replay` -- a candump log through the pipeline;
+- :mod:`.logruns` -- a CAN log as runs: the inputs and readings per tick, as the service saw them.
 """
 from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
 from .replay import ReplayResult, replay_candump
-from .service import EdgeService, status_line
+from .service import EdgeService, adapt_phrase, status_line
 
 __all__ = ["EdgeService", "ReplayResult", "ThermalEngine", "TickOutput", "load_service_model", "replay_candump",
-           "status_line"]
+           "adapt_phrase", "status_line"]

@@ -34,7 +34,28 @@ from ..estimation.adapter import AdapterConfig, Decision, OnlineAdapter
 from ..estimation.uncertainty import Z95
 from ..lptn import Model, Stepper
 
-__all__ = ["Adaptation", "AdaptationCounts", "AdaptationResult", "AdaptationWorker"]
+__all__ = ["ADAPT_STATUSES", "Adaptation", "AdaptationCounts", "AdaptationResult", "AdaptationWorker", "decision_status"]
+
+#: what the adaptation is doing, after its last decision (the operator's view: /metrics, monitor, demo):
+#: ``off`` adaptation disabled; ``starting`` no decision yet; ``fits`` the model predicts the last
+#: period within the threshold; ``waiting_for_data`` the history cannot identify anything yet;
+#: ``waiting_for_evidence`` a challenger is being judged on the data after its fit; ``learning`` a
+#: challenger was just promoted; ``refusing`` the last judged challenger was dropped
+ADAPT_STATUSES = ("off", "starting", "fits", "waiting_for_data", "waiting_for_evidence", "learning", "refusing")
+
+
+def decision_status(decision: Mapping[str, Any]) -> str:
+    """The :data:`ADAPT_STATUSES` value a decision (as recorded: :meth:`Decision.as_dict`) leaves."""
+    verdict = decision.get("verdict") or ""
+    if verdict == "promoted" or decision.get("accepted"):
+        return "learning"
+    if verdict == "dropped":
+        return "refusing"
+    if verdict == "undecided" or decision.get("challenger"):
+        return "waiting_for_evidence"
+    if not decision.get("triggered"):
+        return "fits"
+    return "waiting_for_data"
 
 log = logging.getLogger(__name__)
 
@@ -302,6 +323,15 @@ class Adaptation:
         self._recent: deque[tuple[float, dict[str, float]]] = deque(maxlen=1024)
         self._next_t: float | None = None
         self._pending: tuple[int, float] | None = None  # (request id, apply at)
+        self._status = "starting" if config.enabled else "off"
+        self._last_refusal: tuple[float, str, str] | None = None  # (t, why, the decision's reason)
+        if config.enabled and self._decisions:  # restored: what the saved decisions left
+            self._status = decision_status(self._decisions[-1])
+            for rec in reversed(self._decisions):
+                if rec.get("verdict") == "dropped":
+                    self._last_refusal = (float(rec.get("t") or 0.0), str(rec.get("refusal") or ""),
+                                          str(rec.get("reason") or "").split(";")[0])
+                    break
 
     # -- read-only views -------------------------------------------------------------------------
     @property
@@ -323,6 +353,17 @@ class Adaptation:
         """After the last accepted decision: the 95 % band of each adaptable parameter, and whether
         the sensors pin it down (copies)."""
         return dict(self._bands), dict(self._identifiable)
+
+    @property
+    def status(self) -> str:
+        """What the adaptation is doing after its last decision (one of :data:`ADAPT_STATUSES`)."""
+        return self._status
+
+    @property
+    def last_refusal(self) -> tuple[float, str, str] | None:
+        """The last challenger dropped: its decision's time (s), why in short ("not better",
+        "predicts housing worse", ...) and the decision's whole reason, with its evidence."""
+        return self._last_refusal
 
     @property
     def deciding(self) -> bool:
@@ -415,6 +456,9 @@ class Adaptation:
         self._decisions.append(rec)
         if len(self._decisions) > self.max_decisions:
             del self._decisions[: len(self._decisions) - self.max_decisions]
+        self._status = decision_status(rec)
+        if d.verdict == "dropped":
+            self._last_refusal = (d.t, d.refusal, d.reason.split(";")[0])
         if not d.triggered:
             return
         if d.evaluations == 0 and not d.accepted:  # triggered, but the adapter did not optimise (too little history, ...)

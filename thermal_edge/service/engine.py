@@ -383,6 +383,7 @@ class ThermalEngine:
         by_name = {b.name: b for b in bands}
         tr = self.config.transmit
         ad = self.adaptation.counts
+        refusal = self.adaptation.last_refusal
         return TickOutput(
             t=t, state=state, limits=limits, initialized=obs is not None,
             estimate=est, sigma=sigma, prediction=pred, measured=measured,
@@ -392,6 +393,8 @@ class ThermalEngine:
             adapt_rejected=ad.rejected, param_version=ad.version, forced=list(forced),
             stale=stale, faults=faults, new_results=list(new_results or []),
             hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit), reaction_a=react_a,
+            adapt_status=self.adaptation.status, adapt_refusal=refusal[1] if refusal is not None else "",
+            ages=dict(ti.ages) if ti is not None else {},
         )
 
     def placeholder(self, t: float) -> TickOutput:

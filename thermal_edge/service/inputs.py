@@ -3,8 +3,10 @@
 Per tick (the frames of ``[t - period, t)``):
 
 - currents: the **mean of i²** over the tick (copper loss needs the mean square, not the square
-  of the mean): ``dq_rms`` gives ``i_rms = sqrt(mean(i_d² + i_q²) / 2)`` from the d/q peak
-  amplitudes, ``rms`` gives ``sqrt(mean(x²))`` of one signal (e.g. ``INV_IphRms``);
+  of the mean): ``dq_rms`` gives ``i_rms = sqrt(mean(i_d² + i_q²) / 2)`` from amplitude-invariant
+  d/q currents (peak amplitudes; ``/ 3`` power-invariant, ``/ 1`` RMS-scaled: the input's ``dq:``,
+  :data:`~thermal_edge.config.DQ_SQUARE_SHARE`), ``rms`` gives ``sqrt(mean(x²))`` of one signal
+  (e.g. ``INV_IphRms``);
 - ``mean`` inputs (speed, torque): the mean over the tick (optionally rounded to a resolution,
   which keeps the model's per-operating-point matrix cache effective).
 
@@ -33,7 +35,7 @@ from dataclasses import dataclass, field
 
 from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus
-from ..config import EdgeConfig, InputSignal, SensorSignal
+from ..config import DQ_SQUARE_SHARE, EdgeConfig, InputSignal, SensorSignal
 from ..lptn import Role
 
 __all__ = ["FAULT_KINDS", "InputAccumulator", "TickInputs", "input_ranges"]
@@ -99,6 +101,15 @@ class _Latest:
 # A sensor the machine may lack is marked ``required: false`` and then only goes unmeasured.
 _STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatus.SHORT_CIRCUIT): "short_circuit",
                  int(SensorStatus.NOT_FITTED): "not_fitted"}
+
+
+def _age(t: float, t_reading: float) -> float:
+    """Seconds from a reading (clock time ``t_reading``) to the tick ending at ``t``; never negative.
+
+    On the wall clock a tick runs a moment after its boundary ``t`` and takes the readings that
+    arrived meanwhile: such a reading is the tick's freshest, age 0, not one from the future.
+    """
+    return max(0.0, t - t_reading)
 
 
 #: Every kind of rejected reading, in the order metrics list them.
@@ -207,7 +218,7 @@ class InputAccumulator:
     def _reduce(self, name: str, spec: InputSignal, sig: Mapping[str, float], t: float) -> None:
         if spec.reduce == "dq_rms":
             d, q = float(sig[spec.signals[0]]), float(sig[spec.signals[1]])
-            x = 0.5 * (d * d + q * q)
+            x = DQ_SQUARE_SHARE[spec.dq] * (d * d + q * q)
         else:
             x = float(sig[spec.signals[0]])
             if spec.reduce == "rms":
@@ -276,7 +287,7 @@ class InputAccumulator:
         for name in self.latest_inputs:
             slot = self._latest[name]
             inputs[name] = slot.value
-            ages[name] = t - slot.t
+            ages[name] = _age(t, slot.t)
             status[name] = slot.status
             if slot.fault or slot.tick_fault:
                 faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
@@ -287,7 +298,7 @@ class InputAccumulator:
         timeouts = self.config.timeouts
         for name, spec in self.sensors.items():
             slot = self._latest[name]
-            ages[name] = t - slot.t
+            ages[name] = _age(t, slot.t)
             status[name] = slot.status
             limit = timeouts.get(spec.frame)
             usable = slot.fault is None and math.isfinite(slot.value) and (limit is None or ages[name] <= limit)

@@ -27,6 +27,7 @@ from prometheus_client.registry import Collector
 from .. import __version__
 from ..bus.frames import TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
 from ..bus.stats import DROP_REASONS
+from .adaptation import ADAPT_STATUSES
 from .inputs import FAULT_KINDS
 from .metrics_server import MetricsServer
 
@@ -60,6 +61,7 @@ LABELS: dict[str, tuple[str, ...]] = {
     "frames_dropped": ("reason",),
     "frames_lost": ("frame",),
     "frame_clock_jumps": ("outcome",),
+    "adaptation_last_refusal_timestamp_seconds": ("reason",),
 }
 
 #: the frames the service sends (frames_sent has a series for each from the start)
@@ -152,9 +154,10 @@ class _LiveCollector(Collector):
             age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
                                     labels=LABELS["sensor_age_seconds"])
             for s in eng.config.sensors:  # type: ignore[union-attr]
-                a = eng.accumulator.last_valid_t(s)  # type: ignore[union-attr]
+                # the tick's own ages: the accumulator's latest reading may have come after the tick
+                a = out.ages.get(s, math.inf)
                 if math.isfinite(a):
-                    age.add_metric([s], out.t - a)
+                    age.add_metric([s], a)
             yield age
         if eng is not None and model is not None:
             # before the first tick: starting, nothing stale, no fault (as TE_Limits says)
@@ -198,6 +201,18 @@ class _LiveCollector(Collector):
             yield ident
             ad = eng.adaptation.counts
             yield GaugeMetricFamily(P + "parameter_version", "Accepted parameter sets so far", value=ad.version)
+            status = eng.adaptation.status
+            yield StateSetMetricFamily(P + "adaptation_status", "What the adaptation is doing after its last decision: "
+                                       "fits (error below the threshold), waiting for data or for evidence on a challenger, "
+                                       "learning (a challenger just promoted), refusing (the last challenger dropped)",
+                                       value={st: st == status for st in ADAPT_STATUSES})
+            refusal = eng.adaptation.last_refusal
+            last = GaugeMetricFamily(P + "adaptation_last_refusal_timestamp_seconds", "Time of the last challenger "
+                                     "dropped, labelled with why (not better, predicts SENSOR worse)",
+                                     labels=LABELS["adaptation_last_refusal_timestamp_seconds"])
+            if refusal is not None:
+                last.add_metric([refusal[1]], refusal[0])
+            yield last
             for name, value, doc in (
                 ("adaptation_runs", ad.runs, "Adaptations run (prediction error above the threshold)"),
                 ("adaptation_accepted", ad.accepted, "Adaptations accepted"),

@@ -61,6 +61,11 @@ class TickOutput:
     hot_spot: NodeBand | None = None
     magnet: NodeBand | None = None
     reaction_a: float = math.inf  # largest current keeping every upper band below max over the reaction time
+    adapt_status: str = ""  # what the adaptation is doing (:data:`.adaptation.ADAPT_STATUSES`)
+    adapt_refusal: str = ""  # why the last challenger was dropped ("" if none was)
+    #: sensor/input name -> seconds from its last valid reading to this tick (inf: none yet); as of the
+    #: tick, so that it is never measured against a reading that arrived after it
+    ages: dict[str, float] = field(default_factory=dict)
 
     # -- frame contents ---------------------------------------------------------------------------
     def estimates_signals(self) -> dict[str, float]:

@@ -52,6 +52,7 @@ import numpy as np
 
 from ..errors import ThermalEdgeError
 from ..lptn import Model, ParameterError
+from ..lptn.vocabulary import TEMPERATURE
 
 __all__ = ["PersistedState", "StateError", "StateStore", "decode"]
 
@@ -72,11 +73,6 @@ MAX_VALUES = 250_000
 MAX_NUMBER_CHARS = 40
 #: Corrupt files kept (moved aside) for forensics; older ones are deleted.
 KEEP_CORRUPT = 3
-#: Temperatures a saved state may hold, degC (beyond them the file is not a machine's state). No
-#: machine runs below -40 degC ambient (the floor of a PT100's valid range in edge.yaml); a state
-#: colder than -60 degC would start the estimate of the unmeasured rotor far below the truth (a
-#: black-box client held the magnet at -99 degC under a 130 degC stator and it went onto the bus).
-T_RANGE_C = (-60.0, 500.0)
 
 _CORRUPT_PREFIX = f"{FILENAME}.corrupt-"
 # what a save in progress leaves when killed: this module's temporary name and the earlier ``.state.json.<pid>.tmp``
@@ -320,9 +316,17 @@ class PersistedState:
                 # the observer adds process noise every tick: no saved estimate is exact, and a zero
                 # variance would keep readings from ever correcting the node
                 raise StateError("P has a variance of zero or less (no estimate is exact)")
-            lo, hi = T_RANGE_C
-            if not all(lo < x < hi for x in st.T + st.T_pred):
-                raise StateError(f"temperatures outside {lo:g}..{hi:g} degC")
+            for arr, what in ((st.T, "T"), (st.T_pred, "T_pred")):
+                found = TEMPERATURE.series_problem(np.asarray(arr, dtype=float)) if arr else None
+                if found is not None:
+                    at, cause = found
+                    where = what if at is None else f"{what}[{at}] (node {model.nodes[at]!r})"
+                    raise StateError(f"{where}: temperatures outside {TEMPERATURE.lo:g}..{TEMPERATURE.hi:g} degC: {cause}")
+        for name, v in st.inputs.items():
+            role = model.input_roles.get(name)
+            problem = role.plausible.problem(v) if role is not None else None
+            if problem:
+                raise StateError(f"inputs.{name}: {problem}")
         return st
 
 

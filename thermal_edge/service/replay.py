@@ -22,8 +22,6 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.codec import FrameCodec
-from ..bus.frames import DEFAULT_DBC_PATH
 from ..bus.logs import FrameLogReader
 from ..bus.stats import DROP_REASONS
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
@@ -33,7 +31,7 @@ from .engine import ThermalEngine, load_service_model
 from .outputs import TickOutput
 from .persistence import PersistedState
 
-__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_summary"]
+__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_log", "replay_summary", "summarise"]
 
 
 @dataclass
@@ -92,7 +90,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     cfg = replace(config, clock=ClockConfig("frame", config.clock.tick_s, config.clock.max_catchup_s),
                   metrics=MetricsConfig(enabled=False))
     model = model if model is not None else load_service_model(cfg)
-    codec = FrameCodec(cfg.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=cfg.codec.resync_after_cycles)
+    codec = cfg.codec.frame_codec(cfg.fname)
     cfg.check_dbc(codec)
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s, cfg.clock.max_catchup_s)
@@ -124,12 +122,14 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     )
 
 
-def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
-                   model_path: str | os.PathLike[str] | None = None,
-                   sets: Mapping[str, float] | None = None) -> dict[str, Any]:
-    """``thermal-edge replay --format can``: replay a log with a service configuration and
-    summarise it (JSON-serialisable). ``model_path`` overrides the configuration's model, ``sets``
-    (``--set``, checked against the model's bounds) is merged into its ``model.parameters``.
+def replay_log(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
+               model_path: str | os.PathLike[str] | None = None, sets: Mapping[str, float] | None = None, *,
+               keep_outputs: bool = False) -> tuple[ReplayResult, Model]:
+    """Replay a log with a service configuration file: the result and the model it ran.
+
+    ``model_path`` overrides the configuration's model, ``sets`` (``--set``, checked against the
+    model's bounds) is merged into its ``model.parameters``; ``keep_outputs`` keeps every tick's
+    :class:`TickOutput`.
 
     Raises ``thermal_edge.config.ConfigError``, ``FileNotFoundError`` or
     ``thermal_edge.bus.LogFormatError`` with one-line messages.
@@ -142,7 +142,20 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
     if sets:
         cfg = replace(cfg, model=ModelConfig(cfg.model.path, {**cfg.model.parameters, **sets}))
     model = load_service_model(cfg)
-    res = replay_candump(path, cfg, model=model)
+    return replay_candump(path, cfg, model=model, keep_outputs=keep_outputs), model
+
+
+def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
+                   model_path: str | os.PathLike[str] | None = None,
+                   sets: Mapping[str, float] | None = None) -> dict[str, Any]:
+    """``thermal-edge replay --format can``: replay a log with a service configuration
+    (:func:`replay_log`) and summarise it (:func:`summarise`)."""
+    res, model = replay_log(path, config_path, model_path, sets)
+    return summarise(path, res, model)
+
+
+def summarise(path: str | os.PathLike[str], res: ReplayResult, model: Model) -> dict[str, Any]:
+    """The summary of a replay (JSON-serialisable): frames, ticks, drops, adaptations, peaks."""
     lim = {name: i for i, name in enumerate(res.nodes)}
     out: dict[str, Any] = {
         "log": str(path), "model": model.name, "frames": res.frames, "ticks": int(len(res.t)),

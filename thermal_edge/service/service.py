@@ -33,8 +33,8 @@ from typing import Any
 from prometheus_client import CollectorRegistry
 
 from ..bus.busconfig import create_bus as bus_factory
-from ..bus.codec import DecodedFrame, FrameCodec
-from ..bus.frames import DEFAULT_DBC_PATH, TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
+from ..bus.codec import DecodedFrame
+from ..bus.frames import TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
 from ..bus.transport import CanTransport
 from ..config import EdgeConfig
 from ..lptn import Model
@@ -67,7 +67,16 @@ def status_line(out: TickOutput | None) -> str:
     err = f"{out.pred_err_rms:5.2f}" if math.isfinite(out.pred_err_rms) else "  -- "
     return (f"{stamp} {out.state.name.lower():9s} hot spot {t(hs.estimate_c if hs else None)}/{t(hs.upper_c if hs else None)} °C"
             f"  magnet {t(mg.estimate_c if mg else None)} °C  limit {out.limits.current_a:5.1f} A {out.limits.torque_nm:6.1f} Nm"
-            f"  reason {out.limits.reason.name.lower():10s} pred err {err} K  adapted {out.adapt_accepted}/{out.adapt_runs}")
+            f"  reason {out.limits.reason.name.lower():10s} pred err {err} K  adapted {out.adapt_accepted}/{out.adapt_runs}"
+            + (f"  model {adapt_phrase(out.adapt_status, out.adapt_refusal)}" if out.adapt_status else ""))
+
+
+def adapt_phrase(status: str, refusal: str = "") -> str:
+    """What the adaptation is doing, in words: "learning", "waiting for evidence", "refusing (not
+    better)", ... (``status`` one of :data:`.adaptation.ADAPT_STATUSES`)."""
+    if status == "refusing":
+        return f"refusing ({refusal})" if refusal else "refusing"
+    return status.replace("_", " ")
 
 
 class EdgeService:
@@ -93,7 +102,7 @@ class EdgeService:
                  worker_mode: str | None = None, bus_factory_fn: Callable[..., Any] = bus_factory) -> None:
         self.config = config
         self.model = model if model is not None else load_service_model(config)
-        self.codec = FrameCodec(config.codec.dbc or DEFAULT_DBC_PATH, resync_after_cycles=config.codec.resync_after_cycles)
+        self.codec = config.codec.frame_codec(config.fname)
         config.check_dbc(self.codec)
         self.store = StateStore(config.state.dir, self.model)
         restored = self.store.load()

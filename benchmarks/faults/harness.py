@@ -2,7 +2,7 @@
 run``), on a ``udp_multicast`` group and port of its own (hop limit 0), with an independent
 ``TE_Limits`` monitor process, an inverter of the bench's own making and the safety checks.
 
-A check counts *unsafe events* (issue 14): a ``TE_Limits`` gap over 300 ms while the process lives,
+A check counts *unsafe events*: a ``TE_Limits`` gap over 300 ms while the process lives,
 a limit above the maximum, above the safe limit while an input is stale or a required sensor
 faulty, above the derating band at the measured winding temperature, and a crash.
 """
@@ -24,11 +24,13 @@ import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import yaml
 
-from ...shipped import ROOT, config_path
+from thermal_edge.shipped import MACHINES, config_path, find
+
+from .. import ROOT
 from . import wire
 
 GAP_S = 0.3  # the inverter drops TE_Limits after this long
@@ -45,6 +47,17 @@ def service_config_path(*parts: str) -> Path:
     """A file under the ``config/`` directory of the service's source tree."""
     tree = os.environ.get(SERVICE_TREE_ENV)
     return Path(tree).joinpath("config", *parts) if tree else config_path(*parts)
+
+
+def service_model_path() -> Path:
+    """The model file the service's ``edge.yaml`` names: a path relative to that file, or the name
+    of a packaged model."""
+    edge = service_config_path("edge.yaml")
+    ref = yaml.safe_load(edge.read_text())["model"]["path"]
+    found = find(MACHINES, ref, base=edge.parent)
+    if found is None:
+        raise RuntimeError(f"{edge}: model.path {ref!r} is neither a file nor a packaged model")
+    return found
 
 
 def _edge() -> dict[str, Any]:
@@ -145,7 +158,7 @@ class Monitor:
 
     def __init__(self, group: str, port: int, workdir: Path) -> None:
         self.path = workdir / f"limits-{port}.txt"
-        self.proc = subprocess.Popen([sys.executable, "-m", "thermal_edge.bench.faults.wire", "monitor", "--group", group,
+        self.proc = subprocess.Popen([sys.executable, "-m", "benchmarks.faults.wire", "monitor", "--group", group,
                                       "--port", str(port), "--out", str(self.path)], env=env(), cwd=str(ROOT),
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._pos = 0
@@ -356,7 +369,7 @@ class Inverter:
         self._hold = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
-    def start(self) -> Inverter:
+    def start(self) -> Self:
         self._thread.start()
         return self
 
@@ -507,15 +520,29 @@ def runs_above(lim: Limits, t0: float, t1: float, bound: float, reasons: frozens
 
 @dataclass
 class Check:
-    """Unsafe events found by the common checks, and what they saw."""
+    """Unsafe events found by the checks, and what they saw; and performance targets missed.
+
+    An unsafe event breaks a promise the service makes whatever the host's load (a bound of the CAN
+    contract, a limit, a crash). A target is a performance figure a loaded host can push past
+    without the service being wrong (tick time, a gap tighter than the contract's); it is reported,
+    and counted apart.
+    """
 
     unsafe: int = 0
     notes: list[str] = field(default_factory=list)
+    missed: int = 0
+    missed_notes: list[str] = field(default_factory=list)
 
     def add(self, n: int, note: str) -> None:
         if n:
             self.unsafe += n
             self.notes.append(note)
+
+    def target(self, met: bool, note: str) -> None:
+        """A performance target: ``note`` says which and by how much when it was not ``met``."""
+        if not met:
+            self.missed += 1
+            self.missed_notes.append(note)
 
 
 def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = None, band_c: float | None = None,
@@ -529,7 +556,8 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
     end = t1 if alive else min(t1, time.time())
     g = gaps(lim, t0, end, gap_limit_s)
     c.add(len(g), f"{len(g)} TE_Limits gap(s) > {gap_limit_s * 1e3:.0f} ms (max {max(g, default=0) * 1e3:.0f} ms)")
-    over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque) if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
+    over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque)
+               if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
     c.add(over, f"{over} limit(s) above the maximum")
     bad_crc = sum(1 for t, ok in zip(lim.t, lim.crc_ok) if t0 <= t <= t1 and not ok)
     c.add(bad_crc, f"{bad_crc} TE_Limits with a bad CRC")
@@ -540,7 +568,7 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
             c.add(1, "no TE_Limits to derate with")
     if band_c is not None:
         # the configured band at a measured temperature is what is left when the model is not trusted
-        # (defect 9); a trusted model may give the headroom between warn and max (issue 15's policy),
+        # (the derating policy); a trusted model may give the headroom between warn and max,
         # but not past max: at a measured max every limit must be zero
         bound = band_limit_a(band_c)
         n = runs_above(lim, t0, t1, bound, None if bound <= 0 else forced_reasons())
@@ -570,7 +598,9 @@ def min_current(lim: Limits, t0: float, t1: float) -> float:
 @dataclass
 class Case:
     """One row of the bench: what was tried how often, what the service did, what was lost (frames
-    or persisted state items) and how many unsafe events were seen."""
+    or persisted state items), how many unsafe events were seen and how many performance targets
+    were missed. A ``control`` case is a fault the service cannot mask (the bench makes it itself):
+    it passes when the bench judges it unsafe, which shows that the checks can fail."""
 
     name: str
     group: str
@@ -579,8 +609,16 @@ class Case:
     lost: int = 0
     unsafe: int = 0
     seconds: float = 0.0
+    missed: int = 0
+    control: bool = False
+
+    @property
+    def passed(self) -> bool:
+        """Nothing lost and nothing unsafe; for a control case: judged unsafe."""
+        return self.unsafe > 0 if self.control else not (self.lost or self.unsafe)
 
     @classmethod
-    def of(cls, name: str, group: str, tried: int, did: str, check: Check, lost: int = 0) -> Case:
-        notes = "; ".join(check.notes)
-        return cls(name, group, tried, did + (f" | UNSAFE: {notes}" if notes else ""), int(lost), check.unsafe)
+    def of(cls, name: str, group: str, tried: int, did: str, check: Check, lost: int = 0, control: bool = False) -> Case:
+        notes, missed = "; ".join(check.notes), "; ".join(check.missed_notes)
+        did += (f" | UNSAFE: {notes}" if notes else "") + (f" | TARGET MISSED: {missed}" if missed else "")
+        return cls(name, group, tried, did, int(lost), check.unsafe, missed=check.missed, control=control)

@@ -24,7 +24,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from ...shipped import ROOT
+from .. import ROOT
 from . import wire
 from .harness import (
     Bed,
@@ -114,7 +114,8 @@ def _live_case(name: str, tried: str, fault: Any) -> Case:
         c.add(int(b.service.alive() and ticks < expected),
               f"the frame clock stopped ticking: {ticks:.0f} ticks in {t1 - t0:.0f} s of valid frames (limits frozen)")
         c.add(int(b.service.alive() and answered < polls), f"/metrics answered {answered} of {polls} scrapes")
-        fc = {k.split("outcome=")[-1].strip('"}'): v for k, v in m1.items() if k.startswith("thermal_edge_frame_clock_jumps_total")}
+        fc = {k.split("outcome=")[-1].strip('"}'): v for k, v in m1.items()
+              if k.startswith("thermal_edge_frame_clock_jumps_total")}
         did = (f"{ticks:.0f} ticks in {t1 - t0:.1f} s; peak RSS {b.service.peak_rss / 2**20:.0f} MiB"
                f"{' (killed at MemoryMax)' if b.service.oom_killed else ''}; metrics {answered}/{polls}; "
                f"frame_gaps {metric(m1, 'thermal_edge_frame_gaps_total'):.0f}; "
@@ -139,7 +140,8 @@ def _step_back(seconds: float) -> Any:
 def live_cases(full: bool) -> Iterator[Case]:
     yield _live_case("frame_stamped_2100", "one valid INV_Currents stamped 2100-01-01 (frame clock)",
                      _stamp_once(lambda: YEAR_2100))
-    yield _live_case("frame_stamped_1e9s_ahead", "one valid INV_Currents stamped 1e9 s ahead", _stamp_once(lambda: time.time() + 1e9))
+    yield _live_case("frame_stamped_1e9s_ahead", "one valid INV_Currents stamped 1e9 s ahead",
+                     _stamp_once(lambda: time.time() + 1e9))
     yield _live_case("frame_stamped_1e9s_behind", "one valid INV_Currents stamped 1e9 s behind",
                      _stamp_once(lambda: time.time() - 1e9))
     for s in ((30.0, 600.0) if full else (600.0,)):

@@ -1,6 +1,6 @@
 """Benchmark of the discovery workflow: hidden effects in simulated data, and the Paderborn run.
 
-``python -m thermal_edge.discovery.bench`` simulates the 10 kW model (``pm10kw.yaml``) over
+``make bench-discovery`` (``python -m benchmarks.discovery`` from the checkout) simulates the 10 kW model (``pm10kw.yaml``) over
 drive cycles with one catalogue effect hidden in the plant (PT100 noise on, seeds varied), runs
 :func:`~thermal_edge.discovery.workflow.discover` with the plain model, and prints per case:
 whether the hidden effect (and target) was named first, what the sensors can see of the hidden
@@ -28,17 +28,20 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..data import Run, read_run
-from ..sim.cycles import cycle_run, load_cycle
-from ..sim.plant import simulate_plant
-from . import effects as E
-from . import hidden, workflow
-from . import judge as J
+from thermal_edge.data import Run, read_run
+from thermal_edge.discovery import effects as E
+from thermal_edge.discovery import hidden, workflow
+from thermal_edge.discovery import judge as J
+from thermal_edge.shipped import config_path
+from thermal_edge.sim.cycles import cycle_run, load_cycle
+from thermal_edge.sim.plant import simulate_plant
 
-REPO = Path(__file__).resolve().parents[2]
-PM10KW = REPO / "config" / "machines" / "pm10kw.yaml"
-PADERBORN_MODEL = REPO / "config" / "machines" / "paderborn4.yaml"
-PADERBORN_RUN = REPO.parent / "shared" / "data" / "paderborn" / "run_a.csv"
+from . import ROOT
+
+PM10KW = config_path("machines", "pm10kw.yaml")
+PADERBORN_MODEL = config_path("machines", "paderborn4.yaml")
+#: the real data live beside the checkout, never in it
+PADERBORN_RUN = ROOT.parent / "shared" / "data" / "paderborn" / "run_a.csv"
 
 #: the hidden effects of the sweep (spec, expected label); the contact resistance sits in the
 #: front half's shrink fit of the stator core in the frame (a loose fit), on the path the
@@ -63,7 +66,7 @@ CYCLES = ("varied_drive", "heldout_drive")
 UNOBSERVABLE = ("contact_resistance:housing_1-end_cap_1",)
 
 #: the reduced Paderborn models (the published model with one effect removed), by case
-PADERBORN_REDUCED = {w: REPO / "tests" / "discovery" / "models" / f"paderborn4-no-{w}.yaml" for w in ("copper", "speed")}
+PADERBORN_REDUCED = {w: ROOT / "tests" / "discovery" / "models" / f"paderborn4-no-{w}.yaml" for w in ("copper", "speed")}
 
 
 class SimulatedRun(NamedTuple):
@@ -80,7 +83,7 @@ def simulated_run(spec: str | None, cycle: str, seed: int, model_path: Path = PM
     raw = hidden.read_document(model_path)
     build = hidden.builder(model_path)
     model = build(raw)
-    cycle_path = Path(cycle) if cycle.endswith(".yaml") else REPO / "config" / "cycles" / f"{cycle}.yaml"
+    cycle_path = Path(cycle) if cycle.endswith(".yaml") else config_path("cycles", f"{cycle}.yaml")
     inputs = cycle_run(load_cycle(cycle_path), model.drive["kt_nm_per_arms"], duration_s)
     expected = None
     plant = model
@@ -146,7 +149,7 @@ def run_paderborn(which: str | None, options: workflow.Options | None = None, ou
 
 
 def _write(disc: workflow.Discovery, out: str, model_path: Path | None) -> None:
-    from . import report
+    from thermal_edge.discovery import report
 
     Path(out).mkdir(parents=True, exist_ok=True)
     if disc.added:
@@ -192,7 +195,7 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m thermal_edge.discovery.bench", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.discovery", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--effects", default=";".join(EFFECTS + UNOBSERVABLE),
                     help="hidden effects as --effect specs, separated by ';' ('none' for no effect)")
@@ -243,7 +246,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nsimulated: {sum(r['pass'] for r in eff)}/{len(eff)} hidden-effect cases named first with >= 60 % shrink "
               f"(or named in a pair the run cannot separate: {sum(r['named_in_pair'] and not r['named_first'] for r in eff)}); "
               f"{sum(r['pass'] for r in unseen)}/{len(unseen)} effects no sensor sees end with no gap; "
-              f"{sum(r['pass'] for r in sim if not r['expected'])}/{len(sim) - len(eff) - len(unseen)} no-effect cases name none; "
+              f"{sum(r['pass'] for r in sim if not r['expected'])}/{len(sim) - len(eff) - len(unseen)} "
+              "no-effect cases name none; "
               f"wall max {max(r['wall_s'] for r in sim):.1f} s, median {float(np.median([r['wall_s'] for r in sim])):.1f} s")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))

@@ -26,9 +26,10 @@ from typing import Any
 import cantools
 import msgpack
 
-from ...shipped import ROOT
+from thermal_edge.bus.frames import DEFAULT_DBC_PATH
 
-DBC = ROOT / "dbc" / "thermal_edge.dbc"
+#: the CAN matrix the service ships with (the contract both sides are built from)
+DBC = DEFAULT_DBC_PATH
 TE_LIMITS_ID = 0x2A0
 INPUT_FRAMES = ("INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps")
 _SO_TIMESTAMPNS = 35  # Linux (asm-generic/socket.h); not exported by the socket module
@@ -200,7 +201,7 @@ def bad_frame(kind: str, k: int) -> bytes:
     raise ValueError(f"unknown bad frame kind {kind!r}")
 
 
-#: every kind of bad frame; those python-can cannot unpack (issue 14 defect 1) are the UNDECODABLE ones
+#: every kind of bad frame; those python-can cannot unpack are the UNDECODABLE ones
 BAD_KINDS = ("bad_crc", "short_dlc", "zero_dlc", "unknown_id", "extended_id", "remote_frame", "error_frame", "can_fd",
              "garbage_known_id", "te_id_spoof", "not_msgpack", "classic_12_bytes", "std_id_0x800", "remote_with_data",
              "empty_datagram", "msgpack_list", "msgpack_missing_fields", "huge_datagram")
@@ -247,7 +248,7 @@ def flood(group: str, port: int, kind: str, rate: float, seconds: float) -> dict
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m thermal_edge.bench.faults.wire")
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.faults.wire")
     sub = ap.add_subparsers(dest="cmd", required=True)
     m = sub.add_parser("monitor")
     m.add_argument("--group", required=True)

@@ -1,0 +1,78 @@
+"""``thermal-edge flux calibrate`` and ``flux score`` on a CSV run written from the voltage
+equations with known parameters: the file it writes gives them back, the score on a second run is
+the noise level, and bad options are one-line errors."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_in_process import te_here
+
+TRUE = {"r20": 0.018, "v_err": 1.5, "psi20": 0.11, "beta": -0.11 * 0.11 / 100.0, "ld0": 5e-4, "ld1": -6e-5,
+        "lq0": 9e-4, "lq1": -1.2e-4}
+
+
+def voltages(p, i_d, i_q, rpm, t_w, t_m, pole_pairs=4):
+    """u_d, u_q (V) of a PMSM at steady state (copper 0.393 %/K, the inverter losing V_e along the current)."""
+    w = rpm * 2 * np.pi / 60 * pole_pairs
+    r = p["r20"] * (1 + 0.00393 * (t_w - 20))
+    ia = np.sqrt(i_d**2 + i_q**2)
+    ld, lq = p["ld0"] + p["ld1"] * ia / 100, p["lq0"] + p["lq1"] * ia / 100
+    psi = p["psi20"] + p["beta"] * (t_m - 20)
+    k = p["v_err"] / np.maximum(ia, 5.0)
+    return r * i_d - w * lq * i_q + k * i_d, r * i_q + w * (ld * i_d + psi) + k * i_q
+
+
+def write_run(path: Path, seed: int, n: int = 1500) -> None:
+    g = np.random.default_rng(seed)
+    rpm = np.repeat(g.uniform(1500, 6000, n // 5), 5)
+    i_d, i_q = g.uniform(-200, 0, n), g.uniform(-50, 150, n)
+    t_w, t_m = g.uniform(20, 140, n), g.uniform(20, 130, n)
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    cols = {"t": np.arange(n, dtype=float), "u_d_v": u_d + g.normal(0, 0.05, n), "u_q_v": u_q + g.normal(0, 0.05, n),
+            "i_d": i_d, "i_q": i_q, "speed_rpm": rpm, "stator_winding": t_w, "pm": t_m}
+    lines = [",".join(cols)] + [",".join(f"{cols[c][k]:.9g}" for c in cols) for k in range(n)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_calibrate_then_score(tmp_path):
+    write_run(tmp_path / "fit.csv", 1)
+    write_run(tmp_path / "use.csv", 2)
+    out = tmp_path / "flux.json"
+    r = te_here("flux", "calibrate", tmp_path / "fit.csv", "--pole-pairs", 4, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "temperature coefficient of the flux linkage: -0.110 %/K" in r.stdout
+    saved = json.loads(out.read_text())
+    assert saved["params"]["psi20"] == pytest.approx(TRUE["psi20"], rel=0.01)
+    assert saved["params"]["beta"] == pytest.approx(TRUE["beta"], rel=0.01)
+    r = te_here("flux", "score", out, tmp_path / "use.csv", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    # 0.05 V of noise at 1500-6000 rpm and 4 pole pairs: 0.1-0.5 K
+    assert s["informative_share"] > 0.5 and s["rms_k"] < 1.0
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--prior", "psi=0.1,0.1"], "--prior psi=0.1,0.1: unknown parameter 'psi'"),
+    (["--prior", "r20=0.1"], "--prior r20=0.1: expected NAME=MEAN,SIGMA"),
+    (["--prior", "r20=0.1,0"], "--prior r20=0.1,0: MEAN finite and SIGMA > 0"),
+    (["--magnet-column", "rotor"], "no magnet temperature column 'rotor'"),
+    (["--speed-min", "1e6"], "only 0 samples at or above 1e+06 rpm"),
+])
+def test_bad_options_are_one_line_errors(tmp_path, extra, message):
+    write_run(tmp_path / "fit.csv", 1, n=200)
+    r = te_here("flux", "calibrate", tmp_path / "fit.csv", "--pole-pairs", 4, "--out", tmp_path / "f.json", *extra)
+    assert r.returncode == 2
+    assert message in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_score_of_a_file_that_is_not_a_flux_model(tmp_path):
+    write_run(tmp_path / "use.csv", 2, n=50)
+    (tmp_path / "f.json").write_text("{not json")
+    r = te_here("flux", "score", tmp_path / "f.json", tmp_path / "use.csv")
+    assert r.returncode == 2 and "not a file written by flux calibrate" in r.stderr
+    (tmp_path / "g.json").write_text('{"params": {}}')
+    r = te_here("flux", "score", tmp_path / "g.json", tmp_path / "use.csv")
+    assert r.returncode == 2 and "flux model: no r20" in r.stderr

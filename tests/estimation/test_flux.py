@@ -1,0 +1,133 @@
+"""The flux-linkage estimate of the magnet temperature against synthetic machines whose
+electrical parameters are known: voltages written here from the steady-state equations directly
+(not through the module's regressors), then the commissioning fit must give them back."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from thermal_edge.estimation.flux import ALPHA_CU, PARAMS, Electrical, FluxError, FluxModel, fit_flux_model
+
+P = 4
+TRUE = {"r20": 0.018, "v_err": 1.5, "psi20": 0.11, "beta": -0.11 * 0.11 / 100.0, "ld0": 5e-4, "ld1": -6e-5,
+        "lq0": 9e-4, "lq1": -1.2e-4}
+
+
+def voltages(p: dict[str, float], i_d, i_q, rpm, t_w, t_m, pole_pairs=P):
+    """u_d, u_q (V) of a PMSM at steady state, from the equations in their textbook form."""
+    w = rpm * 2 * np.pi / 60 * pole_pairs
+    r = p["r20"] * (1 + ALPHA_CU * (t_w - 20))
+    ia = np.sqrt(i_d**2 + i_q**2)
+    ld = p["ld0"] + p["ld1"] * ia / 100
+    lq = p["lq0"] + p["lq1"] * ia / 100
+    psi = p["psi20"] + p["beta"] * (t_m - 20)
+    ve_d = p["v_err"] * i_d / np.maximum(ia, 5.0)  # the inverter loses V_e along the current
+    ve_q = p["v_err"] * i_q / np.maximum(ia, 5.0)
+    return r * i_d - w * lq * i_q + ve_d, r * i_q + w * (ld * i_d + psi) + ve_q
+
+
+def synthetic(n=3000, seed=0, noise_v=0.05, rpm_range=(1500.0, 6000.0)):
+    """Operating points and temperatures varied independently (a rich commissioning run)."""
+    g = np.random.default_rng(seed)
+    i_d = g.uniform(-220, 0, n)
+    i_q = g.uniform(-80, 150, n)
+    rpm = np.repeat(g.uniform(*rpm_range, n // 5), 5)  # each speed held for five samples: a steady state
+    t_w = g.uniform(20, 140, n)
+    t_m = g.uniform(20, 130, n)
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    u_d = u_d + g.normal(0, noise_v, n)
+    u_q = u_q + g.normal(0, noise_v, n)
+    return Electrical(u_d, u_q, i_d, i_q, rpm, t_w), t_m
+
+
+def true_model(**kw) -> FluxModel:
+    return FluxModel(dict(TRUE), {}, P, 20.0, {b: 0.05**2 for b in range(15)}, 500.0, **kw)
+
+
+def test_fit_recovers_the_parameters():
+    e, t_m = synthetic()
+    m = fit_flux_model(e, t_m, P, dt=1.0, speed_min_rpm=0.0, folds=3)
+    for k in PARAMS:
+        assert m.params[k] == pytest.approx(TRUE[k], rel=0.03, abs=2e-6), k
+    assert m.tempco_per_k == pytest.approx(-0.0011, rel=0.01)
+    # the posterior σ is small where the data see a parameter: every one here
+    for k in ("psi20", "beta", "ld0", "lq0"):
+        assert m.sigma[k] < 0.01 * abs(TRUE[k]), k
+
+
+def test_estimate_inverts_the_equations():
+    e, t_m = synthetic(noise_v=0.0)
+    T, s, ok = true_model().estimate(e)
+    assert ok.all()
+    np.testing.assert_allclose(T, t_m, atol=1e-8)
+
+
+def test_variance_table_is_the_voltage_noise_over_omega_beta():
+    noise = 0.2
+    g = np.random.default_rng(3)
+    n = 4000
+    i_d, i_q = np.full(n, -150.0) + g.normal(0, 3, n), np.full(n, 80.0) + g.normal(0, 3, n)
+    rpm = np.full(n, 4000.0)
+    t_w = np.linspace(30, 120, n)
+    t_m = np.linspace(25, 110, n) + 5 * np.sin(np.arange(n) / 50)
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    e = Electrical(u_d + g.normal(0, noise, n), u_q + g.normal(0, noise, n), i_d, i_q, rpm, t_w)
+    m = fit_flux_model(e, t_m, P, dt=1.0)
+    expected = noise / (4000 * 2 * np.pi / 60 * P * abs(TRUE["beta"]))  # white noise: σ_u / (ω_el |β|)
+    (sig,) = m.sigma_table(4000.0).values()
+    assert sig == pytest.approx(expected, rel=0.25)
+    assert m.tau_s < 5.0  # white residuals: no correlation time to speak of
+
+
+def test_standstill_low_speed_and_unseen_currents_are_uninformative():
+    e, t_m = synthetic(rpm_range=(3000.0, 6000.0))
+    m = fit_flux_model(e, t_m, P, dt=1.0, speed_min_rpm=0.0)
+    assert 3000.0 < m.speed_min_rpm < 3000.0 + 0.1 * 3000.0  # the 5th percentile of 3000-6000 rpm
+    probe = Electrical(np.array([1.0, -5.0, -20.0, -20.0]), np.array([0.0, 10.0, 60.0, 60.0]),
+                       np.array([0.0, -50.0, -100.0, -100.0]), np.array([0.0, 40.0, 50.0, 400.0]),
+                       np.array([0.0, 500.0, 4500.0, 4500.0]), np.full(4, 60.0))
+    T, s, ok = m.estimate(probe)
+    assert list(ok) == [False, False, True, False]  # standstill, below the run's speeds, seen, 400 A never seen
+    assert np.isinf(s[[0, 1, 3]]).all() and np.isfinite(s[2])
+
+
+def test_pole_pairs_only_scale_flux_and_inductance():
+    e, t_m = synthetic(n=1500, seed=4)
+    a = fit_flux_model(e, t_m, 4, dt=1.0, speed_min_rpm=0.0, folds=3)
+    b = fit_flux_model(e, t_m, 2, dt=1.0, speed_min_rpm=0.0, folds=3,
+                       priors={k: (2 * v[0], 2 * v[1]) for k, v in
+                               {"psi20": (0.1, 0.1), "beta": (-1e-4, 1e-3), "ld0": (5e-4, 5e-3), "ld1": (0.0, 1e-4),
+                                "lq0": (1e-3, 5e-3), "lq1": (0.0, 1e-4)}.items()})
+    assert b.params["psi20"] == pytest.approx(2 * a.params["psi20"], rel=1e-3)
+    np.testing.assert_allclose(a.estimate(e)[0], b.estimate(e)[0], atol=0.05)
+
+
+def test_round_trip_and_errors():
+    e, t_m = synthetic(n=600, seed=5)
+    m = fit_flux_model(e, t_m, P, dt=1.0, speed_min_rpm=0.0, folds=3)
+    back = FluxModel.from_dict(m.as_dict())
+    np.testing.assert_array_equal(back.estimate(e)[0], m.estimate(e)[0])
+    np.testing.assert_array_equal(back.estimate(e)[1], m.estimate(e)[1])
+    with pytest.raises(FluxError, match="only 0 samples"):
+        fit_flux_model(e, t_m, P, dt=1.0, speed_min_rpm=1e5)
+    with pytest.raises(FluxError, match="unknown parameter 'psi'"):
+        fit_flux_model(e, t_m, P, dt=1.0, priors={"psi": (0.1, 0.1)})
+    with pytest.raises(FluxError, match="rises with the magnet"):
+        fit_flux_model(e, 200.0 - t_m, P, dt=1.0, speed_min_rpm=0.0, priors={"beta": (1e-4, 1e-5)})
+    with pytest.raises(FluxError, match="no pole_pairs"):
+        FluxModel.from_dict({"params": TRUE, "bin_a": 20.0, "speed_min_rpm": 0.0})
+
+
+def test_sigma_grows_with_the_distance_from_the_runs_temperatures():
+    """σ² = table / (ω β)² + ((T − T_mean) β_spread / β)², written out here."""
+    m = true_model()
+    m.beta_spread, m.magnet_mean_c = 0.05 * abs(TRUE["beta"]), 60.0
+    t_m = np.array([60.0, 100.0, 140.0])
+    n = len(t_m)
+    i_d, i_q, rpm, t_w = np.full(n, -50.0), np.full(n, 40.0), np.full(n, 3000.0), np.full(n, 80.0)
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    T, s, ok = m.estimate(Electrical(u_d, u_q, i_d, i_q, rpm, t_w))
+    w_beta = 3000 * 2 * np.pi / 60 * P * abs(TRUE["beta"])
+    expected = np.sqrt(0.05**2 / w_beta**2 + ((t_m - 60.0) * 0.05) ** 2)
+    np.testing.assert_allclose(s, expected, rtol=1e-9)
+    assert ok.all() and s[0] < s[1] < s[2]

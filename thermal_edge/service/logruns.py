@@ -1,0 +1,179 @@
+"""A CAN log as runs: the model's inputs and sensors per tick, as the edge service saw them.
+
+A CAN log (``.log`` candump -L, ``.asc``, ``.blf``, ``.trc``, python-can's ``.csv``, ``.mf4`` with
+asammdf; the text formats gzipped too: :mod:`thermal_edge.bus.logs`) holds frames, not samples.
+The service configuration decides everything the live service decides: the CAN matrix and its
+integrity checks (``codec:``, :class:`~thermal_edge.bus.codec.FrameCodec` with each frame's declared protection: a
+frame with a bad CRC or counter is dropped here as on the drive), which frame and signal is which model input and sensor
+(``signals:``), the tick period and the frame clock (``clock:``, :class:`.clock.FrameClock`: ticks
+where the frames' timestamps cross a tick boundary, timestamps out of order judged as live), and
+the input accumulation (:class:`.inputs.InputAccumulator`: the time mean of i² for the current,
+time means of speed and torque, the latest valid reading of the temperatures). So every offline
+command that reads a recording (``replay``, ``calibrate``, ``discover``, ``export``, the fleet)
+sees exactly what the service on the drive saw, one row per tick.
+
+A log with silences (the drive off, the service restarted) gives one run per stretch of traffic:
+a silence longer than the longest frame timeout of the configuration ends a run (its inputs would
+be stale). Ticks before every input has had a value are left out; a sensor without a usable
+reading (stale, faulty, out of the plausible range) is NaN. A reading the live service would have
+withheld as stuck (its plausibility check over time, :class:`.health.StuckSensors`) is kept: the
+run is the data, and judging the model against it is the offline commands' job.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
+from ..config import EdgeConfig
+from ..data import Run, RunError
+from ..lptn import Role, load_model
+from .clock import FrameClock
+from .inputs import InputAccumulator, TickInputs
+
+__all__ = ["CAN_LOG_SUFFIXES", "LogRuns", "is_can_log", "log_runs", "read_log_runs"]
+
+#: CAN log suffixes found by a directory search: what the bus module reads here (``.mf4`` with
+#: asammdf), except ``.csv``, which in a directory of runs is a run CSV
+CAN_LOG_SUFFIXES = tuple(s for s in readable_suffixes() if s != ".csv")
+
+
+def is_can_log(path: str | os.PathLike[str]) -> bool:
+    """True for a file whose suffix names a CAN log format the bus module reads (not ``.csv``)."""
+    try:
+        return log_suffix(Path(path)) != ".csv"
+    except LogFormatError:
+        return False
+
+
+@dataclass
+class LogRuns:
+    """The runs of one CAN log and what the reading counted.
+
+    Attributes
+    ----------
+    runs : list of Run
+        One per stretch of traffic (see :func:`log_runs`).
+    frames : int
+        Frames received (the recording node's own frames left out) that passed the codec's
+        integrity checks and belong to the configuration's CAN matrix.
+    dropped : dict
+        Frames the codec refused, by reason (:data:`thermal_edge.bus.stats.DROP_REASONS`).
+    malformed_lines : int
+        Damaged lines or records of the file, skipped.
+    ticks_left_out : int
+        Ticks before every model input had a value, and stretches of fewer than two complete ticks.
+    """
+
+    runs: list[Run]
+    frames: int
+    dropped: dict[str, int] = field(default_factory=dict)
+    malformed_lines: int = 0
+    ticks_left_out: int = 0
+
+
+@functools.lru_cache(maxsize=4)
+def _input_roles(model_path: str, mtime_ns: int) -> dict[str, Role]:
+    """Which of the model's inputs is the current, the speed, the torque: the model loaded once per
+    file version, not once per log (a fleet reads many logs of one model)."""
+    return dict(load_model(model_path).input_roles)
+
+
+def _run(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int) -> tuple[Run | None, int]:
+    """The run of one stretch of ticks (None if it has fewer than two complete ticks) and the
+    number of its ticks left out."""
+    first = next((i for i, tk in enumerate(ticks) if tk.complete), None)
+    if first is None or len(ticks) - first < 2:
+        return None, len(ticks)
+    kept = ticks[first:]
+    t_abs = np.array([tk.t for tk in kept])
+    cols = {name: np.array([tk.inputs[name] for tk in kept]) for name in config.inputs}
+    cols.update({name: np.array([tk.measured[name] for tk in kept]) for name in config.sensors})
+    run = Run(t_abs - t_abs[0], cols, f"{source}#{part}" if part else source, {"epoch_s": f"{t_abs[0]:.6f}"})
+    return run, first
+
+
+def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
+    """Read a CAN log into runs through the service's codec, frame clock and input accumulation.
+
+    Parameters
+    ----------
+    path : path-like
+        The log; its suffix names the format.
+    config : EdgeConfig
+        The service configuration whose ``codec:``, ``signals:``, ``timeouts:`` and ``clock:``
+        (tick period, ``max_catchup_s``) are used; its model gives the inputs' roles.
+
+    Returns
+    -------
+    LogRuns
+        The runs: ``t`` in s from the run's first tick (that tick's epoch time, s, in
+        ``meta["epoch_s"]``), the tick period apart; one column per model input and sensor of the
+        configuration (°C, A rms, rpm, Nm). The first run's source is the file, the next ones
+        ``<file>#1``, ``#2`` ...
+
+    Raises
+    ------
+    RunError
+        The file is no CAN log of its suffix's format, or holds not two complete ticks of the
+        configuration's signals, or does not exist.
+    ConfigError
+        The configuration's CAN matrix lacks a frame or signal its ``signals:`` name.
+    """
+    codec = config.codec.frame_codec(config.fname)
+    config.check_dbc(codec)
+    path_m = Path(config.model.path)
+    roles = _input_roles(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
+    tick_s, catchup = config.clock.tick_s, config.clock.max_catchup_s
+    silence = max(config.timeouts.values(), default=tick_s)
+    source = str(path)
+    out = LogRuns([], 0)
+    ticks: list[TickInputs] = []
+    acc, clock = InputAccumulator(config, roles), FrameClock(tick_s, catchup)
+    last = -math.inf
+
+    def close_stretch() -> None:
+        run, left_out = _run(ticks, config, source, len(out.runs))
+        out.ticks_left_out += left_out
+        if run is not None:
+            out.runs.append(run)
+
+    try:
+        reader = FrameLogReader(Path(path), codec, include_tx=False)
+        for frame in reader:
+            if frame.timestamp is None:  # no time, no tick (python-can's "none"; the recorder never writes it)
+                continue
+            ts = float(frame.timestamp)
+            # the drive was silent (judged on the stamps, before the clock would bridge the gap):
+            # this stretch ends
+            if ts - last > silence and ticks:
+                close_stretch()
+                ticks, acc, clock = [], InputAccumulator(config, roles), FrameClock(tick_s, catchup)
+            last = max(last, ts)
+            ticks += [acc.take(b) for b in clock.observe(ts)]
+            acc.add(frame, clock.now())
+            out.frames += 1
+    except LogFormatError as exc:
+        raise RunError(str(exc)) from None
+    except FileNotFoundError:
+        raise RunError(f"{path}: no such CAN log") from None
+    close_stretch()
+    out.dropped = {k: v for k, v in codec.stats.dropped.items() if v}
+    out.malformed_lines = len(reader.malformed_lines)
+    if not reader.messages_read:
+        raise RunError(f"{Path(path)}: not one CAN frame read: an empty log, or not a {log_suffix(Path(path))} log"
+                       + (f" ({out.malformed_lines} damaged lines)" if out.malformed_lines else ""))
+    if not out.runs:
+        raise RunError(f"{Path(path)}: {out.frames} frames of the configuration's CAN matrix, not two complete "
+                       f"ticks of every input ({', '.join(config.inputs)}): no run in this CAN log")
+    return out
+
+
+def read_log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> list[Run]:
+    """The runs of one CAN log (:func:`log_runs` without the counts)."""
+    return log_runs(path, config).runs
