@@ -1,7 +1,7 @@
 """Forward sensitivities ``S_k = ∂T_k/∂θ`` of a simulated run (paper eqs. 35–37).
 
 ``S[k+1] = M_k S[k] + X_k`` with the transition ``M_k = Φ + Γ_P ∂P/∂T`` of the simulation and
-the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chosen per run of steps:
+the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, chosen per run of steps:
 
 * **Held inputs.** Over a run where every input is the same (a drive cycle's segment, a test
   bench's set point) and the losses are affine in temperature, ``M`` is constant and similar to
@@ -16,6 +16,10 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chose
   instead of the ``4·n²·p`` of forcing and recursion. Close pairs keep their divided
   differences. Runs that meet a set point again share its eigendecomposition and the forcing's
   linear part (``p·n²`` numbers); each run adds only matrix-vector products.
+* **Stretches at one operating point** whose loss feedback changes every step (a noisy
+  current): the forcing of the whole stretch in one product, then the linear filter of
+  :func:`~thermal_edge.lptn.stretch.solve_nodes` (modes of ``Φ``, the feedback solved exactly
+  as a low-rank block-triangular system in time).
 * **Step by step** otherwise: the forcing for a block of steps as products per operating point
   (in the modal basis of :class:`~thermal_edge.lptn.discretise.DiscreteDerivatives`; the Daleckii–Krein
   form row by row at a ramp's operating points), then the recursion.

@@ -9,8 +9,10 @@ values of the inputs that enter conductances). Losses that are affine in the tem
 copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that is evaluated for the
 whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
 
-Sensitivities run after the simulation (:mod:`.sensitivity`): in closed form over runs of held
-inputs, step by step elsewhere.
+Stretches at one operating point where the loss feedback changes every step (a noisy current)
+run vectorised in time (:mod:`.stretch`); the rest is stepped. Sensitivities run after the
+simulation (:mod:`.sensitivity`): in closed form over runs of held inputs, vectorised over the
+same kind of stretches, step by step elsewhere.
 """
 from __future__ import annotations
 
