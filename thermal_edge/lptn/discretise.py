@@ -81,6 +81,7 @@ class DiscreteDerivatives(Discrete):
     Yt: np.ndarray
     dg: np.ndarray  # (K, p, e) derivatives of the edges' conductances
     _dense: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _joined: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def _build(self, ops: np.ndarray) -> np.ndarray:
         """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at these operating points (the method's own way)."""
@@ -127,6 +128,27 @@ class DiscreteDerivatives(Discrete):
             X -= (low @ lowv).reshape(n, B, p).transpose(1, 0, 2)
             return X
         return self._forcing_rows(np.asarray(o), y, self.phi[o][:, :, None] * v[:, None, :])
+
+    def forcing_modal(self, o: int, T: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """:meth:`forcing` for many steps at one operating point, laid out for a filter in time:
+        ``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` as (n, B, p) from temperatures ``T`` (B, n) and inputs ``w``
+        (B, m) of ``Γ``.
+
+        One product of ``[dPhit_j | V⁻¹ dΓ_j]`` (p n, n + m, built once per operating point)
+        with ``[V⁻¹ T; w]``: the factored ``dΓ`` folded into a dense block costs ``m`` columns
+        instead of the ``e`` edges per row that :meth:`forcing` spends on it.
+        """
+        p, n, B = self.dg.shape[1], self.Phi.shape[1], len(T)
+        key = int(o)
+        if key not in self._joined:
+            dp = self.dphit(o)
+            low = (self.Zh[o][None] * self.dg[o][:, None, :]) @ self.Yt[o]  # (p, n, m)
+            dgam = dp @ self.Ht[o] - self.phi[o][None, :, None] * low
+            self._joined[key] = np.concatenate([dp, dgam], axis=2).reshape(p * n, -1)
+        _, Vi = self.basis(o)
+        rhs = np.concatenate([Vi @ T.T, w.T], axis=0)  # (n + m, B)
+        X = (self._joined[key] @ rhs).reshape(p, n, B)
+        return np.ascontiguousarray(X.transpose(1, 2, 0))
 
     @property
     def dPhit(self) -> np.ndarray:

@@ -201,10 +201,10 @@ class Sensitivities:
 
         def forcing() -> np.ndarray:
             """The forcing of all the stretch's steps (n, L, p) in the modal basis of ``Φ``."""
-            X = self.forcing(o, self.T[a:b], w)  # (L, n, p)
+            X = d.forcing_modal(o, self.T[a:b], w)  # (n, L, p)
             if np.any(dP):  # V⁻¹ Γ_P ∂P/∂θ
-                X += GPt @ dP
-            return np.ascontiguousarray(X.transpose(1, 0, 2))
+                X += np.tensordot(GPt, dP, axes=([1], [1]))
+            return X
 
         out[:], end = solve_nodes(V, Vi, d.mu[o], GP, self.loss_nodes, forcing, s, self.slopes[a:b], keep)
         return end
