@@ -29,7 +29,7 @@ def _rank(item: pytest.Item) -> int:
     return _FIRST.index(part) if part in _FIRST else len(_FIRST)
 
 
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:  # noqa: ARG001
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     items.sort(key=_rank)  # stable: the order within a directory and a file is kept
 
 
@@ -38,13 +38,13 @@ _VM_LINES: list[str] = []
 
 
 @pytest.hookimpl(optionalhook=True)
-def pytest_testnodedown(node, error) -> None:  # noqa: ANN001, ARG001
+def pytest_testnodedown(node, error) -> None:
     line = getattr(node, "workeroutput", {}).get("vm_summary")
     if line:
         _VM_LINES.append(line)
 
 
-def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001, ARG001
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     if _VM_LINES:
         terminalreporter.section("SocketCAN VM")
         for line in _VM_LINES:

@@ -189,7 +189,8 @@ def _range_c(sec: _Section, k: str, values: dict[str, Any], default: Any) -> tup
             raise sec.fail(k, why)
     # a valid range must take the readings of a machine at rest: else every cold start is a sensor fault
     if not lo <= ROOM_C <= hi:
-        kelvin = "; kelvin? (give it in degC)" if lo > TEMPERATURE.whole_above else ""  # type: ignore[operator]
+        above = TEMPERATURE.whole_above
+        kelvin = "; kelvin? (give it in degC)" if above is not None and lo > above else ""
         raise sec.fail(k, f"[{lo:g}, {hi:g}] degC does not contain {ROOM_C:g} degC, a machine at rest{kelvin}")
     return lo, hi
 
@@ -545,10 +546,10 @@ class EdgeConfig:
                 raise self.error(f"signals.sensors.{name}",
                                  f"model {model.name} has no sensor {name!r} (has: {', '.join(model.sensors)})")
         limit_names = {lim.name for lim in model.limits}
-        for name, lim in self.derating.limits.items():
+        for name in self.derating.limits:
             if name not in limit_names:
-                raise self.error(f"derating.limits.{name}",
-                                 f"model {model.name} has no limited node {name!r} (has: {', '.join(sorted(limit_names)) or 'none'})")
+                have = ", ".join(sorted(limit_names)) or "none"
+                raise self.error(f"derating.limits.{name}", f"model {model.name} has no limited node {name!r} (has: {have})")
         for lim in model.limits:
             warn, mx = self.limit_band(lim)
             if not mx > warn:
@@ -713,7 +714,7 @@ def without_none(tp: Any) -> Any:
     args = typing.get_args(tp)
     if typing.get_origin(tp) in (typing.Union, types.UnionType) and type(None) in args:
         rest = tuple(a for a in args if a is not type(None))
-        return rest[0] if len(rest) == 1 else typing.Union[rest]
+        return rest[0] if len(rest) == 1 else typing.Union[rest]  # noqa: UP007  # built at run time from a tuple of types
     return tp
 
 
@@ -781,12 +782,12 @@ def _read(cls: type, sec: _Section, given: Mapping[str, Any] | None = None, *, w
 def _value(sec: _Section, f: dataclasses.Field[Any], tp: Any) -> Any:
     k, spec = f.name, spec_of(f)
     tp = without_none(tp)
-    if dataclasses.is_dataclass(tp):
+    if isinstance(tp, type) and dataclasses.is_dataclass(tp):
         return _read(tp, sec.sub(k))
     if typing.get_origin(tp) is dict:
         entry = typing.get_args(tp)[1]
         sub = sec.sub(k)
-        if dataclasses.is_dataclass(entry):  # named entries: the key is the name
+        if isinstance(entry, type) and dataclasses.is_dataclass(entry):  # named entries: the key is the name
             return {name: _read(entry, sub.sub(name), {"name": name}) for name in list(sub.raw)}
         return {name: sub.number(name, sub.value(name), spec, required=True) for name in list(sub.raw)}
     if typing.get_origin(tp) is tuple:

@@ -81,7 +81,7 @@ def parse_yaml(text: str) -> Any:
         gives the line where known.
     """
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+        return yaml.load(text, Loader=_StrictLoader)  # safe: a SafeLoader subclass
     except RecursionError:
         raise YamlProblem("nested too deeply to read") from None
     except yaml.YAMLError as exc:

@@ -11,8 +11,8 @@ receiver's CPU seconds and CPU s per 10,000 frames on the bus; ``missing_uncount
 frames missing up to the last one received of each identifier that the codec did not count
 as lost (0 when the lost count is exact); ``sender_late`` how often the sender, descheduled on a
 busy machine, sent our frames 100 ms or more late (then in a burst: it did not keep the cycle
-the count relies on, and each such stretch may count one counter wrap, 16 frames, too many). ``--profile`` prints the top functions of
-a cProfile of the receiving process as well.
+the count relies on, and each such stretch may count one counter wrap, 16 frames, too many).
+``--profile`` prints the top functions of a cProfile of the receiving process as well.
 """
 
 from __future__ import annotations

@@ -273,7 +273,7 @@ def test_sender_at_another_rate_is_judged_by_its_counter(cycles_per_frame):
     cycle = tx.cycle_time_s("INV_Currents")
     rng = random.Random(5)
     t = 0.0
-    for i in range(2000):
+    for _ in range(2000):
         frame = rx.decode(0x0A0, tx.encode("INV_Currents", _currents(0)), timestamp=t)
         assert frame is not None
         stretch = rng.choice([1.0] * 9 + [1.5]) if cycles_per_frame > 1 else rng.uniform(0.0, 12.0)

@@ -119,7 +119,7 @@ class _ForgedSocket:
     def __init__(self, datagrams: list[tuple[bytes, tuple[str, int]]]) -> None:
         self.datagrams = list(datagrams)
 
-    def recvmsg(self, bufsize: int, ancbufsize: int, flags: int = 0):  # type: ignore[no-untyped-def]
+    def recvmsg(self, bufsize: int, ancbufsize: int, flags: int = 0):
         if not self.datagrams:
             raise BlockingIOError
         data, addr = self.datagrams.pop(0)

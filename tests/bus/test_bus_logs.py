@@ -66,7 +66,7 @@ def _record(path, channel, **bus) -> CanTransport:
                     assert te.send(name, values)
                 await asyncio.sleep(0.001)
             await asyncio.sleep(0.05)
-            te.written = te.recorder.frames_written  # type: ignore[attr-defined]
+            te.written = te.recorder.frames_written
         return te
 
     return asyncio.run(run())

@@ -62,7 +62,7 @@ def dmc(tmp_path: Path) -> Path:
     return p
 
 
-def fast(db, value: float, alive: int, *, good_crc: bool = True) -> bytes:  # type: ignore[no-untyped-def]
+def fast(db, value: float, alive: int, *, good_crc: bool = True) -> bytes:
     data = bytearray(db.get_message_by_name("DMC_Fast").encode({"DMC_Crc": 0, "DMC_Alive": alive, "DMC_Value": value}))
     data[0] = crccheck.Crc8Autosar.calc(bytes([0x21, 0x03]) + bytes(data[1:])) ^ (0 if good_crc else 1)
     return bytes(data)
@@ -114,9 +114,9 @@ def test_an_unprotected_frame_is_taken_as_it_comes(dmc):
     plain = db.get_message_by_name("DMC_Plain")
     codec = FrameCodec(dmc, protection=PROTECTION)
     data = plain.encode({"DMC_Temp": 85.3})
-    assert [codec.decode(0x102, data).signals for _ in range(3)] == [{"DMC_Temp": 85.3}] * 3  # type: ignore[union-attr]
+    assert [codec.decode(0x102, data).signals for _ in range(3)] == [{"DMC_Temp": 85.3}] * 3
     bad = bytes([data[0] ^ 0x10, data[1]])
-    assert codec.decode(0x102, bad).signals["DMC_Temp"] != 85.3  # type: ignore[union-attr]
+    assert codec.decode(0x102, bad).signals["DMC_Temp"] != 85.3
     assert codec.decode(0x102, data[:1]) is None and codec.stats.dropped["dlc"] == 1  # the DBC's length still holds
     assert codec.protection("DMC_Plain") == FrameProtection() and codec.protection("DMC_Plain").unseen()
 

@@ -135,7 +135,7 @@ async def test_async_callback_and_callback_errors(virtual_channel):
     te = CanTransport(_cfg(virtual_channel, "TE"), FrameCodec(DBC_PATH), on_frame=slow)
     inv = CanTransport(_cfg(virtual_channel, "INV"), FrameCodec(DBC_PATH))
     async with te, inv:
-        for i in range(5):
+        for _ in range(5):
             inv.send("INV_Mechanics", dict(INV_Speed=1000, INV_Torque=10, INV_Udc=400))
         assert await _until(lambda: len(seen) == 5)
     assert seen == [0, 1, 2, 3, 4] and te.stats.callback_errors == 1

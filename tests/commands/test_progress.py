@@ -84,7 +84,8 @@ def test_bench_jacobian_shows_its_bars_on_a_terminal():
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
     try:
-        proc = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "bench", "jacobian", "--repeat", "1", "--hours", "0.25", "--json"],
+        proc = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "bench", "jacobian", "--repeat", "1", "--hours", "0.25",
+                               "--json"],
                               stdout=subprocess.PIPE, stderr=slave, timeout=300,
                               env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
     finally:

@@ -109,7 +109,7 @@ def write_yaml(path: Path, raw: dict[str, Any]) -> Path:
 
 
 def scrape(url: str, timeout: float = 5.0) -> str:
-    with urllib.request.urlopen(url, timeout=timeout) as r:  # noqa: S310 (local test URL)
+    with urllib.request.urlopen(url, timeout=timeout) as r:  # a local test URL
         return r.read().decode()
 
 

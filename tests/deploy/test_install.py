@@ -167,7 +167,7 @@ def test_installed_run_with_installed_emulator(tmp_path: Path) -> None:
     svc = subprocess.Popen([str(venv / "bin" / "thermal-edge"), "run", "--config", str(cfg)], env=env, cwd=tmp_path,
                            stdout=log_s.open("w"), stderr=subprocess.STDOUT)
     procs = [svc]
-    live = dl.LiveService(f"http://127.0.0.1:{port}/metrics", "installed", procs, [log_s, log_e])  # type: ignore[arg-type]
+    live = dl.LiveService(f"http://127.0.0.1:{port}/metrics", "installed", procs, [log_s, log_e])
     try:
         dl.wait_metrics(live, lambda t: "thermal_edge_build_info" in t, timeout=90)
         procs.append(subprocess.Popen(

@@ -171,9 +171,9 @@ def test_config_defaults_are_what_the_loader_uses(monkeypatch) -> None:
             if isinstance(value, dict):
                 value = value[k]
             elif k == "signal":  # the one-signal form of signals
-                value = value.signals[0]  # type: ignore[attr-defined]
+                value = value.signals[0]
             elif not hasattr(value, k):  # adaptation: the adapter's keys sit in its section
-                value = getattr(value.adapter, k)  # type: ignore[attr-defined]
+                value = getattr(value.adapter, k)
             else:
                 value = getattr(value, k)
         if shown == "`$STATE_DIRECTORY`":

@@ -106,7 +106,7 @@ def _python_module(args: list[str]) -> tuple[str, list[str]] | None:
                                         and (_python_module(program(c[1])[1]) or ("", []))[0].startswith("thermal_edge")],
                          ids=lambda v: " ".join(v)[:60] if isinstance(v, list) else v)
 def test_every_option_of_a_python_entry_point_is_in_its_help(where, argv):
-    module, args = _python_module(program(argv)[1])  # type: ignore[misc]
+    module, args = _python_module(program(argv)[1])
     helptext = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60,
                               cwd=dl.REPO, env={**os.environ, "COLUMNS": "200"})
     assert helptext.returncode == 0, helptext.stderr

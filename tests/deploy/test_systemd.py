@@ -154,7 +154,7 @@ def test_unit_contract() -> None:
 
 def test_unit_parses_as_ini() -> None:
     cp = configparser.RawConfigParser(strict=False, interpolation=None)
-    cp.optionxform = str  # type: ignore[assignment,method-assign]
+    cp.optionxform = str
     cp.read_string(UNIT.read_text())
     assert {"Unit", "Service", "Install"} <= set(cp.sections())
 
@@ -235,7 +235,7 @@ def test_state_directory_used_when_config_has_no_dir(tmp_path: Path) -> None:
     proc = subprocess.Popen([*dl.thermal_edge_cmd(), "run", "--config", str(cfg)], env=dl.env(STATE_DIRECTORY=str(sd)),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
-    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)  # type: ignore[arg-type]
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     reader.start()
     try:
         # SIGTERM once the service is up (its handler is installed by then): on a busy host the

@@ -40,7 +40,8 @@ def test_bench_on_vcan0(vm) -> None:
     print({k: v for k, v in out.items() if not k.endswith("_log")})
     assert out["first_notifications"][:1] == ["READY"], out
     assert out["watchdog_pings"] >= 2 and out["last_notification"] == "STOPPING", out
-    assert all(out["received"].get(f, 0) > 0 for f in ("INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps")), out
+    inverter_frames = ("INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps")
+    assert all(out["received"].get(f, 0) > 0 for f in inverter_frames), out
     assert out["sent"].get("TE_Limits", 0) > 0, out
     assert out["dropped"] == 0, out
     assert out["ticks"] >= 10, out

@@ -9,10 +9,10 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import pytest  # noqa: E402
+import pytest
 
-from benchmarks import discovery as bench  # noqa: E402
-from thermal_edge.discovery import hidden  # noqa: E402
+from benchmarks import discovery as bench
+from thermal_edge.discovery import hidden
 
 
 @pytest.fixture(scope="session")

@@ -127,7 +127,6 @@ def test_hidden_effect_values_and_errors(pm10kw_raw, pm10kw_build):
 
 def test_copper_temperature_law(pm10kw_raw, pm10kw_build):
     """The added law is the model's own loss plus (k100 - 1)/100 per kelvin of it at t_ref."""
-    ctx = E.context(pm10kw_raw, pm10kw_build(pm10kw_raw), REFS, pm10kw_build)
     doc, names, edits = E.augment(pm10kw_raw, [(E.Candidate(E.get("copper_temperature")), {"k100": 1.5, "t_ref": 40.0})],
                                   REFS, pm10kw_build)
     m = pm10kw_build(doc)

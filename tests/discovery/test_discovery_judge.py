@@ -36,7 +36,7 @@ def _data(speed: np.ndarray | None = None) -> F.Data:
 def _fit(label: str, data: F.Data, err: np.ndarray) -> F.Fit:
     """A fit whose prediction is the reading plus ``err`` (N, ns)."""
     Y = np.column_stack([data.run.columns[s] for s in SENSORS])
-    f = F.Fit(label, {}, None, np.zeros(0), ())  # type: ignore[arg-type]
+    f = F.Fit(label, {}, None, np.zeros(0), ())
     f.traj_T = Y + err
     f.heldout_mse = {s: float(np.mean(err[SPLIT:, j] ** 2)) for j, s in enumerate(SENSORS)}
     return f

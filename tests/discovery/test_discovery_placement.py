@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 
 import numpy as np
-import paderborn_sim as SIM  # noqa: E402  (beside this file)
+import paderborn_sim as SIM  # beside this file
 import pytest
 
 from thermal_edge.data import read_run

@@ -12,9 +12,9 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from benchmarks import discovery as bench  # noqa: E402
-from thermal_edge.discovery import report, workflow  # noqa: E402
-from thermal_edge.lptn import Role  # noqa: E402
+from benchmarks import discovery as bench
+from thermal_edge.discovery import report, workflow
+from thermal_edge.lptn import Role
 
 SHORT = 7200.0  # s, as in test_discovery_workflow
 

@@ -5,14 +5,14 @@ import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from pathlib import Path  # noqa: E402
+from pathlib import Path
 
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
+import numpy as np
+import pytest
 
-from thermal_edge.lptn import load_model  # noqa: E402
-from thermal_edge.sim.cycles import cycle_run, load_cycle  # noqa: E402
-from thermal_edge.sim.plant import simulate_plant  # noqa: E402
+from thermal_edge.lptn import load_model
+from thermal_edge.sim.cycles import cycle_run, load_cycle
+from thermal_edge.sim.plant import simulate_plant
 
 ROOT = Path(__file__).resolve().parents[2]
 PADERBORN = ROOT.parent / "shared" / "data" / "paderborn"

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import ROOT  # noqa: E402  (tests/estimation is on sys.path under pytest's rootdir)
+from conftest import ROOT  # tests/estimation is on sys.path under pytest's rootdir
 
 from thermal_edge.estimation.calibrate import calibrate, write_calibrated
 from thermal_edge.estimation.common import ParamSpace, decimate, window_from_arrays

@@ -16,13 +16,13 @@ import pytest
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
 
-from thermal_edge.cli import main  # noqa: E402
-from thermal_edge.data import read_run  # noqa: E402
-from thermal_edge.estimation.calibrate import calibrate  # noqa: E402
-from thermal_edge.estimation.predict import open_loop  # noqa: E402
-from thermal_edge.fleet.results import read_table  # noqa: E402
-from thermal_edge.lptn import load_model  # noqa: E402
-from thermal_edge.sim.fleet import read_manifest  # noqa: E402
+from thermal_edge.cli import main
+from thermal_edge.data import read_run
+from thermal_edge.estimation.calibrate import calibrate
+from thermal_edge.estimation.predict import open_loop
+from thermal_edge.fleet.results import read_table
+from thermal_edge.lptn import load_model
+from thermal_edge.sim.fleet import read_manifest
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = str(ROOT / "config" / "machines" / "pm10kw.yaml")

@@ -9,10 +9,10 @@ import pytest
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
 
-from thermal_edge.bench.fleet import FLEET_PARAMS  # noqa: E402
-from thermal_edge.cli import main  # noqa: E402
-from thermal_edge.fleet.results import read_table  # noqa: E402
-from thermal_edge.sim.fleet import read_manifest  # noqa: E402
+from thermal_edge.bench.fleet import FLEET_PARAMS
+from thermal_edge.cli import main
+from thermal_edge.fleet.results import read_table
+from thermal_edge.sim.fleet import read_manifest
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -20,7 +20,7 @@ import os
 # numpy is first imported; an explicit setting in the environment wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import pytest  # noqa: E402
+import pytest
 from lptn_ref import PADERBORN_DIR, PADERBORN_YAML, PM10KW_YAML, require_paderborn, require_pm10kw, tiny_plus_raw, tiny_raw
 
 from thermal_edge.lptn import load_model

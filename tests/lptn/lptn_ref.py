@@ -186,7 +186,7 @@ class Assembly:
         bnames = list(model.boundaries)
         bidx = {b: i for i, b in enumerate(bnames)}
         n_all, nb = len(names), len(bnames)
-        self.n = n = len(model.nodes)
+        self.n = len(model.nodes)
         env = law_env(model, theta, inputs)
         self.env = env
         L = np.zeros((n_all, n_all))
@@ -286,7 +286,10 @@ def reference_run(model, theta, inputs, dt, T0, hold_losses=False, rtol=1e-10, a
         if asm is None:
             asm = cache[key] = Assembly(model, theta, dict(zip(names, X[k])))
         P_held = asm.losses(T[k]) if hold_losses else None
-        fun = (lambda t, y, a=asm, P=P_held: a.rhs(y, P))
+
+        def fun(t, y, a=asm, P=P_held):
+            return a.rhs(y, P)
+
         t_eval = dt * np.arange(1, j - k + 1)
         sol = solve_ivp(fun, (0.0, dt * (j - k)), T[k], method=method, rtol=rtol, atol=atol, t_eval=t_eval)
         assert sol.success, sol.message

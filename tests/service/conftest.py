@@ -15,7 +15,7 @@ if str(Path(__file__).parent) not in sys.path:  # svc_testlib importable under a
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from svc_testlib import MODEL, free_udp_port, udp_available  # noqa: E402
+from svc_testlib import MODEL, free_udp_port, udp_available
 
 _ids = itertools.count()
 DEFAULT_ASYNC_TIMEOUT_S = 60.0
@@ -57,5 +57,5 @@ def udp_ok() -> None:
 
 
 @pytest.fixture
-def udp_port(udp_ok) -> int:  # noqa: ARG001
+def udp_port(udp_ok) -> int:
     return free_udp_port()

@@ -267,7 +267,7 @@ def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | Non
     return cmd
 
 
-def emulator_config(**kw: Any):  # type: ignore[no-untyped-def]
+def emulator_config(**kw: Any):
     from thermal_edge.sim.inverter import EmulatorConfig
 
     base = dict(model_path=MODEL, cycle_path=CYCLES / "overload.yaml", speed=SPEED, t0=T0, current_period_s=CURRENT_PERIOD_S,
@@ -276,7 +276,7 @@ def emulator_config(**kw: Any):  # type: ignore[no-untyped-def]
     return EmulatorConfig(**base)
 
 
-def wait_until(pred, timeout: float, interval: float = 0.05) -> bool:  # type: ignore[no-untyped-def]
+def wait_until(pred, timeout: float, interval: float = 0.05) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if pred():
@@ -285,7 +285,7 @@ def wait_until(pred, timeout: float, interval: float = 0.05) -> bool:  # type: i
     return bool(pred())
 
 
-async def async_wait_until(pred, timeout: float, interval: float = 0.01) -> bool:  # type: ignore[no-untyped-def]
+async def async_wait_until(pred, timeout: float, interval: float = 0.01) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if pred():
@@ -307,7 +307,7 @@ MAX_LEAD_S = 2.0
 
 
 @contextlib.asynccontextmanager
-async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=False, **sections):  # type: ignore[no-untyped-def]
+async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=False, **sections):
     """An in-process service and the inverter emulator on one ``virtual`` channel, frame clock, accelerated.
 
     The emulator logs TE_Limits at its own simulated time, at most :data:`MAX_LEAD_S` ahead of the
@@ -322,7 +322,8 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
     cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
     svc = EdgeService(cfg)
     await svc.start()
-    emu = InverterEmulator(emulator_config(duration_s=duration, speed=speed, max_lead_s=MAX_LEAD_S, cycle_path=cfg.model.path.parents[1] / "cycles" / "rated_heat_cool.yaml"),
+    cycle = cfg.model.path.parents[1] / "cycles" / "rated_heat_cool.yaml"
+    emu = InverterEmulator(emulator_config(duration_s=duration, speed=speed, max_lead_s=MAX_LEAD_S, cycle_path=cycle),
                            {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
     task = asyncio.get_running_loop().create_task(emu.run())
     try:
@@ -335,5 +336,5 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
         await svc.stop()
 
 
-async def sim_until(emu, t_rel: float, timeout: float = 20.0) -> None:  # type: ignore[no-untyped-def]
+async def sim_until(emu, t_rel: float, timeout: float = 20.0) -> None:
     assert await async_wait_until(lambda: emu.elapsed >= t_rel, timeout), f"emulator stuck at {emu.elapsed}"

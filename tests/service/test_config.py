@@ -107,7 +107,8 @@ def test_config_checked_against_the_dbc(tmp_path):
     raw = shipped()
     raw["signals"]["sensors"]["housing"]["signal"] = "INV_T_Hosuing"
     cfg = config_from_mapping(raw, tmp_path / "edge.yaml")
-    with pytest.raises(ConfigError, match=r"^edge.yaml: signals.sensors.housing: frame INV_StatorTemps has no signal 'INV_T_Hosuing'"):
+    with pytest.raises(ConfigError,
+                       match=r"^edge.yaml: signals.sensors.housing: frame INV_StatorTemps has no signal 'INV_T_Hosuing'"):
         cfg.check_dbc(FrameCodec(cfg.codec.dbc))
     raw = shipped()
     raw["timeouts"]["INV_Nothing"] = 1.0
@@ -163,7 +164,7 @@ def test_run_command_rejects_a_broken_config_with_one_line(tmp_path):
     assert lines == ["thermal-edge run: error: edge.yaml: derating.safe_current_a: must be positive, got -3"], proc.stderr
 
 
-def _set(path: str, value):  # type: ignore[no-untyped-def]
+def _set(path: str, value):
     """An edit of the raw configuration: set the dotted ``path`` (creating sections) to ``value``."""
     def edit(raw: dict, tmp: Path) -> None:
         *parents, last = path.split(".")
@@ -179,7 +180,7 @@ def _a_file(tmp: Path) -> str:
     return str(tmp / "a_file")
 
 
-def _rename(section: str, old: str, new: str):  # type: ignore[no-untyped-def]
+def _rename(section: str, old: str, new: str):
     def edit(raw: dict, tmp: Path) -> None:
         d = raw[section] if section else raw
         d[new] = d.pop(old)
@@ -190,7 +191,8 @@ def _rename(section: str, old: str, new: str):  # type: ignore[no-untyped-def]
 BROKEN = [
     ("limits period above the inverter timeout", _set("transmit.limits_period_s", 0.5), "transmit.limits_period_s",
      "must be at most 0.15 s (the inverter drops TE_Limits after 300 ms"),
-    ("limits period at the inverter timeout", _set("transmit.limits_period_s", 0.3), "transmit.limits_period_s", "at most 0.15 s"),
+    ("limits period at the inverter timeout", _set("transmit.limits_period_s", 0.3), "transmit.limits_period_s",
+     "at most 0.15 s"),
     ("state.dir is a file", _set("state.dir", _a_file), "state.dir", "is not a directory"),
     ("state.dir under a file", _set("state.dir", lambda t: _a_file(t) + "/state"), "state.dir", "cannot be created"),
     ("parameter below its bound", _set("model.parameters", {"R_e_hous": 0.91}), "model.parameters.R_e_hous",
@@ -294,7 +296,8 @@ def test_check_accepts_the_shipped_file_with_a_state_dir_still_to_create(tmp_pat
 # what PyYAML alone gets wrong in a hand-typed file (a black-box client's findings): each is still
 # exit 2 and one line naming the file (and the key or the line)
 TEXT_EDITS = [
-    ("a number written 1e9", lambda t: t.replace("  tick_s: 1.0 ", "  tick_s: 1e9 "), "clock.tick_s: must be at most 10, got 1e+09"),
+    ("a number written 1e9", lambda t: t.replace("  tick_s: 1.0 ", "  tick_s: 1e9 "),
+     "clock.tick_s: must be at most 10, got 1e+09"),
     ("a number written 5e-1", lambda t: t.replace("  tick_s: 1.0 ", "  tick_s: 5e-1 "), None),
     ("a section given twice", lambda t: t + "\nbus:\n  interface: virtual\n", "key 'bus' appears twice (first on line"),
     ("nested 5,000 deep", lambda t: t + "\nextra: " + "[" * 5000 + "]" * 5000 + "\n", "nested too deeply to read"),

@@ -195,7 +195,8 @@ def test_lookahead_names_the_binding_limit(model):
         T0, _ = steady_state(model, {**u, "i_rms": i_pre})
         r = Lookahead(model, model.nominal(), limits, horizon_s=60.0, steps=6).compute(T0, u)
         loss_t = max(m for *_, m in limits)  # the same conservative copper temperature
-        alone = [Lookahead(model, model.nominal(), [lim], horizon_s=60.0, steps=6, loss_temperature_c=loss_t).compute(T0, u).current_a
+        alone = [Lookahead(model, model.nominal(), [lim], horizon_s=60.0, steps=6,
+                           loss_temperature_c=loss_t).compute(T0, u).current_a
                  for lim in limits]
         bindings.append(r.binding)
         assert r.binding == int(np.argmin(alone)) and r.current_a == pytest.approx(min(alone))

@@ -45,7 +45,7 @@ class UdpRun:
 
 
 @pytest.fixture(scope="module")
-def udp_run(tmp_path_factory, udp_ok) -> UdpRun:  # noqa: ARG001
+def udp_run(tmp_path_factory, udp_ok) -> UdpRun:
     from svc_testlib import free_udp_port
 
     tmp = tmp_path_factory.mktemp("e2e_udp")

@@ -68,13 +68,13 @@ def test_boundaries_behave_as_the_list_they_stand_for() -> None:
 
 
 @pytest.fixture(scope="module")
-def engine_config(tmp_path_factory):  # type: ignore[no-untyped-def]
+def engine_config(tmp_path_factory):
     d = tmp_path_factory.mktemp("fc")
     return load_config(write_yaml(d / "edge.yaml", edge_raw(d / "state", {"interface": "virtual"}, table4=False,
                                                                 adapt=False)))
 
 
-def test_engine_bridges_a_confirmed_1e9_s_gap_and_ticks_once(engine_config) -> None:  # type: ignore[no-untyped-def]
+def test_engine_bridges_a_confirmed_1e9_s_gap_and_ticks_once(engine_config) -> None:
     from thermal_edge.service.clock import Boundaries  # absent before the fix
     from thermal_edge.service.engine import ThermalEngine
 
@@ -150,7 +150,7 @@ def _restamp(line: str, t: float) -> str:
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory):  # type: ignore[no-untyped-def]
+def clean(tmp_path_factory):
     from thermal_edge.service import replay_candump
     from thermal_edge.sim.inverter import write_log
 
@@ -163,12 +163,12 @@ def clean(tmp_path_factory):  # type: ignore[no-untyped-def]
     return d, cfg, log.read_text().splitlines(), replay_candump(log, cfg)
 
 
-def _hot_spot_peak(res) -> float:  # type: ignore[no-untyped-def]
+def _hot_spot_peak(res) -> float:
     return float(max(res.node("end_winding_2")))
 
 
 @pytest.mark.parametrize("shift_s", [100.0, 400.0])  # back by less and by more than clock.max_catchup_s (300 s)
-def test_replay_of_a_log_whose_second_half_goes_back(clean, shift_s: float) -> None:  # type: ignore[no-untyped-def]
+def test_replay_of_a_log_whose_second_half_goes_back(clean, shift_s: float) -> None:
     from thermal_edge.service import replay_candump
 
     d, cfg, lines, ref = clean
@@ -211,7 +211,7 @@ def test_replay_of_a_log_whose_second_half_goes_back(clean, shift_s: float) -> N
     assert "1 jump(s) back" in line and f"at most {drop:.3f} s" in line and "nothing dropped" in line
 
 
-def test_replay_of_a_log_with_one_stamp_far_ahead(clean) -> None:  # type: ignore[no-untyped-def]
+def test_replay_of_a_log_with_one_stamp_far_ahead(clean) -> None:
     """One frame stamped 1e6 s ahead in the middle (the old clock: bridged a 1e6 s gap, cooled the
     state, then ticked no more): the same ticks and estimates as the clean log."""
     from thermal_edge.service import replay_candump
@@ -227,7 +227,7 @@ def test_replay_of_a_log_with_one_stamp_far_ahead(clean) -> None:  # type: ignor
     assert _hot_spot_peak(res) == pytest.approx(_hot_spot_peak(ref), abs=0.05)
 
 
-def test_replay_summary_says_what_the_clock_did(clean) -> None:  # type: ignore[no-untyped-def]
+def test_replay_summary_says_what_the_clock_did(clean) -> None:
     from thermal_edge.service.replay import format_summary, replay_summary
 
     d, cfg, lines, _ = clean
@@ -251,7 +251,7 @@ def _samples(text: str) -> dict[str, float]:
     return out
 
 
-def test_metrics_show_the_frame_clock_counters(engine_config) -> None:  # type: ignore[no-untyped-def]
+def test_metrics_show_the_frame_clock_counters(engine_config) -> None:
     from thermal_edge.service.engine import ThermalEngine
     from thermal_edge.service.metrics import ServiceMetrics
 

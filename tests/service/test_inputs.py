@@ -36,7 +36,7 @@ def ambient(t: float, amb=25.0, status=0) -> DecodedFrame:
                  INV_S_Coolant=int(SensorStatus.NOT_FITTED))
 
 
-def accumulator(cfg) -> InputAccumulator:  # type: ignore[no-untyped-def]
+def accumulator(cfg) -> InputAccumulator:
     """The accumulator as the service builds it: with its model's input roles."""
     return InputAccumulator(cfg, load_model(cfg.model.path).input_roles)
 

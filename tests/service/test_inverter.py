@@ -121,7 +121,8 @@ class _LateTicker:
             self.max_lead_s = max(self.max_lead_s, emu._ts - msg.timestamp)
             for _ in self.clock.observe(msg.timestamp):
                 self.ticks += 1
-                data = self.codec.encode("TE_Status", {"TE_State": 1, "TE_PredErrRms": 0.0, "TE_AdaptCount": 0, "TE_ParamVersion": 0})
+                data = self.codec.encode("TE_Status",
+                                         {"TE_State": 1, "TE_PredErrRms": 0.0, "TE_AdaptCount": 0, "TE_ParamVersion": 0})
                 self.bus.send(can.Message(timestamp=msg.timestamp, arbitration_id=status, data=data, is_extended_id=False))
         self.bus.shutdown()
 

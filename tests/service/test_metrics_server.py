@@ -184,7 +184,7 @@ def test_a_failing_collector_costs_its_request_a_500_and_the_endpoint_serves_on(
     class Flaky:
         fail = True
 
-        def collect(self):  # type: ignore[no-untyped-def]
+        def collect(self):
             if Flaky.fail:
                 raise RuntimeError("collector broke")
             yield from Counter("probe", "a probe", registry=None).collect()

@@ -34,7 +34,8 @@ def _hand_clamped(out: TickOutput) -> dict[str, dict[str, float]]:
                         "TE_LookaheadCurrent": 3276.75 if not math.isfinite(la) else min(max(la, 0.0), 3276.75),
                         "TE_Horizon": out.horizon_s},
         "TE_Status": {"TE_State": int(out.state),
-                      "TE_PredErrRms": 0.0 if math.isnan(e) and out.state != TeState.FAULT else (min(e, 655.35) if math.isfinite(e) else 655.35),
+                      "TE_PredErrRms": (0.0 if math.isnan(e) and out.state != TeState.FAULT
+                                        else min(e, 655.35) if math.isfinite(e) else 655.35),
                       "TE_AdaptCount": out.adapt_runs % 65536, "TE_ParamVersion": out.param_version % 256},
     }
 
@@ -64,7 +65,8 @@ def test_frames_from_the_codecs_saturation_equal_the_hand_clamped_ones():
         got = {"TE_Estimates": out.estimates_signals(), "TE_Forecast": out.forecast_signals(),
                "TE_Status": out.status_signals()}
         for frame in ref:
-            assert codec.encode(frame, got[frame], counter=0) == codec.encode(frame, ref[frame], counter=0), (frame, temp, ttl, la, err)
+            assert codec.encode(frame, got[frame], counter=0) == codec.encode(frame, ref[frame], counter=0), \
+                (frame, temp, ttl, la, err)
         cases += 1
     assert cases == len(temps) * len(ttls) * len(las) * len(errs) * 2
 

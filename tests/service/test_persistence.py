@@ -179,7 +179,8 @@ def test_something_else_than_a_file_is_moved_aside(tmp_path, model, caplog, kind
     store = StateStore(tmp_path, model)
     with caplog.at_level(logging.ERROR):
         assert store.load() is None
-    why = {"directory": "a directory, not a file", "fifo": "not a regular file", "dangling symlink": "a symbolic link to nothing"}[kind]
+    why = {"directory": "a directory, not a file", "fifo": "not a regular file",
+           "dangling symlink": "a symbolic link to nothing"}[kind]
     check_refused(tmp_path, store, caplog, why)
     assert store.save(state_for(model)) and StateStore(tmp_path, model).load() is not None
 
@@ -248,7 +249,7 @@ def test_sigkill_during_saves_always_leaves_a_loadable_state(tmp_path, model):
 
     rng = random.Random(1)
     removed = 0
-    for trial in range(12):
+    for _ in range(12):
         proc = subprocess.Popen([sys.executable, "-c", SAVER, str(tmp_path), str(Path(__file__).parent), str(MODEL)],
                                 env=env(), stdout=subprocess.PIPE)
         assert proc.stdout.readline() == b"saving\n"
@@ -382,7 +383,8 @@ def test_save_then_load_is_the_identity_for_any_state_within_the_bounds(tmp_path
         st = PersistedState(model=model.name, saved_at=float(rng.uniform(0, 2e9)), parameters=params,
                             param_version=int(rng.integers(0, 1000)), adapt_runs=int(rng.integers(0, 10**6)),
                             decisions=[{"t": float(rng.normal()), "accepted": bool(rng.random() < 0.5), "why": "é\"\\[{",
-                                        "params": {"c_p_ew": float(rng.uniform(300, 900))}, "none": None}] * int(rng.integers(0, 5)),
+                                        "params": {"c_p_ew": float(rng.uniform(300, 900))}, "none": None}]
+                            * int(rng.integers(0, 5)),
                             nodes=list(model.nodes), T=T.tolist(), sigma=rng.uniform(0, 5, n).tolist(),
                             T_pred=(T + rng.normal(size=n)).tolist(), P=(A @ A.T).tolist(),
                             inputs={"ambient_c": float(rng.uniform(-40, 60))}, saved_wall=float(rng.uniform(0, 2e9)))
@@ -430,11 +432,14 @@ def _feed(engine, model, t, T_true, amb=25.0, i=0.0, speed=0.0):
     y = {s: float(T_true[model.node_index(n)]) for s, n in model.sensors.items()}
     for k in range(10):
         ts = t - 1 + 0.1 * k
-        engine.add_frame(DecodedFrame("INV_Currents", 0xA0, {"INV_Id": 0.0, "INV_Iq": math.sqrt(2) * i, "INV_IphRms": i}, 0, ts), ts)
-        engine.add_frame(DecodedFrame("INV_Mechanics", 0xA1, {"INV_Speed": speed, "INV_Torque": 5.6 * i, "INV_Udc": 560.0}, 0, ts), ts)
-    engine.add_frame(DecodedFrame("INV_StatorTemps", 0xB0, {"INV_T_WindingSlot": y["slot_winding"], "INV_T_EndWinding": y["end_winding"],
-                                                           "INV_T_Housing": y["housing"], "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0,
-                                                           "INV_S_Housing": 0}, 0, t - 0.5), t - 0.5)
+        engine.add_frame(DecodedFrame("INV_Currents", 0xA0, {"INV_Id": 0.0, "INV_Iq": math.sqrt(2) * i, "INV_IphRms": i},
+                                      0, ts), ts)
+        engine.add_frame(DecodedFrame("INV_Mechanics", 0xA1, {"INV_Speed": speed, "INV_Torque": 5.6 * i, "INV_Udc": 560.0},
+                                      0, ts), ts)
+    engine.add_frame(DecodedFrame("INV_StatorTemps", 0xB0,
+                                  {"INV_T_WindingSlot": y["slot_winding"], "INV_T_EndWinding": y["end_winding"],
+                                   "INV_T_Housing": y["housing"], "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0,
+                                   "INV_S_Housing": 0}, 0, t - 0.5), t - 0.5)
     engine.add_frame(DecodedFrame("INV_AmbientTemps", 0xB1, {"INV_T_Ambient": amb, "INV_T_Coolant": math.nan, "INV_S_Ambient": 0,
                                                             "INV_S_Coolant": 3}, 0, t - 0.5), t - 0.5)
     return engine.tick(t)

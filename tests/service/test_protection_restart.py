@@ -29,7 +29,7 @@ def test_warm_restart_keeps_the_magnets_parameter_band(tmp_path):
     se = StateEstimate(model, 1.0, ObserverConfig())
     state = StateConfig(dir=tmp_path)
     se.start(0.0, TickInputs(0.0, cold, {s: 25.0 for s in rows}), model.nominal(), None, state)
-    for k in range(1, 1801):  # 30 min at 1500 rpm: the rotor warms, the parameters' part of σ grows
+    for _ in range(1, 1801):  # 30 min at 1500 rpm: the rotor warms, the parameters' part of σ grows
         T, _ = plant.step(T, hot)
         se.step(hot, {s: float(T[r]) for s, r in rows.items()}, rows)
     saved = se.saved()

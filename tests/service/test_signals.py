@@ -40,7 +40,7 @@ STATE = "state.json"
 
 
 @pytest.fixture
-def bed(tmp_path, udp_ok):  # noqa: ARG001
+def bed(tmp_path, udp_ok):
     group, port = unique_group(), free_port()
     mon = Monitor(group, port, tmp_path)
     inv = Inverter(group, port).start()

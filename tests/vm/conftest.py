@@ -90,10 +90,10 @@ def _summary_line() -> str | None:
     if "skip" in _state:
         return f"unavailable: {_state['skip']}"
     machine = _state.get("vm")
-    return machine.summary() if machine is not None else None  # type: ignore[attr-defined]
+    return machine.summary() if machine is not None else None
 
 
-def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:  # noqa: ARG001
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     # an xdist worker hands its line to the controller (tests/conftest.py prints it)
     workeroutput = getattr(session.config, "workeroutput", None)
     line = _summary_line()
@@ -101,7 +101,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:  # n
         workeroutput["vm_summary"] = line
 
 
-def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:  # noqa: ANN001, ARG001
+def pytest_terminal_summary(terminalreporter, exitstatus, config) -> None:
     # under xdist this conftest is not loaded in the controller: tests/conftest.py prints the workers' lines
     own = _summary_line()
     if own is None:

@@ -59,7 +59,7 @@ def scrape() -> dict[str, float]:
     try:
         text = urllib.request.urlopen(f"http://127.0.0.1:{PORT}/metrics", timeout=30).read().decode()
     except OSError as exc:
-        return {"_error": str(exc)}  # type: ignore[dict-item]
+        return {"_error": str(exc)}
     out = {m.group(1): float(m.group(2)) for m in _LINE.finditer(text)}
     out["_t"] = round(time.monotonic() - T0, 2)
     return out

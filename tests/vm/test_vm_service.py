@@ -23,7 +23,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 VENV_PY = REPO / ".venv" / "bin" / "python"
 DBC = REPO / "dbc" / "thermal_edge.dbc"
-EMU_S = 40.0  # closed loop in the guest, s: 4,000 current frames and 400 TE_Limits periods (60 s cost 20 s more of the suite's longest test)
+# closed loop in the guest, s: 4,000 current frames and 400 TE_Limits periods (60 s cost 20 s more of the suite's longest test)
+EMU_S = 40.0
 FEED_N = 48  # cansend rounds in phase B (3 x the 16 counter values)
 SAFE_A = 10.0  # derating.safe_current_a of config/edge.yaml (the guest uses it unchanged)
 
@@ -161,7 +162,8 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
     a0, a1 = sc["snapshots"]["A_start"], sc["snapshots"]["A_end"]
     sent = summary["frames_sent"]
     received = {k: metric(a1, "thermal_edge_frames_received_total", frame=k) for k in sent}
-    te_sent = metric(a1, "thermal_edge_frames_sent_total", frame="TE_Limits") - metric(a0, "thermal_edge_frames_sent_total", frame="TE_Limits")
+    te_sent = (metric(a1, "thermal_edge_frames_sent_total", frame="TE_Limits")
+               - metric(a0, "thermal_edge_frames_sent_total", frame="TE_Limits"))
     print(f"emulator: sim {summary['sim_seconds']:.0f} s in wall {summary['wall_seconds']:.1f} s, sent {sent}, "
           f"received {summary['frames_received']}, limits_received {summary['limits_received']}, "
           f"limits_applied_s {summary['limits_applied_s']:.1f}, limited_s {summary['limited_s']:.1f}, "
@@ -239,9 +241,11 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
             limits.append((t, float(s["TE_CurrentLimit"]), float(s["TE_TorqueLimit"])))
         elif fid == cur_id and limits:
             s = db.decode_message(fid, data)
-            if t - t_a0 < 0.2 or t - limits[-1][0] > 0.3 or t - last_absent < 0.5:  # (first step: none received yet)  # no TE_Limits for 300 ms: the emulator's
-                absent += 1                                           # limit timed out (unclamped), and the
-                last_absent = t if t - limits[-1][0] > 0.3 else last_absent  # plant step after it
+            # not judged: the first step (none received yet); no TE_Limits for 300 ms (the emulator's
+            # limit timed out, unclamped) and the plant step after it
+            if t - t_a0 < 0.2 or t - limits[-1][0] > 0.3 or t - last_absent < 0.5:
+                absent += 1
+                last_absent = t if t - limits[-1][0] > 0.3 else last_absent
                 continue
             allowed = max(l[1] for l in limits if t - 0.5 <= l[0] <= t)
             checked += 1
@@ -252,7 +256,8 @@ def test_service_and_simulated_machine_on_vcan0(scenario):
             if abs(s["INV_IphRms"] - allowed) <= 0.06:
                 clamped += 1
     lim_values = sorted({l[1] for l in limits})
-    print(f"closed loop: {checked} INV_Currents checked against TE_CurrentLimit, {violations} above, {clamped} at the limit, {absent} without a TE_Limits in the last 300 ms (not judged), "
+    print(f"closed loop: {checked} INV_Currents checked against TE_CurrentLimit, {violations} above, {clamped} at the limit, "
+          f"{absent} without a TE_Limits in the last 300 ms (not judged), "
           f"worst excess {worst:+.2f} A {over[:10]}; limits sent {lim_values[:3]}..{lim_values[-3:]}")
     assert checked > 0.9 * sent["INV_Currents"] and violations == 0 and clamped > 0
     assert summary["limits_applied_s"] >= 0.8 * EMU_S
@@ -283,9 +288,11 @@ def test_can_utils_client_cansend_candump_cantools(scenario):
     feed_log = (d / "cansend-feed-B.log").read_text().splitlines()
     ok = {n: sum(1 for l in feed_log if l.startswith(f"ok {n} ")) for n in FEED_VALUES}
     fail = sum(1 for l in feed_log if l.startswith("fail "))
-    got = {n: metric(b_end, "thermal_edge_frames_received_total", frame=n) - metric(a1, "thermal_edge_frames_received_total", frame=n)
+    got = {n: metric(b_end, "thermal_edge_frames_received_total", frame=n)
+           - metric(a1, "thermal_edge_frames_received_total", frame=n)
            for n in FEED_VALUES}
-    drops = {r: metric(b_end, "thermal_edge_frames_dropped_total", reason=r) for r in ("crc", "counter_repeat", "unknown_id", "dlc", "decode_error")}
+    drops = {r: metric(b_end, "thermal_edge_frames_dropped_total", reason=r)
+             for r in ("crc", "counter_repeat", "unknown_id", "dlc", "decode_error")}
     print(f"cansend (phase B): ok {ok}, failed {fail}; service received {got}; drops {drops}; "
           f"counter resync (+) {delta(a1, b_end, 'thermal_edge_frames_resynced_total')} (feed ~10 Hz vs 10 ms cycle), "
           f"lost (+) {delta(a1, b_end, 'thermal_edge_frames_lost_all_total')}")
@@ -336,7 +343,8 @@ def test_can_utils_client_cansend_candump_cantools(scenario):
     rec = d / "service-can.log"
     if rec.exists():
         rep2 = replay_summary(rec, cfg)
-        print("replay of the service's own recording: " + json.dumps({k: rep2[k] for k in ("frames", "ticks", "frames_lost", "frames_dropped", "malformed_lines")}))
+        keys = ("frames", "ticks", "frames_lost", "frames_dropped", "malformed_lines")
+        print("replay of the service's own recording: " + json.dumps({k: rep2[k] for k in keys}))
 
 
 def test_link_down_up_reconnects_and_derates_safely(scenario):

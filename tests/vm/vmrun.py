@@ -383,7 +383,7 @@ def _read_module(path: Path) -> bytes:
         return gzip.decompress(data)
     if name.endswith(".ko.zst"):
         try:
-            import zstandard  # type: ignore[import-not-found]
+            import zstandard
 
             return zstandard.ZstdDecompressor().decompressobj().decompress(data)
         except ImportError:
@@ -559,7 +559,7 @@ def build_initramfs(kernel: Kernel, busybox: Path, cache_dir: Path | None = None
 
 
 @contextlib.contextmanager
-def _one_vm_at_a_time():  # type: ignore[no-untyped-def]
+def _one_vm_at_a_time():
     """Hold the host-wide boot lock (a file in the VM cache) while a VM runs.
 
     Two suites side by side would otherwise emulate two guests at once on two cores: each guest's
@@ -668,7 +668,7 @@ class VM:
         # A KVM that hangs or aborts has been seen on these machines: probe it with
         # a real short boot, and remember the verdict for this host boot.
         assert self.cache_dir is not None
-        verdict_file = self.cache_dir / f"kvm-probe-{_boot_id()}-{self.kernel.version}"  # type: ignore[union-attr]
+        verdict_file = self.cache_dir / f"kvm-probe-{_boot_id()}-{self.kernel.version}"
         if verdict_file.is_file() and self.accel_request == "auto":
             verdict = verdict_file.read_text().strip()
             if verdict == "kvm":

@@ -145,7 +145,7 @@ def run(machines: int = MACHINES, faulty: int = FAULTY, speed_machines: int = SP
         manifest = read_manifest(out)
     load_end = os.getloadavg()
     spreads, outliers = screen(rows, threshold)
-    truth = {m["id"]: m["fault"] for m in manifest["machines"]}  # type: ignore[index]
+    truth = {m["id"]: m["fault"] for m in manifest["machines"]}
     hits = [o for o in outliers if truth.get(o.machine) and truth[o.machine]["parameter"] == o.parameter]
     wrong = [o for o in outliers if truth.get(o.machine) and truth[o.machine]["parameter"] != o.parameter]
     false = [o for o in outliers if not truth.get(o.machine)]

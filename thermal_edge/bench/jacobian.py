@@ -142,6 +142,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
     sim.simulate(theta, cols, dt, T0, wrt=wrt)  # warm-up (imports, caches of numpy)
     (t_an, times_an, S), (t_st, _, S_st), (t_num, times_num, _), (t_sim, _, _) = timed_together(
         [analytic, analytic_stepped, forward, lambda: sim.simulate(theta, cols, dt, T0)], repeat, progress)
+    assert isinstance(S, np.ndarray) and isinstance(S_st, np.ndarray)
 
     # arithmetic limit: 2 products of N x n by n x (n p) (forcing and recursion), at the BLAS rate
     a_ = np.random.default_rng(0).standard_normal((N, n))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,7 +45,7 @@ def _head(e: Electrical, n: int) -> Electrical:
 
 
 def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUTES,
-        progress: Progress = no_progress) -> dict[str, object]:
+        progress: Progress = no_progress) -> dict[str, Any]:
     """Every figure per commissioning length; ``{"skipped": why}`` when the data is absent."""
     data_dir = paderborn_dir(data_dir)
     path = data_dir / "run_a.csv"

@@ -51,7 +51,7 @@ def _rms(model: Model, T: np.ndarray, run_cols: dict, sel: np.ndarray | slice = 
     return float(np.sqrt(np.mean(e[np.isfinite(e)] ** 2)))
 
 
-def e1(model: Model, progress: Progress = no_progress) -> dict[str, object]:
+def e1(model: Model, progress: Progress = no_progress) -> dict[str, Any]:
     true = model.nominal()[model.parameter_index(["R_e_hous"])[0]]
     plant = _plant(model, "paper_600rpm_70nm.yaml", seed=11)
     start = model.with_parameters({"R_e_hous": 6.1})
@@ -102,7 +102,7 @@ def e2(model: Model, progress: Progress = no_progress) -> tuple[dict[str, object
         th[start.parameter_index(names_)] = values
         return th
 
-    methods: dict[str, dict[str, object]] = {}
+    methods: dict[str, dict[str, Any]] = {}
     t0 = time.perf_counter()
     out = run_online(start, train.run, AdapterConfig(), T0=train.truth.T[0],
                      progress=sample_counter(progress, "E2 online", len(train.run)))
@@ -173,7 +173,7 @@ def e2(model: Model, progress: Progress = no_progress) -> tuple[dict[str, object
     return res, float(np.median(times))
 
 
-def e3(data_dir: Path | None = None, progress: Progress = no_progress) -> dict[str, object]:
+def e3(data_dir: Path | None = None, progress: Progress = no_progress) -> dict[str, Any]:
     """E3 on the Paderborn data in ``data_dir`` (default :func:`~.common.paderborn_dir`); skipped when absent."""
     data_dir = paderborn_dir(data_dir)
     run_path = data_dir / "run_a.csv"

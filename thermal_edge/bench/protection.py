@@ -476,7 +476,8 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
         res.cases[case.name] = r
         res.case_docs[case.name] = case.doc
         te = r.get("thermal_edge")
-        te_txt = f": thermal_edge {te['oracle_share_pct']:.1f} % of the oracle, {te['seconds_over_max']:g} s over max" if te else ""
+        te_txt = (f": thermal_edge {te['oracle_share_pct']:.1f} % of the oracle, {te['seconds_over_max']:g} s over max"
+                  if te else "")
         say(f"bench protection: case {done}/{len(cases)} {case.name}{te_txt} ({time.perf_counter() - w0:.0f} s)")
 
     work = [(c, policies, cycle, duration_s, config_file) for c in cases]

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..data import read_run
+from ..data import Run, read_run
 from ..estimation.adapter import AdapterConfig
 from ..estimation.ekf import run_ekf
 from ..estimation.online import online_report
@@ -50,7 +50,7 @@ def adapter_config() -> AdapterConfig:
     return AdapterConfig(sensors=SENSORS, decimate=8)
 
 
-def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str, float],  # type: ignore[no-untyped-def]
+def one_start(base: Model, run: Run, factors: Mapping[str, float], sets: Mapping[str, float],
               progress: Callable[[int], object] | None = None) -> dict[str, object]:
     """Every figure of one start (see the module docstring); ``progress`` as
     :func:`~thermal_edge.estimation.online.online_report`'s (twice the run's samples)."""
@@ -61,7 +61,7 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     ek = run_ekf(model, model_inputs(model, run), {s: run.columns[s] for s in SENSORS}, run.dt,
                  initial_from_run(model, run), update_s=60.0)
     _, ek_scores = open_loop(model, run, theta=ek.theta)
-    for s, v in rep["targets"].items():  # type: ignore[union-attr]
+    for s, v in rep["targets"].items():
         i = model.node_index(model.sensors[s])
         y = run.columns[s]
         ok = np.isfinite(y)
@@ -69,18 +69,18 @@ def one_start(base: Model, run, factors: Mapping[str, float], sets: Mapping[str,
     final = rep["final_params"]
     out["final_params"] = final
     reference = {**nominal, **sets}
-    out["final_vs_published_pct"] = {k: 100.0 * (v / reference[k] - 1.0) for k, v in final.items()}  # type: ignore[union-attr]
+    out["final_vs_published_pct"] = {k: 100.0 * (v / reference[k] - 1.0) for k, v in final.items()}
     # how closely the whole run pins each final value down, its residuals' correlation counted:
     # a parameter is identifiable to within 10 % only where this is well under 10 %
-    unc = rep["result"].adapter.current_uncertainty()  # type: ignore[union-attr]
+    unc = rep["result"].adapter.current_uncertainty()
     out["final_rel_std_pct"] = {n: 100.0 * float(r) for n, r in zip(unc.names, unc.rel_std)}
     out["autocorrelation_samples"] = unc.tau
     out["ekf_params_vs_published_pct"] = {k: 100.0 * (float(ek.theta[model.parameter_index([k])[0]]) / reference[k] - 1.0)
                                           for k in ek.names}
     out["mean"] = rep["mean"]
     ds = rep["decisions"]
-    out["decisions"] = len(ds)  # type: ignore[arg-type]
-    out["promoted"] = sum(1 for d in ds if d.accepted)  # type: ignore[union-attr]
+    out["decisions"] = len(ds)
+    out["promoted"] = sum(1 for d in ds if d.accepted)
     out["adapt_step_median_s"] = rep["adapt_step_median_s"]
     out["ekf_wall_s"] = ek.wall_s
     return out
@@ -113,6 +113,7 @@ def run(data_dir: Path | None = None, starts: Mapping[str, Mapping[str, float]] 
         base = base.with_parameters(sets)
     run_ = read_run(path, "paderborn")
     chosen = starts or STARTS
-    res = {name: one_start(base, run_, f, sets, sample_counter(progress, f"start {k + 1} of {len(chosen)} ({name})", 2 * len(run_)))
+    res = {name: one_start(base, run_, f, sets,
+                           sample_counter(progress, f"start {k + 1} of {len(chosen)} ({name})", 2 * len(run_)))
            for k, (name, f) in enumerate(chosen.items())}
     return RealResult(str(path), list(SENSORS), res)

@@ -25,13 +25,16 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from ..shipped import config_path
 from .common import Progress, no_progress
+
+if TYPE_CHECKING:
+    from ..config import EdgeConfig
 
 RATES = (2000, 4000, 6000, 8000, 10000, 12000, 14000, 16000, 20000, 24000, 28000, 32000)
 
@@ -74,7 +77,7 @@ def rss_mb() -> float:
 
 
 def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt: bool = True, table4: bool = True,
-            **sections: Any):  # type: ignore[no-untyped-def]
+            **sections: Any) -> EdgeConfig:
     from ..config import config_from_mapping
     from ..lptn import load_model
     from ..sim.inverter import table4_parameters
@@ -164,8 +167,10 @@ def _sender(port: int, rate: float, seconds: float) -> None:
 
     codec = FrameCodec()
     bus = create_bus({"interface": "udp_multicast", "port": port})
-    cur = [codec.encode("INV_Currents", {"INV_Id": 0.0, "INV_Iq": 30.0 + k % 7, "INV_IphRms": 21.0}, counter=k) for k in range(16)]
-    mech = [codec.encode("INV_Mechanics", {"INV_Speed": 900.0, "INV_Torque": 120.0, "INV_Udc": 560.0}, counter=k) for k in range(16)]
+    cur = [codec.encode("INV_Currents", {"INV_Id": 0.0, "INV_Iq": 30.0 + k % 7, "INV_IphRms": 21.0}, counter=k)
+           for k in range(16)]
+    mech = [codec.encode("INV_Mechanics", {"INV_Speed": 900.0, "INV_Torque": 120.0, "INV_Udc": 560.0}, counter=k)
+            for k in range(16)]
     stat = [codec.encode("INV_StatorTemps", {"INV_T_WindingSlot": 60.0, "INV_T_EndWinding": 62.0, "INV_T_Housing": 45.0,
                                              "INV_S_WindingSlot": 0, "INV_S_EndWinding": 0, "INV_S_Housing": 0}, counter=k)
             for k in range(16)]
@@ -214,7 +219,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
         with tempfile.TemporaryDirectory() as tmp:
             cfg = _config(Path(tmp), {"interface": "udp_multicast", "port": port}, clock="wall", adapt=False)
 
-            async def one() -> dict[str, Any]:
+            async def one(cfg: EdgeConfig, port: int, rate: int) -> dict[str, Any]:
                 svc = EdgeService(cfg, serve_metrics=False)
                 await svc.start()
                 st = svc.codec.stats
@@ -234,7 +239,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
                 await svc.stop()
                 return res
 
-            r = asyncio.run(one())
+            r = asyncio.run(one(cfg, port, rate))
         # lossless and sustained: every frame accepted, the service kept up (backlog under 50 ms of frames
         # when the sender stopped) and the ticks stayed on time
         r["lossless"] = (r["received"] == r["sent"] and r["lost"] == 0 and r["dropped"] == 0

@@ -323,6 +323,7 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     else:
         bus = can.Bus(**kwargs)
     if kwargs["interface"] == "udp_multicast":
+        assert isinstance(bus, LocalUdpMulticastBus)  # _OWN_BUS_CLASSES opens it
         _assert_hop_limit_zero(bus)
     elif kwargs["interface"] == "socketcan":
         sock = getattr(bus, "socket", None)
@@ -331,9 +332,9 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
     return bus
 
 
-def _assert_hop_limit_zero(bus: can.BusABC) -> None:
+def _assert_hop_limit_zero(bus: LocalUdpMulticastBus) -> None:
     """Double-check on the socket itself that nothing can leave the host."""
-    sock = bus.socket  # type: ignore[attr-defined]  # LocalUdpMulticastBus
+    sock = bus.socket
     if sock.family == socket.AF_INET6:
         hops = sock.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS)
     else:

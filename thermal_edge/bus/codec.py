@@ -181,7 +181,7 @@ class _FrameSpec:
     counter: _SignalSpec | None
     counter_mod: int  # 2**counter width
     crc_byte: int  # payload byte of the CRC (-1: none)
-    crc: Callable[[bytes], int] | None
+    crc: Callable[[bytes | bytearray], int] | None
     fast: bool  # every signal a little-endian integer: decoded from one integer, without cantools
     cycle_time_s: float | None
     senders: frozenset[str]
@@ -291,7 +291,7 @@ def _frame_spec(msg: _DbcMessage, path: Path, protection: FrameProtection | None
     skip = {s.name for s in (counter_sig, crc_sig) if s is not None}
     specs = tuple(_signal_spec(s) for s in msg.signals if s.name not in skip)
     fast = all(s.byte_order == "little_endian" and not s.is_float for s in msg.signals)
-    cycle = msg.cycle_time
+    cycle: int | float | str | None = msg.cycle_time  # a DBC attribute's value may be of any of these
     if cycle is None and msg.dbc is not None and _CYCLE_ATTRIBUTE in msg.dbc.attributes:
         cycle = msg.dbc.attributes[_CYCLE_ATTRIBUTE].value
     return _FrameSpec(
@@ -594,7 +594,8 @@ class FrameCodec:
             raise FrameEncodeError(f"{spec.name}: missing signal(s) {', '.join(missing)}")
         raw: dict[str, int | float] = {s.name: self._raw_value(spec, s, signals[s.name]) for s in spec.signals}
         if spec.crc is not None:
-            raw[spec.protection.crc] = 0  # type: ignore[union-attr, index]  # a CRC is declared with it
+            assert spec.protection is not None and spec.protection.crc is not None  # a CRC is declared with it
+            raw[spec.protection.crc] = 0
         with self._lock:
             value = 0
             if spec.counter is not None:
@@ -786,7 +787,7 @@ class FrameCodec:
                     if lost:
                         self.stats.lost += lost
                         self.stats.lost_by_frame[spec.name] += lost
-                    if owed is not None and ts is not None:
+                    if owed is not None and ts is not None and cycle:  # owed wraps were counted from the cycle
                         owed_wraps, t_gap, periods = owed[0], owed[1], owed[2] + n
                         if ts - t_gap < (periods - _WRAP_EARLY_CYCLES) * cycle:
                             # ahead of the cadence by more than jitter: the sender was late and is

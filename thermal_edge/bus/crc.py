@@ -97,7 +97,7 @@ def data_id(can_id: int) -> int:
     return DATA_ID_BASE + can_id
 
 
-def frame_crc_function(can_id: int) -> Callable[[bytes], int]:
+def frame_crc_function(can_id: int) -> Callable[[bytes | bytearray], int]:
     """The frame CRC of one identifier as a function of the payload, the data ID pre-computed.
 
     Parameters
@@ -116,7 +116,7 @@ def frame_crc_function(can_id: int) -> Callable[[bytes], int]:
     seed = t[t[CRC8_SAE_J1850_INIT ^ (did & 0xFF)] ^ (did >> 8)]
     xorout = CRC8_SAE_J1850_XOROUT
 
-    def crc(p: bytes) -> int:
+    def crc(p: bytes | bytearray) -> int:
         return t[t[t[t[t[t[t[seed ^ p[0]] ^ p[1]] ^ p[2]] ^ p[3]] ^ p[4]] ^ p[5]] ^ p[6]] ^ xorout
 
     return crc
@@ -200,7 +200,7 @@ def crc8(algorithm: str, data: bytes | bytearray | memoryview | Iterable[int]) -
     return reg ^ alg.xorout
 
 
-def protection_crc_function(algorithm: str, data_id_value: int | None, crc_byte: int) -> Callable[[bytes], int]:
+def protection_crc_function(algorithm: str, data_id_value: int | None, crc_byte: int) -> Callable[[bytes | bytearray], int]:
     """The CRC of a frame as a function of its payload: over the data ID's low byte then its high
     byte (none without a data ID), then every payload byte but ``crc_byte``, in order.
 
@@ -224,7 +224,7 @@ def protection_crc_function(algorithm: str, data_id_value: int | None, crc_byte:
         seed = table[table[seed ^ (data_id_value & 0xFF)] ^ ((data_id_value >> 8) & 0xFF)]
     xorout = alg.xorout
 
-    def crc(p: bytes) -> int:
+    def crc(p: bytes | bytearray) -> int:
         reg = seed
         for i, byte in enumerate(p):
             if i != crc_byte:

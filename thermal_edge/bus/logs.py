@@ -28,6 +28,7 @@ import gzip
 import importlib.util
 import logging
 import math
+import os
 import re
 import shutil
 import threading
@@ -113,7 +114,7 @@ def readable_suffixes() -> tuple[str, ...]:
     return tuple(sorted(s for s in MESSAGE_READERS if s not in _EXCLUDED and _format_available(s)))
 
 
-def log_suffix(path: str | Path, *, write: bool = False) -> str:
+def log_suffix(path: str | os.PathLike[str], *, write: bool = False) -> str:
     """The format suffix of a log file (``".log"`` for ``run.log`` and ``run.log.gz``).
 
     Raises
@@ -184,7 +185,7 @@ class _CheckedLines:
 
 def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, str]]) -> can.io.generic.MessageReader:
     if suffix == ".log":
-        return can.CanutilsLogReader(_CheckedLines(path, strict, malformed))  # type: ignore[arg-type]
+        return can.CanutilsLogReader(_CheckedLines(path, strict, malformed))  # type: ignore[arg-type]  # it only iterates lines
     # python-can's registry, opened here because can.LogReader drops the keyword arguments of a
     # .gz file (4.6.1), and ASC needs one: absolute times, the header's start plus each offset
     kwargs = {"relative_timestamp": False} if suffix == ".asc" else {}
@@ -352,7 +353,7 @@ class FrameLogReader:
     Frames come in file order; ``DecodedFrame.timestamp`` is the log time in s since the epoch.
     """
 
-    def __init__(self, path: str | Path, codec: FrameCodec | None = None, *, include_tx: bool = True,
+    def __init__(self, path: str | os.PathLike[str], codec: FrameCodec | None = None, *, include_tx: bool = True,
                  strict: bool = False) -> None:
         self.path = Path(path)
         log_suffix(self.path)  # an unknown format is refused before anything is read
@@ -414,6 +415,7 @@ def _open_writer(path: str | Path, **kwargs: Any) -> can.io.generic.MessageWrite
     suffix = log_suffix(p, write=True)
     cls = _ASCWriter if suffix == ".asc" else MESSAGE_WRITERS[suffix]
     if p.suffix.lower() == ".gz":
+        assert issubclass(cls, can.io.generic.TextIOMessageWriter)  # log_suffix admits .gz for text formats only
         return cls(gzip.open(p, "wt"), **kwargs)
     return cls(p, **kwargs)
 
@@ -452,7 +454,7 @@ class LogRecorder:
     dropped and counted in :attr:`unstamped_dropped`).
     """
 
-    def __init__(self, path: str | Path, *, channel: str = "can0", max_bytes: int = 0, keep: int = DEFAULT_KEEP,
+    def __init__(self, path: str | os.PathLike[str], *, channel: str = "can0", max_bytes: int = 0, keep: int = DEFAULT_KEEP,
                  flush_interval_s: float = 1.0) -> None:
         self.path = Path(path)
         suffix = check_recording(self.path, max_bytes)

@@ -303,6 +303,10 @@ class LocalUdpMulticastBus(UdpMulticastBus):
     raise ``can.CanOperationError`` with the ``OSError`` as cause.
     """
 
+    # in place of python-can's socket wrapper, whose send() the inherited send() calls: the same
+    # call, so a duck type, not a subclass of that class
+    _multicast: _LoopbackMulticastSocket  # type: ignore[assignment]
+
     def __init__(
         self,
         channel: str = UdpMulticastBus.DEFAULT_GROUP_IPv4,

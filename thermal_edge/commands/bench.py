@@ -16,10 +16,11 @@ from .progress import StageBars
 HOURS = number(1 / 60, 24 * 31, unit="h")
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("bench", help="run a benchmark", description=__doc__)
     which = p.add_subparsers(dest="bench", required=True, metavar="BENCH")
-    j = which.add_parser("jacobian", help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
+    j = which.add_parser("jacobian",
+                         help="analytic vs forward-difference Jacobian (39 nodes, 14 parameters, --hours of a drive cycle)")
     j.add_argument("--repeat", type=integer(1), default=7,
                    help="timed rounds (medians reported; the speed-up is the median of the rounds' ratios)")
     j.add_argument("--hours", type=HOURS, default=3.0, help="hours of the drive cycle at 1 Hz (default 3)")
@@ -283,7 +284,7 @@ def run_magnet(args: argparse.Namespace) -> int:
     if "skipped" in r:
         print(f"bench magnet skipped: {r['skipped']}")
         return 0
-    parts: dict[str, Any] = r["parts"]  # type: ignore[assignment]
+    parts: dict[str, Any] = r["parts"]
     print(f"Paderborn {r['run']}: magnet temperature from the inverter's voltages (p = {r['pole_pairs']}), "
           "commissioned on the first MIN minutes, scored on the rest; observer: the LPTN with "
           "stator_winding + stator_yoke; published LPTN open loop on the whole run: "

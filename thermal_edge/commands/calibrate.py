@@ -23,7 +23,7 @@ from .progress import bar
 from .runs import add_can_args, read_checked_runs, require_finite_prediction
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("calibrate", help="offline fit of the model to recorded runs", description=__doc__)
     add_model_args(p)
     p.add_argument("--run", required=True, nargs="+", help="recorded run(s), or CAN log(s) with --format can")
@@ -74,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
     print(f"objective (mean squared error, K²): start {res.objective_start:.4g}, after global search "
           f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "
-          f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; residual σ {np.sqrt(unc.sigma2):.3f} K, "
+          f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; "
+          f"residual σ {np.sqrt(unc.sigma2):.3f} K, "
           f"correlated over {unc.tau:.3g} samples (± counts it; identifiable: as if independent)")
     print(f"wrote {args.out}")
     return 0

@@ -25,7 +25,7 @@ from ..yamlfile import read_document
 from .options import frame_period_s, integer, ip_address, number, output_dir, output_file, positive_s
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("demo", description=__doc__,  # (its help line: thermal_edge.commands.COMMANDS)
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", default=str(config_path("edge.yaml")),

@@ -24,7 +24,7 @@ from .options import integer, kelvin, names, number, output_dir, output_file, po
 from .runs import CAN_FORMAT, add_can_args, read_checked_runs, require_finite_prediction
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("discover", help="find, name and add the physical effect a model lacks", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--model", required=True, help="machine model: a file, or the name of a packaged one (pm10kw, paderborn4)")

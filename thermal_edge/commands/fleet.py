@@ -31,7 +31,7 @@ from .runs import read_checked
 SUMMARY_FILES = 5
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from ..fleet.calibrate import DECIMATE, GENERATIONS, POPSIZE
     from ..fleet.screen import THRESHOLD
 

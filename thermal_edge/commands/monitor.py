@@ -24,7 +24,7 @@ DEFAULT_URL = "http://127.0.0.1:9108/metrics"
 CLEAR = "\x1b[H\x1b[2J"
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("monitor", help="live view of a running service (metrics or bus)", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--metrics", type=http_url, default=DEFAULT_URL, metavar="URL",

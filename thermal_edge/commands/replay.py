@@ -25,6 +25,7 @@ import json
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -32,7 +33,7 @@ from ..data import FORMATS, Run, RunError, write_run
 from ..errors import UsageError
 from ..estimation.adapter import AdapterConfig
 from ..estimation.online import OnlineResult, online_report, run_online
-from ..estimation.predict import open_loop
+from ..estimation.predict import Scores, open_loop
 from ..estimation.uncertainty import Z95
 from ..lptn import Model
 from ..lptn.vocabulary import Role
@@ -50,7 +51,7 @@ EXPORTS = {".csv": None, ".parquet": "pyarrow"}
 PLOTS = (".png", ".svg", ".pdf")
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("replay", help="replay a recorded run through the model", description=__doc__)
     add_model_args(p, required=False, discretisation=True)
     p.add_argument("--run", required=True, help="recorded run, or a CAN log with --format can")
@@ -85,7 +86,7 @@ def _check_outputs(args: argparse.Namespace) -> str | None:
         suffix = Path(args.out).suffix.lower()
         if suffix not in EXPORTS:
             return f"--out {args.out}: the suffix must be one of {', '.join(EXPORTS)}"
-        if EXPORTS[suffix] and (why := missing(EXPORTS[suffix])):
+        if (extra := EXPORTS[suffix]) and (why := missing(extra)):
             return f"--out {args.out}: {why}"
     return None
 
@@ -129,8 +130,8 @@ def run(args: argparse.Namespace) -> int:
     model = model_with_sets(model_from_args(args), args.set)
     sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip()) if args.sensors else None
     rec, data = read_checked(args.run, args.format, model, sensors if args.adapt else None)
-    out: dict[str, object] = {"model": model.name, "run": args.run, "samples": len(rec), "adapt": bool(args.adapt),
-                              "data": data}
+    out: dict[str, Any] = {"model": model.name, "run": args.run, "samples": len(rec), "adapt": bool(args.adapt),
+                           "data": data}
     if not args.json:
         print(data)
     if args.set:
@@ -177,13 +178,13 @@ def run(args: argparse.Namespace) -> int:
     m = rep["mean"]
     print(f"{'mean':<18}{'':>5}{m['mse']:>9.3f}{m['fixed_mse']:>10.3f}{m['observer_mse']:>13.3f}")
     ds = out["decisions"]
-    print(f"{len(ds)} decisions, {sum(1 for d in ds if d['accepted'])} challengers promoted; "  # type: ignore[union-attr]
+    print(f"{len(ds)} decisions, {sum(1 for d in ds if d['accepted'])} challengers promoted; "
           f"median adaptation step {rep['adapt_step_median_s']:.3f} s; final parameters: "
           + ", ".join(f"{k}={v:.4g}" for k, v in rep["final_params"].items()))
     return 0
 
 
-def _print_open_loop(args: argparse.Namespace, model: Model, rec: Run, scores, out: dict[str, object]) -> int:  # type: ignore[no-untyped-def]
+def _print_open_loop(args: argparse.Namespace, model: Model, rec: Run, scores: Scores, out: dict[str, Any]) -> int:
     out.update(scores.as_dict())
     if args.json:
         print(json.dumps(out, indent=2, default=float))

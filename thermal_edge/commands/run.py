@@ -15,7 +15,7 @@ import sys
 LOG_LEVELS = ("debug", "info", "notice", "warning", "error")
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("run", description=__doc__)  # (its help line: thermal_edge.commands.COMMANDS)
     p.add_argument("--config", required=True, help="service configuration (start from `thermal-edge config example`)")
     p.add_argument("--log-level", default=os.environ.get("THERMAL_EDGE_LOG_LEVEL", "info"), choices=LOG_LEVELS,

@@ -4,8 +4,8 @@
 model file lacks, on top of what the model already has, so that data with a hidden effect can
 be made at will (``thermal-edge discover`` should then find it). Unset parameters take the
 effect's default magnitude, raised (doubled, up to 8 times) where needed until the plant
-differs from the model by at least 1 K RMS on some sensor over the cycle. Speeds and currents in the effect laws are relative to the cycle's
-reference point (95th percentiles, two significant digits): ``s = |n| / n_ref``.
+differs from the model by at least 1 K RMS on some sensor over the cycle. Speeds and currents in
+the effect laws are relative to the cycle's reference point (95th percentiles, two significant digits): ``s = |n| / n_ref``.
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def _effects_help() -> str:
     return "\n".join(lines)
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("simulate", help="simulate the machine over a drive cycle", description=__doc__,
                        epilog=_effects_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_model_args(p)

@@ -64,7 +64,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..lptn.expr import parse
+from ..lptn.expr import Table, Value, parse
 from ..lptn.loader import build_model
 from ..lptn.model import Model, ModelError
 from ..lptn.vocabulary import (
@@ -180,7 +180,8 @@ class Context:
 # ------------------------------------------------------------------------------------------
 # the catalogue
 
-def _p(short, unit, doc, nominal, lower, upper, default, null=0.0, primary=True, two_sided=False) -> EffectParam:  # type: ignore[no-untyped-def]
+def _p(short: str, unit: str, doc: str, nominal: float, lower: float, upper: float, default: float, null: float = 0.0,
+       primary: bool = True, two_sided: bool = False) -> EffectParam:
     return EffectParam(short, unit, doc, null, nominal, lower, upper, default, primary, two_sided)
 
 
@@ -297,7 +298,7 @@ class SensorLag(Effect):
 
     def change(self, ctx: Context, target: str | None, P: Mapping[str, str], ed: _Editor) -> None:
         sensors = ed.raw.get("sensors") or {}
-        if target not in sensors:
+        if target is None or target not in sensors:
             raise EffectError(f"sensor_lag: unknown sensor {target!r} (known: {', '.join(sensors)})")
         node = sensors[target]["node"]
         probe = f"{_sanitize(target)}_probe"
@@ -416,8 +417,13 @@ def ambient_boundary(model: Model) -> str | None:
 # ------------------------------------------------------------------------------------------
 # analysis of a model document
 
-def _dummy_tables(raw: Mapping[str, Any]) -> dict[str, object]:
-    return {k: object() for k in (raw.get("tables") or {})}
+def _dummy_tables(raw: Mapping[str, Any]) -> dict[str, Table]:
+    return {k: _unread_table for k in (raw.get("tables") or {})}
+
+
+def _unread_table(*args: object) -> np.ndarray:
+    """Stands for a model's table where only the names a law uses matter (never evaluated)."""
+    raise EffectError("a table is not evaluated while the effects analyse a model")
 
 
 def is_effect_parameter(spec: Any) -> bool:
@@ -446,13 +452,13 @@ def _sanitize(s: str) -> str:
 def context(raw: Mapping[str, Any], model: Model | None = None, refs: Mapping[str, float] | None = None,
             build: Callable[[dict[str, Any]], Model] | None = None) -> Context:
     """Analyse a model document: conductance groups, single conductances and their scales."""
-    raw = copy.deepcopy(dict(raw))
-    model = model if model is not None else (build or build_model)(raw)
-    ctx = Context(raw, model, dict(refs or {"n_ref": 1000.0, "i_ref": 10.0}))
-    conns = raw.get("conductances") or []
+    own = copy.deepcopy(dict(raw))
+    model = model if model is not None else (build or build_model)(own)
+    ctx = Context(own, model, dict(refs or {"n_ref": 1000.0, "i_ref": 10.0}))
+    conns = own.get("conductances") or []
     by_key = {e.key: e for e in model.edges}
     theta = model.nominal()
-    env_base: dict[str, object] = dict(zip(model.parameter_names, theta))
+    env_base: dict[str, Value] = dict(zip(model.parameter_names, theta))
     # a typical operating point for nominal values: the reference speed and current, 25 °C
     op = {c: np.array(0.0) for c in model.inputs}
     if ctx.speed:
@@ -472,10 +478,10 @@ def context(raw: Mapping[str, Any], model: Model | None = None, refs: Mapping[st
         a, b = (_end(x) for x in spec["between"])
         name = f"{a}-{b}"
         if name in names:
-            k = 2
-            while f"{name}#{k}" in names:
-                k += 1
-            name = f"{name}#{k}"
+            dup = 2
+            while f"{name}#{dup}" in names:
+                dup += 1
+            name = f"{name}#{dup}"
         names[name] = i
         edge = by_key.get(f"conductances[{i}]")
         if edge is not None:
@@ -530,7 +536,7 @@ def _iron_losses(ctx: Context) -> list[int]:
     for k, expr in ctx.model.derived.items():  # in dependency order
         if expr.free() & speed_dep:
             speed_dep.add(k)
-    out = []
+    out: list[int] = []
     for i in _loss_nodes(ctx, *STATOR_IRON):
         law = raw["losses"][i]["power"]
         free = set(parse(law, _dummy_tables(raw)).free())
@@ -610,7 +616,7 @@ def targets(ctx: Context, effect: Effect) -> list[str | None]:
 
 def applicable(ctx: Context, names: Sequence[str] | None = None) -> list[Candidate]:
     """All candidates (effect, target) the model admits."""
-    out = []
+    out: list[Candidate] = []
     for name in names or CATALOGUE:
         eff = get(name)
         out.extend(Candidate(eff, t) for t in targets(ctx, eff))

@@ -268,7 +268,8 @@ def _chunks(cands: Sequence[E.Candidate], size: int) -> list[list[E.Candidate]]:
     return out
 
 
-def _jacobian(model: Model, theta: np.ndarray, wrt: Sequence[str], data: Data, log_cols: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _jacobian(model: Model, theta: np.ndarray, wrt: Sequence[str], data: Data,
+              log_cols: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Residuals (flattened), Jacobian (flattened rows × wrt) and the mask on the training window."""
     W = train_window(model, data, theta)
     rows = [model.sensors[s] for s in data.sensors]

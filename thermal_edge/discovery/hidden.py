@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,8 @@ def read_document(path: str | os.PathLike[str]) -> dict[str, Any]:
     return raw
 
 
-def builder(path: str | os.PathLike[str] | None, data_dir: str | os.PathLike[str] | None = None):  # type: ignore[no-untyped-def]
+def builder(path: str | os.PathLike[str] | None,
+            data_dir: str | os.PathLike[str] | None = None) -> Callable[[dict[str, Any]], Model]:
     """A ``build(raw) -> Model`` closure that resolves table files as the original file would."""
     p = Path(path) if path is not None else None
     fname = p.name if p is not None else "<model>"
@@ -48,7 +49,8 @@ def builder(path: str | os.PathLike[str] | None, data_dir: str | os.PathLike[str
     return build
 
 
-def plant_document(raw: Mapping[str, Any], specs: Sequence[str], refs: Mapping[str, float], build,  # type: ignore[no-untyped-def]
+def plant_document(raw: Mapping[str, Any], specs: Sequence[str], refs: Mapping[str, float],
+                   build: Callable[[dict[str, Any]], Model],
                    inputs: Run | None = None, min_gap_k: float = MIN_GAP_K,
                    ) -> tuple[dict[str, Any], list[tuple[E.Candidate, dict[str, float]]]]:
     """The model document with the ``--effect`` specs added; also the resolved (candidate, values).

@@ -37,6 +37,7 @@ import numpy as np
 from ..data import Run
 from ..lptn import Model, Role, steady_state
 from . import fitting as F
+from .residuals import SensorResiduals
 
 N_BLOCKS = 10  # contiguous blocks of the held-out part for the standard errors
 Z_SEPARATE = 2.0  # standard errors that separate two gaps
@@ -357,7 +358,7 @@ class GapStatus:
 
 
 def gap_status(gap_k: float, noise_k: float, min_gain_k: float, named: bool, residual: np.ndarray, t_h: np.ndarray,
-               analysis_sensors: Sequence[object], nearest: Sequence[tuple[str, float, float]]) -> GapStatus:
+               analysis_sensors: Sequence[SensorResiduals], nearest: Sequence[tuple[str, float, float]]) -> GapStatus:
     """Judge the final held-out gap against the noise floor and locate what remains.
 
     ``residual`` (N, ns) and ``t_h`` (hours since the start of the run) cover the held-out part.
@@ -366,9 +367,9 @@ def gap_status(gap_k: float, noise_k: float, min_gain_k: float, named: bool, res
     if gap_k <= thr:
         return GapStatus("explained" if named else "none", gap_k, noise_k, thr)
     st = GapStatus("partly explained" if named else "unexplained", gap_k, noise_k, thr, nearest=list(nearest))
-    worst = max(analysis_sensors, key=lambda s: s.rms_heldout if np.isfinite(s.rms_heldout) else -1)  # type: ignore[attr-defined]
-    st.worst_sensor, st.worst_rms_k = worst.sensor, worst.rms_heldout  # type: ignore[attr-defined]
-    regs = sorted(worst.regimes, key=lambda r: -r[4])  # type: ignore[attr-defined]
+    worst = max(analysis_sensors, key=lambda s: s.rms_heldout if np.isfinite(s.rms_heldout) else -1)
+    st.worst_sensor, st.worst_rms_k = worst.sensor, worst.rms_heldout
+    regs = sorted(worst.regimes, key=lambda r: -r[4])
     st.where = [f"{rg} ({ax}, {sh:.0%} of the run): RMS {rm:.2f} K, bias {b:+.2f} K" for ax, rg, sh, b, rm in regs[:3]]
     e2 = np.nanmean(residual**2, axis=1)
     w = max(1, len(e2) // 10)

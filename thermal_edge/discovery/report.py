@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,6 +16,10 @@ from . import judge as J
 from . import residuals as R
 from . import yamlpatch
 from .workflow import Discovery
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (the ``report`` extra)
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 
 def _f(x: float, nd: int = 3) -> str:
@@ -48,7 +53,7 @@ def _xvar(an: R.Analysis, sensor: str, var: str) -> np.ndarray | None:
     return v.get(var)
 
 
-def _binned(ax, x: np.ndarray, e: np.ndarray, color: str, bins: int = 12) -> None:  # type: ignore[no-untyped-def]
+def _binned(ax: Axes, x: np.ndarray, e: np.ndarray, color: str, bins: int = 12) -> None:
     """Mean residual in quantile bins of ``x`` (the trend the scatter hides)."""
     ok = np.isfinite(x) & np.isfinite(e)
     if ok.sum() < 2 * bins:
@@ -161,16 +166,19 @@ def build_figures(disc: Discovery) -> dict[str, tuple[str, Any]]:
     for lab in (win, ru):  # winner and runner-up are shown even when the screen, not the test, found them
         if lab and lab not in labels:
             hit = next((s for s in first.scores if s.cand.label == lab), None)
-            sc.append(hit if hit is not None else next((s for s in first.screen if s.cand.label == lab), sc[0] if sc else None))
-            labels.append(lab)
+            if hit is None:
+                hit = next((s for s in first.screen if s.cand.label == lab), sc[0] if sc else None)
+            if hit is not None:  # a label found nowhere and nothing else to show: no bar
+                sc.append(hit)
+                labels.append(lab)
     if sc:
         fig, ax = plt.subplots(figsize=(9, 0.34 * len(sc) + 1.4))
         colors = ["tab:green" if lab == win else "tab:orange" if lab == ru else "tab:gray" for lab in labels]
         ax.barh(labels[::-1], [s.fraction for s in sc][::-1], color=colors[::-1])
-        for lab, s in zip(labels, sc):
+        for lab, score in zip(labels, sc):
             tag = "winner" if lab == win else ("runner-up" if win else "nearest (not accepted)") if lab == ru else ""
             if tag:
-                ax.annotate(f" {tag}", (s.fraction, labels[::-1].index(lab)), va="center", fontsize=8)
+                ax.annotate(f" {tag}", (score.fraction, labels[::-1].index(lab)), va="center", fontsize=8)
         ax.set_xlabel("score test: share of the training residual\na joint step (effect + adaptable parameters) would remove")
         ax.set_xlim(0, max(1e-3, max(s.fraction for s in sc)) * 1.25)
         ax.set_title("candidates (green: named by the held-out fits; orange: " + ("runner-up)" if win else
@@ -193,7 +201,7 @@ def build_figures(disc: Discovery) -> dict[str, tuple[str, Any]]:
     return figs
 
 
-def _temperature_figure(disc: Discovery, plt, t_h: np.ndarray, step: int):  # type: ignore[no-untyped-def]
+def _temperature_figure(disc: Discovery, plt: ModuleType, t_h: np.ndarray, step: int) -> Figure:
     """Measured against predicted temperature per sensor (refitted model, and with the effects
     added), the operating point (speed, current, ambient) below."""
     data = disc.data
@@ -222,7 +230,7 @@ def _temperature_figure(disc: Discovery, plt, t_h: np.ndarray, step: int):  # ty
     return fig
 
 
-def _operating_point(ax, disc: Discovery, t_h: np.ndarray, step: int) -> None:  # type: ignore[no-untyped-def]
+def _operating_point(ax: Axes, disc: Discovery, t_h: np.ndarray, step: int) -> None:
     """The operating point under a time plot: speed (left axis), current (right axis), the
     ambient range as a note; the x-label is the time axis's."""
     data = disc.data
@@ -297,7 +305,8 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     add(_table(["", "value"], [
         ["run", f"{len(data.run)} samples at {data.dt:g} s ({(data.run.t[-1] - data.run.t[0]) / 3600:.2f} h)"],
         ["sensors", ", ".join(data.sensors)],
-        ["training / held-out", f"first {data.split} samples (fitted at {data.dt * data.factor:g} s steps) / last {len(data.run) - data.split}"],
+        ["training / held-out",
+         f"first {data.split} samples (fitted at {data.dt * data.factor:g} s steps) / last {len(data.run) - data.split}"],
         ["reference speed, current", f"{data.refs['n_ref']:g} rpm, {data.refs['i_ref']:g} A"],
         ["held-out gap, nominal parameters", f"{disc.nominal.gap:.3f} K"],
         ["held-out gap, refitted (before)", f"{disc.gap_before:.3f} K"],
@@ -317,11 +326,13 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     if names:
         nom = disc.nominal.values(names)
         ref = first.base.values(names)
-        rows = sorted(((n, nom[n], ref[n]) for n in names), key=lambda t: -abs(math.log(t[2] / t[1])) if t[1] > 0 and t[2] > 0 else 0)
+        changed = sorted(((n, nom[n], ref[n]) for n in names),
+                         key=lambda t: -abs(math.log(t[2] / t[1])) if t[1] > 0 and t[2] > 0 else 0)
         add(f"The model's {len(names)} adaptable parameters were fitted to the training part (Gauss-Newton in "
             "log-parameters within their bounds), so that what remains is structural. Largest changes:")
         add("")
-        add(_table(["parameter", "nominal", "refitted", "ratio"], [[n, f"{a:.4g}", f"{b:.4g}", f"{b / a:.2f}"] for n, a, b in rows[:8]]))
+        add(_table(["parameter", "nominal", "refitted", "ratio"],
+                   [[n, f"{a:.4g}", f"{b:.4g}", f"{b / a:.2f}"] for n, a, b in changed[:8]]))
     add("")
     add("## 2. Residual analysis (refitted model)")
     add("")
@@ -430,10 +441,10 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
         add("")
         add("```yaml")
         prev = disc.raw0
-        for r in disc.added:
-            add(f"# {r.fit.label}")
-            add(yamlpatch.snippet(prev, r.fit.raw))
-            prev = r.fit.raw
+        for ranked in disc.added:
+            add(f"# {ranked.fit.label}")
+            add(yamlpatch.snippet(prev, ranked.fit.raw))
+            prev = ranked.fit.raw
         add("```")
         add("")
         if disc.model_out:
@@ -458,7 +469,7 @@ def markdown(disc: Discovery, files: dict[str, str], commands: Sequence[str] = (
     return "\n".join(lines)
 
 
-def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  # type: ignore[no-untyped-def]
+def _comparison_section(disc: Discovery, files: dict[str, str], add: Callable[[str], None]) -> None:
     rd = disc.rounds[0]
     c = rd.comparison
     if c is None:
@@ -503,7 +514,7 @@ def _comparison_section(disc: Discovery, files: dict[str, str], add) -> None:  #
         add("")
 
 
-def _signature_section(disc: Discovery, add) -> None:  # type: ignore[no-untyped-def]
+def _signature_section(disc: Discovery, add: Callable[[str], None]) -> None:
     """The residual's signature beside each candidate's, and the effects the model cannot express."""
     sig = disc.signature
     if sig is None:
@@ -555,7 +566,7 @@ def _separating_sentence(disc: Discovery) -> str:
             f"the noise floor ({disc.noise_k:.3f} K): no test run with these sensors tells them apart; {where}. ")
 
 
-def _gap_section(disc: Discovery, add) -> None:  # type: ignore[no-untyped-def]
+def _gap_section(disc: Discovery, add: Callable[[str], None]) -> None:
     g = disc.gap
     if g is None or g.status in ("none", "explained"):
         return

@@ -201,7 +201,7 @@ class Discovery:
     def gap_after(self) -> float:
         return self.final.gap
 
-    def as_dict(self) -> dict[str, object]:
+    def as_dict(self) -> dict[str, Any]:
         named = self.named
         first = self.rounds[0]
         cand = []
@@ -302,7 +302,7 @@ def _criterion(gap: float, k: int, n_eff: float) -> float:
 
 
 def _select(scores: Sequence[F.Score], n: int, taken: set[str], per_effect: dict[str, int]) -> list[F.Score]:
-    out = []
+    out: list[F.Score] = []
     for s in scores:
         if len(out) >= n:
             break

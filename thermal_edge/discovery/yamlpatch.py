@@ -40,10 +40,10 @@ def changes(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[tuple[str, s
             out += [("list_replace", k, i) for i in range(len(a)) if a[i] != b[i]]
             out += [("list_add", k, i) for i in range(len(a), len(b))]
         elif k in MAP_SECTIONS:
-            a, b = dict(old.get(k) or {}), dict(new.get(k) or {})
-            if set(a) - set(b):
+            ma, mb = dict(old.get(k) or {}), dict(new.get(k) or {})
+            if set(ma) - set(mb):
                 raise PatchError(f"{k}: entries were removed")
-            out += [("map_replace" if key in a else "map_add", k, key) for key in b if a.get(key) != b[key]]
+            out += [("map_replace" if key in ma else "map_add", k, key) for key in mb if ma.get(key) != mb[key]]
         elif old.get(k) != new.get(k):
             out.append(("top", k, None))
     if set(old) - set(new):

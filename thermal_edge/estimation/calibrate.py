@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import differential_evolution, minimize
+from scipy.optimize import OptimizeResult, differential_evolution, minimize
 
 from ..data import Run, RunError
 from ..lptn import Model, ModelError, Simulator
@@ -125,7 +125,7 @@ def calibrate(
     def timed_out() -> bool:
         return max_time_s is not None and time.perf_counter() - t0 >= max_time_s
 
-    def cb(intermediate_result) -> bool:  # type: ignore[no-untyped-def]  # scipy passes it by this name
+    def cb(intermediate_result: OptimizeResult) -> bool:  # scipy passes it by this name
         gen[0] += 1
         fun = float(intermediate_result.fun)
         if progress:
@@ -147,7 +147,7 @@ def calibrate(
     if de.success and gen[0] < maxiter and "callback" not in str(de.message).lower():
         why[0] = f"population converged (spread below {TOL:g} of the mean)"
 
-    def sqp_cb(intermediate_result) -> None:  # type: ignore[no-untyped-def]
+    def sqp_cb(intermediate_result: OptimizeResult) -> None:
         if timed_out():
             raise StopIteration
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..lptn import Model, Network, discretise
+from ..lptn import DiscreteDerivatives, Model, Network, discretise
 from ..lptn.losses import LossLaws
 
 
@@ -92,6 +92,7 @@ def run_ekf(
             op = {c: np.array([u[c]]) for c in net.matrix_inputs}
             d = discretise(net.continuous(theta, op, K=1, wrt=list(idx)), dt, model.discretisation.method,
                            model.discretisation.max_substep_s)
+            assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
             cache[key] = (d.Phi[0], d.Gam[0], d.dPhi[0], d.dGam[0])
         Phi, Gam, dPhi, dGam = cache[key]
         env = net.env(theta, {c: np.asarray(v) for c, v in u.items()})

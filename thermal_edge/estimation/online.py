@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -91,7 +92,7 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
 
 
 def online_report(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray | None = None,
-                  progress: Callable[[int], object] | None = None) -> dict[str, object]:
+                  progress: Callable[[int], object] | None = None) -> dict[str, Any]:
     """What a user needs to judge online adaptation on a recorded run, per target (every sensor
     column of the run, seen by the adapter or not).
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 from scipy.optimize import minimize
@@ -26,6 +27,7 @@ def fit_sqp(obj: Objective, max_iter: int = 3, gradient: str = "analytic", metho
     t0 = time.perf_counter()
     f0 = obj.value(phi0)
     ev0 = obj.evaluations
+    jac: Callable[[np.ndarray], np.ndarray] | str
     if gradient == "analytic":
         # separate callables: line-search points need only the value (one simulation), the
         # sensitivities run where SLSQP asks for a gradient

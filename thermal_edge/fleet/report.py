@@ -62,7 +62,8 @@ def errors_section(rows: Sequence[dict[str, Any]]) -> list[str]:
     if not errs:
         return []
     return ["## Machines not processed", "",
-            _md_table(["machine", "error", "message", "runs"], [[r["machine"], r["name"], r["message"], r["runs"]] for r in errs]), ""]
+            _md_table(["machine", "error", "message", "runs"],
+                      [[r["machine"], r["name"], r["message"], r["runs"]] for r in errs]), ""]
 
 
 def _plot_parameter(plt: Any, rows: Sequence[dict[str, Any]], sp: Spread, threshold: float, path: Path) -> None:
@@ -169,7 +170,8 @@ def write_report(path: str | os.PathLike[str], title: str, rows: Sequence[dict[s
         lines += ["## Errors per sensor", "", _md_table(SENSOR_HEADERS, sensor_rows(rows)), ""]
         worst = sorted((r for r in rows if r["kind"] == "sensor"), key=lambda r: -r["rms_k"])[:10]
         lines += ["Worst machine-sensor pairs:", "",
-                  _md_table(["machine", "sensor", "RMS K", "max |e| K"], [[r["machine"], r["name"], r["rms_k"], r["max_abs_k"]] for r in worst]), ""]
+                  _md_table(["machine", "sensor", "RMS K", "max |e| K"],
+                            [[r["machine"], r["name"], r["rms_k"], r["max_abs_k"]] for r in worst]), ""]
         if plt is not None:
             for s in sensors:
                 f = plots / f"sensor-{s}.png"

@@ -91,7 +91,7 @@ class DiscreteDerivatives(Discrete):
         """:meth:`forcing` with one operating point per row; ``low = phi ∘ v`` (B, n, e)."""
         raise NotImplementedError
 
-    def build_dphit(self, ops: Sequence[int] | np.ndarray) -> None:
+    def build_dphit(self, ops: int | Sequence[int] | np.ndarray) -> None:
         """Build ``V⁻¹ dΦ_j V`` at these operating points where not built yet (together: cheaper
         than one by one)."""
         todo = sorted({int(o) for o in np.atleast_1d(ops)} - self._dense.keys())
@@ -102,11 +102,12 @@ class DiscreteDerivatives(Discrete):
         """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at the given operating points (built once each);
         (p, n, n) for a single one."""
         self.build_dphit(ops)
-        if np.ndim(ops) == 0:
-            return self._dense[int(ops)]  # type: ignore[arg-type]
-        if not len(ops):  # type: ignore[arg-type]
+        ops = np.asarray(ops)
+        if ops.ndim == 0:
+            return self._dense[int(ops)]
+        if not len(ops):
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
-        return np.stack([self._dense[int(o)] for o in ops])  # type: ignore[union-attr]
+        return np.stack([self._dense[int(o)] for o in ops])
 
     def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray, left: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p) from ``y = V⁻¹ T + Ht w`` (B, n) and
@@ -123,7 +124,7 @@ class DiscreteDerivatives(Discrete):
             dp, low = self.dphit(o), self.phi[o][:, None] * self.Zh[o]
             if left is not None:
                 dp, low = left @ dp, left @ low
-            X = (dp.reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
+            X: np.ndarray = (dp.reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
             lowv = (v[:, :, None] * self.dg[o].T).transpose(1, 0, 2).reshape(-1, B * p)  # (e, B p)
             X -= (low @ lowv).reshape(n, B, p).transpose(1, 0, 2)
             return X
@@ -159,7 +160,8 @@ class DiscreteDerivatives(Discrete):
     def dGamt(self) -> np.ndarray:
         """``V⁻¹ ∂Γ/∂θ_j`` (K, p, n, m)."""
         low = (self.Zh[:, None] * self.dg[:, :, None, :]) @ self.Yt[:, None]
-        return self.dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
+        out: np.ndarray = self.dPhit @ self.Ht[:, None] - self.phi[:, None, :, None] * low
+        return out
 
     @property
     def dPhi(self) -> np.ndarray:
@@ -170,7 +172,8 @@ class DiscreteDerivatives(Discrete):
     @property
     def dGam(self) -> np.ndarray:
         """``∂Γ/∂θ_j`` (K, p, n, m) in node coordinates."""
-        return self.basis(np.arange(self.Phi.shape[0]))[0][:, None] @ self.dGamt
+        out: np.ndarray = self.basis(np.arange(self.Phi.shape[0]))[0][:, None] @ self.dGamt
+        return out
 
 
 @dataclass(frozen=True)
@@ -192,7 +195,7 @@ class ZohDerivatives(DiscreteDerivatives):
         product: about ``n² (e + nc)`` flops a row, cheaper than building ``dPhit`` for an
         operating point that a few steps use (a ramp)."""
         Zh = self.Zh[o]  # (B, n, e)
-        X = (Zh * -(self.Dd[o] @ (Zh * y[:, :, None]) + low)) @ np.swapaxes(self.dg[o], 1, 2)
+        X: np.ndarray = (Zh * -(self.Dd[o] @ (Zh * y[:, :, None]) + low)) @ np.swapaxes(self.dg[o], 1, 2)
         nz = np.nonzero(np.any(self.r != 0.0, axis=0))[0]
         if len(nz):
             assert self.Wc is not None
@@ -209,10 +212,12 @@ class EulerDerivatives(DiscreteDerivatives):
     dense: np.ndarray
 
     def _build(self, ops: np.ndarray) -> np.ndarray:
-        return self.dense[ops]
+        out: np.ndarray = self.dense[ops]
+        return out
 
     def _forcing_rows(self, o: np.ndarray, y: np.ndarray, low: np.ndarray) -> np.ndarray:
-        return np.einsum("bjac,bc->baj", self.dphit(o), y) - (self.Zh[o] * low) @ np.swapaxes(self.dg[o], 1, 2)
+        out: np.ndarray = np.einsum("bjac,bc->baj", self.dphit(o), y) - (self.Zh[o] * low) @ np.swapaxes(self.dg[o], 1, 2)
+        return out
 
 
 def _eig(cont: Continuous) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -237,7 +242,8 @@ def sandwich(left: np.ndarray, mid: np.ndarray, right: np.ndarray) -> np.ndarray
     K, p, n, _ = mid.shape
     a = left @ mid.transpose(0, 2, 1, 3).reshape(K, n, p * n)  # [left M_1, left M_2, ...]
     a = a.reshape(K, n, p, n).transpose(0, 2, 1, 3).reshape(K, p * n, n)
-    return (a @ right).reshape(K, p, n, n)
+    out: np.ndarray = (a @ right).reshape(K, p, n, n)
+    return out
 
 
 def euler_substeps(lam: np.ndarray, dt: float, max_substep: float | None) -> int:
@@ -365,10 +371,11 @@ def _euler_derivatives(cont: Continuous, Phi1: np.ndarray, h: float, m: int) -> 
     assert cont.dc is not None and cont.dA is not None
     n = Phi1.shape[-1]
     F = cont.A / cont.c[:, None]
-    dPhi1 = h * (cont.dA - cont.dc[None, :, :, None] * F[:, None]) / cont.c[None, None, :, None]
+    dPhi1: np.ndarray = h * (cont.dA - cont.dc[None, :, :, None] * F[:, None]) / cont.c[None, None, :, None]
     if m == 1:
         return dPhi1
     pows = [np.broadcast_to(np.eye(n), Phi1.shape)]
     for _ in range(m - 1):
         pows.append(pows[-1] @ Phi1)
-    return sum(pows[i][:, None] @ dPhi1 @ pows[m - 1 - i][:, None] for i in range(m))
+    out: np.ndarray = sum(pows[i][:, None] @ dPhi1 @ pows[m - 1 - i][:, None] for i in range(m))
+    return out

@@ -23,8 +23,10 @@ import numpy as np
 
 from ..errors import ThermalEdgeError
 
-Env = Mapping[str, object]
-Compiled = Callable[[Env], object]
+Value = float | np.ndarray  # a scalar, or an array of values evaluated element-wise
+Env = Mapping[str, Value]
+Compiled = Callable[[Env], Value]
+Table = Callable[..., np.ndarray]  # a model-declared lookup table (a ``tables.Lookup``)
 
 FUNCTIONS_1 = {"exp": np.exp, "log": np.log, "sqrt": np.sqrt, "tanh": np.tanh, "abs": np.abs, "sign": np.sign}
 FUNCTIONS_2 = {"min": np.minimum, "max": np.maximum}
@@ -176,7 +178,7 @@ class Bin(Expr):
 class Call(Expr):
     fn: str
     args: tuple[Expr, ...]
-    table: object = None  # a Lookup for model-declared tables, else None
+    table: Table | None = None  # a Lookup for model-declared tables, else None
 
     def free(self) -> frozenset[str]:
         out: frozenset[str] = frozenset()
@@ -318,9 +320,10 @@ def power(a: Expr, b: Expr) -> Expr:
     return Bin("**", a, b)
 
 
-def call(fn: str, *args: Expr, table: object = None) -> Expr:
-    if table is None and all(isinstance(a, Num) for a in args):
-        vals = [a.value for a in args]  # type: ignore[attr-defined]
+def call(fn: str, *args: Expr, table: Table | None = None) -> Expr:
+    nums = [a for a in args if isinstance(a, Num)]
+    if table is None and len(nums) == len(args):
+        vals = [a.value for a in nums]
         if fn in FUNCTIONS_1:
             return Num(float(FUNCTIONS_1[fn](vals[0])))
         if fn in FUNCTIONS_2:
@@ -353,7 +356,7 @@ def _tokenize(text: str) -> list[tuple[str, str]]:
 
 
 class _Parser:
-    def __init__(self, text: str, tables: Mapping[str, object]) -> None:
+    def __init__(self, text: str, tables: Mapping[str, Table]) -> None:
         self.text = text
         self.toks = _tokenize(text)
         self.i = 0
@@ -435,7 +438,7 @@ class _Parser:
         return call(fn, *args)
 
 
-def parse(text: str | float | int, tables: Mapping[str, object] | None = None) -> Expr:
+def parse(text: str | float | int, tables: Mapping[str, Table] | None = None) -> Expr:
     """Parse a law into an expression tree.
 
     Parameters

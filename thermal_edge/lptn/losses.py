@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from .expr import is_affine
+from .expr import Value, is_affine
 from .model import Model
 from .network import _Law
 from .vocabulary import temperature_name
@@ -55,7 +55,7 @@ class LossLaws:
         """Whether any law reads a node temperature."""
         return bool(len(self.nodes))
 
-    def at(self, env: Mapping[str, object], T: np.ndarray | None) -> dict[str, object]:
+    def at(self, env: Mapping[str, Value], T: np.ndarray | None) -> dict[str, Value]:
         """``env`` with the node temperatures of ``T`` (n,) or (B, n), °C; None: all zero (the
         constant part of an affine law)."""
         e = dict(env)
@@ -63,7 +63,7 @@ class LossLaws:
             e[t] = 0.0 if T is None else T[..., i]
         return e
 
-    def power(self, env: Mapping[str, object], T: np.ndarray | None, batch: int | None = None) -> np.ndarray:
+    def power(self, env: Mapping[str, Value], T: np.ndarray | None, batch: int | None = None) -> np.ndarray:
         """Losses (W) of every law: (n_loss,) for one state, (B, n_loss) for ``batch=B`` samples.
 
         Parameters
@@ -83,7 +83,7 @@ class LossLaws:
             P[:, j] = law.f(e)
         return P
 
-    def dT(self, env: Mapping[str, object], T: np.ndarray | None, batch: int | None = None) -> np.ndarray:
+    def dT(self, env: Mapping[str, Value], T: np.ndarray | None, batch: int | None = None) -> np.ndarray:
         """``∂P/∂T`` (W/K) at the nodes the laws read (columns :attr:`nodes`): (n_loss, len(nodes)),
         or (B, n_loss, len(nodes)) for ``batch=B`` samples (arguments as :meth:`power`)."""
         e = self.at(env, T)
@@ -93,7 +93,7 @@ class LossLaws:
                 out[..., j, i] = f(e)
         return out
 
-    def dtheta(self, env: Mapping[str, object], T: np.ndarray | None, wrt: Sequence[int],
+    def dtheta(self, env: Mapping[str, Value], T: np.ndarray | None, wrt: Sequence[int] | np.ndarray,
                batch: int | None = None) -> np.ndarray:
         """``∂P/∂θ`` (W per parameter unit) for the parameter indices ``wrt``: (n_loss, p), or
         (B, n_loss, p) for ``batch=B`` samples (arguments as :meth:`power`)."""
@@ -105,7 +105,7 @@ class LossLaws:
                     out[..., j, q] = law.d[pi](e)
         return out
 
-    def stepwise(self, env: Mapping[str, object], N: int, which: Sequence[int]) -> Callable[[int, np.ndarray], np.ndarray]:
+    def stepwise(self, env: Mapping[str, Value], N: int, which: Sequence[int]) -> Callable[[int, np.ndarray], np.ndarray]:
         """An evaluator ``at(k, T)`` of the laws ``which`` at sample ``k`` of a run of ``N`` samples
         and temperatures ``T`` (n,): for a simulation that evaluates them step by step.
 

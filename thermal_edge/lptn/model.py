@@ -158,8 +158,8 @@ class Model:
         """The input that has ``role``; ``KeyError`` naming the model when it has none."""
         name = self.find_input(role)
         if name is None:
-            raise KeyError(f"model {self.name} has no input with role {role.value!r} "
-                           f"(its inputs: {', '.join(f'{k} ({r.value})' for k, r in self.input_roles.items()) or 'none with a role'})")
+            roles = ", ".join(f"{k} ({r.value})" for k, r in self.input_roles.items())
+            raise KeyError(f"model {self.name} has no input with role {role.value!r} (its inputs: {roles or 'none with a role'})")
         return name
 
     @property

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
-from .expr import Compiled, Expr
+from .expr import Compiled, Expr, Value
 from .model import Model
 
 
@@ -47,7 +47,8 @@ class Continuous:
         """``−Z diag(dg_j) rightᵀ`` for every parameter ``j``."""
         if self.dZ is None or self.dg is None or right is None:
             return None
-        return -((self.dZ[:, None] * self.dg[:, :, None, :]) @ np.swapaxes(right, -1, -2)[:, None])
+        out: np.ndarray = -((self.dZ[:, None] * self.dg[:, :, None, :]) @ np.swapaxes(right, -1, -2)[:, None])
+        return out
 
     @property
     def dA(self) -> np.ndarray | None:
@@ -120,19 +121,19 @@ class Network:
         self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
         used: set[str] = set()
-        for e in model.edges:
-            used |= e.g.free()
-        for k in reversed(list(model.derived)):  # derived inputs are declared in dependency order
-            if k in used:
-                used |= model.derived[k].free()
+        for edge in model.edges:
+            used |= edge.g.free()
+        for name in reversed(list(model.derived)):  # derived inputs are declared in dependency order
+            if name in used:
+                used |= model.derived[name].free()
         #: raw inputs that enter conductances: an operating point is a value of these
         self.matrix_inputs: tuple[str, ...] = tuple(sorted(used & set(model.inputs)))
         self.derived = [(k, v.free(), v.compile()) for k, v in model.derived.items()]
 
     # -- environments ---------------------------------------------------------------------
-    def env(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> dict[str, object]:
+    def env(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> dict[str, Value]:
         """Name -> value mapping for laws: parameters (floats), inputs and derived inputs (arrays)."""
-        env: dict[str, object] = dict(zip(self.model.parameter_names, (float(v) for v in theta)))
+        env: dict[str, Value] = dict(zip(self.model.parameter_names, (float(v) for v in theta)))
         env.update(inputs)
         for k, free, f in self.derived:
             if free <= env.keys():  # an operating point carries only the inputs conductances use
@@ -241,7 +242,9 @@ class Network:
         L, KU = self._assemble(g[0])
         n = self.n
         rhs = self.loss_map[n:] @ P - L[n:, :n] @ T + KU[n:] @ U
-        return np.concatenate([T, self.solve_qq(L[None, n:, n:], rhs[None, :, None])[0, :, 0]]) if self.n_points > n else np.asarray(T, float)
+        if self.n_points == n:
+            return np.asarray(T, float)
+        return np.concatenate([T, self.solve_qq(L[None, n:, n:], rhs[None, :, None])[0, :, 0]])
 
     def continuous(
         self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None = None, K: int = 1, wrt: Sequence[int] = ()

@@ -26,12 +26,14 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, cho
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from .discretise import DiscreteDerivatives
+from .expr import Value
 from .stretch import solve_nodes
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
@@ -55,7 +57,7 @@ FEW_STEPS = 8
 #: (B, nl) in W, or ``∂P/∂θ`` (B, nl, p) in W per parameter unit
 AtSteps = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
-def divided_powers(x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
+def divided_powers(x: np.ndarray, y: np.ndarray, k: np.ndarray | float) -> np.ndarray:
     """``DD_k(x, y) = Σ_{i<k} x^(k−1−i) y^i`` for positive ``x``, ``y`` (broadcast), without cancellation.
 
     >>> float(divided_powers(np.array(0.5), np.array(0.25), np.array(3)))
@@ -69,7 +71,8 @@ def divided_powers(x: np.ndarray, y: np.ndarray, k: np.ndarray) -> np.ndarray:
     same = d < 1e-300
     ratio = np.where(same, k, np.expm1(-k * d) / np.expm1(-np.where(same, 1.0, d)))
     with np.errstate(under="ignore"):
-        return np.exp((k - 1) * top) * ratio
+        out: np.ndarray = np.exp((k - 1) * top) * ratio
+        return out
 
 
 class Sensitivities:
@@ -223,7 +226,7 @@ class Sensitivities:
         for o in uo[count >= FEW_STEPS]:
             sel = np.nonzero(ob == o)[0]
             X[sel] = self.forcing(o, self.T[ks[sel]], w[sel])
-        X = np.matmul(d.Q[ob], X)  # back to node coordinates (V = diag(1/s) Q)
+        X = np.asarray(np.matmul(d.Q[ob], X))  # back to node coordinates (V = diag(1/s) Q)
         X /= d.s[:, None]
         if np.any(dP):  # Γ_P ∂P/∂θ
             X += d.Gam[ob][:, :, self.nb:] @ dP
@@ -333,7 +336,7 @@ class Sensitivities:
               const: np.ndarray) -> np.ndarray:
         """``σ_L`` (runs, n, p) of each run without the part of ``σ_0``, in ``ξ``: the sums of
         :meth:`_coefficients` at ``k = L`` (close pairs: :meth:`_close_pairs` adds theirs)."""
-        end = st.mu_end[:, :, None] * fo.F_delta - fo.F_delta_end
+        end: np.ndarray = st.mu_end[:, :, None] * fo.F_delta - fo.F_delta_end
         end += (lengths[:, None] * st.mu_before_end * st.delta)[:, :, None] * fo.diag_F[tr.index]
         with np.errstate(under="ignore"):
             end += divided_powers(st.mu, np.ones_like(st.mu), lengths[:, None].astype(float))[:, :, None] * const
@@ -413,7 +416,8 @@ class _Modes(NamedTuple):
     Xi: np.ndarray
 
 
-class _Transitions(NamedTuple):
+@dataclass(frozen=True)
+class _Transitions:  # not a NamedTuple: its field ``index`` would shadow tuple.index
     """The distinct transitions of the held runs: each run's transition (``index``), the first
     run of each transition (``first``), the runs of each (``members``) and their modes."""
 
@@ -510,7 +514,8 @@ class _HeldRun:
         if self.extra is not None:
             ia, ib, cc = self.extra
             rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k[:, None]) @ cc.reshape(len(ia), nr * p)
-        return self.Om @ (self.muL[:, None] * sig0 + self.endG)
+        sigma: np.ndarray = self.Om @ (self.muL[:, None] * sig0 + self.endG)
+        return sigma
 
 
 def held_runs(held: np.ndarray, closed: bool) -> list[tuple[int, int]]:
@@ -519,11 +524,11 @@ def held_runs(held: np.ndarray, closed: bool) -> list[tuple[int, int]]:
     steps = len(held)
     if not closed or not steps:
         return []
-    bounds = list(np.nonzero(~held)[0]) + [steps]
-    return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD]
+    bounds: list[int] = np.nonzero(~held)[0].tolist() + [steps]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD]
 
 
-def held_steps(env: dict[str, object], steps: int) -> np.ndarray:
+def held_steps(env: Mapping[str, Value], steps: int) -> np.ndarray:
     """``held[k]``: every input series of ``env`` has the same value at step ``k`` as at ``k − 1``."""
     held = np.ones(steps, dtype=bool)
     if steps:

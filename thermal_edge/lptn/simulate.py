@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .discretise import Discrete, DiscreteDerivatives, discretise
+from .expr import Value
 from .losses import LossLaws
 from .model import Model
 from .network import Network
@@ -80,7 +81,7 @@ class _Prepared:
     ops: np.ndarray  # operating point index per step (N-1,)
     disc: Discrete
     U: np.ndarray  # (N, nb)
-    env: dict[str, object]  # per-sample law environment (arrays of length N)
+    env: dict[str, Value]  # per-sample law environment (arrays of length N)
 
 
 class Simulator:
@@ -132,10 +133,12 @@ class Simulator:
             uniq, ops, op = np.zeros((1, 0)), np.zeros(steps, dtype=int), {}
         cont = net.continuous(theta, op, K=len(uniq), wrt=wrt)
         disc = discretise(cont, dt, self.method, self.max_substep)
-        U = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()], axis=1) if model.boundaries else np.zeros((N, 0))
+        U = np.zeros((N, 0))
+        if model.boundaries:
+            U = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()], axis=1)
         return _Prepared(ops=np.asarray(ops).reshape(-1), disc=disc, U=U, env=env)
 
-    def _loss_terms(self, env: dict[str, object], N: int, T: np.ndarray | None,
+    def _loss_terms(self, env: dict[str, Value], N: int, T: np.ndarray | None,
                     slopes: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Losses (N, nl) and, with ``slopes``, ∂P/∂T at the loss-temperature nodes (N, nl, ntv).
 
@@ -182,7 +185,7 @@ class Simulator:
         n, nb = self.n, prep.U.shape[1]
         GU, GP = d.Gam[:, :, :nb], d.Gam[:, :, nb:]
         P0, dPdT0 = self._loss_terms(prep.env, N, None)
-        assert dPdT0 is not None
+        assert dPdT0 is not None  # asked for with the slopes
         na = self.nonaffine
         P0[:, na] = 0.0  # laws not affine in T are evaluated per step instead
         dPdT0[:, na] = 0.0
@@ -273,7 +276,7 @@ class Simulator:
         mats[:, :, self.tv] += GP[o] @ slopes[starts].reshape(len(starts), len(self.losses), len(self.tv))
         return list(mats), mi
 
-    def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray, widx: Sequence[int],
+    def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray | None, widx: Sequence[int],
                        rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]],
                        held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
                        slopes: np.ndarray) -> np.ndarray:
@@ -282,11 +285,12 @@ class Simulator:
         N = T.shape[0]
         ops = prep.ops[: max(N - 1, 0)]
         if self.nonaffine:  # the simulation's matrices leave these laws' temperature feedback out
+            assert dPdT is not None  # the simulation computes the slopes for laws not affine in T
             steps = self._step_matrices(d.Phi, d.Gam[:, :, prep.U.shape[1]:], ops, dPdT[: N - 1])
         env = prep.env
 
-        def at(k: np.ndarray) -> dict[str, object]:
-            return {key: (v[k] if np.ndim(v) == 1 and len(v) == N else v) for key, v in env.items()}  # type: ignore[index]
+        def at(k: np.ndarray) -> dict[str, Value]:
+            return {key: (v[k] if isinstance(v, np.ndarray) and v.ndim == 1 and len(v) == N else v) for key, v in env.items()}
 
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],

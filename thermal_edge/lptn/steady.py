@@ -17,7 +17,7 @@ from .model import Model
 from .network import Network
 
 
-def _point(net: Network, theta: np.ndarray, inputs: Mapping[str, float]):  # type: ignore[no-untyped-def]
+def _point(net: Network, theta: np.ndarray, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     op = {k: np.array([float(inputs[k])]) for k in net.model.inputs if k in inputs}
     cont = net.continuous(theta, op, K=1)
     U = np.array([float(inputs[c]) for c in net.model.boundaries.values()])

@@ -12,6 +12,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .discretise import discretise
+from .expr import Value
 from .losses import LossLaws
 from .model import Model
 from .network import Network
@@ -68,7 +69,7 @@ class Stepper:
         """Boundary temperatures (°C) from the inputs."""
         return np.array([float(inputs[c]) for c in self.model.boundaries.values()])
 
-    def env(self, inputs: Mapping[str, float]) -> dict[str, object]:
+    def env(self, inputs: Mapping[str, float]) -> dict[str, Value]:
         """The law environment (parameters, inputs, derived inputs) of one tick's inputs."""
         return self.net.env(self.theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
 

@@ -33,14 +33,15 @@ class Lookup:
         coords = [np.broadcast_to(c, shape) for c in coords]
         if self.method == "nearest":
             idx = tuple(_nearest(ax, c) for ax, c in zip(self.axes, coords))
-            return self.values[idx]
+            picked: np.ndarray = self.values[idx]
+            return picked
         if len(self.axes) == 1:
-            return np.interp(coords[0], self.axes[0], self.values)
+            return np.asarray(np.interp(coords[0], self.axes[0], self.values))
         from scipy.interpolate import RegularGridInterpolator
 
         interp = RegularGridInterpolator(self.axes, self.values, bounds_error=False, fill_value=None)
         pts = np.stack([np.clip(c, ax[0], ax[-1]) for ax, c in zip(self.axes, coords)], axis=-1)
-        return interp(pts)
+        return np.asarray(interp(pts))
 
 
 def _nearest(axis: np.ndarray, x: np.ndarray) -> np.ndarray:

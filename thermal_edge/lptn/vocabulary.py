@@ -14,12 +14,12 @@ import difflib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
 
-class Role(str, Enum):
+class Role(StrEnum):
     """What an input column measures (its unit is part of the role)."""
 
     CURRENT = "current"  #: RMS phase current, A (≥ 0)
@@ -204,7 +204,7 @@ def temperature_problems(values: Sequence[float]) -> str | None:
     return why if k is None else f"value {k + 1}: {why}"
 
 
-class NodeRole(str, Enum):
+class NodeRole(StrEnum):
     """What part of the machine a node is (several nodes may share a role)."""
 
     WINDING = "winding"  #: copper: slot or end winding, coil

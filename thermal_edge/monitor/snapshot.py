@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import time
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from ..bus.codec import DecodedFrame
@@ -122,7 +123,7 @@ def _enum_name(enum_cls: type[DerateReason] | type[TeState], code: float) -> str
 
 def fetch_metrics(url: str, timeout_s: float = 3.0) -> str:
     """The exposition text at ``url``; raises OSError when the service cannot be reached."""
-    with urllib.request.urlopen(url, timeout=timeout_s) as resp:  # noqa: S310 - a URL the user gave
+    with urllib.request.urlopen(url, timeout=timeout_s) as resp:  # a URL the user gave
         return resp.read().decode()
 
 
@@ -206,7 +207,8 @@ class FrameWatch:
         Monotonic time in s (tests).
     """
 
-    def __init__(self, source: str, cycle_s: dict[str, float] | None = None, clock=time.monotonic) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, source: str, cycle_s: dict[str, float] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.snapshot = Snapshot(source)
         self.cycle_s = dict(cycle_s or {})
         self._clock = clock

@@ -68,8 +68,8 @@ def replay_figure(path: str | os.PathLike[str], title: str, t_s: np.ndarray, sen
             a.axvline(xd, color="tab:green" if accepted else "grey", lw=1.0 if accepted else 0.6,
                       ls="-" if accepted else ":", alpha=0.8)
     if decisions:
-        accepted = sum(1 for _, a in decisions if a)
-        title += f" — {len(decisions)} adaptation decisions ({accepted} promoted: green lines; others dotted)"
+        promoted = sum(1 for _, a in decisions if a)
+        title += f" — {len(decisions)} adaptation decisions ({promoted} promoted: green lines; others dotted)"
     axes[0].set_title(title, fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

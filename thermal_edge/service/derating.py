@@ -214,7 +214,8 @@ def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], l
         for frac in (0.25, 0.5, 1.0):
             i = frac * max_current_a
             u = dict(rest)
-            u.update({k: v for k, v in ((model.find_input(Role.SPEED), speed), (model.find_input(Role.TORQUE), kt_nm_per_arms * i),
+            u.update({k: v for k, v in ((model.find_input(Role.SPEED), speed),
+                                        (model.find_input(Role.TORQUE), kt_nm_per_arms * i),
                                         (model.input_name(Role.CURRENT), i)) if k in u})
             try:
                 T, _ = steady_state(model, u, theta)

@@ -96,7 +96,9 @@ class ThermalEngine:
                                      restored, worker_mode)
         theta = self.adaptation.theta
         self.accumulator = InputAccumulator(config, m.input_roles)
-        self.kt = float(config.kt(m))  # type: ignore[arg-type]
+        kt = config.kt(m)
+        assert kt is not None  # check_model refuses a model without one
+        self.kt = float(kt)
         self.policy = DeratingPolicy(config.derating, self.kt, self.dt, config.transmit.bus_silence_s)
         self.sensor_rows = {s: m.node_index(m.sensors[s]) for s in config.sensors}
         self.limited_nodes = [LimitSpec(lim.name, m.node_index(lim.node), *config.limit_band(lim), config.limit_reason(lim))
@@ -122,7 +124,8 @@ class ThermalEngine:
         self._restart_info: dict[str, float] = {}
         self._start_t: float | None = None
         self._last_t: float | None = None
-        self._prev_sample: tuple[float, dict[str, float], np.ndarray] | None = None  # (t, measured, observer estimate) at last tick
+        # (t, measured, observer estimate) at the last tick
+        self._prev_sample: tuple[float, dict[str, float], np.ndarray] | None = None
         self._last_inputs: dict[str, float] = dict(restored.inputs) if restored is not None else {}
         self._last: TickOutput | None = None
         self._ticks = 0
@@ -242,7 +245,9 @@ class ThermalEngine:
                 self._restart_info = est.start(t, ti, self.adaptation.theta, self._restored, cfg.state) or self._restart_info
                 self._restored = None
                 self.health.new_state()
-                self._prev_sample = (t, dict(ti.measured), est.observer.T.copy())  # type: ignore[union-attr]
+                obs = est.observer
+                assert obs is not None  # started above
+                self._prev_sample = (t, dict(ti.measured), obs.T.copy())
                 return self._finish(t, ti, forced, [])
             grace = max(cfg.timeouts.values(), default=1.0) + self.dt
             waited = t - (self._start_t if self._start_t is not None else t)
@@ -261,7 +266,8 @@ class ThermalEngine:
             self.adaptation.record(t_prev, u, y_prev, x_prev)
         # 2. open-loop prediction, 3. observer
         y = ti.measured
-        x_prev = est.prediction.copy()  # type: ignore[union-attr]
+        assert est.prediction is not None  # initialized
+        x_prev = est.prediction.copy()
         innov = est.step(u, y, self.sensor_rows)
         # the stuck-sensor check: how far the measured losses moved each sensor's node in the open-loop
         # prediction's step (the step alone: not a restart or new parameters). Not the observer's step:
@@ -272,8 +278,8 @@ class ThermalEngine:
         moved = {s: float(x_now[r] - x_prev[r]) for s, r in self.sensor_rows.items()}
         newly = self.stuck.observe(t, readings, moved)
         if newly:
-            for s, why in sorted(newly.items()):
-                log.error("sensor %s stuck at t=%.0f: %s; its reading is withheld%s", s, t, why,
+            for s, stuck_why in sorted(newly.items()):
+                log.error("sensor %s stuck at t=%.0f: %s; its reading is withheld%s", s, t, stuck_why,
                           "; safe limit" if self.config.sensors[s].required else "")
                 self.accumulator.bad_readings["stuck"] += 1
             self._withhold_stuck(ti, [])
@@ -295,7 +301,9 @@ class ThermalEngine:
             self.health.restart()
         if self.health.holding(t):
             forced.insert(0, DerateReason.MODEL_FAULT)
-        self._prev_sample = (t, dict(y), est.observer.T.copy())  # type: ignore[union-attr]  # the adapter judges from the observer's state
+        obs = est.observer
+        assert obs is not None  # stepped, or restarted from the readings
+        self._prev_sample = (t, dict(y), obs.T.copy())  # the adapter judges from the observer's state
         return self._finish(t, ti, forced, new_results, pred_error)
 
     def _withhold_stuck(self, ti: TickInputs, released: list[str]) -> None:
@@ -360,8 +368,8 @@ class ThermalEngine:
                 react_a = math.nan  # the policy treats it as a model fault
             if self.lookahead is not None and ti is not None:
                 try:
-                    r = self.lookahead.compute(upper, u)
-                    la_a, ttl = r.current_a, r.time_to_limit_s
+                    ahead = self.lookahead.compute(upper, u)
+                    la_a, ttl = ahead.current_a, ahead.time_to_limit_s
                 except Exception as exc:
                     log.warning("look-ahead failed: %s", exc)
                     la_a = math.nan

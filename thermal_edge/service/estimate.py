@@ -86,7 +86,8 @@ class StateEstimate:
             if 0 <= downtime <= state.max_downtime_s:
                 try:
                     T0, Phi = cool_down(m, theta, np.array(rs.T), downtime, last)
-                    P = np.array(rs.P) if rs.P else np.diag(np.square(np.array(rs.sigma))) if rs.sigma else np.eye(len(T0)) * cfg.restart_p0_k**2
+                    P = (np.array(rs.P) if rs.P else np.diag(np.square(np.array(rs.sigma))) if rs.sigma
+                         else np.eye(len(T0)) * cfg.restart_p0_k**2)
                     P = P + self._run_on_covariance(theta, np.array(rs.T), rs.inputs, min(downtime, state.save_interval_s))
                     grow = min(cfg.q_k**2 * downtime / self.dt, cfg.restart_p0_k**2)
                     P0 = Phi @ P @ Phi.T + np.eye(len(T0)) * grow

@@ -30,8 +30,9 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from functools import partial
 
 from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus
@@ -153,14 +154,14 @@ class InputAccumulator:
         self.reduced: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce != "latest"}
         self.latest_inputs: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce == "latest"}
         self.sensors: dict[str, SensorSignal] = dict(config.sensors)
-        # per frame: what to do with it
-        self._by_frame: dict[str, list[tuple[str, object]]] = {}
+        # per frame: what to do with it (each action is called with the frame's signals and its time)
+        self._by_frame: dict[str, list[Callable[[Mapping[str, float], float], None]]] = {}
         for name, spec in self.reduced.items():
-            self._by_frame.setdefault(spec.frame, []).append(("reduce", (name, spec)))
+            self._by_frame.setdefault(spec.frame, []).append(partial(self._reduce, name, spec))
         for name, spec in self.latest_inputs.items():
-            self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signals[0], spec.status)))
-        for name, spec in self.sensors.items():
-            self._by_frame.setdefault(spec.frame, []).append(("latest", (name, spec.signal, spec.status)))
+            self._by_frame.setdefault(spec.frame, []).append(partial(self._latest_value, name, spec.signals[0], spec.status))
+        for name, sensor in self.sensors.items():
+            self._by_frame.setdefault(sensor.frame, []).append(partial(self._latest_value, name, sensor.signal, sensor.status))
         self._sum = {k: 0.0 for k in self.reduced}  # Σ x over the tick's frames (no durations to weigh)
         self._n = {k: 0 for k in self.reduced}
         self._area = {k: 0.0 for k in self.reduced}  # ∫ x dt over the tick, each value held until the next frame
@@ -191,13 +192,8 @@ class InputAccumulator:
             return
         try:
             sig = frame.signals
-            for kind, arg in actions:
-                if kind == "reduce":
-                    name, spec = arg  # type: ignore[misc]
-                    self._reduce(name, spec, sig, t)
-                else:
-                    name, signal, status = arg  # type: ignore[misc]
-                    self._latest_value(name, signal, status, sig, t)
+            for action in actions:
+                action(sig, t)
         except (KeyError, TypeError, ValueError):
             self.malformed += 1
             return
@@ -289,24 +285,25 @@ class InputAccumulator:
             inputs[name] = slot.value
             ages[name] = _age(t, slot.t)
             status[name] = slot.status
-            if slot.fault or slot.tick_fault:
-                faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
+            if (fault := slot.fault or slot.tick_fault):
+                faults[name] = fault
             slot.tick_fault = None
             if slot.t > t - self.config.clock.tick_s:
                 fresh.add(name)
         measured: dict[str, float] = {}
         timeouts = self.config.timeouts
-        for name, spec in self.sensors.items():
+        for name, sensor in self.sensors.items():
             slot = self._latest[name]
             ages[name] = _age(t, slot.t)
             status[name] = slot.status
-            limit = timeouts.get(spec.frame)
+            limit = timeouts.get(sensor.frame)
             usable = slot.fault is None and math.isfinite(slot.value) and (limit is None or ages[name] <= limit)
             measured[name] = slot.value if usable else math.nan
-            if (slot.fault or slot.tick_fault) and spec.required:
-                faults[name] = slot.fault or slot.tick_fault  # type: ignore[assignment]
+            if (fault := slot.fault or slot.tick_fault) and sensor.required:
+                faults[name] = fault
             slot.tick_fault = None
-        stale = [f for f, limit in timeouts.items() if t - self._last_frame_t.get(f, self.started_t if self.started_t is not None else -math.inf) > limit]
+        never = self.started_t if self.started_t is not None else -math.inf  # a frame not seen yet: since the start
+        stale = [f for f, limit in timeouts.items() if t - self._last_frame_t.get(f, never) > limit]
         frames, self._frames = self._frames, Counter()
         return TickInputs(t, inputs, measured, ages, status, stale, faults, frames, fresh)
 

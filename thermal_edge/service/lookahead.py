@@ -13,8 +13,8 @@ checkpoint ``k`` of the horizon is
 where ``c_k`` follows from the present (upper-band) state with the current-independent losses and
 ``d_k`` from the loss per ampere² starting at zero. Each limited node ``l`` then allows
 ``i² <= (max_l - c_k,l) / d_k,l`` at every checkpoint: the look-ahead current is the square root
-of the smallest bound (and the limit it belongs to binds). No search. The time to limit at the present ``i²`` is the first checkpoint
-where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
+of the smallest bound (and the limit it belongs to binds). No search. The time to limit at the
+present ``i²`` is the first checkpoint where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
 """
 from __future__ import annotations
 
@@ -85,7 +85,7 @@ class Lookahead:
         bounds = set(model.boundaries.values())
         used = set(self.stepper.net.matrix_inputs) | _loss_inputs(model)
         self._key_inputs = tuple(k for k in model.inputs if k in used and k != self.current_input and k not in bounds)
-        self._cache: dict[tuple[float, ...], tuple[np.ndarray, ...]] = {}
+        self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.cache_size = 64  # operating points (each ~75 kB for 60 checkpoints)
 
     def set_parameters(self, theta: np.ndarray) -> None:

@@ -86,7 +86,7 @@ class _LiveCollector(Collector):
         eng = m.engine
         out: TickOutput | None = eng.last if eng is not None else None
         model = eng.model if eng is not None else None
-        if out is not None and model is not None:
+        if eng is not None and out is not None and model is not None:
             est = GaugeMetricFamily(P + "node_estimate_celsius", "Best estimate (observer) of each node's temperature",
                                     labels=LABELS["node_estimate_celsius"])
             sig = GaugeMetricFamily(P + "node_estimate_stddev_celsius", "Standard deviation of each node's estimate",
@@ -105,7 +105,8 @@ class _LiveCollector(Collector):
             meas = GaugeMetricFamily(P + "sensor_measurement_celsius", "Latest usable reading of each sensor",
                                      labels=LABELS["sensor_measurement_celsius"])
             err = GaugeMetricFamily(P + "prediction_error_celsius",
-                                    "Open-loop prediction minus reading, per sensor (last tick)", labels=LABELS["prediction_error_celsius"])
+                                    "Open-loop prediction minus reading, per sensor (last tick)",
+                                    labels=LABELS["prediction_error_celsius"])
             for s, v in out.measured.items():
                 node = model.sensors.get(s, "")
                 if math.isfinite(v):
@@ -126,7 +127,7 @@ class _LiveCollector(Collector):
             yield inp
             lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
                                     labels=LABELS["limited_node_celsius"])
-            for b, ln in zip(out.bands, eng.limited_nodes):  # type: ignore[union-attr]
+            for b, ln in zip(out.bands, eng.limited_nodes):
                 node = model.nodes[ln.row]
                 lim.add_metric([ln.name, node, "estimate"], b.estimate_c)
                 lim.add_metric([ln.name, node, "upper"], b.upper_c)
@@ -153,7 +154,7 @@ class _LiveCollector(Collector):
             yield GaugeMetricFamily(P + "last_tick_timestamp_seconds", "Clock time of the last tick", value=out.t)
             age = GaugeMetricFamily(P + "sensor_age_seconds", "Seconds since each sensor's last valid reading",
                                     labels=LABELS["sensor_age_seconds"])
-            for s in eng.config.sensors:  # type: ignore[union-attr]
+            for s in eng.config.sensors:
                 # the tick's own ages: the accumulator's latest reading may have come after the tick
                 a = out.ages.get(s, math.inf)
                 if math.isfinite(a):
@@ -180,10 +181,13 @@ class _LiveCollector(Collector):
             yield fault
             val = GaugeMetricFamily(P + "parameter_value", "Adaptable parameter value (unit in the label)",
                                     labels=LABELS["parameter_value"])
-            band = GaugeMetricFamily(P + "parameter_band", "95 % band of an adaptable parameter (Fisher information, the residuals' correlation in time counted)",
+            band = GaugeMetricFamily(P + "parameter_band",
+                                     "95 % band of an adaptable parameter "
+                                     "(Fisher information, the residuals' correlation in time counted)",
                                      labels=LABELS["parameter_band"])
             ident = GaugeMetricFamily(P + "parameter_identifiable",
-                                      "1 if the sensors at hand pin the parameter down (relative sd as if the residuals were independent "
+                                      "1 if the sensors at hand pin the parameter down "
+                                      "(relative sd as if the residuals were independent "
                                       "below adaptation.max_rel_std: the adapter's own gate)",
                                       labels=LABELS["parameter_identifiable"])
             units = {p.name: p.unit for p in model.parameters}
@@ -249,7 +253,8 @@ class _LiveCollector(Collector):
         if codec is not None:
             st = codec.stats
             received = eng.config.timeouts if eng is not None else ()  # the inverter's frames the service needs
-            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)", labels=LABELS["frames_received"])
+            rx = CounterMetricFamily(P + "frames_received", "Frames accepted (counter and CRC good)",
+                                     labels=LABELS["frames_received"])
             for k, v in _with_known(st.received, received):
                 rx.add_metric([k], v)
             yield rx
@@ -261,7 +266,8 @@ class _LiveCollector(Collector):
             for r in DROP_REASONS:
                 dr.add_metric([r], getattr(st, r))
             yield dr
-            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter", labels=LABELS["frames_lost"])
+            lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter",
+                                       labels=LABELS["frames_lost"])
             for k, v in _with_known(st.lost_by_frame, received):
                 lost.add_metric([k], v)
             yield lost

@@ -374,34 +374,41 @@ class StateStore:
             st = os.stat(self.path)
         except FileNotFoundError:
             if os.path.lexists(self.path):
-                return self._bad("a symbolic link to nothing")
+                self._bad("a symbolic link to nothing")
+                return None
             log.info("no saved state in %s: starting from the model's parameters", self.dir)
             return None
         except OSError as exc:
-            return self._bad(f"cannot stat: {exc.strerror or exc}")
+            self._bad(f"cannot stat: {exc.strerror or exc}")
+            return None
         if stat.S_ISDIR(st.st_mode):
-            return self._bad("a directory, not a file")
+            self._bad("a directory, not a file")
+            return None
         if not stat.S_ISREG(st.st_mode):
-            return self._bad("not a regular file")
+            self._bad("not a regular file")
+            return None
         if st.st_size > MAX_BYTES:
-            return self._bad(f"{st.st_size} bytes, larger than {MAX_BYTES // (1024 * 1024)} MiB (not read)")
+            self._bad(f"{st.st_size} bytes, larger than {MAX_BYTES // (1024 * 1024)} MiB (not read)")
+            return None
         try:
             with open(self.path, "rb") as f:
                 data = f.read(MAX_BYTES + 1)  # the file may have grown since the stat
         except OSError as exc:
-            return self._bad(f"cannot read: {exc.strerror or exc}")
+            self._bad(f"cannot read: {exc.strerror or exc}")
+            return None
         dropped: list[str] = []
         try:
-            st = decode(data, self.model, dropped)
+            state = decode(data, self.model, dropped)
         except StateError as exc:
-            return self._bad(str(exc))
+            self._bad(str(exc))
+            return None
         if dropped:
             self.params_dropped += len(dropped)
-            kept = ", ".join(sorted(st.parameters)) or "none"
+            kept = ", ".join(sorted(state.parameters)) or "none"
             log.warning("state file %s: dropped learned parameter(s) %s: model %s has no parameter of that name "
                         "(renamed or removed by a model update?); kept the others (%s)", self.path,
                         ", ".join(dropped), self.model.name, kept)
-        return st
+        return state
 
     def probe(self) -> bool:
         """Can a save work? Create the directory if needed, write and remove a temporary file.

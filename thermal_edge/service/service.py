@@ -2,8 +2,8 @@
 
 :class:`EdgeService` wires the parts together:
 
-- a :class:`~thermal_edge.bus.CanTransport` (sent frames stamped by the service clock) receives and checks the inverter's frames; each accepted
-  frame goes to the :class:`~.engine.ThermalEngine`'s input accumulator;
+- a :class:`~thermal_edge.bus.CanTransport` (sent frames stamped by the service clock) receives
+  and checks the inverter's frames; each accepted frame goes to the :class:`~.engine.ThermalEngine`'s input accumulator;
 - the tick runs at 1 Hz of the configured clock: with the wall clock from a timer task, with the
   frame clock whenever a frame's timestamp crosses a tick boundary (replays, accelerated
   simulation);
@@ -27,7 +27,7 @@ import logging
 import math
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from prometheus_client import CollectorRegistry
@@ -109,7 +109,8 @@ class EdgeService:
         self.store.probe()  # an unwritable state directory: ERROR, counted; the service protects on and retries
         self.engine = ThermalEngine(config, self.model, restored, worker_mode)
         self.frame_mode = config.clock.mode == "frame"
-        self.clock: FrameClock | WallClock = FrameClock(config.clock.tick_s, config.clock.max_catchup_s) if self.frame_mode else WallClock(config.clock.tick_s)
+        self.clock: FrameClock | WallClock = (FrameClock(config.clock.tick_s, config.clock.max_catchup_s) if self.frame_mode
+                                              else WallClock(config.clock.tick_s))
         if isinstance(self.clock, FrameClock):
             self.engine.frame_clock = self.clock.stats
         self.metrics = ServiceMetrics(registry)
@@ -155,7 +156,8 @@ class EdgeService:
                         fallback=lambda: self.engine.policy.safe(DerateReason.MODEL_FAULT).signals(), thread=True)
         loop = asyncio.get_running_loop()
         if not self.frame_mode:
-            tr.start_cyclic(TE_ESTIMATES, lambda: self._last_or_start().estimates_signals(), period_s=cfg.transmit.status_period_s)
+            tr.start_cyclic(TE_ESTIMATES, lambda: self._last_or_start().estimates_signals(),
+                            period_s=cfg.transmit.status_period_s)
             tr.start_cyclic(TE_FORECAST, lambda: self._last_or_start().forecast_signals(), period_s=cfg.transmit.status_period_s)
             tr.start_cyclic(TE_STATUS, lambda: self._last_or_start().status_signals(), period_s=cfg.transmit.status_period_s)
             self._tasks.append(loop.create_task(self._wall_ticks(), name="thermal-edge tick"))
@@ -253,7 +255,7 @@ class EdgeService:
         self.engine.add_frame(frame, time.time())
         return None
 
-    async def _frame_ticks(self, boundaries: list[float], frame: DecodedFrame) -> None:
+    async def _frame_ticks(self, boundaries: Sequence[float], frame: DecodedFrame) -> None:
         for b in self.engine.ticks_for(boundaries):
             await self._run_tick(b, None)
         self.engine.add_frame(frame, self.clock.now())
@@ -358,7 +360,8 @@ class EdgeService:
         next_t = time.monotonic()
         while True:
             now = time.monotonic()
-            if not self.engine.policy.stalled(self._tick_age()):  # a stalled tick loop stops the pings: systemd restarts the service
+            # a stalled tick loop stops the pings: systemd restarts the service
+            if not self.engine.policy.stalled(self._tick_age()):
                 self.notifier.watchdog()
                 self.metrics.watchdog_pings.inc()
             out = self.engine.last

@@ -107,7 +107,8 @@ def cycle_run(cycle: Cycle, kt_nm_per_arms: float, duration_s: float | None = No
     t = np.arange(n) * cycle.dt_s
     bounds = np.cumsum([0.0] + [s.duration_s for s in cycle.segments])
     cols = {k: np.empty(n) for k in FIELDS}
-    tt = np.mod(t, cycle.duration_s) if duration_s is not None and duration_s > cycle.duration_s else np.minimum(t, cycle.duration_s)
+    repeats = duration_s is not None and duration_s > cycle.duration_s
+    tt = np.mod(t, cycle.duration_s) if repeats else np.minimum(t, cycle.duration_s)
     idx = np.clip(np.searchsorted(bounds, tt, side="right") - 1, 0, len(cycle.segments) - 1)
     for i, seg in enumerate(cycle.segments):
         sel = idx == i

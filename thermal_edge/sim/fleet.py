@@ -18,6 +18,7 @@ import json
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -136,6 +137,6 @@ def write_manifest(out_dir: str | os.PathLike[str], model_path: str, cycle_path:
     return path
 
 
-def read_manifest(out_dir: str | os.PathLike[str]) -> dict[str, object]:
+def read_manifest(out_dir: str | os.PathLike[str]) -> dict[str, Any]:
     """The manifest written by :func:`write_manifest`."""
     return json.loads((Path(out_dir) / MANIFEST).read_text())

@@ -293,7 +293,8 @@ class InverterEmulator:
         cfg = self.config
         if not cfg.closed_loop:
             return None, None, False
-        sim_timeout = cfg.limits_timeout_sim_s if cfg.limits_timeout_sim_s is not None else cfg.max_lead_s + 3 * cfg.service_tick_s
+        sim_timeout = (cfg.limits_timeout_sim_s if cfg.limits_timeout_sim_s is not None
+                       else cfg.max_lead_s + 3 * cfg.service_tick_s)
         fresh = (self.limits_wall is not None and (now_wall is None or now_wall - self.limits_wall <= cfg.limits_timeout_s)
                  and self.sim_time - self.limits_sim <= max(sim_timeout, cfg.limits_timeout_s))
         if fresh:
@@ -605,7 +606,8 @@ def write_log(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[
               progress: Callable[[float], object] | None = None) -> EmulatorSummary:
     """The inverter frames of a simulated open-loop run as a CAN log in the format of ``out``'s
     suffix (``thermal-edge simulate --format can``); ``progress(elapsed_s)`` as it goes."""
-    cfg = EmulatorConfig(model_path=model_path, cycle_path=cycle_path, params=dict(params or {}), duration_s=duration_s,
+    cfg = EmulatorConfig(model_path=Path(model_path), cycle_path=Path(cycle_path), params=dict(params or {}),
+                         duration_s=duration_s,
                          noise_k=noise_k, resolution_k=resolution_k, seed=seed, t0=t0 if t0 is not None else 1.7e9,
                          current_period_s=current_period_s, temperature_period_s=temperature_period_s,
                          closed_loop=False, plant_dt_s=max(current_period_s, min(1.0, temperature_period_s)))
@@ -703,7 +705,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.summary:
         Path(args.summary).write_text(json.dumps(asdict(summary), indent=2))
     if args.trace:
-        np.savez_compressed(args.trace, **emu.trace())
+        np.savez_compressed(args.trace, **emu.trace())  # type: ignore[arg-type]  # mypy matches **kwargs to allow_pickle too
     print(json.dumps({"sim_seconds": summary.sim_seconds, "wall_seconds": round(summary.wall_seconds, 2),
                       "true_max_c": summary.true_max_c, "rx_lost": summary.rx_lost}))
     return 0

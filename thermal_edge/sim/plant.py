@@ -61,7 +61,7 @@ class Plant:
             return
         th = self.theta0.copy()
         lo, hi = self.base.bounds()
-        for (name, rate), i in zip(self.aging.items(), self._aging_idx):
+        for rate, i in zip(self.aging.values(), self._aging_idx):
             th[i] = min(max(self.theta0[i] * (1.0 + rate * hours), lo[i]), hi[i])
         self.stepper.set_parameters(th)
 

@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def pt100(true_c: np.ndarray, rng: np.random.Generator, sigma_k: float = 0.1, resolution_k: float = 0.1) -> np.ndarray:
+def pt100(true_c: np.ndarray | float, rng: np.random.Generator, sigma_k: float = 0.1, resolution_k: float = 0.1) -> np.ndarray:
     """Readings of a PT100 chain: true temperature + N(0, sigma²) noise, rounded to ``resolution``.
 
     Parameters
     ----------
-    true_c : ndarray
+    true_c : ndarray or float
         True temperatures, °C.
     sigma_k : float
         Noise standard deviation, K (0 disables noise).
