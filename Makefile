@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test test-fast test-all test-deps bench-faults bench-discovery lint venv clean
+.PHONY: demo test test-fast test-all test-deps bench-faults bench-discovery lint docs venv clean
 
 venv: $(STAMP)
 
@@ -59,6 +59,17 @@ bench-discovery: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check thermal_edge tests benchmarks
 	$(BIN)/mypy
+
+# the manual: docs/ built by Sphinx into build/docs/html; a warning (a broken reference, a stale page, a
+# docstring that does not parse) fails the build; the reference pages are generated from their sources
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	OPENBLAS_NUM_THREADS=1 $(BIN)/python -m sphinx -W --keep-going -n -q -b html docs build/docs/html
+	@echo "the manual: build/docs/html/index.html"
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -85,7 +85,7 @@ DQ_SQUARE_SHARE = {"amplitude_invariant": 1 / 2, "power_invariant": 1 / 3, "rms_
 CLOCK_MODES = ("wall", "frame")
 WORKERS = ("thread", "sync")
 REASON_NAMES = {"winding": DerateReason.WINDING, "magnet": DerateReason.MAGNET}
-#: The inverter treats TE_Limits as absent after this long without a valid frame, s (can-matrix.md).
+#: The inverter treats TE_Limits as absent after this long without a valid frame, s (the CAN matrix).
 INVERTER_LIMITS_TIMEOUT_S = 0.3
 #: Longest TE_Limits period accepted, s: half the timeout, so that one lost or late frame still
 #: leaves the next one inside it.
@@ -369,18 +369,18 @@ class SignalsConfig:
 class FaultConfig:
     """``derating.faults:`` -- when the model counts as diverged, and when a sensor is stuck.
 
-    Every threshold has an upper bound that keeps its check able to fire: 1e9 passed ``--check``
-    and switched the check off (a second black-box round)."""
+    Every threshold has an upper bound that keeps its check able to fire: 1e9 would pass ``--check``
+    and switch the check off."""
 
     innovation_k: float = setting(15.0, positive=True, max=100.0)
     innovation_ticks: int = setting(5, min=1)
     prediction_error_k: float = setting(40.0, positive=True, max=200.0)
-    # at least the longest tick: a hold shorter than a tick never reaches the bus (0 and 1e-9 s
-    # handed a diverged model back at once; the limit kept rising after the fault)
+    # at least the longest tick: a hold shorter than a tick never reaches the bus (0 or 1e-9 s
+    # would hand a diverged model back at once, and the limit would keep rising after the fault)
     hold_s: float = setting(30.0, min=MAX_TICK_S)
     #: a model fault within this long after the previous hold ended is the same cause recurring: the
-    #: hold doubles each time, up to ``hold_max_s`` (black-box finding 2: one cause faulted every 153 s,
-    #: 122 s of each at full power, for as long as it lasted)
+    #: hold doubles each time, up to ``hold_max_s`` (with a fixed hold, one cause faulting every 153 s
+    #: gives 122 s of each at full power, for as long as it lasts)
     repeat_s: float = setting(300.0, min=0.0)
     hold_max_s: float = setting(960.0, positive=True)
     #: a required sensor is stuck (a sensor fault) when its reading stayed within ``stuck_still_k``
@@ -652,7 +652,7 @@ class EdgeConfig:
                     if sig not in signals:
                         raise self.error(key, f"frame {spec.frame} has no signal {sig!r}")
         # a frame the model reads with no timeout never goes stale: its last values would drive the
-        # model and the limit however long it is gone (a second black-box round: `timeouts: {}` passed)
+        # model and the limit however long it is gone (so `timeouts: {}` is refused)
         read = {spec.frame: f"signals.{section}.{name}" for section, items in (("inputs", self.inputs), ("sensors", self.sensors))
                 for name, spec in items.items()}
         for frame, key in read.items():

@@ -1,4 +1,4 @@
-"""Recorded runs: the run CSV of ``DESIGN.md`` §5 and the Paderborn data set's CSV.
+"""Recorded runs: the run CSV (``docs/guide/commands.md``) and the Paderborn data set's CSV.
 
 A run is one row per sample: column ``t`` (s), input columns (``speed_rpm``, ``i_d``, ``i_q``,
 ``i_rms``, ``torque_nm``, ``ambient_c``, ``coolant_c``, …) and one column per sensor named as the

@@ -49,8 +49,8 @@ def _remember_stop(signum: int, frame: FrameType | None) -> None:
 def ignore_while_starting() -> None:
     """Ignore :data:`IGNORED_SIGNALS` and remember a stop signal (:data:`STOP_SIGNALS`) until the
     running service's handlers replace these; call it first thing in the process's main thread.
-    Before, a SIGTERM in the first 1.5 s ended the process by the signal's default action, with
-    no log line (a black-box client's finding)."""
+    Otherwise a SIGTERM in the first 1.5 s would end the process by the signal's default action,
+    with no log line."""
     for sig in IGNORED_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
     for sig in STOP_SIGNALS:

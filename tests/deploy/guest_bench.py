@@ -1,6 +1,6 @@
-"""Run inside the qemu VM (tests/vm/vmrun.py) with real SocketCAN: the README's bench on vcan0.
+"""Run inside the qemu VM (tests/vm/vmrun.py) with real SocketCAN: the manual's vcan0 bench (docs/guide/try-it.md).
 
-The service (``thermal-edge run``, wall clock, ``config/edge.yaml`` with the README's
+The service (``thermal-edge run``, wall clock, ``config/edge.yaml`` with the manual's
 ``channel: can0`` -> ``vcan0`` edit) under a fake systemd notify socket with a watchdog, and the
 inverter emulator (``python -m thermal_edge.sim.inverter --interface socketcan --channel vcan0
 --speed 1``) as a second process. Prints one JSON line: notifications seen and the service's
@@ -35,7 +35,7 @@ def main() -> int:
     (TMP / "state").mkdir(exist_ok=True)
     (TMP / "machines" / "pm10kw.yaml").write_text((REPO / "config" / "machines" / "pm10kw.yaml").read_text())
     text = (REPO / "config" / "edge.yaml").read_text()
-    text = re.sub(r"^  channel: can0$", "  channel: vcan0", text, flags=re.M)  # the README's sed
+    text = re.sub(r"^  channel: can0$", "  channel: vcan0", text, flags=re.M)  # the manual's sed
     text = text.replace("../dbc/thermal_edge.dbc", str(REPO / "dbc" / "thermal_edge.dbc"))
     raw = yaml.safe_load(text)
     assert raw["bus"] == {**raw["bus"], "interface": "socketcan", "channel": "vcan0"}, raw["bus"]

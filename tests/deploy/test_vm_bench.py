@@ -1,4 +1,4 @@
-"""The README's vcan0 bench on real SocketCAN, in the project's qemu VM (tests/vm/vmrun.py):
+"""The manual's vcan0 bench (docs/guide/try-it.md) on real SocketCAN, in the project's qemu VM (tests/vm/vmrun.py):
 ``thermal-edge run`` on vcan0 under a fake systemd notify socket, the inverter emulator on vcan0 as
 a second process in real time. Several minutes under software emulation; marked ``vm`` (and
 skipped with the reason when the VM cannot be had)."""

@@ -90,9 +90,13 @@ _PLAIN_CANDUMP_LINE = re.compile(r"^\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d+\]")
 _CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
 #: Latest time stamp taken as seconds since the epoch (the year 2286): a larger one is in ms or µs.
 MAX_EPOCH_S = 1e10
-#: Largest step back in time a log may take, s: frames of several interfaces merged by a logger
-#: can be a little out of order; more is a reversed, shuffled or concatenated log.
-MAX_BACKSTEP_S = 1.0
+#: Step back in time between two messages that counts as one, s: frames of several interfaces
+#: merged by a logger can be a little out of order.
+MAX_BACKSTEP_S = 1e-3
+#: Share of the first :data:`TIME_BASE_MESSAGES` steps that may go back: more is a reversed or
+#: shuffled log. A single jump back (a log concatenated from two recordings, a clock stepped while
+#: recording) is not refused here: the frame clock judges it by the frames after it, as live.
+MAX_BACK_SHARE = 0.25
 #: Gaps between repeats of one frame that judge the time base: if the most frequent frame of the
 #: first of them repeats less often than every :data:`MAX_MEDIAN_GAP_S` (median), the log is
 #: stamped in ms (a drive's bus carries frames every few ms; 10 ms frames stamped in ms look 10 s
@@ -214,8 +218,8 @@ def log_messages(path: str | Path, *, strict: bool = False,
     LogFormatError
         No such file; unknown suffix, or a non-empty file with not one readable message; plain
         ``candump`` output (no ``-L``); a CSV that is not python-can's; a BLF cut short; time
-        stamps not in seconds since the epoch (ms or µs), or running backwards by more than
-        :data:`MAX_BACKSTEP_S`.
+        stamps not in seconds since the epoch (ms or µs), or running backwards in most of the
+        first steps (a reversed or shuffled log).
     """
     p = Path(path)
     suffix = log_suffix(p)
@@ -300,18 +304,20 @@ class _TimeBase:
         self.last_by_id: dict[int, float] = {}
         self.gaps: dict[int, list[float]] = {}
         self.collected = 0
+        self.steps = 0
+        self.back = 0
         self.judged = False
 
     def check(self, t: float, n: int, frame_id: int) -> None:
         if t > MAX_EPOCH_S:
             raise LogFormatError(f"{self.path}: message {n}: time stamp {t:.6g} is after the year 2286 as seconds "
                                  "since the epoch; stamped in ms or µs? (a CAN log's times are in s)")
-        if self.last is not None and t < self.last - MAX_BACKSTEP_S:
-            raise LogFormatError(f"{self.path}: message {n}: time runs backwards by {self.last - t:.6g} s "
-                                 f"({self.last:.6f} -> {t:.6f}); a reversed, shuffled or concatenated log?")
-        self.last = t if self.last is None else max(self.last, t)
         if self.judged:
             return
+        if self.last is not None:
+            self.steps += 1
+            self.back += t < self.last - MAX_BACKSTEP_S
+        self.last = t
         before = self.last_by_id.get(frame_id)
         self.last_by_id[frame_id] = t
         if before is not None:
@@ -324,6 +330,9 @@ class _TimeBase:
         """Judge the time base by the fastest frame's period (the median of its gaps)."""
         if self.judged:
             return
+        if self.steps >= 10 and self.back > MAX_BACK_SHARE * self.steps:
+            raise LogFormatError(f"{self.path}: time runs backwards in {self.back} of its first {self.steps} steps; "
+                                 "a reversed or shuffled log? (a CAN log's times rise)")
         periods = [sorted(g)[len(g) // 2] for g in self.gaps.values() if len(g) >= 5]
         if periods and min(periods) > MAX_MEDIAN_GAP_S:
             raise LogFormatError(f"{self.path}: its most frequent frame repeats every {min(periods):.6g} s (median); "

@@ -3,11 +3,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict
 from typing import Any
 
 from ..bench import jacobian, paper
 from ..text_table import table
+from .bench_page import check_path, with_page
 from .common import add_set_arg, check_sets, split_sets
 from .options import integer, number, positive_s
 from .progress import StageBars
@@ -78,6 +80,36 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                     help=f"rounds of 1 and 2 workers taking turns (default {ROUNDS})")
     fl.add_argument("--json", action="store_true", help="print one JSON object")
     fl.set_defaults(func=run_fleet)
+    for name, parser in which.choices.items():  # every bench can write what it prints as a page of the manual
+        parser.add_argument("--markdown", metavar="PATH", default=None,
+                            help="also write what the bench prints to this Markdown page, stamped with the commit "
+                                 "(or package version), host and date (the manual's docs/benchmarks/ pages)")
+        parser.set_defaults(bench_func=parser.get_default("func"), bench_title=f"Benchmark: {name}",
+                            bench_help=parser.description or "", func=run_bench)
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    """Run the chosen bench; with ``--markdown`` also write its output as a page."""
+    if args.markdown is None:
+        return int(args.bench_func(args))
+    path = check_path(args.markdown)
+    argv = [a for a in sys.argv[1:] if a != "--debug"]  # the command as typed, when this process runs it
+    shown = argv if argv[:2] == ["bench", args.bench] else ["bench", args.bench]
+    command = "thermal-edge " + " ".join(_drop_option(shown, "--markdown"))
+    return with_page(args.bench_func, args.bench_title, command, path, args)
+
+
+def _drop_option(argv: list[str], option: str) -> list[str]:
+    """``argv`` without ``option`` and its value (``--opt V`` or ``--opt=V``)."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == option:
+            skip = True
+        elif not a.startswith(option + "="):
+            out.append(a)
+    return out
 
 
 def add_data_dir_arg(p: argparse.ArgumentParser) -> None:

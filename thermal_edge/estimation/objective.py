@@ -4,7 +4,7 @@
 (open-loop prediction from the window's first state minus the readings; missing readings give
 zero residual), weights ``w_k`` that favour recent samples, and an optional prior toward the
 offline values ``φ⁰`` (MAP instead of plain least squares: with few sensors the unmeasured nodes
-otherwise pay for a better fit of the measured ones, ``reference/findings.md`` §1).
+otherwise pay for a better fit of the measured ones).
 
 Gradient ``2 Σ_k w_k J_kᵀ r_k`` and Gauss-Newton Hessian ``2 Σ_k w_k J_kᵀ J_k`` come from the
 forward sensitivities, ``J_k = S_m ∂T_k/∂φ`` (paper eqs. 33–37).

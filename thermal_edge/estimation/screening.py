@@ -7,7 +7,7 @@ objective is ``Λ_k = ∂Obj/∂φ_k`` per unit change; its optimisation potenti
 potentials are kept until they cover ``coverage`` (98 %) of the total; the screening is repeated
 before every optimisation.
 
-Identifiability comes first (``reference/findings.md`` §1): a parameter the sensors cannot pin
+Identifiability comes first: a parameter the sensors cannot pin
 down (its relative standard deviation from the Fisher information of the window, all adaptable
 parameters free, above a limit: :mod:`.uncertainty`) is not offered to the optimiser however
 large its gradient looks.

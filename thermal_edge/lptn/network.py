@@ -1,7 +1,7 @@
 """The numeric network: conductance laws -> Laplacian -> Schur elimination -> ``A``, ``W``.
 
 For a batch of ``K`` operating points (values of the inputs that enter conductances) and a
-parameter vector ``θ`` this module returns the continuous system of ``DESIGN.md`` §4::
+parameter vector ``θ`` this module returns the continuous system (``docs/method/lptn.md``)::
 
     C dT/dt = A T + W w,      w = [U; P]  (boundary temperatures, then the loss sources)
 

@@ -42,7 +42,8 @@ class Role(StrEnum):
 
     @property
     def plausible(self) -> Plausible:
-        """The unit of this role's values and the range a machine's values lie in (:data:`PLAUSIBLE`)."""
+        """The unit of this role's values and the range a machine's values lie in
+        (:data:`~thermal_edge.lptn.vocabulary.PLAUSIBLE`)."""
         return PLAUSIBLE[self]
 
 

@@ -1,4 +1,4 @@
-"""The CAN edge service (``DESIGN.md`` §3): CAN frames in, 1 Hz LPTN tick with observer, online
+"""The CAN edge service: CAN frames in, 1 Hz LPTN tick with observer, online
 adaptation and derating, limits out; metrics, persistence and systemd integration.
 
 Modules, one job each:

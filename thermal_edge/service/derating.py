@@ -41,7 +41,7 @@ The policy, per tick (1 s):
 3. **Forced safe limit**: starting, a model fault, stale input or a faulty sensor force the limit
    to at most ``derating.safe_current_a`` (in this order of precedence), and the reason is the
    cause. The model is then not trusted, so the limit is also held to the **band derate at the
-   measured temperatures** (issue 14, defect 9): the readings of the sensors that bound a limited
+   measured temperatures**: the readings of the sensors that bound a limited
    node from below (a sensor whose node is never hotter than the limited node in the model's steady
    states, :func:`bounding_sensors`; the end-winding PT100 for the end-winding hot spot)
    with that node's band, full current at ``warn_c`` falling linearly to zero at ``max_c`` (the
@@ -66,24 +66,24 @@ the declared spread of the parameters the adapter does not estimate; for the end
 next to a PT100, that is σ ~0.15 K. It does not cover a stator model that is wrong before the
 adapter has corrected it (the adapter needs 30 min of history; the winding resistance is a
 constant, not a parameter with a spread): with the winding conductivity 25 % lower than modelled (copper losses +33 %) the
-unmeasured hot spot's estimate trailed the truth by up to 1.5 K. The margin covers that, and costs
+unmeasured hot spot's estimate trails the truth by up to 1.5 K. The margin covers that, and costs
 ~1 % of the current held at the max; the readings of the bounding sensors are the second line.
 
-**The magnet's band carries the rotor model's error** (session 9). The magnet is far from every
-sensor, and no reading tells a wrong rotor model: in session 8, with the magnet losses twice the
-model's and the air-gap heat transfer 30 % lower (``--plant P_pm_ref=+100% --plant h_gap1=-30%``),
-the estimate trailed the true magnet by up to 6.1 K while σ was ~1.1 K, and the policy let the
-magnet reach 121.1 °C (372 s over max). The model file now declares the rotor-side loss
+**The magnet's band carries the rotor model's error.** The magnet is far from every sensor, and no
+reading tells a wrong rotor model: with the rotor-side coefficients as exact constants, magnet
+losses twice the model's and an air-gap heat transfer 30 % lower (``--plant P_pm_ref=+100% --plant
+h_gap1=-30%``) make the estimate trail the true magnet by up to 6.1 K while σ is ~1.1 K, and the
+policy lets the magnet reach 121.1 °C (372 s over max). So the model file declares the rotor-side loss
 coefficients (``P_pm_ref``, the iron-loss, friction and windage coefficients) as parameters with
 their spread (``P_pm_ref`` 0.4: magnet eddy-loss estimates are off by ~2x) and the convection
 coefficients with 0.3; the observer carries them into the band as the first-order error ``S δφ``
 of its estimate (:mod:`..estimation.observer`), and a saved state keeps that part of the
-covariance across a restart. The magnet's σ is now 2.2-3.9 K near its max; in that case the true
-magnet stayed within 1.5 σ of the estimate and reached 116.2 °C (0 s over). The price is 1.9-4.0
+covariance across a restart. The magnet's σ is then 2.2-3.9 K near its max; in that case the true
+magnet stays within 1.5 σ of the estimate and reaches 116.2 °C (0 s over). The price is 1.9-4.0
 points of the oracle's delivery in the bench's cases (the magnet binds a few kelvin lower). z stays
 1.96: a factor 2 on ``P_pm_ref`` lies at 1.7 σ of its spread, inside this band but outside the
-one-sided 95 % bound (z 1.645: its error was above that bound 53 % of the time on a 70 min heat-up,
-``tests/estimation/test_observer_bands.py``), which would have given back only 0.4-0.6 points. The
+one-sided 95 % bound (z 1.645: its error is above that bound 53 % of the time on a 70 min heat-up,
+``tests/estimation/test_observer_bands.py``), which would give back only 0.4-0.6 points. The
 housing PT100 counts as a floor under the magnet (:func:`bounding_sensors`, steady states only)
 although an overload heats the housing long before the rotor; that false bound holds the limit low
 at times, but it only ever raises the magnet's bound, so it costs current, not safety.

@@ -149,9 +149,9 @@ class StuckSensors:
     Only a rise is evidence. A reading that stands still while its node heats reads cold, which is
     the danger; one that stands still while the model's node cools reads hot, which costs headroom
     and nothing else, and withholding it would hide a hot machine: a winding PT100 stepping to
-    170 °C restarted the model from that reading, the model's node relaxed 8 K towards its cooler
-    neighbours in a second, and the reading was withheld as stuck, leaving the hot spot's band at
-    54 °C and the limit at 9.5 A (a black-box client's finding F1).
+    170 °C restarts the model from that reading, the model's node relaxes 8 K towards its cooler
+    neighbours in a second, and were the reading then withheld as stuck, the hot spot's band would
+    sit at 54 °C and the limit at 9.5 A.
 
     Parameters
     ----------

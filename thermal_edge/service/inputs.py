@@ -13,8 +13,8 @@ Per tick (the frames of ``[t - period, t)``):
 The means are over **time**, not over frames: each frame's value holds until the next frame of
 its input (zero-order hold), and the tick's mean weighs it by that time. A burst of frames
 therefore weighs what the milliseconds it spans weigh: counted per frame, 2,000 frames at 0 A
-sent once a second beside a steady 40 A made the model see 8.7 A, the limit rose to the
-maximum and the stuck-sensor check went blind (a black-box client's finding). A tick whose
+sent once a second beside a steady 40 A would make the model see 8.7 A, the limit would rise to
+the maximum and the stuck-sensor check would go blind. A tick whose
 frames all carry one time stamp has no durations to weigh: its frames count alike.
 - ``latest`` inputs (ambient) and the sensors: the latest valid reading, with its age and status.
 

@@ -2,10 +2,10 @@
 
 prometheus_client's ``start_http_server`` starts one thread per connection and waits forever for
 a request on each: 200 idle connections are 200 threads (the unit allows ``TasksMax=64``), and
-creating them contends with ``TE_Limits`` for the interpreter. The version before this one served
-at most 8 connections on threads and closed any further one on arrival; a client holding 300 slow
-or 2,000 idle connections then kept every scrape out (black-box finding 7: Prometheus got an empty
-reply and the dashboards went blank; ``TE_Limits`` was unaffected).
+creating them contends with ``TE_Limits`` for the interpreter. Serving a fixed number of
+connections on threads and closing any further one on arrival is no better: a client holding 300
+slow or 2,000 idle connections keeps every scrape out (Prometheus gets an empty reply and the
+dashboards go blank).
 
 Here one thread multiplexes every connection (:mod:`selectors`):
 
