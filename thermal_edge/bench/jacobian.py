@@ -11,12 +11,21 @@ medians can pair a slow analytic round with fast forward-difference rounds or th
 The arithmetic limit is the flop count of the sensitivity forcing and recursion, ``2·N·n²·p``
 twice, at the rate this machine's BLAS reaches on a matrix product of the same shape, measured in
 the same run.
+
+A second case has inputs that vary every sample, as recorded data do: the same cycle with
+relative noise :data:`NOISE` on the current and on the speed, the speed then binned to
+:data:`SPEED_BIN_RPM` (every distinct speed is an operating point with its own discretisation;
+the binning's effect on the sensor temperatures is measured over the first hour against the
+unbinned speed and printed). There the analytic Jacobian (stretches at one speed vectorised in
+time) is timed beside the same Jacobian stepped sample by sample, forward differences, and the
+simulation vectorised and stepped.
 """
 from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -25,6 +34,24 @@ from ..lptn.sensitivity import held_steps
 from ..shipped import config_path
 from ..sim.cycles import cycle_run, load_cycle
 from .common import Progress, no_progress, timed, timed_together
+
+#: relative noise (one standard deviation) on current and speed in the varying-input case
+NOISE = 1e-3
+#: the noisy speed is rounded to this resolution (rpm): operating points of one discretisation
+SPEED_BIN_RPM = 10.0
+
+
+def recorded_like(cols: dict[str, np.ndarray], current: str, speed: str, noise: float = NOISE,
+                  speed_bin: float | None = SPEED_BIN_RPM, seed: int = 0) -> dict[str, np.ndarray]:
+    """The inputs with relative Gaussian noise ``noise`` on ``current`` (A) and ``speed`` (rpm),
+    the speed rounded to ``speed_bin`` rpm (None: not rounded); seeded, so runs compare."""
+    rng = np.random.default_rng(seed)
+    out = dict(cols)
+    N = len(cols[current])
+    out[current] = np.asarray(cols[current], dtype=float) * (1.0 + noise * rng.standard_normal(N))
+    sp = np.asarray(cols[speed], dtype=float) * (1.0 + noise * rng.standard_normal(N))
+    out[speed] = sp if speed_bin is None else np.round(sp / speed_bin) * speed_bin
+    return out
 
 
 @dataclass
@@ -54,6 +81,8 @@ class JacobianResult:
     arith_limit_s: float
     analytic_over_limit: float
     when: str
+    #: inputs that vary every sample: the same figures, the binning's effect and the agreement
+    varying: dict[str, Any] = field(default_factory=dict)
 
 
 def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt: float, T0: np.ndarray,
@@ -102,7 +131,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
             J[:, :, j] = (sim.simulate(th, cols, dt, T0).T[:, rows] - base) / h
         return J
 
-    stepper = Simulator(model, closed_form=False)
+    stepper = Simulator(model, closed_form=False, vectorised=False)
 
     def analytic_stepped() -> np.ndarray:
         """The same Jacobian with every sample stepped (what inputs that change every step cost)."""
@@ -114,6 +143,15 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
     (t_an, times_an, S), (t_st, _, S_st), (t_num, times_num, _), (t_sim, _, _) = timed_together(
         [analytic, analytic_stepped, forward, lambda: sim.simulate(theta, cols, dt, T0)], repeat, progress)
     assert isinstance(S, np.ndarray) and isinstance(S_st, np.ndarray)
+
+    # arithmetic limit: 2 products of N x n by n x (n p) (forcing and recursion), at the BLAS rate
+    a_ = np.random.default_rng(0).standard_normal((N, n))
+    b_ = np.random.default_rng(1).standard_normal((n, n * p))
+    t_blas, _, _ = timed(lambda: a_ @ b_, 5)
+    flops = 2.0 * 2.0 * N * n * n * p
+    rate = 2.0 * N * n * n * p / t_blas
+    varying = _varying(model, cols, dt, T0, theta, wrt, sensor_nodes, idx, repeat, flops / rate,
+                       lambda stage, *a: progress(f"varying inputs: {stage}", *a))
 
     # accuracy: fourth-order central differences (step 1 % of the value: the simulation's own
     # round-off, ~1e-10 K, swamps smaller steps), relative error on entries above 1 % of that
@@ -128,12 +166,6 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
             max_rel = max(max_rel, float(np.max(np.abs(a[big] - fd[big]) / np.abs(fd[big]))))
     progress("central differences", p, p, "parameter")
 
-    # arithmetic limit: 2 products of N x n by n x (n p) (forcing and recursion), at the BLAS rate
-    a_ = np.random.default_rng(0).standard_normal((N, n))
-    b_ = np.random.default_rng(1).standard_normal((n, n * p))
-    t_blas, _, _ = timed(lambda: a_ @ b_, 5)
-    flops = 2.0 * 2.0 * N * n * n * p
-    rate = 2.0 * N * n * n * p / t_blas
     ratios = [t / a for t, a in zip(times_num, times_an)]  # each round's forward differences ÷ analytic
     return JacobianResult(
         nodes=n,
@@ -159,4 +191,70 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
         arith_limit_s=flops / rate,
         analytic_over_limit=t_an / (flops / rate),
         when=time.strftime("%Y-%m-%dT%H:%M:%S"),
+        varying=varying,
     )
+
+
+def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarray, theta: np.ndarray,
+             wrt: list[str], sensor_nodes: list[str], idx: np.ndarray, repeat: int, limit_s: float,
+             progress: Progress) -> dict[str, object]:
+    """The varying-input case (see the module docstring): times side by side (with the arithmetic
+    limit ``limit_s``, s), the agreement of the vectorised and stepped Jacobians, and the
+    binning's effect on the sensors."""
+    current, speed = model.input_name(Role.CURRENT), model.input_name(Role.SPEED)  # type: ignore[attr-defined]
+    noisy = recorded_like(cols, current, speed)
+    sim, stepper = Simulator(model), Simulator(model, closed_form=False, vectorised=False)  # type: ignore[arg-type]
+    rows = [model.node_index(x) for x in sensor_nodes]  # type: ignore[attr-defined]
+    N, p = len(noisy[current]), len(wrt)
+
+    def jac(s: Simulator) -> np.ndarray:
+        tr = s.simulate(theta, noisy, dt, T0, wrt=wrt, rows=sensor_nodes)
+        assert tr.S is not None
+        return tr.S
+
+    def forward() -> np.ndarray:
+        base = sim.simulate(theta, noisy, dt, T0).T[:, rows]
+        J = np.empty((N, len(rows), p))
+        for j, i in enumerate(idx):
+            h = 1e-6 * theta[i]
+            th = theta.copy()
+            th[i] += h
+            J[:, :, j] = (sim.simulate(th, noisy, dt, T0).T[:, rows] - base) / h
+        return J
+
+    jac(sim)  # warm-up
+    (t_an, times_an, S), (t_st, times_st, S_st), (t_num, times_num, _), (t_sim, times_sim, T_v), (t_sim_st, times_sim_st, T_s) = \
+        timed_together([lambda: jac(sim), lambda: jac(stepper), forward,
+                        lambda: sim.simulate(theta, noisy, dt, T0).T, lambda: stepper.simulate(theta, noisy, dt, T0).T],
+                       repeat, progress)
+    # binning: the first hour with the noisy speed as it is (an operating point per sample) against binned
+    hour = min(N, int(round(3600.0 / dt)))
+    raw = recorded_like(cols, current, speed, speed_bin=None)
+    first = {k: np.asarray(v)[:hour] for k, v in raw.items()}
+    binned = {k: np.asarray(v)[:hour] for k, v in noisy.items()}
+    T_first, T_binned = sim.simulate(theta, first, dt, T0).T, sim.simulate(theta, binned, dt, T0).T
+    bin_err = float(np.max(np.abs(T_first[:, rows] - T_binned[:, rows])))
+    return {
+        "noise": NOISE,
+        "speed_bin_rpm": SPEED_BIN_RPM,
+        "operating_points": int(len(np.unique(noisy[speed]))),
+        "binning_max_err_k": bin_err,
+        "analytic_s": t_an,
+        "arith_limit_s": limit_s,
+        "analytic_over_limit": t_an / limit_s,
+        "analytic_stepped_s": t_st,
+        "numerical_s": t_num,
+        "simulation_s": t_sim,
+        "simulation_stepped_s": t_sim_st,
+        "speedup_vs_stepped": statistics.median([b / a for a, b in zip(times_an, times_st)]),
+        "speedup_vs_forward": statistics.median([b / a for a, b in zip(times_an, times_num)]),
+        "simulation_speedup": statistics.median([b / a for a, b in zip(times_sim, times_sim_st)]),
+        "vectorised_vs_stepped_max_rel": _max_rel(S, S_st),
+        "simulation_vs_stepped_max_rel": _max_rel(T_v, T_s),
+    }
+
+
+def _max_rel(a: object, ref: object) -> float:
+    """Largest difference of ``a`` from ``ref`` relative to the largest entry of ``ref``."""
+    x, y = np.asarray(a), np.asarray(ref)
+    return float(np.max(np.abs(x - y)) / np.max(np.abs(y)))

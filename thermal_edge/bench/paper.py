@@ -209,6 +209,12 @@ class PaperResult:
     adapt_step_median_s: float  #: one online adaptation step, median, s
     e3: dict[str, Any]  #: the Paderborn run (``{"skipped": why}`` without the data)
 
+    @property
+    def headline(self) -> str:
+        """The paper's headline figure, like for like: numerical over analytic SQP on the whole data."""
+        return (f"E2 like for like (whole data, same iteration cap): numerical SQP / analytic SQP "
+                f"{self.e2['numerical_over_analytic_whole_data']:.1f}x (paper 4.3x)")
+
 
 def run(progress: Progress = no_progress, data_dir: Path | None = None) -> PaperResult:
     """E1, E2, the step timing and E3 (Paderborn data in ``data_dir``, default

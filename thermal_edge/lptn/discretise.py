@@ -81,6 +81,7 @@ class DiscreteDerivatives(Discrete):
     Yt: np.ndarray
     dg: np.ndarray  # (K, p, e) derivatives of the edges' conductances
     _dense: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _joined: dict[int, np.ndarray] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def _build(self, ops: np.ndarray) -> np.ndarray:
         """``V⁻¹ dΦ_j V`` (len(ops), p, n, n) at these operating points (the method's own way)."""
@@ -108,22 +109,47 @@ class DiscreteDerivatives(Discrete):
             return np.zeros((0, self.dg.shape[1], self.Phi.shape[1], self.Phi.shape[1]))
         return np.stack([self._dense[int(o)] for o in ops])
 
-    def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def forcing(self, o: int | np.ndarray, y: np.ndarray, v: np.ndarray, left: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` (B, n, p) from ``y = V⁻¹ T + Ht w`` (B, n) and
         ``v = Yt w`` (B, e): ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``.
 
         ``o`` is one operating point for all rows (its dense ``dPhit``: one product for all rows
         and parameters) or one per row (B,), which each method does its own way
-        (:meth:`_forcing_rows`).
+        (:meth:`_forcing_rows`). With one operating point, ``left`` (n, n) gives the forcing in
+        another basis, ``left V⁻¹ (...)``, folded into the factors (no product per row).
         """
         p, B = self.dg.shape[1], len(y)
         if np.ndim(o) == 0:
             n = len(self.phi[o])
-            X: np.ndarray = (self.dphit(o).reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
+            dp, low = self.dphit(o), self.phi[o][:, None] * self.Zh[o]
+            if left is not None:
+                dp, low = left @ dp, left @ low
+            X: np.ndarray = (dp.reshape(p * n, n) @ y.T).reshape(p, n, B).transpose(2, 1, 0)
             lowv = (v[:, :, None] * self.dg[o].T).transpose(1, 0, 2).reshape(-1, B * p)  # (e, B p)
-            X -= self.phi[o][:, None] * (self.Zh[o] @ lowv).reshape(n, B, p).transpose(1, 0, 2)
+            X -= (low @ lowv).reshape(n, B, p).transpose(1, 0, 2)
             return X
         return self._forcing_rows(np.asarray(o), y, self.phi[o][:, :, None] * v[:, None, :])
+
+    def forcing_modal(self, o: int, T: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """:meth:`forcing` for many steps at one operating point, laid out for a filter in time:
+        ``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` as (n, B, p) from temperatures ``T`` (B, n) and inputs ``w``
+        (B, m) of ``Γ``.
+
+        One product of ``[dPhit_j | V⁻¹ dΓ_j]`` (p n, n + m, built once per operating point)
+        with ``[V⁻¹ T; w]``: the factored ``dΓ`` folded into a dense block costs ``m`` columns
+        instead of the ``e`` edges per row that :meth:`forcing` spends on it.
+        """
+        p, n, B = self.dg.shape[1], self.Phi.shape[1], len(T)
+        key = int(o)
+        if key not in self._joined:
+            dp = self.dphit(o)
+            low = (self.Zh[o][None] * self.dg[o][:, None, :]) @ self.Yt[o]  # (p, n, m)
+            dgam = dp @ self.Ht[o] - self.phi[o][None, :, None] * low
+            self._joined[key] = np.concatenate([dp, dgam], axis=2).reshape(p * n, -1)
+        _, Vi = self.basis(o)
+        rhs = np.concatenate([Vi @ T.T, w.T], axis=0)  # (n + m, B)
+        X = (self._joined[key] @ rhs).reshape(p, n, B)
+        return np.ascontiguousarray(X.transpose(1, 2, 0))
 
     @property
     def dPhit(self) -> np.ndarray:

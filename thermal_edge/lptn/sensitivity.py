@@ -1,7 +1,7 @@
 """Forward sensitivities ``S_k = ∂T_k/∂θ`` of a simulated run (paper eqs. 35–37).
 
 ``S[k+1] = M_k S[k] + X_k`` with the transition ``M_k = Φ + Γ_P ∂P/∂T`` of the simulation and
-the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chosen per run of steps:
+the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, chosen per run of steps:
 
 * **Held inputs.** Over a run where every input is the same (a drive cycle's segment, a test
   bench's set point) and the losses are affine in temperature, ``M`` is constant and similar to
@@ -16,6 +16,10 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Two exact ways, chose
   instead of the ``4·n²·p`` of forcing and recursion. Close pairs keep their divided
   differences. Runs that meet a set point again share its eigendecomposition and the forcing's
   linear part (``p·n²`` numbers); each run adds only matrix-vector products.
+* **Stretches at one operating point** whose loss feedback changes every step (a noisy
+  current): the forcing of the whole stretch in one product, then the linear filter of
+  :func:`~thermal_edge.lptn.stretch.solve_nodes` (modes of ``Φ``, the feedback solved exactly
+  as a low-rank block-triangular system in time).
 * **Step by step** otherwise: the forcing for a block of steps as products per operating point
   (in the modal basis of :class:`~thermal_edge.lptn.discretise.DiscreteDerivatives`; the Daleckii–Krein
   form row by row at a ramp's operating points), then the recursion.
@@ -30,6 +34,7 @@ import numpy as np
 
 from .discretise import DiscreteDerivatives
 from .expr import Value
+from .stretch import solve_nodes
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -91,17 +96,22 @@ class Sensitivities:
         The losses and ``∂P/∂θ`` at any steps and temperatures (see :data:`AtSteps`).
     loss_nodes : ndarray of int
         The nodes whose temperatures the loss laws read.
+    slopes : ndarray (N-1, nl, len(loss_nodes)), optional
+        ``∂P/∂T`` of losses affine in temperature at each step (W/K): what the stretches run
+        vectorised in time need (:meth:`run`).
     """
 
     def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
-                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray) -> None:
+                 U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray,
+                 slopes: np.ndarray | None = None) -> None:
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
+        self.slopes = slopes
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
 
     # -- the forcing, in the modal basis of an operating point ------------------------------
-    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray) -> np.ndarray:
+    def forcing(self, o: int | np.ndarray, T: np.ndarray, w: np.ndarray, left: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ T + dΓ w)`` (B, n, p) for temperatures ``T`` (B, n) and inputs ``w`` (B, m) of
         ``Γ`` at operating point ``o`` (one for all rows, or one per row), in the modal basis of
         ``Φ`` there (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.forcing`). The losses' own
@@ -110,28 +120,33 @@ class Sensitivities:
         d = self.d
         _, Vi = d.basis(o)
         # y = V⁻¹ T + Ht w and v = Yt w, one row per step
-        y = np.einsum("...ac,...c->...a", Vi, T) + np.einsum("...am,...m->...a", d.Ht[o], w)
-        return d.forcing(o, y, np.einsum("...em,...m->...e", d.Yt[o], w))
+        if np.ndim(o) == 0:
+            y, v = T @ Vi.T + w @ d.Ht[o].T, w @ d.Yt[o].T
+        else:
+            y = np.einsum("...ac,...c->...a", Vi, T) + np.einsum("...am,...m->...a", d.Ht[o], w)
+            v = np.einsum("...em,...m->...e", d.Yt[o], w)
+        return d.forcing(o, y, v, left)
 
     # -- runs ---------------------------------------------------------------------------------
-    def run(self, held: np.ndarray, closed: bool, rows: np.ndarray | None) -> np.ndarray:
+    def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None) -> np.ndarray:
         """``S`` (N, rows, p) (all nodes when ``rows`` is None).
 
-        ``held[k]`` is True where the inputs of step ``k`` equal those of step ``k − 1``;
-        ``closed`` allows the closed form over held runs (the losses are affine in temperature).
+        ``runs`` are the held runs ``(a, b)`` (steps ``a .. b−1``) to try in closed form
+        (:func:`held_runs`), ``spans`` the stretches at one operating point to run vectorised in
+        time (:func:`~thermal_edge.lptn.stretch.stretches`; they need ``slopes``); the other
+        steps are stepped.
         """
         N = self.T.shape[0]
         steps = N - 1
         keep = np.arange(self.n) if rows is None else np.asarray(rows, dtype=int)
         S = np.zeros((N, len(keep), self.p))
         s = np.zeros((self.n, self.p))
-        starts = np.nonzero(~held[:steps])[0] if steps > 0 else np.zeros(0, dtype=int)
-        bounds: list[int] = starts.tolist() + [steps]
-        runs = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD] if closed else []
         forms = self._held_runs(runs, keep) if runs else []
         stepped = np.ones(steps, dtype=bool)
         for (a, b), form in zip(runs, forms):
             stepped[a:b] &= form is None
+        for a, b in spans:
+            stepped[a:b] = False
         # the steps the recursion takes one by one, their forcing BLOCK steps at a time (across
         # the gaps between held runs), consumed in order
         ks = np.nonzero(stepped)[0]
@@ -162,13 +177,40 @@ class Sensitivities:
         pending = 0  # first step not yet propagated
         longest = max((b - a for a, b in runs), default=0)
         work = np.empty((2 * self.n + 1, -(-longest // POW_BLOCK) * POW_BLOCK))
-        for (a, b), form in zip(runs, forms):
+        events = sorted([(a, b, form) for (a, b), form in zip(runs, forms) if form is not None]
+                        + [(a, b, None) for a, b in spans], key=lambda e: e[0])
+        for a, b, form in events:
+            s = step(pending, a, s)
             if form is None:
-                continue
-            s = form.apply(step(pending, a, s), S[a + 1: b + 1], work)
+                s = self._span(a, b, s, S[a + 1: b + 1], keep)
+            else:
+                s = form.apply(s, S[a + 1: b + 1], work)
             pending = b
         step(pending, steps, s)
         return S
+
+    def _span(self, a: int, b: int, s: np.ndarray, out: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """Steps ``a .. b−1`` at one operating point from ``S[a] = s`` (n, p), vectorised in time
+        (:func:`~thermal_edge.lptn.stretch.solve_nodes`): the forcing of all steps in one product,
+        then the filter. Fills ``out`` (b − a, rows, p); returns ``S[b]``."""
+        assert self.slopes is not None
+        d, o = self.d, int(self.ops[a])
+        V, Vi = d.basis(o)
+        ks = np.arange(a, b)
+        GP = d.Gam[o][:, self.nb:]
+        w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
+        dP = self.loss_theta(ks, self.T[a:b])
+        GPt = Vi @ GP
+
+        def forcing() -> np.ndarray:
+            """The forcing of all the stretch's steps (n, L, p) in the modal basis of ``Φ``."""
+            X = d.forcing_modal(o, self.T[a:b], w)  # (n, L, p)
+            if np.any(dP):  # V⁻¹ Γ_P ∂P/∂θ
+                X += np.tensordot(GPt, dP, axes=([1], [1]))
+            return X
+
+        out[:], end = solve_nodes(V, Vi, d.mu[o], GP, self.loss_nodes, forcing, s, self.slopes[a:b], keep)
+        return end
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:
         """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""
@@ -474,6 +516,16 @@ class _HeldRun:
             rows += divided_powers(self.mue[ia][None, :], self.mue[ib][None, :], k[:, None]) @ cc.reshape(len(ia), nr * p)
         sigma: np.ndarray = self.Om @ (self.muL[:, None] * sig0 + self.endG)
         return sigma
+
+
+def held_runs(held: np.ndarray, closed: bool) -> list[tuple[int, int]]:
+    """The runs ``(a, b)`` of steps ``a .. b−1`` with held inputs (``held``, :func:`held_steps`) at
+    least :data:`MIN_HELD` long; none unless ``closed`` (the closed form is allowed)."""
+    steps = len(held)
+    if not closed or not steps:
+        return []
+    bounds: list[int] = np.nonzero(~held)[0].tolist() + [steps]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD]
 
 
 def held_steps(env: Mapping[str, Value], steps: int) -> np.ndarray:

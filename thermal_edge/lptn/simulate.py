@@ -9,8 +9,10 @@ values of the inputs that enter conductances). Losses that are affine in the tem
 copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that is evaluated for the
 whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
 
-Sensitivities run after the simulation (:mod:`.sensitivity`): in closed form over runs of held
-inputs, step by step elsewhere.
+Stretches at one operating point where the loss feedback changes every step (a noisy current)
+run vectorised in time (:mod:`.stretch`); the rest is stepped. Sensitivities run after the
+simulation (:mod:`.sensitivity`): in closed form over runs of held inputs, vectorised over the
+same kind of stretches, step by step elsewhere.
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ from .expr import Value
 from .losses import LossLaws
 from .model import Model
 from .network import Network
-from .sensitivity import Sensitivities, held_steps
+from .sensitivity import Sensitivities, held_runs, held_steps
+from .stretch import covered, solve_nodes, stretches, varying_steps
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,12 +97,16 @@ class Simulator:
     closed_form : bool, optional
         Sensitivities in closed form over runs of held inputs (default); False steps every
         sample (the same result to round-off, for checking and for timing the general case).
+    vectorised : bool, optional
+        Run stretches at one operating point vectorised in time (default,
+        :mod:`~thermal_edge.lptn.stretch`); False steps them (the reference, to round-off).
     """
 
     def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None,
-                 closed_form: bool = True) -> None:
+                 closed_form: bool = True, vectorised: bool = True) -> None:
         self.model = model
         self.closed_form = closed_form
+        self.vectorised = vectorised
         self.net = Network(model)
         self.method = method or model.discretisation.method
         self.max_substep = max_substep if max_substep is not None else model.discretisation.max_substep_s
@@ -190,51 +197,89 @@ class Simulator:
             f[sel] = prep.U[sel] @ GU[o].T + P0[sel] @ GP[o].T
         T = np.empty((N, n))
         T[0] = T0
-        mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT0)
+        steps = max(N - 1, 0)
+        # stretches of one operating point run vectorised in time (losses affine in T only: the
+        # others are evaluated step by step); the sensitivities' own stretches leave the held
+        # runs to their closed form
+        varying = varying_steps(dPdT0[:steps]) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
+        sim_spans = stretches(ops, varying)
+        sens_spans: list[tuple[int, int]] = []
+        held_spans: list[tuple[int, int]] = []
+        if names:
+            held_spans = held_runs(held_steps(prep.env, steps), self.closed_form and not len(na))
+            if self.vectorised and not len(na):
+                sens_spans = stretches(ops, varying & ~covered(held_spans, steps))
+        need = ~covered(sim_spans, steps)
+        if names:
+            need |= ~covered(sens_spans, steps)
+        mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
         opl = ops.tolist()
-        if step_losses is None:
-            for k in range(N - 1):
-                np.matmul(mats[mi[k]], T[k], out=T[k + 1])
-                T[k + 1] += f[k]
-        else:
-            for k in range(N - 1):
-                np.matmul(mats[mi[k]], T[k], out=T[k + 1])
-                T[k + 1] += f[k]
-                T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
+
+        def step(a: int, b: int) -> None:
+            if step_losses is None:
+                for k in range(a, b):
+                    np.matmul(mats[mi[k]], T[k], out=T[k + 1])
+                    T[k + 1] += f[k]
+            else:
+                for k in range(a, b):
+                    np.matmul(mats[mi[k]], T[k], out=T[k + 1])
+                    T[k + 1] += f[k]
+                    T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
+
+        done = 0
+        for a, b in sim_spans:
+            step(done, a)
+            o = int(ops[a])
+            V, Vi = d.basis(o)
+            fa = f[a:b].T
+            Ta, _ = solve_nodes(V, Vi, d.mu[o], GP[o], self.tv, lambda: (Vi @ fa)[:, :, None],  # noqa: B023
+                                T[a][:, None], dPdT0[a:b])
+            T[a + 1: b + 1] = Ta[:, :, 0]
+            done = b
+        step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T
         P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
-            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), (mats, mi))
+            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), (mats, mi),
+                                         held_spans, sens_spans, dPdT0[:steps])
         return traj
 
     def _step_matrices(
-        self, Phi: np.ndarray, GP: np.ndarray, ops: np.ndarray, dPdT: np.ndarray
+        self, Phi: np.ndarray, GP: np.ndarray, ops: np.ndarray, dPdT: np.ndarray, need: np.ndarray | None = None
     ) -> tuple[list[np.ndarray], list[int]]:
         """Per-step transition matrices ``Φ + Γ_P ∂P/∂T`` (temperature feedback of the losses folded in).
 
         Steps with the same operating point and the same loss slopes share one matrix (a drive
         cycle holds its current over a segment); the list of distinct matrices and each step's
-        index into it are returned.
+        index into it are returned. Only the steps in ``need`` (default all) get one (the others
+        are run vectorised: a noisy current would otherwise make a matrix per step); the others'
+        index is −1.
         """
         steps = len(ops)
         if not len(self.tv) or not np.any(dPdT) or not steps:
             return [Phi[o] for o in range(Phi.shape[0])], ops.tolist()
-        slopes = dPdT[:steps].reshape(steps, -1)
-        # a new matrix where the operating point or the slopes change from the previous step
-        change = np.ones(steps, dtype=bool)
-        change[1:] = (ops[1:] != ops[:-1]) | np.any(slopes[1:] != slopes[:-1], axis=1)
+        ks = np.arange(steps) if need is None else np.nonzero(need[:steps])[0]
+        slopes = dPdT[ks].reshape(len(ks), int(np.prod(dPdT.shape[1:])))
+        on = ops[ks]
+        # a new matrix where the operating point or the slopes change from the previous needed step
+        change = np.ones(len(ks), dtype=bool)
+        change[1:] = (on[1:] != on[:-1]) | np.any(slopes[1:] != slopes[:-1], axis=1)
         starts = np.nonzero(change)[0]
-        mi = (np.cumsum(change) - 1).tolist()
-        o = ops[starts]
+        mi_arr = np.full(steps, -1, dtype=np.intp)
+        mi_arr[ks] = np.cumsum(change) - 1
+        mi = mi_arr.tolist()
+        o = on[starts]
         mats = Phi[o].copy()  # (distinct, n, n)
         mats[:, :, self.tv] += GP[o] @ slopes[starts].reshape(len(starts), len(self.losses), len(self.tv))
         return list(mats), mi
 
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray | None, widx: Sequence[int],
-                       rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]]) -> np.ndarray:
+                       rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]],
+                       held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
+                       slopes: np.ndarray) -> np.ndarray:
         d = prep.disc
         assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
         N = T.shape[0]
@@ -250,6 +295,5 @@ class Simulator:
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
-                             loss_nodes=self.tv)
-        # the closed form over held inputs needs losses affine in temperature
-        return sens.run(held_steps(env, N - 1), self.closed_form and not self.nonaffine, rows)
+                             loss_nodes=self.tv, slopes=slopes)
+        return sens.run(held_spans, spans, rows)

@@ -1,0 +1,129 @@
+"""Stretches at one operating point run vectorised in time (``thermal_edge.lptn.stretch``).
+
+References: the same recursion written as a plain loop here, the simulator's step-by-step path
+(``vectorised=False``), and central finite differences of the simulation. Inputs vary every
+sample (relative noise on the current, as in recorded data), so every stretch carries a
+time-varying copper-loss feedback.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from lptn_ref import pm10kw_inputs, tiny_inputs
+from test_sensitivities import finite_difference_check
+
+from thermal_edge.lptn import Simulator, simulate, stretch
+
+
+def _loop(mu, f, x0, G, E, D):
+    x, out = x0, []
+    for k in range(f.shape[1]):
+        x = mu[:, None] * x + f[:, k] + G @ (D[k] @ (E @ x))
+        out.append(x)
+    return np.stack(out, axis=1)
+
+
+@pytest.mark.parametrize("L", [1, 5, 16, 17, 100, 333])
+def test_modal_scan_is_the_recursion(L):
+    rng = np.random.default_rng(L)
+    n, c = 7, 3
+    mu = np.concatenate([[0.0, 1e-200, 0.9999999], rng.uniform(0.0, 1.0, n - 3)])
+    f, x0 = rng.standard_normal((n, L, c)), rng.standard_normal((n, c))
+    ref = _loop(mu, f, x0, np.zeros((n, 1)), np.zeros((1, n)), np.zeros((L, 1, 1)))
+    np.testing.assert_allclose(stretch.modal_scan(mu, f, x0), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("L", [3, 16, 50, 161])
+def test_solve_stretch_with_time_varying_feedback(L):
+    """Rank-2 feedback series (two currents), two loss nodes, rows picked by W: against the loop."""
+    rng = np.random.default_rng(L)
+    n, c, nl, ntv = 9, 4, 3, 2
+    mu = rng.uniform(0.0, 0.999, n)
+    f, x0 = rng.standard_normal((n, L, c)), rng.standard_normal((n, c))
+    G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
+    D = (rng.uniform(0.5, 1.5, (L, 1, 1)) * rng.standard_normal((1, nl, ntv))
+         + rng.uniform(0.5, 1.5, (L, 1, 1)) ** 2 * rng.standard_normal((1, nl, ntv))) * 0.1
+    W = rng.standard_normal((3, n))
+    ref = _loop(mu, f, x0, G, E, D)
+    rows, end = stretch.solve_stretch(mu, f, x0, G, E, D, W)
+    want = np.tensordot(W, ref, axes=1)
+    np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    np.testing.assert_allclose(end, ref[:, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+def _noisy(inputs, seed=0, rel=1e-3):
+    rng = np.random.default_rng(seed)
+    out = dict(inputs)
+    out["i_rms"] = np.asarray(inputs["i_rms"], float) * (1.0 + rel * rng.standard_normal(len(inputs["i_rms"])))
+    return out
+
+
+@pytest.fixture
+def count_stretches(monkeypatch):
+    """Steps run vectorised (the simulator's and the sensitivities' stretches alike)."""
+    steps: list[int] = []
+    real = stretch.solve_stretch
+
+    def counted(mu, f, *a, **k):
+        steps.append(f.shape[1])
+        return real(mu, f, *a, **k)
+
+    monkeypatch.setattr(stretch, "solve_stretch", counted)
+    return steps
+
+
+def _agree(model, inputs, dt, T0, wrt, rows, steps, vectorised=True):
+    vec = Simulator(model).simulate(model.nominal(), inputs, dt, T0, wrt=wrt, rows=rows)
+    n_vec = sum(steps)
+    ref = Simulator(model, vectorised=False).simulate(model.nominal(), inputs, dt, T0, wrt=wrt, rows=rows)
+    assert sum(steps) == n_vec  # the reference steps every sample
+    N = len(vec.T)
+    if vectorised:
+        assert n_vec > N, (n_vec, N)  # most of the run vectorised, in the simulation and the sensitivities
+    else:
+        assert n_vec == 0
+    assert np.abs(vec.T - ref.T).max() <= 1e-9 * np.abs(ref.T).max()
+    for j, name in enumerate(wrt):
+        scale = np.abs(ref.S[:, :, j]).max()
+        assert np.abs(vec.S[:, :, j] - ref.S[:, :, j]).max() <= 1e-9 * scale, name
+
+
+@pytest.mark.parametrize("rows", [None, "sensors"])
+def test_pm10kw_noisy_current_equals_stepping(pm10kw_model, rows, count_stretches):
+    """3000 s of the drive cycle with relative noise 1e-3 on the current, all 14 parameters."""
+    from thermal_edge.lptn import steady_state
+
+    m = pm10kw_model
+    inputs, dt, _ = pm10kw_inputs(m, 3000.0)
+    inputs = _noisy(inputs)
+    T0, _ = steady_state(m, {k: float(v[0]) for k, v in inputs.items()})
+    _agree(m, inputs, dt, T0, list(m.adaptable), list(m.sensors.values()) if rows else None, count_stretches)
+
+
+def test_paderborn4_equals_stepping(paderborn_model, paderborn_run, count_stretches):
+    """Recorded data (run_a, 3000 rows: every input varies every sample), all parameters. The
+    conductances of paderborn4 depend on the coolant temperature (a new operating point every
+    sample) and one loss law is not affine in temperature: no stretch qualifies, and the default
+    simulator must be exactly the stepped one."""
+    m = paderborn_model
+    run = paderborn_run.slice(0, 3000)
+    inputs = {c: run.columns[c] for c in m.inputs}
+    T0 = np.array([run.columns[s][0] for s in ("pm", "stator_yoke", "stator_tooth", "stator_winding")])
+    _agree(m, inputs, run.dt, T0, list(m.parameter_names), None, count_stretches, vectorised=False)
+
+
+def test_tiny_noisy_current_finite_differences(tiny_model, count_stretches):
+    """Vectorised stretches against central finite differences (ZOH)."""
+    inputs = _noisy(tiny_inputs(N=401, seed=5, hold=100), seed=2, rel=1e-2)
+    inputs = {k: inputs[k] for k in tiny_model.inputs}
+    finite_difference_check(tiny_model, inputs, 10.0, np.array([45.0, 60.0, 35.0]), tiny_model.parameter_names, "zoh")
+    assert sum(count_stretches) > 400
+
+
+def test_held_inputs_are_stepped(pm10kw_model, count_stretches):
+    """Held inputs keep the step-by-step recursion (cheaper there): nothing is vectorised."""
+    m = pm10kw_model
+    inputs, dt, _ = pm10kw_inputs(m, 900.0)
+    Simulator(m).simulate(m.nominal(), inputs, dt, np.full(len(m.nodes), 40.0))
+    assert count_stretches == []
+    assert simulate.stretches is stretch.stretches
