@@ -69,13 +69,17 @@ def run(args: argparse.Namespace) -> int:
             service = EdgeService(config, model=model)
         except DbcError as exc:
             raise ConfigError(f"{config.fname}: codec.dbc: {line(exc)}") from None
-    except (ConfigError, DbcError, BusConfigError, ModelError) as exc:
-        return fail(line(exc))
-    except OSError as exc:
+    except (ConfigError, DbcError, BusConfigError, ModelError, OSError) as exc:
+        if getattr(args, "debug", False):  # --debug: the traceback of a user error too
+            raise
+        if not isinstance(exc, OSError):
+            return fail(line(exc))
         return fail(f"{getattr(exc, 'filename', None) or ''}: {exc.strerror or exc}".lstrip(": "))
     try:
         return asyncio.run(service.run())
     except (BusConfigError, ConfigError) as exc:
+        if getattr(args, "debug", False):
+            raise
         return fail(str(exc).strip().splitlines()[0])
     except Exception as exc:  # e.g. an interface python-can does not have
         import can
