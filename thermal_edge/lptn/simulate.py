@@ -10,7 +10,7 @@ copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that 
 whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
 
 Stretches at one operating point where the loss feedback changes every step (a noisy current)
-run vectorised in time (:mod:`.stretch`); the rest is stepped. Sensitivities run after the
+run vectorised in time (``thermal_edge.lptn.stretch``); the rest is stepped. Sensitivities run after the
 simulation (:mod:`.sensitivity`): in closed form over runs of held inputs, vectorised over the
 same kind of stretches, step by step elsewhere.
 """
@@ -99,7 +99,7 @@ class Simulator:
         sample (the same result to round-off, for checking and for timing the general case).
     vectorised : bool, optional
         Run stretches at one operating point vectorised in time (default,
-        :mod:`~thermal_edge.lptn.stretch`); False steps them (the reference, to round-off).
+        ``thermal_edge.lptn.stretch``); False steps them (the reference, to round-off).
     """
 
     def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None,
