@@ -122,14 +122,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
         return tr.S
 
     def forward() -> np.ndarray:
-        base = sim.simulate(theta, cols, dt, T0).T[:, rows]
-        J = np.empty((N, len(rows), p))
-        for j, i in enumerate(idx):
-            h = 1e-6 * theta[i]
-            th = theta.copy()
-            th[i] += h
-            J[:, :, j] = (sim.simulate(th, cols, dt, T0).T[:, rows] - base) / h
-        return J
+        return forward_differences(sim, theta, cols, dt, T0, idx, rows)
 
     stepper = Simulator(model, closed_form=False, vectorised=False)
 
@@ -205,7 +198,7 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
     noisy = recorded_like(cols, current, speed)
     sim, stepper = Simulator(model), Simulator(model, closed_form=False, vectorised=False)  # type: ignore[arg-type]
     rows = [model.node_index(x) for x in sensor_nodes]  # type: ignore[attr-defined]
-    N, p = len(noisy[current]), len(wrt)
+    N = len(noisy[current])
 
     def jac(s: Simulator) -> np.ndarray:
         tr = s.simulate(theta, noisy, dt, T0, wrt=wrt, rows=sensor_nodes)
@@ -213,14 +206,7 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
         return tr.S
 
     def forward() -> np.ndarray:
-        base = sim.simulate(theta, noisy, dt, T0).T[:, rows]
-        J = np.empty((N, len(rows), p))
-        for j, i in enumerate(idx):
-            h = 1e-6 * theta[i]
-            th = theta.copy()
-            th[i] += h
-            J[:, :, j] = (sim.simulate(th, noisy, dt, T0).T[:, rows] - base) / h
-        return J
+        return forward_differences(sim, theta, noisy, dt, T0, idx, rows)
 
     jac(sim)  # warm-up
     (t_an, times_an, S), (t_st, times_st, S_st), (t_num, times_num, _), (t_sim, times_sim, T_v), (t_sim_st, times_sim_st, T_s) = \
@@ -258,3 +244,17 @@ def _max_rel(a: object, ref: object) -> float:
     """Largest difference of ``a`` from ``ref`` relative to the largest entry of ``ref``."""
     x, y = np.asarray(a), np.asarray(ref)
     return float(np.max(np.abs(x - y)) / np.max(np.abs(y)))
+
+
+def forward_differences(sim: Simulator, theta: np.ndarray, cols: Any, dt: float, T0: np.ndarray,
+                        idx: Any, rows: Any) -> np.ndarray:
+    """The output Jacobian (N, sensors, p) by forward differences (relative step 1e-6), p + 1
+    simulations: the baseline the analytic Jacobian is compared with."""
+    base = sim.simulate(theta, cols, dt, T0).T[:, rows]
+    J = np.empty((base.shape[0], len(rows), len(idx)))
+    for j, i in enumerate(idx):
+        h = 1e-6 * theta[i]
+        th = theta.copy()
+        th[i] += h
+        J[:, :, j] = (sim.simulate(th, cols, dt, T0).T[:, rows] - base) / h
+    return J
