@@ -54,6 +54,24 @@ def test_analytic_sqp_simulates_each_point_once_on_the_path_of_separate_value_an
     assert np.allclose(np.log(r.values), res.x, rtol=0, atol=1e-9)
 
 
+def test_adopt_takes_a_subset_of_a_wider_evaluation_as_a_simulation_gives_it(problem):
+    start, window = problem
+    wide = Objective(Simulator(start), ParamSpace(start, (*NAMES, "c_p_sw", "R_e_cap"), start.nominal()), window,
+                     prior_weight=1e-4)
+    ev_wide = wide.evaluate(np.log(wide.space.values()))
+    sim = CountingSimulator(start)
+    sub = _objective(start, window, sim)
+    phi = np.log(sub.space.values())
+    got = sub.adopt(phi, ev_wide, wide.space.names)
+    assert sub.evaluate(phi) is got and sim.points == []  # remembered: no simulation
+    fresh = _objective(start, window).evaluate(phi)
+    assert got.value == pytest.approx(fresh.value, rel=1e-12)
+    assert np.allclose(got.grad, fresh.grad, rtol=1e-9, atol=0)
+    assert np.allclose(got.hess, fresh.hess, rtol=1e-9, atol=0)
+    with pytest.raises(ValueError):
+        sub.adopt(phi, ev_wide, NAMES)  # names that do not match the evaluation's columns
+
+
 def test_numerical_sqp_and_gauss_newton_improve_the_objective(problem):
     start, window = problem
     for r in (fit_sqp(_objective(start, window), max_iter=2, gradient="numerical"),

@@ -128,7 +128,9 @@ def e2(model: Model, progress: Progress = no_progress, rounds: int = ROUNDS) -> 
         phi = np.log(o.space.values())
         ev = o.evaluate(phi)
         sc = screen(o.space.names, ev.grad, ev.hess, phi, o.space.lower, o.space.upper)
-        r = fit_sqp(objective(sc.selected), max_iter=3)
+        sub = objective(sc.selected)
+        sub.adopt(np.log(sub.space.values()), ev, o.space.names)  # the screening's evaluation is the fit's first
+        r = fit_sqp(sub, max_iter=3)
         return time.perf_counter() - t0, r, sc.selected
 
     def numerical_whole() -> tuple[float, Any, tuple[str, ...]]:
