@@ -93,3 +93,22 @@ def test_bench_memory_run_measures_the_service_process(udp_ok):
     assert 0 < r["at_start"]["VmRSS"] <= hwm and rss <= hwm
     assert proc_memory(r["service_pid"]) == {}  # the service was stopped
     assert time.monotonic() - t < 600
+
+
+def test_release_free_heap_gives_freed_arrays_back():
+    code = """
+import json
+import numpy as np
+from thermal_edge.bench.service import proc_memory
+from thermal_edge.service.memory import limit_heap_retention, release_free_heap
+limit_heap_retention()
+arrays = [np.ones(12_000) for _ in range(3000)]  # 96 kB each, below the mmap threshold: from the heap
+keep = arrays[-1]
+del arrays  # freed inside the heap, below the array kept at its top: not trimmed by free()
+before = proc_memory()["RssAnon"]
+released = release_free_heap()
+print(json.dumps([released, before - proc_memory()["RssAnon"]]))
+"""
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120, check=True)
+    released, dropped_mb = json.loads(out.stdout.strip().splitlines()[-1])
+    assert released and dropped_mb > 200.0, dropped_mb  # of the 288 MB freed
