@@ -126,7 +126,7 @@ def chain_sizes(nodes: int) -> tuple[int, int, int]:
 def chain_document(nodes: int) -> dict[str, Any]:
     """The model document (what a model file holds, as parsed YAML) of :func:`chain_model`."""
     S, e_front, e_back = chain_sizes(nodes)
-    l = f"(L_stk / {S})"  # noqa: E741 - the slice length, as the laws write it
+    l = f"(L_stk / {S})"
     doc: dict[str, Any] = {
         "name": f"chain{nodes}",
         "description": f"Generated chain model: {S} axial slices of 8 nodes, {e_front} + {e_back} end-winding "
@@ -195,7 +195,7 @@ def chain_document(nodes: int) -> dict[str, Any]:
         k = 1 if end == "front" else 2
         es, cap = f"end_space_{k}", f"end_cap_{k}"
         node(es, "air", "2.3")
-        node(cap, "end_cap", "2700 * 900 * 0.25")
+        node(cap, "end_cap", "1.2 * 900")
         g(es, cap, f"{_CONV_ES} * A_es")
         g(es, f"housing_{first}", f"{_CONV_ES} * A_es")
         g(es, f"rotor_{first}", f"{_CONV_ES} * A_es")
@@ -214,7 +214,7 @@ def chain_document(nodes: int) -> dict[str, Any]:
             g(ew, f"yoke_{first}", f"r_ins_ew / (A_ew_plate / {count})", "r")
             losses.append({"node": ew, "power": f"P_cu20 * (1 - f_sw) / 2 / {count} * (1 + alpha_cu * (T.{ew} - 20))"})
             prev = ew
-    g("shaft_1", "ambient", f"(h_sh0 + h_sh1 * n_rel ** 0.8) * A_sh")
+    g("shaft_1", "ambient", "(h_sh0 + h_sh1 * n_rel ** 0.8) * A_sh")
     mid = S // 2 + 1
     doc["sensors"] = {
         "slot_winding": {"node": f"winding_{mid}"},

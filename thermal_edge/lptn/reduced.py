@@ -1,0 +1,291 @@
+"""Simulation and exact sensitivities of a reduced model, for large networks.
+
+The reduced model is the Galerkin projection of the network onto a fixed basis ``V``
+(:mod:`.reduction`): temperatures ``T ≈ V z`` with
+
+    M(θ) ż = A_r(θ, u) z + B_r(θ, u) U + L_r P,     M = Vᵀ C V,  A_r = Vᵀ A V,  B_r = Vᵀ K_DU,  L_r = Vᵀ M_D
+
+— again a passive thermal network (``M`` positive definite, ``A_r`` symmetric negative definite),
+small (tens of states for hundreds of nodes). Because ``V`` does not depend on the parameters,
+the derivatives of the reduced system are exact and cheap: a conductance changes ``A_r`` by
+``−(Vᵀz_e)(Vᵀz_e)ᵀ`` and a capacity changes ``M`` by ``Vᵀ diag(dc) V``. The reduced model is
+discretised as the full one (zero-order hold, in the eigenbasis of the pencil ``(A_r, M)``; the
+derivative of ``Φ`` by the Daleckii–Krein formula), and its forward sensitivities follow the
+same recursion as the full model's (:mod:`.simulate`), on ``r`` instead of ``n`` states. So an
+optimiser that uses it minimises the reduced model's objective with that objective's exact
+gradient; how far the reduced model is from the full one is bounded at the reference
+(:meth:`~thermal_edge.lptn.reduction.Reduction.bound`) and measured elsewhere.
+
+Losses are affine in the temperatures (the copper law): ``P = P0 + D T`` with the slope series
+``D[k]`` of low rank in time (``i²`` times a fixed pattern: rank one), so the feedback enters the
+reduced step as ``Σ_ρ s_ρ[k] K_ρ`` with small fixed matrices ``K_ρ``.
+
+:func:`simulator_for` picks the path: the exact dense :class:`~thermal_edge.lptn.simulate.Simulator`
+up to :data:`REDUCE_ABOVE` nodes, this one above (where it applies).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from .losses import LossLaws
+from .model import Model, ModelError
+from .network import Network
+from .reduction import TOL, Reduction, check_reducible, reduce
+from .simulate import Simulator, Trajectory, unique_rows
+
+#: node count above which :func:`simulator_for` uses the reduced model: the dense adaptation step
+#: (screening + 3 SQP iterations over a 3 h window) passes 1 s between 80 and 160 nodes
+REDUCE_ABOVE = 150
+#: terms of the loss slopes' time series below this fraction of the largest are round-off
+SLOPE_RANK_TOL = 1e-13
+
+
+class ReducedSimulator:
+    """Simulates the reduced model of a lumped network, with exact sensitivities (see the module
+    docstring); the interface of :class:`~thermal_edge.lptn.simulate.Simulator`.
+
+    Parameters
+    ----------
+    model : Model
+        A lumped network with loss laws affine in the temperatures.
+    reduction : Reduction, optional
+        The basis (default :func:`~thermal_edge.lptn.reduction.reduce` at the nominal
+        parameters, standstill, ``tol``).
+    tol : float
+        Tolerance of the default basis.
+    """
+
+    def __init__(self, model: Model, reduction: Reduction | None = None, tol: float = TOL) -> None:
+        check_reducible(model)
+        self.model = model
+        self.net = net = Network(model)
+        self.red = red = reduction if reduction is not None else reduce(model, tol=tol)
+        V = red.V
+        self.n, self.r = net.n, V.shape[1]
+        self.losses = LossLaws(model)
+        self.tv = self.losses.nodes
+        inc = net.inc[:, : net.n]
+        self.Zr = inc @ V  # (E, r): ∂A_r/∂g_e = −z zᵀ
+        self.binc = net.binc  # (E, nb): boundary side of each edge
+        self.Lr = V.T @ net.loss_map[: net.n]  # (r, n_loss)
+        self.Vtv = V[self.tv]
+        free_ops = set(model.inputs) | set(model.derived)
+        #: edges whose conductance depends on the operating point
+        self.op_edges = np.array([e for e, edge in enumerate(model.edges) if edge.g.free() & free_ops], dtype=int)
+        self.static_edges = np.setdiff1d(np.arange(len(model.edges)), self.op_edges)
+
+    # -----------------------------------------------------------------------------------------
+    def _operators(self, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int,
+                   wrt: Sequence[int]) -> tuple[np.ndarray, ...]:
+        """``M`` (r, r), ``A_r`` (K, r, r), ``B_r`` (K, r, nb) and, with ``wrt``, ``dM`` (p, r, r),
+        ``dA`` (K, p, r, r), ``dB`` (K, p, r, nb)."""
+        net, V, Zr, binc = self.net, self.red.V, self.Zr, self.binc
+        g, dg = net.conductances(theta, op, K, wrt)
+        st, ov = self.static_edges, self.op_edges
+        Zs, Zo = Zr[st], Zr[ov]
+        A = np.broadcast_to(-(Zs.T * g[0, st]) @ Zs, (K, self.r, self.r)).copy()
+        B = np.broadcast_to((Zs.T * g[0, st]) @ binc[st], (K, self.r, binc.shape[1])).copy()
+        if len(ov):
+            ZoT = Zo.T[None] * g[:, None, ov]  # (K, r, eo)
+            A -= ZoT @ Zo
+            B += ZoT @ binc[ov]
+        c, dc = net.capacities(theta, wrt)
+        M = (V.T * c) @ V
+        if not len(wrt):
+            return M, A, B
+        live = net.live_edges(wrt)
+        Zl = Zr[live]  # (e, r)
+        p = len(wrt)
+        dM = np.stack([(V.T * dc[j]) @ V for j in range(p)]) if p else np.zeros((0, self.r, self.r))
+        live_op = np.isin(live, ov)
+        dA = np.empty((K, p, self.r, self.r))
+        dB = np.empty((K, p, self.r, binc.shape[1]))
+        fixed, moving = ~live_op, live_op
+        Zf, Zm = Zl[fixed], Zl[moving]
+        bf, bm = binc[live[fixed]], binc[live[moving]]
+        for j in range(p):
+            dA[:, j] = -(Zf.T * dg[0, j, fixed]) @ Zf
+            dB[:, j] = (Zf.T * dg[0, j, fixed]) @ bf
+        if moving.any():
+            ZmT = Zm.T[None, None] * dg[:, :, None, moving]  # (K, p, r, em)
+            dA -= ZmT @ Zm
+            dB += ZmT @ bm
+        return M, A, B, dM, dA, dB
+
+    @staticmethod
+    def _modes(M: np.ndarray, A: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
+        """Eigenbasis of the pencil ``(A_r, M)`` at every operating point: ``U`` (K, r, r) with
+        ``Uᵀ M U = I``, rates ``lam`` (K, r), and ``Φ``, ``G = (Φ − I) A_r⁻¹``, ``A_r⁻¹``."""
+        Lc = np.linalg.cholesky(M)
+        Li = np.linalg.inv(Lc)
+        lam, Qm = np.linalg.eigh(Li @ A @ Li.T)
+        if np.any(lam >= 0):
+            raise ModelError(f"reduced system matrix has a non-negative eigenvalue ({float(lam.max()):.3g} 1/s)")
+        U = Li.T @ Qm
+        Ut = np.swapaxes(U, 1, 2)
+        x = lam * dt
+        Phi = (U * np.exp(x)[:, None, :]) @ Ut @ M
+        G = (U * (np.expm1(x) / lam)[:, None, :]) @ Ut
+        Ai = (U / lam[:, None, :]) @ Ut
+        return U, lam, Phi, G, Ai
+
+    # -----------------------------------------------------------------------------------------
+    def simulate(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
+                 wrt: Sequence[str] | None = None, rows: Sequence[str] | None = None) -> Trajectory:
+        """Simulate the reduced model; arguments and result as
+        :meth:`~thermal_edge.lptn.simulate.Simulator.simulate` (``T`` at every node is ``V z``)."""
+        model, net, red = self.model, self.net, self.red
+        theta = np.asarray(theta, dtype=float)
+        names = tuple(wrt or ())
+        widx = list(model.parameter_index(names)) if names else []
+        N = len(next(iter(inputs.values())))
+        missing = [c for c in model.inputs if c not in inputs]
+        if missing:
+            raise KeyError(f"run lacks input column(s) {', '.join(missing)} needed by model {model.name}")
+        env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
+        steps = max(N - 1, 0)
+        if net.matrix_inputs:
+            keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[: max(steps, 1)]
+                             for k in net.matrix_inputs], axis=1)
+            uniq, ops = unique_rows(keys)
+            op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
+        else:
+            uniq, ops, op = np.zeros((1, 0)), np.zeros(max(steps, 1), dtype=int), {}
+        K = len(uniq)
+        built = self._operators(theta, op, K, widx)
+        M, A, B = built[:3]
+        U_, lam, Phi, G, Ai = self._modes(M, A, float(dt))
+        Ub = np.zeros((N, 0))
+        if model.boundaries:
+            Ub = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()],
+                          axis=1)
+        P0 = self.losses.power(env, None, N)
+        D = self.losses.dT(env, None, N)  # (N, nl, ntv)
+        Kr, s = self._slopes(D[:steps])
+        ops = ops[:steps]
+        # the input-driven part of each step's reduced input, q = B_r U + L_r P0 (N-1, r)
+        q = P0[:steps] @ self.Lr.T
+        for o in range(K):
+            sel = np.nonzero(ops == o)[0]
+            q[sel] += Ub[sel] @ B[o].T
+        GK = [np.stack([G[o] @ Kq for Kq in Kr]) for o in range(K)]  # (rank, r, r) per operating point
+        gq = np.empty_like(q)
+        for o in range(K):
+            sel = np.nonzero(ops == o)[0]
+            gq[sel] = q[sel] @ G[o].T
+        z = np.empty((N, self.r))
+        z[0] = red.V.T @ (red.c_ref * np.asarray(T0, dtype=float))
+        opl, sl = ops.tolist(), s.tolist()
+        rank = len(Kr)
+        for k in range(steps):
+            o, zk = opl[k], z[k]
+            nxt = Phi[o] @ zk
+            for rho in range(rank):
+                nxt += sl[k][rho] * (GK[o][rho] @ zk)
+            z[k + 1] = nxt + gq[k]
+        T = z @ red.V.T
+        P = self.losses.power(env, T, N)
+        traj = Trajectory(T=T, P=P, wrt=names, nodes=model.nodes)
+        if names:
+            dM, dA, dB = built[3:]
+            keep = np.arange(self.n) if rows is None else np.array([model.node_index(x) for x in rows], dtype=int)
+            Sz = self._sensitivities(theta, env, widx, N, ops, z, T, Ub, q, s, Kr, M, A, U_, lam, Phi, G, Ai,
+                                     dM, dA, dB, float(dt))
+            p = len(widx)
+            traj.S = (red.V[keep] @ Sz.transpose(1, 0, 2).reshape(self.r, N * p)).reshape(len(keep), N, p).transpose(1, 0, 2)
+        return traj
+
+    def _slopes(self, D: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """The loss slopes ``D[k]`` (steps, nl, ntv) as ``Σ_ρ s[k, ρ] C_ρ`` (singular value
+        decomposition over time): ``K_ρ = L_r C_ρ V_tv`` (r, r) and ``s`` (steps, rank)."""
+        steps = len(D)
+        D2 = D.reshape(steps, -1)
+        cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0] if steps else np.zeros(0, dtype=int)
+        if not len(cols):
+            return [], np.zeros((steps, 0))
+        Us, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
+        rank = int(np.count_nonzero(sv > SLOPE_RANK_TOL * sv[0]))
+        full = np.zeros((rank, D2.shape[1]))
+        full[:, cols] = Wt[:rank]
+        Kr = [self.Lr @ full[i].reshape(D.shape[1], D.shape[2]) @ self.Vtv for i in range(rank)]
+        return Kr, Us[:, :rank] * sv[:rank]
+
+    def _sensitivities(self, theta: np.ndarray, env: dict, widx: list[int], N: int, ops: np.ndarray, z: np.ndarray,
+                       T: np.ndarray, Ub: np.ndarray, q: np.ndarray, s: np.ndarray, Kr: list[np.ndarray],
+                       M: np.ndarray, A: np.ndarray, U_: np.ndarray, lam: np.ndarray, Phi: np.ndarray, G: np.ndarray,
+                       Ai: np.ndarray, dM: np.ndarray, dA: np.ndarray, dB: np.ndarray, dt: float) -> np.ndarray:
+        """``∂z_k/∂θ`` (N, r, p) by the forward recursion ``S_{k+1} = (Φ + Σ s K̃) S_k + F_k`` with
+        ``F = dΦ (z + h) + G (−dA h + dB U + L_r ∂P/∂θ)``, ``h = A_r⁻¹ y`` the static response to the
+        step's reduced input ``y = B_r U + L_r P`` (the step is ``z⁺ = Φ z + G y``)."""
+        p, r = len(widx), self.r
+        steps = len(ops)
+        K = Phi.shape[0]
+        Sz = np.zeros((N, r, p))
+        if not steps:
+            return Sz
+        y = q.copy()
+        for rho, Kq in enumerate(Kr):
+            y += s[:, rho: rho + 1] * (z[:steps] @ Kq.T)
+        dPdth = self.losses.dtheta(env, T, widx, N)[:steps]  # (steps, nl, p)
+        F = np.empty((steps, r, p))
+        Ut = np.swapaxes(U_, 1, 2)
+        for o in range(K):
+            sel = np.nonzero(ops == o)[0]
+            if not len(sel):
+                continue
+            # V⁻¹ dΦ V in the pencil's eigenbasis (Daleckii–Krein): D ∘ (Uᵀ dA U − Uᵀ dM U Λ)
+            lo = lam[o]
+            Dd = divided_exp(lo * dt) * dt
+            Ht = Ut[o] @ dA[o] @ U_[o] - (Ut[o] @ dM @ U_[o]) * lo[None, None, :]
+            dPhi = U_[o] @ (Dd * Ht) @ Ut[o] @ M  # (p, r, r)
+            h = y[sel] @ Ai[o].T  # (B, r)
+            nb = len(sel)
+            X = (dPhi.reshape(p * r, r) @ (z[sel] + h).T).reshape(p, r, nb)
+            # G (−dA h + dB U + L_r ∂P/∂θ): the parameters' products stacked, then one product with G
+            dAB = np.concatenate([dA[o], dB[o]], axis=2).reshape(p * r, -1)
+            inner = (dAB @ np.concatenate([-h, Ub[sel]], axis=1).T).reshape(p, r, nb).transpose(1, 2, 0)
+            inner += (self.Lr @ dPdth[sel].transpose(1, 0, 2).reshape(-1, nb * p)).reshape(r, nb, p)
+            X += (G[o] @ inner.reshape(r, nb * p)).reshape(r, nb, p).transpose(2, 0, 1)
+            F[sel] = X.transpose(2, 1, 0)
+        GK = [[G[o] @ Kq for Kq in Kr] for o in range(K)]
+        opl, sl = ops.tolist(), s.tolist()
+        for k in range(steps):
+            o, Sk = opl[k], Sz[k]
+            nxt = Phi[o] @ Sk
+            for rho, gk in enumerate(GK[o]):
+                nxt += sl[k][rho] * (gk @ Sk)
+            Sz[k + 1] = nxt + F[k]
+        return Sz
+
+
+def divided_exp(x: np.ndarray) -> np.ndarray:
+    """Divided differences ``(e^a − e^b)/(a − b)`` of ``exp`` over all pairs of ``x`` (its limit
+    ``e^a`` on equal values), written ``e^max(a,b) (1 − e^−|a−b|)/|a−b|``: it neither overflows
+    nor cancels for close values.
+
+    >>> bool(np.allclose(divided_exp(np.array([0.0, 1.0])), [[1.0, np.e - 1.0], [np.e - 1.0, np.e]]))
+    True
+    """
+    d = np.abs(x[:, None] - x[None, :])
+    top = np.exp(np.maximum(x[:, None], x[None, :]))
+    small = d < 1e-12
+    out: np.ndarray = top * np.where(small, 1.0, -np.expm1(-d) / np.where(small, 1.0, d))
+    return out
+
+
+#: what an estimator simulates with: either path, one interface
+AnySimulator = Simulator | ReducedSimulator
+
+
+def simulator_for(model: Model, reduce_above: int = REDUCE_ABOVE) -> AnySimulator:
+    """The simulator an estimator uses for ``model``: the exact dense one up to ``reduce_above``
+    nodes (and for any model the reduced path does not handle), the reduced one above."""
+    if len(model.nodes) > reduce_above:
+        try:
+            check_reducible(model)
+        except ModelError:
+            return Simulator(model)
+        return ReducedSimulator(model)
+    return Simulator(model)
