@@ -26,6 +26,7 @@ up to :data:`REDUCE_ABOVE` nodes, this one above (where it applies).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,6 +43,17 @@ REDUCE_ABOVE = 150
 SLOPE_RANK_TOL = 1e-13
 
 
+@dataclass(frozen=True)
+class _Projected:
+    """A basis and the network's pieces projected on it: ``Zr = inc V`` (E, r), ``Lr = Vᵀ M_D``
+    (r, n_loss), ``Vtv = V[tv]`` (the loss laws' nodes)."""
+
+    red: Reduction
+    Zr: np.ndarray
+    Lr: np.ndarray
+    Vtv: np.ndarray
+
+
 class ReducedSimulator:
     """Simulates the reduced model of a lumped network, with exact sensitivities (see the module
     docstring); the interface of :class:`~thermal_edge.lptn.simulate.Simulator`.
@@ -51,42 +63,52 @@ class ReducedSimulator:
     model : Model
         A lumped network with loss laws affine in the temperatures.
     reduction : Reduction, optional
-        The basis (default :func:`~thermal_edge.lptn.reduction.reduce` at the nominal
-        parameters, standstill, ``tol``).
+        The basis for every step (default: :func:`~thermal_edge.lptn.reduction.reduce` at the
+        nominal parameters, standstill and ``tol``, for each step a run uses, on first use).
     tol : float
-        Tolerance of the default basis.
+        Tolerance of the default bases.
     """
 
     def __init__(self, model: Model, reduction: Reduction | None = None, tol: float = TOL) -> None:
-        check_reducible(model)
-        self.model = model
         self.net = net = Network(model)
-        self.red = red = reduction if reduction is not None else reduce(model, tol=tol)
-        V = red.V
-        self.n, self.r = net.n, V.shape[1]
+        check_reducible(model, net)
+        self.model = model
+        self.tol = tol
+        self.fixed = reduction
+        self._bases: dict[float, _Projected] = {}
+        self.n = net.n
         self.losses = LossLaws(model)
         self.tv = self.losses.nodes
-        inc = net.inc[:, : net.n]
-        self.Zr = inc @ V  # (E, r): ∂A_r/∂g_e = −z zᵀ
-        self.binc = net.binc  # (E, nb): boundary side of each edge
-        self.Lr = V.T @ net.loss_map[: net.n]  # (r, n_loss)
-        self.Vtv = V[self.tv]
         free_ops = set(model.inputs) | set(model.derived)
         #: edges whose conductance depends on the operating point
         self.op_edges = np.array([e for e, edge in enumerate(model.edges) if edge.g.free() & free_ops], dtype=int)
         self.static_edges = np.setdiff1d(np.arange(len(model.edges)), self.op_edges)
 
+    def reduction(self, dt: float) -> Reduction:
+        """The basis used for runs with step ``dt`` (s): the one given, else built at the nominal
+        parameters for this step on first use (the modes that matter depend on the step) and kept."""
+        return self._basis(dt).red
+
+    def _basis(self, dt: float) -> _Projected:
+        key = float(dt)
+        if key not in self._bases:
+            red = self.fixed if self.fixed is not None else reduce(self.model, tol=self.tol, dt=key, net=self.net)
+            net, V = self.net, red.V
+            self._bases[key] = _Projected(red, net.inc[:, : net.n] @ V, V.T @ net.loss_map[: net.n], V[self.tv])
+        return self._bases[key]
+
     # -----------------------------------------------------------------------------------------
-    def _operators(self, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int,
+    def _operators(self, b: _Projected, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int,
                    wrt: Sequence[int]) -> tuple[np.ndarray, ...]:
         """``M`` (r, r), ``A_r`` (K, r, r), ``B_r`` (K, r, nb) and, with ``wrt``, ``dM`` (p, r, r),
         ``dA`` (K, p, r, r), ``dB`` (K, p, r, nb)."""
-        net, V, Zr, binc = self.net, self.red.V, self.Zr, self.binc
+        net, V, Zr, binc = self.net, b.red.V, b.Zr, self.net.binc
+        r = V.shape[1]
         g, dg = net.conductances(theta, op, K, wrt)
         st, ov = self.static_edges, self.op_edges
         Zs, Zo = Zr[st], Zr[ov]
-        A = np.broadcast_to(-(Zs.T * g[0, st]) @ Zs, (K, self.r, self.r)).copy()
-        B = np.broadcast_to((Zs.T * g[0, st]) @ binc[st], (K, self.r, binc.shape[1])).copy()
+        A = np.broadcast_to(-(Zs.T * g[0, st]) @ Zs, (K, r, r)).copy()
+        B = np.broadcast_to((Zs.T * g[0, st]) @ binc[st], (K, r, binc.shape[1])).copy()
         if len(ov):
             ZoT = Zo.T[None] * g[:, None, ov]  # (K, r, eo)
             A -= ZoT @ Zo
@@ -98,10 +120,10 @@ class ReducedSimulator:
         live = net.live_edges(wrt)
         Zl = Zr[live]  # (e, r)
         p = len(wrt)
-        dM = np.stack([(V.T * dc[j]) @ V for j in range(p)]) if p else np.zeros((0, self.r, self.r))
+        dM = np.stack([(V.T * dc[j]) @ V for j in range(p)]) if p else np.zeros((0, r, r))
         live_op = np.isin(live, ov)
-        dA = np.empty((K, p, self.r, self.r))
-        dB = np.empty((K, p, self.r, binc.shape[1]))
+        dA = np.empty((K, p, r, r))
+        dB = np.empty((K, p, r, binc.shape[1]))
         fixed, moving = ~live_op, live_op
         Zf, Zm = Zl[fixed], Zl[moving]
         bf, bm = binc[live[fixed]], binc[live[moving]]
@@ -136,7 +158,9 @@ class ReducedSimulator:
                  wrt: Sequence[str] | None = None, rows: Sequence[str] | None = None) -> Trajectory:
         """Simulate the reduced model; arguments and result as
         :meth:`~thermal_edge.lptn.simulate.Simulator.simulate` (``T`` at every node is ``V z``)."""
-        model, net, red = self.model, self.net, self.red
+        model, net = self.model, self.net
+        b = self._basis(float(dt))
+        red, r = b.red, b.red.V.shape[1]
         theta = np.asarray(theta, dtype=float)
         names = tuple(wrt or ())
         widx = list(model.parameter_index(names)) if names else []
@@ -154,7 +178,7 @@ class ReducedSimulator:
         else:
             uniq, ops, op = np.zeros((1, 0)), np.zeros(max(steps, 1), dtype=int), {}
         K = len(uniq)
-        built = self._operators(theta, op, K, widx)
+        built = self._operators(b, theta, op, K, widx)
         M, A, B = built[:3]
         U_, lam, Phi, G, Ai = self._modes(M, A, float(dt))
         Ub = np.zeros((N, 0))
@@ -163,19 +187,19 @@ class ReducedSimulator:
                           axis=1)
         P0 = self.losses.power(env, None, N)
         D = self.losses.dT(env, None, N)  # (N, nl, ntv)
-        Kr, s = self._slopes(D[:steps])
+        Kr, s = self._slopes(b, D[:steps])
         ops = ops[:steps]
         # the input-driven part of each step's reduced input, q = B_r U + L_r P0 (N-1, r)
-        q = P0[:steps] @ self.Lr.T
+        q = P0[:steps] @ b.Lr.T
         for o in range(K):
             sel = np.nonzero(ops == o)[0]
             q[sel] += Ub[sel] @ B[o].T
-        GK = [np.stack([G[o] @ Kq for Kq in Kr]) for o in range(K)]  # (rank, r, r) per operating point
+        GK = [[G[o] @ Kq for Kq in Kr] for o in range(K)]  # (r, r) per slope term and operating point
         gq = np.empty_like(q)
         for o in range(K):
             sel = np.nonzero(ops == o)[0]
             gq[sel] = q[sel] @ G[o].T
-        z = np.empty((N, self.r))
+        z = np.empty((N, r))
         z[0] = red.V.T @ (red.c_ref * np.asarray(T0, dtype=float))
         opl, sl = ops.tolist(), s.tolist()
         rank = len(Kr)
@@ -191,13 +215,14 @@ class ReducedSimulator:
         if names:
             dM, dA, dB = built[3:]
             keep = np.arange(self.n) if rows is None else np.array([model.node_index(x) for x in rows], dtype=int)
-            Sz = self._sensitivities(theta, env, widx, N, ops, z, T, Ub, q, s, Kr, M, A, U_, lam, Phi, G, Ai,
+            Sz = self._sensitivities(b, env, widx, N, ops, z, T, Ub, q, s, Kr, M, A, U_, lam, Phi, G, Ai,
                                      dM, dA, dB, float(dt))
             p = len(widx)
-            traj.S = (red.V[keep] @ Sz.transpose(1, 0, 2).reshape(self.r, N * p)).reshape(len(keep), N, p).transpose(1, 0, 2)
+            traj.S = (red.V[keep] @ Sz.transpose(1, 0, 2).reshape(r, N * p)).reshape(len(keep), N, p).transpose(1, 0, 2)
         return traj
 
-    def _slopes(self, D: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    @staticmethod
+    def _slopes(b: _Projected, D: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
         """The loss slopes ``D[k]`` (steps, nl, ntv) as ``Σ_ρ s[k, ρ] C_ρ`` (singular value
         decomposition over time): ``K_ρ = L_r C_ρ V_tv`` (r, r) and ``s`` (steps, rank)."""
         steps = len(D)
@@ -209,17 +234,17 @@ class ReducedSimulator:
         rank = int(np.count_nonzero(sv > SLOPE_RANK_TOL * sv[0]))
         full = np.zeros((rank, D2.shape[1]))
         full[:, cols] = Wt[:rank]
-        Kr = [self.Lr @ full[i].reshape(D.shape[1], D.shape[2]) @ self.Vtv for i in range(rank)]
+        Kr = [b.Lr @ full[i].reshape(D.shape[1], D.shape[2]) @ b.Vtv for i in range(rank)]
         return Kr, Us[:, :rank] * sv[:rank]
 
-    def _sensitivities(self, theta: np.ndarray, env: dict, widx: list[int], N: int, ops: np.ndarray, z: np.ndarray,
+    def _sensitivities(self, b: _Projected, env: dict, widx: list[int], N: int, ops: np.ndarray, z: np.ndarray,
                        T: np.ndarray, Ub: np.ndarray, q: np.ndarray, s: np.ndarray, Kr: list[np.ndarray],
                        M: np.ndarray, A: np.ndarray, U_: np.ndarray, lam: np.ndarray, Phi: np.ndarray, G: np.ndarray,
                        Ai: np.ndarray, dM: np.ndarray, dA: np.ndarray, dB: np.ndarray, dt: float) -> np.ndarray:
         """``∂z_k/∂θ`` (N, r, p) by the forward recursion ``S_{k+1} = (Φ + Σ s K̃) S_k + F_k`` with
         ``F = dΦ (z + h) + G (−dA h + dB U + L_r ∂P/∂θ)``, ``h = A_r⁻¹ y`` the static response to the
         step's reduced input ``y = B_r U + L_r P`` (the step is ``z⁺ = Φ z + G y``)."""
-        p, r = len(widx), self.r
+        p, r = len(widx), b.red.V.shape[1]
         steps = len(ops)
         K = Phi.shape[0]
         Sz = np.zeros((N, r, p))
@@ -246,7 +271,7 @@ class ReducedSimulator:
             # G (−dA h + dB U + L_r ∂P/∂θ): the parameters' products stacked, then one product with G
             dAB = np.concatenate([dA[o], dB[o]], axis=2).reshape(p * r, -1)
             inner = (dAB @ np.concatenate([-h, Ub[sel]], axis=1).T).reshape(p, r, nb).transpose(1, 2, 0)
-            inner += (self.Lr @ dPdth[sel].transpose(1, 0, 2).reshape(-1, nb * p)).reshape(r, nb, p)
+            inner += (b.Lr @ dPdth[sel].transpose(1, 0, 2).reshape(-1, nb * p)).reshape(r, nb, p)
             X += (G[o] @ inner.reshape(r, nb * p)).reshape(r, nb, p).transpose(2, 0, 1)
             F[sel] = X.transpose(2, 1, 0)
         GK = [[G[o] @ Kq for Kq in Kr] for o in range(K)]

@@ -12,12 +12,14 @@ The basis ``V`` (``C_ref``-orthonormal, n × r) holds
 * the slow modes that matter at the outputs: modes are taken in order of their largest relative
   contribution ``μ_i Σ_j |r_isj| / Σ_j |G_sj|`` (``μ_i = exp(λ_i Δt)`` at ``Δt`` = 1 s, ``G``
   the static gain) until the dropped ones sum to at most ``tol`` of every output's static gain;
-* static corrections: the adjoint static responses ``A⁻¹ e_s`` of the output rows, and their
-  derivatives ``−A⁻¹ ∂A/∂θ_j A⁻¹ e_s`` by the adaptable parameters, orthogonalised against the
-  modes. ``A`` is symmetric, so a Galerkin projection whose basis holds ``A⁻¹ e_s`` reproduces
-  the static response of row ``s`` to *any* input exactly: ``e_sᵀ V (VᵀAV)⁻¹ Vᵀ = e_sᵀ A⁻¹``
-  (write ``A⁻¹ e_s = V y``, then ``e_sᵀ = yᵀ VᵀA``). The steady state at the outputs is exact at
-  the reference; the derivative vectors keep it exact to first order in the parameters.
+* static corrections: the adjoint static responses ``A⁻¹ e_s`` of the output rows, their
+  first-order changes with the operating point (``−A⁻¹ ∂A/∂u A⁻¹ e_s``) and with the strength of
+  the losses' temperature feedback, optionally with parameters, and the static response to the
+  boundary temperatures (a machine at rest), orthogonalised against the modes. ``A`` is
+  symmetric, so a Galerkin projection whose basis holds ``A⁻¹ e_s`` reproduces the static
+  response of row ``s`` to *any* input exactly: ``e_sᵀ V (VᵀAV)⁻¹ Vᵀ = e_sᵀ A⁻¹`` (write
+  ``A⁻¹ e_s = V y``, then ``e_sᵀ = yᵀ VᵀA``). The steady state at the outputs is exact at the
+  reference and to first order around it.
 
 Error bound (:meth:`Reduction.bound`). In the modal coordinates at the reference the projected
 system is block diagonal: the kept modes exactly, and a *correction block* (the static vectors'
@@ -122,7 +124,7 @@ def output_rows(model: Model) -> tuple[str, ...]:
     return tuple(seen)
 
 
-def check_reducible(model: Model) -> None:
+def check_reducible(model: Model, net: Network | None = None) -> None:
     """Refuse a model the reduced path does not handle.
 
     Raises
@@ -131,7 +133,7 @@ def check_reducible(model: Model) -> None:
         The model has algebraic points (the reduced operators are built from the lumped
         network's incidence), a loss law not affine in the temperatures, or no output node.
     """
-    net = Network(model)
+    net = Network(model) if net is None else net
     if net.n_points != net.n:
         raise ModelError(f"model {model.name}: the reduced path needs a lumped network (it has "
                          f"{net.n_points - net.n} algebraic points)")
@@ -144,7 +146,8 @@ def check_reducible(model: Model) -> None:
 
 
 def reduce(model: Model, theta: np.ndarray | None = None, op: Mapping[str, float] | None = None,
-           tol: float = TOL, derivatives: Sequence[str] | None = None) -> Reduction:
+           tol: float = TOL, derivatives: Sequence[str] = (), dt: float = 1.0,
+           net: Network | None = None) -> Reduction:
     """Build the reduced basis of ``model`` at a reference (see the module docstring).
 
     Parameters
@@ -156,20 +159,25 @@ def reduce(model: Model, theta: np.ndarray | None = None, op: Mapping[str, float
     op : mapping, optional
         Reference values of the inputs that enter conductances (default 0: standstill).
     tol : float
-        The dropped modes' share of each output's static gain, at a step of 1 s.
+        The dropped modes' share of each output's static gain, at the step ``dt``.
     derivatives : sequence of str, optional
-        Parameters whose first-order change the static vectors follow (default the adaptable ones).
+        Parameters whose first-order change the static vectors follow (default none: on the
+        generated chain models they double the basis to move the outputs by a few mK).
+    dt : float
+        The step (s) the modes are chosen for: a mode that decays within a step hardly matters.
+    net : Network, optional
+        The model's network, when the caller has it (building one takes a while for large models).
 
     Returns
     -------
     Reduction
     """
-    check_reducible(model)
-    net = Network(model)
+    net = Network(model) if net is None else net
+    check_reducible(model, net)
     n = net.n
     theta = model.nominal() if theta is None else np.asarray(theta, dtype=float)
     ref = {k: float((op or {}).get(k, 0.0)) for k in net.matrix_inputs}
-    names = tuple(model.adaptable if derivatives is None else derivatives)
+    names = tuple(derivatives)
     wrt = list(model.parameter_index(names)) if names else []
     cont = net.continuous(theta, {k: np.array([v]) for k, v in ref.items()}, 1, wrt)
     A, W, c = cont.A[0], cont.W[0], cont.c
@@ -180,14 +188,16 @@ def reduce(model: Model, theta: np.ndarray | None = None, op: Mapping[str, float
     ri = np.array([model.node_index(x) for x in rows])
     B = Q.T @ (W / s[:, None])  # (n, channels)
     res = Vf[ri].T[:, :, None] * B[:, None, :] / lam[:, None, None]  # (n, rows, channels)
-    keep = _choose_modes(lam, res, tol)
+    keep = _choose_modes(lam, res, tol, dt)
     drop = np.setdiff1d(np.arange(n), keep)
     Vm = Vf[:, keep]
     # static corrections: adjoint static responses of the rows and their parameter derivatives
     E = np.zeros((n, len(ri)))
     E[ri, np.arange(len(ri))] = 1.0
     X0 = np.linalg.solve(A, E)
-    parts = [X0]
+    # and the static response to the boundary temperatures (a machine at rest is at them: a
+    # uniform state), so that such an initial state is in the basis
+    parts = [X0, np.linalg.solve(A, W[:, : net.n_bound])]
     if wrt:
         # ∂A/∂θ_j = −Z diag(dg_j) Zᵀ (rank-one factors of the edges): all parameters in one solve
         assert cont.dZ is not None and cont.dg is not None
@@ -195,6 +205,8 @@ def reduce(model: Model, theta: np.ndarray | None = None, op: Mapping[str, float
         ZX = Z.T @ X0  # (e, rows)
         dAX = -np.concatenate([Z @ (dg[j][:, None] * ZX) for j in range(len(wrt))], axis=1)
         parts.append(-np.linalg.solve(A, dAX))
+    parts += _operating_point_vectors(net, theta, ref, A, X0)
+    parts += _feedback_vectors(model, net, theta, A, X0)
     X = np.concatenate(parts, axis=1)
     X -= Vm @ (Vm.T @ (c[:, None] * X))  # C-orthogonal to the kept modes
     U, sv, _ = np.linalg.svd(s[:, None] * X, full_matrices=False)
@@ -218,3 +230,39 @@ def _choose_modes(lam: np.ndarray, res: np.ndarray, tol: float, dt: float = 1.0)
     rest = np.concatenate([np.cumsum(rel[order][::-1], axis=0)[::-1], np.zeros((1, rel.shape[1]))])
     k = int(np.argmax(rest.max(axis=1) <= tol))
     return np.sort(order[:k])
+
+
+def _operating_point_vectors(net: Network, theta: np.ndarray, ref: dict[str, float], A: np.ndarray,
+                             X0: np.ndarray) -> list[np.ndarray]:
+    """``−A⁻¹ ∂A/∂u A⁻¹ e_s`` for each input ``u`` that enters conductances: the first-order change
+    of the rows' static responses with the operating point. ``∂g/∂u`` is a one-sided difference
+    (laws such as ``|n|^0.8`` have no two-sided one at standstill); only its pattern over the
+    edges matters, the vectors are orthonormalised."""
+    if not ref:
+        return []
+    n = net.n
+    inc = net.inc[:, :n]
+    base = {k: np.array([v]) for k, v in ref.items()}
+    g0, _ = net.conductances(theta, base, 1)
+    out = []
+    ZX = inc @ X0  # (E, rows)
+    for k, v in ref.items():
+        h = 1e-4 * max(abs(v), 1.0)
+        g1, _ = net.conductances(theta, {**base, k: np.array([v + h])}, 1)
+        dg = (g1[0] - g0[0]) / h
+        if np.any(dg):
+            out.append(np.linalg.solve(A, inc.T @ (dg[:, None] * ZX)))
+    return out
+
+
+def _feedback_vectors(model: Model, net: Network, theta: np.ndarray, A: np.ndarray, X0: np.ndarray) -> list[np.ndarray]:
+    """``A⁻¹ F A⁻¹ e_s`` with ``F = M_D ∂P/∂T`` the temperature feedback of the losses: the first-order
+    change of the rows' static responses with the feedback's strength (a copper loss's slope grows
+    with the current squared; its pattern over the nodes, taken at unit inputs, stays)."""
+    laws = LossLaws(model)
+    if not laws.temperature_dependent:
+        return []
+    env = net.env(theta, {k: np.ones(1) for k in model.inputs})
+    D = laws.dT(env, None, 1)[0]  # (n_loss, ntv)
+    F = net.loss_map[: net.n] @ D  # (n, ntv): columns at the nodes the laws read
+    return [np.linalg.solve(A, F @ X0[laws.nodes])]
