@@ -186,29 +186,20 @@ class ReducedSimulator:
             Ub = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()],
                           axis=1)
         P0 = self.losses.power(env, None, N)
-        D = self.losses.dT(env, None, N)  # (N, nl, ntv)
-        Kr, s = self._slopes(b, D[:steps])
+        Kr, s = self._slopes(b, *self.losses.slope_entries(env, None, N), steps)
         ops = ops[:steps]
         # the input-driven part of each step's reduced input, q = B_r U + L_r P0 (N-1, r)
         q = P0[:steps] @ b.Lr.T
         for o in range(K):
             sel = np.nonzero(ops == o)[0]
             q[sel] += Ub[sel] @ B[o].T
-        GK = [[G[o] @ Kq for Kq in Kr] for o in range(K)]  # (r, r) per slope term and operating point
         gq = np.empty_like(q)
         for o in range(K):
             sel = np.nonzero(ops == o)[0]
             gq[sel] = q[sel] @ G[o].T
         z = np.empty((N, r))
         z[0] = red.V.T @ (red.c_ref * np.asarray(T0, dtype=float))
-        opl, sl = ops.tolist(), s.tolist()
-        rank = len(Kr)
-        for k in range(steps):
-            o, zk = opl[k], z[k]
-            nxt = Phi[o] @ zk
-            for rho in range(rank):
-                nxt += sl[k][rho] * (GK[o][rho] @ zk)
-            z[k + 1] = nxt + gq[k]
+        self._run(z, Phi, G, Kr, s, ops, gq)
         T = z @ red.V.T
         P = self.losses.power(env, T, N)
         traj = Trajectory(T=T, P=P, wrt=names, nodes=model.nodes)
@@ -222,19 +213,19 @@ class ReducedSimulator:
         return traj
 
     @staticmethod
-    def _slopes(b: _Projected, D: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-        """The loss slopes ``D[k]`` (steps, nl, ntv) as ``Σ_ρ s[k, ρ] C_ρ`` (singular value
-        decomposition over time): ``K_ρ = L_r C_ρ V_tv`` (r, r) and ``s`` (steps, rank)."""
-        steps = len(D)
-        D2 = D.reshape(steps, -1)
-        cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0] if steps else np.zeros(0, dtype=int)
-        if not len(cols):
+    def _slopes(b: _Projected, law: np.ndarray, col: np.ndarray, D: np.ndarray,
+                steps: int) -> tuple[list[np.ndarray], np.ndarray]:
+        """The loss slopes (entries ``D`` (N, e) of laws ``law`` at loss-node columns ``col``) over
+        the steps as ``Σ_ρ s[k, ρ] C_ρ`` (singular value decomposition over time): ``K_ρ = L_r C_ρ
+        V_tv`` (r, r) and ``s`` (steps, rank)."""
+        D = D[:steps]
+        live = np.nonzero(np.any(D != 0.0, axis=0))[0] if steps else np.zeros(0, dtype=int)
+        if not len(live):
             return [], np.zeros((steps, 0))
-        Us, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
+        Us, sv, Wt = np.linalg.svd(D[:, live], full_matrices=False)
         rank = int(np.count_nonzero(sv > SLOPE_RANK_TOL * sv[0]))
-        full = np.zeros((rank, D2.shape[1]))
-        full[:, cols] = Wt[:rank]
-        Kr = [b.Lr @ full[i].reshape(D.shape[1], D.shape[2]) @ b.Vtv for i in range(rank)]
+        Ll, Vl = b.Lr[:, law[live]], b.Vtv[col[live]]
+        Kr = [(Ll * Wt[i]) @ Vl for i in range(rank)]
         return Kr, Us[:, :rank] * sv[:rank]
 
     def _sensitivities(self, b: _Projected, env: dict, widx: list[int], N: int, ops: np.ndarray, z: np.ndarray,
@@ -274,15 +265,32 @@ class ReducedSimulator:
             inner += (b.Lr @ dPdth[sel].transpose(1, 0, 2).reshape(-1, nb * p)).reshape(r, nb, p)
             X += (G[o] @ inner.reshape(r, nb * p)).reshape(r, nb, p).transpose(2, 0, 1)
             F[sel] = X.transpose(2, 1, 0)
-        GK = [[G[o] @ Kq for Kq in Kr] for o in range(K)]
-        opl, sl = ops.tolist(), s.tolist()
-        for k in range(steps):
-            o, Sk = opl[k], Sz[k]
-            nxt = Phi[o] @ Sk
-            for rho, gk in enumerate(GK[o]):
-                nxt += sl[k][rho] * (gk @ Sk)
-            Sz[k + 1] = nxt + F[k]
+        self._run(Sz, Phi, G, Kr, s, ops, F)
         return Sz
+
+    @staticmethod
+    def _run(x: np.ndarray, Phi: np.ndarray, G: np.ndarray, Kr: list[np.ndarray], s: np.ndarray, ops: np.ndarray,
+             f: np.ndarray) -> None:
+        """``x[k+1] = (Φ_o + Σ_ρ s[k, ρ] G_o K_ρ) x[k] + f[k]`` over the steps, in place (``x[0]``
+        given; ``x`` (N, r) or (N, r, p)): one product a step with ``[Φ_o; G_o K_1; …]`` stacked."""
+        r = Phi.shape[1]
+        stacked = [np.concatenate([Phi[o]] + [G[o] @ Kq for Kq in Kr]) for o in range(Phi.shape[0])]
+        rank = len(Kr)
+        opl = ops.tolist()
+        if rank == 1:
+            sl = s[:, 0].tolist()
+            for k, o in enumerate(opl):
+                a = stacked[o] @ x[k]
+                np.add(a[:r], f[k], out=x[k + 1])
+                x[k + 1] += sl[k] * a[r:]
+            return
+        srows = s.tolist()
+        for k, o in enumerate(opl):
+            a = stacked[o] @ x[k]
+            nxt = a[:r] + f[k]
+            for rho in range(rank):
+                nxt += srows[k][rho] * a[r * (rho + 1): r * (rho + 2)]
+            x[k + 1] = nxt
 
 
 def divided_exp(x: np.ndarray) -> np.ndarray:
