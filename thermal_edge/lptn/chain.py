@@ -24,6 +24,10 @@ from typing import Any
 
 from .loader import build_model
 from .model import Model, ModelError
+from .vocabulary import DEFAULT_COLUMNS, Role
+
+# the inputs' columns, by role (the vocabulary's names)
+_SPEED, _CURRENT, _TORQUE, _AMBIENT = (DEFAULT_COLUMNS[r] for r in (Role.SPEED, Role.CURRENT, Role.TORQUE, Role.AMBIENT))
 
 #: nodes of one axial slice, along the radial heat path, with their roles
 SLICE = (("housing", "housing"), ("yoke", "yoke"), ("tooth", "tooth"), ("winding", "winding"),
@@ -133,21 +137,21 @@ def chain_document(nodes: int) -> dict[str, Any]:
                        f"nodes, end spaces and end caps ({nodes} nodes).",
         "discretisation": {"method": "zoh"},
         "inputs": {
-            "speed_rpm": {"role": "speed", "unit": "rpm"},
-            "i_rms": {"role": "current", "unit": "A"},
-            "torque_nm": {"role": "torque", "unit": "Nm"},
-            "ambient_c": {"role": "ambient", "unit": "degC"},
+            _SPEED: {"role": Role.SPEED.value, "unit": "rpm"},
+            _CURRENT: {"role": Role.CURRENT.value, "unit": "A"},
+            _TORQUE: {"role": Role.TORQUE.value, "unit": "Nm"},
+            _AMBIENT: {"role": Role.AMBIENT.value, "unit": "degC"},
         },
-        "boundaries": {"ambient": "ambient_c"},
+        "boundaries": {"ambient": _AMBIENT},
         "constants": dict(_CONSTANTS),
         "derived": {
-            "n_rel": "abs(speed_rpm) / 900",
-            "f_rel": "abs(speed_rpm) / 60 * 6 / f_el_rated",
-            "i_rel": "i_rms / i_rated",
-            "P_cu20": "3 * R20_phase * i_rms ** 2",
+            "n_rel": f"abs({_SPEED}) / 900",
+            "f_rel": f"abs({_SPEED}) / 60 * 6 / f_el_rated",
+            "i_rel": f"{_CURRENT} / i_rated",
+            "P_cu20": f"3 * R20_phase * {_CURRENT} ** 2",
             "fe_pu": "(x_hyst * f_rel + (1 - x_hyst) * f_rel ** 2) * (1 + 0.2 * i_rel ** 2) / 1.2",
             "pm_pu": "f_rel ** 2 * (a_pm0 + (1 - a_pm0) * i_rel ** 2)",
-            "omega_m": "abs(speed_rpm) * 2 * pi / 60",
+            "omega_m": f"abs({_SPEED}) * 2 * pi / 60",
         },
         "parameters": {k: dict(v) for k, v in _PARAMETERS.items()},
         "nodes": [],
