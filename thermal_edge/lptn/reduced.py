@@ -29,6 +29,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.blas import dgemm as _gemm
+from scipy.linalg.blas import dgemv as _gemv
 
 from .losses import LossLaws
 from .model import Model, ModelError
@@ -186,7 +188,8 @@ class ReducedSimulator:
             Ub = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()],
                           axis=1)
         P0 = self.losses.power(env, None, N)
-        Kr, s = self._slopes(b, *self.losses.slope_entries(env, None, N), steps)
+        law, col, slope = self.losses.slope_entries(env, None, N)
+        Kr, s = self._slopes(b, law, col, slope, steps)
         ops = ops[:steps]
         # the input-driven part of each step's reduced input, q = B_r U + L_r P0 (N-1, r)
         q = P0[:steps] @ b.Lr.T
@@ -201,7 +204,9 @@ class ReducedSimulator:
         z[0] = red.V.T @ (red.c_ref * np.asarray(T0, dtype=float))
         self._run(z, Phi, G, Kr, s, ops, gq)
         T = z @ red.V.T
-        P = self.losses.power(env, T, N)
+        to_law = np.zeros((len(law), P0.shape[1]))  # the laws are affine in the temperatures: P = P0 + slope · T
+        to_law[np.arange(len(law)), law] = 1.0
+        P = P0 + (slope * T[:, self.tv[col]]) @ to_law
         traj = Trajectory(T=T, P=P, wrt=names, nodes=model.nodes)
         if names:
             dM, dA, dB = built[3:]
@@ -272,25 +277,18 @@ class ReducedSimulator:
     def _run(x: np.ndarray, Phi: np.ndarray, G: np.ndarray, Kr: list[np.ndarray], s: np.ndarray, ops: np.ndarray,
              f: np.ndarray) -> None:
         """``x[k+1] = (Φ_o + Σ_ρ s[k, ρ] G_o K_ρ) x[k] + f[k]`` over the steps, in place (``x[0]``
-        given; ``x`` (N, r) or (N, r, p)): one product a step with ``[Φ_o; G_o K_1; …]`` stacked."""
-        r = Phi.shape[1]
-        stacked = [np.concatenate([Phi[o]] + [G[o] @ Kq for Kq in Kr]) for o in range(Phi.shape[0])]
-        rank = len(Kr)
+        given; ``x`` (N, r) or (N, r, p)). A step is a few tiny products: BLAS is called directly
+        (``y ← α A x + y``), numpy's dispatch would cost more than the arithmetic."""
+        terms = [[np.asfortranarray(Phi[o])] + [np.asfortranarray(G[o] @ Kq) for Kq in Kr] for o in range(Phi.shape[0])]
+        coef = np.concatenate([np.ones((len(ops), 1)), s[:, : len(Kr)]], axis=1).tolist()
+        gemm = x.ndim == 3
         opl = ops.tolist()
-        if rank == 1:
-            sl = s[:, 0].tolist()
-            for k, o in enumerate(opl):
-                a = stacked[o] @ x[k]
-                np.add(a[:r], f[k], out=x[k + 1])
-                x[k + 1] += sl[k] * a[r:]
-            return
-        srows = s.tolist()
         for k, o in enumerate(opl):
-            a = stacked[o] @ x[k]
-            nxt = a[:r] + f[k]
-            for rho in range(rank):
-                nxt += srows[k][rho] * a[r * (rho + 1): r * (rho + 2)]
-            x[k + 1] = nxt
+            y = f[k].copy(order="F") if gemm else f[k].copy()
+            xk = x[k]
+            for a, mat in zip(coef[k], terms[o]):
+                y = _gemm(a, mat, xk, 1.0, y, overwrite_c=True) if gemm else _gemv(a, mat, xk, 1.0, y, overwrite_y=True)
+            x[k + 1] = y
 
 
 def divided_exp(x: np.ndarray) -> np.ndarray:
