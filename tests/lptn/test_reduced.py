@@ -8,11 +8,13 @@ import numpy as np
 import pytest
 from lptn_ref import reference_run
 
+from thermal_edge.estimation.adapter import AdapterConfig, OnlineAdapter
 from thermal_edge.lptn import ModelError, Simulator, steady_state
 from thermal_edge.lptn.chain import chain_document, chain_model
 from thermal_edge.lptn.loader import build_model
+from thermal_edge.lptn.losses import LossLaws
 from thermal_edge.lptn.network import Network
-from thermal_edge.lptn.reduced import ReducedSimulator, simulator_for
+from thermal_edge.lptn.reduced import REDUCE_ABOVE, ReducedSimulator, simulator_for
 from thermal_edge.lptn.reduction import check_reducible, output_rows, reduce
 
 SPEED = 600.0  # the reference operating point of the bound's test (rpm)
@@ -120,20 +122,25 @@ def test_sensitivities_are_close_to_the_full_models(varied):
 
 
 def test_temperatures_close_to_the_full_model_off_the_reference(varied):
-    """Speeds, currents and parameters away from the reference: the sensors within 10 mK."""
+    """Speeds, currents and parameters away from the reference: the sensors within 10 mK; the
+    trajectory's losses are the loss laws at its temperatures."""
     m, inputs, dt, T0 = varied
     theta = m.with_parameters({"k_r_sw": 3.0, "c_p_sw": 300.0, "R_e_hous": 0.2, "h_gap0": 90.0}).nominal()
     sensors = [m.node_index(x) for x in m.sensors.values()]
     full = Simulator(m).simulate(theta, inputs, dt, T0).T[:, sensors]
-    approx = ReducedSimulator(m).simulate(theta, inputs, dt, T0).T[:, sensors]
-    assert np.max(np.abs(full - approx)) < 0.01
+    approx = ReducedSimulator(m).simulate(theta, inputs, dt, T0)
+    assert np.max(np.abs(full - approx.T[:, sensors])) < 0.01
     assert np.ptp(full) > 10.0
+    P = LossLaws(m).power(Network(m).env(theta, inputs), approx.T, len(approx.T))
+    assert np.max(np.abs(approx.P - P)) < 1e-9 * np.max(np.abs(P))
 
 
 def test_the_path_is_chosen_where_it_applies(tiny_plus_model):
     small, large = chain_model(40), chain_model(48)
     assert type(simulator_for(small)) is Simulator  # below the node count: the exact dense path
     assert type(simulator_for(large, reduce_above=45)) is ReducedSimulator
+    assert type(OnlineAdapter(chain_model(REDUCE_ABOVE + 1), AdapterConfig(), 1.0).sim) is ReducedSimulator
+    assert type(OnlineAdapter(small, AdapterConfig(), 1.0).sim) is Simulator
     # a network with algebraic points, or a loss law not affine in temperature: the dense path
     assert Network(tiny_plus_model).n_points > len(tiny_plus_model.nodes)
     assert type(simulator_for(tiny_plus_model, reduce_above=1)) is Simulator
