@@ -12,8 +12,8 @@ rounds' ratios. The reduced bases are built before the timing (once per model an
 service does at its first decision) and their one-off cost is printed apart.
 
 Beside the times: the reduced model's size (states and modes kept) at the optimiser's step, the
-stated error bound at the sensors (:meth:`~thermal_edge.lptn.reduction.Reduction.bound`, the
-window's input ranges) and the error measured against the dense model over the optimiser's
+stated error bound at the sensors (:meth:`~thermal_edge.lptn.reduction.Reduction.bound`, over
+the window's inputs) and the error measured against the dense model over the optimiser's
 window at the nominal parameters, and how far the two paths' fitted parameters are apart.
 """
 from __future__ import annotations
@@ -133,9 +133,8 @@ def rung(nodes: int, repeat: int = 3, hours: float = HOURS, config: AdapterConfi
     approx = reduced.simulate(theta, window.inputs, window.dt, window.T0)
     sensors = [model.node_index(x) for x in model.sensors.values()]
     measured = float(np.max(np.abs(full.T[:, sensors] - approx.T[:, sensors])))
-    osc = np.concatenate([np.ptp(np.column_stack([window.inputs[c] for c in model.boundaries.values()]), axis=0),
-                          np.ptp(full.P, axis=0)])
-    bound = red.bound(window.dt, osc)
+    w = np.column_stack([window.inputs[c] for c in model.boundaries.values()] + [full.P])
+    bound = red.bound(window.dt, w)
     rows_ = [red.rows.index(x) for x in model.sensors.values()]
     names = sorted(set(fits["dense"]) | set(fits["reduced"]))
     diff = max((abs(fits["reduced"].get(k, np.nan) - fits["dense"].get(k, np.nan)) / abs(fits["dense"].get(k, np.nan))

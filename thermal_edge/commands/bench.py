@@ -194,7 +194,7 @@ def run_ladder(args: argparse.Namespace) -> int:
     print(f"{big.nodes} nodes: reduced step {big.reduced_s:.3f} s ({verdict} the {r.target_s:g} s target), "
           f"dense {big.dense_s:.2f} s; rounds dense " + ", ".join(f"{x:.2f}" for x in big.dense_runs_s)
           + "; reduced " + ", ".join(f"{x:.3f}" for x in big.reduced_runs_s))
-    print("error bound: at the reference (nominal parameters, standstill), the window's input ranges, losses taken "
+    print("error bound: at the reference (nominal parameters, standstill) over the window's inputs, losses taken "
           "as inputs; measured: largest sensor error against the dense model over the optimiser's window at the "
           "nominal parameters; fit difference: the two paths' fitted parameters, largest relative difference")
     print("reduced bases built once per model (optimiser's step and 1 s): "

@@ -24,14 +24,15 @@ The basis ``V`` (``C_ref``-orthonormal, n × r) holds
 Error bound (:meth:`Reduction.bound`). In the modal coordinates at the reference the projected
 system is block diagonal: the kept modes exactly, and a *correction block* (the static vectors'
 part outside them) that stands for the dropped modes with the same static gain at the outputs.
-For inputs held over each step of ``Δt`` a mode of the full or the reduced model deviates from
-its static response to the previous step's input by at most ``μ |b/λ| osc(w)`` (the state is an
-exponentially weighted mean of past inputs; ``osc`` the range of the input over the run), plus
-the decay of its initial departure. So at every sample, for an initial state in the basis,
+For inputs held over each step of ``Δt`` a mode ``i`` of the full or the reduced model, driven by
+the scalar series ``β_i = b_i · w``, deviates from its static response to the previous step's
+input by at most ``μ_i osc(β_i)/|λ_i|`` (the state is an exponentially weighted mean of past
+inputs; ``osc`` the range over the run), plus the decay of its initial departure. So at every
+sample, for an initial state in the basis,
 
-    |y_full − y_reduced|_s ≤ Σ_{dropped i} μ_i Σ_j |r_isj| osc_j + Σ_{correction l} μ_l Σ_j |r_lsj| osc_j
+    |y_full − y_reduced|_s ≤ Σ_{dropped and correction modes i} |c_si| μ_i osc(β_i) / |λ_i|
 
-for the system at the reference with the losses taken as inputs (their ranges over the run).
+for the system at the reference with the losses taken as inputs (their series over the run).
 Other operating points and parameters, and the temperature feedback of the losses, are not
 covered by it: :mod:`.reduced` and the ladder benchmark measure the error against the full
 model beside the bound.
@@ -72,9 +73,10 @@ class Reduction:
         Reference operating point: values of the inputs that enter conductances.
     rows : tuple of str
         The output nodes the basis was chosen for (sensors, then limited nodes).
-    lam_dropped, res_dropped : ndarray
-        Decay rates (1/s) and residues (m, rows, channels: K per input unit) of the dropped modes.
-    lam_corr, res_corr : ndarray
+    lam_dropped, c_dropped, b_dropped : ndarray
+        Decay rates (1/s) of the dropped modes, how the output rows read them (rows, m) and how
+        the input channels drive them (m, channels).
+    lam_corr, c_corr, b_corr : ndarray
         The same for the modes of the correction block.
     tol : float
         The tolerance the modes were chosen with.
@@ -87,9 +89,11 @@ class Reduction:
     op: dict[str, float]
     rows: tuple[str, ...]
     lam_dropped: np.ndarray
-    res_dropped: np.ndarray
+    c_dropped: np.ndarray
+    b_dropped: np.ndarray
     lam_corr: np.ndarray
-    res_corr: np.ndarray
+    c_corr: np.ndarray
+    b_corr: np.ndarray
     tol: float
 
     @property
@@ -97,22 +101,27 @@ class Reduction:
         """Dimension of the reduced model."""
         return int(self.V.shape[1])
 
-    def bound(self, dt: float, osc: np.ndarray) -> np.ndarray:
-        """The error bound (K) of each output row (see the module docstring).
+    def bound(self, dt: float, w: np.ndarray) -> np.ndarray:
+        """The error bound (K) of each output row over a run (see the module docstring).
+
+        Each dropped or correction mode ``i`` is driven by the scalar series ``β_i = b_i · w``; it
+        deviates from its static response by at most ``μ_i osc(β_i)/|λ_i|``, which row ``s``
+        reads with weight ``|c_si|``. (``osc(b·w) ≤ Σ_j |b_j| osc(w_j)``: inputs that move together,
+        as the losses of one law at many nodes do, are counted together.)
 
         Parameters
         ----------
         dt : float
-            Step of the simulation, s.
-        osc : ndarray (channels,)
-            Range (max − min) of each input channel over the run: boundary temperatures (K),
-            then the loss sources (W).
+            Step of the run, s.
+        w : ndarray (N, channels)
+            The run's inputs at each step: boundary temperatures (°C), then the loss sources (W).
         """
-        osc = np.asarray(osc, dtype=float)
+        w = np.asarray(w, dtype=float)
         out: np.ndarray = np.zeros(len(self.rows))
-        for lam, res in ((self.lam_dropped, self.res_dropped), (self.lam_corr, self.res_corr)):
-            if len(lam):
-                out += np.exp(lam * dt) @ (np.abs(res) @ osc)
+        for lam, c, b in ((self.lam_dropped, self.c_dropped, self.b_dropped), (self.lam_corr, self.c_corr, self.b_corr)):
+            if len(lam) and len(w):
+                beta = w @ b.T  # (N, m)
+                out += np.abs(c) @ (np.exp(lam * dt) * np.ptp(beta, axis=0) / np.abs(lam))
         return out
 
 
@@ -214,9 +223,9 @@ def reduce(model: Model, theta: np.ndarray | None = None, op: Mapping[str, float
     # the correction block's own modes at the reference, for the bound
     lc, Qc = np.linalg.eigh(Vc.T @ A @ Vc)
     Wc = Vc @ Qc
-    res_c = Wc[ri].T[:, :, None] * (Wc.T @ W)[:, None, :] / lc[:, None, None]
     return Reduction(V=np.concatenate([Vm, Vc], axis=1), modes=len(keep), c_ref=c.copy(), theta=theta.copy(), op=ref,
-                     rows=rows, lam_dropped=lam[drop], res_dropped=res[drop], lam_corr=lc, res_corr=res_c, tol=tol)
+                     rows=rows, lam_dropped=lam[drop], c_dropped=Vf[np.ix_(ri, drop)], b_dropped=B[drop], lam_corr=lc,
+                     c_corr=Wc[ri], b_corr=Wc.T @ W, tol=tol)
 
 
 def _choose_modes(lam: np.ndarray, res: np.ndarray, tol: float, dt: float = 1.0) -> np.ndarray:
