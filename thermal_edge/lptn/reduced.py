@@ -27,11 +27,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.blas import dgemm as _gemm
 from scipy.linalg.blas import dgemv as _gemv
 
+from .expr import Value
 from .losses import LossLaws
 from .model import Model, ModelError
 from .network import Network
@@ -56,6 +58,32 @@ class _Projected:
     Vtv: np.ndarray
 
 
+class _Run(NamedTuple):
+    """A simulated run and what its sensitivities reuse: the basis and step, the environment,
+    operating points (values and per step), boundary inputs, the reduced inputs ``q``, the loss
+    slopes (``Kr``, ``s``), the operators and their modes, and the states ``z``, ``T``, ``P``."""
+
+    b: _Projected
+    dt: float
+    env: dict[str, Value]
+    op: dict[str, np.ndarray]
+    ops: np.ndarray
+    Ub: np.ndarray
+    q: np.ndarray
+    Kr: list[np.ndarray]
+    s: np.ndarray
+    M: np.ndarray
+    A: np.ndarray
+    U: np.ndarray
+    lam: np.ndarray
+    Phi: np.ndarray
+    G: np.ndarray
+    Ai: np.ndarray
+    z: np.ndarray
+    T: np.ndarray
+    P: np.ndarray
+
+
 class ReducedSimulator:
     """Simulates the reduced model of a lumped network, with exact sensitivities (see the module
     docstring); the interface of :class:`~thermal_edge.lptn.simulate.Simulator`.
@@ -78,6 +106,7 @@ class ReducedSimulator:
         self.tol = tol
         self.fixed = reduction
         self._bases: dict[float, _Projected] = {}
+        self._last: tuple[tuple[object, ...], _Run] | None = None
         self.n = net.n
         self.losses = LossLaws(model)
         self.tv = self.losses.nodes
@@ -100,13 +129,12 @@ class ReducedSimulator:
         return self._bases[key]
 
     # -----------------------------------------------------------------------------------------
-    def _operators(self, b: _Projected, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int,
-                   wrt: Sequence[int]) -> tuple[np.ndarray, ...]:
-        """``M`` (r, r), ``A_r`` (K, r, r), ``B_r`` (K, r, nb) and, with ``wrt``, ``dM`` (p, r, r),
-        ``dA`` (K, p, r, r), ``dB`` (K, p, r, nb)."""
+    def _operators(self, b: _Projected, theta: np.ndarray, op: Mapping[str, np.ndarray],
+                   K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``M`` (r, r), ``A_r`` (K, r, r) and ``B_r`` (K, r, nb) at ``K`` operating points."""
         net, V, Zr, binc = self.net, b.red.V, b.Zr, self.net.binc
         r = V.shape[1]
-        g, dg = net.conductances(theta, op, K, wrt)
+        g, _ = net.conductances(theta, op, K)
         st, ov = self.static_edges, self.op_edges
         Zs, Zo = Zr[st], Zr[ov]
         A = np.broadcast_to(-(Zs.T * g[0, st]) @ Zs, (K, r, r)).copy()
@@ -115,18 +143,23 @@ class ReducedSimulator:
             ZoT = Zo.T[None] * g[:, None, ov]  # (K, r, eo)
             A -= ZoT @ Zo
             B += ZoT @ binc[ov]
-        c, dc = net.capacities(theta, wrt)
-        M = (V.T * c) @ V
-        if not len(wrt):
-            return M, A, B
+        c, _ = net.capacities(theta)
+        return (V.T * c) @ V, A, B
+
+    def _derivatives(self, b: _Projected, theta: np.ndarray, op: Mapping[str, np.ndarray], K: int,
+                     wrt: Sequence[int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``dM`` (p, r, r), ``dA`` (K, p, r, r) and ``dB`` (K, p, r, nb) by the parameters ``wrt``."""
+        net, V, Zr, binc = self.net, b.red.V, b.Zr, self.net.binc
+        r, p = V.shape[1], len(wrt)
+        _, dg = net.conductances(theta, op, K, wrt)
+        _, dc = net.capacities(theta, wrt)
         live = net.live_edges(wrt)
         Zl = Zr[live]  # (e, r)
-        p = len(wrt)
         dM = np.stack([(V.T * dc[j]) @ V for j in range(p)]) if p else np.zeros((0, r, r))
-        live_op = np.isin(live, ov)
+        moving = np.isin(live, self.op_edges)
+        fixed = ~moving
         dA = np.empty((K, p, r, r))
         dB = np.empty((K, p, r, binc.shape[1]))
-        fixed, moving = ~live_op, live_op
         Zf, Zm = Zl[fixed], Zl[moving]
         bf, bm = binc[live[fixed]], binc[live[moving]]
         for j in range(p):
@@ -136,7 +169,7 @@ class ReducedSimulator:
             ZmT = Zm.T[None, None] * dg[:, :, None, moving]  # (K, p, r, em)
             dA -= ZmT @ Zm
             dB += ZmT @ bm
-        return M, A, B, dM, dA, dB
+        return dM, dA, dB
 
     @staticmethod
     def _modes(M: np.ndarray, A: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
@@ -159,17 +192,39 @@ class ReducedSimulator:
     def simulate(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
                  wrt: Sequence[str] | None = None, rows: Sequence[str] | None = None) -> Trajectory:
         """Simulate the reduced model; arguments and result as
-        :meth:`~thermal_edge.lptn.simulate.Simulator.simulate` (``T`` at every node is ``V z``)."""
-        model, net = self.model, self.net
-        b = self._basis(float(dt))
-        red, r = b.red, b.red.V.shape[1]
+        :meth:`~thermal_edge.lptn.simulate.Simulator.simulate` (``T`` at every node is ``V z``).
+
+        The last run is kept: an optimiser asks for the value at a point and then for its
+        gradient, and the second call only adds the sensitivities to the first's simulation.
+        """
+        model = self.model
         theta = np.asarray(theta, dtype=float)
         names = tuple(wrt or ())
         widx = list(model.parameter_index(names)) if names else []
-        N = len(next(iter(inputs.values())))
         missing = [c for c in model.inputs if c not in inputs]
         if missing:
             raise KeyError(f"run lacks input column(s) {', '.join(missing)} needed by model {model.name}")
+        T0 = np.asarray(T0, dtype=float)
+        key = (theta.tobytes(), float(dt), T0.tobytes(),
+               tuple(np.ascontiguousarray(inputs[c], dtype=float).tobytes() for c in model.inputs))
+        if self._last is not None and self._last[0] == key:
+            st = self._last[1]
+        else:
+            st = self._simulate(theta, inputs, float(dt), T0)
+            self._last = (key, st)
+        traj = Trajectory(T=st.T, P=st.P, wrt=names, nodes=model.nodes)
+        if names:
+            keep = np.arange(self.n) if rows is None else np.array([model.node_index(x) for x in rows], dtype=int)
+            Sz = self._sensitivities(st, theta, widx)
+            N, r, p = Sz.shape
+            traj.S = (st.b.red.V[keep] @ Sz.transpose(1, 0, 2).reshape(r, N * p)).reshape(len(keep), N, p).transpose(1, 0, 2)
+        return traj
+
+    def _simulate(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray) -> _Run:
+        model, net = self.model, self.net
+        b = self._basis(dt)
+        red, r = b.red, b.red.V.shape[1]
+        N = len(next(iter(inputs.values())))
         env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
         steps = max(N - 1, 0)
         if net.matrix_inputs:
@@ -180,9 +235,8 @@ class ReducedSimulator:
         else:
             uniq, ops, op = np.zeros((1, 0)), np.zeros(max(steps, 1), dtype=int), {}
         K = len(uniq)
-        built = self._operators(b, theta, op, K, widx)
-        M, A, B = built[:3]
-        U_, lam, Phi, G, Ai = self._modes(M, A, float(dt))
+        M, A, B = self._operators(b, theta, op, K)
+        U_, lam, Phi, G, Ai = self._modes(M, A, dt)
         Ub = np.zeros((N, 0))
         if model.boundaries:
             Ub = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()],
@@ -201,21 +255,13 @@ class ReducedSimulator:
             sel = np.nonzero(ops == o)[0]
             gq[sel] = q[sel] @ G[o].T
         z = np.empty((N, r))
-        z[0] = red.V.T @ (red.c_ref * np.asarray(T0, dtype=float))
+        z[0] = red.V.T @ (red.c_ref * T0)
         self._run(z, Phi, G, Kr, s, ops, gq)
         T = z @ red.V.T
         to_law = np.zeros((len(law), P0.shape[1]))  # the laws are affine in the temperatures: P = P0 + slope · T
         to_law[np.arange(len(law)), law] = 1.0
         P = P0 + (slope * T[:, self.tv[col]]) @ to_law
-        traj = Trajectory(T=T, P=P, wrt=names, nodes=model.nodes)
-        if names:
-            dM, dA, dB = built[3:]
-            keep = np.arange(self.n) if rows is None else np.array([model.node_index(x) for x in rows], dtype=int)
-            Sz = self._sensitivities(b, env, widx, N, ops, z, T, Ub, q, s, Kr, M, A, U_, lam, Phi, G, Ai,
-                                     dM, dA, dB, float(dt))
-            p = len(widx)
-            traj.S = (red.V[keep] @ Sz.transpose(1, 0, 2).reshape(r, N * p)).reshape(len(keep), N, p).transpose(1, 0, 2)
-        return traj
+        return _Run(b, dt, env, op, ops, Ub, q, Kr, s, M, A, U_, lam, Phi, G, Ai, z, T, P)
 
     @staticmethod
     def _slopes(b: _Projected, law: np.ndarray, col: np.ndarray, D: np.ndarray,
@@ -233,13 +279,14 @@ class ReducedSimulator:
         Kr = [(Ll * Wt[i]) @ Vl for i in range(rank)]
         return Kr, Us[:, :rank] * sv[:rank]
 
-    def _sensitivities(self, b: _Projected, env: dict, widx: list[int], N: int, ops: np.ndarray, z: np.ndarray,
-                       T: np.ndarray, Ub: np.ndarray, q: np.ndarray, s: np.ndarray, Kr: list[np.ndarray],
-                       M: np.ndarray, A: np.ndarray, U_: np.ndarray, lam: np.ndarray, Phi: np.ndarray, G: np.ndarray,
-                       Ai: np.ndarray, dM: np.ndarray, dA: np.ndarray, dB: np.ndarray, dt: float) -> np.ndarray:
+    def _sensitivities(self, st: _Run, theta: np.ndarray, widx: list[int]) -> np.ndarray:
         """``∂z_k/∂θ`` (N, r, p) by the forward recursion ``S_{k+1} = (Φ + Σ s K̃) S_k + F_k`` with
         ``F = dΦ (z + h) + G (−dA h + dB U + L_r ∂P/∂θ)``, ``h = A_r⁻¹ y`` the static response to the
         step's reduced input ``y = B_r U + L_r P`` (the step is ``z⁺ = Φ z + G y``)."""
+        b, env, ops, z, T, Ub, q, s, Kr = st.b, st.env, st.ops, st.z, st.T, st.Ub, st.q, st.s, st.Kr
+        M, U_, lam, Phi, G, Ai, dt = st.M, st.U, st.lam, st.Phi, st.G, st.Ai, st.dt
+        N = len(z)
+        dM, dA, dB = self._derivatives(b, theta, st.op, Phi.shape[0], widx)
         p, r = len(widx), b.red.V.shape[1]
         steps = len(ops)
         K = Phi.shape[0]
