@@ -65,6 +65,7 @@ def test_the_outputs_steady_state_is_the_full_models():
     T_ss, _ = steady_state(m, held)
     inputs = {k: np.full(49, v) for k, v in held.items()}
     T = ReducedSimulator(m, red).simulate(m.nominal(), inputs, 3600.0, np.full(len(m.nodes), 25.0)).T
+    assert np.max(np.abs(T[0] - 25.0)) < 1e-9  # a machine at rest is in the basis: its state projects exactly
     rows = [m.node_index(x) for x in output_rows(m)]
     assert np.max(np.abs(T[-1, rows] - T_ss[rows])) < 1e-8
     assert np.ptp(T_ss) > 1.0  # the losses heat the machine

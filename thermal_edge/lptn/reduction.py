@@ -223,7 +223,11 @@ def reduce(model: Model, theta: np.ndarray | None = None, op: Mapping[str, float
     # the correction block's own modes at the reference, for the bound
     lc, Qc = np.linalg.eigh(Vc.T @ A @ Vc)
     Wc = Vc @ Qc
-    return Reduction(V=np.concatenate([Vm, Vc], axis=1), modes=len(keep), c_ref=c.copy(), theta=theta.copy(), op=ref,
+    # orthonormal to round-off (the projection of an initial state relies on it): a QR keeps the
+    # span of every leading block of columns, so the modes stay first
+    Qv, Rv = np.linalg.qr(s[:, None] * np.concatenate([Vm, Vc], axis=1))
+    V = Qv * np.sign(np.diag(Rv)) / s[:, None]
+    return Reduction(V=V, modes=len(keep), c_ref=c.copy(), theta=theta.copy(), op=ref,
                      rows=rows, lam_dropped=lam[drop], c_dropped=Vf[np.ix_(ri, drop)], b_dropped=B[drop], lam_corr=lc,
                      c_corr=Wc[ri], b_corr=Wc.T @ W, tol=tol)
 
