@@ -98,3 +98,19 @@ def test_plot_without_matplotlib_says_how_to_install(good_run, tmp_path, monkeyp
         "thermal-edge replay: error: --plot: this needs matplotlib, which is not installed: "
         "pip install 'thermal-edge[report]'"]
     assert not (tmp_path / "x.png").exists()
+
+
+def test_discover_report_without_matplotlib_refused_before_any_work(good_run, tmp_path, monkeypatch):
+    """``discover --out`` writes a report with figures: without matplotlib it says so before the
+    analysis (nothing on stdout: not even the run's summary), and --no-report is the way out."""
+    blocker = tmp_path / "block" / "matplotlib"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ImportError('matplotlib blocked for this test')\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(blocker.parent), os.environ.get("PYTHONPATH")])))
+    out = tmp_path / "disc"
+    r = te("discover", "--model", TWO_NODE, "--run", good_run, "--out", out)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        f"thermal-edge discover: error: --out {out}: the report needs matplotlib, which is not installed: "
+        "pip install 'thermal-edge[report]'; or --no-report for the model alone"]
+    assert not out.exists()
