@@ -114,3 +114,14 @@ def test_discover_report_without_matplotlib_refused_before_any_work(good_run, tm
         f"thermal-edge discover: error: --out {out}: the report needs matplotlib, which is not installed: "
         "pip install 'thermal-edge[report]'; or --no-report for the model alone"]
     assert not out.exists()
+
+
+def test_discover_on_a_run_without_a_gap_prints_no_trend(good_run):
+    """Data simulated from the model itself: the verdict is no gap, and the residual's shape (noise)
+    is not printed as a trend to act on; the gap status says the same in --json."""
+    r = te("discover", "--model", TWO_NODE, "--run", good_run)
+    assert r.returncode == 0, r.stderr
+    assert "no gap" in r.stdout.splitlines()[1]
+    assert not any(line.startswith("the residual ") for line in r.stdout.splitlines()), r.stdout
+    j = te("discover", "--model", TWO_NODE, "--run", good_run, "--json")
+    assert json.loads(j.stdout)["gap_status"] == "none"

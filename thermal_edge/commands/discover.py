@@ -166,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
             if not sep["sensors_separate"] and sep["node_separates"]:
                 print(f"  no sensor of this run separates them there ({sep['diff_k']:.2f} K apart); a sensor on "
                       f"{sep['node']} would ({sep['node_winner_c']:.1f} vs {sep['node_runner_up_c']:.1f} °C)")
-    if disc.signature is not None:
+    no_gap = disc.gap is not None and disc.gap.status == "none"
+    if disc.signature is not None and not no_gap:  # the shape of noise is no trend to act on
         print(f"the residual {disc.signature.describe()} (held-out, reading - model)")
     for n in disc.not_placeable:
         fits = disc.signature is not None and disc.signature.fits(n.effect.explains)
