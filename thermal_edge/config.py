@@ -569,8 +569,14 @@ class EdgeConfig:
         for s in ad.sensors or ():
             if s not in model.sensors:
                 raise self.error("adaptation.sensors", f"model {model.name} has no sensor {s!r}")
-        if self.kt(model) is None:
+        kt = self.kt(model)
+        if kt is None:
             raise self.error("derating.kt_nm_per_arms", f"model {model.name} has no drive.kt_nm_per_arms: give it here")
+        d = self.derating
+        if d.safe_torque_nm is not None and d.safe_torque_nm > kt * d.safe_current_a * (1 + 1e-9):
+            # the torque limit is never above kt x the current limit: a higher safe torque is never sent
+            raise self.error("derating.safe_torque_nm", f"must not exceed kt x safe_current_a ({kt:g} Nm/A x "
+                             f"{d.safe_current_a:g} A = {kt * d.safe_current_a:g} Nm), got {d.safe_torque_nm:g}")
 
     def check_parameters(self, model: Any) -> None:
         """Check ``model.parameters`` against the model file: known names, values within its bounds.
@@ -827,6 +833,8 @@ def _check_derating(d: DeratingConfig, sec: _Section) -> None:
             raise sec.fail(key, why)
     if d.safe_current_a > d.max_current_a:
         raise sec.fail("safe_current_a", f"must not exceed max_current_a ({d.max_current_a:g}), got {d.safe_current_a:g}")
+    if d.safe_torque_nm is not None and d.safe_torque_nm > d.max_torque_nm:
+        raise sec.fail("safe_torque_nm", f"must not exceed max_torque_nm ({d.max_torque_nm:g}), got {d.safe_torque_nm:g}")
 
 
 def _check_limit(lim: LimitConfig, sec: _Section) -> None:
