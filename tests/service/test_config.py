@@ -68,6 +68,11 @@ def test_shipped_config_is_valid_and_complete():
         (lambda r: r["signals"].__setitem__("valid_range_c", [300, 10]), "signals.valid_range_c", "low < high"),
         (lambda r: r["observer"].__setitem__("q_k", True), "observer.q_k", "expected a number"),
         (lambda r: r["state"].__setitem__("save_interval_s", -1), "state.save_interval_s", "must be positive"),
+        (lambda r: r["state"].__setitem__("save_interval_s", 86400000), "state.save_interval_s", "at most 86400"),
+        (lambda r: r["signals"].__setitem__("valid_current_factor", 0.5), "signals.valid_current_factor",
+         "must be at least 1"),
+        (lambda r: r["signals"].__setitem__("valid_torque_factor", 0.5), "signals.valid_torque_factor",
+         "must be at least 1"),
         (lambda r: r["bus"].__setitem__("bitrate", -5), "bus.bitrate", "positive integer"),
         (lambda r: r["model"].pop("path"), "model.path", "is required"),
     ],
@@ -409,3 +414,14 @@ def test_a_safe_torque_the_safe_current_cannot_carry_is_refused_against_the_mode
     raw["derating"]["safe_torque_nm"] = 30  # below: kept, and used
     cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
     cfg.check_model(load_service_model(cfg))
+
+
+def test_plausible_readings_must_reach_every_limit(tmp_path):
+    """A reading on its way to a limit's max must not be taken for a sensor fault."""
+    raw = shipped()
+    raw["signals"]["valid_range_c"] = [-40, 100]  # the hot spot's max is 155 degC
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
+    with pytest.raises(ConfigError) as err:
+        cfg.check_model(load_service_model(cfg))
+    assert str(err.value) == ("edge.yaml: signals.valid_range_c: the plausible readings (-40 to 100 degC) must reach "
+                              "every limit's max_c: hot_spot has 155")
