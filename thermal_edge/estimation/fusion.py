@@ -1,14 +1,30 @@
 """The observer over a recorded run with the magnet temperature from the inverter's voltages as a
 measurement of the magnet node (:meth:`~thermal_edge.estimation.observer.Observer.update_node`).
 
-The flux estimate's errors are correlated over minutes (an operating point's bias does not average
-out from one sample to the next), so each sample's variance is inflated by the number of samples in
-the estimate's correlation time (:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`): a minute of
-samples carries about the information of one, not of twenty-four.
+Where the commissioning run saw the operating point, the flux estimate's errors are correlated
+over minutes (an operating point's bias does not average out from one sample to the next), so each
+sample's variance is inflated by the number of samples in the estimate's correlation time
+(:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`): a minute of samples carries about the
+information of one, not of twenty-four.
+
+Where it did not (another current, the same speed), the estimate's offset is unknown: the
+inductance at that current and the voltage error's share are extrapolations, worth tens of kelvin.
+Its *changes* still carry the magnet: they are the flux linkage's changes, scaled by an inductance
+and a temperature coefficient the commissioning knows to some per cent. :class:`FluxObserver`
+uses them so. The magnet's temperature cannot jump when the operating point does (its thermal time
+constant is tens of minutes, the current's milliseconds), so on entering such a point right after
+the estimate agreed with the model the filter carries two more states: the estimate's offset ``b``
+there (a wide prior: the first samples set it against the model's magnet, with the model's band)
+and the relative error ``s`` of its changes (prior σ: the spread of that sensitivity over the
+commissioning's forward cross-validation fits). The measurement is
+``T_flux = T_m + b + s · (T_flux − T_flux,entry)``. Their cross-covariances with the temperatures
+follow the observer's own transition and gains, so the magnet's band narrows by what the changes
+tell and no more. A wrong calibration never gets there: it is refused where the commissioning saw
+the point, and only an estimate accepted shortly before may enter a new one.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,11 +35,135 @@ from .flux import Electrical, FluxModel, steady
 from .observer import Observer
 from .predict import initial_from_run, model_inputs
 
+#: prior σ of the flux estimate's offset at an operating point the commissioning did not see, K
+#: (the extrapolations measured on a real machine miss by 10–40 K; the first samples set it)
+OFFSET_PRIOR_K = 50.0
+#: an operating point the commissioning did not see is used only if the estimate was accepted
+#: within this many of its correlation times before (the anchor: the magnet cannot jump)
+ANCHOR_WITHIN_TAU = 1.0
+#: the change sensitivity's spread is measured by a step of this size in the d current, A
+DI_PROBE_A = 1.0
+#: floor of the relative σ of an extrapolated estimate's changes: the fits of one commissioning run
+#: share its blind spot (they all saw one current), and a saturating machine's incremental
+#: inductance differs by tens of per cent between currents
+SLOPE_SIGMA_MIN = 0.3
+
+
+class FluxObserver(Observer):
+    """:class:`~thermal_edge.estimation.observer.Observer` with two more states while the flux
+    estimate is used where the commissioning did not see the operating point: its offset ``b``
+    (K) and the relative error ``s`` of its changes. Without :meth:`anchor` it is the observer,
+    bit for bit.
+
+    The extra states' covariance ``Ve`` (2, 2) and cross-covariance ``Ce`` with ``[T; φ_a]``
+    follow the observer's transition (:attr:`Observer.transition`) and every update (Joseph form,
+    the parameters' rows of the gain zero as in the observer); ``Se`` (2, p) is their first-order
+    error from the parameters carried in the bands only.
+    """
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.anchored = False
+        self.xe = np.zeros(2)
+        self.Ve = np.zeros((2, 2))
+        self.Ce = np.zeros((len(self.Pa), 2))
+        self.Se = np.zeros((2, self.S.shape[1]))
+
+    def anchor(self, offset_sigma_k: float, slope_sigma: float) -> None:
+        """Start the extra states afresh (an operating point entered): offset and relative change
+        error zero with these σ (K, 1), uncorrelated with the temperatures."""
+        self.anchored = True
+        self.xe = np.zeros(2)
+        self.Ve = np.diag([offset_sigma_k**2, slope_sigma**2])
+        self.Ce = np.zeros((len(self.Pa), 2))
+        self.Se = np.zeros((2, self.S.shape[1]))
+
+    def release(self) -> None:
+        """Drop the extra states (the operating point left)."""
+        self.anchored = False
+
+    def predict(self, inputs: Mapping[str, float]) -> np.ndarray:
+        T = super().predict(inputs)
+        if self.anchored:
+            self.Ce = self.transition @ self.Ce
+        return T
+
+    def _joint(self) -> tuple[np.ndarray, np.ndarray]:
+        m = len(self.Pa)
+        P = np.zeros((m + 2, m + 2))
+        P[:m, :m], P[:m, m:], P[m:, :m], P[m:, m:] = self.Pa, self.Ce, self.Ce.T, self.Ve
+        S = np.zeros((m + 2, self.S.shape[1]))
+        S[: self._n], S[m:] = self.S, self.Se
+        return P, S
+
+    def _apply(self, P: np.ndarray, S: np.ndarray, K: np.ndarray, H: np.ndarray, r: np.ndarray, nu: np.ndarray) -> None:
+        """Joseph-form update of the joint covariance with gain ``K`` (m+2, l), rows ``H`` (l, m+2)."""
+        m, n = len(self.Pa), self._n
+        x = K @ nu
+        self.T = self.T + x[:n]
+        self.xe = self.xe + x[m:]
+        A = np.eye(m + 2) - K @ H
+        P = A @ P @ A.T + K @ r @ K.T
+        P = 0.5 * (P + P.T)
+        S = S - K @ (H @ S)
+        self.Pa, self.Ce, self.Ve = P[:m, :m], P[:m, m:], P[m:, m:]
+        self.S, self.Se = S[:n], S[m:]
+
+    def update(self, measured: Mapping[str, float]) -> np.ndarray:
+        """The observer's sensor update; while anchored the extra states take their share of each
+        innovation through their correlation with the temperatures."""
+        if not self.anchored:
+            return super().update(measured)
+        ok = [(self.rows[s], float(v)) for s, v in measured.items() if s in self.rows and np.isfinite(v)]
+        if not ok:
+            return self.T
+        idx = [i for i, _ in ok]
+        y = np.array([v for _, v in ok])
+        P, S = self._joint()
+        m, n = len(self.Pa), self._n
+        H = np.zeros((len(idx), m + 2))
+        H[np.arange(len(idx)), idx] = 1.0
+        R = np.eye(len(idx)) * self.r2
+        K = np.linalg.solve(P[np.ix_(idx, idx)] + R, P[idx, :]).T
+        K[n:m] = 0.0  # the adaptable parameters are the adapter's (Schmidt), as in the observer
+        self._apply(P, S, K, H, R, y - self.T[idx])
+        return self.T
+
+    def update_relative(self, node: int | Sequence[int], value: float, var: float, change: float,
+                        z: float = 1.959963984540054) -> bool:
+        """Correct with ``value = h T + b + s · change`` (°C, white-noise variance ``var`` K²;
+        ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``.
+        Refused and counted as :meth:`Observer.update_node` is: beyond both 95 % bands (the
+        offset's and the change error's included). Requires :meth:`anchor`."""
+        if not (self.anchored and np.isfinite(value) and np.isfinite(var) and var > 0.0 and np.isfinite(change)):
+            return False
+        n, m = self._n, len(self.Pa)
+        idx = [int(node)] if isinstance(node, (int, np.integer)) else [int(i) for i in node]
+        H = np.zeros((1, m + 2))
+        H[0, idx] = 1.0 / len(idx)
+        H[0, m:] = (1.0, float(change))
+        P, S = self._joint()
+        Ss = S * np.sqrt(self.sigma_phi2[self.n_gain:])[None, :]
+        C = P + Ss @ Ss.T
+        Ch = C @ H[0]
+        s2 = float(H[0] @ Ch)
+        nu = float(value) - float(H[0, :n] @ self.T) - float(H[0, m:] @ self.xe)
+        if abs(nu) > z * (float(np.sqrt(max(s2, 0.0))) + float(np.sqrt(var))):
+            self.node_updates_refused += 1
+            return False
+        K = (Ch / (s2 + var))[:, None]
+        K[n:m] = 0.0
+        self._apply(P, S, K, H, np.array([[var]]), np.array([nu]))
+        self.node_updates_used += 1
+        return True
+
 
 @dataclass
 class FusedRun:
     """Per sample: the observer's estimate (N, n) °C and σ (N, n) K; the flux estimate of the
-    magnet (°C), its σ (K, ``inf`` where uninformative) and whether it was used; counts."""
+    magnet (°C), its σ (K, ``inf`` where uninformative) and whether it was used; counts.
+    ``relative``: samples where an estimate at an operating point the commissioning did not see
+    was used for its changes (its σ there is the white part only)."""
 
     estimate: np.ndarray
     sigma: np.ndarray
@@ -32,15 +172,44 @@ class FusedRun:
     used: np.ndarray
     refused: int
     informative: int
+    relative: np.ndarray | None = None
+
+
+def slope_sigma(flux: FluxModel, e: Electrical, k: int) -> float:
+    """Relative σ of the estimate's changes at sample ``k``: the spread over the forward
+    cross-validation's fits of ``∂T/∂i_d`` (a step of :data:`DI_PROBE_A`), relative to the
+    commissioned fit's (inductance and temperature coefficient both in it); at least
+    :data:`SLOPE_SIGMA_MIN`. ``inf`` without fits."""
+    fits = flux.ensemble()
+    if len(fits) < 2:
+        return float("inf")
+    one = Electrical(*(np.atleast_1d(np.asarray(a, dtype=float)[k]) for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.speed_rpm,
+                                                                             e.winding_c)))
+    step = Electrical(one.u_d, one.u_q, one.i_d + DI_PROBE_A, one.i_q, one.speed_rpm, one.winding_c)
+
+    def sens(p: Mapping[str, float] | None) -> float:
+        return float((flux.temperature(step, p) - flux.temperature(one, p))[0])
+
+    g0 = sens(None)
+    g = np.array([sens(p) for p in fits])
+    if not (np.isfinite(g0) and g0 != 0.0 and np.all(np.isfinite(g))):
+        return float("inf")
+    return max(float(np.sqrt(np.mean((g - g0) ** 2))) / abs(g0), SLOPE_SIGMA_MIN)
 
 
 def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | None, magnet_node: str | Sequence[str],
-              theta: np.ndarray | None = None, electrical: Electrical | None = None, flux_from: int = 0) -> FusedRun:
+              theta: np.ndarray | None = None, electrical: Electrical | None = None, flux_from: int = 0,
+              extrapolate: bool = False) -> FusedRun:
     """Replay ``run`` through the observer with the stator ``sensors`` and, where ``flux`` is given
     and the operating point informative (and steady), the flux estimate of ``magnet_node`` (or of
     the mean of several magnet nodes: the flux linkage sees all magnets) (from
     sample ``flux_from`` on: a run whose first part commissioned the flux model is scored on the
     rest with only the rest's flux estimates).
+
+    With ``extrapolate`` (and the commissioning's cross-validation fits in ``flux``), a steady
+    operating point at the speeds the commissioning saw but another current is used for its changes
+    (:class:`FluxObserver`), entered only within :data:`ANCHOR_WITHIN_TAU` correlation times of an
+    accepted estimate.
 
     Without ``flux`` this is the observer as the service runs it (no node updates at all).
     """
@@ -48,23 +217,58 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     inputs = model_inputs(model, run)
     meas = {s: run.column(s) for s in sensors}
     N, n = len(run), len(model.nodes)
-    obs = Observer(model, initial_from_run(model, run, theta), theta, dt)
+    obs = FluxObserver(model, initial_from_run(model, run, theta), theta, dt)
     m = [model.node_index(magnet_node)] if isinstance(magnet_node, str) else [model.node_index(x) for x in magnet_node]
     est, sig = np.empty((N, n)), np.empty((N, n))
     fc, fs = np.full(N, np.nan), np.full(N, np.inf)
+    raw = np.full(N, np.nan)
+    far = np.zeros(N, dtype=bool)
+    white = 0.0
     if flux is not None:
         e = electrical if electrical is not None else Electrical.of(run.columns)
         fc, fs, ok = flux.estimate(e)
-        ok = ok & steady(e.speed_rpm)
+        st = steady(e.speed_rpm)
+        ok = ok & st
         ok[:flux_from] = False
         fs = np.where(ok, fs, np.inf)
+        if extrapolate and len(flux.cv_params) >= 2 and flux.var_u:
+            raw = flux.temperature(e)
+            far = (~ok & st & np.isfinite(raw) & (np.abs(e.speed_rpm) >= flux.speed_min_rpm)
+                   & (np.arange(N) >= flux_from))
+            # the white part of an extrapolated estimate: the best commissioned bin's residual
+            white = min(flux.var_u.values())
+            w_el = np.abs(flux.pole_pairs * e.speed_rpm * (2.0 * np.pi / 60.0) * flux.params["beta"])
     inflate = max(1.0, (flux.tau_s / dt) if flux is not None else 1.0)
+    window = ANCHOR_WITHIN_TAU * max(flux.tau_s, dt) if flux is not None else 0.0
     used = np.zeros(N, dtype=bool)
+    rel = np.zeros(N, dtype=bool)
+    last_ok, entry, ia_entry = -np.inf, np.nan, np.nan
     for k in range(N):
         if k:
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
         obs.update({s: float(v[k]) for s, v in meas.items()})
         if flux is not None and np.isfinite(fs[k]):
+            obs.release()
             used[k] = obs.update_node(m, float(fc[k]), float(fs[k]) ** 2, inflate=inflate)
+            if used[k]:
+                last_ok = k * dt
+        elif far[k]:
+            ia = float(np.hypot(e.i_d[k], e.i_q[k]))  # type: ignore[union-attr]
+            if obs.anchored and abs(ia - ia_entry) > flux.bin_a:  # type: ignore[union-attr]
+                obs.release()  # another operating point: another offset
+            if not obs.anchored and k * dt - last_ok <= window:
+                ss = slope_sigma(flux, e, k)  # type: ignore[arg-type]
+                if np.isfinite(ss):
+                    obs.anchor(OFFSET_PRIOR_K, ss)
+                    entry, ia_entry = float(raw[k]), ia
+            if obs.anchored:
+                var = white / float(w_el[k]) ** 2 * inflate
+                used[k] = rel[k] = obs.update_relative(m, float(raw[k]), var, float(raw[k]) - entry)
+                if used[k]:
+                    last_ok = k * dt
+                    ia_entry = ia
+        elif obs.anchored and k * dt - last_ok > window:
+            obs.release()  # away from any usable point for longer than the errors' correlation
         est[k], sig[k] = obs.T, obs.std()
-    return FusedRun(est, sig, fc, fs, used, obs.node_updates_refused, int(np.isfinite(fs).sum()))
+    informative = int(np.isfinite(fs).sum())
+    return FusedRun(est, sig, fc, fs, used, obs.node_updates_refused, informative, rel)
