@@ -82,6 +82,12 @@ class FluxObserver(Observer):
         """Drop the extra states (the operating point left)."""
         self.anchored = False
 
+    def extra_covariance(self) -> np.ndarray:
+        """Covariance of the offset (K) and the relative change error (2, 2): the state part and
+        the parameters' part ``Se Σ Seᵀ``, as :meth:`Observer.covariance` for the temperatures."""
+        Ss = self.Se * np.sqrt(self.sigma_phi2[self.n_gain:])[None, :]
+        return self.Ve + Ss @ Ss.T
+
     def predict(self, inputs: Mapping[str, float]) -> np.ndarray:
         T = super().predict(inputs)
         if self.anchored:
@@ -253,7 +259,7 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
             if used[k]:
                 last_ok = k * dt
         elif far[k]:
-            ia = float(np.hypot(e.i_d[k], e.i_q[k]))  # type: ignore[union-attr]
+            ia = float(np.hypot(e.i_d[k], e.i_q[k]))
             if obs.anchored and abs(ia - ia_entry) > flux.bin_a:  # type: ignore[union-attr]
                 obs.release()  # another operating point: another offset
             if not obs.anchored and k * dt - last_ok <= window:
