@@ -136,3 +136,16 @@ def test_slope_sigma_is_the_spread_of_the_fits_sensitivity():
     # ∂T/∂i_d = −L_d/β: the fits' sensitivities are 0.5 and 1.5 of the commissioned one, RMS spread 0.5
     assert slope_sigma(spread, one, 0) == pytest.approx(0.5, rel=1e-6)
     assert slope_sigma(dataclasses.replace(base, cv_params=[]), one, 0) == np.inf
+
+
+def test_at_low_speed_the_band_is_the_observers(pm10kw, heated):
+    """Below the commissioning's speeds nothing is used, not even for its changes: bit for bit the
+    observer without voltages."""
+    truth = heated.columns["magnet_true"]
+    e = electrical(heated, truth, ld_second_half=5.3e-4)
+    slow = dataclasses.replace(commissioned(), speed_min_rpm=1e6)
+    plain = run_fused(pm10kw, heated, SENSORS, None, MAGNET)
+    changes = run_fused(pm10kw, heated, SENSORS, slow, MAGNET, electrical=e, extrapolate=True)
+    assert not changes.used.any()
+    np.testing.assert_array_equal(changes.estimate, plain.estimate)
+    np.testing.assert_array_equal(changes.sigma, plain.sigma)
