@@ -26,7 +26,8 @@ the variance is not assumed but measured: by contiguous cross-validation over th
 run (each block predicted by a fit on the others), as the mean square q-voltage residual per
 current-magnitude bin, divided by ``(ω_el β)²`` at the speed of use. An operating point is
 *informative* only where the commissioning run had enough samples in its current bin, the speed
-is at least the lowest speed the run covered, and the resulting σ is below ``sigma_max_k``;
+is at least :data:`SPEED_MARGIN` of the lowest speed the run covered, and the resulting σ is below
+``sigma_max_k``;
 elsewhere the estimate is flagged and must not be used.
 
 The number of pole pairs scales ``ψ`` and ``L`` together (the data fix ``p ψ`` and ``p L``): a
