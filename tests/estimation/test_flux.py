@@ -6,7 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from thermal_edge.estimation.flux import ALPHA_CU, PARAMS, Electrical, FluxError, FluxModel, fit_flux_model
+from thermal_edge.estimation.flux import (
+    ALPHA_CU,
+    PARAMS,
+    Electrical,
+    FluxError,
+    FluxModel,
+    back_emf,
+    fit_flux_model,
+    steady,
+)
 
 P = 4
 TRUE = {"r20": 0.018, "v_err": 1.5, "psi20": 0.11, "beta": -0.11 * 0.11 / 100.0, "ld0": 5e-4, "ld1": -6e-5,
@@ -156,3 +165,35 @@ def test_the_cross_validation_fits_are_kept_and_read_back():
     old = {k: v for k, v in m.as_dict().items() if k not in ("cv_params", "fit_info")}
     assert FluxModel.from_dict(old).cv_params == []  # a file written before: nothing to extrapolate with
     np.testing.assert_array_equal(m.temperature(e), m.temperature(e, m.params))
+
+
+def one_point_run(with_ramp: bool):
+    """A start-up ramp at zero current (1,200, 3,500, 5,100 rpm: not steady), then one loaded
+    operating point at 5,500 rpm while the magnet heats from 22 to 95 °C."""
+    n = 600
+    g = np.random.default_rng(8)
+    t_m = np.concatenate([np.full(3, 22.0), np.linspace(22.0, 95.0, n)])
+    t_w = np.concatenate([np.full(3, 22.0), np.linspace(22.0, 115.0, n)])
+    rpm = np.concatenate([[1200.0, 3500.0, 5100.0], np.full(n, 5500.0)])
+    i_d = np.concatenate([np.zeros(3), np.linspace(-193.0, -203.0, n) + g.normal(0, 0.3, n)])
+    i_q = np.concatenate([np.zeros(3), np.full(n, 66.0) + g.normal(0, 0.3, n)])
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    e = Electrical(u_d + g.normal(0, 0.05, n + 3), u_q + g.normal(0, 0.05, n + 3), i_d, i_q, rpm, t_w)
+    if not with_ramp:
+        e = Electrical(*(np.asarray(a)[3:] for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.speed_rpm, e.winding_c)))
+        t_m = t_m[3:]
+    return e, t_m
+
+
+def test_zero_current_samples_of_a_ramp_measure_the_flux_linkage():
+    """One operating point cannot separate ψ_20 from L_d i_d; the open-circuit back-EMF of a start-up
+    ramp can, although a ramp is not steady: at zero current u_q = ω_el ψ_PM at any speed."""
+    e, t_m = one_point_run(with_ramp=True)
+    assert not steady(e.speed_rpm)[1:3].any() and back_emf(e)[:3].all() and not back_emf(e)[3:].any()
+    m = fit_flux_model(e, t_m, P, dt=1.0)
+    assert m.params["psi20"] == pytest.approx(TRUE["psi20"], rel=0.01)
+    ld_200 = m.params["ld0"] + 2.0 * m.params["ld1"]
+    assert ld_200 == pytest.approx(TRUE["ld0"] + 2.0 * TRUE["ld1"], rel=0.03)
+    e1, t1 = one_point_run(with_ramp=False)
+    blind = fit_flux_model(e1, t1, P, dt=1.0)
+    assert blind.sigma["psi20"] > 10.0 * m.sigma["psi20"]  # without it the run barely pins ψ_20

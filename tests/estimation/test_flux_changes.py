@@ -51,11 +51,15 @@ def test_relative_update_is_the_kalman_update_of_the_augmented_state(pm10kw, hea
     h = np.zeros(n + 2)
     h[m], h[n], h[n + 1] = 1.0, 1.0, change
     gain = C @ h / (h @ C @ h + var)
+    gain[n + 1] = 0.0  # the change error is considered (Schmidt), never corrected
     np.testing.assert_allclose(obs.T, T0 + gain[:n] * 7.0, atol=1e-10)
     np.testing.assert_allclose(obs.xe, gain[n:] * 7.0, atol=1e-10)
-    post = C - np.outer(gain, h @ C)
+    assert obs.xe[1] == 0.0
+    A = np.eye(n + 2) - np.outer(gain, h)
+    post = A @ C @ A.T + var * np.outer(gain, gain)  # Joseph form: valid for any gain
     np.testing.assert_allclose(obs.covariance(), post[:n, :n], atol=1e-8)
     np.testing.assert_allclose(obs.extra_covariance(), post[n:, n:], atol=1e-8)
+    assert obs.extra_covariance()[1, 1] == pytest.approx(0.3**2)  # its σ stays the prior's
 
 
 def test_sensor_update_while_anchored_moves_the_offset_by_its_correlation(pm10kw, heated):
@@ -72,9 +76,10 @@ def test_sensor_update_while_anchored_moves_the_offset_by_its_correlation(pm10kw
     y = float(T0[r]) + 0.4
     obs.update({"slot_winding": y})
     k = P[:, r] / (P[r, r] + obs.r2)
+    k[-1] = 0.0  # the change error: considered
     np.testing.assert_allclose(obs.T, T0 + k[:n] * 0.4, atol=1e-10)
     np.testing.assert_allclose(obs.xe, xe0 + k[-2:] * 0.4, atol=1e-10)
-    assert obs.xe[0] != xe0[0]
+    assert obs.xe[0] != xe0[0] and obs.xe[1] == 0.0
 
 
 def electrical(run: Run, magnet_c: np.ndarray, ld_second_half: float) -> Electrical:

@@ -299,6 +299,14 @@ def steady(speed_rpm: np.ndarray, rel: float = 0.02, floor_rpm: float = 20.0) ->
     return d <= np.maximum(rel * n, floor_rpm)
 
 
+def back_emf(e: Electrical) -> np.ndarray:
+    """Samples at (nearly) zero current, below :data:`I_KNEE_A`: there ``u_q = ω_el ψ_PM`` holds
+    in a speed ramp as well (no inductance, no ``L di/dt``, and the voltage and the speed it is
+    divided by move together), so they measure the flux linkage directly, the standard open-circuit
+    back-EMF test of a commissioning."""
+    return np.hypot(np.asarray(e.i_d, dtype=float), np.asarray(e.i_q, dtype=float)) < I_KNEE_A
+
+
 def _autocorrelation_time(e: np.ndarray, dt: float) -> float:
     """Integrated autocorrelation time (s), summed to the first non-positive lag."""
     x = e - e.mean()
@@ -357,7 +365,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     mu = np.array([pri[k][0] for k in PARAMS])
     sd = np.array([pri[k][1] for k in PARAMS])
     magnet_c = np.asarray(magnet_c, dtype=float)
-    use = (np.abs(e.speed_rpm) >= speed_min_rpm) & np.isfinite(magnet_c) & steady(e.speed_rpm)
+    use = (np.abs(e.speed_rpm) >= speed_min_rpm) & np.isfinite(magnet_c) & (steady(e.speed_rpm) | back_emf(e))
     for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.winding_c):
         use &= np.isfinite(a)
     idx = np.flatnonzero(use)

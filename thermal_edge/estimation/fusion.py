@@ -16,11 +16,15 @@ constant is tens of minutes, the current's milliseconds), so on entering such a 
 the estimate agreed with the model the filter carries two more states: the estimate's offset ``b``
 there (a wide prior: the first samples set it against the model's magnet, with the model's band)
 and the relative error ``s`` of its changes (prior σ: the spread of that sensitivity over the
-commissioning's forward cross-validation fits). The measurement is
-``T_flux = T_m + b + s · (T_flux − T_flux,entry)``. Their cross-covariances with the temperatures
-follow the observer's own transition and gains, so the magnet's band narrows by what the changes
-tell and no more. A wrong calibration never gets there: it is refused where the commissioning saw
-the point, and only an estimate accepted shortly before may enter a new one.
+commissioning's forward cross-validation fits, at least :data:`SLOPE_SIGMA_MIN`). The measurement is
+``T_flux = T_m + b + s · (T_flux − T_flux,entry)``. ``s`` is a consider state (Schmidt): carried in
+every band, never corrected, because nothing the filter reads can tell it (the stator sensors see
+the magnet only through the model, whose rotor-side error over a cool-down is as large as the
+changes' own; corrected by them, ``s`` would take on the model's error and the band its
+confidence). Their cross-covariances with the temperatures follow the observer's own transition
+and gains, so the magnet's band narrows by what the changes tell and no more. A wrong calibration
+never gets there: it is refused where the commissioning saw the point, and only an estimate
+accepted shortly before may enter a new one.
 """
 from __future__ import annotations
 
@@ -57,8 +61,8 @@ class FluxObserver(Observer):
 
     The extra states' covariance ``Ve`` (2, 2) and cross-covariance ``Ce`` with ``[T; φ_a]``
     follow the observer's transition (:attr:`Observer.transition`) and every update (Joseph form,
-    the parameters' rows of the gain zero as in the observer); ``Se`` (2, p) is their first-order
-    error from the parameters carried in the bands only.
+    the gain's rows of the adaptable parameters and of ``s`` zero: Schmidt); ``Se`` (2, p) is their
+    first-order error from the parameters carried in the bands only.
     """
 
     def __init__(self, *args: object, **kwargs: object) -> None:
@@ -132,13 +136,16 @@ class FluxObserver(Observer):
         R = np.eye(len(idx)) * self.r2
         K = np.linalg.solve(P[np.ix_(idx, idx)] + R, P[idx, :]).T
         K[n:m] = 0.0  # the adaptable parameters are the adapter's (Schmidt), as in the observer
+        K[m + 1] = 0.0  # and the change error is considered, never corrected
         self._apply(P, S, K, H, R, y - self.T[idx])
         return self.T
 
     def update_relative(self, node: int | Sequence[int], value: float, var: float, change: float,
                         z: float = 1.959963984540054) -> bool:
         """Correct with ``value = h T + b + s · change`` (°C, white-noise variance ``var`` K²;
-        ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``.
+        ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``;
+        the gain is the optimal one for the whole covariance with the rows of the adaptable
+        parameters and of ``s`` zero (Schmidt).
         Refused and counted as :meth:`Observer.update_node` is: beyond both 95 % bands (the
         offset's and the change error's included). Requires :meth:`anchor`."""
         if not (self.anchored and np.isfinite(value) and np.isfinite(var) and var > 0.0 and np.isfinite(change)):
@@ -159,6 +166,7 @@ class FluxObserver(Observer):
             return False
         K = (Ch / (s2 + var))[:, None]
         K[n:m] = 0.0
+        K[m + 1] = 0.0  # the change error: considered (see the module's description)
         self._apply(P, S, K, H, np.array([[var]]), np.array([nu]))
         self.node_updates_used += 1
         return True
