@@ -154,3 +154,29 @@ def test_at_low_speed_the_band_is_the_observers(pm10kw, heated):
     assert not changes.used.any()
     np.testing.assert_array_equal(changes.estimate, plain.estimate)
     np.testing.assert_array_equal(changes.sigma, plain.sigma)
+
+
+def test_tick_by_tick_is_the_replay(pm10kw, heated):
+    """The service's way, one sample per tick (steady from the previous tick's speed), gives the
+    replay's run exactly."""
+    from thermal_edge.estimation.flux import steady
+    from thermal_edge.estimation.fusion import FluxFusion, flux_samples
+
+    truth = heated.columns["magnet_true"]
+    e = electrical(heated, truth, ld_second_half=5.3e-4)
+    fm = commissioned()
+    ref = run_fused(pm10kw, heated, SENSORS, fm, MAGNET, electrical=e, extrapolate=True)
+    inputs = model_inputs(pm10kw, heated)
+    obs = FluxObserver(pm10kw, initial_from_run(pm10kw, heated), None, heated.dt)
+    m = pm10kw.node_index(MAGNET)
+    fusion = FluxFusion(fm, [m], heated.dt)
+    st = steady(e.speed_rpm)
+    used = []
+    for k in range(len(heated)):
+        if k:
+            obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
+        obs.update({s: float(heated.columns[s][k]) for s in SENSORS})
+        one = Electrical(*(np.asarray(a)[k:k + 1] for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.speed_rpm, e.winding_c)))
+        used.append(fusion.step(obs, k * heated.dt, flux_samples(fm, one, heated.dt, st[k:k + 1], extrapolate=True), 0, one))
+        np.testing.assert_allclose(obs.T, ref.estimate[k], atol=1e-9)
+    assert [u for u, _ in used] == list(ref.used) and [r for _, r in used] == list(ref.relative)

@@ -211,6 +211,117 @@ def slope_sigma(flux: FluxModel, e: Electrical, k: int) -> float:
     return max(float(np.sqrt(np.mean((g - g0) ** 2))) / abs(g0), SLOPE_SIGMA_MIN)
 
 
+@dataclass
+class FluxSamples:
+    """What the fusion takes from the flux estimate, per sample.
+
+    Attributes
+    ----------
+    value : ndarray
+        The commissioned estimate, °C (NaN where there is none).
+    sigma : ndarray
+        Its σ, K; ``inf`` where not to be used (uninformative, not steady, before the start).
+    raw : ndarray
+        The estimate without the informative-region test, °C (NaN where not to be used for its
+        changes).
+    white : ndarray
+        The white-noise variance of ``raw``, K² (the best commissioned bin's residual at this speed,
+        times the error's correlation time in samples).
+    changes : ndarray of bool
+        Where ``raw`` may be used for its changes (steady, at the commissioning's speeds, another
+        current).
+    current_a : ndarray
+        Current magnitude, A.
+    """
+
+    value: np.ndarray
+    sigma: np.ndarray
+    raw: np.ndarray
+    white: np.ndarray
+    changes: np.ndarray
+    current_a: np.ndarray
+
+
+def flux_samples(flux: FluxModel, e: Electrical, dt: float, steady_mask: np.ndarray | None = None, start: int = 0,
+                 extrapolate: bool = False) -> FluxSamples:
+    """:class:`FluxSamples` of ``e`` (a run, or one tick's sample with ``steady_mask`` from the
+    previous tick's speed; by default :func:`~thermal_edge.estimation.flux.steady` of ``e``),
+    nothing used before sample ``start``. ``extrapolate`` (and the commissioning's
+    cross-validation fits in ``flux``) marks where the changes may be used."""
+    fc, fs, ok = flux.estimate(e)
+    N = len(np.atleast_1d(fc))
+    st = steady(e.speed_rpm) if steady_mask is None else np.asarray(steady_mask, dtype=bool)
+    ok = np.atleast_1d(ok & st)
+    ok[:start] = False
+    fs = np.where(ok, fs, np.inf)
+    raw, white, far = np.full(N, np.nan), np.full(N, np.inf), np.zeros(N, dtype=bool)
+    if extrapolate and len(flux.cv_params) >= 2 and flux.var_u:
+        raw = np.atleast_1d(flux.temperature(e))
+        far = (~ok & st & np.isfinite(raw) & (np.abs(np.atleast_1d(e.speed_rpm)) >= flux.speed_min_rpm)
+               & (np.arange(N) >= start))
+        w_el = np.abs(flux.pole_pairs * np.atleast_1d(e.speed_rpm) * (2.0 * np.pi / 60.0) * flux.params["beta"])
+        with np.errstate(divide="ignore"):
+            white = min(flux.var_u.values()) / w_el**2 * max(1.0, flux.tau_s / dt)
+    ia = np.atleast_1d(np.hypot(e.i_d, e.i_q))
+    return FluxSamples(np.atleast_1d(fc), fs, raw, white, far, ia)
+
+
+class FluxFusion:
+    """The flux estimate into a :class:`FluxObserver`, tick by tick: the commissioned estimate
+    through :meth:`~thermal_edge.estimation.observer.Observer.update_node` (its variance inflated
+    by the error's correlation time), and where :class:`FluxSamples` allows, an unseen current's
+    changes through :meth:`FluxObserver.update_relative`, anchored within
+    :data:`ANCHOR_WITHIN_TAU` correlation times of an accepted estimate and started afresh after a
+    current jump of more than one bin or as long without any use.
+
+    Parameters
+    ----------
+    flux : FluxModel
+    magnet : int or sequence of int
+        The magnet node(s) the flux linkage sees (their mean).
+    dt : float
+        Tick, s.
+    """
+
+    def __init__(self, flux: FluxModel, magnet: int | Sequence[int], dt: float) -> None:
+        self.flux = flux
+        self.magnet = magnet
+        self.inflate = max(1.0, flux.tau_s / dt)
+        self.window = ANCHOR_WITHIN_TAU * max(flux.tau_s, dt)
+        self.last_ok = -np.inf
+        self.entry = np.nan
+        self.current_entry = np.nan
+
+    def step(self, obs: FluxObserver, t_s: float, fs: FluxSamples, k: int, e: Electrical) -> tuple[bool, bool]:
+        """Apply sample ``k`` of ``fs`` (of ``e``) at time ``t_s`` (s) after the observer's
+        sensor update; returns whether an estimate was used and whether for its changes."""
+        if np.isfinite(fs.sigma[k]):
+            obs.release()
+            used = obs.update_node(self.magnet, float(fs.value[k]), float(fs.sigma[k]) ** 2, inflate=self.inflate)
+            if used:
+                self.last_ok = t_s
+            return used, False
+        if not fs.changes[k]:
+            if obs.anchored and t_s - self.last_ok > self.window:
+                obs.release()  # away from any usable point for longer than the errors' correlation
+            return False, False
+        ia = float(fs.current_a[k])
+        if obs.anchored and abs(ia - self.current_entry) > self.flux.bin_a:
+            obs.release()  # another operating point: another offset
+        if not obs.anchored and t_s - self.last_ok <= self.window:
+            ss = slope_sigma(self.flux, e, k)
+            if np.isfinite(ss):
+                obs.anchor(OFFSET_PRIOR_K, ss)
+                self.entry, self.current_entry = float(fs.raw[k]), ia
+        if not obs.anchored:
+            return False, False
+        used = obs.update_relative(self.magnet, float(fs.raw[k]), float(fs.white[k]), float(fs.raw[k]) - self.entry)
+        if used:
+            self.last_ok = t_s
+            self.current_entry = ia
+        return used, used
+
+
 def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | None, magnet_node: str | Sequence[str],
               theta: np.ndarray | None = None, electrical: Electrical | None = None, flux_from: int = 0,
               extrapolate: bool = False) -> FusedRun:
@@ -222,8 +333,7 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
 
     With ``extrapolate`` (and the commissioning's cross-validation fits in ``flux``), a steady
     operating point at the speeds the commissioning saw but another current is used for its changes
-    (:class:`FluxObserver`), entered only within :data:`ANCHOR_WITHIN_TAU` correlation times of an
-    accepted estimate.
+    (:class:`FluxFusion`, :class:`FluxObserver`).
 
     Without ``flux`` this is the observer as the service runs it (no node updates at all).
     """
@@ -234,55 +344,18 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     obs = FluxObserver(model, initial_from_run(model, run, theta), theta, dt)
     m = [model.node_index(magnet_node)] if isinstance(magnet_node, str) else [model.node_index(x) for x in magnet_node]
     est, sig = np.empty((N, n)), np.empty((N, n))
-    fc, fs = np.full(N, np.nan), np.full(N, np.inf)
-    raw = np.full(N, np.nan)
-    far = np.zeros(N, dtype=bool)
-    white = 0.0
-    if flux is not None:
-        e = electrical if electrical is not None else Electrical.of(run.columns)
-        fc, fs, ok = flux.estimate(e)
-        st = steady(e.speed_rpm)
-        ok = ok & st
-        ok[:flux_from] = False
-        fs = np.where(ok, fs, np.inf)
-        if extrapolate and len(flux.cv_params) >= 2 and flux.var_u:
-            raw = flux.temperature(e)
-            far = (~ok & st & np.isfinite(raw) & (np.abs(e.speed_rpm) >= flux.speed_min_rpm)
-                   & (np.arange(N) >= flux_from))
-            # the white part of an extrapolated estimate: the best commissioned bin's residual
-            white = min(flux.var_u.values())
-            w_el = np.abs(flux.pole_pairs * e.speed_rpm * (2.0 * np.pi / 60.0) * flux.params["beta"])
-    inflate = max(1.0, (flux.tau_s / dt) if flux is not None else 1.0)
-    window = ANCHOR_WITHIN_TAU * max(flux.tau_s, dt) if flux is not None else 0.0
     used = np.zeros(N, dtype=bool)
     rel = np.zeros(N, dtype=bool)
-    last_ok, entry, ia_entry = -np.inf, np.nan, np.nan
+    e = electrical if electrical is not None or flux is None else Electrical.of(run.columns)
+    fs = flux_samples(flux, e, dt, start=flux_from, extrapolate=extrapolate) if flux is not None and e is not None else None
+    fusion = FluxFusion(flux, m, dt) if flux is not None else None
     for k in range(N):
         if k:
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
         obs.update({s: float(v[k]) for s, v in meas.items()})
-        if flux is not None and np.isfinite(fs[k]):
-            obs.release()
-            used[k] = obs.update_node(m, float(fc[k]), float(fs[k]) ** 2, inflate=inflate)
-            if used[k]:
-                last_ok = k * dt
-        elif far[k]:
-            ia = float(np.hypot(e.i_d[k], e.i_q[k]))
-            if obs.anchored and abs(ia - ia_entry) > flux.bin_a:  # type: ignore[union-attr]
-                obs.release()  # another operating point: another offset
-            if not obs.anchored and k * dt - last_ok <= window:
-                ss = slope_sigma(flux, e, k)  # type: ignore[arg-type]
-                if np.isfinite(ss):
-                    obs.anchor(OFFSET_PRIOR_K, ss)
-                    entry, ia_entry = float(raw[k]), ia
-            if obs.anchored:
-                var = white / float(w_el[k]) ** 2 * inflate
-                used[k] = rel[k] = obs.update_relative(m, float(raw[k]), var, float(raw[k]) - entry)
-                if used[k]:
-                    last_ok = k * dt
-                    ia_entry = ia
-        elif obs.anchored and k * dt - last_ok > window:
-            obs.release()  # away from any usable point for longer than the errors' correlation
+        if fusion is not None and fs is not None and e is not None:
+            used[k], rel[k] = fusion.step(obs, k * dt, fs, k, e)
         est[k], sig[k] = obs.T, obs.std()
-    informative = int(np.isfinite(fs).sum())
-    return FusedRun(est, sig, fc, fs, used, obs.node_updates_refused, informative, rel)
+    if fs is None:
+        return FusedRun(est, sig, np.full(N, np.nan), np.full(N, np.inf), used, obs.node_updates_refused, 0, rel)
+    return FusedRun(est, sig, fs.value, fs.sigma, used, obs.node_updates_refused, int(np.isfinite(fs.sigma).sum()), rel)
