@@ -192,6 +192,7 @@ def test_zero_current_samples_of_a_ramp_measure_the_flux_linkage():
     assert not steady(e.speed_rpm)[1:3].any() and back_emf(e)[:3].all() and not back_emf(e)[3:].any()
     m = fit_flux_model(e, t_m, P, dt=1.0)
     assert m.params["psi20"] == pytest.approx(TRUE["psi20"], rel=0.01)
+    assert m.speed_min_rpm == pytest.approx(0.9 * 5500.0)  # the ramp's speeds saw no loaded point
     ld_200 = m.params["ld0"] + 2.0 * m.params["ld1"]
     assert ld_200 == pytest.approx(TRUE["ld0"] + 2.0 * TRUE["ld1"], rel=0.03)
     e1, t1 = one_point_run(with_ramp=False)

@@ -340,7 +340,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
         Parameter -> (mean, σ) overriding :data:`DEFAULT_PRIORS`.
     speed_min_rpm : float
         Samples slower than this are not used (nothing to see there), nor those outside the
-        steady state (:func:`steady`).
+        steady state (:func:`steady`) unless at zero current (:func:`back_emf`).
     folds : int
         Forward cross-validation steps for the variance table (the run is cut into ``folds + 1``
         contiguous blocks; each after the first is predicted by a fit on those before it). The
@@ -398,8 +398,13 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     var_u = {int(b): float(np.mean(res_u[bins == b] ** 2)) for b in np.unique(bins[bins >= 0])
              if np.sum(bins == b) >= min_samples}
     params = {k: float(v) for k, v in zip(PARAMS, theta)}
+    # the speeds the variance table speaks for: those of the steady samples (a ramp's back-EMF
+    # samples pass through speeds where no loaded point was seen)
+    steady_idx = idx[steady(e.speed_rpm)[idx]]
+    speed_of = steady_idx if len(steady_idx) else idx
     model = FluxModel(params, {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(PARAMS)}, int(pole_pairs),
-                      float(bin_a), var_u, float(SPEED_MARGIN * np.percentile(np.abs(e.speed_rpm[idx]), 5.0)), float(sigma_max_k),
+                      float(bin_a), var_u, float(SPEED_MARGIN * np.percentile(np.abs(e.speed_rpm[speed_of]), 5.0)),
+                      float(sigma_max_k),
                       _autocorrelation_time(res_t, dt), cov.tolist(),
                       float(np.std(betas + [float(theta[PARAMS.index("beta")])])), float(np.mean(magnet_c[idx])),
                       {"samples": float(len(idx)), "q_residual_v": sq, "d_residual_v": sdd,
