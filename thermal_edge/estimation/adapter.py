@@ -19,6 +19,10 @@ its open-loop prediction drifted by 1 K over a cold light duty. The challenger i
 period by period: judged open loop over all its evidence, it promoted candidates on the real
 machine that made the online trace worse from every wrong start.
 
+The SQP (``method: sqp``) starts from the window's Gauss-Newton Hessian, damped in the directions
+the window does not pin down (:mod:`.scaled_sqp`): from the identity, SLSQP's three iterations per
+decision stopped across the valleys of the correlated, very differently determined parameters.
+
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
 change only on out-of-sample evidence.
@@ -50,6 +54,7 @@ from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adapt
 from .common import ParamSpace, Window, decimate, rms_inputs
 from .gauss_newton import fit_gauss_newton
 from .objective import Objective
+from .scaled_sqp import fit_scaled_sqp
 from .screening import screen
 from .sqp import fit_sqp
 from .uncertainty import Uncertainty, estimate_uncertainty
@@ -378,8 +383,10 @@ class OnlineAdapter:
         sub = self.objective(coarse, sc.selected, theta=start)
         if cfg.method == "gauss_newton":
             res = fit_gauss_newton(sub, max_iter=cfg.max_iter + 1)
+        elif cfg.method == "numerical":
+            res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical")
         else:
-            res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical" if cfg.method == "numerical" else "analytic")
+            res = fit_scaled_sqp(sub, max_iter=cfg.max_iter)
         d.iterations, d.evaluations = res.iterations, d.evaluations + res.evaluations
         cand = start.copy()
         cand[sub.space.index] = np.clip(res.values, sub.space.lower, sub.space.upper)  # exp(log(bound)) rounds past it
