@@ -374,8 +374,8 @@ def run_adaptation(args: argparse.Namespace) -> int:
     print()
     print(table(ab.SUMMARY_HEADERS, ab.summary_rows(r)))
     print(f"\nopen-loop prediction error (TE_PredErrRms, K) over time; pass: final <= {ab.WITHIN_K:g} K, identifiable "
-          f"parameters (1σ <= {100 * ab.IDENTIFIABLE_REL_STD:g} %) within {100 * ab.PARAM_TOLERANCE:g} %, no promotion that "
-          "makes the next hour worse; at the plant's parameters: no promotion")
+          f"parameters (marginal 1σ <= {100 * ab.IDENTIFIABLE_REL_STD:g} %, all others free) within "
+          f"{100 * ab.PARAM_TOLERANCE:g} %, no promotion that makes the next hour worse; at the plant's parameters: no promotion")
     print(table(*ab.error_rows(r)))
     for sc in r.scenarios.values():
         print(f"\n{sc.name}: {sc.decisions} decisions: " + ", ".join(f"{k} {v}" for k, v in sorted(sc.outcomes.items())))
