@@ -39,38 +39,32 @@ from .uncertainty import estimate_uncertainty
 #: relative 1σ (σ of log θ) above which a direction of the window's Fisher information is damped
 #: (``bench adaptation``: 0.03 slowed the learning at the limit, quasi-steady duty ending at
 #: 0.46 K; 0.1 learned every scenario)
-STEP_REL_STD = 0.1
+STEP_REL_STD = 0.03
 
 
-def damping(obj: Objective, ev: Evaluation, step_rel_std: float = STEP_REL_STD) -> float:
-    """The damping ``λ`` (objective units per unit log-parameter squared) at which a direction of
-    the Gauss-Newton Hessian of ``ev`` (an evaluation of ``obj`` with derivatives) is pinned down
-    to ``step_rel_std`` (relative 1σ).
+def pinned_step(obj: Objective, ev: Evaluation, step_rel_std: float = STEP_REL_STD) -> np.ndarray:
+    """The Gauss-Newton step (log-parameters) restricted to the directions the window pins down
+    to ``step_rel_std`` (relative 1σ, the residual variance and their autocorrelation time counted
+    as :func:`.uncertainty.estimate_uncertainty` counts them); zero in every other direction.
 
     With weights ``w`` (sum over the samples 1) rescaled to mean one by ``s = size / Σ w``, the
-    covariance of the log-parameters is ``2 σ² τ / s · H⁻¹`` (:func:`.uncertainty.estimate_uncertainty`:
-    ``σ²`` the residual variance, ``τ`` the residuals' integrated autocorrelation time), so the
-    direction with eigenvalue ``h`` has variance ``2 σ² τ / (s h)``.
+    covariance of the log-parameters is ``2 σ² τ / s · H⁻¹``, so the eigenvector of the
+    Gauss-Newton Hessian ``H`` with eigenvalue ``h`` is pinned to ``√(2 σ² τ / (s h))``.
     """
     w = obj.w
     scale = w.size / max(float(w.sum()), 1e-300)
     unc = estimate_uncertainty(obj, ev)
-    return 2.0 * unc.sigma2 * unc.tau / (scale * step_rel_std**2)
-
-
-def scaling(hess: np.ndarray, lam: float) -> np.ndarray:
-    """``(H + λ I)^{-1/2}`` of a symmetric positive semi-definite ``hess`` (negative eigenvalues
-    from rounding count as zero); ``λ`` is floored at 1e-12 of the largest eigenvalue so that a
-    direction of no information still maps to a finite step."""
-    w, V = np.linalg.eigh(0.5 * (hess + hess.T))
-    w = np.clip(w, 0.0, None)
-    w = w + max(lam, 1e-12 * max(float(w.max()), 1e-300))
-    return (V / np.sqrt(w)) @ V.T
+    h, V = np.linalg.eigh(0.5 * (ev.hess + ev.hess.T))
+    pinned = h > 2.0 * unc.sigma2 * unc.tau / (scale * step_rel_std**2)
+    if not pinned.any():
+        return np.zeros(len(h))
+    Vp = V[:, pinned]
+    return -Vp @ ((Vp.T @ ev.grad) / h[pinned])
 
 
 def fit_scaled_sqp(obj: Objective, max_iter: int = 3, step_rel_std: float = STEP_REL_STD) -> FitResult:
-    """Minimise ``obj`` within its bounds with SLSQP started from the damped Gauss-Newton Hessian
-    (see the module docstring), analytic gradient.
+    """A Gauss-Newton step in the directions the window pins down, then SLSQP (see the module
+    docstring), analytic gradient.
 
     Parameters
     ----------
@@ -79,12 +73,12 @@ def fit_scaled_sqp(obj: Objective, max_iter: int = 3, step_rel_std: float = STEP
     max_iter : int
         SQP iteration cap (the paper: 3 per adaptation).
     step_rel_std : float
-        Relative 1σ above which a direction is damped (:data:`STEP_REL_STD`).
+        Relative 1σ a direction must be pinned to for the Gauss-Newton step (:data:`STEP_REL_STD`).
 
     Returns
     -------
     FitResult
-        Method ``"sqp-scaled"``; the starting values when no iterate improved the objective.
+        Method ``"sqp-pinned"``; the starting values when nothing improved the objective.
     """
     space = obj.space
     lo, hi = np.log(space.lower), np.log(space.upper)
@@ -93,14 +87,16 @@ def fit_scaled_sqp(obj: Objective, max_iter: int = 3, step_rel_std: float = STEP
     ev0 = obj.evaluations
     ev = obj.evaluate(phi0)
     f0 = ev.value
-    M = scaling(ev.hess, damping(obj, ev, step_rel_std))
-    A = np.vstack([M, -M])
-    slack = np.concatenate([phi0 - lo, hi - phi0])  # lo <= φ0 + M z <= hi as A z + slack >= 0
-    res = minimize(lambda z: obj.value(phi0 + M @ z), np.zeros(len(phi0)), jac=lambda z: M.T @ obj.grad(phi0 + M @ z),
-                   method="SLSQP", constraints=[{"type": "ineq", "fun": lambda z: slack + A @ z, "jac": lambda z: A}],
+    step = pinned_step(obj, ev, step_rel_std)
+    phi1 = phi0
+    if np.any(step):
+        for frac in (1.0, 0.5, 0.25):  # a nonlinear model: halve a step that does not lower the objective
+            trial = np.clip(phi0 + frac * step, lo, hi)
+            if obj.value(trial) < f0:
+                phi1 = trial
+                break
+    res = minimize(obj.value, phi1, jac=obj.grad, method="SLSQP", bounds=space.log_bounds(),
                    options={"maxiter": max_iter, "ftol": 1e-12})
-    phi = np.clip(phi0 + M @ res.x, lo, hi)  # the constraints hold to SLSQP's tolerance only
-    if not obj.value(phi) <= f0:  # SLSQP may stop on a worse point at the cap
-        phi = phi0
-    return FitResult("sqp-scaled", space.names, np.exp(phi), f0, obj.value(phi), int(res.nit),
+    phi = min((np.clip(res.x, lo, hi), phi1), key=obj.value)  # SLSQP may stop on a worse point at the cap
+    return FitResult("sqp-pinned", space.names, np.exp(phi), f0, obj.value(phi), int(res.nit),
                      obj.evaluations - ev0, time.perf_counter() - t0, str(res.message))
