@@ -19,9 +19,9 @@ its open-loop prediction drifted by 1 K over a cold light duty. The challenger i
 period by period: judged open loop over all its evidence, it promoted candidates on the real
 machine that made the online trace worse from every wrong start.
 
-The SQP (``method: sqp``) starts from the window's Gauss-Newton Hessian, damped in the directions
-the window does not pin down (:mod:`.scaled_sqp`): from the identity, SLSQP's three iterations per
-decision stopped across the valleys of the correlated, very differently determined parameters.
+The SQP (``method: sqp``) first takes the Gauss-Newton step in the directions the window pins down
+(:mod:`.scaled_sqp`): SLSQP's three iterations per decision alone, gradient steps at first, stopped
+across the valleys of the correlated, very differently determined parameters.
 
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
