@@ -142,3 +142,31 @@ def test_the_demo_scenario_ends_with_its_identifiable_parameters_within_ten_perc
     assert "r_c_hous" in r.identifiable and "R_e_hous" in r.identifiable
     assert all(abs(r.param_errors_pct[k]) <= 10.0 for k in r.identifiable), r.param_errors_pct
     assert r.final_pred_err_k <= ab.WITHIN_K and r.promotions and not any(p.harmed for p in r.promotions)
+
+
+def test_a_parameter_the_window_pins_elsewhere_triggers_a_fit_below_the_error_threshold(pm10kw, varied_1h):
+    """An error threshold nothing reaches (50 K): with the housing's resistance to ambient 8 % low
+    the window still pins it, by about the 8.3 % (log) it is off, and a challenger is fitted; at
+    the plant's own value nothing is."""
+    import re
+
+    from thermal_edge.estimation.adapter import PINNED_OFFSET, AdapterConfig, OnlineAdapter
+
+    run, truth = varied_1h.run, varied_1h.truth
+    cfg = AdapterConfig(params=("R_e_hous",), threshold_k=50.0, min_window_s=600.0)
+
+    def decide(model):
+        ad = OnlineAdapter(model, cfg, 1.0)
+        for k in range(1800):
+            ad.record(float(run.t[k]), {c: float(run.columns[c][k]) for c in model.inputs},
+                      {s: float(run.columns[s][k]) for s in model.sensors}, truth.T[k])
+        return ad.decide(float(run.t[1799]))
+
+    low = pm10kw.nominal()[pm10kw.parameter_index(["R_e_hous"])[0]] * 0.92
+    d = decide(pm10kw.with_parameters({"R_e_hous": low}))
+    m = re.search(r"pins a parameter elsewhere \(R_e_hous ([-+][\d.]+) %\)", d.reason)
+    assert d.triggered and m and d.challenger, d.reason
+    assert float(m.group(1)) == pytest.approx(100 * np.log(1 / 0.92), abs=2.0) and float(m.group(1)) > 100 * PINNED_OFFSET
+    assert d.challenger["R_e_hous"] > low
+    d = decide(pm10kw)
+    assert not d.triggered and d.reason == "error below threshold"
