@@ -64,6 +64,13 @@ from .uncertainty import Uncertainty, estimate_uncertainty
 #: that predicts within ``threshold_k`` may still hold a parameter the data have determined
 #: elsewhere (the demo: ``r_c_hous`` 11 % off, predicted within 0.12 K, no further fit)
 PINNED_OFFSET = 0.05
+#: ... and by this many of its 1σ ...
+PINNED_Z = 3.0
+#: ... when the window alone pins it to this marginal 1σ (relative, residuals counted as
+#: independent). At the plant's own parameters the demo's window moves ``R_e_cap`` (1σ 3 %) by
+#: -11 % in the linearisation, with the slot winding's conductivities, which it does not pin at
+#: all, moving +90-160 % beside it: a fit there is refused, not needed.
+PINNED_REL_STD = 0.02
 
 
 @dataclass
@@ -412,14 +419,21 @@ class OnlineAdapter:
         return self._done(d, t0)
 
     def _pinned_offset(self, t: float) -> tuple[str, float]:
-        """The adaptable parameter the history window's pinned Gauss-Newton step
-        (:func:`.scaled_sqp.pinned_step`) moves most from the parameters in use, and by how much
-        (relative, log)."""
+        """The adaptable parameter the history window alone (no prior) pins down (marginal 1σ, the
+        residuals counted as independent as the gate counts them, within :data:`PINNED_REL_STD`)
+        that its
+        pinned Gauss-Newton step (:func:`.scaled_sqp.pinned_step`) moves most, by more than
+        :data:`PINNED_OFFSET` and :data:`PINNED_Z` of its 1σ, and by how much (relative, log);
+        ``("", 0.0)`` if none."""
         cfg = self.config
         obj = self.objective(decimate(self._window(t - cfg.window_s), cfg.decimate))
-        step = pinned_step(obj, obj.evaluate(np.log(self.theta[obj.space.index])))
-        j = int(np.argmax(np.abs(step)))
-        return obj.space.names[j], float(step[j])
+        obj.prior_weight = 0.0  # what the window says, not the prior (which pins every parameter a little)
+        ev = obj.evaluate(np.log(self.theta[obj.space.index]))
+        sigma = estimate_uncertainty(obj, ev, cfg.max_rel_std).rel_std_independent
+        step = pinned_step(obj, ev, white=True)
+        off = np.where((sigma <= PINNED_REL_STD) & (np.abs(step) > np.maximum(PINNED_OFFSET, PINNED_Z * sigma)), step, 0.0)
+        j = int(np.argmax(np.abs(off)))
+        return (obj.space.names[j], float(off[j])) if off[j] else ("", 0.0)
 
     @staticmethod
     def _also(d: Decision, why: str) -> str:

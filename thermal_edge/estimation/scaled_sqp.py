@@ -39,10 +39,11 @@ from .uncertainty import estimate_uncertainty
 STEP_REL_STD = 0.03
 
 
-def pinned_step(obj: Objective, ev: Evaluation, step_rel_std: float = STEP_REL_STD) -> np.ndarray:
+def pinned_step(obj: Objective, ev: Evaluation, step_rel_std: float = STEP_REL_STD, white: bool = False) -> np.ndarray:
     """The Gauss-Newton step (log-parameters) restricted to the directions the window pins down
     to ``step_rel_std`` (relative 1σ, the residual variance and their autocorrelation time counted
-    as :func:`.uncertainty.estimate_uncertainty` counts them); zero in every other direction.
+    as :func:`.uncertainty.estimate_uncertainty` counts them; ``white``: as if the residuals were
+    independent, ``τ = 1``, as the adapter's gate judges); zero in every other direction.
 
     With weights ``w`` (sum over the samples 1) rescaled to mean one by ``s = size / Σ w``, the
     covariance of the log-parameters is ``2 σ² τ / s · H⁻¹``, so the eigenvector of the
@@ -52,7 +53,7 @@ def pinned_step(obj: Objective, ev: Evaluation, step_rel_std: float = STEP_REL_S
     scale = w.size / max(float(w.sum()), 1e-300)
     unc = estimate_uncertainty(obj, ev)
     h, V = np.linalg.eigh(0.5 * (ev.hess + ev.hess.T))
-    pinned = h > 2.0 * unc.sigma2 * unc.tau / (scale * step_rel_std**2)
+    pinned = h > 2.0 * unc.sigma2 * (1.0 if white else unc.tau) / (scale * step_rel_std**2)
     if not pinned.any():
         return np.zeros(len(h))
     Vp = V[:, pinned]
