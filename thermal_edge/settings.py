@@ -117,9 +117,6 @@ class AdapterConfig:
         remove over the full evidence to be promoted (more on less evidence; besides, it must be
         better consistently over the periods of the evidence: :func:`judge`).
     method : {"sqp", "gauss_newton", "numerical"}
-        ``sqp``: a Gauss-Newton step in the directions the window pins down, then SLSQP
-        (``estimation.scaled_sqp``); ``numerical``: plain SLSQP with finite-difference gradients
-        (the paper's baseline); ``gauss_newton``: trust region.
     params : tuple of str, optional
         Adaptable parameters; default: the model's ``adaptable: true`` ones.
     sensors : tuple of str, optional

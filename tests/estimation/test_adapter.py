@@ -55,11 +55,11 @@ def test_decisions_never_read_future_samples(pm10kw, e1_run):
 def test_worse_candidate_is_dropped(pm10kw, e1_run, monkeypatch):
     start = pm10kw.with_parameters({"R_e_hous": 8.5})
 
-    def bad_fit(obj, max_iter=3, **_):
+    def bad_fit(obj, max_iter=3, gradient="analytic", method_name=None):
         v = obj.space.values() * 3.0  # far off: predicts everything worse
         return FitResult("bad", obj.space.names, v, 1.0, 1.0, 1, 1, 0.0)
 
-    monkeypatch.setattr(adapter_mod, "fit_scaled_sqp", bad_fit)
+    monkeypatch.setattr(adapter_mod, "fit_sqp", bad_fit)
     ad = OnlineAdapter(start, AdapterConfig(params=("R_e_hous",), threshold_k=0.0, min_window_s=600), 1.0)
     run = e1_run.run
     before = ad.theta.copy()

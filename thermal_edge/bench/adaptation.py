@@ -168,7 +168,6 @@ def _outcome(reason: str) -> str:
     """A decision's reason -> its kind (the first clause, numbers and sensors left out)."""
     head = reason.split(";")[0].strip()
     head = re.sub(r" on the .*", "", head)
-    head = re.sub(r" \(\w+ [-+][\d.]+ %\)", "", head)
     return head or "none"
 
 

@@ -19,10 +19,6 @@ its open-loop prediction drifted by 1 K over a cold light duty. The challenger i
 period by period: judged open loop over all its evidence, it promoted candidates on the real
 machine that made the online trace worse from every wrong start.
 
-The SQP (``method: sqp``) first takes the Gauss-Newton step in the directions the window pins down
-(:mod:`.scaled_sqp`): SLSQP's three iterations per decision alone, gradient steps at first, stopped
-across the valleys of the correlated, very differently determined parameters.
-
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
 change only on out-of-sample evidence.
@@ -54,23 +50,9 @@ from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adapt
 from .common import ParamSpace, Window, decimate, rms_inputs
 from .gauss_newton import fit_gauss_newton
 from .objective import Objective
-from .scaled_sqp import fit_scaled_sqp, pinned_step
 from .screening import screen
 from .sqp import fit_sqp
 from .uncertainty import Uncertainty, estimate_uncertainty
-
-#: a fit is also triggered, whatever the prediction error, when the history window pins an adaptable
-#: parameter (:data:`.scaled_sqp.STEP_REL_STD`) this far (relative) from its value in use: a model
-#: that predicts within ``threshold_k`` may still hold a parameter the data have determined
-#: elsewhere (the demo: ``r_c_hous`` 11 % off, predicted within 0.12 K, no further fit)
-PINNED_OFFSET = 0.05
-#: ... and by this many of its 1σ ...
-PINNED_Z = 3.0
-#: ... when the window alone pins it to this marginal 1σ (relative, residuals counted as
-#: independent). At the plant's own parameters the demo's window moves ``R_e_cap`` (1σ 3 %) by
-#: -11 % in the linearisation, with the slot winding's conductivities, which it does not pin at
-#: all, moving +90-160 % beside it: a fit there is refused, not needed.
-PINNED_REL_STD = 0.02
 
 
 @dataclass
@@ -357,11 +339,6 @@ class OnlineAdapter:
         t_hist0 = float(self.history.arrays()[0][0]) if len(self.history) else t
         d = Decision(t=t, error_before_k=err, horizon_error_k=self.recent_error(max(t_hist0, t - cfg.validate_s)))
         above = bool(err > cfg.threshold_k or d.horizon_error_k > cfg.threshold_k)
-        if not above and self.challenger is None and cfg.method == "sqp" and t - t_hist0 >= cfg.min_window_s:
-            name, off = self._pinned_offset(t)
-            if abs(off) > PINNED_OFFSET:
-                above = True
-                d.reason = f"the window pins a parameter elsewhere ({name} {100 * off:+.1f} %)"
         d.triggered = above
         if self.challenger is not None:
             d.triggered = True
@@ -401,10 +378,8 @@ class OnlineAdapter:
         sub = self.objective(coarse, sc.selected, theta=start)
         if cfg.method == "gauss_newton":
             res = fit_gauss_newton(sub, max_iter=cfg.max_iter + 1)
-        elif cfg.method == "numerical":
-            res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical")
         else:
-            res = fit_scaled_sqp(sub, max_iter=cfg.max_iter)
+            res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical" if cfg.method == "numerical" else "analytic")
         d.iterations, d.evaluations = res.iterations, d.evaluations + res.evaluations
         cand = start.copy()
         cand[sub.space.index] = np.clip(res.values, sub.space.lower, sub.space.upper)  # exp(log(bound)) rounds past it
@@ -417,23 +392,6 @@ class OnlineAdapter:
         self.iterate = cand[self.model.parameter_index(self.params)].copy()
         d.reason = self._also(d, "challenger fitted; it is judged on the data that follows")
         return self._done(d, t0)
-
-    def _pinned_offset(self, t: float) -> tuple[str, float]:
-        """The adaptable parameter the history window alone (no prior) pins down (marginal 1σ, the
-        residuals counted as independent as the gate counts them, within :data:`PINNED_REL_STD`)
-        that its
-        pinned Gauss-Newton step (:func:`.scaled_sqp.pinned_step`) moves most, by more than
-        :data:`PINNED_OFFSET` and :data:`PINNED_Z` of its 1σ, and by how much (relative, log);
-        ``("", 0.0)`` if none."""
-        cfg = self.config
-        obj = self.objective(decimate(self._window(t - cfg.window_s), cfg.decimate))
-        obj.prior_weight = 0.0  # what the window says, not the prior (which pins every parameter a little)
-        ev = obj.evaluate(np.log(self.theta[obj.space.index]))
-        sigma = estimate_uncertainty(obj, ev, cfg.max_rel_std).rel_std_independent
-        step = pinned_step(obj, ev, white=True)
-        off = np.where((sigma <= PINNED_REL_STD) & (np.abs(step) > np.maximum(PINNED_OFFSET, PINNED_Z * sigma)), step, 0.0)
-        j = int(np.argmax(np.abs(off)))
-        return (obj.space.names[j], float(off[j])) if off[j] else ("", 0.0)
 
     @staticmethod
     def _also(d: Decision, why: str) -> str:
