@@ -142,7 +142,8 @@ def test_attribute_definitions_in_file():
     text = DBC_PATH.read_text(encoding="ascii")
     assert re.search(r'^BA_DEF_ BO_ "GenMsgCycleTime" INT 0 \d+;', text, re.M)
     assert re.search(r'^BA_DEF_DEF_ "GenMsgCycleTime" 0;', text, re.M)
-    assert len(re.findall(r'^BA_ "GenMsgCycleTime" BO_ \d+ \d+;', text, re.M)) == len(cantools.database.load_file(str(DBC_PATH)).messages)
+    n_frames = len(cantools.database.load_file(str(DBC_PATH)).messages)
+    assert len(re.findall(r'^BA_ "GenMsgCycleTime" BO_ \d+ \d+;', text, re.M)) == n_frames
     assert re.search(r"^BU_: INV TE\s*$", text, re.M)
     assert re.search(r"^VAL_TABLE_ SensorStatus ", text, re.M)
 
