@@ -509,6 +509,8 @@ class ProtectionResult:
     case_docs: dict[str, str] = field(default_factory=dict)
     min_oracle_share_pct: float | None = None  #: thermal_edge's worst share of the oracle
     total_seconds_over_max: float | None = None  #: thermal_edge's, over all cases
+    min_oracle_share_voltages_pct: float | None = None  #: thermal_edge_voltages' worst share of the oracle
+    total_seconds_over_max_voltages: float | None = None  #: thermal_edge_voltages', over all cases
     totals: dict[str, dict[str, float]] = field(default_factory=dict)  #: policy -> seconds over max
     wall_s: float = 0.0
 
@@ -566,6 +568,10 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
     if te_all:
         res.min_oracle_share_pct = min(f["oracle_share_pct"] for f in te_all)
         res.total_seconds_over_max = sum(f["seconds_over_max"] for f in te_all)
+    tv_all = [c["thermal_edge_voltages"] for c in res.cases.values() if "thermal_edge_voltages" in c]
+    if tv_all:
+        res.min_oracle_share_voltages_pct = min(f["oracle_share_pct"] for f in tv_all)
+        res.total_seconds_over_max_voltages = sum(f["seconds_over_max"] for f in tv_all)
     res.totals = {p: {"seconds_over_max": sum(c[p]["seconds_over_max"] for c in res.cases.values() if p in c)}
                   for p in policies}
     res.wall_s = time.perf_counter() - w0
@@ -585,24 +591,50 @@ def table_rows(res: ProtectionResult) -> list[list[Any]]:
     return rows
 
 
+#: the side-by-side table: per case, each policy's share of the oracle (%) and seconds over max
+SIDE_BY_SIDE_POLICIES = ("thermal_edge", "thermal_edge_voltages", "pt100_linear", "i2t")
+SIDE_BY_SIDE_HEADERS = ["case", "without voltages % / s over", "with voltages % / s over", "PT100 rule % / s over",
+                        "I²t % / s over", "flux used / refused"]
+
+
+def side_by_side_rows(res: ProtectionResult) -> list[list[Any]]:
+    """One row per case: thermal_edge without and with the voltage frame beside the PT100 rule and
+    I²t, each as ``share of the oracle % / seconds over max``, and the flux estimate's ticks used
+    and refused (disagreement, stale, implausible) with the frame."""
+    rows: list[list[Any]] = []
+    for case, by_policy in res.cases.items():
+        row: list[Any] = [case]
+        for p in SIDE_BY_SIDE_POLICIES:
+            f = by_policy.get(p)
+            row.append(f"{f['oracle_share_pct']:.1f} / {f['seconds_over_max']:g}" if f is not None else "-")
+        flux = by_policy.get("thermal_edge_voltages", {}).get("flux")
+        row.append(f"{flux.get('used', 0)} / {sum(flux.get(k, 0) for k in ('disagreement', 'stale', 'implausible'))}"
+                   if flux is not None else "-")
+        rows.append(row)
+    return rows
+
+
 def verdicts(res: ProtectionResult) -> list[str]:
     """Plain sentences: where a baseline overheats, and whether thermal_edge delivers more than each
     baseline that does not."""
     out = []
     for case, by_policy in res.cases.items():
-        te = by_policy.get("thermal_edge")
-        for p in ("pt100_linear", "i2t", "oracle"):
+        for p in SERVICE_POLICIES + ("pt100_linear", "i2t", "oracle"):
             f = by_policy.get(p)
             if f is None:
                 continue
             if f["seconds_over_max"] > 0:
                 out.append(f"{case}: {p} overheats ({f['seconds_over_max']:g} s over max; peaks {f['peak_hot_spot_c']:.1f} / "
                            f"{f['peak_magnet_c']:.1f} degC)")
-            elif te is not None and p != "oracle":
-                more = te["delivered_as"] - f["delivered_as"]
-                beyond = (f", and delivers {f['oracle_share_pct']:.1f} % of what the oracle, which reads the true "
-                          f"temperatures, delivers: its early derate left headroom the cycle asks for later"
-                          if f["oracle_share_pct"] > 100.0 else "")
-                out.append(f"{case}: thermal_edge delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below max"
-                           f"{beyond})")
+            elif p in ("pt100_linear", "i2t"):
+                for name in SERVICE_POLICIES:
+                    te = by_policy.get(name)
+                    if te is None:
+                        continue
+                    more = te["delivered_as"] - f["delivered_as"]
+                    beyond = (f", and delivers {f['oracle_share_pct']:.1f} % of what the oracle, which reads the true "
+                              f"temperatures, delivers: its early derate left headroom the cycle asks for later"
+                              if f["oracle_share_pct"] > 100.0 else "")
+                    out.append(f"{case}: {name} delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below "
+                               f"max{beyond})")
     return out

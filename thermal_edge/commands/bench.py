@@ -39,10 +39,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
     pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
-                                             "thermal_edge, a PT100 derate, I2t and the oracle, per plant case")
+                                             "thermal_edge without and with the voltage frame, a PT100 derate, I2t and "
+                                             "the oracle, per plant case")
     pr.add_argument("--case", action="append", default=None, metavar="NAME",
                     help="run only this plant case (repeatable; default all: nominal, r_hous_plus30, sigma_cu_minus25, "
-                         "h_sh1_minus30, ambient_40, warm_restart)")
+                         "h_sh1_minus30, ambient_40, warm_restart, warm_restart_rotor, electrical_wrong)")
     pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
@@ -417,8 +418,13 @@ def run_protection(args: argparse.Namespace) -> int:
     print(f"closed loop on the simulated machine, cycle {Path(r.cycle).stem}{dur}; "
           f"reaction time {r.reaction_time_s:g} s; max: {mx}")
     print(table(protection.TABLE_HEADERS, protection.table_rows(r)))
-    print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
-          f"seconds over max {r.total_seconds_over_max:g} (target 0)")
+    if r.min_oracle_share_pct is not None:
+        print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
+              f"seconds over max {r.total_seconds_over_max:g} (target 0)")
+    if r.min_oracle_share_voltages_pct is not None:
+        print(table(protection.SIDE_BY_SIDE_HEADERS, protection.side_by_side_rows(r)))
+        print(f"thermal_edge with the voltage frame: min share of the oracle {r.min_oracle_share_voltages_pct:.1f} % "
+              f"(target >= 97), seconds over max {r.total_seconds_over_max_voltages:g} (target 0)")
     for line in protection.verdicts(r):
         print(line)
     return 0

@@ -261,7 +261,8 @@ class ThermalEngine:
                 obs = est.observer
                 assert obs is not None  # started above
                 self._prev_sample = (t, dict(ti.measured), obs.T.copy())
-                return self._finish(t, ti, forced, [], flux=self._fuse_flux(t, None, ti.inputs))
+                self._fuse_flux(t, None, ti.inputs)  # the state starts: nothing fused into it yet
+                return self._finish(t, ti, forced, [])
             grace = max(cfg.timeouts.values(), default=1.0) + self.dt
             waited = t - (self._start_t if self._start_t is not None else t)
             if self.health.holding(t):

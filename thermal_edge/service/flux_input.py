@@ -154,15 +154,16 @@ class FluxInput:
         self._prev_speed = None
 
     # -- the tick -----------------------------------------------------------------------------------
-    def fuse(self, t: float, observer: Observer | None, speed_rpm: float) -> FluxTick:
+    def fuse(self, t: float, observer: Observer | None, speed_rpm: float) -> FluxTick | None:
         """The tick ending at ``t``: its estimate, fused into ``observer`` where it is informative
-        and agrees with the model; the sums restart. With no observer (no state yet) nothing is fused."""
+        and agrees with the model; the sums restart. With no observer (no state yet) nothing is
+        fused or counted (None)."""
         sums, n = self._sum.copy(), self._n.copy()
         self._sum[:] = 0.0
         self._n[:] = 0
         prev, self._prev_speed = self._prev_speed, speed_rpm
         if observer is None:  # no state yet: nothing to fuse into, nothing counted
-            return FluxTick("low_speed")
+            return None
         if not math.isfinite(speed_rpm):
             return self._done(FluxTick("low_speed"))
         fm = self.flux
