@@ -484,12 +484,12 @@ class FluxConfig:
     #: the commissioned flux-linkage model (``thermal-edge flux calibrate --out FILE``); null: off
     calibration: Path | None = None
     frame: str = INV_VOLTAGES
-    u_d: str = "INV_Ud"
-    u_q: str = "INV_Uq"
+    voltage_d: str = "INV_Ud"
+    voltage_q: str = "INV_Uq"
     #: the dq currents the voltages pair with (peak amplitudes, amplitude-invariant)
     currents_frame: str = INV_CURRENTS
-    i_d: str = "INV_Id"
-    i_q: str = "INV_Iq"
+    current_d: str = "INV_Id"
+    current_q: str = "INV_Iq"
     #: voltages older than this at a tick are stale: that tick's estimate is refused (counted), s
     timeout_s: float = setting(0.5, positive=True, max=MAX_SILENCE_S)
     #: the model node whose estimate gives the stator resistance its temperature (required with calibration)
@@ -731,8 +731,8 @@ class EdgeConfig:
         if not fx.enabled:
             return
         dbc = Path(codec.dbc_path).name
-        for frame_key, frame, sig_keys in (("frame", fx.frame, ("u_d", "u_q")),
-                                           ("currents_frame", fx.currents_frame, ("i_d", "i_q"))):
+        for frame_key, frame, sig_keys in (("frame", fx.frame, ("voltage_d", "voltage_q")),
+                                           ("currents_frame", fx.currents_frame, ("current_d", "current_q"))):
             try:
                 signals = set(codec.signal_names(frame))
             except KeyError:

@@ -1,6 +1,6 @@
 """The optional voltage frame in the service's tick (thermal_edge.service.flux_input): the engine and
 the inverter emulator in the closed loop without a bus (thermal_edge.bench.protection), the flux
-estimate commissioned on a simulated bench run (thermal_edge.sim.commissioning). References: the
+estimate commissioned on a simulated bench run (thermal_edge.bench.commissioning). References: the
 same engine without the frame, the plant's true temperatures, the emulator's pause schedule."""
 from __future__ import annotations
 
@@ -92,8 +92,8 @@ def test_the_flux_section_is_typed_and_its_errors_name_file_and_key(tmp_path, ca
     assert error({"calibration": cal, "winding_node": "slot_windin_1"}).startswith(
         "edge.yaml: flux.winding_node: model pm10kw has no node 'slot_windin_1' (did you mean 'slot_winding_1'?)")
     assert error({"calibration": cal, "magnet_nodes": ["rotor"]}).startswith("edge.yaml: flux.magnet_nodes: model pm10kw")
-    assert error({"calibration": cal, "u_q": "INV_Uqq"}).startswith(
-        "edge.yaml: flux.u_q: frame INV_Voltages has no signal 'INV_Uqq'")
+    assert error({"calibration": cal, "voltage_q": "INV_Uqq"}).startswith(
+        "edge.yaml: flux.voltage_q: frame INV_Voltages has no signal 'INV_Uqq'")
     assert error({"calibration": cal, "frame": "INV_Volts"}).startswith("edge.yaml: flux.frame: no frame 'INV_Volts'")
     assert error({"calibration": str(tmp_path / "none.json")}, engine=True).startswith(
         "edge.yaml: flux.calibration: cannot read")

@@ -18,7 +18,7 @@ Policies:
   ``INV_Voltages`` from its electrical model (:class:`..sim.pmsm.Pmsm`, from the plant's true
   temperatures) and the service fuses the flux-linkage estimate of the magnet into its observer
   (``flux:``), commissioned on a simulated bench run of the nominal machine
-  (:func:`..sim.commissioning.commission`, the packaged ``commissioning`` cycle). Its voltage noise
+  (:func:`.commissioning.commission`, the packaged ``commissioning`` cycle). Its voltage noise
   comes from a random stream of its own: the PT100 readings are those the other policies see.
 * ``pt100_linear``: what open drive firmware does (VESC's motor temperature derate): full current
   below the hot spot's warning temperature on the *end-winding PT100*, linearly to zero at its max.
@@ -361,8 +361,8 @@ FLUX_MAGNET_NODES = ("magnet_1", "magnet_2")
 def flux_calibration(service_model: Any, out: Path, miscalibrated: bool = False) -> Path:
     """Commission the flux estimate on a simulated bench run of the nominal machine and write it as
     ``thermal-edge flux calibrate`` does (``miscalibrated``: inductances +20 %, voltage error x2)."""
-    from ..sim import commissioning
     from ..sim.pmsm import Pmsm
+    from . import commissioning
 
     flux = commissioning.commission(service_model, Pmsm(), config_path("cycles", COMMISSIONING_CYCLE), FLUX_WINDING_NODE,
                                     FLUX_MAGNET_NODES)
@@ -551,6 +551,10 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
         te = r.get("thermal_edge")
         te_txt = (f": thermal_edge {te['oracle_share_pct']:.1f} % of the oracle, {te['seconds_over_max']:g} s over max"
                   if te else "")
+        tv = r.get("thermal_edge_voltages")
+        if tv:
+            te_txt += (f"{';' if te else ':'} with voltages {tv['oracle_share_pct']:.1f} %, "
+                       f"{tv['seconds_over_max']:g} s over max")
         say(f"bench protection: case {done}/{len(cases)} {case.name}{te_txt} ({time.perf_counter() - w0:.0f} s)")
 
     work = [(c, policies, cycle, duration_s, config_file) for c in cases]

@@ -130,9 +130,9 @@ class FluxInput:
         """Accumulate an accepted frame (clock time ``t``); other frames are ignored; never raises."""
         fx = self.config
         if frame.name == fx.frame:
-            cols, names = (0, 1), (fx.u_d, fx.u_q)
+            cols, names = (0, 1), (fx.voltage_d, fx.voltage_q)
         elif frame.name == fx.currents_frame:
-            cols, names = (2, 3), (fx.i_d, fx.i_q)
+            cols, names = (2, 3), (fx.current_d, fx.current_q)
         else:
             return
         try:

@@ -254,13 +254,13 @@ class _LiveCollector(Collector):
                 yield refused
                 yield CounterMetricFamily(P + "flux_used", "Flux-linkage estimates of the magnet fused into the observer",
                                           value=fx.counts.get("used", 0))
-                last = fx.last
-                if last is not None and math.isfinite(last.estimate_c):
+                flux_last = fx.last
+                if flux_last is not None and math.isfinite(flux_last.estimate_c):
                     yield GaugeMetricFamily(P + "flux_magnet_celsius", "Magnet temperature from the inverter's voltages "
-                                            "(last tick that computed one)", value=last.estimate_c)
-                    if math.isfinite(last.sigma_k):
+                                            "(last tick that computed one)", value=flux_last.estimate_c)
+                    if math.isfinite(flux_last.sigma_k):
                         yield GaugeMetricFamily(P + "flux_magnet_stddev_celsius", "Standard deviation of that estimate",
-                                                value=last.sigma_k)
+                                                value=flux_last.sigma_k)
                 mg = out.magnet if out is not None else None
                 if mg is not None and math.isfinite(mg.upper_c - mg.estimate_c):
                     yield GaugeMetricFamily(P + "magnet_band_celsius", "Width of the magnet's 95 % band above its "

@@ -1,8 +1,8 @@
 """Commissioning of the flux-linkage estimate on the simulated machine: what a test-bench run with
 a rotor telemetry gives on the real one.
 
-The plant runs a drive cycle open loop (:func:`.plant.simulate_plant`); the simulated inverter's
-electrical side (:class:`.pmsm.Pmsm`) gives the dq voltages from the plant's true winding and
+The plant runs a drive cycle open loop (:func:`..sim.plant.simulate_plant`); the simulated inverter's
+electrical side (:class:`..sim.pmsm.Pmsm`) gives the dq voltages from the plant's true winding and
 magnet temperatures; :func:`~thermal_edge.estimation.flux.fit_flux_model` fits the estimator on
 them with the magnet's true temperature as the measured one. The result is what
 ``thermal-edge flux calibrate`` writes (:meth:`~thermal_edge.estimation.flux.FluxModel.as_dict`).
@@ -17,9 +17,9 @@ import numpy as np
 
 from ..estimation.flux import Electrical, FluxModel, fit_flux_model
 from ..lptn import DEFAULT_COLUMNS, Model, Role
-from .cycles import SPEED, cycle_run, load_cycle
-from .plant import simulate_plant
-from .pmsm import Pmsm
+from ..sim.cycles import SPEED, cycle_run, load_cycle
+from ..sim.plant import simulate_plant
+from ..sim.pmsm import Pmsm
 
 __all__ = ["commission", "miscalibrated"]
 
@@ -35,7 +35,7 @@ def commission(model: Model, pmsm: Pmsm, cycle: str | os.PathLike[str], winding_
     pmsm : Pmsm
         Its electrical side.
     cycle : path
-        The drive cycle of the run (i_d = 0 control, :mod:`.cycles`).
+        The drive cycle of the run (i_d = 0 control, :mod:`..sim.cycles`).
     winding_node, magnet_nodes
         The node whose true temperature the stator resistance has, and those whose mean the flux
         linkage has (the bench's magnet measurement).
