@@ -127,25 +127,23 @@ class FluxInput:
 
     # -- frames -------------------------------------------------------------------------------------
     def add(self, frame: DecodedFrame, t: float) -> None:
-        """Accumulate an accepted frame (clock time ``t``); other frames are ignored; never raises."""
+        """Accumulate an accepted frame (clock time ``t``); other frames are ignored; never raises.
+        The voltages and the currents may come in one frame or in two."""
         fx = self.config
-        if frame.name == fx.frame:
-            cols, names = (0, 1), (fx.voltage_d, fx.voltage_q)
-        elif frame.name == fx.currents_frame:
-            cols, names = (2, 3), (fx.current_d, fx.current_q)
-        else:
-            return
-        try:
-            vals = [float(frame.signals[n]) for n in names]
-        except (KeyError, TypeError, ValueError):
-            return
-        if not all(math.isfinite(v) for v in vals):
-            return
-        for c, v in zip(cols, vals):
-            self._sum[c] += v
-            self._n[c] += 1
-        if cols[0] == 0:
-            self._last_u_t = t
+        for first, frame_name, names in ((0, fx.frame, (fx.voltage_d, fx.voltage_q)),
+                                         (2, fx.currents_frame, (fx.current_d, fx.current_q))):
+            if frame.name != frame_name:
+                continue
+            try:
+                vals = [float(frame.signals[n]) for n in names]
+            except (KeyError, TypeError, ValueError):
+                continue
+            if not all(math.isfinite(v) for v in vals):
+                continue
+            self._sum[first:first + 2] += vals
+            self._n[first:first + 2] += 1
+            if first == 0:
+                self._last_u_t = t
 
     def reset(self) -> None:
         """Forget the tick's sums and the last speed (after a gap in the frames)."""
