@@ -509,8 +509,11 @@ class ProtectionResult:
     case_docs: dict[str, str] = field(default_factory=dict)
     min_oracle_share_pct: float | None = None  #: thermal_edge's worst share of the oracle
     total_seconds_over_max: float | None = None  #: thermal_edge's, over all cases
-    min_oracle_share_voltages_pct: float | None = None  #: thermal_edge_voltages' worst share of the oracle
+    #: thermal_edge_voltages' worst share of the oracle, over the cases calibrated right
+    min_oracle_share_voltages_pct: float | None = None
     total_seconds_over_max_voltages: float | None = None  #: thermal_edge_voltages', over all cases
+    #: the cases whose electrical calibration is wrong on purpose: their share is not a target
+    miscalibrated_cases: list[str] = field(default_factory=list)
     totals: dict[str, dict[str, float]] = field(default_factory=dict)  #: policy -> seconds over max
     wall_s: float = 0.0
 
@@ -572,10 +575,12 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
     if te_all:
         res.min_oracle_share_pct = min(f["oracle_share_pct"] for f in te_all)
         res.total_seconds_over_max = sum(f["seconds_over_max"] for f in te_all)
-    tv_all = [c["thermal_edge_voltages"] for c in res.cases.values() if "thermal_edge_voltages" in c]
+    res.miscalibrated_cases = [c.name for c in cases if c.flux_miscalibrated]
+    tv_all = {name: c["thermal_edge_voltages"] for name, c in res.cases.items() if "thermal_edge_voltages" in c}
     if tv_all:
-        res.min_oracle_share_voltages_pct = min(f["oracle_share_pct"] for f in tv_all)
-        res.total_seconds_over_max_voltages = sum(f["seconds_over_max"] for f in tv_all)
+        right = [f["oracle_share_pct"] for name, f in tv_all.items() if name not in res.miscalibrated_cases]
+        res.min_oracle_share_voltages_pct = min(right) if right else None
+        res.total_seconds_over_max_voltages = sum(f["seconds_over_max"] for f in tv_all.values())
     res.totals = {p: {"seconds_over_max": sum(c[p]["seconds_over_max"] for c in res.cases.values() if p in c)}
                   for p in policies}
     res.wall_s = time.perf_counter() - w0

@@ -421,10 +421,19 @@ def run_protection(args: argparse.Namespace) -> int:
     if r.min_oracle_share_pct is not None:
         print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
               f"seconds over max {r.total_seconds_over_max:g} (target 0)")
-    if r.min_oracle_share_voltages_pct is not None:
+    if r.total_seconds_over_max_voltages is not None:
         print(table(protection.SIDE_BY_SIDE_HEADERS, protection.side_by_side_rows(r)))
-        print(f"thermal_edge with the voltage frame: min share of the oracle {r.min_oracle_share_voltages_pct:.1f} % "
-              f"(target >= 97), seconds over max {r.total_seconds_over_max_voltages:g} (target 0)")
+        share = (f"min share of the oracle {r.min_oracle_share_voltages_pct:.1f} % (target >= 97), "
+                 if r.min_oracle_share_voltages_pct is not None else "")
+        print(f"thermal_edge with the voltage frame: {share}seconds over max {r.total_seconds_over_max_voltages:g} "
+              "(target 0, every case)")
+        for name in r.miscalibrated_cases:
+            tv = r.cases.get(name, {}).get("thermal_edge_voltages")
+            if tv is not None:
+                flux = tv.get("flux", {})
+                print(f"{name} (the electrical calibration wrong on purpose): {tv['oracle_share_pct']:.1f} % of the oracle, "
+                      f"{tv['seconds_over_max']:g} s over max; the disagreement check refused {flux.get('disagreement', 0)} "
+                      f"of {sum(flux.values())} ticks")
     for line in protection.verdicts(r):
         print(line)
     return 0
