@@ -226,3 +226,20 @@ def test_bench_with_the_voltage_frame_and_with_a_wrong_calibration():
     bad = P.run_case(P.CASES["electrical_wrong"], policies=("thermal_edge_voltages",))["thermal_edge_voltages"]
     assert bad["seconds_over_max"] == 0.0
     assert bad["flux"]["disagreement"] > 100
+
+
+def test_the_bench_table_puts_both_runs_side_by_side():
+    """One row per case: without and with the voltage frame beside the PT100 rule and I²t, and the
+    flux ticks used / refused (counted here from the figures)."""
+    def fig(share: float, over: float, **extra) -> dict:
+        return {"oracle_share_pct": share, "seconds_over_max": over, **extra}
+
+    res = P.ProtectionResult("protection.yaml", None, list(P.POLICIES), 10.0, {}, cases={
+        "nominal": {"thermal_edge": fig(95.5, 0), "thermal_edge_voltages": fig(99.6, 0, flux={"used": 70, "transient": 3}),
+                    "pt100_linear": fig(98.4, 0), "i2t": fig(76.7, 0), "oracle": fig(100, 0)},
+        "electrical_wrong": {"thermal_edge": fig(95.5, 0), "pt100_linear": fig(98.4, 0), "i2t": fig(76.7, 0),
+                             "thermal_edge_voltages": fig(94.8, 0, flux={"used": 10, "disagreement": 50, "stale": 2})}})
+    rows = P.side_by_side_rows(res)
+    assert rows == [["nominal", "95.5 / 0", "99.6 / 0", "98.4 / 0", "76.7 / 0", "70 / 0"],
+                    ["electrical_wrong", "95.5 / 0", "94.8 / 0", "98.4 / 0", "76.7 / 0", "10 / 52"]]
+    assert len(P.SIDE_BY_SIDE_HEADERS) == len(rows[0])
