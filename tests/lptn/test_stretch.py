@@ -16,11 +16,12 @@ from thermal_edge.lptn import Simulator, simulate, stretch
 
 
 def _loop(mu, f, x0, G, E, D):
+    """The recursion step by step; ``f`` (n, c, L), the states (n, c, L)."""
     x, out = x0, []
-    for k in range(f.shape[1]):
-        x = mu[:, None] * x + f[:, k] + G @ (D[k] @ (E @ x))
+    for k in range(f.shape[2]):
+        x = mu[:, None] * x + f[:, :, k] + G @ (D[k] @ (E @ x))
         out.append(x)
-    return np.stack(out, axis=1)
+    return np.stack(out, axis=2)
 
 
 @pytest.mark.parametrize("L", [1, 5, 16, 17, 100, 333])
@@ -28,7 +29,7 @@ def test_modal_scan_is_the_recursion(L):
     rng = np.random.default_rng(L)
     n, c = 7, 3
     mu = np.concatenate([[0.0, 1e-200, 0.9999999], rng.uniform(0.0, 1.0, n - 3)])
-    f, x0 = rng.standard_normal((n, L, c)), rng.standard_normal((n, c))
+    f, x0 = rng.standard_normal((n, c, L)), rng.standard_normal((n, c))
     ref = _loop(mu, f, x0, np.zeros((n, 1)), np.zeros((1, n)), np.zeros((L, 1, 1)))
     np.testing.assert_allclose(stretch.modal_scan(mu, f, x0), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
@@ -39,7 +40,7 @@ def test_solve_stretch_with_time_varying_feedback(L):
     rng = np.random.default_rng(L)
     n, c, nl, ntv = 9, 4, 3, 2
     mu = rng.uniform(0.0, 0.999, n)
-    f, x0 = rng.standard_normal((n, L, c)), rng.standard_normal((n, c))
+    f, x0 = rng.standard_normal((n, c, L)), rng.standard_normal((n, c))
     G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
     D = (rng.uniform(0.5, 1.5, (L, 1, 1)) * rng.standard_normal((1, nl, ntv))
          + rng.uniform(0.5, 1.5, (L, 1, 1)) ** 2 * rng.standard_normal((1, nl, ntv))) * 0.1
@@ -48,7 +49,7 @@ def test_solve_stretch_with_time_varying_feedback(L):
     rows, end = stretch.solve_stretch(mu, f, x0, G, E, D, W)
     want = np.tensordot(W, ref, axes=1)
     np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
-    np.testing.assert_allclose(end, ref[:, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
 def _noisy(inputs, seed=0, rel=1e-3):
@@ -62,13 +63,13 @@ def _noisy(inputs, seed=0, rel=1e-3):
 def count_stretches(monkeypatch):
     """Steps run vectorised (the simulator's and the sensitivities' stretches alike)."""
     steps: list[int] = []
-    real = stretch.solve_stretch
+    real = stretch.Stretch.solve
 
-    def counted(mu, f, *a, **k):
-        steps.append(f.shape[1])
-        return real(mu, f, *a, **k)
+    def counted(self, f, *a, **k):
+        steps.append(f.shape[2])
+        return real(self, f, *a, **k)
 
-    monkeypatch.setattr(stretch, "solve_stretch", counted)
+    monkeypatch.setattr(stretch.Stretch, "solve", counted)
     return steps
 
 

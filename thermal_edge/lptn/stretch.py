@@ -41,151 +41,205 @@ BLOCK = 16
 TIME_BLOCK = 16
 #: terms of the feedback's time series below this fraction of the largest are round-off
 RANK_TOL = 1e-15
+#: powers ``μ^i`` below this are set to zero: they are far below round-off of any term, and
+#: subnormal numbers would slow every product they enter by an order of magnitude
+TINY = 1e-280
+
+
+def powers(mu: np.ndarray, B: int) -> np.ndarray:
+    """``μ^i`` (n, B+1) for ``i = 0 .. B``, those below :data:`TINY` set to zero."""
+    with np.errstate(under="ignore"):
+        pw = mu[:, None] ** np.arange(B + 1)
+    pw[pw < TINY] = 0.0
+    return pw
 
 
 def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """``x[k+1] = μ ∘ x[k] + f[k]``, ``k = 0 .. L−1``, for all modes and columns at once.
 
     In blocks of :data:`BLOCK` steps: inside a block, each mode's response to the block's
-    forcing is one product with the lower-triangular Toeplitz matrix of ``μ^(i−l)`` (a batched
-    matrix product); the states at the block starts follow the same recursion with ``μ^BLOCK``
-    over the blocks' end values (this function, one level up).
+    forcing is one product with the lower-triangular Toeplitz matrix of ``μ^(i−l)`` (one matrix
+    product per mode over all blocks and columns, time being the last axis); the states at the
+    block starts follow the same recursion with ``μ^BLOCK`` over the blocks' end values (this
+    function, one level up).
 
     Parameters
     ----------
     mu : ndarray (n,)
         Eigenvalues of the transition (dimensionless, in [0, 1)).
-    f : ndarray (n, L, c)
-        Forcing per mode, step and column (the units of ``x``).
+    f : ndarray (n, c, L)
+        Forcing per mode, column and step (the units of ``x``).
     x0 : ndarray (n, c)
         State at the stretch's first step.
 
     Returns
     -------
-    ndarray (n, L, c)
+    ndarray (n, c, L)
         ``x[1] .. x[L]``.
     """
-    n, L, c = f.shape
+    n, c, L = f.shape
     B = BLOCK if L > BLOCK else L
     nb = -(-L // B)
     if nb * B != L:
-        f = np.concatenate([f, np.zeros((n, nb * B - L, c))], axis=1)
-    with np.errstate(under="ignore"):
-        pw = mu[:, None] ** np.arange(B + 1)  # (n, B+1), integer powers
+        f = np.concatenate([f, np.zeros((n, c, nb * B - L))], axis=2)
+    pw = powers(mu, B)
     i = np.arange(B)
-    lag = i[:, None] - i[None, :]
+    lag = i[None, :] - i[:, None]  # (l, i): the response at step i of the block to its input l
     toep = np.where(lag >= 0, pw[:, np.maximum(lag, 0)], 0.0)  # (n, B, B)
-    inner = np.matmul(toep[:, None], f.reshape(n, nb, B, c))  # zero-state response in each block
+    F = f.reshape(n, c * nb, B)
+    out = np.matmul(F, toep)  # zero-state response inside each block
     if nb == 1:
-        starts = x0[:, None]
+        out += x0[:, :, None] * pw[:, None, 1:]
     else:
-        ends = modal_scan(pw[:, B], np.ascontiguousarray(inner[:, :-1, B - 1]), x0)
-        starts = np.concatenate([x0[:, None], ends], axis=1)  # (n, nb, c)
-    inner += pw[:, None, 1:, None] * starts[:, :, None]
-    out: np.ndarray = inner.reshape(n, nb * B, c)[:, :L]
-    return out
+        ends = out[:, :, B - 1].reshape(n, c, nb)[:, :, :-1]
+        starts = np.empty((n, c, nb))
+        starts[:, :, 0] = x0
+        starts[:, :, 1:] = modal_scan(pw[:, B], ends, x0)
+        out += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
+    res: np.ndarray = out.reshape(n, c, nb * B)[:, :, :L]
+    return res
 
 
-def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
-                  D: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+class Stretch:
     """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch (see the module docstring).
+
+    What depends on the feedback only (its rank, the blocks' triangular matrices) is built once
+    and serves every :meth:`solve` (the simulation's temperatures and the sensitivities).
 
     Parameters
     ----------
-    mu, f, x0 : see :func:`modal_scan`.
+    mu : ndarray (n,)
+        Eigenvalues of the transition (dimensionless, in [0, 1)).
     G : ndarray (n, nl)
         ``V⁻¹ Γ_P``: how each loss source enters the modes.
     E : ndarray (ntv, n)
         ``V[tv]``: the loss nodes' temperatures from the modes.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step (W/K).
-    W : ndarray (nr, n)
-        The rows wanted at every step, from the modes.
+    """
+
+    def __init__(self, mu: np.ndarray, G: np.ndarray, E: np.ndarray, D: np.ndarray) -> None:
+        self.mu, self.E, self.L = np.maximum(mu, 0.0), E, D.shape[0]
+        n, ntv, L = len(mu), E.shape[0], D.shape[0]
+        D2 = D.reshape(L, -1)
+        cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
+        self.r = 0
+        if not len(cols):
+            return
+        U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
+        r = self.r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
+        Wfull = np.zeros((r, D2.shape[1]))
+        Wfull[:, cols] = Wt[:r]
+        GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
+        B = TIME_BLOCK
+        nblk = self.nblk = -(-L // B)
+        sp = np.zeros((nblk * B, r))
+        sp[:L] = U_[:, :r] * sv[:r]
+        pw = powers(self.mu, B).T  # (B+1, n)
+        i = np.arange(B)
+        lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
+        below = lag >= 0
+        # every block's unit lower-triangular system for its loss-node values (blk, B ntv, B ntv):
+        # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
+        K = (E[None] * pw[:B, None, :]) @ GC  # (B, ntv, r ntv): E diag(μ^m) G C
+        He = np.where(below[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
+        He = He.reshape(B, ntv, B, r, ntv)
+        spb = sp.reshape(nblk, B, r)
+        A = -np.einsum("ialgb,jlg->jialb", He, spb, optimize=True) if r > 1 else \
+            -(He[None, :, :, :, 0] * spb[:, None, None, :, 0, None])
+        A = A.reshape(nblk, B * ntv, B * ntv)
+        A += np.eye(B * ntv)
+        self.At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
+        self.Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
+        # each block's carry from its loss-node values: Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
+        Rl = (pw[B - 1:: -1][:B, :, None] * GC[None]).reshape(B, n, r, ntv).transpose(2, 1, 0, 3)  # (ρ, n, l, b)
+        Rj = Rl[0][None] * spb[:, None, :, 0, None]
+        for k in range(1, r):
+            Rj += Rl[k][None] * spb[:, None, :, k, None]
+        self.Rj = Rj.reshape(nblk, n, B * ntv)
+        self.muB = pw[B][:, None]
+        self.pw, self.GC, self.spb = pw, GC, spb
+
+    def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The recursion from ``x[0] = x0`` under the forcing ``f``.
+
+        Parameters
+        ----------
+        f : ndarray (n, c, L)
+            Forcing per mode, column and step.
+        x0 : ndarray (n, c)
+            State at the stretch's first step.
+        W : ndarray (nr, n)
+            The rows wanted at every step, from the modes.
+
+        Returns
+        -------
+        rows : ndarray (nr, c, L)
+            ``W x[1] .. W x[L]``.
+        end : ndarray (n, c)
+            ``x[L]``.
+        """
+        n, c, L = f.shape
+        mu, E = self.mu, self.E
+        ntv, nr = E.shape[0], W.shape[0]
+        x = modal_scan(mu, f, x0)
+        rows = (W @ x.reshape(n, -1) if x.flags.c_contiguous else np.tensordot(W, x, axes=1)).reshape(nr, c, L)
+        end = x[:, :, -1].copy()
+        if not self.r:
+            return rows, end
+        B, nblk, r, pw = TIME_BLOCK, self.nblk, self.r, self.pw
+        m = r * ntv
+        # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, padded to whole blocks
+        y0 = np.zeros((nblk * B, ntv, c))
+        y0[0] = E @ x0
+        y0[1:L] = (E @ x[:, :, : L - 1].reshape(n, -1) if x.flags.c_contiguous
+                   else np.tensordot(E, x[:, :, : L - 1], axes=1)).reshape(ntv, c, L - 1).transpose(2, 0, 1)
+        At, Ep, Rj, muB = self.At, self.Ep, self.Rj, self.muB
+        qs = np.zeros((nblk + 1, n, c))  # feedback modal state at each block's start (and the end)
+        Y = np.empty((nblk, B * ntv, c))
+        rhs0 = y0.reshape(nblk, B * ntv, c)
+        rhs = np.empty((B * ntv, c))
+        carry = np.empty((n, c))
+        for j in range(nblk):
+            np.matmul(Ep, qs[j], out=rhs)
+            rhs += rhs0[j]
+            Yj = Y[j] = dtrtrs(At[j], rhs, lower=0, trans=1, unitdiag=1)[0]
+            np.matmul(Rj[j], Yj, out=carry)
+            np.multiply(muB, qs[j], out=qs[j + 1])
+            qs[j + 1] += carry
+        z = (self.spb[:, :, :, None, None] * Y.reshape(nblk, B, 1, ntv, c)).reshape(nblk, B * m, c)
+        # the feedback's part of the wanted rows: from each block's start state and inside the block
+        Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
+        fb = (Wp @ qs[:nblk].transpose(1, 0, 2).reshape(n, nblk * c)).reshape(B, nr, nblk, c)
+        fb += (_inputs_to_rows(W, pw, self.GC, B) @ z.transpose(1, 0, 2).reshape(B * m, nblk * c)).reshape(B, nr, nblk, c)
+        rows += fb.transpose(1, 3, 2, 0).reshape(nr, c, nblk * B)[:, :, :L]
+        if nblk * B == L:
+            end_fb = qs[nblk]
+        else:  # the last block is partial: its state at step L from its start and its inputs
+            last = L - (nblk - 1) * B
+            zl = z[-1].reshape(B, m, c)[:last]
+            carry_l = pw[last - 1:: -1][:last, :, None] * self.GC[None]  # diag(μ^(last−1−l)) G C
+            end_fb = pw[last][:, None] * qs[nblk - 1] + np.tensordot(carry_l, zl, axes=([0, 2], [0, 1]))
+        return rows, end + end_fb
+
+
+def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
+                  D: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch: :meth:`Stretch.solve` once.
+
+    Parameters
+    ----------
+    mu, G, E, D : see :class:`Stretch`.
+    f, x0, W : see :meth:`Stretch.solve`.
 
     Returns
     -------
-    rows : ndarray (nr, L, c)
+    rows : ndarray (nr, c, L)
         ``W x[1] .. W x[L]``.
     end : ndarray (n, c)
         ``x[L]``.
     """
-    n, L, c = f.shape
-    ntv, nr = E.shape[0], W.shape[0]
-    x = modal_scan(mu, f, x0)
-    rows = np.tensordot(W, x, axes=1)
-    end = x[:, -1].copy()
-    D2 = D.reshape(L, -1)
-    cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
-    if not len(cols):
-        return rows, end
-    U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
-    r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
-    Wfull = np.zeros((r, D2.shape[1]))
-    Wfull[:, cols] = Wt[:r]
-    GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
-    B = TIME_BLOCK
-    nblk = -(-L // B)
-    m = r * ntv
-    # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, and s[k, ρ], padded to whole blocks
-    y0 = np.zeros((nblk * B, ntv, c))
-    y0[0] = E @ x0
-    y0[1:L] = np.tensordot(E, x[:, : L - 1], axes=1).transpose(1, 0, 2)
-    sp = np.zeros((nblk * B, r))
-    sp[:L] = U_[:, :r] * sv[:r]
-    with np.errstate(under="ignore"):
-        pw = mu[None, :] ** np.arange(B + 1)[:, None]  # (B+1, n)
-    i = np.arange(B)
-    lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
-    below = lag >= 0
-
-    def toeplitz(P: np.ndarray) -> np.ndarray:
-        """``P diag(μ^(i−1−l)) G C`` for l < i, as (i, a, l, q) from ``P`` (a, n)."""
-        K = (P[None] * pw[:B, None, :]) @ GC  # (B, a, q)
-        return np.where(below[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
-
-    # every block's unit lower-triangular system for its loss-node values, at once (blk, B ntv, B ntv):
-    # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
-    He = toeplitz(E).reshape(B, ntv, B, r, ntv)
-    spb = sp.reshape(nblk, B, r)
-    A = np.zeros((nblk, B, ntv, B, ntv))
-    for k in range(r):
-        A -= He[None, :, :, :, k] * spb[:, None, None, :, k, None]
-    A = A.reshape(nblk, B * ntv, B * ntv)
-    A += np.eye(B * ntv)
-    At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
-    Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
-    # each block's carry from its loss-node values: Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
-    Rl = (pw[B - 1:: -1][:B, :, None] * GC[None]).reshape(B, n, r, ntv)  # (l, n, ρ, b)
-    Rj = np.zeros((nblk, n, B, ntv))
-    Rl = Rl.transpose(2, 1, 0, 3)  # (ρ, n, l, b)
-    for k in range(r):
-        Rj += Rl[k][None] * spb[:, None, :, k, None]
-    Rj = Rj.reshape(nblk, n, B * ntv)
-    muB = pw[B][:, None]
-    q = np.zeros((n, c))
-    qs = np.empty((nblk, n, c))  # feedback modal state at each block's start
-    Y = np.empty((nblk, B * ntv, c))
-    rhs0 = y0.reshape(nblk, B * ntv, c)
-    rhs = np.empty((B * ntv, c))
-    for j in range(nblk):
-        qs[j] = q
-        np.matmul(Ep, q, out=rhs)
-        rhs += rhs0[j]
-        Y[j] = dtrtrs(At[j], rhs, lower=0, trans=1, unitdiag=1)[0]
-        q = muB * q + Rj[j] @ Y[j]
-    z = (spb[:, :, :, None, None] * Y.reshape(nblk, B, 1, ntv, c)).reshape(nblk, B * m, c)
-    # the feedback's part of the wanted rows: from each block's start state and inside the block
-    Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
-    fb = (Wp @ qs.transpose(1, 0, 2).reshape(n, nblk * c)).reshape(B, nr, nblk, c)
-    fb += (_inputs_to_rows(W, pw, GC, B) @ z.transpose(1, 0, 2).reshape(B * m, nblk * c)).reshape(B, nr, nblk, c)
-    rows += fb.transpose(1, 2, 0, 3).reshape(nr, nblk * B, c)[:, :L]
-    end_fb = q if nblk * B == L else None
-    if end_fb is None:  # the last block is partial: its state at step L from its start and its inputs
-        last = L - (nblk - 1) * B
-        zl = z[-1].reshape(B, m, c)[:last]
-        carry = pw[last - 1:: -1][:last, :, None] * GC[None]  # diag(μ^(last−1−l)) G C
-        end_fb = pw[last][:, None] * qs[-1] + np.tensordot(carry, zl, axes=([0, 2], [0, 1]))
-    return rows, end + end_fb
+    return Stretch(mu, G, E, D).solve(f, x0, W)
 
 
 def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np.ndarray:
@@ -198,10 +252,8 @@ def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np
     return full.reshape(B * W.shape[0], B * GC.shape[1])
 
 
-def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
-                forcing: Callable[[], np.ndarray], x0: np.ndarray, D: np.ndarray,
-                keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A stretch of ``x[k+1] = (Φ + Γ_P D[k] E_tv) x[k] + V f[k]`` at one operating point.
+class NodeStretch:
+    """A stretch at one operating point in node coordinates: ``x[k+1] = (Φ + Γ_P D[k] E_tv) x[k] + V f[k]``.
 
     Parameters
     ----------
@@ -213,25 +265,37 @@ def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, t
         ``Γ_P``, K/W.
     tv : ndarray of int (ntv,)
         Nodes whose temperatures the loss laws read.
-    forcing : callable
-        ``forcing()``: the forcing (n, L, c) of every step in the modal basis of ``Φ``.
-    x0 : ndarray (n, c)
-        State in node coordinates at the stretch's start.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step, W/K.
-    keep : ndarray of int, optional
-        The nodes wanted at every step (default all).
-
-    Returns
-    -------
-    rows : ndarray (L, len(keep), c)
-        ``x[1] .. x[L]`` at the ``keep`` nodes.
-    end : ndarray (n, c)
-        ``x[L]`` at every node.
     """
-    W = V if keep is None else V[keep]
-    rows, end = solve_stretch(np.maximum(mu, 0.0), forcing(), Vi @ x0, Vi @ GP, V[tv], D, W)
-    return rows.transpose(1, 0, 2), V @ end
+
+    def __init__(self, V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
+                 D: np.ndarray) -> None:
+        self.V, self.Vi = V, Vi
+        self.core = Stretch(mu, Vi @ GP, V[tv], D)
+
+    def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The stretch from ``x0``.
+
+        Parameters
+        ----------
+        f : ndarray (n, c, L)
+            The forcing of every step in the modal basis of ``Φ``.
+        x0 : ndarray (n, c)
+            State in node coordinates at the stretch's start.
+        keep : ndarray of int, optional
+            The nodes wanted at every step (default all).
+
+        Returns
+        -------
+        rows : ndarray (len(keep), c, L)
+            ``x[1] .. x[L]`` at the ``keep`` nodes.
+        end : ndarray (n, c)
+            ``x[L]`` at every node.
+        """
+        W = self.V if keep is None else self.V[keep]
+        rows, end = self.core.solve(f, self.Vi @ x0, W)
+        return rows, self.V @ end
 
 
 def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH) -> list[tuple[int, int]]:
