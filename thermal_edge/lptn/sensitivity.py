@@ -34,7 +34,7 @@ import numpy as np
 
 from .discretise import DiscreteDerivatives
 from .expr import Value
-from .stretch import NodeStretch
+from .stretch import NodeStretch, padded_length
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -202,15 +202,16 @@ class Sensitivities:
             V, Vi = d.basis(o)
             ns = NodeStretch(V, Vi, d.mu[o], d.Gam[o][:, self.nb:], self.loss_nodes, self.slopes[a:b])
         w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
-        X = self.stretch_forcing(o, self.T[a:b], w, self.loss_theta(np.arange(a, b), self.T[a:b]))
+        X = self.stretch_forcing(o, self.T[a:b], w, self.loss_theta(np.arange(a, b), self.T[a:b]), padded_length(b - a))
         rows, end = ns.solve(X, s, keep)
         out[:] = rows.transpose(2, 0, 1)
         return end
 
-    def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray) -> np.ndarray:
-        """``V⁻¹ (dΦ_j T_i + dΓ_j w_i + Γ_P ∂P/∂θ_j)`` as (n, p, B) (time last, for
-        :meth:`~thermal_edge.lptn.stretch.Stretch.solve`) for temperatures ``T`` (B, n), inputs
-        ``w`` (B, m) of ``Γ`` and the losses' derivatives ``dP`` (B, nl, p) at operating point ``o``.
+    def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray, Lp: int | None = None) -> np.ndarray:
+        """``V⁻¹ (dΦ_j T_i + dΓ_j w_i + Γ_P ∂P/∂θ_j)`` as (n, p, Lp) (time last, for
+        :meth:`~thermal_edge.lptn.stretch.Stretch.solve`; zero past the ``B`` steps, ``Lp ≥ B``,
+        default ``B``) for temperatures ``T`` (B, n), inputs ``w`` (B, m) of ``Γ`` and the
+        losses' derivatives ``dP`` (B, nl, p) at operating point ``o``.
 
         With ``y = V⁻¹ T + Ht w`` and ``v = Yt w`` the forcing is ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``
         (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.forcing`): one product of the
@@ -232,16 +233,18 @@ class Sensitivities:
             self._joined[o] = (np.ascontiguousarray(d.dphit(o).transpose(1, 0, 2)).reshape(n * p, n), live_e, edges, lows)
         J, live_e, edges, lows = self._joined[o]
         _, Vi = d.basis(o)
+        Lp = B if Lp is None else Lp
         wT = w.T
-        y = Vi @ T.T
-        y += d.Ht[o] @ wT
-        X = (J @ y).reshape(n, p, B)
+        y = np.zeros((n, Lp))
+        np.matmul(Vi, T.T, out=y[:, :B])
+        y[:, :B] += d.Ht[o] @ wT
+        X = (J @ y).reshape(n, p, Lp)
         v = d.Yt[o] @ wT  # (e, B)
-        X[:, live_e] += np.matmul(lows, v[edges]).transpose(1, 0, 2)
+        X[:, live_e, :B] += np.matmul(lows, v[edges]).transpose(1, 0, 2)
         live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters
         if len(live):  # V⁻¹ Γ_P ∂P/∂θ
             GPt = Vi @ d.Gam[o][:, self.nb:]
-            X[:, live] += (GPt @ dP[:, :, live].transpose(1, 2, 0).reshape(dP.shape[1], -1)).reshape(n, len(live), B)
+            X[:, live, :B] += (GPt @ dP[:, :, live].transpose(1, 2, 0).reshape(dP.shape[1], -1)).reshape(n, len(live), B)
         return X
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:

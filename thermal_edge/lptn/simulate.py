@@ -27,7 +27,7 @@ from .losses import LossLaws
 from .model import Model
 from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
-from .stretch import NodeStretch, covered, stretches, varying_steps
+from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +235,9 @@ class Simulator:
             o = int(ops[a])
             V, Vi = d.basis(o)
             ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
-            Ta, _ = ns.solve((Vi @ f[a:b].T)[:, None, :], T[a][:, None])
+            fm = np.zeros((n, 1, padded_length(b - a)))
+            np.matmul(Vi, f[a:b].T, out=fm[:, 0, : b - a])
+            Ta, _ = ns.solve(fm, T[a][:, None])
             T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)

@@ -35,10 +35,9 @@ from scipy.linalg.lapack import dtrtrs
 
 #: shortest stretch of one operating point run vectorised (its set-up costs about this many steps)
 MIN_STRETCH = 32
-#: steps per block of :func:`modal_scan` (its flops grow with it, its passes over the blocks shrink)
+#: steps per block, of the open-loop scan and of the loss nodes' triangular solve alike (the
+#: scan's flops grow with it, the passes over the blocks shrink)
 BLOCK = 16
-#: steps per block of the loss nodes' triangular solve
-TIME_BLOCK = 16
 #: terms of the feedback's time series below this fraction of the largest are round-off
 RANK_TOL = 1e-15
 #: powers ``μ^i`` below this are set to zero: they are far below round-off of any term, and
@@ -52,6 +51,19 @@ def powers(mu: np.ndarray, B: int) -> np.ndarray:
         pw = mu[:, None] ** np.arange(B + 1)
     pw[pw < TINY] = 0.0
     return pw
+
+
+def padded_length(L: int) -> int:
+    """The stretch's length rounded up to whole blocks: the time axis :meth:`Stretch.solve` wants."""
+    return L if L <= BLOCK else -(-L // BLOCK) * BLOCK
+
+
+def _toeplitz(pw: np.ndarray, B: int) -> np.ndarray:
+    """``μ^(i−l)`` for ``i ≥ l`` (else 0) per mode, as (n, l, i)."""
+    i = np.arange(B)
+    lag = i[None, :] - i[:, None]
+    out: np.ndarray = np.where(lag >= 0, pw[:, np.maximum(lag, 0)], 0.0)
+    return out
 
 
 def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
@@ -83,21 +95,64 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
     if nb * B != L:
         f = np.concatenate([f, np.zeros((n, c, nb * B - L))], axis=2)
     pw = powers(mu, B)
-    i = np.arange(B)
-    lag = i[None, :] - i[:, None]  # (l, i): the response at step i of the block to its input l
-    toep = np.where(lag >= 0, pw[:, np.maximum(lag, 0)], 0.0)  # (n, B, B)
-    F = f.reshape(n, c * nb, B)
-    out = np.matmul(F, toep)  # zero-state response inside each block
-    if nb == 1:
-        out += x0[:, :, None] * pw[:, None, 1:]
-    else:
-        ends = out[:, :, B - 1].reshape(n, c, nb)[:, :, :-1]
-        starts = np.empty((n, c, nb))
-        starts[:, :, 0] = x0
-        starts[:, :, 1:] = modal_scan(pw[:, B], ends, x0)
-        out += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
+    out = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
+    starts = _block_starts(pw, out[:, :, B - 1].reshape(n, c, nb), x0)
+    out += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
     res: np.ndarray = out.reshape(n, c, nb * B)[:, :, :L]
     return res
+
+
+def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """The states (n, c, nb) at the start of each block from the blocks' zero-state end values
+    ``ends`` (n, c, nb) and ``x0``: ``s[j+1] = μ^B s[j] + ends[j]``."""
+    n, c, nb = ends.shape
+    starts = np.empty((n, c, nb))
+    starts[:, :, 0] = x0
+    if nb > 1:
+        starts[:, :, 1:] = modal_scan(pw[:, -1], ends[:, :, :-1], x0)
+    return starts
+
+
+def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
+              L: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`modal_scan` seen through rows: ``R x[1] .. R x[L]`` and ``x[L]``, without the states.
+
+    The blocks' responses to their own forcing are computed for every mode (one product per
+    mode), projected on the rows in one product; the part of each block's start state goes to
+    the rows directly (``R diag(μ^(i+1))``, a small product), not through every mode and step.
+
+    Parameters
+    ----------
+    mu : ndarray (n,)
+        Eigenvalues (dimensionless, in [0, 1)).
+    f : ndarray (n, c, padded_length(L))
+        Forcing per mode, column and step, zero after step ``L``.
+    x0 : ndarray (n, c)
+        State at the first step.
+    R : ndarray (nr, n)
+        The rows wanted.
+    L : int
+        Steps.
+
+    Returns
+    -------
+    rows : ndarray (nr, c, nb, B)
+        ``R x[1] .. R x[Lp]`` in blocks (steps past ``L`` are not meaningful).
+    end : ndarray (n, c)
+        ``x[L]``.
+    """
+    n, c, Lp = f.shape
+    B = min(BLOCK, Lp)
+    nb, nr = Lp // B, R.shape[0]
+    pw = powers(mu, B)
+    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
+    starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
+    rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
+    Rp = (R[None] * pw.T[1:, None, :]).reshape(B * nr, n)  # R diag(μ^(i+1))
+    rows += (Rp @ starts.reshape(n, c * nb)).reshape(B, nr, c, nb).transpose(1, 2, 3, 0)
+    jL, iL = divmod(L - 1, B)
+    end = inner.reshape(n, c, Lp)[:, :, L - 1] + pw[:, iL + 1, None] * starts[:, :, jL]
+    return rows, end
 
 
 class Stretch:
@@ -121,6 +176,10 @@ class Stretch:
     def __init__(self, mu: np.ndarray, G: np.ndarray, E: np.ndarray, D: np.ndarray) -> None:
         self.mu, self.E, self.L = np.maximum(mu, 0.0), E, D.shape[0]
         n, ntv, L = len(mu), E.shape[0], D.shape[0]
+        self.Lp = padded_length(L)
+        B = self.B = min(BLOCK, self.Lp)
+        nblk = self.nblk = self.Lp // B
+        self.pw = powers(self.mu, B).T  # (B+1, n)
         D2 = D.reshape(L, -1)
         cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
         self.r = 0
@@ -130,43 +189,45 @@ class Stretch:
         r = self.r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
         Wfull = np.zeros((r, D2.shape[1]))
         Wfull[:, cols] = Wt[:r]
-        GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
-        B = TIME_BLOCK
-        nblk = self.nblk = -(-L // B)
+        GC = self.GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
         sp = np.zeros((nblk * B, r))
         sp[:L] = U_[:, :r] * sv[:r]
-        pw = powers(self.mu, B).T  # (B+1, n)
+        spb = self.spb = sp.reshape(nblk, B, r)
+        pw = self.pw
+        BT = B * ntv
         i = np.arange(B)
         lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
-        below = lag >= 0
         # every block's unit lower-triangular system for its loss-node values (blk, B ntv, B ntv):
         # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
         K = (E[None] * pw[:B, None, :]) @ GC  # (B, ntv, r ntv): E diag(μ^m) G C
-        He = np.where(below[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
+        He = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
         He = He.reshape(B, ntv, B, r, ntv)
-        spb = sp.reshape(nblk, B, r)
-        A = -np.einsum("ialgb,jlg->jialb", He, spb, optimize=True) if r > 1 else \
-            -(He[None, :, :, :, 0] * spb[:, None, None, :, 0, None])
-        A = A.reshape(nblk, B * ntv, B * ntv)
-        A += np.eye(B * ntv)
-        self.At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
-        self.Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
-        # each block's carry from its loss-node values: Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
-        Rl = (pw[B - 1:: -1][:B, :, None] * GC[None]).reshape(B, n, r, ntv).transpose(2, 1, 0, 3)  # (ρ, n, l, b)
-        Rj = Rl[0][None] * spb[:, None, :, 0, None]
+        A = He[None, :, :, :, 0] * -spb[:, None, None, :, 0, None]
         for k in range(1, r):
-            Rj += Rl[k][None] * spb[:, None, :, k, None]
-        self.Rj = Rj.reshape(nblk, n, B * ntv)
-        self.muB = pw[B][:, None]
-        self.pw, self.GC, self.spb = pw, GC, spb
+            A -= He[None, :, :, :, k] * spb[:, None, None, :, k, None]
+        A = A.reshape(nblk, BT, BT)
+        diag = np.arange(BT)
+        A[:, diag, diag] = 1.0  # He is strictly lower triangular in time
+        self.At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
+        # a block's right-hand side y₀ + E diag(μ^i) q, and in one product from [q; y] the next
+        # block's start μ^B q + Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
+        self.EpT = (E[None] * pw[:B, None, :]).reshape(BT, n).T.copy()  # (n, BT)
+        Rl = (pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)  # (l, ρ, b, n)
+        RA = np.empty((nblk, n + BT, n))
+        RA[:, :n] = np.diag(pw[B])
+        RAy = RA[:, n:].reshape(nblk, B, ntv, n)
+        np.multiply(Rl[None, :, 0], spb[:, :, 0, None, None], out=RAy)
+        for k in range(1, r):
+            RAy += Rl[None, :, k] * spb[:, :, k, None, None]
+        self.RA = RA
 
     def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The recursion from ``x[0] = x0`` under the forcing ``f``.
 
         Parameters
         ----------
-        f : ndarray (n, c, L)
-            Forcing per mode, column and step.
+        f : ndarray (n, c, L) or (n, c, padded_length(L))
+            Forcing per mode, column and step (zero past ``L`` when padded: cheaper, no copy).
         x0 : ndarray (n, c)
             State at the stretch's first step.
         W : ndarray (nr, n)
@@ -179,48 +240,47 @@ class Stretch:
         end : ndarray (n, c)
             ``x[L]``.
         """
-        n, c, L = f.shape
-        mu, E = self.mu, self.E
+        n, c, _ = f.shape
+        L, Lp, B, nblk = self.L, self.Lp, self.B, self.nblk
+        if f.shape[2] != Lp:
+            f = np.concatenate([f, np.zeros((n, c, Lp - f.shape[2]))], axis=2)
+        E = self.E
         ntv, nr = E.shape[0], W.shape[0]
-        x = modal_scan(mu, f, x0)
-        rows = (W @ x.reshape(n, -1) if x.flags.c_contiguous else np.tensordot(W, x, axes=1)).reshape(nr, c, L)
-        end = x[:, :, -1].copy()
         if not self.r:
-            return rows, end
-        B, nblk, r, pw = TIME_BLOCK, self.nblk, self.r, self.pw
-        m = r * ntv
-        # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, padded to whole blocks
-        y0 = np.zeros((nblk * B, ntv, c))
-        y0[0] = E @ x0
-        y0[1:L] = (E @ x[:, :, : L - 1].reshape(n, -1) if x.flags.c_contiguous
-                   else np.tensordot(E, x[:, :, : L - 1], axes=1)).reshape(ntv, c, L - 1).transpose(2, 0, 1)
-        At, Ep, Rj, muB = self.At, self.Ep, self.Rj, self.muB
-        qs = np.zeros((nblk + 1, n, c))  # feedback modal state at each block's start (and the end)
-        Y = np.empty((nblk, B * ntv, c))
-        rhs0 = y0.reshape(nblk, B * ntv, c)
-        rhs = np.empty((B * ntv, c))
-        carry = np.empty((n, c))
+            rows, end = scan_rows(self.mu, f, x0, W, L)
+            return rows.reshape(nr, c, Lp)[:, :, :L], end
+        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L)
+        rows = both[:nr]  # (nr, c, nblk, B)
+        m, BT = self.r * ntv, B * ntv
+        # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
+        y0 = np.empty((nblk, c, BT))
+        yk = np.moveaxis(y0.reshape(nblk, c, B, ntv), 2, 1)  # (nblk, B, c, ntv), a view of y0
+        ye = both[nr:].transpose(2, 3, 1, 0)  # (nblk, B, c, ntv): E x[k + 1] at k = j B + i
+        yk[0, 0] = (E @ x0).T
+        yk[:, 1:] = ye[:, :-1]
+        yk[1:, 0] = ye[:-1, -1]
+        # per block [q; y]: the feedback's modal state at its start and its loss-node values
+        Z = np.zeros((nblk + 1, c, n + BT))
+        EpT, RA, At = self.EpT, self.RA, self.At
         for j in range(nblk):
-            np.matmul(Ep, qs[j], out=rhs)
-            rhs += rhs0[j]
-            Yj = Y[j] = dtrtrs(At[j], rhs, lower=0, trans=1, unitdiag=1)[0]
-            np.matmul(Rj[j], Yj, out=carry)
-            np.multiply(muB, qs[j], out=qs[j + 1])
-            qs[j + 1] += carry
-        z = (self.spb[:, :, :, None, None] * Y.reshape(nblk, B, 1, ntv, c)).reshape(nblk, B * m, c)
+            rhs = Z[j, :, :n] @ EpT  # (c, BT): as (BT, c) in Fortran order, solved in place
+            rhs += y0[j]
+            Z[j, :, n:] = dtrtrs(At[j], rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)[0].T
+            np.matmul(Z[j], RA[j], out=Z[j + 1, :, :n])
+        qs = Z[:nblk, :, :n]  # (nblk, c, n)
+        Yb = Z[:nblk, :, n:].reshape(nblk, c, B, ntv)
+        z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
         # the feedback's part of the wanted rows: from each block's start state and inside the block
+        pw = self.pw
         Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
-        fb = (Wp @ qs[:nblk].transpose(1, 0, 2).reshape(n, nblk * c)).reshape(B, nr, nblk, c)
-        fb += (_inputs_to_rows(W, pw, self.GC, B) @ z.transpose(1, 0, 2).reshape(B * m, nblk * c)).reshape(B, nr, nblk, c)
-        rows += fb.transpose(1, 3, 2, 0).reshape(nr, c, nblk * B)[:, :, :L]
-        if nblk * B == L:
-            end_fb = qs[nblk]
-        else:  # the last block is partial: its state at step L from its start and its inputs
-            last = L - (nblk - 1) * B
-            zl = z[-1].reshape(B, m, c)[:last]
-            carry_l = pw[last - 1:: -1][:last, :, None] * self.GC[None]  # diag(μ^(last−1−l)) G C
-            end_fb = pw[last][:, None] * qs[nblk - 1] + np.tensordot(carry_l, zl, axes=([0, 2], [0, 1]))
-        return rows, end + end_fb
+        fb = Wp @ qs.reshape(nblk * c, n).T  # (B nr, nblk c)
+        fb += _inputs_to_rows(W, pw, self.GC, B) @ z.reshape(nblk * c, B * m).T
+        rows += fb.reshape(B, nr, nblk, c).transpose(1, 3, 2, 0)
+        jL, iL = divmod(L - 1, B)
+        # the state at step L: the feedback's from its block's start and the inputs of that block up to L
+        carry = pw[iL:: -1][: iL + 1, :, None] * self.GC[None]  # diag(μ^(iL−l)) G C, l = 0 .. iL
+        end_fb = pw[iL + 1][:, None] * qs[jL].T + np.tensordot(carry, z[jL].reshape(c, B, m)[:, : iL + 1], axes=([0, 2], [1, 2]))
+        return rows.reshape(nr, c, Lp)[:, :, :L], end + end_fb
 
 
 def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
