@@ -201,11 +201,12 @@ class Stretch:
         # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
         K = (E[None] * pw[:B, None, :]) @ GC  # (B, ntv, r ntv): E diag(μ^m) G C
         He = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
-        He = He.reshape(B, ntv, B, r, ntv)
-        A = He[None, :, :, :, 0] * -spb[:, None, None, :, 0, None]
+        He = -np.ascontiguousarray(He).reshape(B, ntv, B, r, ntv).transpose(3, 0, 1, 2, 4)  # (ρ, i, a, l, b)
+        A = np.empty((nblk, BT, BT))  # laid out here: a product's own layout would follow its operands'
+        A5 = A.reshape(nblk, B, ntv, B, ntv)
+        np.multiply(He[0][None], spb[:, None, None, :, 0, None], out=A5)
         for k in range(1, r):
-            A -= He[None, :, :, :, k] * spb[:, None, None, :, k, None]
-        A = A.reshape(nblk, BT, BT)
+            A5 += He[k][None] * spb[:, None, None, :, k, None]
         diag = np.arange(BT)
         A[:, diag, diag] = 1.0  # He is strictly lower triangular in time
         self.At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
