@@ -28,8 +28,6 @@ modal state ``q`` carried from block to block exactly. Then ``x = scan(f + G C z
 """
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
@@ -197,30 +195,20 @@ class Stretch:
         BT = B * ntv
         i = np.arange(B)
         lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
-        # every block's unit lower-triangular system for its loss-node values (blk, B ntv, B ntv):
-        # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
+        # each block's unit lower-triangular system for its loss-node values (B ntv unknowns):
+        # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q, the
+        # matrix −Σ_ρ H_ρ diag(s_ρ) with H_ρ the same for every block (built per block in the loop:
+        # keeping them all would hold B ntv² numbers a step, ~20 MB for 3 h)
         K = (E[None] * pw[:B, None, :]) @ GC  # (B, ntv, r ntv): E diag(μ^m) G C
         He = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
-        He = -np.ascontiguousarray(He).reshape(B, ntv, B, r, ntv).transpose(3, 0, 1, 2, 4)  # (ρ, i, a, l, b)
-        A = np.empty((nblk, BT, BT))  # laid out here: a product's own layout would follow its operands'
-        A5 = A.reshape(nblk, B, ntv, B, ntv)
-        np.multiply(He[0][None], spb[:, None, None, :, 0, None], out=A5)
-        for k in range(1, r):
-            A5 += He[k][None] * spb[:, None, None, :, k, None]
-        diag = np.arange(BT)
-        A[:, diag, diag] = 1.0  # He is strictly lower triangular in time
-        self.At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
+        self.Hneg = -np.ascontiguousarray(He.reshape(B, ntv, B, r, ntv).transpose(3, 0, 1, 2, 4)).reshape(r, BT, BT)
+        # s[l, ρ] per unknown (l, b) of each block
+        self.scol = np.ascontiguousarray(np.repeat(spb.transpose(2, 0, 1), ntv, axis=2))  # (ρ, nblk, BT)
         # a block's right-hand side y₀ + E diag(μ^i) q, and in one product from [q; y] the next
         # block's start μ^B q + Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
         self.EpT = (E[None] * pw[:B, None, :]).reshape(BT, n).T.copy()  # (n, BT)
-        Rl = (pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)  # (l, ρ, b, n)
-        RA = np.empty((nblk, n + BT, n))
-        RA[:, :n] = np.diag(pw[B])
-        RAy = RA[:, n:].reshape(nblk, B, ntv, n)
-        np.multiply(Rl[None, :, 0], spb[:, :, 0, None, None], out=RAy)
-        for k in range(1, r):
-            RAy += Rl[None, :, k] * spb[:, :, k, None, None]
-        self.RA = RA
+        self.Rl = np.ascontiguousarray((pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)
+                                       .transpose(1, 0, 2, 3)).reshape(r, BT, n)  # (ρ, (l, b), n)
 
     def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The recursion from ``x[0] = x0`` under the forcing ``f``.
@@ -262,12 +250,20 @@ class Stretch:
         yk[1:, 0] = ye[:-1, -1]
         # per block [q; y]: the feedback's modal state at its start and its loss-node values
         Z = np.zeros((nblk + 1, c, n + BT))
-        EpT, RA, At = self.EpT, self.RA, self.At
+        EpT, Hneg, Rl, scol = self.EpT, self.Hneg, self.Rl, self.scol
+        A = np.empty((BT, BT))  # the block's matrix; A.T is it in Fortran order, for LAPACK
+        RA = np.empty((n + BT, n))  # [diag(μ^B); Σ_ρ R_ρ diag(s_ρ)]ᵀ, the carry
+        RA[:n] = np.diag(self.pw[B])
         for j in range(nblk):
+            np.multiply(Hneg[0], scol[0, j], out=A)  # the unit diagonal is implied (unitdiag)
+            np.multiply(Rl[0], scol[0, j, :, None], out=RA[n:])
+            for k in range(1, self.r):
+                A += Hneg[k] * scol[k, j]
+                RA[n:] += Rl[k] * scol[k, j, :, None]
             rhs = Z[j, :, :n] @ EpT  # (c, BT): as (BT, c) in Fortran order, solved in place
             rhs += y0[j]
-            Z[j, :, n:] = dtrtrs(At[j], rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)[0].T
-            np.matmul(Z[j], RA[j], out=Z[j + 1, :, :n])
+            Z[j, :, n:] = dtrtrs(A.T, rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)[0].T
+            np.matmul(Z[j], RA, out=Z[j + 1, :, :n])
         qs = Z[:nblk, :, :n]  # (nblk, c, n)
         Yb = Z[:nblk, :, n:].reshape(nblk, c, B, ntv)
         z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
