@@ -188,7 +188,7 @@ def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
 
     def spy(self, o, T, w, dP, Lp=None):
         X = real(self, o, T, w, dP, Lp)
-        seen.append((self, o, T, w, dP, Lp, X))
+        seen.append((self, o, T, w, dP, Lp, X.copy()))  # X is scratch memory, reused by the next stretch
         return X
 
     monkeypatch.setattr(sensitivity.Sensitivities, "stretch_forcing", spy)
