@@ -88,6 +88,19 @@ def test_stretch_serves_several_forcings():
         np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
+def test_stretch_without_feedback_is_the_scan():
+    """No loss feedback (no current): the stretch is the open-loop scan, against the loop."""
+    rng = np.random.default_rng(4)
+    n, c, L = 5, 2, 40
+    mu = rng.uniform(0.0, 0.999, n)
+    f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((3, n))
+    D = np.zeros((L, 2, 1))
+    rows, end = stretch.solve_stretch(mu, f, x0, rng.standard_normal((n, 2)), rng.standard_normal((1, n)), D, W)
+    ref = _loop(mu, f, x0, np.zeros((n, 2)), np.zeros((1, n)), D)
+    np.testing.assert_allclose(rows, np.tensordot(W, ref, axes=1), rtol=0, atol=1e-12 * np.abs(ref).max() * 3)
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
 def test_powers_flush_below_round_off():
     """Powers of a fast mode that would be subnormal are zero (subnormals slow every product)."""
     pw = stretch.powers(np.array([1e-45, 0.5]), 16)
