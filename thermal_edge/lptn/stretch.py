@@ -254,15 +254,17 @@ class Stretch:
         A = np.empty((BT, BT))  # the block's matrix; A.T is it in Fortran order, for LAPACK
         RA = np.empty((n + BT, n))  # [diag(μ^B); Σ_ρ R_ρ diag(s_ρ)]ᵀ, the carry
         RA[:n] = np.diag(self.pw[B])
+        rhs = np.empty((c, BT))  # (BT, c) in Fortran order: LAPACK solves it in place
         for j in range(nblk):
             np.multiply(Hneg[0], scol[0, j], out=A)  # the unit diagonal is implied (unitdiag)
             np.multiply(Rl[0], scol[0, j, :, None], out=RA[n:])
             for k in range(1, self.r):
                 A += Hneg[k] * scol[k, j]
                 RA[n:] += Rl[k] * scol[k, j, :, None]
-            rhs = Z[j, :, :n] @ EpT  # (c, BT): as (BT, c) in Fortran order, solved in place
+            np.matmul(Z[j, :, :n], EpT, out=rhs)
             rhs += y0[j]
-            Z[j, :, n:] = dtrtrs(A.T, rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)[0].T
+            dtrtrs(A.T, rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
+            Z[j, :, n:] = rhs
             np.matmul(Z[j], RA, out=Z[j + 1, :, :n])
         qs = Z[:nblk, :, :n]  # (nblk, c, n)
         Yb = Z[:nblk, :, n:].reshape(nblk, c, B, ntv)
