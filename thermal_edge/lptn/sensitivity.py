@@ -18,7 +18,7 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, cho
   linear part (``p·n²`` numbers); each run adds only matrix-vector products.
 * **Stretches at one operating point** whose loss feedback changes every step (a noisy
   current): the forcing of the whole stretch in one product, then the linear filter of
-  :func:`~thermal_edge.lptn.stretch.solve_nodes` (modes of ``Φ``, the feedback solved exactly
+  :class:`~thermal_edge.lptn.stretch.NodeStretch` (modes of ``Φ``, the feedback solved exactly
   as a low-rank block-triangular system in time).
 * **Step by step** otherwise: the forcing for a block of steps as products per operating point
   (in the modal basis of :class:`~thermal_edge.lptn.discretise.DiscreteDerivatives`; the Daleckii–Krein

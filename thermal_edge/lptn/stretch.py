@@ -10,7 +10,8 @@ with a forcing ``f`` known for the whole stretch in advance (inputs, or the sens
 (loss sources × loss nodes; it changes every step when the current does). In the modal basis of
 ``Φ`` (``Φ = V diag(μ) V⁻¹`` with real ``0 ≤ μ < 1``, :class:`~thermal_edge.lptn.discretise.Discrete`)
 the open loop is ``n`` independent first-order filters, run in time by blocked matrix products
-(:func:`modal_scan`) over all modes and columns at once.
+over all modes and columns at once, time being the last axis (:func:`modal_scan`), and seen
+through the wanted rows only (:func:`scan_rows`).
 
 The feedback is low-rank twice over, and solved exactly (no iteration):
 
@@ -21,10 +22,12 @@ The feedback is low-rank twice over, and solved exactly (no iteration):
 
 So ``x = x₀ + 𝓛z`` with the open-loop response ``x₀`` and ``z[k] = (s[k, ρ] y[k])_ρ`` fed through
 ``G C_ρ`` (``G = V⁻¹ Γ_P``). The loss nodes obey ``y = y₀ + E 𝓛 z``: lower block-triangular
-in time. It is solved in blocks of :data:`TIME_BLOCK` steps: inside a block a unit
-lower-triangular system of ``TIME_BLOCK · ntv`` unknowns (forward substitution: exact up to
-round-off, with the same operations the stepped recursion does, reordered), and the feedback's
-modal state ``q`` carried from block to block exactly. Then ``x = scan(f + G C z)``.
+in time. It is solved in blocks of :data:`BLOCK` steps: inside a block a unit lower-triangular
+system of ``BLOCK · ntv`` unknowns (forward substitution: exact up to round-off, with the same
+operations the stepped recursion does, reordered), and the feedback's modal state ``q`` carried
+from block to block exactly. Then the wanted rows of ``x₀ + 𝓛z``. What depends on the feedback
+alone is set up once per stretch (:class:`Stretch`) and serves the simulation and the
+sensitivities alike.
 """
 from __future__ import annotations
 
@@ -273,7 +276,12 @@ class Stretch:
         pw = self.pw
         Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
         fb = Wp @ qs.reshape(nblk * c, n).T  # (B nr, nblk c)
-        fb += _inputs_to_rows(W, pw, self.GC, B) @ z.reshape(nblk * c, B * m).T
+        if 2 * nr < n:  # few rows: straight from the inputs, W diag(μ^(i−l)) G C for l ≤ i
+            fb += _inputs_to_rows(W, pw, self.GC, B) @ z.reshape(nblk * c, B * m).T
+        else:  # most of the state: the inputs G C z through the modes' block filters, then W
+            u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
+            inside = np.matmul(u.reshape(n, c * nblk, B), _toeplitz(self.pw.T, B))  # (n, c nblk, B)
+            rows += (W @ inside.reshape(n, c * Lp)).reshape(nr, c, nblk, B)
         rows += fb.reshape(B, nr, nblk, c).transpose(1, 3, 2, 0)
         jL, iL = divmod(L - 1, B)
         # the state at step L: the feedback's from its block's start and the inputs of that block up to L
