@@ -526,7 +526,7 @@ OPTION_CASES = {
         (DEMO, "--metrics-address", "localhost", "not an IP address"),
         (DEMO, "--record", "{tmp}/missing/x.log", "does not exist"),
         (DEMO, "--state-dir", "{tmp}/bin.csv", "existing file"),
-        (MONITOR, "--interval", "0", ">= 0.05 s"), (MONITOR, "--interval", "-1", ">= 0.05 s"), (MONITOR, "--count", "-1", ">= 0"),
+        (MONITOR, "--interval", "0", ">= 0.05 s"), (MONITOR, "--interval", "-1", ">= 0.05 s"), (MONITOR, "--count", "-1", ">= 1"), (MONITOR, "--count", "0", ">= 1"),
         (FLEET, "--workers", "0", ">= 1"), (FLEET, "--generations", "-1", ">= 1"), (FLEET, "--popsize", "0", ">= 1"),
         (FLEET, "--decimate", "0", ">= 1"), (FLEET_NO_OUT, "--out", "{tmp}/missing/f.parquet", "does not exist"),
         (SCREEN, "--threshold", "0", "> 0"), (SCREEN, "--threshold", "nan", "finite"),

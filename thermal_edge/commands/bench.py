@@ -366,9 +366,18 @@ def run_magnet(args: argparse.Namespace) -> int:
     ))
     print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
     print(table(
-        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused"],
+        ["commissioned on, unseen currents by their changes", "fused MSE", "fused cover", "used", "of them relative",
+         "refused", "stator MSE (winding, yoke, tooth)"],
+        [[f"{m} min", p["extrapolated"]["fused_mse"], p["extrapolated"]["fused_coverage"], p["extrapolated"]["used"],
+          p["extrapolated"]["relative"], p["extrapolated"]["refused"],
+          ", ".join(f"{v:.2f}" for v in p["extrapolated"]["stator_mse"].values())] for m, p in parts.items()],
+    ))
+    print(table(
+        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused",
+         "used by changes", "their fused MSE"],
         [[f"{m} min", p["wrong"]["flux_rms_k"], p["wrong"]["fused_mse"], p["wrong"]["fused_coverage"], p["wrong"]["used"],
-          p["wrong"]["refused"]] for m, p in parts.items()],
+          p["wrong"]["refused"], p["wrong"]["extrapolated_used"], p["wrong"]["extrapolated_fused_mse"]]
+         for m, p in parts.items()],
     ))
     for m, p in parts.items():
         sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
