@@ -73,3 +73,16 @@ def test_run_check_honours_debug(tmp_path, capsys):
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     with pytest.raises((ThermalEdgeError, OSError)):
         main(["--debug", "run", "--check", "--config", missing])
+
+
+@pytest.mark.parametrize(("argv", "prog"), [
+    (["replay", "--model", "pm10kw", "--run", "x.csv", "--bogus"], "thermal-edge replay"),
+    (["config", "example", "--bogus", "1"], "thermal-edge config example"),
+    (["bench", "jacobian", "--bogus"], "thermal-edge bench jacobian"),
+])
+def test_an_unknown_option_is_named_by_the_command_that_does_not_know_it(argv, prog, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"{prog}: error: unrecognized arguments: --bogus"), err

@@ -56,8 +56,21 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def innermost_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the (sub-)sub-command ``args`` chose, e.g. ``thermal-edge flux calibrate``'s."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and action.dest and action.choices:
+            chosen = getattr(args, action.dest, None)
+            if chosen in action.choices:
+                return innermost_parser(action.choices[chosen], args)
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser(argv).parse_args(argv)
+    parser = build_parser(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # named by the command that does not know them, as its other option errors are
+        innermost_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         resolve_named_files(args)
         return int(args.func(args) or 0)

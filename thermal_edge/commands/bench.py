@@ -8,6 +8,7 @@ from dataclasses import asdict
 from typing import Any
 
 from ..bench import jacobian, paper
+from ..lptn.chain import MIN_NODES
 from ..text_table import table
 from .bench_page import check_path, with_page
 from .common import add_set_arg, check_sets, split_sets
@@ -39,10 +40,11 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     sv.add_argument("--json", action="store_true", help="print one JSON object")
     sv.set_defaults(func=run_service)
     pr = which.add_parser("protection", help="closed loop on the simulated machine: headroom delivered and overheating of "
-                                             "thermal_edge, a PT100 derate, I2t and the oracle, per plant case")
+                                             "thermal_edge without and with the voltage frame, a PT100 derate, I2t and "
+                                             "the oracle, per plant case")
     pr.add_argument("--case", action="append", default=None, metavar="NAME",
                     help="run only this plant case (repeatable; default all: nominal, r_hous_plus30, sigma_cu_minus25, "
-                         "h_sh1_minus30, ambient_40, warm_restart)")
+                         "h_sh1_minus30, ambient_40, warm_restart, warm_restart_rotor, electrical_wrong)")
     pr.add_argument("--plant", action="append", default=[], metavar="NAME=VALUE",
                     help="add the case 'custom': the plant's parameter or constant NAME at VALUE (absolute) or changed "
                          "by VALUE%% (e.g. R_e_hous=+30%%); repeatable")
@@ -70,6 +72,15 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     ad.add_argument("--duration", type=float, default=None, help="simulated seconds per scenario (default 3 h)")
     ad.add_argument("--json", action="store_true", help="print one JSON object")
     ad.set_defaults(func=run_adaptation)
+    ld = which.add_parser("ladder", help="one online adaptation step against the model size (generated chain models, "
+                                         "40-320 nodes): the dense and the reduced-order path, error bound and error")
+    ld.add_argument("--nodes", type=integer(MIN_NODES, 2000), action="append", default=None, metavar="N",
+                    help="a model size (repeatable; default 40, 80, 160 and 320 nodes)")
+    ld.add_argument("--repeat", type=integer(1), default=3,
+                    help="timed rounds per size (medians reported; the ratio is the median of the rounds' ratios)")
+    ld.add_argument("--hours", type=HOURS, default=3.0, help="hours of the drive cycle: the adapter's window (default 3)")
+    ld.add_argument("--json", action="store_true", help="print one JSON object")
+    ld.set_defaults(func=run_ladder)
     from ..bench.fleet import MACHINES, ROUNDS, SPEED_MACHINES
 
     fl = which.add_parser("fleet", help="fleet on Dask: per-machine cost, 1 vs 2 workers, memory, outlier screen hits")
@@ -150,19 +161,45 @@ def run_jacobian(args: argparse.Namespace) -> int:
           f"{v['speed_bin_rpm']:g} rpm ({v['operating_points']} operating points; binning changes the sensor "
           f"temperatures by at most {v['binning_max_err_k']:.2g} K over the first hour); median of {args.repeat}")
     print(table(
-        ["method", "wall s", "vs analytic"],
+        ["", "new: vectorised s", "old: stepped s", "old / new"],
         [
-            ["analytic (sim + sensitivities)", v["analytic_s"], "1.0x"],
-            ["analytic, every step stepped", v["analytic_stepped_s"], f"{v['speedup_vs_stepped']:.1f}x slower"],
-            ["forward differences (p+1 sims)", v["numerical_s"], f"{v['speedup_vs_forward']:.1f}x slower"],
-            ["one simulation", v["simulation_s"], f"{v['simulation_s'] / v['analytic_s']:.2f}x"],
-            ["one simulation, stepped", v["simulation_stepped_s"], f"{v['simulation_stepped_s'] / v['analytic_s']:.2f}x"],
-            ["arithmetic limit (BLAS rate)", v["arith_limit_s"], f"{v['arith_limit_s'] / v['analytic_s']:.2f}x"],
+            ["analytic Jacobian (sim + sensitivities)", v["analytic_s"], v["analytic_stepped_s"],
+             f"{v['speedup_vs_stepped']:.2f}x"],
+            ["one simulation", v["simulation_s"], v["simulation_stepped_s"], f"{v['simulation_speedup']:.2f}x"],
+            ["forward differences (p+1 sims)", v["numerical_s"], "", ""],
+            ["forward differences / analytic", f"{v['speedup_vs_forward']:.2f}x", f"{v['stepped_speedup_vs_forward']:.2f}x", ""],
+            ["arithmetic limit (BLAS rate)", v["arith_limit_s"], "", ""],
+            ["analytic / arithmetic limit", f"{v['analytic_over_limit']:.2f}x", f"{v['stepped_over_limit']:.2f}x", ""],
         ],
     ))
-    print(f"analytic / arithmetic limit: {v['analytic_over_limit']:.1f}x; simulation vectorised vs stepped: "
-          f"{v['simulation_speedup']:.1f}x faster; agreement with the stepped recursion: sensitivities "
+    print("ratios: medians of the rounds' paired ratios; agreement of new with old: sensitivities "
           f"{v['vectorised_vs_stepped_max_rel']:.1e}, temperatures {v['simulation_vs_stepped_max_rel']:.1e} of the largest entry")
+    return 0
+
+
+def run_ladder(args: argparse.Namespace) -> int:
+    from ..bench import ladder
+
+    sizes = tuple(args.nodes or ladder.SIZES)
+    with StageBars("bench ladder") as progress:
+        r = ladder.run(sizes=sizes, repeat=args.repeat, hours=args.hours, progress=progress)
+    if args.json:
+        print(json.dumps(asdict(r), indent=2, default=float))
+        return 0
+    print(f"one online adaptation step (screening + SQP, {r.params} adaptable parameters, a {r.hours:g} h window "
+          f"decimated by {r.decimate}) on generated chain models; dense: the exact simulator, reduced: the "
+          f"Galerkin-reduced model; median of {r.repeat}")
+    print(table(ladder.HEADERS, ladder.table_rows(r)))
+    big = r.largest
+    verdict = "meets" if big.reduced_s <= r.target_s else "misses"
+    print(f"{big.nodes} nodes: reduced step {big.reduced_s:.3f} s ({verdict} the {r.target_s:g} s target), "
+          f"dense {big.dense_s:.2f} s; rounds dense " + ", ".join(f"{x:.2f}" for x in big.dense_runs_s)
+          + "; reduced " + ", ".join(f"{x:.3f}" for x in big.reduced_runs_s))
+    print("error bound: at the reference (nominal parameters, standstill) over the window's inputs, losses taken "
+          "as inputs; measured: largest sensor error against the dense model over the optimiser's window at the "
+          "nominal parameters; fit difference: the two paths' fitted parameters, largest relative difference")
+    print("reduced bases built once per model (optimiser's step and 1 s): "
+          + ", ".join(f"{x.nodes} nodes {x.basis_s:.2f} s" for x in r.rows))
     return 0
 
 
@@ -330,9 +367,18 @@ def run_magnet(args: argparse.Namespace) -> int:
     ))
     print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
     print(table(
-        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused"],
+        ["commissioned on, unseen currents by their changes", "fused MSE", "fused cover", "used", "of them relative",
+         "refused", "stator MSE (winding, yoke, tooth)"],
+        [[f"{m} min", p["extrapolated"]["fused_mse"], p["extrapolated"]["fused_coverage"], p["extrapolated"]["used"],
+          p["extrapolated"]["relative"], p["extrapolated"]["refused"],
+          ", ".join(f"{v:.2f}" for v in p["extrapolated"]["stator_mse"].values())] for m, p in parts.items()],
+    ))
+    print(table(
+        ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused",
+         "used by changes", "their fused MSE"],
         [[f"{m} min", p["wrong"]["flux_rms_k"], p["wrong"]["fused_mse"], p["wrong"]["fused_coverage"], p["wrong"]["used"],
-          p["wrong"]["refused"]] for m, p in parts.items()],
+          p["wrong"]["refused"], p["wrong"]["extrapolated_used"], p["wrong"]["extrapolated_fused_mse"]]
+         for m, p in parts.items()],
     ))
     for m, p in parts.items():
         sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
@@ -417,8 +463,22 @@ def run_protection(args: argparse.Namespace) -> int:
     print(f"closed loop on the simulated machine, cycle {Path(r.cycle).stem}{dur}; "
           f"reaction time {r.reaction_time_s:g} s; max: {mx}")
     print(table(protection.TABLE_HEADERS, protection.table_rows(r)))
-    print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
-          f"seconds over max {r.total_seconds_over_max:g} (target 0)")
+    if r.min_oracle_share_pct is not None:
+        print(f"thermal_edge: min share of the oracle {r.min_oracle_share_pct:.1f} % (target >= 90), "
+              f"seconds over max {r.total_seconds_over_max:g} (target 0)")
+    if r.total_seconds_over_max_voltages is not None:
+        print(table(protection.SIDE_BY_SIDE_HEADERS, protection.side_by_side_rows(r)))
+        share = (f"min share of the oracle {r.min_oracle_share_voltages_pct:.1f} % (target >= 97), "
+                 if r.min_oracle_share_voltages_pct is not None else "")
+        print(f"thermal_edge with the voltage frame: {share}seconds over max {r.total_seconds_over_max_voltages:g} "
+              "(target 0, every case)")
+        for name in r.miscalibrated_cases:
+            tv = r.cases.get(name, {}).get("thermal_edge_voltages")
+            if tv is not None:
+                flux = tv.get("flux", {})
+                print(f"{name} (the electrical calibration wrong on purpose): {tv['oracle_share_pct']:.1f} % of the oracle, "
+                      f"{tv['seconds_over_max']:g} s over max; the disagreement check refused {flux.get('disagreement', 0)} "
+                      f"of {sum(flux.values())} ticks")
     for line in protection.verdicts(r):
         print(line)
     return 0

@@ -58,7 +58,14 @@ class _Ctx:
             raise self.fail(key, str(exc)) from None
 
     def number(self, key: str, value: Any, positive: bool = False) -> float:
-        e = self.law(key, value, set(), "a geometric or fixed quantity")
+        try:
+            e = parse(value, self.tables).substitute(self.constants)
+        except ExprError as exc:
+            raise self.fail(key, str(exc)) from None
+        if e.free():  # a name that is no constant of the file: most often a typo or a word
+            names = ", ".join(sorted(e.free()))
+            raise self.fail(key, f"expected a number (or an expression of the file's constants), got {value!r}: "
+                                 f"{names} is no constant of the file")
         v = evaluate_const(e)
         if positive and not v > 0:
             raise self.fail(key, f"must be positive, got {v}")

@@ -146,7 +146,7 @@ class Plausible:
         inside = finite[~out]
         for other in self.others:  # one sample in another unit: it converts into the span of the rest
             y = float(other.convert(x[k]))
-            if inside.size and inside.min() - SPAN_MARGIN <= y <= inside.max() + SPAN_MARGIN:
+            if self.lo <= y <= self.hi and inside.size and inside.min() - SPAN_MARGIN <= y <= inside.max() + SPAN_MARGIN:
                 return k, f"{why}; it looks like {other.name} ({y:.4g} {self.unit})"
         return k, why
 
