@@ -33,11 +33,11 @@ from typing import TYPE_CHECKING, Any
 
 from .bus.busconfig import BusConfig, BusConfigError
 from .bus.crc import CRC8_ALGORITHMS
-from .bus.frames import DEFAULT_DBC_PATH, INV_CURRENTS, INV_VOLTAGES, TE_LIMITS, DerateReason
+from .bus.frames import DEFAULT_DBC_PATH, INV_CURRENTS, INV_VOLTAGES, NODE_THERMAL_EDGE, TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
-from .lptn.vocabulary import LIMIT, TEMPERATURE, Role
+from .lptn.vocabulary import LIMIT, TEMPERATURE, NodeRole, Role
 from .settings import AdapterConfig, setting, spec_of
 from .shipped import MACHINES, find
 from .yamlfile import read_document
@@ -491,7 +491,7 @@ class FluxConfig:
     current_d: str = "INV_Id"
     current_q: str = "INV_Iq"
     #: voltages older than this at a tick are stale: that tick's estimate is refused (counted), s
-    timeout_s: float = setting(0.5, positive=True, max=MAX_SILENCE_S)
+    timeout_s: float = setting(0.5, min=0.02, max=MAX_SILENCE_S)  # 0.02: twice the frame's 10 ms cycle
     #: the model node whose estimate gives the stator resistance its temperature (required with calibration)
     winding_node: str | None = None
     #: the model nodes whose mean the flux linkage sees (default: the node of ``transmit.magnet_limit``)
@@ -626,6 +626,23 @@ class EdgeConfig:
             for n in names:
                 if n not in nodes:
                     raise self.error(f"flux.{key}", f"model {model.name} has no node {n!r}{_did_you_mean(n, nodes)}")
+        if fx.magnet_nodes is not None:
+            if not fx.magnet_nodes:
+                raise self.error("flux.magnet_nodes", "empty: name the magnet node(s) the flux linkage sees (or leave it "
+                                 "out for the node of transmit.magnet_limit)")
+            if len(set(fx.magnet_nodes)) != len(fx.magnet_nodes):
+                raise self.error("flux.magnet_nodes", f"names a node twice: {list(fx.magnet_nodes)}")
+            if fx.winding_node in fx.magnet_nodes:
+                raise self.error("flux.magnet_nodes", f"{fx.winding_node!r} is flux.winding_node: the voltages would "
+                                 "correct the winding with a magnet temperature")
+        # where the model declares roles, a magnet node is a magnet and the winding node a winding
+        roles = getattr(model, "node_roles", {}) or {}
+        for key, names, role in (("winding_node", [fx.winding_node], NodeRole.WINDING),
+                                 ("magnet_nodes", list(fx.magnet_nodes or ()), NodeRole.MAGNET)):
+            for n in names:
+                if n in roles and roles[n] is not role:
+                    raise self.error(f"flux.{key}", f"node {n!r} of model {model.name} has role {roles[n].value}, "
+                                     f"not {role.value}")
         if fx.magnet_nodes is None and not any(lim.name == self.transmit.magnet_limit for lim in model.limits):
             raise self.error("flux.magnet_nodes", f"model {model.name} has no limited node {self.transmit.magnet_limit!r} "
                              "(transmit.magnet_limit): name the magnet nodes here")
@@ -747,6 +764,13 @@ class EdgeConfig:
                 signals = set(codec.signal_names(frame))
             except KeyError:
                 raise self.error(f"flux.{frame_key}", f"no frame {frame!r} in {dbc}") from None
+            senders = getattr(codec.message(frame), "senders", None) or []
+            if NODE_THERMAL_EDGE in senders:
+                raise self.error(f"flux.{frame_key}", f"{frame} is a frame thermal_edge sends (in {dbc}), not one the "
+                                 "inverter sends it")
+            a, b = (getattr(fx, k) for k in sig_keys)
+            if a == b:
+                raise self.error(f"flux.{sig_keys[1]}", f"is {b!r}, the same signal as flux.{sig_keys[0]}")
             if codec.protection(frame) is None:
                 raise self.error(f"codec.protection.{frame}", f"flux.{frame_key} reads {frame}, and "
                                  f"{codec.protection_problem(frame)} (counter: and/or crc: with crc_algorithm:, or none)")

@@ -86,7 +86,8 @@ def test_the_flux_section_is_typed_and_its_errors_name_file_and_key(tmp_path, ca
                 ThermalEngine(c, model, worker_mode="sync")
         return str(info.value)
 
-    assert error({"timeout_s": 0}).startswith("edge.yaml: flux.timeout_s: must be positive")
+    assert error({"timeout_s": 0}).startswith("edge.yaml: flux.timeout_s: must be at least 0.02")
+    assert error({"timeout_s": 0.001}).startswith("edge.yaml: flux.timeout_s: must be at least 0.02")
     assert "flux.colibration: unknown key (did you mean 'calibration'?)" in error({"colibration": "x.json"})
     cal = str(calibration)
     assert error({"calibration": cal, "winding_node": "slot_windin_1"}).startswith(
@@ -95,6 +96,19 @@ def test_the_flux_section_is_typed_and_its_errors_name_file_and_key(tmp_path, ca
     assert error({"calibration": cal, "voltage_q": "INV_Uqq"}).startswith(
         "edge.yaml: flux.voltage_q: frame INV_Voltages has no signal 'INV_Uqq'")
     assert error({"calibration": cal, "frame": "INV_Volts"}).startswith("edge.yaml: flux.frame: no frame 'INV_Volts'")
+    # nodes: at least one magnet node, each once, none the winding's; roles as the model declares them
+    assert error({"calibration": cal, "magnet_nodes": []}).startswith("edge.yaml: flux.magnet_nodes: empty")
+    assert error({"calibration": cal, "magnet_nodes": ["magnet_1", "magnet_1"]}).startswith(
+        "edge.yaml: flux.magnet_nodes: names a node twice")
+    assert error({"calibration": cal, "winding_node": "slot_winding_1", "magnet_nodes": ["magnet_1", "slot_winding_1"]}
+                 ).startswith("edge.yaml: flux.magnet_nodes: 'slot_winding_1' is flux.winding_node")
+    assert error({"calibration": cal, "magnet_nodes": ["slot_winding_2"]}).startswith(
+        "edge.yaml: flux.magnet_nodes: node 'slot_winding_2' of model pm10kw has role winding, not magnet")
+    # frames and signals: a frame the inverter sends, two different signals
+    assert error({"calibration": cal, "frame": "TE_Limits"}).startswith(
+        "edge.yaml: flux.frame: TE_Limits is a frame thermal_edge sends")
+    assert error({"calibration": cal, "voltage_q": "INV_Ud"}).startswith(
+        "edge.yaml: flux.voltage_q: is 'INV_Ud', the same signal as flux.voltage_d")
     assert error({"calibration": str(tmp_path / "none.json")}, engine=True).startswith(
         "edge.yaml: flux.calibration: cannot read")
     (tmp_path / "bad.json").write_text(json.dumps({"params": {}}))
@@ -209,6 +223,18 @@ def test_refusals_are_counted_logged_with_their_priority_and_on_metrics(tmp_path
     mg = pol.last_out.magnet
     assert value("magnet_band_celsius") == pytest.approx(mg.upper_c - mg.estimate_c)
     assert math.isfinite(value("flux_magnet_celsius"))
+    # the wrong calibration's run ends refusing: the gauge shows the last fused value, never a refused one
+    fw = pol_w.engine.flux
+    scrape_w = ServiceMetrics()
+    scrape_w.attach(pol_w.engine)
+    text_w = scrape_w.text()
+    assert fw.last is not None and fw.last.outcome != "used"
+    shown = re.search(r"^thermal_edge_flux_magnet_celsius (\S+)$", text_w, re.M)
+    if fw.counts["used"]:
+        assert shown and float(shown.group(1)) == fw.last_used.estimate_c and fw.last_used.outcome == "used"
+        assert float(shown.group(1)) != fw.last.estimate_c
+    else:
+        assert shown is None
     # no metric of the voltage input without it
     plain = ServiceMetrics()
     plain.attach(ThermalEngine(P.edge_config(tmp_path / "plain"), worker_mode="sync"))
@@ -243,3 +269,55 @@ def test_the_bench_table_puts_both_runs_side_by_side():
     assert rows == [["nominal", "95.5 / 0", "99.6 / 0", "98.4 / 0", "76.7 / 0", "70 / 0"],
                     ["electrical_wrong", "95.5 / 0", "94.8 / 0", "98.4 / 0", "76.7 / 0", "10 / 52"]]
     assert len(P.SIDE_BY_SIDE_HEADERS) == len(rows[0])
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda d: d["params"].__setitem__("beta", 0.0), "params.beta must be negative"),
+    (lambda d: d["params"].__setitem__("beta", 1e-4), "params.beta must be negative"),
+    (lambda d: d["params"].__setitem__("r20", float("nan")), "params.r20 is not a finite number"),
+    (lambda d: d["params"].__setitem__("psi20", -0.1), "params.psi20 must be positive"),
+    (lambda d: d.__setitem__("pole_pairs", 0), "pole_pairs must be 1 to 100"),
+    (lambda d: d.__setitem__("bin_a", 0), "bin_a must be positive"),
+    (lambda d: d.__setitem__("var_u", {}), "var_u is empty"),
+    (lambda d: d.__setitem__("cov", [[1.0, 2.0]]), "cov must be a finite 8 x 8 matrix"),
+])
+def test_a_flux_model_file_that_no_commissioning_could_write_is_refused_at_start(tmp_path, calibration, edit, words):
+    """A hand-edited or foreign calibration fails where it is read (run --check and the service's
+    start: exit 2, one line naming the file's entry), not in the tick (a division by zero, a model
+    fault every 30 s)."""
+    from thermal_edge.cli import main
+
+    d = json.loads(calibration.read_text())
+    edit(d)
+    bad = tmp_path / "flux.json"
+    bad.write_text(json.dumps(d))
+    raw = yaml.safe_load(config_path("edge.yaml").read_text())
+    raw["flux"] = {**raw["flux"], "calibration": str(bad), "winding_node": "slot_winding_1"}
+    raw["state"] = {"dir": str(tmp_path / "state")}
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    with pytest.raises(ConfigError) as info:
+        cfg = config_from_mapping(raw, path)
+        ThermalEngine(cfg, load_service_model(cfg), worker_mode="sync")
+    assert str(info.value).startswith(f"edge.yaml: flux.calibration: {bad} is not a flux model"), str(info.value)
+    assert words in str(info.value)
+    assert main(["run", "--check", "--config", str(path)]) == 2
+
+
+def test_run_check_reads_the_calibration_and_names_it(tmp_path, calibration, capsys):
+    from thermal_edge.cli import main
+
+    raw = yaml.safe_load(config_path("edge.yaml").read_text())
+    raw["state"] = {"dir": str(tmp_path / "state")}
+    raw["flux"] = {**raw["flux"], "calibration": str(tmp_path / "missing.json"), "winding_node": "slot_winding_1"}
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    assert main(["run", "--check", "--config", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "flux.calibration: cannot read" in err[0], err
+    raw["flux"]["calibration"] = str(calibration)
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    assert main(["run", "--check", "--config", str(path)]) == 0
+    out = capsys.readouterr().out
+    pp = json.loads(calibration.read_text())["pole_pairs"]
+    assert f"INV_Voltages: the magnet from the voltages, {calibration} ({pp} pole pairs" in out, out

@@ -62,7 +62,14 @@ def run(args: argparse.Namespace) -> int:
                 config.check_model(model)
                 codec = config.codec.frame_codec(config.fname)
                 config.check_dbc(codec)
+                if config.flux.enabled:  # read now, as the service reads it at start
+                    from ..service.flux_input import load_flux_model
+
+                    flux = load_flux_model(config)
                 print(f"{config.fname}: ok (model {model.name}, {len(model.nodes)} nodes, bus {config.bus.interface})")
+                if config.flux.enabled:
+                    print(f"  {config.flux.frame}: the magnet from the voltages, {config.flux.calibration} "
+                          f"({flux.pole_pairs} pole pairs, informative from {flux.speed_min_rpm:.0f} rpm)")
                 for frame, timeout in config.timeouts.items():  # what each read frame is checked for
                     prot = codec.protection(frame)
                     unseen = "; ".join(prot.unseen()) if prot is not None else ""

@@ -35,6 +35,7 @@ wrong ``p`` gives the same magnet temperature.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -255,14 +256,51 @@ class FluxModel:
         missing = [k for k in PARAMS if k not in params] + [k for k in ("pole_pairs", "bin_a", "speed_min_rpm") if k not in d]
         if missing:
             raise FluxError(f"flux model: no {', '.join(missing)}")
-        return FluxModel({k: float(params[k]) for k in PARAMS}, {k: float(v) for k, v in dict(d.get("sigma", {})).items()},
+        sigma = {k: float(v) for k, v in dict(d.get("sigma", {})).items()}
+        return _validated(FluxModel({k: float(params[k]) for k in PARAMS}, sigma,
                          int(d["pole_pairs"]), float(d["bin_a"]),
                          {int(k): float(v) for k, v in dict(d.get("var_u", {})).items()}, float(d["speed_min_rpm"]),
                          float(d.get("sigma_max_k", 10.0)), float(d.get("tau_s", 0.0)),
                          [[float(x) for x in row] for row in d.get("cov", [])],
                          float(d.get("beta_spread", 0.0)), float(d.get("magnet_mean_c", T_REF_C)),
                          {k: float(v) for k, v in dict(d.get("fit_info", {})).items()},
-                         [[float(x) for x in row] for row in d.get("cv_params", [])])
+                         [[float(x) for x in row] for row in d.get("cv_params", [])]))
+
+
+def _validated(m: FluxModel) -> FluxModel:
+    """``m`` if it is a model :func:`fit_flux_model` could have written, else :class:`FluxError`
+    naming the entry: a file edited by hand or written for another machine must fail where it is
+    read, not as a division by zero in the service's tick."""
+    def bad(key: str, why: str) -> FluxError:
+        return FluxError(f"flux model: {key} {why}")
+
+    for k in PARAMS:
+        if not math.isfinite(m.params[k]):
+            raise bad(f"params.{k}", f"is not a finite number ({m.params[k]})")
+    for k, why in (("r20", "the stator resistance"), ("psi20", "the flux linkage"), ("ld0", "L_d at zero current"),
+                   ("lq0", "L_q at zero current")):
+        if not m.params[k] > 0:
+            raise bad(f"params.{k}", f"must be positive ({why}), got {m.params[k]:g}")
+    if not m.params["beta"] < 0:  # a magnet's flux linkage falls as it warms: no other sign is a magnet
+        raise bad("params.beta", f"must be negative (the flux linkage falls with temperature), got {m.params['beta']:g}")
+    if not 1 <= m.pole_pairs <= 100:
+        raise bad("pole_pairs", f"must be 1 to 100, got {m.pole_pairs}")
+    for key, v, lo in (("bin_a", m.bin_a, 0.0), ("sigma_max_k", m.sigma_max_k, 0.0)):
+        if not (math.isfinite(v) and v > lo):
+            raise bad(key, f"must be positive, got {v:g}")
+    for key, v in (("speed_min_rpm", m.speed_min_rpm), ("tau_s", m.tau_s), ("beta_spread", m.beta_spread)):
+        if not (math.isfinite(v) and v >= 0):
+            raise bad(key, f"must be zero or more, got {v:g}")
+    if not m.var_u:
+        raise bad("var_u", "is empty: no current bin has a variance (the estimate would never be informative)")
+    if any(not (math.isfinite(v) and v >= 0) for v in m.var_u.values()) or any(b < 0 for b in m.var_u):
+        raise bad("var_u", "holds a negative or non-finite variance or bin")
+    if m.cov and (len(m.cov) != len(PARAMS) or any(len(row) != len(PARAMS) for row in m.cov)
+                  or not np.all(np.isfinite(np.asarray(m.cov, dtype=float)))):
+        raise bad("cov", f"must be a finite {len(PARAMS)} x {len(PARAMS)} matrix ({', '.join(PARAMS)})")
+    if any(len(row) != len(PARAMS) for row in m.cv_params):
+        raise bad("cv_params", f"rows must have {len(PARAMS)} entries ({', '.join(PARAMS)})")
+    return m
 
 
 def _solve(aq: np.ndarray, ad: np.ndarray, uq: np.ndarray, ud: np.ndarray, mu: np.ndarray, sd: np.ndarray,

@@ -124,6 +124,8 @@ class FluxInput:
         self.counts: Counter[str] = Counter()
         #: the last tick's result (None before the first tick with a state)
         self.last: FluxTick | None = None
+        #: the last tick whose estimate corrected the observer (what /metrics shows: a refused value is no estimate)
+        self.last_used: FluxTick | None = None
 
     # -- frames -------------------------------------------------------------------------------------
     def add(self, frame: DecodedFrame, t: float) -> None:
@@ -194,6 +196,8 @@ class FluxInput:
     def _done(self, tick: FluxTick, why: str = "") -> FluxTick:
         self.counts[tick.outcome] += 1
         self.last = tick
+        if tick.outcome == "used":
+            self.last_used = tick
         if tick.outcome == "stale":
             notice(log, "flux estimate refused (stale): %s", why)
         elif tick.outcome in REFUSALS:

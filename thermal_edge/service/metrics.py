@@ -254,10 +254,10 @@ class _LiveCollector(Collector):
                 yield refused
                 yield CounterMetricFamily(P + "flux_used", "Flux-linkage estimates of the magnet fused into the observer",
                                           value=fx.counts.get("used", 0))
-                flux_last = fx.last
+                flux_last = fx.last_used
                 if flux_last is not None and math.isfinite(flux_last.estimate_c):
                     yield GaugeMetricFamily(P + "flux_magnet_celsius", "Magnet temperature from the inverter's voltages "
-                                            "(last tick that computed one)", value=flux_last.estimate_c)
+                                            "(the last estimate fused into the observer)", value=flux_last.estimate_c)
                     if math.isfinite(flux_last.sigma_k):
                         yield GaugeMetricFamily(P + "flux_magnet_stddev_celsius", "Standard deviation of that estimate",
                                                 value=flux_last.sigma_k)
