@@ -44,10 +44,15 @@ def test_model_answers_by_role_what_the_file_declares(path):
     assert set(limits_on_windings) <= set(model.nodes_with(NodeRole.WINDING))
 
 
-def test_missing_role_is_a_clear_key_error(tiny_model):
+def test_missing_role_is_a_model_error_naming_the_model(tiny_model):
+    from thermal_edge.errors import ThermalEdgeError
+    from thermal_edge.lptn import ModelError
+
     assert tiny_model.find_input(Role.COOLANT) is None
-    with pytest.raises(KeyError, match="tiny has no input with role 'coolant'"):
+    with pytest.raises(ModelError, match="tiny has no input with role 'coolant'") as err:
         tiny_model.input_name(Role.COOLANT)
+    assert isinstance(err.value, ThermalEdgeError) and not isinstance(err.value, KeyError)
+    assert not str(err.value).startswith("'")  # printed as it reads, not quoted as a KeyError's message
 
 
 def test_node_groups(tiny_model):
