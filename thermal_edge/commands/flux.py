@@ -104,10 +104,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"informative from {m.speed_min_rpm:.0f} rpm, at these currents only (sigma at {speed:.0f} rpm): {sig}; "
               f"errors correlated over {m.tau_s:.0f} s")
         return 0
-    try:
-        m = FluxModel.from_dict(json.loads(Path(args.flux_file).read_text()))
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UsageError(f"{args.flux_file}: not a file written by flux calibrate ({exc})") from None
+    m = _read_flux_file(args.flux_file)
     T, s, ok = m.estimate(e)
     ok &= (run.t - run.t[0]) >= args.from_minute * 60.0
     ok &= np.isfinite(tm)
@@ -120,3 +117,18 @@ def main(args: argparse.Namespace) -> int:
     print(f"{args.run}: informative on {100 * r['informative_share']:.0f} % of the samples; there RMS "
           f"{r['rms_k']:.2f} K, 95 % band covers {100 * r['coverage']:.0f} %")
     return 0
+
+
+def _read_flux_file(path: str) -> FluxModel:
+    """The commissioned estimate ``flux calibrate`` wrote; :class:`UsageError` names the file when it
+    is missing, not JSON, or not of that shape (a list, an entry missing or not a number)."""
+    try:
+        raw = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UsageError(f"{path}: not a file written by flux calibrate ({exc})") from None
+    if not isinstance(raw, dict):
+        raise UsageError(f"{path}: not a file written by flux calibrate (a JSON {type(raw).__name__}, not an object)")
+    try:  # the parser of the document: a wrong type inside is the file's fault
+        return FluxModel.from_dict(raw)
+    except (FluxError, TypeError, ValueError) as exc:
+        raise UsageError(f"{path}: not a file written by flux calibrate ({exc})") from None

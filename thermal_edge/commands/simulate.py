@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     cycle = load_cycle(args.cycle)
     kt = model.drive.get("kt_nm_per_arms")
     if kt is None:
-        raise UsageError(f"model {model.name} has no drive.kt_nm_per_arms: cannot turn torque into current")
+        raise UsageError(f"--model {args.model}: drive.kt_nm_per_arms is missing: cannot turn the cycle's torque into current")
     inputs = cycle_run(cycle, kt, args.duration)
     cmd = ["thermal-edge", "simulate", "--model", args.model, "--cycle", args.cycle]
     for e in args.effect:
