@@ -587,11 +587,71 @@ OPTION_CASES["monitor --bus without a bus"] = lambda tmp, g: (["monitor", "--bus
 OPTION_CASES["monitor --bus where there is no such interface"] = lambda tmp, g: (
     ["monitor", "--bus", "--once", "--interface", "no_such_interface", "--channel", "x"], "--bus", ["no_such_interface"])
 
+def _text(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _cycle(tmp: Path, name: str, dt_s: str = "1", speed: str = "600") -> Path:
+    return _text(tmp / name, f"name: c\ndt_s: {dt_s}\nsegments:\n  - {{duration_s: 60, speed_rpm: {speed}, torque_nm: 40}}\n")
+
+
+def _no_sensor_data(good: Path, out: Path) -> Path:
+    """The good run with every sensor column present but never measured (nan throughout)."""
+    header, rows = _table(good)
+    cols = [header.index(c) for c in ("winding_t", "housing")]
+    return _write(out, header, [[("nan" if j in cols else v) for j, v in enumerate(r)] for r in rows])
+
+
+def _flux_run(good: Path, out: Path) -> Path:
+    """The good run with the columns ``flux`` reads (dq voltages, a magnet and a winding temperature)."""
+    header, rows = _table(good)
+    w = header.index("winding_t")
+    return _write(out, [*header, "pm", "u_d_v", "u_q_v", "stator_winding"], [[*r, r[w], "-20", "150", r[w]] for r in rows])
+
+
+#: refusals of cycles, torque constants, runs without sensor data, flux files and IPv6 groups
+MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = {
+    "a cycle value not a number": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _cycle(tmp, "nan.yaml", speed=".nan"), "--out", tmp / "o.csv"],
+        "nan.yaml", ["segments[0].speed_rpm", "finite number"]),
+    "a cycle stepped in ns": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _cycle(tmp, "ns.yaml", dt_s="1e-9"), "--out", tmp / "o.csv"],
+        "ns.yaml", ["dt_s", "6e+10 samples", "in seconds"]),
+    "simulate --duration of 1e12 s": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e12", "--out", tmp / "o.csv"],
+        "--duration 1e+12 s", ["samples", "in seconds"]),
+    "torque constant zero, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "kt.yaml", "kt_nm_per_arms: 5.6", "kt_nm_per_arms: 0"), "--cycle", CYCLE,
+         "--out", tmp / "o.csv"], "kt.yaml", ["drive.kt_nm_per_arms", "must be positive"]),
+    "torque constant negative, replay": lambda tmp, g: (
+        replay(g, model=_model(tmp, "kt.yaml", "kt_nm_per_arms: 5.6", "kt_nm_per_arms: -5.6")), "kt.yaml",
+        ["drive.kt_nm_per_arms", "must be positive"]),
+    "no torque constant, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "nokt.yaml", "drive:\n  kt_nm_per_arms: 5.6\n", ""), "--cycle", CYCLE,
+         "--out", tmp / "o.csv"], "nokt.yaml", ["--model", "drive.kt_nm_per_arms is missing"]),
+    "no sensor ever measured, discover": lambda tmp, g: (
+        ["discover", "--model", TWO_NODE, "--run", p := _no_sensor_data(g, tmp / "nos.csv"), "--no-report"], str(p),
+        ["none of the sensors", "measured sample"]),
+    "ten samples, discover": lambda tmp, g: (
+        ["discover", "--model", TWO_NODE, "--run", p := _write(tmp / "ten.csv", _table(g)[0], _table(g)[1][:10]),
+         "--no-report"], str(p), ["10 samples", "too few for discovery"]),
+    "flux score: a JSON list": lambda tmp, g: (
+        ["flux", "score", _text(tmp / "l.json", "[1, 2]"), _flux_run(g, tmp / "f.csv")], "l.json",
+        ["not a file written by flux calibrate", "list"]),
+    "flux score: a JSON object without the parameters": lambda tmp, g: (
+        ["flux", "score", _text(tmp / "e.json", "{}"), _flux_run(g, tmp / "f.csv")], "e.json", ["no r20"]),
+    "edge.yaml: an IPv6 udp_multicast group": lambda tmp, g: (
+        check(_edge(tmp, lambda r: r["bus"].update(interface="udp_multicast", channel="ff15::7468:6572", port=43113))),
+        "bus.channel", ["IPv6 group", "239.74.163.2"]),
+}
+
 CASES.update(RUN_CASES)
 CASES.update(MODEL_CASES)
 CASES.update(CONFIG_CASES)
 CASES.update(LOG_CASES)
 CASES.update(OPTION_CASES)
+CASES.update(MORE_CASES)
 
 
 @pytest.fixture(scope="session")
