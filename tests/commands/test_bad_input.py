@@ -463,6 +463,10 @@ LOG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]
     "unknown log suffix": lambda tmp, g: (can_replay(tmp / "notes.txt"), str(tmp / "notes.txt"), ["unknown CAN log format"]),
     "binary file as a .blf": lambda tmp, g: (can_replay(tmp / "bin.blf"), str(tmp / "bin.blf"), ["not a .blf log"]),
     "text that is no log": lambda tmp, g: (can_replay(tmp / "notes.log"), str(tmp / "notes.log"), ["not a .log log"]),
+    "CAN log of one frame": lambda tmp, g: (
+        can_replay(p := _log_lines(tmp / "s.log", tmp / "one.log", lambda ls: ls[:1])), str(p),
+        ["1 frame(s)", "not one tick", "too short"]),
+    "an empty TRC log": lambda tmp, g: (can_replay(_text(tmp / "empty.trc", "")), "empty.trc", ["not a .trc log"]),
     "CAN log with a missing edge.yaml": lambda tmp, g: (
         [*can_replay(tmp / "s.log"), "--config", tmp / "nope.yaml"], str(tmp / "nope.yaml"), ["No such file"]),
 }
