@@ -73,3 +73,19 @@ def test_run_check_honours_debug(tmp_path, capsys):
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     with pytest.raises((ThermalEdgeError, OSError)):
         main(["--debug", "run", "--check", "--config", missing])
+
+
+@pytest.mark.parametrize(("argv", "prog"), [
+    (["replay", "--model", "pm10kw", "--run", "run.csv", "--bogus"], "thermal-edge replay"),
+    (["bench", "jacobian", "--bogus", "1"], "thermal-edge bench jacobian"),
+    (["config", "example", "--nope"], "thermal-edge config example"),
+])
+def test_an_unknown_option_is_named_by_the_command_it_was_given_to(argv, prog, capsys):
+    """As every other error of an option: ``thermal-edge replay: error: ...``, one line, exit 2,
+    before the command does anything (the run file does not exist)."""
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.splitlines()
+    unknown = " ".join(argv[argv.index(next(a for a in argv if a in ("--bogus", "--nope"))):])
+    assert err == [f"{prog}: error: unrecognized arguments: {unknown}"]

@@ -56,8 +56,24 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def innermost_parser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
+    """The parser of the deepest sub-command named in ``argv`` (``bench jacobian``: the parser of
+    ``jacobian``), or ``parser`` itself when none is named."""
+    rest = list(argv)
+    while True:
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        name = next((a for a in rest if sub is not None and a in sub.choices), None)
+        if sub is None or name is None:
+            return parser
+        parser, rest = sub.choices[name], rest[rest.index(name) + 1:]
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser(argv).parse_args(argv)
+    words = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(words)
+    args, unknown = parser.parse_known_args(words)
+    if unknown:  # said by the command they were given to, as its other option errors are
+        innermost_parser(parser, words).error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         resolve_named_files(args)
         return int(args.func(args) or 0)
