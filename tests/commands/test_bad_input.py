@@ -317,6 +317,9 @@ MODEL_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]
     "parameter min not positive": lambda tmp, g: (
         replay(g, model=_model(tmp, "m.yaml", "min: 200, max: 20000", "min: -200, max: 20000")), "m.yaml",
         ["parameters.C_w.min", "must be positive"]),
+    "a limit given as a word": lambda tmp, g: (
+        replay(g, model=_model(tmp, "w.yaml", "warn_c: 140", 'warn_c: "hot"')), "w.yaml",
+        ["limits.hot_spot.warn_c", "expected a number, got 'hot'"]),
     "sensor on an unknown node": lambda tmp, g: (
         replay(g, model=_model(tmp, "n.yaml", "winding_t: {node: winding}", "winding_t: {node: windin}")), "n.yaml",
         ["sensors.winding_t.node", "'windin'"]),

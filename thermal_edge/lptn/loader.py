@@ -58,6 +58,9 @@ class _Ctx:
             raise self.fail(key, str(exc)) from None
 
     def number(self, key: str, value: Any, positive: bool = False) -> float:
+        if isinstance(value, str) and value.strip().isidentifier() and value.strip() not in self.constants:
+            # a word where a number belongs ("hot", "none"): not a law naming something unknown
+            raise self.fail(key, f"expected a number, got {value!r}")
         e = self.law(key, value, set(), "a geometric or fixed quantity")
         v = evaluate_const(e)
         if positive and not v > 0:
