@@ -562,6 +562,9 @@ OPTION_CASES.update({
          "--fleet", "2", "--faulty", "5"], "--faulty 5", ["more than the --fleet"]),
     "simulate --out a directory": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp],
                                                    f"--out {tmp}", ["a directory"]),
+    "simulate --out with an unknown suffix": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.xyz"], f"--out {tmp / 'o.xyz'}",
+        ["must end in .csv"]),
     "simulate --effect unknown": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv",
                                                   "--effect", "nope"], "effect 'nope'", ["unknown"]),
     "simulate --set not a number": lambda tmp, g: (["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv",

@@ -87,6 +87,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out}: a directory; give a file name (a directory is written with --fleet only)")
     if args.format in ("can", "candump"):
         return run_can_log(args)
+    if Path(args.out).suffix.lower() != ".csv":  # what every reader of runs takes it for
+        raise UsageError(f"--out {args.out}: a run CSV must end in .csv (a CAN log: --format can)")
     raw = hidden.read_document(args.model)
     build = hidden.builder(args.model, args.data_dir)
     model = build(raw)
