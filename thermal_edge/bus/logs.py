@@ -233,10 +233,10 @@ def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, st
     # python-can's registry, opened here because can.LogReader drops the keyword arguments of a
     # .gz file (4.6.1), and ASC needs one: absolute times, the header's start plus each offset
     kwargs = {"relative_timestamp": False} if suffix == ".asc" else {}
-    if lines is not None:
-        return MESSAGE_READERS[suffix](lines, **kwargs)
     file: Any = path
-    if path.suffix.lower() == ".gz":
+    if lines is not None:  # the text readers only iterate their file (and call next() on it)
+        file = lines
+    elif path.suffix.lower() == ".gz":
         file = gzip.open(path, "rt" if suffix in GZIP_SUFFIXES else "rb")
     return MESSAGE_READERS[suffix](file, **kwargs)
 
