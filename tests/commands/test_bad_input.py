@@ -764,6 +764,20 @@ def test_the_summary_comes_before_the_scores(good_run):
     assert "used: speed_rpm " in first and "housing " in first and "ignored: torque_nm" in first
 
 
+def test_a_sensor_never_measured_is_said_so_not_scored_nan(good_run, tmp_path):
+    """A sensor column with no reading at all (every cell nan) is not an error of the run (the
+    other sensor scores), but its score says so; the mean is over the measured sensors."""
+    header, rows = _table(good_run)
+    j = header.index("housing")
+    run = _write(tmp_path / "nohousing.csv", header, [[*r[:j], "nan", *r[j + 1:]] for r in rows])
+    r = te(*replay(run))
+    assert r.returncode == 0, r.stderr
+    table = r.stdout.splitlines()[-4:]
+    assert table[2].split() == ["housing", "not", "measured"]
+    assert table[1].split()[0] == "winding_t" and table[3].split()[1] == table[1].split()[1]  # mean = the one score
+    assert "nan" not in r.stdout.split()
+
+
 # -- state files: read by the service at start; each refusal one line naming the field ------------------
 def _state(m, **fields) -> bytes:
     n = len(m.nodes)

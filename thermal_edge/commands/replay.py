@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -192,8 +193,12 @@ def _print_open_loop(args: argparse.Namespace, model: Model, rec: Run, scores: S
     print(f"{model.name} on {args.run}: {len(rec)} samples, open loop")
     print(f"{'sensor':<18}{'MSE K²':>10}{'RMS K':>10}{'max |e| K':>11}")
     for s in scores.mse:
-        print(f"{s:<18}{scores.mse[s]:>10.3f}{scores.rms[s]:>10.3f}{scores.max_abs[s]:>11.3f}")
-    print(f"{'mean':<18}{scores.mean_mse:>10.3f}")
+        if math.isfinite(scores.mse[s]):
+            print(f"{s:<18}{scores.mse[s]:>10.3f}{scores.rms[s]:>10.3f}{scores.max_abs[s]:>11.3f}")
+        else:  # a column with no reading: nothing to compare the prediction with
+            print(f"{s:<18}{'not measured':>31}")
+    mean = scores.mean_mse
+    print(f"{'mean':<18}{mean:>10.3f}" if math.isfinite(mean) else f"{'mean':<18}{'no sensor measured':>31}")
     return 0
 
 
