@@ -630,7 +630,13 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
         "ns.yaml", ["dt_s", "6e+10 samples", "in seconds"]),
     "simulate --duration of 1e12 s": lambda tmp, g: (
         ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e12", "--out", tmp / "o.csv"],
-        "--duration 1e+12 s", ["samples", "in seconds"]),
+        "--duration 1e+12 s", ["1e+12 samples", "2 kB a sample"]),
+    "simulate --duration of 1e7 s": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e7", "--out", tmp / "o.csv"],
+        "--duration 1e+07 s", ["1e+07 samples", "more than 1e+06"]),
+    "simulate --format can --duration of 1e12 s": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e12", "--format", "can", "--out",
+         tmp / "o.log"], "--duration 1e+12 s", ["samples", "in seconds"]),
     "torque constant zero, simulate": lambda tmp, g: (
         ["simulate", "--model", _model(tmp, "kt.yaml", "kt_nm_per_arms: 5.6", "kt_nm_per_arms: 0"), "--cycle", CYCLE,
          "--out", tmp / "o.csv"], "kt.yaml", ["drive.kt_nm_per_arms", "must be positive"]),

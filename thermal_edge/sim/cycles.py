@@ -31,9 +31,9 @@ class CycleError(ThermalEdgeError, ValueError):
     """An invalid cycle file; the message names the file and the key."""
 
 
-#: Samples a cycle may be turned into: a year at 1 s is 3.2e7; beyond this the run's columns alone
-#: take gigabytes (a ``dt_s`` in ms or a duration in ms is the usual cause).
-MAX_SAMPLES = 50_000_000
+#: Samples a cycle may be turned into: 116 days at 1 s, about 1 GB of input columns; beyond it a
+#: ``dt_s`` or a duration typed in ms is the usual cause.
+MAX_SAMPLES = 10_000_000
 
 
 def samples(duration_s: float, dt_s: float) -> int:
