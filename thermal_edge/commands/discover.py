@@ -12,6 +12,7 @@ pipeline with the service configuration ``--config``: one sample per tick, as th
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import shlex
 import sys
@@ -84,11 +85,19 @@ def _run_header(path: str) -> list[str]:
     return (["# the run (its header):"] + out) if out else []
 
 
+def report_available() -> bool:
+    """Whether the report's figures can be drawn (matplotlib, of the ``report`` extra)."""
+    return importlib.util.find_spec("matplotlib") is not None
+
+
 def run(args: argparse.Namespace) -> int:
     if args.list_effects:
         return list_effects(args)
     if not args.run:
         raise UsageError("--run is required (or --list-effects)")
+    if args.out and not args.no_report and not report_available():  # said before the analysis, not after it
+        raise UsageError("--out: the report needs matplotlib (pip install 'thermal-edge[report]'); "
+                         "use --no-report for the model alone")
     from ..discovery import effects as E
     from ..discovery import hidden, workflow
 
@@ -124,12 +133,6 @@ def run(args: argparse.Namespace) -> int:
             tag = "+".join(r.fit.label.replace(":", "-") for r in disc.added)
             disc.model_out = workflow.write_model(disc, args.model_out or out / f"{stem}+{tag}.yaml", args.model)
         if not args.no_report:
-            try:
-                import matplotlib  # noqa: F401  (the report's figures: the ``report`` extra)
-            except ModuleNotFoundError:
-                print("thermal-edge discover: error: the report needs matplotlib (pip install 'thermal-edge[report]'); "
-                      "use --no-report for the model alone", file=sys.stderr)
-                return 2
             from ..discovery import report
 
             cmd = ["thermal-edge", "discover", "--model", args.model, "--run", args.run]
