@@ -657,6 +657,12 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
         ["not a file written by flux calibrate", "list"]),
     "flux score: a JSON object without the parameters": lambda tmp, g: (
         ["flux", "score", _text(tmp / "e.json", "{}"), _flux_run(g, tmp / "f.csv")], "e.json", ["no r20"]),
+    "flux calibrate --pole-pairs 0": lambda tmp, g: (
+        ["flux", "calibrate", _flux_run(g, tmp / "f.csv"), "--out", tmp / "f.json", "--pole-pairs", "0"], "--pole-pairs",
+        ["integer >= 1"]),
+    "flux calibrate on a run without voltages": lambda tmp, g: (
+        ["flux", "calibrate", g, "--out", tmp / "f.json", "--pole-pairs", "4", "--magnet-column", "housing"], str(g),
+        ["no column(s) u_d_v, u_q_v"]),
     "edge.yaml: an IPv6 udp_multicast group": lambda tmp, g: (
         check(_edge(tmp, lambda r: r["bus"].update(interface="udp_multicast", channel="ff15::7468:6572", port=43113))),
         "bus.channel", ["IPv6 group", "239.74.163.2"]),

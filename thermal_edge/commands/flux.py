@@ -22,6 +22,7 @@ from ..errors import UsageError
 from ..estimation.flux import PARAMS, UNITS, Electrical, FluxError, FluxModel, fit_flux_model
 from ..lptn import Role
 from ..text_table import table
+from .options import integer
 
 COLUMNS = {"u_d": "u_d_v", "u_q": "u_q_v", "current_d": Role.CURRENT_D.default_column, "current_q": Role.CURRENT_Q.default_column,
            "speed": Role.SPEED.default_column, "winding": "stator_winding"}
@@ -34,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c = which.add_parser("calibrate", help="fit the electrical parameters and the variance table on a recorded run")
     c.add_argument("run", help="recorded run (CSV) with dq voltages and currents, speed, winding and magnet temperature")
     c.add_argument("--out", required=True, help="write the commissioned estimate here (JSON)")
-    c.add_argument("--pole-pairs", type=int, required=True, help="pole pairs of the machine")
+    c.add_argument("--pole-pairs", type=integer(1), required=True, help="pole pairs of the machine")
     c.add_argument("--prior", action="append", default=[], metavar="NAME=MEAN,SIGMA",
                    help=f"a parameter's prior ({', '.join(f'{k} [{UNITS[k]}]' for k in PARAMS)}); repeatable")
     c.add_argument("--minutes", type=float, default=None, help="use only the run's first MIN minutes")
@@ -74,7 +75,10 @@ def _priors(items: list[str]) -> dict[str, tuple[float, float]]:
 
 
 def _electrical(args: argparse.Namespace, columns: dict[str, np.ndarray]) -> Electrical:
-    return Electrical.of(columns, *(getattr(args, f"{k}_column") for k in COLUMNS))
+    try:
+        return Electrical.of(columns, *(getattr(args, f"{k}_column") for k in COLUMNS))
+    except FluxError as exc:  # a column missing from the run: the file named with it
+        raise FluxError(f"{args.run}: {exc}") from None
 
 
 def main(args: argparse.Namespace) -> int:
