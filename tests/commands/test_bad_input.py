@@ -469,6 +469,10 @@ LOG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]
     "CAN log of one frame": lambda tmp, g: (
         can_replay(p := _log_lines(tmp / "s.log", tmp / "one.log", lambda ls: ls[:1])), str(p),
         ["1 frame(s)", "not one tick", "too short"]),
+    "CAN log of another bus": lambda tmp, g: (
+        can_replay(p := _log_lines(tmp / "s.log", tmp / "foreign.log",
+                                   lambda ls: [ln.replace(" can0 0", " can0 7").replace(" vcan0 0", " vcan0 7") for ln in ls])),
+        str(p), ["no frame of the drive's CAN matrix", "3000 frame(s) with other identifiers"]),
     "an empty TRC log": lambda tmp, g: (can_replay(_text(tmp / "empty.trc", "")), "empty.trc", ["not a .trc log"]),
     "CAN log with a missing edge.yaml": lambda tmp, g: (
         [*can_replay(tmp / "s.log"), "--config", tmp / "nope.yaml"], str(tmp / "nope.yaml"), ["No such file"]),
