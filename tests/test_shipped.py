@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
+import yaml
 
 from thermal_edge import shipped
 from thermal_edge.cli import main
@@ -60,3 +61,29 @@ def test_config_example_prints_the_packaged_file(capsys):
     assert main(["config", "example"]) == 0
     assert capsys.readouterr().out == (RESOURCES / "edge.yaml").read_text(encoding="utf-8")
     assert shipped.example_config() == shipped.config_path("edge.yaml").read_text(encoding="utf-8")
+
+
+def test_config_example_with_a_model_beside_it_uses_that_file(tmp_path, capsys):
+    """The install steps' configuration names the model copied beside it, so editing that copy
+    changes what the service runs (a broken copy fails the check, naming the file)."""
+    (tmp_path / "machines").mkdir()
+    model = tmp_path / "machines" / "pm10kw.yaml"
+    model.write_text((RESOURCES / "machines" / "pm10kw.yaml").read_text(encoding="utf-8"), encoding="utf-8")
+    assert main(["config", "example", "--model", "machines/pm10kw.yaml"]) == 0
+    text = capsys.readouterr().out
+    cfg = tmp_path / "edge.yaml"
+    cfg.write_text(text, encoding="utf-8")
+    assert yaml.safe_load(text)["model"]["path"] == "machines/pm10kw.yaml"
+    # everything but the model line is the packaged example
+    changed = [(a, b) for a, b in zip(text.splitlines(), shipped.example_config().splitlines()) if a != b]
+    assert len(changed) == 1 and changed[0][0].split() == ["path:", "machines/pm10kw.yaml", *changed[0][1].split()[2:]]
+    assert main(["run", "--check", "--config", str(cfg)]) == 0
+    assert "model pm10kw" in capsys.readouterr().out
+    model.write_text("garbage: [\n", encoding="utf-8")
+    assert main(["run", "--check", "--config", str(cfg)]) == 2
+    assert "pm10kw.yaml" in capsys.readouterr().err
+
+
+def test_config_example_refuses_a_model_that_is_not_a_plain_path(capsys):
+    assert main(["config", "example", "--model", "a b.yaml"]) == 2
+    assert "--model 'a b.yaml'" in capsys.readouterr().err

@@ -56,24 +56,21 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def innermost_parser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
-    """The parser of the deepest sub-command named in ``argv`` (``bench jacobian``: the parser of
-    ``jacobian``), or ``parser`` itself when none is named."""
-    rest = list(argv)
-    while True:
-        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
-        name = next((a for a in rest if sub is not None and a in sub.choices), None)
-        if sub is None or name is None:
-            return parser
-        parser, rest = sub.choices[name], rest[rest.index(name) + 1:]
+def innermost_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the (sub-)sub-command ``args`` chose, e.g. ``thermal-edge flux calibrate``'s."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and action.dest and action.choices:
+            chosen = getattr(args, action.dest, None)
+            if chosen in action.choices:
+                return innermost_parser(action.choices[chosen], args)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    words = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(words)
-    args, unknown = parser.parse_known_args(words)
-    if unknown:  # said by the command they were given to, as its other option errors are
-        innermost_parser(parser, words).error(f"unrecognized arguments: {' '.join(unknown)}")
+    parser = build_parser(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # named by the command that does not know them, as its other option errors are
+        innermost_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         resolve_named_files(args)
         return int(args.func(args) or 0)

@@ -354,7 +354,7 @@ class SignalsConfig:
     #: the current input ``i_rms`` above this multiple of ``derating.max_current_a`` is implausible (the
     #: input's fault, ``out_of_range``): the inverter obeys TE_CurrentLimit <= max_current_a and a drive's
     #: short-time peak is 2-2.5x its rated current; the d/q signals carry up to 1638 A
-    valid_current_factor: float = setting(3.0, positive=True, max=10.0)
+    valid_current_factor: float = setting(3.0, min=1.0, max=10.0)  # below 1 the rated current is refused
     #: the speed input ``speed_rpm`` beyond +-this is implausible: about 5x the pm10kw's base speed (its
     #: back-EMF, kt 5.6 Nm/A, reaches the 560 V DC link's phase voltage at ~1170 rpm; field weakening of
     #: a surface PM machine rarely reaches 4x); the signal carries +-16000 rpm
@@ -362,7 +362,7 @@ class SignalsConfig:
     #: the torque input beyond +-this multiple of ``derating.max_torque_nm`` is implausible (the
     #: inverter obeys TE_TorqueLimit <= max_torque_nm; its estimate overshoots in transients, not by
     #: 3x); the signal carries +-3276.8 Nm
-    valid_torque_factor: float = setting(3.0, positive=True, max=10.0)
+    valid_torque_factor: float = setting(3.0, min=1.0, max=10.0)  # below 1 the rated torque is refused
 
 
 @dataclass(frozen=True)
@@ -459,7 +459,7 @@ class StateConfig:
     """``state:`` -- where parameters, decisions and the thermal state persist."""
 
     dir: Path = setting(env="STATE_DIRECTORY")  # systemd's StateDirectory= sets it
-    save_interval_s: float = setting(60.0, positive=True)
+    save_interval_s: float = setting(60.0, positive=True, max=86400.0)  # learned state lost on a crash: at most a day
     max_decisions: int = setting(500, min=0, max=MAX_DECISIONS)
     max_downtime_s: float = setting(7 * 86400.0, positive=True)
 
@@ -550,10 +550,14 @@ class EdgeConfig:
             if name not in limit_names:
                 have = ", ".join(sorted(limit_names)) or "none"
                 raise self.error(f"derating.limits.{name}", f"model {model.name} has no limited node {name!r} (has: {have})")
+        lo, hi = self.signals.valid_range_c
         for lim in model.limits:
             warn, mx = self.limit_band(lim)
             if not mx > warn:
                 raise self.error(f"derating.limits.{lim.name}.max_c", f"must be above warn_c ({warn:g}), got {mx:g}")
+            if mx > hi:  # a reading on the way to the limit would be taken for a sensor fault
+                raise self.error("signals.valid_range_c", f"the plausible readings ({lo:g} to {hi:g} degC) must reach "
+                                 f"every limit's max_c: {lim.name} has {mx:g}")
         if not model.limits:
             raise self.error("model.path", f"model {model.name} declares no limits: nothing to derate on")
         for key in ("hot_spot_limit", "magnet_limit"):
@@ -569,8 +573,14 @@ class EdgeConfig:
         for s in ad.sensors or ():
             if s not in model.sensors:
                 raise self.error("adaptation.sensors", f"model {model.name} has no sensor {s!r}")
-        if self.kt(model) is None:
+        kt = self.kt(model)
+        if kt is None:
             raise self.error("derating.kt_nm_per_arms", f"model {model.name} has no drive.kt_nm_per_arms: give it here")
+        d = self.derating
+        if d.safe_torque_nm is not None and d.safe_torque_nm > kt * d.safe_current_a * (1 + 1e-9):
+            # the torque limit is never above kt x the current limit: a higher safe torque is never sent
+            raise self.error("derating.safe_torque_nm", f"must not exceed kt x safe_current_a ({kt:g} Nm/A x "
+                             f"{d.safe_current_a:g} A = {kt * d.safe_current_a:g} Nm), got {d.safe_torque_nm:g}")
 
     def check_parameters(self, model: Any) -> None:
         """Check ``model.parameters`` against the model file: known names, values within its bounds.
@@ -827,6 +837,8 @@ def _check_derating(d: DeratingConfig, sec: _Section) -> None:
             raise sec.fail(key, why)
     if d.safe_current_a > d.max_current_a:
         raise sec.fail("safe_current_a", f"must not exceed max_current_a ({d.max_current_a:g}), got {d.safe_current_a:g}")
+    if d.safe_torque_nm is not None and d.safe_torque_nm > d.max_torque_nm:
+        raise sec.fail("safe_torque_nm", f"must not exceed max_torque_nm ({d.max_torque_nm:g}), got {d.safe_torque_nm:g}")
 
 
 def _check_limit(lim: LimitConfig, sec: _Section) -> None:

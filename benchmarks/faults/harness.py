@@ -68,6 +68,7 @@ def _edge() -> dict[str, Any]:
 EDGE = _edge()
 MAX_A = float(EDGE["derating"]["max_current_a"])
 MAX_NM = float(EDGE["derating"]["max_torque_nm"])
+KT_NM_PER_A = float(EDGE["derating"]["kt_nm_per_arms"])
 SAFE_A = float(EDGE["derating"]["safe_current_a"])
 TIMEOUTS_S = {k: float(v) for k, v in EDGE["timeouts"].items()}
 TICK_S = float(EDGE["clock"]["tick_s"])
@@ -559,6 +560,11 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
     over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque)
                if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
     c.add(over, f"{over} limit(s) above the maximum")
+    # the torque limit the inverter obeys never exceeds what the current limit beside it carries,
+    # in a tick's limits and in those the sender decides between ticks alike
+    loose = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque)
+                if t0 <= t <= t1 and tq > KT_NM_PER_A * (i + RESOLUTION_A) + 0.1)
+    c.add(loose, f"{loose} torque limit(s) above kt x the current limit")
     bad_crc = sum(1 for t, ok in zip(lim.t, lim.crc_ok) if t0 <= t <= t1 and not ok)
     c.add(bad_crc, f"{bad_crc} TE_Limits with a bad CRC")
     if safe_from is not None and safe_from < t1:

@@ -59,7 +59,11 @@ def test_calibrate_then_score(tmp_path):
     (["--prior", "r20=0.1"], "--prior r20=0.1: expected NAME=MEAN,SIGMA"),
     (["--prior", "r20=0.1,0"], "--prior r20=0.1,0: MEAN finite and SIGMA > 0"),
     (["--magnet-column", "rotor"], "no magnet temperature column 'rotor'"),
-    (["--speed-min", "1e6"], "only 0 samples at or above 1e+06 rpm"),
+    (["--speed-min", "1e4"], "only 0 samples at or above 10000 rpm"),
+    (["--speed-min", "1e6"], "argument --speed-min: "),
+    (["--pole-pairs", "0"], "argument --pole-pairs: "),
+    (["--minutes", "0"], "argument --minutes: "),
+    (["--u-d-column", "ud"], "fit.csv: no column(s) ud"),
 ])
 def test_bad_options_are_one_line_errors(tmp_path, extra, message):
     write_run(tmp_path / "fit.csv", 1, n=200)
@@ -75,4 +79,8 @@ def test_score_of_a_file_that_is_not_a_flux_model(tmp_path):
     assert r.returncode == 2 and "not a file written by flux calibrate" in r.stderr
     (tmp_path / "g.json").write_text('{"params": {}}')
     r = te_here("flux", "score", tmp_path / "g.json", tmp_path / "use.csv")
-    assert r.returncode == 2 and "flux model: no r20" in r.stderr
+    assert r.returncode == 2 and r.stderr.startswith(f"thermal-edge flux: error: {tmp_path / 'g.json'}: ")
+    assert "flux model: no r20" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    (tmp_path / "h.json").write_text('{"params": 3}')  # wrong types: the same one line, no traceback
+    r = te_here("flux", "score", tmp_path / "h.json", tmp_path / "use.csv")
+    assert r.returncode == 2 and "not a file written by flux calibrate" in r.stderr and "Traceback" not in r.stderr

@@ -98,3 +98,30 @@ def test_plot_without_matplotlib_says_how_to_install(good_run, tmp_path, monkeyp
         "thermal-edge replay: error: --plot: this needs matplotlib, which is not installed: "
         "pip install 'thermal-edge[report]'"]
     assert not (tmp_path / "x.png").exists()
+
+
+def test_discover_report_without_matplotlib_refused_before_any_work(good_run, tmp_path, monkeypatch):
+    """``discover --out`` writes a report with figures: without matplotlib it says so before the
+    analysis (nothing on stdout: not even the run's summary), and --no-report is the way out."""
+    blocker = tmp_path / "block" / "matplotlib"
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ImportError('matplotlib blocked for this test')\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(blocker.parent), os.environ.get("PYTHONPATH")])))
+    out = tmp_path / "disc"
+    r = te("discover", "--model", TWO_NODE, "--run", good_run, "--out", out)
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        f"thermal-edge discover: error: --out {out}: the report needs matplotlib, which is not installed: "
+        "pip install 'thermal-edge[report]'; or --no-report for the model alone"]
+    assert not out.exists()
+
+
+def test_discover_on_a_run_without_a_gap_prints_no_trend(good_run):
+    """Data simulated from the model itself: the verdict is no gap, and the residual's shape (noise)
+    is not printed as a trend to act on; the gap status says the same in --json."""
+    r = te("discover", "--model", TWO_NODE, "--run", good_run)
+    assert r.returncode == 0, r.stderr
+    assert "no gap" in r.stdout.splitlines()[1]
+    assert not any(line.startswith("the residual ") for line in r.stdout.splitlines()), r.stdout
+    j = te("discover", "--model", TWO_NODE, "--run", good_run, "--json")
+    assert json.loads(j.stdout)["gap_status"] == "none"

@@ -80,21 +80,3 @@ def test_discover_bad_sensor_is_one_line(tmp_path, capsys):
     rc = main(["discover", "--model", str(PM10KW), "--run", str(run), "--sensors", "rotor"])
     err = capsys.readouterr().err
     assert rc == 2 and "rotor" in err and "Traceback" not in err
-
-
-def test_a_report_without_matplotlib_is_refused_before_the_analysis(tmp_path, capsys, monkeypatch):
-    """Without the ``report`` extra, ``discover --out`` says so at once (exit 2, one line naming the
-    option), before it reads the run or fits anything; ``--no-report`` goes on."""
-    from thermal_edge.commands import discover as cmd
-    from thermal_edge.discovery import workflow
-
-    monkeypatch.setattr(cmd, "report_available", lambda: False)
-    ran: list[str] = []
-    monkeypatch.setattr(workflow, "discover", lambda *a, **k: ran.append("analysis"))
-    missing_run = tmp_path / "not-read.csv"
-    rc = main(["discover", "--model", str(PM10KW), "--run", str(missing_run), "--out", str(tmp_path / "d")])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2 and ran == [] and len(err) == 1
-    assert err[0].startswith("thermal-edge discover: error: --out: the report needs matplotlib") and "--no-report" in err[0]
-    rc = main(["discover", "--model", str(PM10KW), "--run", str(missing_run), "--out", str(tmp_path / "d"), "--no-report"])
-    assert rc == 2 and "not-read.csv" in capsys.readouterr().err  # past the check: the run is read (and missing)

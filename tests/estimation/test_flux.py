@@ -6,7 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from thermal_edge.estimation.flux import ALPHA_CU, PARAMS, Electrical, FluxError, FluxModel, fit_flux_model
+from thermal_edge.estimation.flux import (
+    ALPHA_CU,
+    PARAMS,
+    Electrical,
+    FluxError,
+    FluxModel,
+    back_emf,
+    fit_flux_model,
+    steady,
+)
 
 P = 4
 TRUE = {"r20": 0.018, "v_err": 1.5, "psi20": 0.11, "beta": -0.11 * 0.11 / 100.0, "ld0": 5e-4, "ld1": -6e-5,
@@ -82,7 +91,8 @@ def test_variance_table_is_the_voltage_noise_over_omega_beta():
 def test_standstill_low_speed_and_unseen_currents_are_uninformative():
     e, t_m = synthetic(rpm_range=(3000.0, 6000.0))
     m = fit_flux_model(e, t_m, P, dt=1.0, speed_min_rpm=0.0)
-    assert 3000.0 < m.speed_min_rpm < 3000.0 + 0.1 * 3000.0  # the 5th percentile of 3000-6000 rpm
+    p5 = np.percentile(e.speed_rpm, 5.0)  # of 3000-6000 rpm
+    assert m.speed_min_rpm == pytest.approx(0.9 * p5, rel=0.02)
     probe = Electrical(np.array([1.0, -5.0, -20.0, -20.0]), np.array([0.0, 10.0, 60.0, 60.0]),
                        np.array([0.0, -50.0, -100.0, -100.0]), np.array([0.0, 40.0, 50.0, 400.0]),
                        np.array([0.0, 500.0, 4500.0, 4500.0]), np.full(4, 60.0))
@@ -131,3 +141,60 @@ def test_sigma_grows_with_the_distance_from_the_runs_temperatures():
     expected = np.sqrt(0.05**2 / w_beta**2 + ((t_m - 60.0) * 0.05) ** 2)
     np.testing.assert_allclose(s, expected, rtol=1e-9)
     assert ok.all() and s[0] < s[1] < s[2]
+
+
+def test_a_run_held_at_one_speed_is_informative_at_that_speed():
+    """Speed noise of hundredths of an rpm must not gate out the operating point the run was
+    commissioned on: counted here as the share of the run's own samples at or above the limit."""
+    e, t_m = synthetic(noise_v=0.02)
+    g = np.random.default_rng(3)
+    rpm = 5500.0 + g.normal(0.0, 0.01, len(t_m))
+    e = Electrical(*voltages(TRUE, e.i_d, e.i_q, rpm, e.winding_c, t_m), e.i_d, e.i_q, rpm, e.winding_c)
+    m = fit_flux_model(e, t_m, P, dt=1.0, folds=3)
+    assert 0.85 * 5500.0 < m.speed_min_rpm < 0.95 * 5500.0
+    assert np.mean(np.abs(rpm) >= m.speed_min_rpm) == 1.0
+
+
+def test_the_cross_validation_fits_are_kept_and_read_back():
+    e, t_m = synthetic()
+    m = fit_flux_model(e, t_m, P, dt=1.0, speed_min_rpm=0.0, folds=3)
+    assert len(m.cv_params) == 4 and all(len(row) == len(PARAMS) for row in m.cv_params)
+    assert m.ensemble()[-1] == pytest.approx(m.params)  # the last is the fit on the whole run
+    back = FluxModel.from_dict(m.as_dict())
+    assert back.cv_params == m.cv_params and back.fit_info == m.fit_info
+    old = {k: v for k, v in m.as_dict().items() if k not in ("cv_params", "fit_info")}
+    assert FluxModel.from_dict(old).cv_params == []  # a file written before: nothing to extrapolate with
+    np.testing.assert_array_equal(m.temperature(e), m.temperature(e, m.params))
+
+
+def one_point_run(with_ramp: bool):
+    """A start-up ramp at zero current (1,200, 3,500, 5,100 rpm: not steady), then one loaded
+    operating point at 5,500 rpm while the magnet heats from 22 to 95 °C."""
+    n = 600
+    g = np.random.default_rng(8)
+    t_m = np.concatenate([np.full(3, 22.0), np.linspace(22.0, 95.0, n)])
+    t_w = np.concatenate([np.full(3, 22.0), np.linspace(22.0, 115.0, n)])
+    rpm = np.concatenate([[1200.0, 3500.0, 5100.0], np.full(n, 5500.0)])
+    i_d = np.concatenate([np.zeros(3), np.linspace(-193.0, -203.0, n) + g.normal(0, 0.3, n)])
+    i_q = np.concatenate([np.zeros(3), np.full(n, 66.0) + g.normal(0, 0.3, n)])
+    u_d, u_q = voltages(TRUE, i_d, i_q, rpm, t_w, t_m)
+    e = Electrical(u_d + g.normal(0, 0.05, n + 3), u_q + g.normal(0, 0.05, n + 3), i_d, i_q, rpm, t_w)
+    if not with_ramp:
+        e = Electrical(*(np.asarray(a)[3:] for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.speed_rpm, e.winding_c)))
+        t_m = t_m[3:]
+    return e, t_m
+
+
+def test_zero_current_samples_of_a_ramp_measure_the_flux_linkage():
+    """One operating point cannot separate ψ_20 from L_d i_d; the open-circuit back-EMF of a start-up
+    ramp can, although a ramp is not steady: at zero current u_q = ω_el ψ_PM at any speed."""
+    e, t_m = one_point_run(with_ramp=True)
+    assert not steady(e.speed_rpm)[1:3].any() and back_emf(e)[:3].all() and not back_emf(e)[3:].any()
+    m = fit_flux_model(e, t_m, P, dt=1.0)
+    assert m.params["psi20"] == pytest.approx(TRUE["psi20"], rel=0.01)
+    assert m.speed_min_rpm == pytest.approx(0.9 * 5500.0)  # the ramp's speeds saw no loaded point
+    ld_200 = m.params["ld0"] + 2.0 * m.params["ld1"]
+    assert ld_200 == pytest.approx(TRUE["ld0"] + 2.0 * TRUE["ld1"], rel=0.03)
+    e1, t1 = one_point_run(with_ramp=False)
+    blind = fit_flux_model(e1, t1, P, dt=1.0)
+    assert blind.sigma["psi20"] > 10.0 * m.sigma["psi20"]  # without it the run barely pins ψ_20

@@ -69,3 +69,27 @@ def test_fused_magnet_beats_the_observer_on_a_plant_with_another_rotor(pm10kw, m
     wrong = run_fused(pm10kw, res.run, SENSORS, bad, MAGNETS, electrical=e)
     assert wrong.refused > 0.9 * wrong.informative
     assert rms(wrong) < 1.1 * rms(plain)
+
+
+def test_the_estimate_covers_the_truth_within_its_stated_sigma(pm10kw, make_run, commissioned):
+    """On another run of the simulated machine the estimate's error stays within its own 95 % band
+    where it says it is informative (counted here), and standstill is never informative."""
+    res = make_run(pm10kw, "varied_drive.yaml", 3600.0, seed=11, params=ROTOR_OFF)
+    e, t_m = electrical(res, seed=2)
+    T, s, ok = commissioned.estimate(e)
+    assert ok.mean() > 0.3
+    assert not ok[res.run.columns["speed_rpm"] == 0.0].any()
+    inside = np.abs(T[ok] - t_m[ok]) <= 1.96 * s[ok]
+    assert inside.mean() >= 0.9
+
+
+def test_changes_at_unseen_currents_change_nothing_where_every_current_was_seen(pm10kw, make_run, commissioned):
+    """Commissioned on three hours of the varied cycle, every current of another run is in the
+    variance table: using unseen currents' changes leaves the fused run exactly as it was."""
+    res = make_run(pm10kw, "varied_drive.yaml", 3600.0, seed=11, params=ROTOR_OFF)
+    e, _ = electrical(res, seed=2)
+    fused = run_fused(pm10kw, res.run, SENSORS, commissioned, MAGNETS, electrical=e)
+    changes = run_fused(pm10kw, res.run, SENSORS, commissioned, MAGNETS, electrical=e, extrapolate=True)
+    assert changes.relative is not None and not changes.relative.any()
+    np.testing.assert_array_equal(changes.estimate, fused.estimate)
+    np.testing.assert_array_equal(changes.sigma, fused.sigma)

@@ -115,6 +115,8 @@ CASES = [
     ("bad substep", _set(["discretisation"], {"method": "euler", "max_substep_s": -1}), "discretisation.max_substep_s",
      "positive"),
     ("limits inverted", _set(["limits"], {"hot": {"node": "wind", "warn_c": 150, "max_c": 140}}), "limits.hot", "warn_c"),
+    ("limit a word", _set(["limits"], {"hot": {"node": "wind", "warn_c": "hot", "max_c": 140}}), "limits.hot.warn_c",
+     "expected a number"),
     ("limit on point", _set(["limits"], {"hot": {"node": "yoke/circ", "warn_c": 100, "max_c": 140}}), "limits.hot.node",
      "heat capacity"),
     ("constant not a number", _set(["constants", "alpha"], "speed_rpm * 2"), "constants.alpha", "speed_rpm"),

@@ -123,6 +123,9 @@ def test_plausible_ranges_name_the_unit_a_value_looks_like():
     assert k == 200 and "mA" not in why  # one sample: not the series' unit
     at, why = Role.AMBIENT.plausible.series_problem(np.r_[np.full(100, 25.0), 298.15, np.full(100, 25.0)])
     assert at == 100 and "looks like kelvin (25 degC)" in why  # one sample that converts into the rest's span
+    negated = -np.linspace(5, 30, 200)  # a sign error: neither A nor mA makes it plausible
+    k, why = current.series_problem(np.r_[0.0, negated])
+    assert k == 1 and "outside" in why and "looks like" not in why
     warm_kelvin = np.full(30, 300.15)  # each value alone a plausible degC (a hot machine)
     assert TEMPERATURE.problem(290.0) is None and TEMPERATURE.series_problem(warm_kelvin)[0] is None
     assert current.series_problem(np.array([0.0, np.nan, 12.0])) is None  # NaN: not measured, not judged here

@@ -51,6 +51,8 @@ def test_shipped_config_is_valid_and_complete():
         (lambda r: r["derating"].__setitem__("safe_current_a", -3), "derating.safe_current_a", "must be positive"),
         (lambda r: r["derating"].__setitem__("safe_current_a", 99), "derating.safe_current_a", "must not exceed"),
         (lambda r: r["derating"].pop("max_current_a"), "derating.max_current_a", "is required"),
+        (lambda r: r["derating"].__setitem__("safe_torque_nm", 500), "derating.safe_torque_nm",
+         "must not exceed max_torque_nm (220)"),
         (lambda r: r["lookahead"].__setitem__("horizon_s", "long"), "lookahead.horizon_s", "expected a number"),
         (lambda r: r["clock"].__setitem__("mode", "sundial"), "clock.mode", "must be one of"),
         (lambda r: r["adaptation"].__setitem__("period_s", 0), "adaptation.period_s", "must be positive"),
@@ -66,6 +68,11 @@ def test_shipped_config_is_valid_and_complete():
         (lambda r: r["signals"].__setitem__("valid_range_c", [300, 10]), "signals.valid_range_c", "low < high"),
         (lambda r: r["observer"].__setitem__("q_k", True), "observer.q_k", "expected a number"),
         (lambda r: r["state"].__setitem__("save_interval_s", -1), "state.save_interval_s", "must be positive"),
+        (lambda r: r["state"].__setitem__("save_interval_s", 86400000), "state.save_interval_s", "at most 86400"),
+        (lambda r: r["signals"].__setitem__("valid_current_factor", 0.5), "signals.valid_current_factor",
+         "must be at least 1"),
+        (lambda r: r["signals"].__setitem__("valid_torque_factor", 0.5), "signals.valid_torque_factor",
+         "must be at least 1"),
         (lambda r: r["bus"].__setitem__("bitrate", -5), "bus.bitrate", "positive integer"),
         (lambda r: r["model"].pop("path"), "model.path", "is required"),
     ],
@@ -392,3 +399,29 @@ def test_the_example_declares_what_the_shipped_file_leaves_to_defaults(tmp_path)
     codec = config_from_mapping(raw, tmp_path / "edge.yaml").codec.frame_codec()
     assert codec.protection("MC7_Motion").counter == "MC7_OperatingState"
     assert "MC7_OperatingState" not in codec.signal_names("MC7_Motion")
+
+
+def test_a_safe_torque_the_safe_current_cannot_carry_is_refused_against_the_model(tmp_path):
+    """The torque limit is never above kt x the current limit: a safe torque above kt x
+    safe_current_a would never be sent, so the check refuses it, naming both."""
+    raw = shipped()
+    raw["derating"]["safe_torque_nm"] = 150  # kt 5.6 Nm/A x 10 A = 56 Nm
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
+    with pytest.raises(ConfigError) as err:
+        cfg.check_model(load_service_model(cfg))
+    assert str(err.value).startswith("edge.yaml: derating.safe_torque_nm: must not exceed kt x safe_current_a "
+                                     "(5.6 Nm/A x 10 A = 56 Nm), got 150"), str(err.value)
+    raw["derating"]["safe_torque_nm"] = 30  # below: kept, and used
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
+    cfg.check_model(load_service_model(cfg))
+
+
+def test_plausible_readings_must_reach_every_limit(tmp_path):
+    """A reading on its way to a limit's max must not be taken for a sensor fault."""
+    raw = shipped()
+    raw["signals"]["valid_range_c"] = [-40, 100]  # the hot spot's max is 155 degC
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
+    with pytest.raises(ConfigError) as err:
+        cfg.check_model(load_service_model(cfg))
+    assert str(err.value) == ("edge.yaml: signals.valid_range_c: the plausible readings (-40 to 100 degC) must reach "
+                              "every limit's max_c: hot_spot has 155")

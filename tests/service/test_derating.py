@@ -82,6 +82,22 @@ def test_limits_fall_at_once_and_rise_slowly_with_hysteresis_reason_recovering()
     assert lim.current_a == 40.0 and lim.reason == DerateReason.NONE and not lim.active
 
 
+def test_the_safe_torque_is_one_value_in_a_tick_and_between_ticks():
+    """A tick's forced limit and the sender's limit between ticks (inputs silent, tick stalled,
+    before the first tick) carry the same torque, never above kt x the safe current, whatever
+    the configuration says (the configuration check refuses more; this is the depth below it)."""
+    for configured in (None, 30.0, 150.0, 500.0):
+        p = policy(safe_torque_nm=configured) if configured else policy()
+        p.bus_silence_s = 1.0
+        expect = min(configured or math.inf, 5.6 * 10.0)
+        ticked = p.update(bands(120.0, 50.0), (60.0, W), [DerateReason.STALE_INPUT])
+        assert ticked.torque_nm == pytest.approx(expect)
+        assert p.between_ticks(None, 0.0, None).torque_nm == pytest.approx(expect)  # starting
+        assert p.between_ticks(ticked, 5.0, None).torque_nm == pytest.approx(expect)  # inputs silent
+        assert p.between_ticks(ticked, 0.0, 60.0).torque_nm == pytest.approx(expect)  # tick loop stuck
+        assert p.safe(DerateReason.STALE_INPUT).torque_nm <= 5.6 * p.safe(DerateReason.STALE_INPUT).current_a + 1e-9
+
+
 def test_forced_safe_limit_and_precedence():
     for forced, reason in (([DerateReason.STALE_INPUT], DerateReason.STALE_INPUT),
                            ([DerateReason.SENSOR_FAULT, DerateReason.STALE_INPUT], DerateReason.STALE_INPUT),

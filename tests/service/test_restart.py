@@ -28,7 +28,7 @@ def test_restart_after_sigkill_starts_from_the_cooled_saved_state(tmp_path, udp_
     bus = {"interface": "udp_multicast", "port": udp_port}
     cfg_a = write_yaml(tmp_path / "a.yaml", edge_raw(state, bus, table4=False, adapt=False, save_interval_s=10.0))
     # the restarted service saves once, right after its first tick, so its first estimates can be read
-    cfg_b = write_yaml(tmp_path / "b.yaml", edge_raw(state, bus, table4=False, adapt=False, save_interval_s=1e9))
+    cfg_b = write_yaml(tmp_path / "b.yaml", edge_raw(state, bus, table4=False, adapt=False, save_interval_s=86400.0))
     state_file = state / "state.json"
     notify = NotifySocket(tmp_path / "notify")
     notify.start_thread()

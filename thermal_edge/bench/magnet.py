@@ -7,7 +7,9 @@ The run is two operating points at 5,500 rpm: about 70 min at 64 Nm (|i| ≈ 200
 weakening), then zero torque (|i| ≈ 95–108 A). A commissioning part cut from the first hour only
 ever sees the loaded point, so the flux estimate is informative on the loaded rest and flagged
 uninformative in the cool-down (the current is outside what commissioning saw): there the fused
-estimate is the observer's.
+estimate is the observer's. The second fusion uses the cool-down's estimate for its changes only
+(:class:`~thermal_edge.estimation.fusion.FluxObserver`, anchored at the load step where the magnet
+cannot jump): its figures stand beside the first's.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..data import Run, read_run
-from ..estimation.flux import Electrical, FluxModel, fit_flux_model
+from ..estimation.flux import PARAMS, Electrical, FluxModel, fit_flux_model
 from ..estimation.fusion import run_fused
 from ..estimation.online import band_coverage
 from ..estimation.predict import open_loop
@@ -79,6 +81,7 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
         n = int(round(minutes * 60.0 / run_.dt))
         fm = fit_flux_model(_head(e, n), tm[:n], POLE_PAIRS, run_.dt, priors=PRIORS)
         fu = run_fused(model, run_, SENSORS, fm, node, electrical=e, flux_from=n)
+        fx = run_fused(model, run_, SENSORS, fm, node, electrical=e, flux_from=n, extrapolate=True)
         rest = np.arange(len(run_)) >= n
         ok = rest & np.isfinite(fu.flux_sigma)
         y = tm[rest]
@@ -98,6 +101,14 @@ def run(data_dir: Path | None = None, fit_minutes: tuple[float, ...] = FIT_MINUT
             "observer_mse_informative": float(np.mean((base.estimate[ok, i] - tm[ok]) ** 2)) if ok.any() else float("nan"),
             "fused_mse_informative": float(np.mean((fu.estimate[ok, i] - tm[ok]) ** 2)) if ok.any() else float("nan"),
             "used": int(fu.used.sum()), "refused": fu.refused,
+            "extrapolated": {"fused_mse": mse_of(fx.estimate[:, i], tm, rest),
+                             "fused_coverage": band_coverage(fx.estimate[rest, i], fx.sigma[rest, i], y),
+                             "used": int(fx.used.sum()), "refused": fx.refused,
+                             "relative": int(fx.relative.sum()) if fx.relative is not None else 0,
+                             "stator_mse": {s: mse_of(fx.estimate[:, model.node_index(model.sensors[s])], run_.columns[s],
+                                                      rest)
+                                            for s in ("stator_winding", "stator_yoke", "stator_tooth")
+                                            if s in run_.columns}},
             "wrong": wrong_calibration(model, run_, fm, node, e, n, rest),
             "stator_mse": {s: {"observer": mse_of(base.estimate[:, model.node_index(model.sensors[s])], run_.columns[s], rest),
                                "fused": mse_of(fu.estimate[:, model.node_index(model.sensors[s])], run_.columns[s], rest)}
@@ -111,13 +122,16 @@ def wrong_calibration(model: Model, run_: Run, fm: FluxModel, node: str, e: Elec
                       rest: np.ndarray) -> dict[str, float]:
     """The fused run with :data:`WRONG` applied to the commissioned model: how often the
     disagreement check refuses, and the magnet's MSE and band coverage on the rest."""
-    bad = replace(fm, params={k: v * WRONG.get(k, 1.0) for k, v in fm.params.items()})
+    bad = replace(fm, params={k: v * WRONG.get(k, 1.0) for k, v in fm.params.items()},
+                  cv_params=[[v * WRONG.get(k, 1.0) for k, v in zip(PARAMS, row)] for row in fm.cv_params])
     fu = run_fused(model, run_, SENSORS, bad, node, electrical=e, flux_from=n)
+    fx = run_fused(model, run_, SENSORS, bad, node, electrical=e, flux_from=n, extrapolate=True)
     i = model.node_index(node)
     tm = run_.columns["pm"]
     return {"used": int(fu.used.sum()), "refused": fu.refused, "fused_mse": mse_of(fu.estimate[:, i], tm, rest),
             "fused_coverage": band_coverage(fu.estimate[rest, i], fu.sigma[rest, i], tm[rest]),
-            "flux_rms_k": float(np.sqrt(np.mean((fu.flux_c[rest] - tm[rest]) ** 2)))}
+            "flux_rms_k": float(np.sqrt(np.mean((fu.flux_c[rest] - tm[rest]) ** 2))),
+            "extrapolated_used": int(fx.used.sum()), "extrapolated_fused_mse": mse_of(fx.estimate[:, i], tm, rest)}
 
 
 def mse_of(x: np.ndarray, y: np.ndarray, mask: np.ndarray) -> float:

@@ -12,7 +12,6 @@ pipeline with the service configuration ``--config``: one sample per tick, as th
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import shlex
 import sys
@@ -20,6 +19,7 @@ from pathlib import Path
 
 from ..data import FORMATS, RunError
 from ..errors import UsageError
+from ..plots import missing
 from .common import add_set_arg, parse_sets
 from .options import integer, kelvin, names, number, output_dir, output_file, positive_s
 from .runs import CAN_FORMAT, add_can_args, read_checked_runs, require_finite_prediction
@@ -85,19 +85,13 @@ def _run_header(path: str) -> list[str]:
     return (["# the run (its header):"] + out) if out else []
 
 
-def report_available() -> bool:
-    """Whether the report's figures can be drawn (matplotlib, of the ``report`` extra)."""
-    return importlib.util.find_spec("matplotlib") is not None
-
-
 def run(args: argparse.Namespace) -> int:
     if args.list_effects:
         return list_effects(args)
     if not args.run:
         raise UsageError("--run is required (or --list-effects)")
-    if args.out and not args.no_report and not report_available():  # said before the analysis, not after it
-        raise UsageError("--out: the report needs matplotlib (pip install 'thermal-edge[report]'); "
-                         "use --no-report for the model alone")
+    if args.out and not args.no_report and (why := missing("matplotlib")):  # before the work, not after it
+        raise UsageError(f"--out {args.out}: the report {why.removeprefix('this ')}; or --no-report for the model alone")
     from ..discovery import effects as E
     from ..discovery import hidden, workflow
 
@@ -172,7 +166,8 @@ def run(args: argparse.Namespace) -> int:
             if not sep["sensors_separate"] and sep["node_separates"]:
                 print(f"  no sensor of this run separates them there ({sep['diff_k']:.2f} K apart); a sensor on "
                       f"{sep['node']} would ({sep['node_winner_c']:.1f} vs {sep['node_runner_up_c']:.1f} °C)")
-    if disc.signature is not None:
+    no_gap = disc.gap is not None and disc.gap.status == "none"
+    if disc.signature is not None and not no_gap:  # the shape of noise is no trend to act on
         print(f"the residual {disc.signature.describe()} (held-out, reading - model)")
     for n in disc.not_placeable:
         fits = disc.signature is not None and disc.signature.fits(n.effect.explains)

@@ -22,7 +22,7 @@ from ..errors import UsageError
 from ..estimation.flux import PARAMS, UNITS, Electrical, FluxError, FluxModel, fit_flux_model
 from ..lptn import Role
 from ..text_table import table
-from .options import integer
+from .options import integer, number, output_file
 
 COLUMNS = {"u_d": "u_d_v", "u_q": "u_q_v", "current_d": Role.CURRENT_D.default_column, "current_q": Role.CURRENT_Q.default_column,
            "speed": Role.SPEED.default_column, "winding": "stator_winding"}
@@ -34,17 +34,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     which = p.add_subparsers(dest="flux", required=True, metavar="ACTION")
     c = which.add_parser("calibrate", help="fit the electrical parameters and the variance table on a recorded run")
     c.add_argument("run", help="recorded run (CSV) with dq voltages and currents, speed, winding and magnet temperature")
-    c.add_argument("--out", required=True, help="write the commissioned estimate here (JSON)")
-    c.add_argument("--pole-pairs", type=integer(1), required=True, help="pole pairs of the machine")
+    c.add_argument("--out", required=True, type=output_file, help="write the commissioned estimate here (JSON)")
+    c.add_argument("--pole-pairs", type=integer(1, 100), required=True, help="pole pairs of the machine")
     c.add_argument("--prior", action="append", default=[], metavar="NAME=MEAN,SIGMA",
                    help=f"a parameter's prior ({', '.join(f'{k} [{UNITS[k]}]' for k in PARAMS)}); repeatable")
-    c.add_argument("--minutes", type=float, default=None, help="use only the run's first MIN minutes")
-    c.add_argument("--speed-min", type=float, default=500.0, help="samples slower than this are not used (rpm, default 500)")
+    c.add_argument("--minutes", type=number(0, lo_open=True, unit="min"), default=None,
+                   help="use only the run's first MIN minutes")
+    c.add_argument("--speed-min", type=number(0, 20000, unit="rpm"), default=500.0,
+                   help="samples slower than this are not used (rpm, default 500)")
     _common(c)
     s = which.add_parser("score", help="the commissioned estimate's error on a run (where informative)")
     s.add_argument("flux_file", help="a file written by flux calibrate")
     s.add_argument("run", help="recorded run (CSV) with the same columns")
-    s.add_argument("--from-minute", type=float, default=0.0, help="score from this minute on (default 0)")
+    s.add_argument("--from-minute", type=number(0, unit="min"), default=0.0, help="score from this minute on (default 0)")
     _common(s)
     p.set_defaults(func=main)
 
@@ -77,7 +79,7 @@ def _priors(items: list[str]) -> dict[str, tuple[float, float]]:
 def _electrical(args: argparse.Namespace, columns: dict[str, np.ndarray]) -> Electrical:
     try:
         return Electrical.of(columns, *(getattr(args, f"{k}_column") for k in COLUMNS))
-    except FluxError as exc:  # a column missing from the run: the file named with it
+    except FluxError as exc:  # a missing column: name the run it is missing from
         raise FluxError(f"{args.run}: {exc}") from None
 
 
@@ -108,7 +110,11 @@ def main(args: argparse.Namespace) -> int:
         print(f"informative from {m.speed_min_rpm:.0f} rpm, at these currents only (sigma at {speed:.0f} rpm): {sig}; "
               f"errors correlated over {m.tau_s:.0f} s")
         return 0
-    m = _read_flux_file(args.flux_file)
+    try:
+        m = FluxModel.from_dict(json.loads(Path(args.flux_file).read_text(encoding="utf-8")))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, FluxError, TypeError, ValueError, AttributeError) as exc:
+        # a file of another program, or edited by hand: its entries are the user's input
+        raise UsageError(f"{args.flux_file}: not a file written by flux calibrate ({exc})") from None
     T, s, ok = m.estimate(e)
     ok &= (run.t - run.t[0]) >= args.from_minute * 60.0
     ok &= np.isfinite(tm)
@@ -121,18 +127,3 @@ def main(args: argparse.Namespace) -> int:
     print(f"{args.run}: informative on {100 * r['informative_share']:.0f} % of the samples; there RMS "
           f"{r['rms_k']:.2f} K, 95 % band covers {100 * r['coverage']:.0f} %")
     return 0
-
-
-def _read_flux_file(path: str) -> FluxModel:
-    """The commissioned estimate ``flux calibrate`` wrote; :class:`UsageError` names the file when it
-    is missing, not JSON, or not of that shape (a list, an entry missing or not a number)."""
-    try:
-        raw = json.loads(Path(path).read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UsageError(f"{path}: not a file written by flux calibrate ({exc})") from None
-    if not isinstance(raw, dict):
-        raise UsageError(f"{path}: not a file written by flux calibrate (a JSON {type(raw).__name__}, not an object)")
-    try:  # the parser of the document: a wrong type inside is the file's fault
-        return FluxModel.from_dict(raw)
-    except (FluxError, TypeError, ValueError) as exc:
-        raise UsageError(f"{path}: not a file written by flux calibrate ({exc})") from None

@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--channel", help="bus channel (with --bus; default: the config's)")
     p.add_argument("--interval", type=number(0.05, 3600, unit="s"), default=1.0, help="seconds between refreshes (default 1)")
     p.add_argument("--once", action="store_true", help="print one screen and exit (bus: after listening one interval)")
-    p.add_argument("--count", type=integer(0), default=0, help="stop after this many screens (default: until Ctrl-C)")
+    p.add_argument("--count", type=integer(1), default=None, help="stop after this many screens (default: until Ctrl-C)")
     p.set_defaults(func=run)
 
 
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         time.sleep(max(0.0, args.interval - (time.monotonic() - t0)))
 
 
-def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int) -> int:
+def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int | None) -> int:
     import can
 
     from ..bus import BusConfig, BusConfigError, FrameCodec, create_bus

@@ -91,8 +91,9 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"--out {args.out}: a directory; give a file name (a directory is written with --fleet only)")
     if args.format in ("can", "candump"):
         return run_can_log(args)
-    if Path(args.out).suffix.lower() != ".csv":  # what every reader of runs takes it for
-        raise UsageError(f"--out {args.out}: a run CSV must end in .csv (a CAN log: --format can)")
+    if Path(args.out).suffix.lower() != ".csv":  # what is written is a run CSV, whatever the name says
+        raise UsageError(f"--out {args.out}: a run is written as CSV: give a .csv file name "
+                         "(or --format can for a CAN log in the format of the suffix)")
     raw = hidden.read_document(args.model)
     build = hidden.builder(args.model, args.data_dir)
     model = build(raw)

@@ -45,7 +45,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtr, stdtrit  # not scipy.stats: 0.7 s more at the service's import
 
-from ..lptn import Model, Simulator
+from ..lptn import Model
+from ..lptn.reduced import simulator_for
 from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adaptation:), read here
 from .common import ParamSpace, Window, decimate, rms_inputs
 from .gauss_newton import fit_gauss_newton
@@ -256,7 +257,7 @@ class OnlineAdapter:
         self.prior = self.theta.copy()
         self.params = tuple(config.params or model.adaptable)
         self.sensors = tuple(config.sensors or model.sensors)
-        self.sim = Simulator(model)
+        self.sim = simulator_for(model)  # the reduced model above a node count, the exact dense one below
         self.history = History(model, self.sensors, int(round(config.window_s / dt)) + 1)
         self.decisions: list[Decision] = []
         self.version = 0

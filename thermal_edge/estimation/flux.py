@@ -26,7 +26,8 @@ the variance is not assumed but measured: by contiguous cross-validation over th
 run (each block predicted by a fit on the others), as the mean square q-voltage residual per
 current-magnitude bin, divided by ``(ω_el β)²`` at the speed of use. An operating point is
 *informative* only where the commissioning run had enough samples in its current bin, the speed
-is at least the lowest speed the run covered, and the resulting σ is below ``sigma_max_k``;
+is at least :data:`SPEED_MARGIN` of the lowest speed the run covered, and the resulting σ is below
+``sigma_max_k``;
 elsewhere the estimate is flagged and must not be used.
 
 The number of pole pairs scales ``ψ`` and ``L`` together (the data fix ``p ψ`` and ``p L``): a
@@ -35,7 +36,7 @@ wrong ``p`` gives the same magnet temperature.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -51,6 +52,10 @@ T_REF_C = 20.0
 I_SCALE_A = 100.0
 #: below this current magnitude the voltage error's direction fades out, A
 I_KNEE_A = 5.0
+#: the estimate is used down to this share of the commissioning run's 5th-percentile speed: its σ
+#: scales as 1/speed (in the variance table's scaling) and a run held at one speed has a 5th
+#: percentile within hundredths of an rpm of it, which speed noise alone would undercut
+SPEED_MARGIN = 0.9
 #: the parameters, in the fit's order
 PARAMS = ("r20", "v_err", "psi20", "beta", "ld0", "ld1", "lq0", "lq1")
 #: units of :data:`PARAMS`
@@ -131,8 +136,8 @@ class FluxModel:
     var_u : dict
         Bin index (``int(|i| / bin_a)``) -> mean square cross-validated q-voltage residual, V².
     speed_min_rpm : float
-        Lowest |speed| at which the estimate is used: the 5th percentile of the commissioning
-        run's speeds (below it the model is an extrapolation).
+        Lowest |speed| at which the estimate is used: :data:`SPEED_MARGIN` times the 5th
+        percentile of the commissioning run's speeds (below it the model is an extrapolation).
     sigma_max_k : float
         The estimate is uninformative where its σ exceeds this, K.
     tau_s : float
@@ -149,6 +154,12 @@ class FluxModel:
         temperatures.
     magnet_mean_c : float
         The commissioning run's mean magnet temperature, °C.
+    fit_info : dict
+        Figures of the fit (samples, residuals, cross-validated RMS error).
+    cv_params : list of list
+        :data:`PARAMS` of each forward cross-validation fit: how far fits on less of the run
+        disagree where the run has not been (the spread of an extrapolation, see
+        :mod:`thermal_edge.estimation.fusion`). Empty: nothing is extrapolated.
     """
 
     params: dict[str, float]
@@ -163,6 +174,7 @@ class FluxModel:
     beta_spread: float = 0.0
     magnet_mean_c: float = T_REF_C
     fit_info: dict[str, float] = field(default_factory=dict)
+    cv_params: list[list[float]] = field(default_factory=list)
 
     @property
     def tempco_per_k(self) -> float:
@@ -180,13 +192,23 @@ class FluxModel:
         with np.errstate(divide="ignore", invalid="ignore"):
             return np.where(w != 0.0, back / np.where(w != 0.0, w, 1.0) - ld * e.i_d, np.nan)
 
+    def temperature(self, e: Electrical, params: Mapping[str, float] | None = None) -> np.ndarray:
+        """The magnet temperature the equations give (°C) with these parameters (default the
+        commissioned ones), wherever the speed is not zero: no informative-region test."""
+        m = self if params is None else replace(self, params={k: float(params[k]) for k in PARAMS})
+        return np.asarray(T_REF_C + (m.flux_linkage(e) - m.params["psi20"]) / m.params["beta"])
+
+    def ensemble(self) -> list[dict[str, float]]:
+        """The forward cross-validation's fits (:attr:`cv_params`) as parameter mappings."""
+        return [dict(zip(PARAMS, (float(x) for x in row))) for row in self.cv_params]
+
     def estimate(self, e: Electrical) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Magnet temperature (°C), its σ (K) and whether the operating point is informative.
 
         Where it is not, the temperature may be NaN and σ is ``inf``.
         """
         p = self.params
-        T = T_REF_C + (self.flux_linkage(e) - p["psi20"]) / p["beta"]
+        T = self.temperature(e)
         ia = np.hypot(e.i_d, e.i_q)
         w = np.abs(omega_el(e.speed_rpm, self.pole_pairs))
         b = np.floor(ia / self.bin_a).astype(int)
@@ -238,7 +260,9 @@ class FluxModel:
                          {int(k): float(v) for k, v in dict(d.get("var_u", {})).items()}, float(d["speed_min_rpm"]),
                          float(d.get("sigma_max_k", 10.0)), float(d.get("tau_s", 0.0)),
                          [[float(x) for x in row] for row in d.get("cov", [])],
-                         float(d.get("beta_spread", 0.0)), float(d.get("magnet_mean_c", T_REF_C)))
+                         float(d.get("beta_spread", 0.0)), float(d.get("magnet_mean_c", T_REF_C)),
+                         {k: float(v) for k, v in dict(d.get("fit_info", {})).items()},
+                         [[float(x) for x in row] for row in d.get("cv_params", [])])
 
 
 def _solve(aq: np.ndarray, ad: np.ndarray, uq: np.ndarray, ud: np.ndarray, mu: np.ndarray, sd: np.ndarray,
@@ -275,6 +299,14 @@ def steady(speed_rpm: np.ndarray, rel: float = 0.02, floor_rpm: float = 20.0) ->
     return d <= np.maximum(rel * n, floor_rpm)
 
 
+def back_emf(e: Electrical) -> np.ndarray:
+    """Samples at (nearly) zero current, below :data:`I_KNEE_A`: there ``u_q = ω_el ψ_PM`` holds
+    in a speed ramp as well (no inductance, no ``L di/dt``, and the voltage and the speed it is
+    divided by move together), so they measure the flux linkage directly, the standard open-circuit
+    back-EMF test of a commissioning."""
+    return np.hypot(np.asarray(e.i_d, dtype=float), np.asarray(e.i_q, dtype=float)) < I_KNEE_A
+
+
 def _autocorrelation_time(e: np.ndarray, dt: float) -> float:
     """Integrated autocorrelation time (s), summed to the first non-positive lag."""
     x = e - e.mean()
@@ -308,7 +340,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
         Parameter -> (mean, σ) overriding :data:`DEFAULT_PRIORS`.
     speed_min_rpm : float
         Samples slower than this are not used (nothing to see there), nor those outside the
-        steady state (:func:`steady`).
+        steady state (:func:`steady`) unless at zero current (:func:`back_emf`).
     folds : int
         Forward cross-validation steps for the variance table (the run is cut into ``folds + 1``
         contiguous blocks; each after the first is predicted by a fit on those before it). The
@@ -333,7 +365,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     mu = np.array([pri[k][0] for k in PARAMS])
     sd = np.array([pri[k][1] for k in PARAMS])
     magnet_c = np.asarray(magnet_c, dtype=float)
-    use = (np.abs(e.speed_rpm) >= speed_min_rpm) & np.isfinite(magnet_c) & steady(e.speed_rpm)
+    use = (np.abs(e.speed_rpm) >= speed_min_rpm) & np.isfinite(magnet_c) & (steady(e.speed_rpm) | back_emf(e))
     for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.winding_c):
         use &= np.isfinite(a)
     idx = np.flatnonzero(use)
@@ -352,9 +384,11 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     blocks = np.array_split(np.arange(len(idx)), folds + 1)
     w = omega_el(e.speed_rpm[idx], pole_pairs)
     betas = []
+    fits = []
     for j in range(1, len(blocks)):
         keep, blk = np.concatenate(blocks[:j]), blocks[j]
         th = _solve(aq[keep], ad[keep], uq[keep], ud[keep], mu, sd)[0]
+        fits.append([float(x) for x in th])
         betas.append(float(th[PARAMS.index("beta")]))
         res_u[blk] = uq[blk] - aq[blk] @ th
         res_t[blk] = res_u[blk] / (w[blk] * th[PARAMS.index("beta")])
@@ -364,12 +398,18 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
     var_u = {int(b): float(np.mean(res_u[bins == b] ** 2)) for b in np.unique(bins[bins >= 0])
              if np.sum(bins == b) >= min_samples}
     params = {k: float(v) for k, v in zip(PARAMS, theta)}
+    # the speeds the variance table speaks for: those of the steady samples (a ramp's back-EMF
+    # samples pass through speeds where no loaded point was seen)
+    steady_idx = idx[steady(e.speed_rpm)[idx]]
+    speed_of = steady_idx if len(steady_idx) else idx
     model = FluxModel(params, {k: float(np.sqrt(cov[i, i])) for i, k in enumerate(PARAMS)}, int(pole_pairs),
-                      float(bin_a), var_u, float(np.percentile(np.abs(e.speed_rpm[idx]), 5.0)), float(sigma_max_k),
+                      float(bin_a), var_u, float(SPEED_MARGIN * np.percentile(np.abs(e.speed_rpm[speed_of]), 5.0)),
+                      float(sigma_max_k),
                       _autocorrelation_time(res_t, dt), cov.tolist(),
                       float(np.std(betas + [float(theta[PARAMS.index("beta")])])), float(np.mean(magnet_c[idx])),
                       {"samples": float(len(idx)), "q_residual_v": sq, "d_residual_v": sdd,
-                       "cv_rms_k": float(np.sqrt(np.mean(res_t**2)))})
+                       "cv_rms_k": float(np.sqrt(np.mean(res_t**2)))},
+                      fits + [[float(x) for x in theta]])
     if params["beta"] >= 0.0:
         raise FluxError(f"the fitted flux linkage rises with the magnet temperature (beta {params['beta']:.3g} Wb/K): "
                         "the run does not show the magnet (too little temperature change, or a wrong column)")

@@ -1,14 +1,34 @@
 """The observer over a recorded run with the magnet temperature from the inverter's voltages as a
 measurement of the magnet node (:meth:`~thermal_edge.estimation.observer.Observer.update_node`).
 
-The flux estimate's errors are correlated over minutes (an operating point's bias does not average
-out from one sample to the next), so each sample's variance is inflated by the number of samples in
-the estimate's correlation time (:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`): a minute of
-samples carries about the information of one, not of twenty-four.
+Where the commissioning run saw the operating point, the flux estimate's errors are correlated
+over minutes (an operating point's bias does not average out from one sample to the next), so each
+sample's variance is inflated by the number of samples in the estimate's correlation time
+(:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`): a minute of samples carries about the
+information of one, not of twenty-four.
+
+Where it did not (another current, the same speed), the estimate's offset is unknown: the
+inductance at that current and the voltage error's share are extrapolations, worth tens of kelvin.
+Its *changes* still carry the magnet: they are the flux linkage's changes, scaled by an inductance
+and a temperature coefficient the commissioning knows to some per cent. :class:`FluxObserver`
+uses them so. The magnet's temperature cannot jump when the operating point does (its thermal time
+constant is tens of minutes, the current's milliseconds), so on entering such a point right after
+the estimate agreed with the model the filter carries two more states: the estimate's offset ``b``
+there (a wide prior: the first samples set it against the model's magnet, with the model's band)
+and the relative error ``s`` of its changes (prior σ: the spread of that sensitivity over the
+commissioning's forward cross-validation fits, at least :data:`SLOPE_SIGMA_MIN`). The measurement is
+``T_flux = T_m + b + s · (T_flux − T_flux,entry)``. ``s`` is a consider state (Schmidt): carried in
+every band, never corrected, because nothing the filter reads can tell it (the stator sensors see
+the magnet only through the model, whose rotor-side error over a cool-down is as large as the
+changes' own; corrected by them, ``s`` would take on the model's error and the band its
+confidence). Their cross-covariances with the temperatures follow the observer's own transition
+and gains, so the magnet's band narrows by what the changes tell and no more. A wrong calibration
+never gets there: it is refused where the commissioning saw the point, and only an estimate
+accepted shortly before may enter a new one.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,11 +39,145 @@ from .flux import Electrical, FluxModel, steady
 from .observer import Observer
 from .predict import initial_from_run, model_inputs
 
+#: prior σ of the flux estimate's offset at an operating point the commissioning did not see, K
+#: (the extrapolations measured on a real machine miss by 10–40 K; the first samples set it)
+OFFSET_PRIOR_K = 50.0
+#: an operating point the commissioning did not see is used only if the estimate was accepted
+#: within this many of its correlation times before (the anchor: the magnet cannot jump)
+ANCHOR_WITHIN_TAU = 1.0
+#: the change sensitivity's spread is measured by a step of this size in the d current, A
+DI_PROBE_A = 1.0
+#: floor of the relative σ of an extrapolated estimate's changes: the fits of one commissioning run
+#: share its blind spot (they all saw one current), and a saturating machine's incremental
+#: inductance differs by tens of per cent between currents
+SLOPE_SIGMA_MIN = 0.3
+
+
+class FluxObserver(Observer):
+    """:class:`~thermal_edge.estimation.observer.Observer` with two more states while the flux
+    estimate is used where the commissioning did not see the operating point: its offset ``b``
+    (K) and the relative error ``s`` of its changes. Without :meth:`anchor` it is the observer,
+    bit for bit.
+
+    The extra states' covariance ``Ve`` (2, 2) and cross-covariance ``Ce`` with ``[T; φ_a]``
+    follow the observer's transition (:attr:`Observer.transition`) and every update (Joseph form,
+    the gain's rows of the adaptable parameters and of ``s`` zero: Schmidt); ``Se`` (2, p) is their
+    first-order error from the parameters carried in the bands only.
+    """
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.anchored = False
+        self.xe = np.zeros(2)
+        self.Ve = np.zeros((2, 2))
+        self.Ce = np.zeros((len(self.Pa), 2))
+        self.Se = np.zeros((2, self.S.shape[1]))
+
+    def anchor(self, offset_sigma_k: float, slope_sigma: float) -> None:
+        """Start the extra states afresh (an operating point entered): offset and relative change
+        error zero with these σ (K, 1), uncorrelated with the temperatures."""
+        self.anchored = True
+        self.xe = np.zeros(2)
+        self.Ve = np.diag([offset_sigma_k**2, slope_sigma**2])
+        self.Ce = np.zeros((len(self.Pa), 2))
+        self.Se = np.zeros((2, self.S.shape[1]))
+
+    def release(self) -> None:
+        """Drop the extra states (the operating point left)."""
+        self.anchored = False
+
+    def extra_covariance(self) -> np.ndarray:
+        """Covariance of the offset (K) and the relative change error (2, 2): the state part and
+        the parameters' part ``Se Σ Seᵀ``, as :meth:`Observer.covariance` for the temperatures."""
+        Ss = self.Se * np.sqrt(self.sigma_phi2[self.n_gain:])[None, :]
+        return self.Ve + Ss @ Ss.T
+
+    def predict(self, inputs: Mapping[str, float]) -> np.ndarray:
+        T = super().predict(inputs)
+        if self.anchored:
+            self.Ce = self.transition @ self.Ce
+        return T
+
+    def _joint(self) -> tuple[np.ndarray, np.ndarray]:
+        m = len(self.Pa)
+        P = np.zeros((m + 2, m + 2))
+        P[:m, :m], P[:m, m:], P[m:, :m], P[m:, m:] = self.Pa, self.Ce, self.Ce.T, self.Ve
+        S = np.zeros((m + 2, self.S.shape[1]))
+        S[: self._n], S[m:] = self.S, self.Se
+        return P, S
+
+    def _apply(self, P: np.ndarray, S: np.ndarray, K: np.ndarray, H: np.ndarray, r: np.ndarray, nu: np.ndarray) -> None:
+        """Joseph-form update of the joint covariance with gain ``K`` (m+2, l), rows ``H`` (l, m+2)."""
+        m, n = len(self.Pa), self._n
+        x = K @ nu
+        self.T = self.T + x[:n]
+        self.xe = self.xe + x[m:]
+        A = np.eye(m + 2) - K @ H
+        P = A @ P @ A.T + K @ r @ K.T
+        P = 0.5 * (P + P.T)
+        S = S - K @ (H @ S)
+        self.Pa, self.Ce, self.Ve = P[:m, :m], P[:m, m:], P[m:, m:]
+        self.S, self.Se = S[:n], S[m:]
+
+    def update(self, measured: Mapping[str, float]) -> np.ndarray:
+        """The observer's sensor update; while anchored the extra states take their share of each
+        innovation through their correlation with the temperatures."""
+        if not self.anchored:
+            return super().update(measured)
+        ok = [(self.rows[s], float(v)) for s, v in measured.items() if s in self.rows and np.isfinite(v)]
+        if not ok:
+            return self.T
+        idx = [i for i, _ in ok]
+        y = np.array([v for _, v in ok])
+        P, S = self._joint()
+        m, n = len(self.Pa), self._n
+        H = np.zeros((len(idx), m + 2))
+        H[np.arange(len(idx)), idx] = 1.0
+        R = np.eye(len(idx)) * self.r2
+        K = np.linalg.solve(P[np.ix_(idx, idx)] + R, P[idx, :]).T
+        K[n:m] = 0.0  # the adaptable parameters are the adapter's (Schmidt), as in the observer
+        K[m + 1] = 0.0  # and the change error is considered, never corrected
+        self._apply(P, S, K, H, R, y - self.T[idx])
+        return self.T
+
+    def update_relative(self, node: int | Sequence[int], value: float, var: float, change: float,
+                        z: float = 1.959963984540054) -> bool:
+        """Correct with ``value = h T + b + s · change`` (°C, white-noise variance ``var`` K²;
+        ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``;
+        the gain is the optimal one for the whole covariance with the rows of the adaptable
+        parameters and of ``s`` zero (Schmidt).
+        Refused and counted as :meth:`Observer.update_node` is: beyond both 95 % bands (the
+        offset's and the change error's included). Requires :meth:`anchor`."""
+        if not (self.anchored and np.isfinite(value) and np.isfinite(var) and var > 0.0 and np.isfinite(change)):
+            return False
+        n, m = self._n, len(self.Pa)
+        idx = [int(node)] if isinstance(node, (int, np.integer)) else [int(i) for i in node]
+        H = np.zeros((1, m + 2))
+        H[0, idx] = 1.0 / len(idx)
+        H[0, m:] = (1.0, float(change))
+        P, S = self._joint()
+        Ss = S * np.sqrt(self.sigma_phi2[self.n_gain:])[None, :]
+        C = P + Ss @ Ss.T
+        Ch = C @ H[0]
+        s2 = float(H[0] @ Ch)
+        nu = float(value) - float(H[0, :n] @ self.T) - float(H[0, m:] @ self.xe)
+        if abs(nu) > z * (float(np.sqrt(max(s2, 0.0))) + float(np.sqrt(var))):
+            self.node_updates_refused += 1
+            return False
+        K = (Ch / (s2 + var))[:, None]
+        K[n:m] = 0.0
+        K[m + 1] = 0.0  # the change error: considered (see the module's description)
+        self._apply(P, S, K, H, np.array([[var]]), np.array([nu]))
+        self.node_updates_used += 1
+        return True
+
 
 @dataclass
 class FusedRun:
     """Per sample: the observer's estimate (N, n) °C and σ (N, n) K; the flux estimate of the
-    magnet (°C), its σ (K, ``inf`` where uninformative) and whether it was used; counts."""
+    magnet (°C), its σ (K, ``inf`` where uninformative) and whether it was used; counts.
+    ``relative``: samples where an estimate at an operating point the commissioning did not see
+    was used for its changes (its σ there is the white part only)."""
 
     estimate: np.ndarray
     sigma: np.ndarray
@@ -32,15 +186,154 @@ class FusedRun:
     used: np.ndarray
     refused: int
     informative: int
+    relative: np.ndarray | None = None
+
+
+def slope_sigma(flux: FluxModel, e: Electrical, k: int) -> float:
+    """Relative σ of the estimate's changes at sample ``k``: the spread over the forward
+    cross-validation's fits of ``∂T/∂i_d`` (a step of :data:`DI_PROBE_A`), relative to the
+    commissioned fit's (inductance and temperature coefficient both in it); at least
+    :data:`SLOPE_SIGMA_MIN`. ``inf`` without fits."""
+    fits = flux.ensemble()
+    if len(fits) < 2:
+        return float("inf")
+    one = Electrical(*(np.atleast_1d(np.asarray(a, dtype=float)[k]) for a in (e.u_d, e.u_q, e.i_d, e.i_q, e.speed_rpm,
+                                                                             e.winding_c)))
+    step = Electrical(one.u_d, one.u_q, one.i_d + DI_PROBE_A, one.i_q, one.speed_rpm, one.winding_c)
+
+    def sens(p: Mapping[str, float] | None) -> float:
+        return float((flux.temperature(step, p) - flux.temperature(one, p))[0])
+
+    g0 = sens(None)
+    g = np.array([sens(p) for p in fits])
+    if not (np.isfinite(g0) and g0 != 0.0 and np.all(np.isfinite(g))):
+        return float("inf")
+    return max(float(np.sqrt(np.mean((g - g0) ** 2))) / abs(g0), SLOPE_SIGMA_MIN)
+
+
+@dataclass
+class FluxSamples:
+    """What the fusion takes from the flux estimate, per sample.
+
+    Attributes
+    ----------
+    value : ndarray
+        The commissioned estimate, °C (NaN where there is none).
+    sigma : ndarray
+        Its σ, K; ``inf`` where not to be used (uninformative, not steady, before the start).
+    raw : ndarray
+        The estimate without the informative-region test, °C (NaN where not to be used for its
+        changes).
+    white : ndarray
+        The white-noise variance of ``raw``, K² (the best commissioned bin's residual at this speed,
+        times the error's correlation time in samples).
+    changes : ndarray of bool
+        Where ``raw`` may be used for its changes (steady, at the commissioning's speeds, another
+        current).
+    current_a : ndarray
+        Current magnitude, A.
+    """
+
+    value: np.ndarray
+    sigma: np.ndarray
+    raw: np.ndarray
+    white: np.ndarray
+    changes: np.ndarray
+    current_a: np.ndarray
+
+
+def flux_samples(flux: FluxModel, e: Electrical, dt: float, steady_mask: np.ndarray | None = None, start: int = 0,
+                 extrapolate: bool = False) -> FluxSamples:
+    """:class:`FluxSamples` of ``e`` (a run, or one tick's sample with ``steady_mask`` from the
+    previous tick's speed; by default :func:`~thermal_edge.estimation.flux.steady` of ``e``),
+    nothing used before sample ``start``. ``extrapolate`` (and the commissioning's
+    cross-validation fits in ``flux``) marks where the changes may be used."""
+    fc, fs, ok = flux.estimate(e)
+    N = len(np.atleast_1d(fc))
+    st = steady(e.speed_rpm) if steady_mask is None else np.asarray(steady_mask, dtype=bool)
+    ok = np.atleast_1d(ok & st)
+    ok[:start] = False
+    fs = np.where(ok, fs, np.inf)
+    raw, white, far = np.full(N, np.nan), np.full(N, np.inf), np.zeros(N, dtype=bool)
+    if extrapolate and len(flux.cv_params) >= 2 and flux.var_u:
+        raw = np.atleast_1d(flux.temperature(e))
+        far = (~ok & st & np.isfinite(raw) & (np.abs(np.atleast_1d(e.speed_rpm)) >= flux.speed_min_rpm)
+               & (np.arange(N) >= start))
+        w_el = np.abs(flux.pole_pairs * np.atleast_1d(e.speed_rpm) * (2.0 * np.pi / 60.0) * flux.params["beta"])
+        with np.errstate(divide="ignore"):
+            white = min(flux.var_u.values()) / w_el**2 * max(1.0, flux.tau_s / dt)
+    ia = np.atleast_1d(np.hypot(e.i_d, e.i_q))
+    return FluxSamples(np.atleast_1d(fc), fs, raw, white, far, ia)
+
+
+class FluxFusion:
+    """The flux estimate into a :class:`FluxObserver`, tick by tick: the commissioned estimate
+    through :meth:`~thermal_edge.estimation.observer.Observer.update_node` (its variance inflated
+    by the error's correlation time), and where :class:`FluxSamples` allows, an unseen current's
+    changes through :meth:`FluxObserver.update_relative`, anchored within
+    :data:`ANCHOR_WITHIN_TAU` correlation times of an accepted estimate and started afresh after a
+    current jump of more than one bin or as long without any use.
+
+    Parameters
+    ----------
+    flux : FluxModel
+    magnet : int or sequence of int
+        The magnet node(s) the flux linkage sees (their mean).
+    dt : float
+        Tick, s.
+    """
+
+    def __init__(self, flux: FluxModel, magnet: int | Sequence[int], dt: float) -> None:
+        self.flux = flux
+        self.magnet = magnet
+        self.inflate = max(1.0, flux.tau_s / dt)
+        self.window = ANCHOR_WITHIN_TAU * max(flux.tau_s, dt)
+        self.last_ok = -np.inf
+        self.entry = np.nan
+        self.current_entry = np.nan
+
+    def step(self, obs: FluxObserver, t_s: float, fs: FluxSamples, k: int, e: Electrical) -> tuple[bool, bool]:
+        """Apply sample ``k`` of ``fs`` (of ``e``) at time ``t_s`` (s) after the observer's
+        sensor update; returns whether an estimate was used and whether for its changes."""
+        if np.isfinite(fs.sigma[k]):
+            obs.release()
+            used = obs.update_node(self.magnet, float(fs.value[k]), float(fs.sigma[k]) ** 2, inflate=self.inflate)
+            if used:
+                self.last_ok = t_s
+            return used, False
+        if not fs.changes[k]:
+            if obs.anchored and t_s - self.last_ok > self.window:
+                obs.release()  # away from any usable point for longer than the errors' correlation
+            return False, False
+        ia = float(fs.current_a[k])
+        if obs.anchored and abs(ia - self.current_entry) > self.flux.bin_a:
+            obs.release()  # another operating point: another offset
+        if not obs.anchored and t_s - self.last_ok <= self.window:
+            ss = slope_sigma(self.flux, e, k)
+            if np.isfinite(ss):
+                obs.anchor(OFFSET_PRIOR_K, ss)
+                self.entry, self.current_entry = float(fs.raw[k]), ia
+        if not obs.anchored:
+            return False, False
+        used = obs.update_relative(self.magnet, float(fs.raw[k]), float(fs.white[k]), float(fs.raw[k]) - self.entry)
+        if used:
+            self.last_ok = t_s
+            self.current_entry = ia
+        return used, used
 
 
 def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | None, magnet_node: str | Sequence[str],
-              theta: np.ndarray | None = None, electrical: Electrical | None = None, flux_from: int = 0) -> FusedRun:
+              theta: np.ndarray | None = None, electrical: Electrical | None = None, flux_from: int = 0,
+              extrapolate: bool = False) -> FusedRun:
     """Replay ``run`` through the observer with the stator ``sensors`` and, where ``flux`` is given
     and the operating point informative (and steady), the flux estimate of ``magnet_node`` (or of
     the mean of several magnet nodes: the flux linkage sees all magnets) (from
     sample ``flux_from`` on: a run whose first part commissioned the flux model is scored on the
     rest with only the rest's flux estimates).
+
+    With ``extrapolate`` (and the commissioning's cross-validation fits in ``flux``), a steady
+    operating point at the speeds the commissioning saw but another current is used for its changes
+    (:class:`FluxFusion`, :class:`FluxObserver`).
 
     Without ``flux`` this is the observer as the service runs it (no node updates at all).
     """
@@ -48,23 +341,21 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     inputs = model_inputs(model, run)
     meas = {s: run.column(s) for s in sensors}
     N, n = len(run), len(model.nodes)
-    obs = Observer(model, initial_from_run(model, run, theta), theta, dt)
+    obs = FluxObserver(model, initial_from_run(model, run, theta), theta, dt)
     m = [model.node_index(magnet_node)] if isinstance(magnet_node, str) else [model.node_index(x) for x in magnet_node]
     est, sig = np.empty((N, n)), np.empty((N, n))
-    fc, fs = np.full(N, np.nan), np.full(N, np.inf)
-    if flux is not None:
-        e = electrical if electrical is not None else Electrical.of(run.columns)
-        fc, fs, ok = flux.estimate(e)
-        ok = ok & steady(e.speed_rpm)
-        ok[:flux_from] = False
-        fs = np.where(ok, fs, np.inf)
-    inflate = max(1.0, (flux.tau_s / dt) if flux is not None else 1.0)
     used = np.zeros(N, dtype=bool)
+    rel = np.zeros(N, dtype=bool)
+    e = electrical if electrical is not None or flux is None else Electrical.of(run.columns)
+    fs = flux_samples(flux, e, dt, start=flux_from, extrapolate=extrapolate) if flux is not None and e is not None else None
+    fusion = FluxFusion(flux, m, dt) if flux is not None else None
     for k in range(N):
         if k:
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
         obs.update({s: float(v[k]) for s, v in meas.items()})
-        if flux is not None and np.isfinite(fs[k]):
-            used[k] = obs.update_node(m, float(fc[k]), float(fs[k]) ** 2, inflate=inflate)
+        if fusion is not None and fs is not None and e is not None:
+            used[k], rel[k] = fusion.step(obs, k * dt, fs, k, e)
         est[k], sig[k] = obs.T, obs.std()
-    return FusedRun(est, sig, fc, fs, used, obs.node_updates_refused, int(np.isfinite(fs).sum()))
+    if fs is None:
+        return FusedRun(est, sig, np.full(N, np.nan), np.full(N, np.inf), used, obs.node_updates_refused, 0, rel)
+    return FusedRun(est, sig, fs.value, fs.sigma, used, obs.node_updates_refused, int(np.isfinite(fs.sigma).sum()), rel)

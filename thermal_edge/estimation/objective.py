@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..lptn import Simulator
+from ..lptn.reduced import AnySimulator
 from .common import ParamSpace, Window
 
 
@@ -60,7 +60,7 @@ class Objective:
 
     Parameters
     ----------
-    sim : Simulator
+    sim : Simulator or ReducedSimulator
     space : ParamSpace
         Which parameters vary (log-scaled), the fixed rest, and the prior.
     window : Window
@@ -73,7 +73,7 @@ class Objective:
         log range if it declares none). 0 = plain least squares.
     """
 
-    def __init__(self, sim: Simulator, space: ParamSpace, window: Window, sensors: list[str] | None = None,
+    def __init__(self, sim: AnySimulator, space: ParamSpace, window: Window, sensors: list[str] | None = None,
                  weighting: str = "paper", prior_weight: float = 0.0, tau_s: float = 3600.0) -> None:
         self.sim, self.space, self.window = sim, space, window
         model = sim.model

@@ -162,6 +162,7 @@ class Observer:
             F[:n, n:] = X[:, :g]
             S += X[:, g:]
         self.S = S
+        self.transition = F  # the step's transition over [T; φ_a]: a state carried beside it follows it
         self.Pa = F @ self.Pa @ F.T
         self.Pa[:n, :n] += self.Q
         self.T = T_next

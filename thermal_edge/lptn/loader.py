@@ -58,10 +58,14 @@ class _Ctx:
             raise self.fail(key, str(exc)) from None
 
     def number(self, key: str, value: Any, positive: bool = False) -> float:
-        if isinstance(value, str) and value.strip().isidentifier() and value.strip() not in self.constants:
-            # a word where a number belongs ("hot", "none"): not a law naming something unknown
-            raise self.fail(key, f"expected a number, got {value!r}")
-        e = self.law(key, value, set(), "a geometric or fixed quantity")
+        try:
+            e = parse(value, self.tables).substitute(self.constants)
+        except ExprError as exc:
+            raise self.fail(key, str(exc)) from None
+        if e.free():  # a name that is no constant of the file: most often a typo or a word
+            names = ", ".join(sorted(e.free()))
+            raise self.fail(key, f"expected a number (or an expression of the file's constants), got {value!r}: "
+                                 f"{names} is no constant of the file")
         v = evaluate_const(e)
         if positive and not v > 0:
             raise self.fail(key, f"must be positive, got {v}")
@@ -280,9 +284,7 @@ def build_model(
         raise ctx.fail("discretisation.method", f"must be zoh or euler, got {method!r}")
     sub = disc.get("max_substep_s")
     substep = None if sub is None else ctx.number("discretisation.max_substep_s", sub, positive=True)
-    # the torque constant divides a torque into a current: zero or negative gives no or negative current
-    drive = {str(k): ctx.number(f"drive.{k}", v, positive=str(k) == "kt_nm_per_arms")
-             for k, v in _mapping(ctx, raw.get("drive"), "drive").items()}
+    drive = {str(k): ctx.number(f"drive.{k}", v) for k, v in _mapping(ctx, raw.get("drive"), "drive").items()}
     if not builder.nodes:
         raise ctx.fail("nodes", "the model has no node with heat capacity")
     return Model(

@@ -93,6 +93,18 @@ class LossLaws:
                 out[..., j, i] = f(e)
         return out
 
+    def slope_entries(self, env: Mapping[str, Value], T: np.ndarray | None,
+                      batch: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The entries of :meth:`dT` that a law can make nonzero, for ``batch`` samples: the law
+        and the column of each, and their values (batch, entries) in W/K. A model with a loss at
+        each of hundreds of nodes has a dense ``dT`` of mostly zeros (and of gigabytes over a run)."""
+        e = self.at(env, T)
+        pairs = [(j, i, f) for j, ds in enumerate(self._dT) for i, f in ds]
+        out = np.empty((batch, len(pairs)))
+        for k, (_, _, f) in enumerate(pairs):
+            out[:, k] = f(e)
+        return (np.array([j for j, _, _ in pairs], dtype=int), np.array([i for _, i, _ in pairs], dtype=int), out)
+
     def dtheta(self, env: Mapping[str, Value], T: np.ndarray | None, wrt: Sequence[int] | np.ndarray,
                batch: int | None = None) -> np.ndarray:
         """``∂P/∂θ`` (W per parameter unit) for the parameter indices ``wrt``: (n_loss, p), or

@@ -61,6 +61,22 @@ class Continuous:
         return self._dense(self.dV)
 
 
+def _outer_rows(a: np.ndarray, b: np.ndarray) -> sparse.csr_matrix:
+    """The row-wise outer products ``a[e] ⊗ b[e]`` flattened, (E, ca·cb), built sparse: an edge has
+    at most two ends, and the dense (E, ca, cb) array of a model of hundreds of nodes is gigabytes."""
+    e1, i = np.nonzero(a)
+    e2, j = np.nonzero(b)
+    rows, cols, vals = [], [], []
+    for e in np.unique(e1):
+        ii, jj = i[e1 == e], j[e2 == e]
+        for x in ii:
+            for y in jj:
+                rows.append(e)
+                cols.append(x * b.shape[1] + y)
+                vals.append(a[e, x] * b[e, y])
+    return sparse.csr_matrix((vals, (rows, cols)), shape=(a.shape[0], a.shape[1] * b.shape[1]))
+
+
 class _Law:
     """A compiled law and the compiled derivatives with respect to the parameters it uses."""
 
@@ -101,9 +117,8 @@ class Network:
             for k, q in enumerate(np.nonzero(self.inc[e, n:])[0]):
                 self._end_q[k, e], self._end_s[k, e] = q, self.inc[e, n + q]
         # sparse scatter matrices: edge conductances -> flattened Laplacian and point-boundary block
-        npt, nb = self.n_points, self.n_bound
-        self._scatter_L = sparse.csr_matrix(np.einsum("ea,eb->eab", self.inc, self.inc).reshape(E, npt * npt))
-        self._scatter_K = sparse.csr_matrix(np.einsum("ea,eb->eab", self.pinc, self.binc).reshape(E, npt * nb))
+        self._scatter_L = _outer_rows(self.inc, self.inc)
+        self._scatter_K = _outer_rows(self.pinc, self.binc)
         # L_QQ is block diagonal: the algebraic points fall apart into small groups (the face
         # points of one T-model element and their neighbours); solve each size of group at once
         qq = np.abs(self.inc[:, n:]).T @ np.abs(self.inc[:, n:]) > 0

@@ -144,9 +144,9 @@ class Plausible:
         k = int(np.flatnonzero(np.isfinite(x) & ((x < self.lo) | (x > self.hi)))[0])
         why = f"{x[k]:g} {self.unit} is outside {self._range()}"
         inside = finite[~out]
-        for other in self.others:  # one sample in another unit: it converts into the range and the span of the rest
+        for other in self.others:  # one sample in another unit: it converts into the span of the rest
             y = float(other.convert(x[k]))
-            if inside.size and self.lo <= y <= self.hi and inside.min() - SPAN_MARGIN <= y <= inside.max() + SPAN_MARGIN:
+            if self.lo <= y <= self.hi and inside.size and inside.min() - SPAN_MARGIN <= y <= inside.max() + SPAN_MARGIN:
                 return k, f"{why}; it looks like {other.name} ({y:.4g} {self.unit})"
         return k, why
 

@@ -291,8 +291,10 @@ class DeratingPolicy:
         self.tick_s = float(tick_s)
         self.bus_silence_s = float(bus_silence_s)
         self.safe_current = config.safe_current_a
-        self.safe_torque = config.safe_torque_nm if config.safe_torque_nm is not None else min(
-            config.max_torque_nm, self.kt * config.safe_current_a)
+        # one safe torque wherever it is sent (a tick's forced limit and the sender's between ticks):
+        # never above the torque the safe current carries, as every torque limit
+        configured = config.safe_torque_nm if config.safe_torque_nm is not None else math.inf
+        self.safe_torque = min(configured, config.max_torque_nm, self.kt * config.safe_current_a)
         self.current: float = self.safe_current  # output of the slew limiter
         self.reason: DerateReason = DerateReason.STARTING
         self.last: Limits = self.safe(DerateReason.STARTING)

@@ -331,6 +331,79 @@ class PersistedState:
 
 
 # ------------------------------------------------------------------------------------------
+LOCKNAME = "lock"
+
+
+class StateDirInUse(ThermalEdgeError):
+    """Another process holds the state directory: two services would overwrite each other's
+    learned parameters and thermal state."""
+
+
+class StateLock:
+    """An exclusive advisory lock (``flock``) on ``<state dir>/lock`` while a service runs.
+
+    The kernel releases it when the process ends, however it ends, so a killed service never
+    leaves a stale lock. Within one process the lock is shared (counted): the process is one
+    service. A directory that cannot be written is not locked (the store logs that it cannot
+    save; the service protects without persistence).
+    """
+
+    #: per lock file of this process: [file descriptor, holders]
+    _held: dict[Path, list[int]] = {}
+
+    def __init__(self, directory: str | os.PathLike[str]) -> None:
+        self.path = Path(os.path.abspath(Path(directory) / LOCKNAME))
+        self.held = False
+
+    def acquire(self) -> bool:
+        """Take the lock: True when held, False when the directory cannot hold a lock file.
+
+        Raises
+        ------
+        StateDirInUse
+            Another process holds it (the message names the directory and that process's pid).
+        """
+        import fcntl  # POSIX only, as the service
+
+        if self.held:
+            return True
+        if (entry := StateLock._held.get(self.path)) is not None:
+            entry[1] += 1
+            self.held = True
+            return True
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError:
+            return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            raise StateDirInUse(f"state.dir {self.path.parent}: in use by another thermal-edge (pid {holder}); two "
+                                "services on one state directory would overwrite each other's learned state") from None
+        except OSError:  # a filesystem without locks
+            os.close(fd)
+            return False
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        StateLock._held[self.path] = [fd, 1]
+        self.held = True
+        return True
+
+    def release(self) -> None:
+        """Give the lock up (the last holder of this process closes it)."""
+        if not self.held:
+            return
+        self.held = False
+        entry = StateLock._held[self.path]
+        entry[1] -= 1
+        if entry[1] == 0:
+            del StateLock._held[self.path]
+            os.close(entry[0])
+
+
 class StateStore:
     """Load and save :class:`PersistedState` in a directory.
 

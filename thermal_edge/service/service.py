@@ -45,7 +45,7 @@ from .engine import ThermalEngine, load_service_model
 from .memory import limit_heap_retention
 from .metrics import ServiceMetrics
 from .outputs import TickOutput
-from .persistence import StateStore
+from .persistence import StateLock, StateStore
 from .systemd import SystemdNotifier
 
 __all__ = ["EdgeService", "status_line"]
@@ -105,6 +105,8 @@ class EdgeService:
         self.model = model if model is not None else load_service_model(config)
         self.codec = config.codec.frame_codec(config.fname)
         config.check_dbc(self.codec)
+        self.state_lock = StateLock(config.state.dir)
+        self.state_lock.acquire()  # before anything is read: a second service on the directory stops here
         self.store = StateStore(config.state.dir, self.model)
         restored = self.store.load()
         self.store.probe()  # an unwritable state directory: ERROR, counted; the service protects on and retries
@@ -189,6 +191,7 @@ class EdgeService:
         except Exception as exc:
             log.warning("bus stop: %s", exc)
         self._final_saved = self.save()
+        self.state_lock.release()
         self.engine.close()
         self.metrics.up.set(0)
         self.metrics.close()
