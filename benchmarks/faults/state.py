@@ -213,6 +213,37 @@ def crash_safety(full: bool) -> Iterator[Case]:
             lost += n + int((sd / STATE).stat().st_mtime_ns == before)
         yield Case.of("sigterm_saves", "crash safety", terms, f"exit codes {sorted(set(codes), key=str)}; state saved each time",
                       c, lost)
+        yield _second_service_on_one_state_dir(r, raw, learned)
+
+
+def _second_service_on_one_state_dir(r: Rig, raw: dict[str, Any], learned: dict[str, float]) -> Case:
+    """A second service started on the state directory of a running one (by hand beside the unit):
+    it must stop at start with one line naming the directory, before it touches the state, while
+    the first one's TE_Limits go on; the first one's learned state survives."""
+    c = Check()
+    first, t_first = r.start(raw)
+    second = Service(raw, r.workdir, f"svc{r.n + 1}-second")
+    second.start()
+    assert second.proc is not None
+    try:
+        code = second.proc.wait(timeout=START_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        second.kill(signal.SIGKILL)
+        code = None
+    line = next((ln for ln in second.log_text().splitlines() if "in use by another thermal-edge" in ln), "")
+    c.add(int(code != 2), f"the second service exited {code}, not 2")
+    c.add(int(not line), "no line naming the state directory in use")
+    time.sleep(1.0)
+    if t_first is not None:
+        g = gaps(r.monitor.read(), first.started + t_first, time.time())
+        c.add(len(g), f"the first service's TE_Limits gap(s) of {', '.join(f'{x * 1e3:.0f}' for x in g)} ms")
+    c.add(int(not first.alive()), "the first service died")
+    code_first = first.stop()
+    c.add(int(code_first != 0), f"the first service's SIGTERM exit {code_first}")
+    c.add(first.tracebacks() + second.tracebacks(), "traceback")
+    lost, _ = _state_check(r.workdir / "state", learned)
+    return Case.of("second_service_same_state_dir", "crash safety", 1,
+                   f"second service exit {code}: {line.split('error: ', 1)[-1].strip()[:100] or 'no message'}", c, lost)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ import typing
 
 from thermal_edge.commands import bench as bench_command
 
-BENCHES = ("jacobian", "paper", "service", "protection", "real", "adaptation", "fleet", "magnet")
+BENCHES = ("jacobian", "paper", "service", "protection", "real", "adaptation", "fleet", "magnet", "ladder")
 
 
 def _subcommands() -> set[str]:

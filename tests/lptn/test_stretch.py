@@ -16,11 +16,12 @@ from thermal_edge.lptn import Simulator, simulate, stretch
 
 
 def _loop(mu, f, x0, G, E, D):
+    """The recursion step by step; ``f`` (n, c, L), the states (n, c, L)."""
     x, out = x0, []
-    for k in range(f.shape[1]):
-        x = mu[:, None] * x + f[:, k] + G @ (D[k] @ (E @ x))
+    for k in range(f.shape[2]):
+        x = mu[:, None] * x + f[:, :, k] + G @ (D[k] @ (E @ x))
         out.append(x)
-    return np.stack(out, axis=1)
+    return np.stack(out, axis=2)
 
 
 @pytest.mark.parametrize("L", [1, 5, 16, 17, 100, 333])
@@ -28,7 +29,7 @@ def test_modal_scan_is_the_recursion(L):
     rng = np.random.default_rng(L)
     n, c = 7, 3
     mu = np.concatenate([[0.0, 1e-200, 0.9999999], rng.uniform(0.0, 1.0, n - 3)])
-    f, x0 = rng.standard_normal((n, L, c)), rng.standard_normal((n, c))
+    f, x0 = rng.standard_normal((n, c, L)), rng.standard_normal((n, c))
     ref = _loop(mu, f, x0, np.zeros((n, 1)), np.zeros((1, n)), np.zeros((L, 1, 1)))
     np.testing.assert_allclose(stretch.modal_scan(mu, f, x0), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
@@ -39,7 +40,7 @@ def test_solve_stretch_with_time_varying_feedback(L):
     rng = np.random.default_rng(L)
     n, c, nl, ntv = 9, 4, 3, 2
     mu = rng.uniform(0.0, 0.999, n)
-    f, x0 = rng.standard_normal((n, L, c)), rng.standard_normal((n, c))
+    f, x0 = rng.standard_normal((n, c, L)), rng.standard_normal((n, c))
     G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
     D = (rng.uniform(0.5, 1.5, (L, 1, 1)) * rng.standard_normal((1, nl, ntv))
          + rng.uniform(0.5, 1.5, (L, 1, 1)) ** 2 * rng.standard_normal((1, nl, ntv))) * 0.1
@@ -48,7 +49,63 @@ def test_solve_stretch_with_time_varying_feedback(L):
     rows, end = stretch.solve_stretch(mu, f, x0, G, E, D, W)
     want = np.tensordot(W, ref, axes=1)
     np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
-    np.testing.assert_allclose(end, ref[:, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("L", [7, 16, 33, 160, 170])
+def test_scan_rows_is_the_recursion_seen_through_rows(L):
+    """The rows of the padded scan and the end state, against the plain loop."""
+    rng = np.random.default_rng(L)
+    n, c = 6, 3
+    mu = np.concatenate([[1e-60, 0.99999], rng.uniform(0.0, 1.0, n - 2)])
+    Lp = stretch.padded_length(L)
+    f = np.zeros((n, c, Lp))
+    f[:, :, :L] = rng.standard_normal((n, c, L))
+    x0, R = rng.standard_normal((n, c)), rng.standard_normal((2, n))
+    ref = _loop(mu, f[:, :, :L], x0, np.zeros((n, 1)), np.zeros((1, n)), np.zeros((L, 1, 1)))
+    rows, end = stretch.scan_rows(mu, f, x0, R, L)
+    want = np.tensordot(R, ref, axes=1)
+    np.testing.assert_allclose(rows.reshape(2, c, Lp)[:, :, :L], want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
+def test_stretch_serves_several_forcings():
+    """One set-up of the feedback, solved for two forcings (one padded, one not) and two sets of
+    rows: each equals its own loop."""
+    rng = np.random.default_rng(3)
+    n, nl, ntv, L = 8, 2, 2, 45
+    mu = rng.uniform(0.0, 0.999, n)
+    G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
+    D = rng.uniform(0.5, 1.5, (L, 1, 1)) * rng.standard_normal((1, nl, ntv)) * 0.1
+    st = stretch.Stretch(mu, G, E, D)
+    for c, pad, nr in [(1, True, n), (5, False, 2)]:
+        f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((nr, n))
+        fp = np.concatenate([f, np.zeros((n, c, stretch.padded_length(L) - L))], axis=2) if pad else f
+        ref = _loop(mu, f, x0, G, E, D)
+        rows, end = st.solve(fp, x0, W)
+        want = np.tensordot(W, ref, axes=1)
+        np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
+        np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+def test_stretch_without_feedback_is_the_scan():
+    """No loss feedback (no current): the stretch is the open-loop scan, against the loop."""
+    rng = np.random.default_rng(4)
+    n, c, L = 5, 2, 40
+    mu = rng.uniform(0.0, 0.999, n)
+    f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((3, n))
+    D = np.zeros((L, 2, 1))
+    rows, end = stretch.solve_stretch(mu, f, x0, rng.standard_normal((n, 2)), rng.standard_normal((1, n)), D, W)
+    ref = _loop(mu, f, x0, np.zeros((n, 2)), np.zeros((1, n)), D)
+    np.testing.assert_allclose(rows, np.tensordot(W, ref, axes=1), rtol=0, atol=1e-12 * np.abs(ref).max() * 3)
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
+def test_powers_flush_below_round_off():
+    """Powers of a fast mode that would be subnormal are zero (subnormals slow every product)."""
+    pw = stretch.powers(np.array([1e-45, 0.5]), 16)
+    assert pw[0, 7] == 0.0 and pw[0, 6] == pytest.approx(1e-270) and pw[1, 16] == 0.5 ** 16
+    assert not np.any((pw > 0) & (pw < np.finfo(float).tiny))
 
 
 def _noisy(inputs, seed=0, rel=1e-3):
@@ -62,13 +119,13 @@ def _noisy(inputs, seed=0, rel=1e-3):
 def count_stretches(monkeypatch):
     """Steps run vectorised (the simulator's and the sensitivities' stretches alike)."""
     steps: list[int] = []
-    real = stretch.solve_stretch
+    real = stretch.Stretch.solve
 
-    def counted(mu, f, *a, **k):
-        steps.append(f.shape[1])
-        return real(mu, f, *a, **k)
+    def counted(self, f, *a, **k):
+        steps.append(f.shape[2])
+        return real(self, f, *a, **k)
 
-    monkeypatch.setattr(stretch, "solve_stretch", counted)
+    monkeypatch.setattr(stretch.Stretch, "solve", counted)
     return steps
 
 
@@ -127,3 +184,38 @@ def test_held_inputs_are_stepped(pm10kw_model, count_stretches):
     Simulator(m).simulate(m.nominal(), inputs, dt, np.full(len(m.nodes), 40.0))
     assert count_stretches == []
     assert simulate.stretches is stretch.stretches
+
+
+def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
+    """The sensitivities' forcing of a stretch (mode-major product, the edges per parameter,
+    padded in time) against ``V⁻¹ (dΦ T + dΓ w + Γ_P ∂P/∂θ)`` from the dense node-coordinate
+    derivatives, step by step."""
+    from thermal_edge.lptn import sensitivity, steady_state
+
+    m = pm10kw_model
+    inputs, dt, _ = pm10kw_inputs(m, 1200.0)
+    inputs = _noisy(inputs)
+    T0, _ = steady_state(m, {k: float(v[0]) for k, v in inputs.items()})
+    seen = []
+    real = sensitivity.Sensitivities.stretch_forcing
+
+    def spy(self, o, T, w, dP, Lp=None):
+        X = real(self, o, T, w, dP, Lp)
+        seen.append((self, o, T, w, dP, Lp, X.copy()))  # X is scratch memory, reused by the next stretch
+        return X
+
+    monkeypatch.setattr(sensitivity.Sensitivities, "stretch_forcing", spy)
+    wrt = list(m.adaptable) + ["P_pm_ref", "P_fe_y_ref"]  # two losses' own parameters too
+    Simulator(m).simulate(m.nominal(), inputs, dt, T0, wrt=wrt)
+    assert seen
+    self, o, T, w, dP, Lp, X = seen[0]
+    d = self.d
+    _, Vi = d.basis(o)
+    nb = self.nb
+    ref = np.einsum("jab,kb->ajk", d.dPhi[o], T) + np.einsum("jam,km->ajk", d.dGam[o], w)
+    ref += np.einsum("al,klj->ajk", d.Gam[o][:, nb:], dP)
+    ref = np.einsum("ca,ajk->cjk", Vi, ref)
+    B = len(T)
+    assert X.shape == (len(Vi), len(wrt), Lp) and Lp >= B and np.any(dP)
+    np.testing.assert_allclose(X[:, :, :B], ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+    assert not np.any(X[:, :, B:])

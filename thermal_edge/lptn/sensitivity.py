@@ -18,7 +18,7 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, cho
   linear part (``p·n²`` numbers); each run adds only matrix-vector products.
 * **Stretches at one operating point** whose loss feedback changes every step (a noisy
   current): the forcing of the whole stretch in one product, then the linear filter of
-  :func:`~thermal_edge.lptn.stretch.solve_nodes` (modes of ``Φ``, the feedback solved exactly
+  :class:`~thermal_edge.lptn.stretch.NodeStretch` (modes of ``Φ``, the feedback solved exactly
   as a low-rank block-triangular system in time).
 * **Step by step** otherwise: the forcing for a block of steps as products per operating point
   (in the modal basis of :class:`~thermal_edge.lptn.discretise.DiscreteDerivatives`; the Daleckii–Krein
@@ -34,7 +34,7 @@ import numpy as np
 
 from .discretise import DiscreteDerivatives
 from .expr import Value
-from .stretch import solve_nodes
+from .stretch import NodeStretch, padded_length
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -103,9 +103,10 @@ class Sensitivities:
 
     def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
                  U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray,
-                 slopes: np.ndarray | None = None) -> None:
+                 slopes: np.ndarray | None = None, prepared: Mapping[tuple[int, int], NodeStretch] | None = None) -> None:
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
-        self.slopes = slopes
+        self.slopes, self.prepared = slopes, dict(prepared or {})
+        self._joined: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
@@ -191,26 +192,60 @@ class Sensitivities:
 
     def _span(self, a: int, b: int, s: np.ndarray, out: np.ndarray, keep: np.ndarray) -> np.ndarray:
         """Steps ``a .. b−1`` at one operating point from ``S[a] = s`` (n, p), vectorised in time
-        (:func:`~thermal_edge.lptn.stretch.solve_nodes`): the forcing of all steps in one product,
-        then the filter. Fills ``out`` (b − a, rows, p); returns ``S[b]``."""
+        (:class:`~thermal_edge.lptn.stretch.NodeStretch`, the simulation's where it ran the same
+        stretch): the forcing of all steps in one product (:meth:`stretch_forcing`), then the
+        filter. Fills ``out`` (b − a, rows, p); returns ``S[b]``."""
         assert self.slopes is not None
         d, o = self.d, int(self.ops[a])
-        V, Vi = d.basis(o)
-        ks = np.arange(a, b)
-        GP = d.Gam[o][:, self.nb:]
+        ns = self.prepared.get((a, b))
+        if ns is None:
+            V, Vi = d.basis(o)
+            ns = NodeStretch(V, Vi, d.mu[o], d.Gam[o][:, self.nb:], self.loss_nodes, self.slopes[a:b])
         w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
-        dP = self.loss_theta(ks, self.T[a:b])
-        GPt = Vi @ GP
-
-        def forcing() -> np.ndarray:
-            """The forcing of all the stretch's steps (n, L, p) in the modal basis of ``Φ``."""
-            X = d.forcing_modal(o, self.T[a:b], w)  # (n, L, p)
-            if np.any(dP):  # V⁻¹ Γ_P ∂P/∂θ
-                X += np.tensordot(GPt, dP, axes=([1], [1]))
-            return X
-
-        out[:], end = solve_nodes(V, Vi, d.mu[o], GP, self.loss_nodes, forcing, s, self.slopes[a:b], keep)
+        X = self.stretch_forcing(o, self.T[a:b], w, self.loss_theta(np.arange(a, b), self.T[a:b]), padded_length(b - a))
+        rows, end = ns.solve(X, s, keep)
+        out[:] = rows.transpose(2, 0, 1)
         return end
+
+    def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray, Lp: int | None = None) -> np.ndarray:
+        """``V⁻¹ (dΦ_j T_i + dΓ_j w_i + Γ_P ∂P/∂θ_j)`` as (n, p, Lp) (time last, for
+        :meth:`~thermal_edge.lptn.stretch.Stretch.solve`; zero past the ``B`` steps, ``Lp ≥ B``,
+        default ``B``) for temperatures ``T`` (B, n), inputs ``w`` (B, m) of ``Γ`` and the
+        losses' derivatives ``dP`` (B, nl, p) at operating point ``o``.
+
+        With ``y = V⁻¹ T + Ht w`` and ``v = Yt w`` the forcing is ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``
+        (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.forcing`): one product of the
+        ``dPhit_j`` stacked mode-major (built once per operating point) with ``y``, and per
+        parameter a product over the few edges it changes (all in one batched product).
+        """
+        d, n, p, B = self.d, self.n, self.p, len(T)
+        if o not in self._joined:
+            dg = d.dg[o]  # (p, e)
+            low = -d.phi[o][:, None] * d.Zh[o]  # (n, e)
+            live_e = np.nonzero(np.any(dg != 0.0, axis=1))[0]  # the parameters of some edge
+            per = max((np.count_nonzero(dg[j]) for j in live_e), default=0)
+            edges = np.zeros((len(live_e), per), dtype=int)  # each one's edges, padded with a zero weight
+            lows = np.zeros((len(live_e), n, per))
+            for i, j in enumerate(live_e):
+                e = np.nonzero(dg[j])[0]
+                edges[i, : len(e)] = e
+                lows[i, :, : len(e)] = low[:, e] * dg[j, e]
+            self._joined[o] = (np.ascontiguousarray(d.dphit(o).transpose(1, 0, 2)).reshape(n * p, n), live_e, edges, lows)
+        J, live_e, edges, lows = self._joined[o]
+        _, Vi = d.basis(o)
+        Lp = B if Lp is None else Lp
+        wT = w.T
+        y = np.zeros((n, Lp))
+        np.matmul(Vi, T.T, out=y[:, :B])
+        y[:, :B] += d.Ht[o] @ wT
+        X = (J @ y).reshape(n, p, Lp)
+        v = d.Yt[o] @ wT  # (e, B)
+        X[:, live_e, :B] += np.matmul(lows, v[edges]).transpose(1, 0, 2)
+        live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters
+        if len(live):  # V⁻¹ Γ_P ∂P/∂θ
+            GPt = Vi @ d.Gam[o][:, self.nb:]
+            X[:, live, :B] += (GPt @ dP[:, :, live].transpose(1, 2, 0).reshape(dP.shape[1], -1)).reshape(n, len(live), B)
+        return X
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:
         """The forcing ``X`` (len(ks), n, p) of the recursion at steps ``ks``, node coordinates."""

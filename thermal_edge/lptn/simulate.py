@@ -27,7 +27,7 @@ from .losses import LossLaws
 from .model import MissingInputError, Model
 from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
-from .stretch import covered, solve_nodes, stretches, varying_steps
+from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -230,14 +230,16 @@ class Simulator:
                     T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
 
         done = 0
+        prepared: dict[tuple[int, int], NodeStretch] = {}  # shared with the sensitivities' stretches
         for a, b in sim_spans:
             step(done, a)
             o = int(ops[a])
             V, Vi = d.basis(o)
-            fa = f[a:b].T
-            Ta, _ = solve_nodes(V, Vi, d.mu[o], GP[o], self.tv, lambda: (Vi @ fa)[:, :, None],  # noqa: B023
-                                T[a][:, None], dPdT0[a:b])
-            T[a + 1: b + 1] = Ta[:, :, 0]
+            ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
+            fm = np.zeros((n, 1, padded_length(b - a)))
+            np.matmul(Vi, f[a:b].T, out=fm[:, 0, : b - a])
+            Ta, _ = ns.solve(fm, T[a][:, None])
+            T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T
@@ -245,7 +247,7 @@ class Simulator:
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
             traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), (mats, mi),
-                                         held_spans, sens_spans, dPdT0[:steps])
+                                         held_spans, sens_spans, dPdT0[:steps], prepared)
         return traj
 
     def _step_matrices(
@@ -280,7 +282,7 @@ class Simulator:
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray | None, widx: Sequence[int],
                        rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]],
                        held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
-                       slopes: np.ndarray) -> np.ndarray:
+                       slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch]) -> np.ndarray:
         d = prep.disc
         assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
         N = T.shape[0]
@@ -296,5 +298,5 @@ class Simulator:
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
-                             loss_nodes=self.tv, slopes=slopes)
+                             loss_nodes=self.tv, slopes=slopes, prepared=prepared)
         return sens.run(held_spans, spans, rows)

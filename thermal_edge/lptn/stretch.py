@@ -10,7 +10,8 @@ with a forcing ``f`` known for the whole stretch in advance (inputs, or the sens
 (loss sources × loss nodes; it changes every step when the current does). In the modal basis of
 ``Φ`` (``Φ = V diag(μ) V⁻¹`` with real ``0 ≤ μ < 1``, :class:`~thermal_edge.lptn.discretise.Discrete`)
 the open loop is ``n`` independent first-order filters, run in time by blocked matrix products
-(:func:`modal_scan`) over all modes and columns at once.
+over all modes and columns at once, time being the last axis (:func:`modal_scan`), and seen
+through the wanted rows only (:func:`scan_rows`).
 
 The feedback is low-rank twice over, and solved exactly (no iteration):
 
@@ -21,171 +22,291 @@ The feedback is low-rank twice over, and solved exactly (no iteration):
 
 So ``x = x₀ + 𝓛z`` with the open-loop response ``x₀`` and ``z[k] = (s[k, ρ] y[k])_ρ`` fed through
 ``G C_ρ`` (``G = V⁻¹ Γ_P``). The loss nodes obey ``y = y₀ + E 𝓛 z``: lower block-triangular
-in time. It is solved in blocks of :data:`TIME_BLOCK` steps: inside a block a unit
-lower-triangular system of ``TIME_BLOCK · ntv`` unknowns (forward substitution: exact up to
-round-off, with the same operations the stepped recursion does, reordered), and the feedback's
-modal state ``q`` carried from block to block exactly. Then ``x = scan(f + G C z)``.
+in time. It is solved in blocks of :data:`BLOCK` steps: inside a block a unit lower-triangular
+system of ``BLOCK · ntv`` unknowns (forward substitution: exact up to round-off, with the same
+operations the stepped recursion does, reordered), and the feedback's modal state ``q`` carried
+from block to block exactly. Then the wanted rows of ``x₀ + 𝓛z``. What depends on the feedback
+alone is set up once per stretch (:class:`Stretch`) and serves the simulation and the
+sensitivities alike.
 """
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
 #: shortest stretch of one operating point run vectorised (its set-up costs about this many steps)
 MIN_STRETCH = 32
-#: steps per block of :func:`modal_scan` (its flops grow with it, its passes over the blocks shrink)
+#: steps per block, of the open-loop scan and of the loss nodes' triangular solve alike (the
+#: scan's flops grow with it, the passes over the blocks shrink)
 BLOCK = 16
-#: steps per block of the loss nodes' triangular solve
-TIME_BLOCK = 16
 #: terms of the feedback's time series below this fraction of the largest are round-off
 RANK_TOL = 1e-15
+#: powers ``μ^i`` below this are set to zero: they are far below round-off of any term, and
+#: subnormal numbers would slow every product they enter by an order of magnitude
+TINY = 1e-280
+
+
+def powers(mu: np.ndarray, B: int) -> np.ndarray:
+    """``μ^i`` (n, B+1) for ``i = 0 .. B``, those below :data:`TINY` set to zero."""
+    with np.errstate(under="ignore"):
+        pw = mu[:, None] ** np.arange(B + 1)
+    pw[pw < TINY] = 0.0
+    return pw
+
+
+def padded_length(L: int) -> int:
+    """The stretch's length rounded up to whole blocks: the time axis :meth:`Stretch.solve` wants."""
+    return L if L <= BLOCK else -(-L // BLOCK) * BLOCK
+
+
+def _toeplitz(pw: np.ndarray, B: int) -> np.ndarray:
+    """``μ^(i−l)`` for ``i ≥ l`` (else 0) per mode, as (n, l, i)."""
+    i = np.arange(B)
+    lag = i[None, :] - i[:, None]
+    out: np.ndarray = np.where(lag >= 0, pw[:, np.maximum(lag, 0)], 0.0)
+    return out
 
 
 def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """``x[k+1] = μ ∘ x[k] + f[k]``, ``k = 0 .. L−1``, for all modes and columns at once.
 
     In blocks of :data:`BLOCK` steps: inside a block, each mode's response to the block's
-    forcing is one product with the lower-triangular Toeplitz matrix of ``μ^(i−l)`` (a batched
-    matrix product); the states at the block starts follow the same recursion with ``μ^BLOCK``
-    over the blocks' end values (this function, one level up).
+    forcing is one product with the lower-triangular Toeplitz matrix of ``μ^(i−l)`` (one matrix
+    product per mode over all blocks and columns, time being the last axis); the states at the
+    block starts follow the same recursion with ``μ^BLOCK`` over the blocks' end values (this
+    function, one level up).
 
     Parameters
     ----------
     mu : ndarray (n,)
         Eigenvalues of the transition (dimensionless, in [0, 1)).
-    f : ndarray (n, L, c)
-        Forcing per mode, step and column (the units of ``x``).
+    f : ndarray (n, c, L)
+        Forcing per mode, column and step (the units of ``x``).
     x0 : ndarray (n, c)
         State at the stretch's first step.
 
     Returns
     -------
-    ndarray (n, L, c)
+    ndarray (n, c, L)
         ``x[1] .. x[L]``.
     """
-    n, L, c = f.shape
+    n, c, L = f.shape
     B = BLOCK if L > BLOCK else L
     nb = -(-L // B)
     if nb * B != L:
-        f = np.concatenate([f, np.zeros((n, nb * B - L, c))], axis=1)
-    with np.errstate(under="ignore"):
-        pw = mu[:, None] ** np.arange(B + 1)  # (n, B+1), integer powers
-    i = np.arange(B)
-    lag = i[:, None] - i[None, :]
-    toep = np.where(lag >= 0, pw[:, np.maximum(lag, 0)], 0.0)  # (n, B, B)
-    inner = np.matmul(toep[:, None], f.reshape(n, nb, B, c))  # zero-state response in each block
-    if nb == 1:
-        starts = x0[:, None]
-    else:
-        ends = modal_scan(pw[:, B], np.ascontiguousarray(inner[:, :-1, B - 1]), x0)
-        starts = np.concatenate([x0[:, None], ends], axis=1)  # (n, nb, c)
-    inner += pw[:, None, 1:, None] * starts[:, :, None]
-    out: np.ndarray = inner.reshape(n, nb * B, c)[:, :L]
-    return out
+        f = np.concatenate([f, np.zeros((n, c, nb * B - L))], axis=2)
+    pw = powers(mu, B)
+    out = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
+    starts = _block_starts(pw, out[:, :, B - 1].reshape(n, c, nb), x0)
+    out += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
+    res: np.ndarray = out.reshape(n, c, nb * B)[:, :, :L]
+    return res
 
 
-def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
-                  D: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch (see the module docstring).
+def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """The states (n, c, nb) at the start of each block from the blocks' zero-state end values
+    ``ends`` (n, c, nb) and ``x0``: ``s[j+1] = μ^B s[j] + ends[j]``."""
+    n, c, nb = ends.shape
+    starts = np.empty((n, c, nb))
+    starts[:, :, 0] = x0
+    if nb > 1:
+        starts[:, :, 1:] = modal_scan(pw[:, -1], ends[:, :, :-1], x0)
+    return starts
+
+
+def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
+              L: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`modal_scan` seen through rows: ``R x[1] .. R x[L]`` and ``x[L]``, without the states.
+
+    The blocks' responses to their own forcing are computed for every mode (one product per
+    mode), projected on the rows in one product; the part of each block's start state goes to
+    the rows directly (``R diag(μ^(i+1))``, a small product), not through every mode and step.
 
     Parameters
     ----------
-    mu, f, x0 : see :func:`modal_scan`.
+    mu : ndarray (n,)
+        Eigenvalues (dimensionless, in [0, 1)).
+    f : ndarray (n, c, padded_length(L))
+        Forcing per mode, column and step, zero after step ``L``.
+    x0 : ndarray (n, c)
+        State at the first step.
+    R : ndarray (nr, n)
+        The rows wanted.
+    L : int
+        Steps.
+
+    Returns
+    -------
+    rows : ndarray (nr, c, nb, B)
+        ``R x[1] .. R x[Lp]`` in blocks (steps past ``L`` are not meaningful).
+    end : ndarray (n, c)
+        ``x[L]``.
+    """
+    n, c, Lp = f.shape
+    B = min(BLOCK, Lp)
+    nb, nr = Lp // B, R.shape[0]
+    pw = powers(mu, B)
+    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
+    starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
+    rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
+    Rp = (R[None] * pw.T[1:, None, :]).reshape(B * nr, n)  # R diag(μ^(i+1))
+    rows += (Rp @ starts.reshape(n, c * nb)).reshape(B, nr, c, nb).transpose(1, 2, 3, 0)
+    jL, iL = divmod(L - 1, B)
+    end = inner.reshape(n, c, Lp)[:, :, L - 1] + pw[:, iL + 1, None] * starts[:, :, jL]
+    return rows, end
+
+
+class Stretch:
+    """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch (see the module docstring).
+
+    What depends on the feedback only (its rank, the blocks' triangular matrices) is built once
+    and serves every :meth:`solve` (the simulation's temperatures and the sensitivities).
+
+    Parameters
+    ----------
+    mu : ndarray (n,)
+        Eigenvalues of the transition (dimensionless, in [0, 1)).
     G : ndarray (n, nl)
         ``V⁻¹ Γ_P``: how each loss source enters the modes.
     E : ndarray (ntv, n)
         ``V[tv]``: the loss nodes' temperatures from the modes.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step (W/K).
-    W : ndarray (nr, n)
-        The rows wanted at every step, from the modes.
+    """
+
+    def __init__(self, mu: np.ndarray, G: np.ndarray, E: np.ndarray, D: np.ndarray) -> None:
+        self.mu, self.E, self.L = np.maximum(mu, 0.0), E, D.shape[0]
+        n, ntv, L = len(mu), E.shape[0], D.shape[0]
+        self.Lp = padded_length(L)
+        B = self.B = min(BLOCK, self.Lp)
+        nblk = self.nblk = self.Lp // B
+        self.pw = powers(self.mu, B).T  # (B+1, n)
+        D2 = D.reshape(L, -1)
+        cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
+        self.r = 0
+        if not len(cols):
+            return
+        U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
+        r = self.r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
+        Wfull = np.zeros((r, D2.shape[1]))
+        Wfull[:, cols] = Wt[:r]
+        GC = self.GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
+        sp = np.zeros((nblk * B, r))
+        sp[:L] = U_[:, :r] * sv[:r]
+        spb = self.spb = sp.reshape(nblk, B, r)
+        pw = self.pw
+        BT = B * ntv
+        i = np.arange(B)
+        lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
+        # each block's unit lower-triangular system for its loss-node values (B ntv unknowns):
+        # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q, the
+        # matrix −Σ_ρ H_ρ diag(s_ρ) with H_ρ the same for every block (built per block in the loop:
+        # keeping them all would hold B ntv² numbers a step, ~20 MB for 3 h)
+        K = (E[None] * pw[:B, None, :]) @ GC  # (B, ntv, r ntv): E diag(μ^m) G C
+        He = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
+        self.Hneg = -np.ascontiguousarray(He.reshape(B, ntv, B, r, ntv).transpose(3, 0, 1, 2, 4)).reshape(r, BT, BT)
+        # s[l, ρ] per unknown (l, b) of each block
+        self.scol = np.ascontiguousarray(np.repeat(spb.transpose(2, 0, 1), ntv, axis=2))  # (ρ, nblk, BT)
+        # a block's right-hand side y₀ + E diag(μ^i) q, and in one product from [q; y] the next
+        # block's start μ^B q + Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
+        self.EpT = (E[None] * pw[:B, None, :]).reshape(BT, n).T.copy()  # (n, BT)
+        self.Rl = np.ascontiguousarray((pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)
+                                       .transpose(1, 0, 2, 3)).reshape(r, BT, n)  # (ρ, (l, b), n)
+
+    def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The recursion from ``x[0] = x0`` under the forcing ``f``.
+
+        Parameters
+        ----------
+        f : ndarray (n, c, L) or (n, c, padded_length(L))
+            Forcing per mode, column and step (zero past ``L`` when padded: cheaper, no copy).
+        x0 : ndarray (n, c)
+            State at the stretch's first step.
+        W : ndarray (nr, n)
+            The rows wanted at every step, from the modes.
+
+        Returns
+        -------
+        rows : ndarray (nr, c, L)
+            ``W x[1] .. W x[L]``.
+        end : ndarray (n, c)
+            ``x[L]``.
+        """
+        n, c, _ = f.shape
+        L, Lp, B, nblk = self.L, self.Lp, self.B, self.nblk
+        if f.shape[2] != Lp:
+            f = np.concatenate([f, np.zeros((n, c, Lp - f.shape[2]))], axis=2)
+        E = self.E
+        ntv, nr = E.shape[0], W.shape[0]
+        if not self.r:
+            rows, end = scan_rows(self.mu, f, x0, W, L)
+            return rows.reshape(nr, c, Lp)[:, :, :L], end
+        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L)
+        rows = both[:nr]  # (nr, c, nblk, B)
+        m, BT = self.r * ntv, B * ntv
+        # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
+        y0 = np.empty((nblk, c, BT))
+        yk = np.moveaxis(y0.reshape(nblk, c, B, ntv), 2, 1)  # (nblk, B, c, ntv), a view of y0
+        ye = both[nr:].transpose(2, 3, 1, 0)  # (nblk, B, c, ntv): E x[k + 1] at k = j B + i
+        yk[0, 0] = (E @ x0).T
+        yk[:, 1:] = ye[:, :-1]
+        yk[1:, 0] = ye[:-1, -1]
+        # per block [q; y]: the feedback's modal state at its start and its loss-node values
+        Z = np.zeros((nblk + 1, c, n + BT))
+        EpT, Hneg, Rl, scol = self.EpT, self.Hneg, self.Rl, self.scol
+        A = np.empty((BT, BT))  # the block's matrix; A.T is it in Fortran order, for LAPACK
+        RA = np.empty((n + BT, n))  # [diag(μ^B); Σ_ρ R_ρ diag(s_ρ)]ᵀ, the carry
+        RA[:n] = np.diag(self.pw[B])
+        rhs = np.empty((c, BT))  # (BT, c) in Fortran order: LAPACK solves it in place
+        for j in range(nblk):
+            np.multiply(Hneg[0], scol[0, j], out=A)  # the unit diagonal is implied (unitdiag)
+            np.multiply(Rl[0], scol[0, j, :, None], out=RA[n:])
+            for k in range(1, self.r):
+                A += Hneg[k] * scol[k, j]
+                RA[n:] += Rl[k] * scol[k, j, :, None]
+            np.matmul(Z[j, :, :n], EpT, out=rhs)
+            rhs += y0[j]
+            dtrtrs(A.T, rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
+            Z[j, :, n:] = rhs
+            np.matmul(Z[j], RA, out=Z[j + 1, :, :n])
+        qs = Z[:nblk, :, :n]  # (nblk, c, n)
+        Yb = Z[:nblk, :, n:].reshape(nblk, c, B, ntv)
+        z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
+        # the feedback's part of the wanted rows: from each block's start state and inside the block
+        pw = self.pw
+        Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
+        fb = Wp @ qs.reshape(nblk * c, n).T  # (B nr, nblk c)
+        if 2 * nr < n:  # few rows: straight from the inputs, W diag(μ^(i−l)) G C for l ≤ i
+            fb += _inputs_to_rows(W, pw, self.GC, B) @ z.reshape(nblk * c, B * m).T
+        else:  # most of the state: the inputs G C z through the modes' block filters, then W
+            u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
+            inside = np.matmul(u.reshape(n, c * nblk, B), _toeplitz(self.pw.T, B))  # (n, c nblk, B)
+            rows += (W @ inside.reshape(n, c * Lp)).reshape(nr, c, nblk, B)
+        rows += fb.reshape(B, nr, nblk, c).transpose(1, 3, 2, 0)
+        jL, iL = divmod(L - 1, B)
+        # the state at step L: the feedback's from its block's start and the inputs of that block up to L
+        carry = pw[iL:: -1][: iL + 1, :, None] * self.GC[None]  # diag(μ^(iL−l)) G C, l = 0 .. iL
+        end_fb = pw[iL + 1][:, None] * qs[jL].T + np.tensordot(carry, z[jL].reshape(c, B, m)[:, : iL + 1], axes=([0, 2], [1, 2]))
+        return rows.reshape(nr, c, Lp)[:, :, :L], end + end_fb
+
+
+def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
+                  D: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x[k+1] = μ ∘ x[k] + f[k] + G D[k] E x[k]`` over a stretch: :meth:`Stretch.solve` once.
+
+    Parameters
+    ----------
+    mu, G, E, D : see :class:`Stretch`.
+    f, x0, W : see :meth:`Stretch.solve`.
 
     Returns
     -------
-    rows : ndarray (nr, L, c)
+    rows : ndarray (nr, c, L)
         ``W x[1] .. W x[L]``.
     end : ndarray (n, c)
         ``x[L]``.
     """
-    n, L, c = f.shape
-    ntv, nr = E.shape[0], W.shape[0]
-    x = modal_scan(mu, f, x0)
-    rows = np.tensordot(W, x, axes=1)
-    end = x[:, -1].copy()
-    D2 = D.reshape(L, -1)
-    cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
-    if not len(cols):
-        return rows, end
-    U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
-    r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
-    Wfull = np.zeros((r, D2.shape[1]))
-    Wfull[:, cols] = Wt[:r]
-    GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
-    B = TIME_BLOCK
-    nblk = -(-L // B)
-    m = r * ntv
-    # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, and s[k, ρ], padded to whole blocks
-    y0 = np.zeros((nblk * B, ntv, c))
-    y0[0] = E @ x0
-    y0[1:L] = np.tensordot(E, x[:, : L - 1], axes=1).transpose(1, 0, 2)
-    sp = np.zeros((nblk * B, r))
-    sp[:L] = U_[:, :r] * sv[:r]
-    with np.errstate(under="ignore"):
-        pw = mu[None, :] ** np.arange(B + 1)[:, None]  # (B+1, n)
-    i = np.arange(B)
-    lag = i[:, None] - 1 - i[None, :]  # m = i − 1 − l for l < i
-    below = lag >= 0
-
-    def toeplitz(P: np.ndarray) -> np.ndarray:
-        """``P diag(μ^(i−1−l)) G C`` for l < i, as (i, a, l, q) from ``P`` (a, n)."""
-        K = (P[None] * pw[:B, None, :]) @ GC  # (B, a, q)
-        return np.where(below[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
-
-    # every block's unit lower-triangular system for its loss-node values, at once (blk, B ntv, B ntv):
-    # y_i − Σ_{l<i} E diag(μ^(i−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l = y₀_i + E diag(μ^i) q
-    He = toeplitz(E).reshape(B, ntv, B, r, ntv)
-    spb = sp.reshape(nblk, B, r)
-    A = np.zeros((nblk, B, ntv, B, ntv))
-    for k in range(r):
-        A -= He[None, :, :, :, k] * spb[:, None, None, :, k, None]
-    A = A.reshape(nblk, B * ntv, B * ntv)
-    A += np.eye(B * ntv)
-    At = np.swapaxes(A, 1, 2)  # Fortran order of each block's matrix, for LAPACK without a copy
-    Ep = (E[None] * pw[:B, None, :]).reshape(B * ntv, n)  # E diag(μ^i), stacked
-    # each block's carry from its loss-node values: Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
-    Rl = (pw[B - 1:: -1][:B, :, None] * GC[None]).reshape(B, n, r, ntv)  # (l, n, ρ, b)
-    Rj = np.zeros((nblk, n, B, ntv))
-    Rl = Rl.transpose(2, 1, 0, 3)  # (ρ, n, l, b)
-    for k in range(r):
-        Rj += Rl[k][None] * spb[:, None, :, k, None]
-    Rj = Rj.reshape(nblk, n, B * ntv)
-    muB = pw[B][:, None]
-    q = np.zeros((n, c))
-    qs = np.empty((nblk, n, c))  # feedback modal state at each block's start
-    Y = np.empty((nblk, B * ntv, c))
-    rhs0 = y0.reshape(nblk, B * ntv, c)
-    rhs = np.empty((B * ntv, c))
-    for j in range(nblk):
-        qs[j] = q
-        np.matmul(Ep, q, out=rhs)
-        rhs += rhs0[j]
-        Y[j] = dtrtrs(At[j], rhs, lower=0, trans=1, unitdiag=1)[0]
-        q = muB * q + Rj[j] @ Y[j]
-    z = (spb[:, :, :, None, None] * Y.reshape(nblk, B, 1, ntv, c)).reshape(nblk, B * m, c)
-    # the feedback's part of the wanted rows: from each block's start state and inside the block
-    Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
-    fb = (Wp @ qs.transpose(1, 0, 2).reshape(n, nblk * c)).reshape(B, nr, nblk, c)
-    fb += (_inputs_to_rows(W, pw, GC, B) @ z.transpose(1, 0, 2).reshape(B * m, nblk * c)).reshape(B, nr, nblk, c)
-    rows += fb.transpose(1, 2, 0, 3).reshape(nr, nblk * B, c)[:, :L]
-    end_fb = q if nblk * B == L else None
-    if end_fb is None:  # the last block is partial: its state at step L from its start and its inputs
-        last = L - (nblk - 1) * B
-        zl = z[-1].reshape(B, m, c)[:last]
-        carry = pw[last - 1:: -1][:last, :, None] * GC[None]  # diag(μ^(last−1−l)) G C
-        end_fb = pw[last][:, None] * qs[-1] + np.tensordot(carry, zl, axes=([0, 2], [0, 1]))
-    return rows, end + end_fb
+    return Stretch(mu, G, E, D).solve(f, x0, W)
 
 
 def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np.ndarray:
@@ -198,10 +319,8 @@ def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np
     return full.reshape(B * W.shape[0], B * GC.shape[1])
 
 
-def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
-                forcing: Callable[[], np.ndarray], x0: np.ndarray, D: np.ndarray,
-                keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A stretch of ``x[k+1] = (Φ + Γ_P D[k] E_tv) x[k] + V f[k]`` at one operating point.
+class NodeStretch:
+    """A stretch at one operating point in node coordinates: ``x[k+1] = (Φ + Γ_P D[k] E_tv) x[k] + V f[k]``.
 
     Parameters
     ----------
@@ -213,25 +332,37 @@ def solve_nodes(V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, t
         ``Γ_P``, K/W.
     tv : ndarray of int (ntv,)
         Nodes whose temperatures the loss laws read.
-    forcing : callable
-        ``forcing()``: the forcing (n, L, c) of every step in the modal basis of ``Φ``.
-    x0 : ndarray (n, c)
-        State in node coordinates at the stretch's start.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step, W/K.
-    keep : ndarray of int, optional
-        The nodes wanted at every step (default all).
-
-    Returns
-    -------
-    rows : ndarray (L, len(keep), c)
-        ``x[1] .. x[L]`` at the ``keep`` nodes.
-    end : ndarray (n, c)
-        ``x[L]`` at every node.
     """
-    W = V if keep is None else V[keep]
-    rows, end = solve_stretch(np.maximum(mu, 0.0), forcing(), Vi @ x0, Vi @ GP, V[tv], D, W)
-    return rows.transpose(1, 0, 2), V @ end
+
+    def __init__(self, V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
+                 D: np.ndarray) -> None:
+        self.V, self.Vi = V, Vi
+        self.core = Stretch(mu, Vi @ GP, V[tv], D)
+
+    def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The stretch from ``x0``.
+
+        Parameters
+        ----------
+        f : ndarray (n, c, L)
+            The forcing of every step in the modal basis of ``Φ``.
+        x0 : ndarray (n, c)
+            State in node coordinates at the stretch's start.
+        keep : ndarray of int, optional
+            The nodes wanted at every step (default all).
+
+        Returns
+        -------
+        rows : ndarray (len(keep), c, L)
+            ``x[1] .. x[L]`` at the ``keep`` nodes.
+        end : ndarray (n, c)
+            ``x[L]`` at every node.
+        """
+        W = self.V if keep is None else self.V[keep]
+        rows, end = self.core.solve(f, self.Vi @ x0, W)
+        return rows, self.V @ end
 
 
 def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH) -> list[tuple[int, int]]:
