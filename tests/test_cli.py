@@ -34,7 +34,7 @@ def test_help_lists_the_commands():
     (["simulate", "--model", "config/machines/pm10kw.yaml", "--cycle", "nope.yaml", "--out", "/tmp/x.csv"], "nope.yaml"),
     (["simulate", "--model", "pm11", "--cycle", "overload", "--out", "/tmp/x.csv"], "(packaged: paderborn4, pm10kw)"),
     (["simulate", "--model", "pm10kw", "--cycle", "overlaod", "--out", "/tmp/x.csv"], "--cycle overlaod: no such file"),
-    (["demo", "--cycle", "sub/overload"], "packaged: heldout_drive, overload,"),
+    (["demo", "--cycle", "sub/overload"], "packaged: commissioning, heldout_drive, overload,"),
     (["simulate", "--model", "config/machines/pm10kw.yaml", "--cycle", "config/cycles/overload.yaml",
       "--out", "/tmp/x.csv", "--param", "R_e_hous"], "NAME=VALUE"),
 ])

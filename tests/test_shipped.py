@@ -53,7 +53,7 @@ def test_neither_file_nor_name_lists_the_packaged_ones(ref, tmp_path, monkeypatc
     with pytest.raises(UsageError) as err:
         shipped.model_file(ref)
     assert str(err.value) == f"--model {ref}: no such file, nor a packaged model of that name (packaged: paderborn4, pm10kw)"
-    with pytest.raises(UsageError, match=r"^--cycle x: .*\(packaged: heldout_drive, overload, "):
+    with pytest.raises(UsageError, match=r"^--cycle x: .*\(packaged: commissioning, heldout_drive, overload, "):
         shipped.cycle_file("x")
 
 

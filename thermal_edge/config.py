@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 
 from .bus.busconfig import BusConfig, BusConfigError
 from .bus.crc import CRC8_ALGORITHMS
-from .bus.frames import DEFAULT_DBC_PATH, TE_LIMITS, DerateReason
+from .bus.frames import DEFAULT_DBC_PATH, INV_CURRENTS, INV_VOLTAGES, TE_LIMITS, DerateReason
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
@@ -57,6 +57,7 @@ __all__ = [
     "DeratingConfig",
     "EdgeConfig",
     "FaultConfig",
+    "FluxConfig",
     "InputSignal",
     "LimitConfig",
     "LookaheadConfig",
@@ -475,6 +476,34 @@ class RecordingConfig:
 
 
 @dataclass(frozen=True)
+class FluxConfig:
+    """``flux:`` -- optional: the magnet temperature from the inverter's dq voltage references, fused
+    into the observer (:mod:`thermal_edge.service.flux_input`). Without ``calibration`` nothing of
+    it is read and the service is the one without voltages."""
+
+    #: the commissioned flux-linkage model (``thermal-edge flux calibrate --out FILE``); null: off
+    calibration: Path | None = None
+    frame: str = INV_VOLTAGES
+    voltage_d: str = "INV_Ud"
+    voltage_q: str = "INV_Uq"
+    #: the dq currents the voltages pair with (peak amplitudes, amplitude-invariant)
+    currents_frame: str = INV_CURRENTS
+    current_d: str = "INV_Id"
+    current_q: str = "INV_Iq"
+    #: voltages older than this at a tick are stale: that tick's estimate is refused (counted), s
+    timeout_s: float = setting(0.5, positive=True, max=MAX_SILENCE_S)
+    #: the model node whose estimate gives the stator resistance its temperature (required with calibration)
+    winding_node: str | None = None
+    #: the model nodes whose mean the flux linkage sees (default: the node of ``transmit.magnet_limit``)
+    magnet_nodes: tuple[str, ...] | None = None
+
+    @property
+    def enabled(self) -> bool:
+        """Whether the voltages are read at all."""
+        return self.calibration is not None
+
+
+@dataclass(frozen=True)
 class TransmitConfig:
     """``transmit:`` -- which limit goes into which TE_Estimates slot, cyclic periods, silence."""
 
@@ -508,6 +537,7 @@ class EdgeConfig:
     state: StateConfig
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     transmit: TransmitConfig = field(default_factory=TransmitConfig)
+    flux: FluxConfig = field(default_factory=FluxConfig)
 
     @property
     def inputs(self) -> dict[str, InputSignal]:
@@ -581,6 +611,24 @@ class EdgeConfig:
             # the torque limit is never above kt x the current limit: a higher safe torque is never sent
             raise self.error("derating.safe_torque_nm", f"must not exceed kt x safe_current_a ({kt:g} Nm/A x "
                              f"{d.safe_current_a:g} A = {kt * d.safe_current_a:g} Nm), got {d.safe_torque_nm:g}")
+        self._check_flux_model(model)
+
+    def _check_flux_model(self, model: Any) -> None:
+        """``flux:``: its nodes are the model's (only when it is on)."""
+        fx = self.flux
+        if not fx.enabled:
+            return
+        if fx.winding_node is None:
+            raise self.error("flux.winding_node", "required with flux.calibration: the node whose temperature the "
+                             f"stator resistance has (e.g. {next((n for n in model.nodes if 'winding' in n), model.nodes[0])})")
+        nodes = set(model.nodes)
+        for key, names in (("winding_node", [fx.winding_node]), ("magnet_nodes", list(fx.magnet_nodes or ()))):
+            for n in names:
+                if n not in nodes:
+                    raise self.error(f"flux.{key}", f"model {model.name} has no node {n!r}{_did_you_mean(n, nodes)}")
+        if fx.magnet_nodes is None and not any(lim.name == self.transmit.magnet_limit for lim in model.limits):
+            raise self.error("flux.magnet_nodes", f"model {model.name} has no limited node {self.transmit.magnet_limit!r} "
+                             "(transmit.magnet_limit): name the magnet nodes here")
 
     def check_parameters(self, model: Any) -> None:
         """Check ``model.parameters`` against the model file: known names, values within its bounds.
@@ -661,6 +709,7 @@ class EdgeConfig:
                 for sig in wanted:
                     if sig not in signals:
                         raise self.error(key, f"frame {spec.frame} has no signal {sig!r}")
+        self._check_flux_dbc(codec)
         # a frame the model reads with no timeout never goes stale: its last values would drive the
         # model and the limit however long it is gone (so `timeouts: {}` is refused)
         read = {spec.frame: f"signals.{section}.{name}" for section, items in (("inputs", self.inputs), ("sensors", self.sensors))
@@ -685,6 +734,26 @@ class EdgeConfig:
             if value is not None and top is not None and value > top:
                 raise self.error(f"derating.{key}", f"must be at most {top:g}, the largest value {signal} carries in "
                                  f"{Path(codec.dbc_path).name}; got {value:g}")
+
+    def _check_flux_dbc(self, codec: Any) -> None:
+        """``flux:``: its frames and signals are in the DBC with a known protection (only when it is on)."""
+        fx = self.flux
+        if not fx.enabled:
+            return
+        dbc = Path(codec.dbc_path).name
+        for frame_key, frame, sig_keys in (("frame", fx.frame, ("voltage_d", "voltage_q")),
+                                           ("currents_frame", fx.currents_frame, ("current_d", "current_q"))):
+            try:
+                signals = set(codec.signal_names(frame))
+            except KeyError:
+                raise self.error(f"flux.{frame_key}", f"no frame {frame!r} in {dbc}") from None
+            if codec.protection(frame) is None:
+                raise self.error(f"codec.protection.{frame}", f"flux.{frame_key} reads {frame}, and "
+                                 f"{codec.protection_problem(frame)} (counter: and/or crc: with crc_algorithm:, or none)")
+            for k in sig_keys:
+                sig = getattr(fx, k)
+                if sig not in signals:
+                    raise self.error(f"flux.{k}", f"frame {frame} has no signal {sig!r}{_did_you_mean(sig, signals)}")
 
     # -- derived values -------------------------------------------------------------------------
     def kt(self, model: Any) -> float | None:

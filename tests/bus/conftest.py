@@ -35,6 +35,14 @@ def matrix() -> list[MatrixSignal]:
     return [dataclasses.replace(r, unit=r.unit + "".join(f", {v} {n}" for s, v, n in added if s == r.name)) for r in rows]
 
 
+@pytest.fixture(scope="session")
+def added_frames() -> list[MatrixSignal]:
+    """The frames the project appends to the shared matrix (docs/can-matrix-additions.md, same table form)."""
+    rows = parse_can_matrix((REPO / "docs" / "can-matrix-additions.md").read_text(encoding="utf-8"))
+    assert rows, "no frame table in docs/can-matrix-additions.md"
+    return rows
+
+
 @pytest.fixture
 def codec() -> FrameCodec:
     return FrameCodec(DBC_PATH)

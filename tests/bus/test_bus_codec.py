@@ -364,7 +364,7 @@ def test_frame_lookup(codec):
     assert codec.cycle_time_s("INV_Currents") == pytest.approx(0.01)
     assert codec.cycle_time_s(0x2C0) == pytest.approx(1.0)
     assert codec.frames_sent_by("TE") == {0x2A0, 0x2B0, 0x2B1, 0x2C0}
-    assert codec.frames_sent_by("INV") == {0x0A0, 0x0A1, 0x0B0, 0x0B1}
+    assert codec.frames_sent_by("INV") == {0x0A0, 0x0A1, 0x0B0, 0x0B1, 0x2D0}  # 0x2D0: the optional voltages
     assert codec.signal_names("TE_Limits") == ("TE_TorqueLimit", "TE_CurrentLimit", "TE_DerateActive", "TE_DerateReason")
 
 

@@ -37,9 +37,9 @@ def test_default_path_is_the_project_dbc():
     assert DBC_PATH.is_file() and DEFAULT_DBC_PATH.is_file()
 
 
-def test_strict_load_and_nodes(db):
+def test_strict_load_and_nodes(db, added_frames):
     assert {n.name for n in db.nodes} == {"INV", "TE"}
-    assert len(db.messages) == 8
+    assert len(db.messages) == 8 + len({r.frame for r in added_frames})
 
 
 def test_frames_match_matrix(db, matrix):
@@ -142,9 +142,29 @@ def test_attribute_definitions_in_file():
     text = DBC_PATH.read_text(encoding="ascii")
     assert re.search(r'^BA_DEF_ BO_ "GenMsgCycleTime" INT 0 \d+;', text, re.M)
     assert re.search(r'^BA_DEF_DEF_ "GenMsgCycleTime" 0;', text, re.M)
-    assert len(re.findall(r'^BA_ "GenMsgCycleTime" BO_ \d+ \d+;', text, re.M)) == 8
+    n_frames = len(cantools.database.load_file(str(DBC_PATH)).messages)
+    assert len(re.findall(r'^BA_ "GenMsgCycleTime" BO_ \d+ \d+;', text, re.M)) == n_frames
     assert re.search(r"^BU_: INV TE\s*$", text, re.M)
     assert re.search(r"^VAL_TABLE_ SensorStatus ", text, re.M)
+
+
+def test_added_frames_match_the_additions_table(db, added_frames):
+    """The appended frames as docs/can-matrix-additions.md states them: ID in 0x2D0-0x2FF, sender,
+    cycle, every signal's layout and scaling, and nothing else but the counter and CRC."""
+    for row in added_frames:
+        assert 0x2D0 <= row.frame_id <= 0x2FF, row.frame
+        msg = db.get_message_by_frame_id(row.frame_id)
+        assert (msg.name, msg.senders, msg.cycle_time, msg.length) == (row.frame, [row.sender], row.cycle_ms, 8)
+        sig = msg.get_signal_by_name(row.name)
+        assert (sig.start, sig.length, sig.is_signed, sig.byte_order) == (row.start, row.bits, row.signed, "little_endian")
+        assert float(sig.scale) == pytest.approx(row.factor) and float(sig.offset) == pytest.approx(row.offset)
+        assert sig.unit == _unit(row.unit)
+        assert sig.receivers == ["TE" if row.sender == "INV" else "INV"]
+        lo, hi = (-(2 ** (row.bits - 1)), 2 ** (row.bits - 1) - 1) if row.signed else (0, 2**row.bits - 1)
+        assert (sig.minimum, sig.maximum) == (pytest.approx(lo * row.factor), pytest.approx(hi * row.factor))
+    for name in {r.frame for r in added_frames}:
+        expected = {r.name for r in added_frames if r.frame == name} | {f"{name}_Counter", f"{name}_CRC"}
+        assert {s.name for s in db.get_message_by_name(name).signals} == expected
 
 
 def test_matrix_parser_sees_both_directions(matrix):

@@ -295,7 +295,7 @@ async def test_kernel_filters_let_in_only_the_frames_this_node_receives(virtual_
         assert await te.wait_connected(2.0)
         filters = buses[0].applied[-1]
         codec = te.codec
-        assert {f["can_id"] for f in filters} == codec.frames_sent_by("INV") == {0x0A0, 0x0A1, 0x0B0, 0x0B1}
+        assert {f["can_id"] for f in filters} == codec.frames_sent_by("INV") == {0x0A0, 0x0A1, 0x0B0, 0x0B1, 0x2D0}
         assert all(f["can_mask"] == 0x7FF and f["extended"] is False for f in filters)
         peer = can.Bus(interface="virtual", channel=virtual_channel)
         try:

@@ -31,7 +31,7 @@ PAGES = [README, *sorted(p for p in (dl.REPO / "docs").rglob("*.md") if "_genera
 PREFIXES = ("sudo",)
 #: programs of the README that are not this project's and that the suite does not run (see the docstring)
 NOT_RUN = {"sudo", "systemctl", "journalctl", "curl", "docker", "ip", "candump", "xdg-open", "sudoedit", "install",
-           "promtool", "sed", "grep", "mkdir", "python3", "pip", "log2asc", "cd", "git", "dask", "modprobe"}
+           "promtool", "sed", "grep", "mkdir", "python3", "pip", "log2asc", "cd", "git", "dask", "modprobe", "tee"}
 #: repository paths a command may name, recognised by their first component
 REPO_DIRS = ("config/", "deploy/", "dbc/", "docs/", "tests/")
 

@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 from svc_testlib import MODEL, REPO, T0, NotifySocket, edge_raw, emulator_cmd, env, start_service, wait_until, write_yaml
 
+from thermal_edge.service.persistence import LOCKNAME
+
 
 def saved_at(path) -> float:
     try:
@@ -188,4 +190,4 @@ def test_a_state_saved_with_round_off_below_a_bound_is_restored(tmp_path):
     assert back["parameters"] == {**learned, "c_p_ew": 300.0}
     assert back["param_version"] == 4 and back["adapt_runs"] == 9 and back["decisions"] == saved["decisions"]
     assert back["T"] == saved["T"] and back["P"] == saved["P"]  # not yet running: the loaded state kept as it was
-    assert not [p for p in state.iterdir() if p.name != "state.json"]
+    assert not [p for p in state.iterdir() if p.name not in ("state.json", LOCKNAME)]  # nothing moved aside

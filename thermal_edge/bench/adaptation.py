@@ -26,8 +26,10 @@ corrected by the readings) over time and at the end; every promotion, with the o
 the next hour predicted from the observer's state at the promotion with the parameters before and
 after it; the refusals counted by their reason; the final parameters against the plant's, with
 how closely the scenario's data pins each down (relative 1σ from the Fisher information at the
-plant's parameters, all adaptable parameters free); the time from which the open-loop error
-stays within 1 K.
+plant's parameters, the residuals' correlation in time counted: the *marginal* 1σ, every other
+adaptable parameter free, from the full covariance; beside it, for contrast, the *conditional*
+1σ with the others held at their values, which no estimator that has to find them too can
+reach); the time from which the open-loop error stays within 1 K.
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from .protection import PLANT_DT_S, T0, Case, ThermalEdgePolicy, closed_loop, ed
 __all__ = ["SCENARIOS", "AdaptationBench", "Promotion", "Scenario", "ScenarioResult", "run", "run_scenario"]
 
 #: a parameter counts as identifiable in a scenario when its data pins it down to this relative 1σ
+#: (marginal: every other adaptable parameter free)
 IDENTIFIABLE_REL_STD = 0.02
 #: how far the final identifiable parameters may be from the plant's (relative)
 PARAM_TOLERANCE = 0.10
@@ -111,7 +114,8 @@ class ScenarioResult:
     final: dict[str, float]
     plant: dict[str, float]
     start: dict[str, float]
-    rel_std: dict[str, float]  # what the scenario's data allows (1σ, relative) at the plant's parameters
+    rel_std: dict[str, float]  # what the scenario's data allows (marginal 1σ, relative) at the plant's parameters
+    rel_std_fixed: dict[str, float]  # the same with every other parameter held (conditional 1σ, relative)
     peak_hot_spot_c: float
     derated_s: float  # plant time with the limits reduced (derating active)
     wall_s: float
@@ -198,8 +202,11 @@ def _open_loop_rms(sim: Any, model: Any, theta: np.ndarray, rec: _Recorder, k0: 
     return float(np.sqrt(np.mean(e**2))) if len(e) else math.nan
 
 
-def _rel_std(model: Any, rec: _Recorder, sensors: list[str], decimate_by: int, max_rel_std: float) -> dict[str, float]:
-    """Relative 1σ of each adaptable parameter that the recorded data allows at the plant's parameters."""
+def _rel_std(model: Any, rec: _Recorder, sensors: list[str], decimate_by: int,
+             max_rel_std: float) -> tuple[dict[str, float], dict[str, float]]:
+    """Relative 1σ of each adaptable parameter that the recorded data allows at the plant's
+    parameters: marginal (all the others free: the diagonal of the covariance) and conditional
+    (the others held: one over the diagonal of the information)."""
     from ..estimation.common import ParamSpace, decimate, window_from_arrays
     from ..estimation.objective import Objective
     from ..estimation.uncertainty import estimate_uncertainty
@@ -212,7 +219,9 @@ def _rel_std(model: Any, rec: _Recorder, sensors: list[str], decimate_by: int, m
     obj = Objective(Simulator(model), ParamSpace(model, names, model.nominal()), win, sensors)
     ev = obj.evaluate(np.log(obj.space.values()))
     unc = estimate_uncertainty(obj, ev, max_rel_std)
-    return {n: float(r) for n, r in zip(unc.names, unc.rel_std)}
+    info = np.linalg.pinv(unc.cov, rcond=1e-15)
+    fixed = 1.0 / np.sqrt(np.clip(np.diag(info), 1e-300, None))
+    return ({n: float(r) for n, r in zip(unc.names, unc.rel_std)}, {n: float(r) for n, r in zip(unc.names, fixed)})
 
 
 def run_scenario(scenario: Scenario, config_file: Path | None = None,
@@ -297,7 +306,7 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
                 promotions.append(Promotion(float(d["t"]) - T0, math.nan, math.nan, 0.0))
             theta = after
         ad = cfg.adaptation.adapter
-        rel = _rel_std(plant, rec, sensors, ad.decimate, ad.max_rel_std)
+        rel, rel_fixed = _rel_std(plant, rec, sensors, ad.decimate, ad.max_rel_std)
     within = math.nan
     if samples and samples[-1][1] <= WITHIN_K:
         within = 0.0
@@ -308,7 +317,8 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
         name=scenario.name, doc=scenario.doc, learn=bool(start_values), pred_err_k=samples, final_pred_err_k=final_err,
         within_1k_from_s=within, promotions=promotions, decisions=len(decisions), outcomes=outcomes, refusals=refusals,
         final=final, plant={n: float(nominal[n]) for n in names}, start={n: float(start[n]) for n in names},
-        rel_std={n: rel[n] for n in names if n in rel}, peak_hot_spot_c=peak[0], derated_s=derated[0],
+        rel_std={n: rel[n] for n in names if n in rel}, rel_std_fixed={n: rel_fixed[n] for n in names if n in rel_fixed},
+        peak_hot_spot_c=peak[0], derated_s=derated[0],
         wall_s=time.perf_counter() - w0,
     )
 
@@ -372,10 +382,11 @@ def error_rows(res: AdaptationBench, every_s: float = 900.0) -> tuple[list[str],
 def parameter_rows(r: ScenarioResult) -> list[list[object]]:
     """Start, final and plant value of each adaptable parameter, and what the data allows."""
     return [[k, r.start[k], r.final[k], r.plant[k], round(r.param_errors_pct[k], 1), round(100 * r.rel_std.get(k, math.nan), 2),
-             "yes" if k in r.identifiable else "no"] for k in r.final]
+             round(100 * r.rel_std_fixed.get(k, math.nan), 3), "yes" if k in r.identifiable else "no"] for k in r.final]
 
 
-PARAMETER_HEADERS = ["parameter", "start", "final", "plant", "final vs plant %", "1σ the data allows %", "identifiable"]
+PARAMETER_HEADERS = ["parameter", "start", "final", "plant", "final vs plant %", "1σ the data allows %",
+                     "1σ if the others were known %", "identifiable"]
 
 
 def promotion_rows(r: ScenarioResult) -> list[list[object]]:

@@ -14,6 +14,12 @@ obeys ``TE_Limits`` on the bus. Without a bus the run is as fast as the model st
 Policies:
 
 * ``thermal_edge``: the service as configured.
+* ``thermal_edge_voltages``: the same service with the optional voltage frame: the emulator sends
+  ``INV_Voltages`` from its electrical model (:class:`..sim.pmsm.Pmsm`, from the plant's true
+  temperatures) and the service fuses the flux-linkage estimate of the magnet into its observer
+  (``flux:``), commissioned on a simulated bench run of the nominal machine
+  (:func:`.commissioning.commission`, the packaged ``commissioning`` cycle). Its voltage noise
+  comes from a random stream of its own: the PT100 readings are those the other policies see.
 * ``pt100_linear``: what open drive firmware does (VESC's motor temperature derate): full current
   below the hot spot's warning temperature on the *end-winding PT100*, linearly to zero at its max.
 * ``i2t``: the classic I²t overload accumulator of drive firmware set to the machine's continuous
@@ -33,16 +39,22 @@ estimate and no sensor sees); ``ambient_40`` (ambient 40 °C instead of 25 °C);
 (the machine warmed up for 40 min at 110 Nm, stopped 60 s; the service restarts from its saved
 state, the I²t image from empty); ``warm_restart_rotor`` (the same restart on a plant whose rotor
 differs from the model, unseen by any sensor: magnet losses +60 %, rotor-surface cooling −30 %; the
-saved state must carry the magnet's band across the restart).
+saved state must carry the magnet's band across the restart); ``electrical_wrong`` (the nominal
+plant, but ``thermal_edge_voltages`` runs with the electrical calibration deliberately wrong:
+inductances +20 %, the inverter's voltage error doubled; the disagreement check must refuse what
+would mislead it, and nothing may overheat).
 
 Figures per case and policy: ``headroom_pct`` (current-time delivered ÷ demanded, %),
 ``oracle_share_pct`` (delivered ÷ the oracle's delivered, %), ``peak_hot_spot_c``,
 ``peak_magnet_c`` (true plant temperatures), ``seconds_over_max`` (plant time with a limited node
-above its max).
+above its max); for ``thermal_edge_voltages`` also ``flux`` (ticks per outcome of the flux
+estimate: used, refused for disagreement, ...).
 """
 from __future__ import annotations
 
 import copy
+import json
+import logging
 import math
 import sys
 import tempfile
@@ -59,7 +71,9 @@ from ..shipped import config_path
 __all__ = ["CASES", "POLICIES", "Case", "ThermalEdgePolicy", "closed_loop", "edge_config", "emulator_for", "parse_plant_changes",
            "plant_for", "run", "run_case"]
 
-POLICIES = ("thermal_edge", "pt100_linear", "i2t", "oracle")
+POLICIES = ("thermal_edge", "thermal_edge_voltages", "pt100_linear", "i2t", "oracle")
+#: the service's policies: with and without the voltage frame
+SERVICE_POLICIES = ("thermal_edge", "thermal_edge_voltages")
 #: I²t: seconds the maximum current may flow from an empty accumulator (drive overload rating,
 #: the usual "2 x rated for 60 s" class of servo and traction drives)
 I2T_OVERLOAD_S = 60.0
@@ -87,6 +101,8 @@ class Case:
     values: Mapping[str, float] = field(default_factory=dict)  # parameter/constant -> absolute value
     ambient_offset_k: float = 0.0
     warm_restart: bool = False
+    #: the flux estimate's electrical calibration deliberately wrong (inductances +20 %, voltage error x2)
+    flux_miscalibrated: bool = False
     doc: str = ""
 
 
@@ -99,6 +115,8 @@ CASES: dict[str, Case] = {c.name: c for c in (
     Case("warm_restart", warm_restart=True, doc="service restarts warm from its saved state"),
     Case("warm_restart_rotor", {"P_pm_ref": 1.6, "h_rot1": 0.7}, warm_restart=True,
          doc="warm restart with the rotor built differently (magnet losses +60 %, rotor cooling -30 %)"),
+    Case("electrical_wrong", flux_miscalibrated=True,
+         doc="nominal plant; the voltages' electrical calibration wrong (inductances +20 %, voltage error doubled)"),
 )}
 
 
@@ -232,9 +250,9 @@ class ThermalEdgePolicy(_Policy):
 
 
 # ----------------------------------------------------------------------------------------------
-def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
+def edge_config(state_dir: Path, config_file: Path | None = None, flux_calibration: Path | None = None) -> Any:
     """The packaged example ``edge.yaml`` (or ``config_file``) as the service runs it here: frame
-    clock, no bus I/O, no metrics."""
+    clock, no bus I/O, no metrics; with ``flux_calibration`` the voltage input on (``flux:``)."""
     import yaml
 
     from ..config import config_from_mapping
@@ -248,6 +266,9 @@ def edge_config(state_dir: Path, config_file: Path | None = None) -> Any:
     raw["recording"] = {}
     slow = max(CURRENT_PERIOD_S, TEMPERATURE_PERIOD_S)
     raw["timeouts"] = {k: max(float(v), 3 * slow) for k, v in (raw.get("timeouts") or {}).items()}
+    if flux_calibration is not None:
+        raw["flux"] = {**(raw.get("flux") or {}), "calibration": str(flux_calibration),
+                       "timeout_s": max(float((raw.get("flux") or {}).get("timeout_s", 0.5)), 3 * CURRENT_PERIOD_S)}
     return config_from_mapping(raw, path)  # relative paths (and a packaged model's name) as from the file
 
 
@@ -267,13 +288,17 @@ def plant_for(service_model: Any, case: Case) -> Any:
     return plant_model(service_model, changes)
 
 
-def emulator_for(plant: Any, cycle: Path, case: Case, duration_s: float | None, codec: Any = None) -> Any:
+def emulator_for(plant: Any, cycle: Path, case: Case, duration_s: float | None, codec: Any = None,
+                 pmsm: Any = None) -> Any:
+    """The emulator of a case's plant on the bench's frame periods; with ``pmsm`` (:class:`..sim.pmsm.Pmsm`)
+    it also sends ``INV_Voltages``."""
     from ..sim.inverter import EmulatorConfig, InverterEmulator
 
     cfg = EmulatorConfig(model_path=plant.path, cycle_path=cycle, duration_s=duration_s, speed=0.0, t0=T0,
                          current_period_s=CURRENT_PERIOD_S, temperature_period_s=TEMPERATURE_PERIOD_S,
                          plant_dt_s=PLANT_DT_S, closed_loop=True, flow_control=False, trace_every_s=math.inf,
-                         record_estimates=False, ambient_offset_k=case.ambient_offset_k, limits_timeout_sim_s=math.inf)
+                         record_estimates=False, ambient_offset_k=case.ambient_offset_k, limits_timeout_sim_s=math.inf,
+                         pmsm=pmsm)
     return InverterEmulator(cfg, codec=codec, model=plant)
 
 
@@ -300,7 +325,8 @@ def closed_loop(emu: Any, policy: _Policy, kt: float, limits: list[tuple[str, in
     # PT100-noisy and quantised to 0.1 K; the DBC's current resolution, 0.05 A, is far below what
     # matters here): encoding and decoding 20 frames a tick would double the bench's time. The
     # limits the service sends do go through the DBC (ThermalEdgePolicy)
-    ids = {n: emu.codec.frame_id(n) for n in ("INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps")}
+    ids = {n: emu.codec.frame_id(n)
+           for n in ("INV_Currents", "INV_Mechanics", "INV_StatorTemps", "INV_AmbientTemps", "INV_Voltages")}
     demanded = delivered = over_s = 0.0
     peak = {name: -math.inf for name, _, _ in limits}
     limit = policy.step([])
@@ -326,18 +352,43 @@ def closed_loop(emu: Any, policy: _Policy, kt: float, limits: list[tuple[str, in
     return {"demanded_as": demanded, "delivered_as": delivered, "over_s": over_s, **{f"peak_{k}": v for k, v in peak.items()}}
 
 
+#: the commissioning run of the flux estimate (a packaged cycle) and its nodes on the packaged machine
+COMMISSIONING_CYCLE = "commissioning.yaml"
+FLUX_WINDING_NODE = "slot_winding_1"
+FLUX_MAGNET_NODES = ("magnet_1", "magnet_2")
+
+
+def flux_calibration(service_model: Any, out: Path, miscalibrated: bool = False) -> Path:
+    """Commission the flux estimate on a simulated bench run of the nominal machine and write it as
+    ``thermal-edge flux calibrate`` does (``miscalibrated``: inductances +20 %, voltage error x2)."""
+    from ..sim.pmsm import Pmsm
+    from . import commissioning
+
+    flux = commissioning.commission(service_model, Pmsm(), config_path("cycles", COMMISSIONING_CYCLE), FLUX_WINDING_NODE,
+                                    FLUX_MAGNET_NODES)
+    if miscalibrated:
+        flux = commissioning.miscalibrated(flux)
+    out.write_text(json.dumps(flux.as_dict(), indent=1) + "\n")
+    return out
+
+
 def run_case(case: Case, policies: tuple[str, ...] = POLICIES, cycle: Path | None = None, duration_s: float | None = None,
              config_file: Path | None = None) -> dict[str, dict[str, Any]]:
     """One plant case, every policy: ``{policy: figures}`` (see the module docstring)."""
     from ..service.engine import load_service_model
     from ..service.persistence import PersistedState
     from ..sim.plant import nominal_values
+    from ..sim.pmsm import Pmsm
 
     cycle = cycle if cycle is not None else config_path("cycles", "protection.yaml")
     out: dict[str, dict[str, Any]] = {}
-    with tempfile.TemporaryDirectory(prefix="te-bench-protection-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="te-bench-protection-") as tmp, _quiet_flux_refusals():
         cfg = edge_config(Path(tmp), config_file)
         service_model = load_service_model(cfg)
+        cfgs = {"thermal_edge": cfg}
+        if "thermal_edge_voltages" in policies:
+            cal = flux_calibration(service_model, Path(tmp) / "flux.json", case.flux_miscalibrated)
+            cfgs["thermal_edge_voltages"] = edge_config(Path(tmp) / "voltages", config_file, cal)
         plant = plant_for(service_model, case)
         kt = float(cfg.kt(service_model))
         imax, tmax = cfg.derating.max_current_a, cfg.derating.max_torque_nm
@@ -350,18 +401,23 @@ def run_case(case: Case, policies: tuple[str, ...] = POLICIES, cycle: Path | Non
         sensor = next(s for s, node in service_model.sensors.items() if node.startswith("end_winding"))
         signal = cfg.sensors[sensor].signal
         i_cont = nominal_values(service_model).get("i_rated", imax / 2)  # the continuous rating
-        warm = _warm_start(case, plant, cycle, cfg, kt) if case.warm_restart else None
+        warm: dict[str, dict[str, Any]] = {}
         for name in policies:
-            emu = emulator_for(plant, cycle, case, duration_s)
+            voltages = name == "thermal_edge_voltages"
+            pmsm = Pmsm() if voltages else None
+            emu = emulator_for(plant, cycle, case, duration_s, pmsm=pmsm)
             restored = None
-            if warm is not None:
-                emu.plant.T = warm["T"].copy()
-                restored = copy.deepcopy(warm["state"])
+            if case.warm_restart:
+                key = name if name in SERVICE_POLICIES else "thermal_edge"  # the others start from the same machine
+                if key not in warm:
+                    warm[key] = _warm_start(case, plant, cycle, cfgs[key], kt, pmsm)
+                emu.plant.T = warm[key]["T"].copy()
+                restored = copy.deepcopy(warm[key]["state"])
                 if isinstance(restored, PersistedState):
                     restored.saved_at = T0 - RESTART_DOWNTIME_S
             pol: _Policy
-            if name == "thermal_edge":
-                pol = ThermalEdgePolicy(emu, imax, tmax, cfg, restored)
+            if name in SERVICE_POLICIES:
+                pol = ThermalEdgePolicy(emu, imax, tmax, cfgs[name], restored)
             elif name == "pt100_linear":
                 pol = _Pt100Linear(emu, imax, tmax, signal, warn_h, max_h)
             elif name == "i2t":
@@ -387,6 +443,8 @@ def run_case(case: Case, policies: tuple[str, ...] = POLICIES, cycle: Path | Non
             if isinstance(pol, ThermalEdgePolicy):
                 fig["reason_s"] = {k: v for k, v in sorted(pol.reason_s.items())}
                 fig["adaptations_accepted"] = pol.engine.adapt_accepted
+                if pol.engine.flux is not None:
+                    fig["flux"] = dict(sorted(pol.engine.flux.counts.items()))
             out[name] = fig
     ref = out.get("oracle", {}).get("delivered_as")
     for fig in out.values():
@@ -394,7 +452,20 @@ def run_case(case: Case, policies: tuple[str, ...] = POLICIES, cycle: Path | Non
     return out
 
 
-def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float) -> dict[str, Any]:
+class _quiet_flux_refusals:
+    """The flux input's refusals are counted in the figures; their log lines (one per refused tick,
+    thousands with a wrong calibration) are kept off the bench's output."""
+
+    def __enter__(self) -> None:
+        self.logger = logging.getLogger("thermal_edge.service.flux_input")
+        self.level = self.logger.level
+        self.logger.setLevel(logging.ERROR)
+
+    def __exit__(self, *exc: object) -> None:
+        self.logger.setLevel(self.level)
+
+
+def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float, pmsm: Any = None) -> dict[str, Any]:
     """warm_restart: the machine at WARM_UP_TORQUE_NM for WARM_UP_S with the service running, then
     stopped for RESTART_DOWNTIME_S; returns the plant's temperatures at the restart and the state the
     service saved when it stopped."""
@@ -407,7 +478,7 @@ def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float) -> dic
         col = DEFAULT_COLUMNS  # a drive cycle is data without a model
         warm_cycle.write_text(yaml.safe_dump({"name": "warm_up", "dt_s": 1.0, col[Role.AMBIENT]: 25.0, "segments": [
             {"duration_s": WARM_UP_S, col[Role.SPEED]: 900.0, col[Role.TORQUE]: WARM_UP_TORQUE_NM, "ramp_s": 10.0}]}))
-        emu = emulator_for(plant, warm_cycle, case, None)
+        emu = emulator_for(plant, warm_cycle, case, None, pmsm=pmsm)
         pol = ThermalEdgePolicy(emu, cfg.derating.max_current_a, cfg.derating.max_torque_nm, cfg)
         try:
             closed_loop(emu, pol, kt, [])
@@ -438,6 +509,11 @@ class ProtectionResult:
     case_docs: dict[str, str] = field(default_factory=dict)
     min_oracle_share_pct: float | None = None  #: thermal_edge's worst share of the oracle
     total_seconds_over_max: float | None = None  #: thermal_edge's, over all cases
+    #: thermal_edge_voltages' worst share of the oracle, over the cases calibrated right
+    min_oracle_share_voltages_pct: float | None = None
+    total_seconds_over_max_voltages: float | None = None  #: thermal_edge_voltages', over all cases
+    #: the cases whose electrical calibration is wrong on purpose: their share is not a target
+    miscalibrated_cases: list[str] = field(default_factory=list)
     totals: dict[str, dict[str, float]] = field(default_factory=dict)  #: policy -> seconds over max
     wall_s: float = 0.0
 
@@ -478,6 +554,10 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
         te = r.get("thermal_edge")
         te_txt = (f": thermal_edge {te['oracle_share_pct']:.1f} % of the oracle, {te['seconds_over_max']:g} s over max"
                   if te else "")
+        tv = r.get("thermal_edge_voltages")
+        if tv:
+            te_txt += (f"{';' if te else ':'} with voltages {tv['oracle_share_pct']:.1f} %, "
+                       f"{tv['seconds_over_max']:g} s over max")
         say(f"bench protection: case {done}/{len(cases)} {case.name}{te_txt} ({time.perf_counter() - w0:.0f} s)")
 
     work = [(c, policies, cycle, duration_s, config_file) for c in cases]
@@ -495,6 +575,12 @@ def run(cases: list[Case] | None = None, policies: tuple[str, ...] = POLICIES, c
     if te_all:
         res.min_oracle_share_pct = min(f["oracle_share_pct"] for f in te_all)
         res.total_seconds_over_max = sum(f["seconds_over_max"] for f in te_all)
+    res.miscalibrated_cases = [c.name for c in cases if c.flux_miscalibrated]
+    tv_all = {name: c["thermal_edge_voltages"] for name, c in res.cases.items() if "thermal_edge_voltages" in c}
+    if tv_all:
+        right = [f["oracle_share_pct"] for name, f in tv_all.items() if name not in res.miscalibrated_cases]
+        res.min_oracle_share_voltages_pct = min(right) if right else None
+        res.total_seconds_over_max_voltages = sum(f["seconds_over_max"] for f in tv_all.values())
     res.totals = {p: {"seconds_over_max": sum(c[p]["seconds_over_max"] for c in res.cases.values() if p in c)}
                   for p in policies}
     res.wall_s = time.perf_counter() - w0
@@ -514,24 +600,50 @@ def table_rows(res: ProtectionResult) -> list[list[Any]]:
     return rows
 
 
+#: the side-by-side table: per case, each policy's share of the oracle (%) and seconds over max
+SIDE_BY_SIDE_POLICIES = ("thermal_edge", "thermal_edge_voltages", "pt100_linear", "i2t")
+SIDE_BY_SIDE_HEADERS = ["case", "without voltages % / s over", "with voltages % / s over", "PT100 rule % / s over",
+                        "I²t % / s over", "flux used / refused"]
+
+
+def side_by_side_rows(res: ProtectionResult) -> list[list[Any]]:
+    """One row per case: thermal_edge without and with the voltage frame beside the PT100 rule and
+    I²t, each as ``share of the oracle % / seconds over max``, and the flux estimate's ticks used
+    and refused (disagreement, stale, implausible) with the frame."""
+    rows: list[list[Any]] = []
+    for case, by_policy in res.cases.items():
+        row: list[Any] = [case]
+        for p in SIDE_BY_SIDE_POLICIES:
+            f = by_policy.get(p)
+            row.append(f"{f['oracle_share_pct']:.1f} / {f['seconds_over_max']:g}" if f is not None else "-")
+        flux = by_policy.get("thermal_edge_voltages", {}).get("flux")
+        row.append(f"{flux.get('used', 0)} / {sum(flux.get(k, 0) for k in ('disagreement', 'stale', 'implausible'))}"
+                   if flux is not None else "-")
+        rows.append(row)
+    return rows
+
+
 def verdicts(res: ProtectionResult) -> list[str]:
     """Plain sentences: where a baseline overheats, and whether thermal_edge delivers more than each
     baseline that does not."""
     out = []
     for case, by_policy in res.cases.items():
-        te = by_policy.get("thermal_edge")
-        for p in ("pt100_linear", "i2t", "oracle"):
+        for p in SERVICE_POLICIES + ("pt100_linear", "i2t", "oracle"):
             f = by_policy.get(p)
             if f is None:
                 continue
             if f["seconds_over_max"] > 0:
                 out.append(f"{case}: {p} overheats ({f['seconds_over_max']:g} s over max; peaks {f['peak_hot_spot_c']:.1f} / "
                            f"{f['peak_magnet_c']:.1f} degC)")
-            elif te is not None and p != "oracle":
-                more = te["delivered_as"] - f["delivered_as"]
-                beyond = (f", and delivers {f['oracle_share_pct']:.1f} % of what the oracle, which reads the true "
-                          f"temperatures, delivers: its early derate left headroom the cycle asks for later"
-                          if f["oracle_share_pct"] > 100.0 else "")
-                out.append(f"{case}: thermal_edge delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below max"
-                           f"{beyond})")
+            elif p in ("pt100_linear", "i2t"):
+                for name in SERVICE_POLICIES:
+                    te = by_policy.get(name)
+                    if te is None:
+                        continue
+                    more = te["delivered_as"] - f["delivered_as"]
+                    beyond = (f", and delivers {f['oracle_share_pct']:.1f} % of what the oracle, which reads the true "
+                              f"temperatures, delivers: its early derate left headroom the cycle asks for later"
+                              if f["oracle_share_pct"] > 100.0 else "")
+                    out.append(f"{case}: {name} delivers {100 * more / f['delivered_as']:+.1f} % vs {p} (which stays below "
+                               f"max{beyond})")
     return out

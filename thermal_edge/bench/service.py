@@ -9,9 +9,13 @@
   ``udp_multicast`` (hop limit 0) at rising rates for a few seconds each to the service running
   with the wall clock, as on a drive; a rate is lossless if the service accepted every frame sent
   (alive counters without gaps, nothing dropped); the highest such rate is reported;
-- **resident memory**: the service and the simulated machine in one process on a ``virtual`` bus,
-  accelerated through 24 h of the varied drive cycle repeated, closed loop, adaptation on; RSS
-  (of the whole process) sampled every simulated hour: it must stay flat.
+- **resident memory**: the service as it is deployed, ``thermal-edge run`` in a process of its own
+  (the model off by the paper's Table 4 variations, adaptation on), fed by the simulated machine in
+  the bench's process over ``udp_multicast`` (hop limit 0), closed loop and accelerated (the
+  emulator's flow control keeps it at most 10 simulated seconds ahead of the service's ticks)
+  through 24 h of the varied drive cycle repeated. The service process's ``VmRSS`` and ``VmHWM``
+  (its peak) are read from ``/proc/<pid>/status`` every simulated hour: the figure an edge computer
+  must hold, without the emulator's memory.
 """
 from __future__ import annotations
 
@@ -20,6 +24,8 @@ import asyncio
 import json
 import math
 import os
+import signal
+import subprocess
 import sys
 import tempfile
 import time
@@ -54,31 +60,45 @@ class ServiceResult:
     max_lossless_fps: int
     fps_runs: list[dict[str, Any]]  #: one per rate tried
     fps_seconds_per_rate: float
-    rss_mb: float
+    rss_mb: float  #: the service process's VmRSS at the end of the memory run
+    hwm_mb: float  #: its VmHWM (peak resident set) over the run
+    rss_at_start_mb: float  #: VmRSS when it said READY=1
     rss_after_1h_mb: float
     rss_growth_mb: float
-    rss_samples: list[tuple[float, float]]  #: (simulated hour, MB)
+    rss_samples: list[tuple[float, float, float]]  #: (simulated hour, VmRSS MB, VmHWM MB)
     memory_run_hours: float
     memory_run_wall_s: float
     memory_run_adaptations: list[int]  #: [accepted, run]
     targets: dict[str, float]
 
 
-def rss_mb() -> float:
-    """Resident set size of this process, MB (Linux /proc)."""
+def proc_memory(pid: int | str = "self") -> dict[str, float]:
+    """``VmRSS``, ``VmHWM`` (the peak resident set), ``RssAnon`` and ``RssFile`` of a process, MB
+    (Linux ``/proc/<pid>/status``; empty where there is none)."""
+    out: dict[str, float] = {}
     try:
-        with open("/proc/self/statm") as fh:
-            pages = int(fh.read().split()[1])
-        return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                if key in ("VmRSS", "VmHWM", "RssAnon", "RssFile"):
+                    out[key] = int(value.split()[0]) * 1024 / 1e6  # kB
     except (OSError, ValueError):
-        import resource
-
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+        pass
+    return out
 
 
 def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt: bool = True, table4: bool = True,
             **sections: Any) -> EdgeConfig:
     from ..config import config_from_mapping
+
+    return config_from_mapping(_raw(state_dir, bus, clock=clock, adapt=adapt, table4=table4, **sections),
+                               config_path("edge.yaml"))
+
+
+def _raw(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt: bool = True, table4: bool = True,
+         **sections: Any) -> dict[str, Any]:
+    """The packaged ``edge.yaml`` as a mapping, for a bench run: this bus, the packaged DBC, pm10kw
+    (off by the Table 4 variations with ``table4``), no metrics, state in ``state_dir``."""
     from ..lptn import load_model
     from ..sim.inverter import table4_parameters
 
@@ -95,7 +115,7 @@ def _config(state_dir: Path, bus: dict[str, Any], *, clock: str = "frame", adapt
     raw["recording"] = {}
     for k, v in sections.items():
         raw[k] = {**raw.get(k, {}), **v} if isinstance(v, dict) else v
-    return config_from_mapping(raw, config_path("edge.yaml"))
+    return raw
 
 
 # ----------------------------------------------------------------------------------------------
@@ -211,11 +231,7 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
     for k, rate in enumerate(rates):
         progress("frame rates", k, len(rates), "rate")
-        import socket
-
-        with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-            s.bind(("::", 0))
-            port = s.getsockname()[1]
+        port = _free_udp_port()
         with tempfile.TemporaryDirectory() as tmp:
             cfg = _config(Path(tmp), {"interface": "udp_multicast", "port": port}, clock="wall", adapt=False)
 
@@ -254,49 +270,125 @@ def max_lossless_fps(rates: tuple[int, ...] = RATES, seconds: float = 4.0,
 
 
 # ----------------------------------------------------------------------------------------------
+class _Notifications:
+    """The systemd notification socket of a service started by the bench (``NOTIFY_SOCKET``)."""
+
+    def __init__(self, path: Path) -> None:
+        import socket
+
+        self.path = path
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(str(path))
+
+    def wait_ready(self, proc: subprocess.Popen[bytes], timeout_s: float) -> bool:
+        """True when the service said ``READY=1``; False if it exited or ``timeout_s`` passed first."""
+        self.sock.settimeout(0.2)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and proc.poll() is None:
+            try:
+                if b"READY=1" in self.sock.recv(4096):
+                    return True
+            except TimeoutError:
+                continue
+        return False
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 def memory_run(hours: float = 24.0, current_period_s: float = 0.5, progress: Progress = no_progress) -> dict[str, Any]:
-    """RSS of the service + simulated machine over an accelerated closed-loop run of ``hours``;
-    ``progress`` counts the simulated hours."""
-    from ..service import EdgeService
+    """Resident memory of the service process (``thermal-edge run``) over an accelerated closed-loop
+    run of ``hours``, the simulated machine in this process; ``progress`` counts the simulated hours.
+
+    Raises
+    ------
+    RuntimeError
+        The service did not start or did not run to the end (its log's last lines say why): a fault
+        of the code or the host, not of any input.
+    """
+    from ..lptn import load_model
+    from ..service.persistence import StateStore
     from ..sim.inverter import EmulatorConfig, InverterEmulator
 
-    samples: list[tuple[float, float]] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        channel = f"bench-mem-{os.getpid()}"
-        cfg = _config(Path(tmp), {"interface": "virtual", "channel": channel}, adapt=True,
-                      timeouts={"INV_Currents": 3.0, "INV_Mechanics": 3.0, "INV_StatorTemps": 3.0, "INV_AmbientTemps": 3.0})
+    samples: list[tuple[float, float, float]] = []  # (simulated hour, VmRSS MB, VmHWM MB)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        port = _free_udp_port()
+        bus = {"interface": "udp_multicast", "port": port}
+        timeouts = {"INV_Currents": 3.0, "INV_Mechanics": 3.0, "INV_StatorTemps": 3.0, "INV_AmbientTemps": 3.0}
+        cfg_path = tmp / "edge.yaml"
+        cfg_path.write_text(yaml.safe_dump(_raw(tmp / "state", bus, adapt=True, timeouts=timeouts), sort_keys=False))
+        notify = _Notifications(tmp / "notify")
+        log_path = tmp / "service.log"
+        env = {**os.environ, "NOTIFY_SOCKET": str(tmp / "notify")}
+        env.pop("WATCHDOG_USEC", None)
+        with open(log_path, "wb") as log_fh:
+            proc = subprocess.Popen([sys.executable, "-m", "thermal_edge.cli", "run", "--config", str(cfg_path),
+                                     "--log-level", "warning"], env=env, stdout=log_fh, stderr=subprocess.STDOUT)
 
-        async def main() -> dict[str, Any]:
-            svc = EdgeService(cfg, serve_metrics=False)
-            await svc.start()
+        def fail(why: str) -> RuntimeError:
+            tail = log_path.read_text(errors="replace").strip().splitlines()[-5:]
+            return RuntimeError(f"bench service: memory run: {why}" + (": " + " | ".join(tail) if tail else ""))
+
+        try:
+            if not notify.wait_ready(proc, 180.0):
+                raise fail("the service did not become ready")
+            at_start = proc_memory(proc.pid)
             emu = InverterEmulator(EmulatorConfig(cycle_path=config_path("cycles", "varied_drive.yaml"), duration_s=hours * 3600,
-                                                  speed=0, t0=1.7e9, current_period_s=current_period_s, temperature_period_s=1.0,
-                                                  plant_dt_s=max(0.5, current_period_s), trace_every_s=1e9,
-                                                  record_estimates=False),
-                                   {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
-            next_sample = [0.0]
+                                                  speed=1000.0, t0=1.7e9, current_period_s=current_period_s,
+                                                  temperature_period_s=1.0, plant_dt_s=max(0.5, current_period_s),
+                                                  trace_every_s=1e9, record_estimates=False, max_lead_s=10.0,
+                                                  flow_timeout_s=10.0),
+                                   {**bus, "preserve_timestamps": True})
 
-            def sample(out: Any) -> None:
-                progress("memory run", (out.t - 1.7e9) / 3600.0, hours, "h")
-                if out.t - 1.7e9 >= next_sample[0]:
-                    samples.append(((out.t - 1.7e9) / 3600.0, rss_mb()))
-                    next_sample[0] += 3600.0
+            async def main() -> Any:
+                task = asyncio.create_task(emu.run())
+                next_h = 1.0
+                while not task.done():
+                    h = emu.elapsed / 3600.0
+                    progress("memory run", h, hours, "h")
+                    if h >= next_h:
+                        m = proc_memory(proc.pid)
+                        samples.append((h, m.get("VmRSS", math.nan), m.get("VmHWM", math.nan)))
+                        next_h += 1.0
+                    await asyncio.sleep(0.1)
+                return await task
 
-            svc.on_tick.append(sample)
             t = time.monotonic()
-            await emu.run()
+            summary = asyncio.run(main())
             wall = time.monotonic() - t
-            samples.append((emu.elapsed / 3600.0, rss_mb()))
-            res = {"wall_s": wall, "accepted": svc.engine.adapt_accepted, "runs": svc.engine.adapt_runs,
-                   "ticks": svc.engine.ticks, "true_max_c": emu.summary.true_max_c}
-            await svc.stop()
-            return res
+            time.sleep(1.0)  # the service works through the last frames in flight
+            if proc.poll() is not None:
+                raise fail(f"the service exited with {proc.returncode} during the run")
+            end = proc_memory(proc.pid)
+            if samples and samples[-1][0] >= emu.elapsed / 3600.0 - 1e-6:
+                samples.pop()  # the last hour's sample is the end's
+            samples.append((emu.elapsed / 3600.0, end.get("VmRSS", math.nan), end.get("VmHWM", math.nan)))
+            proc.send_signal(signal.SIGTERM)
+            if proc.wait(60) != 0:
+                raise fail(f"the service exited with {proc.returncode} on SIGTERM")
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            notify.close()
+        state = StateStore(tmp / "state", load_model(config_path("machines", "pm10kw.yaml"))).load()
+    after_1h = next((m for h, m, _ in samples if h >= 1.0), samples[0][1])
+    return {"wall_s": wall, "accepted": state.param_version if state else 0, "runs": state.adapt_runs if state else 0,
+            "service_pid": proc.pid, "flow_timeouts": summary.flow_timeouts, "rx_lost": summary.rx_lost,
+            "at_start": at_start, "at_end": end,
+            "rss_mb": samples[-1][1], "hwm_mb": samples[-1][2], "rss_after_1h_mb": after_1h,
+            "rss_growth_mb": samples[-1][1] - after_1h,
+            "rss_samples": [(round(h, 2), round(m, 1), round(p, 1)) for h, m, p in samples], "hours": hours}
 
-        res = asyncio.run(main())
-    after_1h = next((m for h, m in samples if h >= 1.0), samples[0][1])
-    res.update({"rss_mb": samples[-1][1], "rss_after_1h_mb": after_1h, "rss_growth_mb": samples[-1][1] - after_1h,
-                "rss_samples": [(round(h, 2), round(m, 1)) for h, m in samples], "hours": hours})
-    return res
+
+def _free_udp_port() -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
+        s.bind(("::", 0))
+        port: int = s.getsockname()[1]
+    return port
 
 
 def run(hours: float = 24.0, ticks: int = 600, fps_seconds: float = 4.0, rates: tuple[int, ...] = RATES,
@@ -311,7 +403,8 @@ def run(hours: float = 24.0, ticks: int = 600, fps_seconds: float = 4.0, rates: 
         tick_p50_adapting_ms=busy["p50_ms"], tick_p99_adapting_ms=busy["p99_ms"], tick_max_adapting_ms=busy["max_ms"],
         adaptation_decisions_during=int(busy["decisions"]), ticks_measured=int(idle["ticks"]),
         max_lossless_fps=fps["max_lossless_fps"], fps_runs=fps["runs"], fps_seconds_per_rate=fps_seconds,
-        rss_mb=mem["rss_mb"], rss_after_1h_mb=mem["rss_after_1h_mb"], rss_growth_mb=mem["rss_growth_mb"],
+        rss_mb=mem["rss_mb"], hwm_mb=mem["hwm_mb"], rss_at_start_mb=mem["at_start"].get("VmRSS", math.nan),
+        rss_after_1h_mb=mem["rss_after_1h_mb"], rss_growth_mb=mem["rss_growth_mb"],
         rss_samples=mem["rss_samples"], memory_run_hours=mem["hours"], memory_run_wall_s=mem["wall_s"],
         memory_run_adaptations=[mem["accepted"], mem["runs"]],
         targets={"tick_p99_adapting_ms": 20.0, "max_lossless_fps": 8000, "rss_mb": 150.0},

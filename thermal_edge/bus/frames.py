@@ -17,6 +17,7 @@ __all__ = [
     "INV_CURRENTS",
     "INV_MECHANICS",
     "INV_STATOR_TEMPS",
+    "INV_VOLTAGES",
     "NODE_INVERTER",
     "NODE_THERMAL_EDGE",
     "TE_ESTIMATES",
@@ -41,6 +42,8 @@ INV_CURRENTS = "INV_Currents"  # 0x0A0, 10 ms
 INV_MECHANICS = "INV_Mechanics"  # 0x0A1, 10 ms
 INV_STATOR_TEMPS = "INV_StatorTemps"  # 0x0B0, 100 ms
 INV_AMBIENT_TEMPS = "INV_AmbientTemps"  # 0x0B1, 100 ms
+#: optional, appended to the shared matrix (docs/can-matrix-additions.md): the dq voltage references
+INV_VOLTAGES = "INV_Voltages"  # 0x2D0, 10 ms
 # thermal_edge -> inverter
 TE_LIMITS = "TE_Limits"  # 0x2A0, 100 ms
 TE_ESTIMATES = "TE_Estimates"  # 0x2B0, 1000 ms

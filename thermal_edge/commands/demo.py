@@ -47,6 +47,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--record", type=output_file, default=None,
                    help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, "
                         ".mf4, .csv)")
+    p.add_argument("--voltages", action="store_true",
+                   help="the inverter also sends INV_Voltages and the service fuses the magnet estimate from them "
+                        "(flux:, commissioned first on a simulated bench run)")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
 
@@ -78,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
     from ..lptn import load_model
     from ..service import EdgeService, status_line
     from ..sim.inverter import EmulatorConfig, InverterEmulator, table4_parameters
+    from ..sim.pmsm import Pmsm
 
     cfg_path = Path(args.config)
     raw = read_document(cfg_path, ConfigError)
@@ -97,6 +101,14 @@ def run(args: argparse.Namespace) -> int:
     raw["recording"] = {"candump": str(Path(args.record).resolve())} if args.record else {}
     config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
     plant_model = load_model(config.model.path)
+    flux_dir: Path | None = None
+    if args.voltages:
+        from ..bench.protection import flux_calibration
+
+        flux_dir = Path(tempfile.mkdtemp(prefix="thermal-edge-demo-flux-"))  # removed at the end
+        raw["flux"] = {**(raw.get("flux") or {}), "calibration": str(flux_calibration(plant_model, flux_dir / "flux.json")),
+                       "timeout_s": max(float((raw.get("flux") or {}).get("timeout_s", 0.5)), 5 * args.current_period)}
+        config = config_from_mapping(raw, cfg_path)
     if args.table4:
         raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
         config = config_from_mapping(raw, cfg_path)
@@ -104,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
     emu_cfg = EmulatorConfig(model_path=plant_model.path or config_path("machines", "pm10kw.yaml"), cycle_path=args.cycle,
                              duration_s=args.duration, speed=args.speed, current_period_s=args.current_period,
                              temperature_period_s=args.temperature_period, plant_dt_s=max(0.1, args.current_period),
-                             closed_loop=not args.open_loop, t0=float(math.floor(time.time())))
+                             closed_loop=not args.open_loop, t0=float(math.floor(time.time())),
+                             pmsm=Pmsm() if config.flux.enabled else None)
     emulator = InverterEmulator(emu_cfg, {"interface": "virtual", "channel": channel, "preserve_timestamps": True},
                                 model=plant_model)
 
@@ -155,3 +168,5 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if own_dir is not None:
             shutil.rmtree(own_dir, ignore_errors=True)
+        if flux_dir is not None:
+            shutil.rmtree(flux_dir, ignore_errors=True)

@@ -39,6 +39,9 @@ def run(args: argparse.Namespace) -> int:
     from ..bus import BusConfigError, DbcError
     from ..config import ConfigError, load_config
     from ..lptn import ModelError
+    from ..service.memory import limit_heap_retention
+
+    limit_heap_retention()  # before the model is loaded: its temporaries must not stay resident (that module says why)
 
     def line(exc: BaseException) -> str:
         return (str(exc).strip().splitlines() or [type(exc).__name__])[0]

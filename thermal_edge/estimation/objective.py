@@ -19,6 +19,7 @@ Weights (both normalised to sum 1):
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,6 +127,26 @@ class Objective:
             J, grad, hess = np.zeros((len(r), len(idx), p)), np.zeros(p), np.zeros((p, p))
         ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, np.sqrt(self.w), traj.T)
         self._last = (key, ev, derivatives)
+        return ev
+
+    def adopt(self, phi: np.ndarray, full: Evaluation, full_names: Sequence[str]) -> Evaluation:
+        """The evaluation at ``phi`` taken from ``full`` instead of a simulation, and remembered as
+        :meth:`evaluate`'s last one: ``full`` is an evaluation with derivatives of an objective over
+        the same window, sensors, weights and full parameter vector whose parameters
+        ``full_names`` include this one's (the screening's, before a fit of the parameters it
+        selected). A sensitivity does not depend on which other parameters are differentiated, so
+        the columns of ``full``'s Jacobian are this objective's; the prior is this objective's own.
+        """
+        names = list(full_names)
+        if full.jac.shape[2] != len(names) or full.residuals.shape != self.Y.shape:
+            raise ValueError("adopt: the evaluation is not of this objective's window and sensors with full_names")
+        J = full.jac[:, :, [names.index(n) for n in self.space.names]]
+        r = full.residuals
+        pv, pg, ph = self._prior(phi)
+        Jf = (J * np.sqrt(self.w)[:, :, None]).reshape(-1, len(phi))
+        ev = Evaluation(float(np.sum(self.w * r * r)) + pv, 2.0 * np.sum((self.w * r)[:, :, None] * J, axis=(0, 1)) + pg,
+                        2.0 * Jf.T @ Jf + ph, r, J, np.sqrt(self.w), full.T)
+        self._last = (phi.tobytes(), ev, True)
         return ev
 
     def value(self, phi: np.ndarray) -> float:

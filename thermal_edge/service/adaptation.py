@@ -33,6 +33,7 @@ from ..config import AdaptationConfig
 from ..estimation.adapter import AdapterConfig, Decision, OnlineAdapter
 from ..estimation.uncertainty import Z95
 from ..lptn import Model, Stepper
+from .memory import release_free_heap
 
 __all__ = ["ADAPT_STATUSES", "Adaptation", "AdaptationCounts", "AdaptationResult", "AdaptationWorker", "decision_status"]
 
@@ -219,6 +220,7 @@ class AdaptationWorker:
             elif kind == "decide":
                 _, t, rid = cmd
                 self._finish(self._decide(t, rid))
+                release_free_heap()  # the decision's temporaries (thermal_edge.service.memory)
         except Exception as exc:  # a failed command must never kill the worker
             log.exception("adaptation %s failed", kind)
             if kind == "decide":

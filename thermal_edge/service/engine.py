@@ -27,19 +27,21 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from ..bus.codec import DecodedFrame
 from ..bus.frames import DerateReason, TeState
 from ..config import EdgeConfig
-from ..lptn import Model, load_model
+from ..estimation.observer import Observer
+from ..lptn import Model, Role, load_model
 from .adaptation import Adaptation, AdaptationResult
 from .clock import FrameClockStats
 from .derating import DeratingPolicy, LimitSpec, MeasuredFloor, NodeBand, bounding_sensors
 from .estimate import StateEstimate
 from .events import SafetyEvents
+from .flux_input import FluxInput, FluxTick, load_flux_model
 from .health import ModelHealth, StuckSensors, input_reasons
 from .inputs import InputAccumulator, TickInputs
 from .journal import notice
@@ -117,6 +119,13 @@ class ThermalEngine:
                                     dc.max_current_a, self.kt, rated)
         self.floor = MeasuredFloor(self.limited_nodes, bound_by)
         self.estimate = StateEstimate(m, self.dt, config.observer)
+        #: the optional voltage input (None without ``flux.calibration``: the engine as without voltages)
+        self.flux: FluxInput | None = None
+        if config.flux.enabled:
+            speed = m.find_input(Role.SPEED)
+            if speed is None:
+                raise config.error("flux.calibration", f"model {m.name} has no speed input: the flux estimate needs it")
+            self.flux = FluxInput(config, m, load_flux_model(config), speed)
         self.health = ModelHealth(dc.faults, config.adaptation.adapter.period_s)
         self.stuck = StuckSensors(dc.faults, config.sensors)
         self.events = SafetyEvents()
@@ -176,6 +185,8 @@ class ThermalEngine:
         if self._start_t is None:
             self._start_t = t
         self.accumulator.add(frame, t)
+        if self.flux is not None:
+            self.flux.add(frame, t)
 
     def ticks_for(self, boundaries: Sequence[float]) -> Sequence[float]:
         """Frame clock: the ticks to run for the boundaries a frame's timestamp crossed (oldest
@@ -196,6 +207,8 @@ class ThermalEngine:
         gap at standstill, forget the adapter's history, and continue at ``t_to``."""
         self._gaps += 1
         self.accumulator.reset()
+        if self.flux is not None:
+            self.flux.reset()
         self.stuck.restart()
         gap = t_to - self._last_t if self._last_t is not None else math.nan
         if self.estimate.initialized and self._last_t is not None:
@@ -248,6 +261,7 @@ class ThermalEngine:
                 obs = est.observer
                 assert obs is not None  # started above
                 self._prev_sample = (t, dict(ti.measured), obs.T.copy())
+                self._fuse_flux(t, None, ti.inputs)  # the state starts: nothing fused into it yet
                 return self._finish(t, ti, forced, [])
             grace = max(cfg.timeouts.values(), default=1.0) + self.dt
             waited = t - (self._start_t if self._start_t is not None else t)
@@ -257,6 +271,7 @@ class ThermalEngine:
                 reasons = forced or [DerateReason.STALE_INPUT]
             else:
                 reasons = [DerateReason.STARTING]
+            self._fuse_flux(t, None, ti.inputs)  # no state to fuse into: the tick's voltages are dropped
             return self._output(t, ti, reasons, TeState.STARTING)
 
         u = {k: (v if math.isfinite(v) else self._last_inputs.get(k, math.nan)) for k, v in ti.inputs.items()}
@@ -303,8 +318,16 @@ class ThermalEngine:
             forced.insert(0, DerateReason.MODEL_FAULT)
         obs = est.observer
         assert obs is not None  # stepped, or restarted from the readings
+        flux = self._fuse_flux(t, obs, u)
         self._prev_sample = (t, dict(y), obs.T.copy())  # the adapter judges from the observer's state
-        return self._finish(t, ti, forced, new_results, pred_error)
+        return self._finish(t, ti, forced, new_results, pred_error, flux)
+
+    def _fuse_flux(self, t: float, obs: Observer | None, u: Mapping[str, float]) -> FluxTick | None:
+        """The tick's flux estimate of the magnet, fused into ``obs`` (None without the voltage input)."""
+        fx = self.flux
+        if fx is None:
+            return None
+        return fx.fuse(t, obs, float(u.get(fx.speed_input, math.nan)))
 
     def _withhold_stuck(self, ti: TickInputs, released: list[str]) -> None:
         """The stuck sensors' readings are not used; a required one is a sensor fault (``stuck``)."""
@@ -327,7 +350,7 @@ class ThermalEngine:
 
     # -- outputs ------------------------------------------------------------------------------------
     def _finish(self, t: float, ti: TickInputs, forced: list[DerateReason], new_results: list[AdaptationResult],
-                pred_error: dict[str, float] | None = None) -> TickOutput:
+                pred_error: dict[str, float] | None = None, flux: FluxTick | None = None) -> TickOutput:
         state = TeState.NOMINAL
         if DerateReason.MODEL_FAULT in forced:
             state = TeState.FAULT
@@ -335,10 +358,11 @@ class ThermalEngine:
             state = TeState.DEGRADED
         elif self.adaptation.deciding:
             state = TeState.ADAPTING
-        return self._output(t, ti, forced, state, new_results, pred_error)
+        return self._output(t, ti, forced, state, new_results, pred_error, flux)
 
     def _output(self, t: float, ti: TickInputs | None, forced: list[DerateReason], state: TeState,
-                new_results: list[AdaptationResult] | None = None, pred_error: dict[str, float] | None = None) -> TickOutput:
+                new_results: list[AdaptationResult] | None = None, pred_error: dict[str, float] | None = None,
+                flux: FluxTick | None = None) -> TickOutput:
         """The tick's output. ``pred_error`` is the open-loop prediction error the tick measured
         (before a model fault re-initialised the state); without it, the error of the state now."""
         n = len(self.model.nodes)
@@ -402,7 +426,7 @@ class ThermalEngine:
             stale=stale, faults=faults, new_results=list(new_results or []),
             hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit), reaction_a=react_a,
             adapt_status=self.adaptation.status, adapt_refusal=refusal[1] if refusal is not None else "",
-            ages=dict(ti.ages) if ti is not None else {},
+            ages=dict(ti.ages) if ti is not None else {}, flux=flux,
         )
 
     def placeholder(self, t: float) -> TickOutput:

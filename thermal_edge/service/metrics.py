@@ -28,6 +28,7 @@ from .. import __version__
 from ..bus.frames import TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
 from ..bus.stats import DROP_REASONS
 from .adaptation import ADAPT_STATUSES
+from .flux_input import REFUSALS
 from .inputs import FAULT_KINDS
 from .metrics_server import MetricsServer
 
@@ -62,6 +63,7 @@ LABELS: dict[str, tuple[str, ...]] = {
     "frames_lost": ("frame",),
     "frame_clock_jumps": ("outcome",),
     "adaptation_last_refusal_timestamp_seconds": ("reason",),
+    "flux_refused": ("reason",),
 }
 
 #: the frames the service sends (frames_sent has a series for each from the start)
@@ -241,6 +243,29 @@ class _LiveCollector(Collector):
                 for outcome in ("joined", "ahead", "ignored"):
                     jumps.add_metric([outcome], getattr(fc, outcome))
                 yield jumps
+            fx = eng.flux
+            if fx is not None:  # the optional voltage input (flux:), every refusal reason from the start
+                refused = CounterMetricFamily(P + "flux_refused", "Flux-linkage estimates of the magnet refused, by reason: "
+                                              "disagreement (beyond both 95 % bands), stale (no voltage frame), implausible "
+                                              "(a voltage that implies a magnet outside the valid range)",
+                                              labels=LABELS["flux_refused"])
+                for r in REFUSALS:
+                    refused.add_metric([r], fx.counts.get(r, 0))
+                yield refused
+                yield CounterMetricFamily(P + "flux_used", "Flux-linkage estimates of the magnet fused into the observer",
+                                          value=fx.counts.get("used", 0))
+                flux_last = fx.last
+                if flux_last is not None and math.isfinite(flux_last.estimate_c):
+                    yield GaugeMetricFamily(P + "flux_magnet_celsius", "Magnet temperature from the inverter's voltages "
+                                            "(last tick that computed one)", value=flux_last.estimate_c)
+                    if math.isfinite(flux_last.sigma_k):
+                        yield GaugeMetricFamily(P + "flux_magnet_stddev_celsius", "Standard deviation of that estimate",
+                                                value=flux_last.sigma_k)
+                mg = out.magnet if out is not None else None
+                if mg is not None and math.isfinite(mg.upper_c - mg.estimate_c):
+                    yield GaugeMetricFamily(P + "magnet_band_celsius", "Width of the magnet's 95 % band above its "
+                                            "estimate (upper band minus estimate): what the voltages narrow",
+                                            value=mg.upper_c - mg.estimate_c)
             acc = eng.accumulator
             bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=LABELS["bad_readings"])
             for kind in FAULT_KINDS:

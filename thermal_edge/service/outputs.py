@@ -17,6 +17,7 @@ import numpy as np
 from ..bus.frames import DerateReason, TeState
 from .adaptation import AdaptationResult
 from .derating import Limits, NodeBand
+from .flux_input import FluxTick
 
 __all__ = ["TickOutput"]
 
@@ -66,6 +67,8 @@ class TickOutput:
     #: sensor/input name -> seconds from its last valid reading to this tick (inf: none yet); as of the
     #: tick, so that it is never measured against a reading that arrived after it
     ages: dict[str, float] = field(default_factory=dict)
+    #: the tick's flux estimate of the magnet and what became of it (None without the voltage input)
+    flux: FluxTick | None = None
 
     # -- frame contents ---------------------------------------------------------------------------
     def estimates_signals(self) -> dict[str, float]:

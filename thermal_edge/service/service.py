@@ -101,6 +101,7 @@ class EdgeService:
     def __init__(self, config: EdgeConfig, *, model: Model | None = None, registry: CollectorRegistry | None = None,
                  notifier: SystemdNotifier | None = None, serve_metrics: bool = True,
                  worker_mode: str | None = None, bus_factory_fn: Callable[..., Any] = bus_factory) -> None:
+        limit_heap_retention()  # before the model and the adapter allocate (thermal_edge.service.memory)
         self.config = config
         self.model = model if model is not None else load_service_model(config)
         self.codec = config.codec.frame_codec(config.fname)
@@ -145,7 +146,6 @@ class EdgeService:
     async def start(self) -> None:
         """Open the bus, start the cyclic frames, the tick, the metrics endpoint and the watchdog."""
         self._started_mono = time.monotonic()
-        limit_heap_retention()
         await self.transport.start()
         cfg = self.config
         if self.serve_metrics and cfg.metrics.enabled:

@@ -28,6 +28,12 @@ that much simulated time and then waits for a service's ``TE_Limits`` (up to ``F
 of wall time): a test that restarts its service gets a downtime of known length however long the new
 process takes to start on a busy host.
 
+With an electrical model (``EmulatorConfig.pmsm``, :class:`.pmsm.Pmsm`) it also sends the optional
+``INV_Voltages`` with every ``INV_Currents``: the dq voltage references the current controller
+would command for those currents at that speed, from the plant's *true* winding and magnet
+temperatures (plus the model's voltage noise, from a random stream of its own, so that the
+PT100 readings are the same with and without the voltages).
+
 The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
 ``trace_every_s``) for tests.
 
@@ -58,6 +64,7 @@ from ..bus.frames import (
     INV_CURRENTS,
     INV_MECHANICS,
     INV_STATOR_TEMPS,
+    INV_VOLTAGES,
     TE_ESTIMATES,
     TE_LIMITS,
     TE_STATUS,
@@ -69,6 +76,7 @@ from ..lptn import Model, Role, load_model
 from ..shipped import CYCLES, MACHINES, config_path, cycle_file, model_file
 from .cycles import AMBIENT, COOLANT, SPEED, TORQUE, cycle_run, load_cycle
 from .plant import Plant
+from .pmsm import Pmsm
 from .sensors import pt100
 
 __all__ = ["EmulatorConfig", "InverterEmulator", "TABLE4_VARIATIONS", "main", "write_log"]
@@ -138,6 +146,12 @@ class EmulatorConfig:
     record_estimates: bool = True  # keep every TE_Estimates and TE_Limits change received (tests); off for long runs
     seed: int = 0
     sensor_signals: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_SENSOR_SIGNALS))
+    #: the machine's electrical side: with it, INV_Voltages goes out with every INV_Currents (None: not sent)
+    pmsm: Pmsm | None = None
+    #: the plant node whose temperature the stator resistance has ...
+    pmsm_winding_node: str = "slot_winding_1"
+    #: ... and the nodes whose mean temperature the flux linkage has
+    pmsm_magnet_nodes: tuple[str, ...] = ("magnet_1", "magnet_2")
 
 
 @dataclass
@@ -213,6 +227,16 @@ class InverterEmulator:
         # the model's inputs the emulator drives (a model may lack torque), by role
         self._input_of = {r: self.model.find_input(r) for r in (Role.SPEED, Role.TORQUE, Role.CURRENT, Role.AMBIENT)}
         self.rng = np.random.default_rng(cfg.seed)
+        self._voltage_rows: tuple[int, list[int]] | None = None
+        if cfg.pmsm is not None:
+            missing = [n for n in (cfg.pmsm_winding_node, *cfg.pmsm_magnet_nodes) if n not in self.model.nodes]
+            if missing or not cfg.pmsm_magnet_nodes:
+                raise UsageError(f"inverter voltages: model {self.model.name} has no node(s) "
+                                 f"{', '.join(missing) or '(none given)'} (has: {', '.join(self.model.nodes)})")
+            self._voltage_rows = (self.model.node_index(cfg.pmsm_winding_node),
+                                  [self.model.node_index(n) for n in cfg.pmsm_magnet_nodes])
+        # the voltage noise from a stream of its own: the PT100 readings stay those of a run without voltages
+        self._u_rng = np.random.default_rng([cfg.seed, 0x2D0])
         self.t0 = float(cfg.t0) if cfg.t0 is not None else time.time()
         self.elapsed = 0.0  # simulated seconds since t0
         self._ts = self.t0
@@ -341,6 +365,8 @@ class InverterEmulator:
             iq = math.sqrt(2.0) * i_rms * ripple * (1.0 if torque >= 0 else -1.0)
             i2.append(iq * iq / 2.0)
             frames.append((ft, INV_CURRENTS, {"INV_Id": 0.0, "INV_Iq": iq, "INV_IphRms": i_rms * ripple}))
+            if self._voltage_rows is not None:
+                frames.append((ft, INV_VOLTAGES, self._voltage_signals(0.0, iq, speed)))
             frames.append((ft, INV_MECHANICS, {"INV_Speed": speed, "INV_Torque": torque, "INV_Udc": cfg.udc_v}))
             self._frame_k += 1
         while self._temp_k * cfg.temperature_period_s < tau + dt - 1e-9:
@@ -368,6 +394,18 @@ class InverterEmulator:
                 self._true_max[name] = v
                 self._true_max_t[name] = self.t0 + self.elapsed
         return [(self.t0 + ft, name, sig) for ft, name, sig in frames]
+
+    def _voltage_signals(self, i_d: float, i_q: float, speed_rpm: float) -> dict[str, float]:
+        """``INV_Voltages``: the voltage references for these currents (A peak) at this speed, from the
+        plant's true winding and magnet temperatures now (V)."""
+        pm = self.config.pmsm
+        assert pm is not None and self._voltage_rows is not None
+        w_row, m_rows = self._voltage_rows
+        T = self.plant.T
+        u_d, u_q = pm.voltages(np.array(i_d), np.array(i_q), np.array(speed_rpm), np.array(T[w_row]),
+                               np.array(float(np.mean(T[m_rows]))), seed=None)
+        noise = self._u_rng.normal(0.0, pm.noise_v, 2) if pm.noise_v > 0 else np.zeros(2)
+        return {"INV_Ud": float(u_d) + float(noise[0]), "INV_Uq": float(u_q) + float(noise[1])}
 
     def _reading(self, true_c: float) -> float:
         """One PT100 reading of a true temperature, °C."""
@@ -435,7 +473,8 @@ class InverterEmulator:
         cfg = self.config
         self.bus = bus = create_bus(self.bus_config)
         own = self.codec.frames_sent_by("INV")
-        ids = {name: self.codec.frame_id(name) for name in (INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS, INV_AMBIENT_TEMPS)}
+        ids = {name: self.codec.frame_id(name)
+               for name in (INV_CURRENTS, INV_MECHANICS, INV_STATOR_TEMPS, INV_AMBIENT_TEMPS, INV_VOLTAGES)}
 
         def drain() -> int:
             n = 0
@@ -653,6 +692,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="simulated s to run on without a service before waiting for one again (default: run on)")
     p.add_argument("--limits-timeout", type=float, default=0.3, help="wall s after which TE_Limits counts as absent")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--voltages", action="store_true",
+                   help="also send INV_Voltages (the dq voltage references of the simulated machine, sim.pmsm)")
     p.add_argument("--summary", default=None, help="write the summary JSON here")
     p.add_argument("--trace", default=None, help="write the trace (npz) here")
     p.add_argument("--ready-file", default=None, help="touch this file once the bus is open")
@@ -673,7 +714,7 @@ def main(argv: list[str] | None = None) -> int:
         temperature_period_s=args.temperature_period, plant_dt_s=args.plant_dt, ambient_drift_k=args.ambient_drift,
         closed_loop=not args.open_loop, fallback_current_a=args.fallback_current, flow_control=not args.no_flow_control,
         max_lead_s=args.max_lead, seed=args.seed, flow_timeout_s=args.flow_timeout, limits_timeout_s=args.limits_timeout,
-        max_free_s=args.max_free,
+        max_free_s=args.max_free, pmsm=Pmsm() if args.voltages else None,
     )
     bus: dict[str, Any] = {"interface": args.interface}
     if "preserve_timestamps" in interface_keywords(args.interface):  # simulated time on virtual/udp buses

@@ -1,0 +1,245 @@
+"""The optional voltage frame in the service's tick (thermal_edge.service.flux_input): the engine and
+the inverter emulator in the closed loop without a bus (thermal_edge.bench.protection), the flux
+estimate commissioned on a simulated bench run (thermal_edge.bench.commissioning). References: the
+same engine without the frame, the plant's true temperatures, the emulator's pause schedule."""
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from thermal_edge.bench import protection as P
+from thermal_edge.config import ConfigError, config_from_mapping
+from thermal_edge.estimation.flux import FluxModel
+from thermal_edge.service.engine import ThermalEngine, load_service_model
+from thermal_edge.service.journal import JournalFormatter
+from thermal_edge.service.metrics import ServiceMetrics
+from thermal_edge.shipped import config_path
+from thermal_edge.sim.pmsm import Pmsm
+
+MAGNET = "magnet_2"  # the magnet limit's node
+NOMINAL = P.CASES["nominal"]
+
+
+def cycle(tmp_path: Path, *segments: tuple[float, float, float]) -> Path:
+    """A cycle file of (duration s, speed rpm, torque Nm) segments."""
+    path = tmp_path / "cycle.yaml"
+    path.write_text(yaml.safe_dump({"name": "test", "dt_s": 1.0, "ambient_c": 25.0, "segments": [
+        {"duration_s": d, "speed_rpm": n, "torque_nm": m} for d, n, m in segments]}))
+    return path
+
+
+@pytest.fixture(scope="module")
+def calibration(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("flux")
+    cfg = P.edge_config(d / "state")
+    return P.flux_calibration(load_service_model(cfg), d / "flux.json")
+
+
+def loop(tmp_path: Path, cyc: Path, *, flux: Path | None, voltages: bool, events=(), name: str = "run"):
+    """Run the engine over the cycle; per tick (t, estimate, sigma, current limit, flux outcome) and the policy."""
+    cfg = P.edge_config(tmp_path / name, None, flux)
+    model = load_service_model(cfg)
+    emu = P.emulator_for(P.plant_for(model, NOMINAL), cyc, NOMINAL, None, pmsm=Pmsm() if voltages else None)
+    pol = P.ThermalEdgePolicy(emu, cfg.derating.max_current_a, cfg.derating.max_torque_nm, cfg)
+    ticks: list[tuple[float, np.ndarray, np.ndarray, float, str | None, float]] = []
+    pending = sorted(events, key=lambda e: e[0])
+    magnet_rows = [model.node_index(n) for n in P.FLUX_MAGNET_NODES]
+
+    def observe(emu, pol) -> None:
+        while pending and emu.elapsed >= pending[0][0] - 1e-9:
+            pending.pop(0)[1](emu)
+        out = pol.last_out
+        if out is not None and (not ticks or ticks[-1][0] != out.t):
+            ticks.append((out.t, out.estimate.copy(), out.sigma.copy(), out.limits.current_a,
+                          out.flux.outcome if out.flux is not None else None, float(np.mean(emu.plant.T[magnet_rows]))))
+
+    limits = [(lim.name, model.node_index(lim.node), cfg.limit_band(lim)[1]) for lim in model.limits]
+    try:
+        P.closed_loop(emu, pol, float(cfg.kt(model)), limits, observe)
+    finally:
+        pol.close()
+    return ticks, pol, model
+
+
+def test_the_flux_section_is_typed_and_its_errors_name_file_and_key(tmp_path, calibration):
+    raw = yaml.safe_load(config_path("edge.yaml").read_text())
+    cfg = config_from_mapping(raw, tmp_path / "edge.yaml")
+    assert not cfg.flux.enabled and cfg.flux.frame == "INV_Voltages" and cfg.flux.magnet_nodes == ("magnet_1", "magnet_2")
+
+    def error(flux: dict, engine: bool = False) -> str:
+        r = {**raw, "flux": {**raw["flux"], **flux}, "state": {"dir": str(tmp_path / "s")}}
+        with pytest.raises(ConfigError) as info:
+            c = config_from_mapping(r, tmp_path / "edge.yaml")
+            model = load_service_model(c)
+            c.check_model(model)
+            c.check_dbc(c.codec.frame_codec())
+            if engine:
+                ThermalEngine(c, model, worker_mode="sync")
+        return str(info.value)
+
+    assert error({"timeout_s": 0}).startswith("edge.yaml: flux.timeout_s: must be positive")
+    assert "flux.colibration: unknown key (did you mean 'calibration'?)" in error({"colibration": "x.json"})
+    cal = str(calibration)
+    assert error({"calibration": cal, "winding_node": "slot_windin_1"}).startswith(
+        "edge.yaml: flux.winding_node: model pm10kw has no node 'slot_windin_1' (did you mean 'slot_winding_1'?)")
+    assert error({"calibration": cal, "magnet_nodes": ["rotor"]}).startswith("edge.yaml: flux.magnet_nodes: model pm10kw")
+    assert error({"calibration": cal, "voltage_q": "INV_Uqq"}).startswith(
+        "edge.yaml: flux.voltage_q: frame INV_Voltages has no signal 'INV_Uqq'")
+    assert error({"calibration": cal, "frame": "INV_Volts"}).startswith("edge.yaml: flux.frame: no frame 'INV_Volts'")
+    assert error({"calibration": str(tmp_path / "none.json")}, engine=True).startswith(
+        "edge.yaml: flux.calibration: cannot read")
+    (tmp_path / "bad.json").write_text(json.dumps({"params": {}}))
+    assert "is not a flux model" in error({"calibration": str(tmp_path / "bad.json")}, engine=True)
+    # off, the flux keys are not checked against a model or a DBC that lack them
+    off = config_from_mapping({**raw, "flux": {**raw["flux"], "winding_node": "nope"}}, tmp_path / "edge.yaml")
+    off.check_model(load_service_model(off))
+
+
+def test_without_the_frame_configured_nothing_changes(tmp_path):
+    """The same run without INV_Voltages on the bus and with it (but flux.calibration null): every
+    tick's estimate, band and limit bit-identical."""
+    cyc = cycle(tmp_path, (300.0, 900.0, 170.0), (300.0, 1500.0, 130.0))
+    plain, pol_a, _ = loop(tmp_path, cyc, flux=None, voltages=False, name="a")
+    sent, pol_b, _ = loop(tmp_path, cyc, flux=None, voltages=True, name="b")
+    assert pol_a.engine.flux is None and pol_b.engine.flux is None
+    assert len(plain) == len(sent) > 550
+    for a, b in zip(plain, sent):
+        assert a[0] == b[0] and a[3] == b[3] and a[4] is None and b[4] is None
+        np.testing.assert_array_equal(a[1], b[1])
+        np.testing.assert_array_equal(a[2], b[2])
+
+
+def test_at_standstill_and_low_speed_the_band_is_what_it_is_without_voltages(tmp_path, calibration):
+    """Standstill, then below the commissioning's lowest speed: the voltage input computes nothing,
+    the estimate and every band are exactly those without it."""
+    flux = FluxModel.from_dict(json.loads(calibration.read_text()))
+    slow = 0.6 * flux.speed_min_rpm
+    cyc = cycle(tmp_path, (120.0, 0.0, 0.0), (300.0, slow, 150.0), (60.0, 0.0, 60.0))
+    plain, _, _ = loop(tmp_path, cyc, flux=None, voltages=False, name="a")
+    fused, pol, _ = loop(tmp_path, cyc, flux=calibration, voltages=True, name="b")
+    assert len(plain) == len(fused) > 450
+    for a, b in zip(plain, fused):
+        np.testing.assert_array_equal(a[1], b[1])
+        np.testing.assert_array_equal(a[2], b[2])
+    counts = pol.engine.flux.counts
+    assert counts["low_speed"] == sum(1 for t in fused if t[4] is not None) and not counts["used"]
+
+
+def test_at_speed_the_voltages_narrow_the_magnet_band_around_the_truth(tmp_path, calibration):
+    cyc = cycle(tmp_path, (300.0, 900.0, 150.0), (600.0, 1500.0, 130.0))
+    plain, _, model = loop(tmp_path, cyc, flux=None, voltages=False, name="a")
+    fused, pol, _ = loop(tmp_path, cyc, flux=calibration, voltages=True, name="b")
+    i = model.node_index(MAGNET)
+    late = slice(len(fused) // 2, None)
+    sig_plain = np.array([t[2][i] for t in plain[late]])
+    sig_fused = np.array([t[2][i] for t in fused[late]])
+    assert np.all(sig_fused < 0.7 * sig_plain)
+    # the estimate of the magnets' mean (what the flux sees) within its band of the plant's truth
+    rows = [model.node_index(n) for n in P.FLUX_MAGNET_NODES]
+    err = np.array([np.mean(t[1][rows]) - t[5] for t in fused[late]])
+    assert np.all(np.abs(err) <= 1.96 * sig_fused)
+    counts = pol.engine.flux.counts
+    assert counts["used"] > 0.9 * len(fused) and not any(counts[r] for r in ("disagreement", "stale", "implausible"))
+
+
+def test_refusals_are_counted_logged_with_their_priority_and_on_metrics(tmp_path, calibration):
+    """A 30 s pause of INV_Voltages (stale), 20 s of voltages in kV (implausible), and a flux linkage
+    10 % off (disagreement): each tick refused is counted as often as the schedule says, logged at
+    its journald priority, and exported on /metrics; the limits never see them."""
+    cyc = cycle(tmp_path, (400.0, 900.0, 150.0))
+    factor = {"u": 1.0}
+
+    def scaled(emu) -> None:  # the voltages times factor["u"] (1e-3: the inverter sends kV)
+        orig = emu._voltage_signals
+        emu._voltage_signals = lambda i_d, i_q, n: {k: v * factor["u"] for k, v in orig(i_d, i_q, n).items()}
+
+    events = [(1.0, scaled), (200.0, lambda e: e.paused.add("INV_Voltages")),
+              (230.0, lambda e: e.paused.discard("INV_Voltages")),
+              (300.0, lambda e: factor.update(u=1e-3)), (320.0, lambda e: factor.update(u=1.0))]
+    lines = io.StringIO()
+    handler = logging.StreamHandler(lines)
+    handler.setFormatter(JournalFormatter("%(message)s"))
+    logger = logging.getLogger("thermal_edge.service.flux_input")
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    try:
+        ticks, pol, _ = loop(tmp_path, cyc, flux=calibration, voltages=True, events=events)
+        bad = tmp_path / "psi_off.json"
+        flux = FluxModel.from_dict(json.loads(calibration.read_text()))
+        flux = replace(flux, params={**flux.params, "psi20": 1.1 * flux.params["psi20"]})
+        bad.write_text(json.dumps(flux.as_dict()))
+        wrong, pol_w, _ = loop(tmp_path, cycle(tmp_path, (200.0, 900.0, 150.0)), flux=bad, voltages=True, name="w")
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+    counts = pol.engine.flux.counts
+    # ticks k cover [k - 1, k): the pause from 200 s to 230 s leaves ticks 201..230 without voltages
+    assert counts["stale"] == 30
+    assert counts["implausible"] == 20
+    assert counts["disagreement"] == 0
+    text = lines.getvalue().splitlines()
+    assert sum(1 for x in text if x.startswith("<5>flux estimate refused (stale)")) == 30
+    assert sum(1 for x in text if x.startswith("<4>flux estimate refused (implausible)")) == 20
+    steady = [t for t in wrong if t[4] is not None and t[4] != "transient"]
+    assert pol_w.engine.flux.counts["disagreement"] >= 0.9 * len(steady)
+    assert sum(1 for x in text if x.startswith("<4>flux estimate refused (disagreement)")) == \
+        pol_w.engine.flux.counts["disagreement"]
+    metrics = ServiceMetrics()
+    metrics.attach(pol.engine)
+    scrape = metrics.text()
+
+    def value(name: str, label: str = "") -> float:
+        m = re.search(rf"^thermal_edge_{name}{re.escape(label)} (\S+)$", scrape, re.M)
+        assert m, name + label
+        return float(m.group(1))
+
+    assert value("flux_refused_total", '{reason="stale"}') == 30
+    assert value("flux_refused_total", '{reason="implausible"}') == 20
+    assert value("flux_refused_total", '{reason="disagreement"}') == 0
+    assert value("flux_used_total") == counts["used"] > 0
+    mg = pol.last_out.magnet
+    assert value("magnet_band_celsius") == pytest.approx(mg.upper_c - mg.estimate_c)
+    assert math.isfinite(value("flux_magnet_celsius"))
+    # no metric of the voltage input without it
+    plain = ServiceMetrics()
+    plain.attach(ThermalEngine(P.edge_config(tmp_path / "plain"), worker_mode="sync"))
+    assert "flux_" not in plain.text() and "magnet_band" not in plain.text()
+
+
+@pytest.mark.slow
+def test_bench_with_the_voltage_frame_and_with_a_wrong_calibration():
+    """The protection bench's cycle: with the voltage frame at least 97 % of the oracle and never
+    over max; with the electrical calibration wrong (inductances +20 %, voltage error doubled) the
+    disagreement check fires and nothing overheats."""
+    good = P.run_case(NOMINAL, policies=("thermal_edge_voltages", "oracle"))
+    assert good["thermal_edge_voltages"]["seconds_over_max"] == 0.0
+    assert good["thermal_edge_voltages"]["oracle_share_pct"] >= 97.0
+    bad = P.run_case(P.CASES["electrical_wrong"], policies=("thermal_edge_voltages",))["thermal_edge_voltages"]
+    assert bad["seconds_over_max"] == 0.0
+    assert bad["flux"]["disagreement"] > 100
+
+
+def test_the_bench_table_puts_both_runs_side_by_side():
+    """One row per case: without and with the voltage frame beside the PT100 rule and I²t, and the
+    flux ticks used / refused (counted here from the figures)."""
+    def fig(share: float, over: float, **extra) -> dict:
+        return {"oracle_share_pct": share, "seconds_over_max": over, **extra}
+
+    res = P.ProtectionResult("protection.yaml", None, list(P.POLICIES), 10.0, {}, cases={
+        "nominal": {"thermal_edge": fig(95.5, 0), "thermal_edge_voltages": fig(99.6, 0, flux={"used": 70, "transient": 3}),
+                    "pt100_linear": fig(98.4, 0), "i2t": fig(76.7, 0), "oracle": fig(100, 0)},
+        "electrical_wrong": {"thermal_edge": fig(95.5, 0), "pt100_linear": fig(98.4, 0), "i2t": fig(76.7, 0),
+                             "thermal_edge_voltages": fig(94.8, 0, flux={"used": 10, "disagreement": 50, "stale": 2})}})
+    rows = P.side_by_side_rows(res)
+    assert rows == [["nominal", "95.5 / 0", "99.6 / 0", "98.4 / 0", "76.7 / 0", "70 / 0"],
+                    ["electrical_wrong", "95.5 / 0", "94.8 / 0", "98.4 / 0", "76.7 / 0", "10 / 52"]]
+    assert len(P.SIDE_BY_SIDE_HEADERS) == len(rows[0])
