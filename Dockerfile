@@ -18,7 +18,7 @@ ARG PYTHON_IMAGE=python:3.11-slim-bookworm
 # the package data (DBC, machine models, drive cycles, example edge.yaml) is inside the wheel
 FROM ${PYTHON_IMAGE} AS build
 WORKDIR /src
-COPY pyproject.toml README.md ./
+COPY pyproject.toml README.md LICENSE ./
 COPY thermal_edge ./thermal_edge
 RUN pip wheel --no-cache-dir --wheel-dir /wheels .
 

@@ -443,3 +443,22 @@ def test_a_frozen_alive_counter_is_never_fresh_data(frame):
     t_restart = t + n_frozen * cycle + 1.0
     assert rx.decode(fid, tx.encode(frame, signals, counter=0), timestamp=t_restart) is not None
     assert rx.decode(fid, tx.encode(frame, signals, counter=1), timestamp=t_restart + cycle) is not None
+
+
+def test_a_drop_report_says_what_was_dropped_since_the_last_at_most_once_an_interval():
+    from thermal_edge.bus import DropReport, FrameStats
+
+    st = FrameStats()
+    rep = DropReport(st, interval_s=60.0)
+    assert rep.due(0.0) is None  # nothing dropped
+    for _ in range(3):
+        st.count_drop("crc", "INV_Currents")
+    st.count_drop("dlc", "INV_StatorTemps")
+    line = rep.due(1.0)
+    assert line is not None and line.startswith("4 received frame(s) dropped since the start: crc 3, dlc 1")
+    assert "INV_Currents 3" in line and "INV_StatorTemps 1" in line
+    st.count_drop("unknown_id")
+    assert rep.due(30.0) is None  # within the interval: held back, not lost
+    assert rep.due(61.0) == ("1 received frame(s) dropped in the last 60 s: unknown_id 1 (in all, by frame: "
+                             "INV_Currents 3, INV_StatorTemps 1); thermal_edge_frames_dropped_total counts them")
+    assert rep.due(200.0) is None  # nothing new

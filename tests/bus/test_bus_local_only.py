@@ -171,17 +171,40 @@ def test_own_addresses_are_told_from_others_as_the_host_lists_them():
     assert is_own_address("127.0.0.1") and is_own_address("127.3.4.5") and is_own_address("::1")
 
 
-def test_ipv6_group_needs_a_multicast_route_on_loopback(udp_port):
-    """An IPv6 group is kept on ``lo`` too; where ``lo`` has no IPv6 multicast route (Linux's
-    default) the bus refuses to open, saying so, instead of failing every send."""
+#: IPv6 groups of every scope: interface-local, link-local (python-can's example ff02::), site-local,
+#: python-can's own default IPv6 group
+IPV6_GROUPS = ("ff01::1:2", "ff02::1:3", "ff05::1:3", "ff15::7468:6572",
+               can.interfaces.udp_multicast.UdpMulticastBus.DEFAULT_GROUP_IPv6)
+
+
+@pytest.mark.parametrize("group", IPV6_GROUPS)
+def test_an_ipv6_group_is_refused_with_the_reason(group: str, udp_port: int) -> None:
+    """What keeps the bus on this host (the loopback interface, the IPv4 group joined everywhere
+    with the sources checked) works for IPv4 only: an IPv6 group is refused, in the configuration
+    (the key named) and by the bus class itself, before any socket is bound."""
+    from thermal_edge.bus import BusConfig, BusConfigError, LocalUdpMulticastBus
+
+    with pytest.raises(BusConfigError) as info:
+        BusConfig.from_mapping({"interface": "udp_multicast", "channel": group, "port": udp_port})
+    text = str(info.value)
+    assert "bus.channel" in text and "IPv6 group" in text and DEFAULT_UDP_MULTICAST_GROUP in text and "\n" not in text
+    with pytest.raises(can.CanInitializationError, match="IPv6 group; an IPv4 group is needed"):
+        LocalUdpMulticastBus(group, udp_port)
+    with pytest.raises(BusConfigError, match="IPv6 group"):
+        create_bus({"interface": "udp_multicast", "channel": group, "port": udp_port, "hop_limit": 0})
+    # nothing was left bound: the same port opens for an IPv4 group at once
+    bus = LocalUdpMulticastBus(DEFAULT_UDP_MULTICAST_GROUP, udp_port)
+    bus.shutdown()
+
+
+def test_the_ipv4_group_stays_on_this_host(udp_port: int) -> None:
+    """The IPv4 bus: hop limit 0, sent through ``lo``, joined on ``lo`` first."""
+    bus = create_bus({"interface": "udp_multicast", "channel": DEFAULT_UDP_MULTICAST_GROUP, "port": udp_port})
     try:
-        bus = create_bus({"interface": "udp_multicast", "channel": "ff15::7468:6572", "port": udp_port})
-    except can.CanInitializationError as exc:
-        assert "no IPv6 multicast route through lo" in str(exc) and "239.74.163.2" in str(exc)
-        return
-    try:  # a host whose loopback does carry IPv6 multicast
-        assert bus.socket.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS) == 0
-        assert bus.socket.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF) == socket.if_nametoindex("lo")
+        assert bus.socket.family == socket.AF_INET
+        assert bus.socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL) == 0
+        assert bus.socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF) == 0x0100007F  # 127.0.0.1
+        assert bus._multicast.joined[0] == "lo"
     finally:
         bus.shutdown()
 

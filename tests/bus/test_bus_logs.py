@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import gzip
+import logging
 import math
 import re
 import shutil
@@ -217,6 +218,50 @@ def test_every_format_records_and_reads_back(tmp_path, virtual_channel, suffix):
     if suffix in DIRECTED:
         rx = list(FrameLogReader(path, FrameCodec(DBC_PATH), include_tx=False))
         assert {f.name for f in rx} == set(INV_FRAMES) and len(rx) == 4 * ROUNDS
+
+
+#: a damaged line of each text format: (line of the data, what is replaced, by what) -- a digit of
+#: the DLC, of the identifier, a letter in the DLC column
+DAMAGE = {".asc": ("d 8", "d Z"), ".csv": (",0x", ",0xZ"), ".trc": (" 8 ", " Z "), ".log": ("#", "!")}
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".csv", ".trc", ".log", ".asc.gz", ".csv.gz", ".trc.gz"])
+def test_a_damaged_line_of_a_text_log_is_skipped_and_the_rest_read(tmp_path, virtual_channel, suffix, caplog):
+    """One line in the middle of a text log that does not parse: that frame is missing, every other
+    one is read (python-can's own reader of the clean file counts them), the line is counted with its
+    number; python-can's own warning about it is not printed. Strict reading refuses the line."""
+    clean = tmp_path / f"clean{suffix}"
+    _record(clean, virtual_channel, record_max_bytes=0)
+    plain = suffix.removesuffix(".gz")
+    opener = gzip.open if suffix.endswith(".gz") else open
+    with opener(clean, "rt") as fh:
+        lines = fh.read().split("\n")
+    old, bad = DAMAGE[plain]
+    data = [i for i, ln in enumerate(lines) if old in ln and not ln.lstrip().startswith((";", "date", "base"))]
+    k = data[len(data) // 2]
+    lines[k] = lines[k].replace(old, bad, 1)
+    damaged = tmp_path / f"damaged{suffix}"
+    with opener(damaged, "wt") as fh:
+        fh.write("\n".join(lines))
+    with can.LogReader(clean) if not suffix.endswith(".gz") else _python_can_gz(clean, plain) as ref:
+        want = len(list(ref))
+    caplog.set_level("INFO")
+    codec = FrameCodec(DBC_PATH)
+    reader = FrameLogReader(damaged, codec)
+    frames = list(reader)
+    assert len(frames) == want - 1 == 2 * 4 * ROUNDS - 1
+    assert [n for n, _ in reader.malformed_lines] == [k + 1]
+    assert not [r for r in caplog.records if r.name.startswith("can.io") and r.levelno >= logging.WARNING]
+    assert [f.timestamp for f in frames] == sorted(f.timestamp for f in frames)
+    with pytest.raises(LogFormatError, match=rf"damaged{re.escape(suffix)}:{k + 1}"):
+        read_log(damaged, FrameCodec(DBC_PATH), strict=True)
+
+
+def _python_can_gz(path, plain):  # python-can's reader of a gzipped text log (its own LogReader drops kwargs)
+    from can.io.player import MESSAGE_READERS
+
+    kwargs = {"relative_timestamp": False} if plain == ".asc" else {}
+    return MESSAGE_READERS[plain](gzip.open(path, "rt"), **kwargs)
 
 
 def _msg(ts: float, i: int, rx: bool = True) -> can.Message:

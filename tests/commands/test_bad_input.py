@@ -317,6 +317,9 @@ MODEL_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]
     "parameter min not positive": lambda tmp, g: (
         replay(g, model=_model(tmp, "m.yaml", "min: 200, max: 20000", "min: -200, max: 20000")), "m.yaml",
         ["parameters.C_w.min", "must be positive"]),
+    "a limit given as a word": lambda tmp, g: (
+        replay(g, model=_model(tmp, "w.yaml", "warn_c: 140", 'warn_c: "hot"')), "w.yaml",
+        ["limits.hot_spot.warn_c", "expected a number", "'hot'"]),
     "sensor on an unknown node": lambda tmp, g: (
         replay(g, model=_model(tmp, "n.yaml", "winding_t: {node: winding}", "winding_t: {node: windin}")), "n.yaml",
         ["sensors.winding_t.node", "'windin'"]),
@@ -463,6 +466,14 @@ LOG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]
     "unknown log suffix": lambda tmp, g: (can_replay(tmp / "notes.txt"), str(tmp / "notes.txt"), ["unknown CAN log format"]),
     "binary file as a .blf": lambda tmp, g: (can_replay(tmp / "bin.blf"), str(tmp / "bin.blf"), ["not a .blf log"]),
     "text that is no log": lambda tmp, g: (can_replay(tmp / "notes.log"), str(tmp / "notes.log"), ["not a .log log"]),
+    "CAN log of one frame": lambda tmp, g: (
+        can_replay(p := _log_lines(tmp / "s.log", tmp / "one.log", lambda ls: ls[:1])), str(p),
+        ["1 frame(s)", "not one tick", "too short"]),
+    "CAN log of another bus": lambda tmp, g: (
+        can_replay(p := _log_lines(tmp / "s.log", tmp / "foreign.log",
+                                   lambda ls: [ln.replace(" can0 0", " can0 7").replace(" vcan0 0", " vcan0 7") for ln in ls])),
+        str(p), ["no frame of the drive's CAN matrix", "3000 frame(s) with other identifiers"]),
+    "an empty TRC log": lambda tmp, g: (can_replay(_text(tmp / "empty.trc", "")), "empty.trc", ["not a .trc log"]),
     "CAN log with a missing edge.yaml": lambda tmp, g: (
         [*can_replay(tmp / "s.log"), "--config", tmp / "nope.yaml"], str(tmp / "nope.yaml"), ["No such file"]),
 }
@@ -590,11 +601,83 @@ OPTION_CASES["monitor --bus without a bus"] = lambda tmp, g: (["monitor", "--bus
 OPTION_CASES["monitor --bus where there is no such interface"] = lambda tmp, g: (
     ["monitor", "--bus", "--once", "--interface", "no_such_interface", "--channel", "x"], "--bus", ["no_such_interface"])
 
+def _text(path: Path, text: str) -> Path:
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _cycle(tmp: Path, name: str, dt_s: str = "1", speed: str = "600") -> Path:
+    return _text(tmp / name, f"name: c\ndt_s: {dt_s}\nsegments:\n  - {{duration_s: 60, speed_rpm: {speed}, torque_nm: 40}}\n")
+
+
+def _no_sensor_data(good: Path, out: Path) -> Path:
+    """The good run with every sensor column present but never measured (nan throughout)."""
+    header, rows = _table(good)
+    cols = [header.index(c) for c in ("winding_t", "housing")]
+    return _write(out, header, [[("nan" if j in cols else v) for j, v in enumerate(r)] for r in rows])
+
+
+def _flux_run(good: Path, out: Path) -> Path:
+    """The good run with the columns ``flux`` reads (dq voltages, a magnet and a winding temperature)."""
+    header, rows = _table(good)
+    w = header.index("winding_t")
+    return _write(out, [*header, "pm", "u_d_v", "u_q_v", "stator_winding"], [[*r, r[w], "-20", "150", r[w]] for r in rows])
+
+
+#: refusals of cycles, torque constants, runs without sensor data, flux files and IPv6 groups
+MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = {
+    "a cycle value not a number": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _cycle(tmp, "nan.yaml", speed=".nan"), "--out", tmp / "o.csv"],
+        "nan.yaml", ["segments[0].speed_rpm", "finite number"]),
+    "a cycle stepped in ns": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _cycle(tmp, "ns.yaml", dt_s="1e-9"), "--out", tmp / "o.csv"],
+        "ns.yaml", ["dt_s", "6e+10 samples", "in seconds"]),
+    "simulate --duration of 1e12 s": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e12", "--out", tmp / "o.csv"],
+        "--duration 1e+12 s", ["1e+12 samples", "2 kB a sample"]),
+    "simulate --duration of 1e7 s": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e7", "--out", tmp / "o.csv"],
+        "--duration 1e+07 s", ["1e+07 samples", "more than 1e+06"]),
+    "simulate --format can --duration of 1e12 s": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--duration", "1e12", "--format", "can", "--out",
+         tmp / "o.log"], "--duration 1e+12 s", ["samples", "in seconds"]),
+    "torque constant zero, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "kt.yaml", "kt_nm_per_arms: 5.6", "kt_nm_per_arms: 0"), "--cycle", CYCLE,
+         "--out", tmp / "o.csv"], "kt.yaml", ["drive.kt_nm_per_arms", "must be positive"]),
+    "torque constant negative, replay": lambda tmp, g: (
+        replay(g, model=_model(tmp, "kt.yaml", "kt_nm_per_arms: 5.6", "kt_nm_per_arms: -5.6")), "kt.yaml",
+        ["drive.kt_nm_per_arms", "must be positive"]),
+    "no torque constant, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "nokt.yaml", "drive:\n  kt_nm_per_arms: 5.6\n", ""), "--cycle", CYCLE,
+         "--out", tmp / "o.csv"], "nokt.yaml", ["--model", "drive.kt_nm_per_arms is missing"]),
+    "no sensor ever measured, discover": lambda tmp, g: (
+        ["discover", "--model", TWO_NODE, "--run", p := _no_sensor_data(g, tmp / "nos.csv"), "--no-report"], str(p),
+        ["none of the sensors", "measured sample"]),
+    "ten samples, discover": lambda tmp, g: (
+        ["discover", "--model", TWO_NODE, "--run", p := _write(tmp / "ten.csv", _table(g)[0], _table(g)[1][:10]),
+         "--no-report"], str(p), ["10 samples", "too few for discovery"]),
+    "flux score: a JSON list": lambda tmp, g: (
+        ["flux", "score", _text(tmp / "l.json", "[1, 2]"), _flux_run(g, tmp / "f.csv")], "l.json",
+        ["not a file written by flux calibrate", "list"]),
+    "flux score: a JSON object without the parameters": lambda tmp, g: (
+        ["flux", "score", _text(tmp / "e.json", "{}"), _flux_run(g, tmp / "f.csv")], "e.json", ["no r20"]),
+    "flux calibrate --pole-pairs 0": lambda tmp, g: (
+        ["flux", "calibrate", _flux_run(g, tmp / "f.csv"), "--out", tmp / "f.json", "--pole-pairs", "0"], "--pole-pairs",
+        ["integer >= 1"]),
+    "flux calibrate on a run without voltages": lambda tmp, g: (
+        ["flux", "calibrate", g, "--out", tmp / "f.json", "--pole-pairs", "4", "--magnet-column", "housing"], str(g),
+        ["no column(s) u_d_v, u_q_v"]),
+    "edge.yaml: an IPv6 udp_multicast group": lambda tmp, g: (
+        check(_edge(tmp, lambda r: r["bus"].update(interface="udp_multicast", channel="ff15::7468:6572", port=43113))),
+        "bus.channel", ["IPv6 group", "239.74.163.2"]),
+}
+
 CASES.update(RUN_CASES)
 CASES.update(MODEL_CASES)
 CASES.update(CONFIG_CASES)
 CASES.update(LOG_CASES)
 CASES.update(OPTION_CASES)
+CASES.update(MORE_CASES)
 
 
 @pytest.fixture(scope="session")
@@ -695,6 +778,20 @@ def test_the_summary_comes_before_the_scores(good_run):
     t = np.array([float(x[0]) for x in rows])
     assert first.startswith(f"{good_run}: {len(rows)} samples every 1 s ({(t[-1] - t[0]) / 3600:.2f} h)")
     assert "used: speed_rpm " in first and "housing " in first and "ignored: torque_nm" in first
+
+
+def test_a_sensor_never_measured_is_said_so_not_scored_nan(good_run, tmp_path):
+    """A sensor column with no reading at all (every cell nan) is not an error of the run (the
+    other sensor scores), but its score says so; the mean is over the measured sensors."""
+    header, rows = _table(good_run)
+    j = header.index("housing")
+    run = _write(tmp_path / "nohousing.csv", header, [[*r[:j], "nan", *r[j + 1:]] for r in rows])
+    r = te(*replay(run))
+    assert r.returncode == 0, r.stderr
+    table = r.stdout.splitlines()[-4:]
+    assert table[2].split() == ["housing", "not", "measured"]
+    assert table[1].split()[0] == "winding_t" and table[3].split()[1] == table[1].split()[1]  # mean = the one score
+    assert "nan" not in r.stdout.split()
 
 
 # -- state files: read by the service at start; each refusal one line naming the field ------------------

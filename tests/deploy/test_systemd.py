@@ -4,7 +4,6 @@ hide SocketCAN."""
 from __future__ import annotations
 
 import configparser
-import contextlib
 import os
 import re
 import shutil
@@ -14,7 +13,6 @@ import subprocess
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import deploylib as dl
@@ -23,7 +21,6 @@ from vmrun import INSTALL_TARGET  # tests/vm is on sys.path (conftest.py)
 
 UNIT = dl.DEPLOY / "systemd" / "thermal-edge.service"
 VCAN = dl.DEPLOY / "systemd" / "vcan.service"
-EXEC = Path("/opt/thermal-edge/bin/thermal-edge")
 
 
 def unit_entries(path: Path) -> dict[str, list[tuple[str, str]]]:
@@ -75,49 +72,71 @@ def unit_commands_present() -> None:
                     f"`sudo {INSTALL_TARGET}`): systemd-analyze verify would refuse the units for it")
 
 
-@contextlib.contextmanager
-def exec_start_present() -> Iterator[None]:
-    """/opt/thermal-edge/bin/thermal-edge for the duration (a temporary symlink tree if absent)."""
-    if EXEC.exists():
-        yield
-        return
-    root = Path("/opt/thermal-edge")
-    if root.exists() or root.is_symlink():
-        pytest.skip(f"{root} exists without bin/thermal-edge: not touching it")
-    try:
-        tmp = Path(tempfile.mkdtemp(prefix="thermal-edge-opt-"))
-    except OSError as exc:
-        pytest.skip(f"cannot create a temporary /opt/thermal-edge: {exc}")
-    try:
-        (tmp / "bin").mkdir()
-        target = dl.BIN / "thermal-edge"
-        if target.exists():
-            (tmp / "bin" / "thermal-edge").symlink_to(target)
-        else:
-            (tmp / "bin" / "thermal-edge").write_text(f"#!/bin/sh\nexec {dl.PY} -m thermal_edge.cli \"$@\"\n")
-            (tmp / "bin" / "thermal-edge").chmod(0o755)
-        try:
-            root.symlink_to(tmp)
-        except OSError as exc:
-            pytest.skip(f"cannot create a temporary {root}: {exc}")
-        try:
-            yield
-        finally:
-            root.unlink()
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+#: where the unit runs the service (its ExecStart) and reads its configuration
+OPT, ETC = "/opt/thermal-edge", "/etc/thermal-edge"
 
 
-def test_systemd_analyze_verify() -> None:
+def units_in(root: Path) -> list[Path]:
+    """The shipped units copied into ``root``, with ``/opt/thermal-edge`` and ``/etc/thermal-edge``
+    moved under it (as the install test does) and an executable ``bin/thermal-edge`` there that
+    runs this checkout's service: ``verify`` checks that ExecStart exists, and the host's
+    ``/opt`` is left alone. Nothing else in the units changes."""
+    exe = root / OPT.lstrip("/") / "bin" / "thermal-edge"
+    exe.parent.mkdir(parents=True)
+    exe.write_text(f"#!/bin/sh\nexec {' '.join(dl.thermal_edge_cmd())} \"$@\"\n")
+    exe.chmod(0o755)
+    (root / ETC.lstrip("/")).mkdir(parents=True)
+    out = []
+    for unit in (UNIT, VCAN):
+        text = unit.read_text()
+        moved = text.replace(OPT, str(root / OPT.lstrip("/"))).replace(ETC, str(root / ETC.lstrip("/")))
+        dest = root / "units" / unit.name
+        dest.parent.mkdir(exist_ok=True)
+        dest.write_text(moved)
+        out.append(dest)
+    return out
+
+
+def test_units_in_moves_only_the_install_paths(tmp_path: Path) -> None:
+    """The copies differ from the shipped units only in the two install roots, and run the service."""
+    copies = units_in(tmp_path)
+    assert [c.name for c in copies] == [UNIT.name, VCAN.name]
+    for shipped, copy in zip((UNIT, VCAN), copies):
+        back = copy.read_text().replace(str(tmp_path / OPT.lstrip("/")), OPT).replace(str(tmp_path / ETC.lstrip("/")), ETC)
+        assert back == shipped.read_text()
+    exec_start = value(unit_entries(copies[0])["Service"], "ExecStart") or ""
+    assert exec_start.startswith(str(tmp_path / OPT.lstrip("/") / "bin" / "thermal-edge") + " run --config " + str(tmp_path))
+    exe = tmp_path / OPT.lstrip("/") / "bin" / "thermal-edge"
+    r = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=120, env=dl.env())
+    assert r.returncode == 0 and "run" in r.stdout, r.stderr
+
+
+def test_systemd_analyze_verify(tmp_path: Path) -> None:
+    """``systemd-analyze verify`` on the shipped units, their install roots moved into a temporary
+    directory (:func:`units_in`); every other line as shipped."""
     exe = systemd_analyze()
     print(subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.splitlines()[0])
     unit_commands_present()
-    with exec_start_present():
-        r = subprocess.run([exe, "verify", str(UNIT), str(VCAN)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([exe, "verify", *map(str, units_in(tmp_path))], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout + r.stderr
     # verify warns (exit 0) about unknown keys and bad values: none allowed
     noise = [l for l in (r.stdout + r.stderr).splitlines() if l.strip()]
     assert not noise, "\n".join(noise)
+
+
+def test_systemd_analyze_verify_can_fail(tmp_path: Path) -> None:
+    """The same check refuses a unit with an unknown key and one whose ExecStart is missing."""
+    exe = systemd_analyze()
+    unit_commands_present()
+    unit, _ = units_in(tmp_path)
+    text = unit.read_text()
+    unit.write_text(text.replace("[Service]\n", "[Service]\nNoSuchKey=1\n", 1))
+    r = subprocess.run([exe, "verify", str(unit)], capture_output=True, text=True, timeout=120)
+    assert "NoSuchKey" in r.stdout + r.stderr
+    (tmp_path / OPT.lstrip("/") / "bin" / "thermal-edge").unlink()
+    unit.write_text(text)
+    r = subprocess.run([exe, "verify", str(unit)], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "thermal-edge" in r.stdout + r.stderr
 
 
 def test_unit_contract() -> None:

@@ -93,6 +93,22 @@ def test_the_package_is_the_installed_one(installed: Installed) -> None:
         assert Path(line).resolve().is_relative_to(installed.venv.resolve()), line
 
 
+def test_the_wheel_declares_its_licence(installed: Installed) -> None:
+    """The licence as an SPDX expression (core metadata 2.4, PEP 639) with the LICENSE file shipped
+    byte for byte, and not the deprecated free-text ``License:`` field."""
+    import zipfile
+
+    with zipfile.ZipFile(installed.wheel) as whl:
+        info = next(n.split("/")[0] for n in whl.namelist() if n.endswith(".dist-info/METADATA"))
+        meta = whl.read(f"{info}/METADATA").decode()
+        shipped = whl.read(f"{info}/licenses/LICENSE")
+    headers = meta.split("\n\n", 1)[0].splitlines()
+    assert "License-Expression: Apache-2.0" in headers
+    assert "License-File: LICENSE" in headers
+    assert not any(h.startswith("License:") for h in headers), headers
+    assert shipped == (dl.REPO / "LICENSE").read_bytes()
+
+
 def test_config_example_then_run_check(installed: Installed) -> None:
     text = installed.run("config", "example").stdout
     assert text == (RESOURCES / "edge.yaml").read_text(encoding="utf-8")

@@ -44,10 +44,15 @@ def test_model_answers_by_role_what_the_file_declares(path):
     assert set(limits_on_windings) <= set(model.nodes_with(NodeRole.WINDING))
 
 
-def test_missing_role_is_a_clear_key_error(tiny_model):
+def test_missing_role_is_a_model_error_naming_the_model(tiny_model):
+    from thermal_edge.errors import ThermalEdgeError
+    from thermal_edge.lptn import ModelError
+
     assert tiny_model.find_input(Role.COOLANT) is None
-    with pytest.raises(KeyError, match="tiny has no input with role 'coolant'"):
+    with pytest.raises(ModelError, match="tiny has no input with role 'coolant'") as err:
         tiny_model.input_name(Role.COOLANT)
+    assert isinstance(err.value, ThermalEdgeError) and not isinstance(err.value, KeyError)
+    assert not str(err.value).startswith("'")  # printed as it reads, not quoted as a KeyError's message
 
 
 def test_node_groups(tiny_model):
@@ -124,3 +129,17 @@ def test_plausible_ranges_name_the_unit_a_value_looks_like():
     warm_kelvin = np.full(30, 300.15)  # each value alone a plausible degC (a hot machine)
     assert TEMPERATURE.problem(290.0) is None and TEMPERATURE.series_problem(warm_kelvin)[0] is None
     assert current.series_problem(np.array([0.0, np.nan, 12.0])) is None  # NaN: not measured, not judged here
+
+
+def test_a_sign_error_is_not_named_as_another_unit():
+    """A negated RMS current converts to a few negative mA, inside the span of the idle samples but
+    outside the plausible range: the sample is named as outside, not as given in mA."""
+    import numpy as np
+
+    from thermal_edge.lptn.vocabulary import Role
+
+    negated = -np.r_[np.zeros(20), np.full(100, 7.14286)]
+    k, why = Role.CURRENT.plausible.series_problem(negated)
+    assert k == 20 and why == "-7.14286 A is outside the plausible 0 to 4000 A"
+    one_in_ma = np.r_[np.full(50, 7.0), 7100.0, np.full(50, 7.0)]  # one sample in mA still is
+    assert "looks like mA (7.1 A)" in Role.CURRENT.plausible.series_problem(one_in_ma)[1]

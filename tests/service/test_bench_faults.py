@@ -19,13 +19,13 @@ import time
 import pytest
 
 from benchmarks import faults
-from benchmarks.faults import control, harness, wire
+from benchmarks.faults import control, harness, stamps, wire
 
 #: groups within the suite's budget (the whole suite must stay under 10 min on 2 cores); the rest are
 #: marked slow (make test-all; the bench itself runs them all)
-FAST = ("bad_frames", "security", "metrics")
+FAST = ("bad_frames", "security", "metrics", "sensor_age")
 SLOW = ("floods", "stale", "bus", "sensors", "stuck", "absurd", "band", "configs", "states", "crash", "load", "soak",
-        "persist", "clock")
+        "persist", "clock", "time_back")
 
 
 def _failures(r: faults.Result) -> list[str]:
@@ -74,6 +74,27 @@ def test_a_te_limits_pause_of_500_ms_fails_the_bench(udp_ok: None) -> None:
     assert longest_ms >= 1e3 * control.PAUSE_S - 10
     ordinary = faults.Result(cases=[dataclasses.replace(case, control=False)])
     assert ordinary.unsafe >= 1 and len(_failures(ordinary)) == 1
+
+
+def test_a_negative_sensor_age_fails_the_case() -> None:
+    """The sensor-age cases judge every scraped age: one below zero is an event that fails the case,
+    an answer missing from a scrape too, and nothing scraped at all."""
+    c = harness.Check()
+    did = stamps._judge_ages(c, [0.0, 0.097, -0.001, 0.5], tried=4, answered=4)
+    assert c.unsafe == 1 and "1 negative sensor age(s)" in c.notes[0] and "-0.001..0.500 s" in did
+    c = harness.Check()
+    stamps._judge_ages(c, [0.0, 0.1], tried=3, answered=2)
+    assert c.unsafe == 1 and "answered 2 of 3" in c.notes[0]
+    c = harness.Check()
+    stamps._judge_ages(c, [], tried=2, answered=2)
+    assert c.unsafe == 1 and c.notes == ["no sensor age scraped"]
+    assert not harness.Case.of("x", "sensor age", 4, "did", c).passed
+
+
+def test_sensor_ages_are_read_per_sensor_from_a_scrape() -> None:
+    m = {'thermal_edge_sensor_age_seconds{sensor="housing"}': 0.2, 'thermal_edge_sensor_age_seconds{sensor="end_winding"}': -0.5,
+         "thermal_edge_sensor_age_seconds_other": 9.0, "thermal_edge_ticks_total": 3.0}
+    assert sorted(stamps._ages(m)) == [-0.5, 0.2]
 
 
 def test_the_result_counts_and_judges_its_cases() -> None:

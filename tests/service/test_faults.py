@@ -31,7 +31,7 @@ def reasons_since(emu, t_rel: float) -> list[tuple[float, float, int]]:
 
 
 @pytest.mark.async_timeout(60)
-async def test_malformed_frames_unknown_ids_and_a_corrupt_state_file(tmp_path, channel):
+async def test_malformed_frames_unknown_ids_and_a_corrupt_state_file(tmp_path, channel, caplog):
     (tmp_path / "state").mkdir()
     (tmp_path / "state" / "state.json").write_text('{"format": "thermal_edge.state", "version": 1, "T": [1, 2')  # torn
     async with running(tmp_path, channel, metrics=True) as (svc, emu):
@@ -52,6 +52,11 @@ async def test_malformed_frames_unknown_ids_and_a_corrupt_state_file(tmp_path, c
         assert m['thermal_edge_frames_dropped_total{reason="unknown_id"}'] >= 2  # unknown + extended
         assert m["thermal_edge_state_load_errors_total"] == 1
         assert m["thermal_edge_state_code"] == int(TeState.NOMINAL)
+        # the journal says so too: a WARNING line with the count by reason (at most one a minute)
+        said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and "frame(s) dropped" in r.getMessage()]
+        assert said and all("crc" in ln or "dlc" in ln or "unknown_id" in ln for ln in said), said
+        dropped = sum(v for k, v in m.items() if k.startswith("thermal_edge_frames_dropped_total"))
+        assert sum(int(ln.split()[0]) for ln in said) == dropped
         ticks = svc.engine.ticks
         await sim_until(emu, 150)
         assert svc.engine.ticks > ticks  # still ticking

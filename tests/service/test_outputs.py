@@ -132,3 +132,26 @@ def test_alerted_series_exist_at_zero_before_the_first_tick(tmp_path):
         assert samples[key] == float(r == DerateReason.STARTING)
     for name in ("model_faults", "adaptation_failures", "adaptation_runs", "adaptation_accepted", "state_save_errors"):
         assert samples[(f"thermal_edge_{name}_total", ())] == 0
+
+
+def test_no_lookahead_current_is_advised_before_the_model_is_initialised(tmp_path):
+    """Before the first tick (and until the model is initialised) TE_LookaheadCurrent decodes, with
+    the DBC through cantools, as 0 A, not as the range's top that an unknown value saturates to."""
+    import cantools
+
+    from thermal_edge.service.engine import ThermalEngine
+
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", edge_raw(tmp_path / "state", {"interface": "virtual"},
+                                                                   table4=False, adapt=False)))
+    eng = ThermalEngine(cfg, worker_mode="sync")
+    try:
+        out = eng.placeholder(0.0)
+        assert not out.initialized and math.isinf(out.lookahead_a)
+        db = cantools.database.load_file(str(DBC))
+        data = FrameCodec(DBC).encode("TE_Forecast", out.forecast_signals(), counter=0)
+        assert db.decode_message("TE_Forecast", data, decode_choices=False)["TE_LookaheadCurrent"] == 0.0
+        ready = _output(80.0, 600.0, 31.5, 0.5, TeState.NOMINAL)  # initialised: the look-ahead as computed
+        data = FrameCodec(DBC).encode("TE_Forecast", ready.forecast_signals(), counter=0)
+        assert db.decode_message("TE_Forecast", data, decode_choices=False)["TE_LookaheadCurrent"] == 31.5
+    finally:
+        eng.close()

@@ -51,7 +51,7 @@ from .frames import (
 )
 from .logs import FrameLogReader, LogFormatError, LogRecorder, log_messages, read_log, readable_suffixes
 from .protection import FrameProtection
-from .stats import DROP_REASONS, FrameStats, TransportStats
+from .stats import DROP_REASONS, DropReport, FrameStats, TransportStats
 from .transport import CanTransport
 from .udp import LocalUdpMulticastBus, UndecodableDatagram
 
@@ -80,6 +80,7 @@ __all__ = [
     "DbcError",
     "DecodedFrame",
     "DerateReason",
+    "DropReport",
     "FrameCodec",
     "FrameEncodeError",
     "FrameLogReader",

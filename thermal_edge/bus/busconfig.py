@@ -32,7 +32,7 @@ import can.interfaces
 
 from ..errors import ThermalEdgeError
 from .logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES, LogFormatError, check_recording
-from .udp import RECEIVE_QUEUE_BYTES, LocalUdpMulticastBus, enlarge_receive_queue
+from .udp import IPV6_REFUSED, RECEIVE_QUEUE_BYTES, LocalUdpMulticastBus, enlarge_receive_queue
 
 __all__ = [
     "DEFAULT_UDP_MULTICAST_GROUP",
@@ -49,9 +49,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: python-can's default IPv4 group for ``udp_multicast`` (administratively scoped 239/8); an
-#: IPv4 group because Linux's loopback interface carries IPv4 multicast but has no IPv6
-#: multicast route (see :mod:`thermal_edge.bus.udp`).
+#: python-can's default IPv4 group for ``udp_multicast`` (administratively scoped 239/8); only
+#: IPv4 groups are taken (:data:`thermal_edge.bus.udp.IPV6_REFUSED` says why).
 DEFAULT_UDP_MULTICAST_GROUP = can.interfaces.udp_multicast.UdpMulticastBus.DEFAULT_GROUP_IPv4
 #: python-can's default UDP port for ``udp_multicast``.
 DEFAULT_UDP_MULTICAST_PORT = 43113
@@ -248,6 +247,9 @@ def _check_multicast_group(channel: Any) -> str:
         raise BusConfigError(
             "bus.channel", f"{channel} is not a multicast group (udp_multicast only sends to groups on this host)"
         )
+    if address.version == 6:
+        raise BusConfigError("bus.channel", f"{address} is an IPv6 group; udp_multicast takes an IPv4 group "
+                             f"(e.g. {DEFAULT_UDP_MULTICAST_GROUP}): {IPV6_REFUSED}")
     return str(address)
 
 
@@ -334,11 +336,7 @@ def create_bus(config: BusConfig | Mapping[str, Any]) -> can.BusABC:
 
 def _assert_hop_limit_zero(bus: LocalUdpMulticastBus) -> None:
     """Double-check on the socket itself that nothing can leave the host."""
-    sock = bus.socket
-    if sock.family == socket.AF_INET6:
-        hops = sock.getsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS)
-    else:
-        hops = sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL)
+    hops = bus.socket.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL)
     if hops != 0:
         bus.shutdown()
         raise can.CanInitializationError(f"udp_multicast socket has hop limit {hops}, refusing to use it")

@@ -185,16 +185,69 @@ class _CheckedLines:
         self._file.close()
 
 
-def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, str]]) -> can.io.generic.MessageReader:
+class _TextLines:
+    """Line source of a text log (ASC, CSV, TRC) for python-can's reader, which stops for good at
+    the first line it cannot parse: this source knows the number of the line it handed out last
+    and, once the first message is read, the lines before it (the header), so that a reader can be
+    started again after the damaged line (:meth:`resume`) with the header handed out first."""
+
+    def __init__(self, file: IO[str]) -> None:
+        self._file = file
+        self.lineno = 0  #: number of the file's line handed out last
+        self._before: list[str] | None = []  # lines up to the first message (None: header known)
+        self._header: list[str] = []
+        self._again: deque[str] = deque()
+
+    def __iter__(self) -> _TextLines:
+        return self
+
+    def __next__(self) -> str:
+        if self._again:
+            return self._again.popleft()
+        line = next(self._file)
+        self.lineno += 1
+        if self._before is not None:
+            self._before.append(line)
+        return line
+
+    def readline(self) -> str:
+        return next(self, "")
+
+    def first_message(self) -> None:
+        """The reader has just returned its first message: what came before its line is the header."""
+        if self._before is not None:
+            self._header, self._before = self._before[:-1], None
+
+    def resume(self) -> None:
+        """Hand out the header again, then the lines after the one handed out last."""
+        self._again = deque(self._header)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _reader(path: Path, suffix: str, strict: bool, malformed: list[tuple[int, str]],
+            lines: _TextLines | None = None) -> can.io.generic.MessageReader:
     if suffix == ".log":
         return can.CanutilsLogReader(_CheckedLines(path, strict, malformed))  # type: ignore[arg-type]  # it only iterates lines
     # python-can's registry, opened here because can.LogReader drops the keyword arguments of a
     # .gz file (4.6.1), and ASC needs one: absolute times, the header's start plus each offset
     kwargs = {"relative_timestamp": False} if suffix == ".asc" else {}
     file: Any = path
-    if path.suffix.lower() == ".gz":
+    if lines is not None:  # the text readers only iterate their file (and call next() on it)
+        file = lines
+    elif path.suffix.lower() == ".gz":
         file = gzip.open(path, "rt" if suffix in GZIP_SUFFIXES else "rb")
     return MESSAGE_READERS[suffix](file, **kwargs)
+
+
+def _text_lines(path: Path, suffix: str) -> _TextLines | None:
+    """The line source of a text log other than candump's (None for a binary one). Undecodable
+    bytes become U+FFFD: their line is then one that does not parse, skipped like any other."""
+    if suffix == ".log" or suffix not in GZIP_SUFFIXES:
+        return None
+    opener: Any = gzip.open if path.suffix.lower() == ".gz" else open
+    return _TextLines(opener(path, "rt", encoding="utf-8", errors="replace"))
 
 
 def log_messages(path: str | Path, *, strict: bool = False,
@@ -229,17 +282,21 @@ def log_messages(path: str | Path, *, strict: bool = False,
         _check_csv_header(p)
     bad = malformed if malformed is not None else []
     n = 0
+    lines = None
     try:
-        reader = _reader(p, suffix, strict, bad)
+        lines = _text_lines(p, suffix)
+        reader = _reader(p, suffix, strict, bad, lines)
     except LogFormatError:
         raise
     except Exception as exc:  # python-can refusing the header of a file that is no such log
+        if lines is not None:
+            lines.close()
         raise LogFormatError(f"{p}: not a {suffix} log: {type(exc).__name__}: {exc}") from None
     if suffix == ".blf" and p.suffix.lower() != ".gz":
         _check_blf_size(p, reader)
     times = _TimeBase(p)
     pending: list[can.Message] = []
-    with reader:
+    with reader, _SkippedTrcLines(bad, lines):
         it = iter(reader)
         while True:
             try:
@@ -248,13 +305,22 @@ def log_messages(path: str | Path, *, strict: bool = False,
                 break
             except LogFormatError:
                 raise
-            except Exception as exc:  # a damaged or truncated record: nothing after it can be trusted
+            except Exception as exc:  # a damaged line or record
+                where = lines.lineno if lines is not None else 0
                 if strict or n == 0:
-                    raise LogFormatError(f"{p}: damaged {suffix} log after {n} messages: "
+                    at = f":{where}" if where else ""
+                    raise LogFormatError(f"{p}{at}: damaged {suffix} log after {n} messages: "
                                          f"{type(exc).__name__}: {exc}") from None
-                bad.append((0, f"{type(exc).__name__}: {exc}"[:200]))
+                bad.append((where, f"{type(exc).__name__}: {exc}"[:200]))
+                if lines is not None:  # a text log: its reader starts again after the damaged line
+                    lines.resume()
+                    it = iter(_reader(p, suffix, strict, bad, lines))
+                    continue
+                # a binary record: nothing after it can be trusted
                 log.warning("%s: damaged after %d messages, rest skipped: %s", p, n, exc)
                 break
+            if n == 0 and lines is not None:
+                lines.first_message()
             msg.timestamp = round(float(msg.timestamp), _TIME_DECIMALS)
             n += 1
             times.check(msg.timestamp, n, msg.arbitration_id)
@@ -268,7 +334,31 @@ def log_messages(path: str | Path, *, strict: bool = False,
     yield from pending
     if n == 0 and bad:
         lineno, text = bad[0]
-        raise LogFormatError(f"{p}:{lineno}: not a {suffix} log: {text[:80]!r}")
+        raise LogFormatError(f"{p}{f':{lineno}' if lineno else ''}: not a {suffix} log: {text[:80]!r}")
+
+
+class _SkippedTrcLines(logging.Filter):
+    """While a TRC log is read: python-can's reader skips a line it cannot parse with a WARNING of
+    its own; the line is counted with the damaged ones (its number, its text) instead of printed."""
+
+    _LOGGER = "can.io.trc"
+
+    def __init__(self, bad: list[tuple[int, str]], lines: _TextLines | None) -> None:
+        super().__init__()
+        self._bad, self._lines = bad, lines
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.WARNING and "Failed to parse" in record.getMessage():
+            self._bad.append((self._lines.lineno if self._lines is not None else 0, record.getMessage()[:200]))
+            return False
+        return True
+
+    def __enter__(self) -> _SkippedTrcLines:
+        logging.getLogger(self._LOGGER).addFilter(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        logging.getLogger(self._LOGGER).removeFilter(self)
 
 
 def _check_csv_header(p: Path) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field, fields
 
-__all__ = ["DROP_REASONS", "FrameStats", "TransportStats"]
+__all__ = ["DROP_REASONS", "DROP_REPORT_INTERVAL_S", "DropReport", "FrameStats", "TransportStats"]
 
 #: Reasons for which the codec drops a received frame.
 DROP_REASONS: tuple[str, ...] = (
@@ -92,6 +92,41 @@ class FrameStats:
             value = getattr(self, f.name)
             out[f.name] = dict(value) if isinstance(value, Counter) else value
         return out
+
+
+#: Least time between two log lines about dropped frames, s: a flood of bad frames is one line a
+#: minute in the journal, with the count by reason (the metrics count every frame).
+DROP_REPORT_INTERVAL_S = 60.0
+
+
+class DropReport:
+    """The received frames dropped since the last report, by reason, at most once per ``interval_s``.
+
+    Plain bookkeeping on a :class:`FrameStats`; the caller logs the line :meth:`due` returns.
+    """
+
+    def __init__(self, stats: FrameStats, interval_s: float = DROP_REPORT_INTERVAL_S) -> None:
+        self.stats = stats
+        self.interval_s = float(interval_s)
+        self._reported = dict(stats.dropped)
+        self._at: float | None = None
+
+    def due(self, now: float) -> str | None:
+        """The line to log at ``now`` (s, any monotonic clock): the drops since the last line by
+        reason, and the frames they were of; None when there were none or the last line is younger
+        than the interval."""
+        if self._at is not None and now - self._at < self.interval_s:
+            return None
+        dropped = self.stats.dropped
+        new = {k: v - self._reported.get(k, 0) for k, v in dropped.items() if v > self._reported.get(k, 0)}
+        if not new:
+            return None
+        since = "since the start" if self._at is None else f"in the last {now - self._at:.0f} s"
+        self._reported, self._at = dict(dropped), now
+        frames = ", ".join(f"{k} {v}" for k, v in self.stats.dropped_by_frame.most_common(4))
+        return (f"{sum(new.values())} received frame(s) dropped {since}: "
+                + ", ".join(f"{k} {v}" for k, v in new.items())
+                + (f" (in all, by frame: {frames})" if frames else "") + "; thermal_edge_frames_dropped_total counts them")
 
 
 @dataclass

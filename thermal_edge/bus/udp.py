@@ -21,15 +21,11 @@ speaks the same datagrams (msgpack, see ``can.interfaces.udp_multicast.utils``) 
   not raised. Interfaces that appear after the bus opened are not joined.
 
 Another interface is sent through only if the configuration names it (``multicast_interface``).
-IPv6 groups are joined on that one interface only (the IPv4 check above is what the widening
-relies on). They need a multicast route on it; Linux's ``lo`` has none by default, so the
-default group is python-can's IPv4 one and an IPv6 group on ``lo`` is refused at open with the
-reason.
+The group is an IPv4 one (:data:`IPV6_REFUSED` says why an IPv6 group is refused at open).
 """
 
 from __future__ import annotations
 
-import errno
 import fcntl
 import ipaddress
 import logging
@@ -43,18 +39,21 @@ import can
 from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.utils import is_msgpack_installed, unpack_message
 
-__all__ = ["LOOPBACK_INTERFACE", "RECEIVE_QUEUE_BYTES", "LocalUdpMulticastBus", "UndecodableDatagram",
+__all__ = ["IPV6_REFUSED", "LOOPBACK_INTERFACE", "RECEIVE_QUEUE_BYTES", "LocalUdpMulticastBus", "UndecodableDatagram",
            "enlarge_receive_queue", "is_own_address"]
 
 log = logging.getLogger(__name__)
 
 #: Interface the group is joined on and sent through unless configured otherwise.
 LOOPBACK_INTERFACE = "lo"
+#: Why an IPv6 group is refused: what keeps the bus on this host works for IPv4 only.
+IPV6_REFUSED = ("Linux's loopback interface carries no IPv6 multicast, and python-can's own udp_multicast senders "
+                "on this host (can.player, scripts) reach the service only over IPv4, whose group is joined on every "
+                "interface with the sources checked to be this host's")
 #: Largest datagram read (python-can's own buffer size); longer ones are truncated and undecodable.
 MAX_DATAGRAM_BYTES = 4096
 # Linux socket options missing from Python's socket module
 _IP_MULTICAST_ALL = 49
-_IPV6_MULTICAST_ALL = 29
 _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@ll")
 #: ``struct ip_mreqn``: group, local address (any), interface index
@@ -95,9 +94,15 @@ class _LoopbackMulticastSocket:
     """The socket of one :class:`LocalUdpMulticastBus` (send and receive, kernel timestamps)."""
 
     def __init__(self, group: str, port: int, interface: str, rcvbuf_bytes: int) -> None:
-        address = ipaddress.ip_address(group)
+        try:
+            address = ipaddress.ip_address(group)
+        except ValueError:
+            raise can.CanInitializationError(f"udp_multicast: {group!r} is not an IP multicast group address") from None
+        if address.version == 6:
+            raise can.CanInitializationError(f"udp_multicast: {address} is an IPv6 group; an IPv4 group is needed "
+                                             f"(e.g. {UdpMulticastBus.DEFAULT_GROUP_IPv4}): {IPV6_REFUSED}")
         self.group, self.port = str(address), int(port)
-        family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+        family = socket.AF_INET
         sock = socket.socket(family, socket.SOCK_DGRAM)
         try:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -106,27 +111,15 @@ class _LoopbackMulticastSocket:
             if rcvbuf_bytes:
                 enlarge_receive_queue(sock, rcvbuf_bytes)
             group_bin = socket.inet_pton(family, self.group)
-            if family == socket.AF_INET:
-                if_addr = _ipv4_of_interface(interface)
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(if_addr))
-                sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
-                sock.bind((self.group, self.port))
-                sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, group_bin + socket.inet_aton(if_addr))
-                self.joined = [interface, *_join_other_interfaces(sock, group_bin, interface)]
-                self._destination: tuple[Any, ...] = (self.group, self.port)
-            else:
-                index = socket.if_nametoindex(interface)
-                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_HOPS, 0)
-                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_LOOP, 1)
-                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, index)
-                sock.setsockopt(socket.IPPROTO_IPV6, _IPV6_MULTICAST_ALL, 0)
-                sock.bind((self.group, self.port, 0, index))
-                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, group_bin + struct.pack("@I", index))
-                self.joined = [interface]
-                self._destination = (self.group, self.port, 0, index)
-                _check_route(family, self._destination, index, interface)
+            if_addr = _ipv4_of_interface(interface)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_LOOP, 1)
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton(if_addr))
+            sock.setsockopt(socket.IPPROTO_IP, _IP_MULTICAST_ALL, 0)
+            sock.bind((self.group, self.port))
+            sock.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP, group_bin + socket.inet_aton(if_addr))
+            self.joined = [interface, *_join_other_interfaces(sock, group_bin, interface)]
+            self._destination: tuple[Any, ...] = (self.group, self.port)
         except OSError as exc:
             sock.close()
             raise can.CanInitializationError(
@@ -257,27 +250,13 @@ class _SourceCheck:
         return verdict[0]
 
 
-def _check_route(family: int, destination: tuple[Any, ...], index: int, interface: str) -> None:
-    """Fail at open, not at every send, if the group cannot be reached through the interface
-    (``connect`` looks the route up and sends nothing)."""
-    with socket.socket(family, socket.SOCK_DGRAM) as probe:
-        probe.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_MULTICAST_IF, index)
-        try:
-            probe.connect(destination)
-        except OSError as exc:
-            if exc.errno in (errno.ENETUNREACH, errno.EHOSTUNREACH, errno.EADDRNOTAVAIL):
-                raise OSError(exc.errno, f"no IPv6 multicast route through {interface} (use an IPv4 group, "
-                              f"e.g. {UdpMulticastBus.DEFAULT_GROUP_IPv4})") from None
-            raise
-
-
 class LocalUdpMulticastBus(UdpMulticastBus):
     """python-can ``udp_multicast`` that only talks to processes of this host.
 
     Parameters
     ----------
     channel : str
-        Multicast group (IPv4 ``224.0.0.0/4`` or IPv6 ``ff00::/8``).
+        IPv4 multicast group (``224.0.0.0/4``; an IPv6 group is refused: :data:`IPV6_REFUSED`).
     port : int
         UDP port.
     hop_limit : int
@@ -290,9 +269,9 @@ class LocalUdpMulticastBus(UdpMulticastBus):
     rcvbuf_bytes : int
         Kernel receive queue asked for, bytes (0 keeps the system default).
     multicast_interface : str
-        Interface sent through (default ``lo``: this host only). The group is joined on it and,
-        for an IPv4 group, on every other interface too, for the datagrams of this host's own
-        addresses that the kernel loops back there (all others are refused).
+        Interface sent through (default ``lo``: this host only). The group is joined on it and on
+        every other interface too, for the datagrams of this host's own addresses that the kernel
+        loops back there (all others are refused).
     **kwargs
         Passed to ``can.BusABC`` (``can_filters`` ...).
 

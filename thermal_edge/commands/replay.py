@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -116,9 +117,6 @@ def run(args: argparse.Namespace) -> int:
         replayed, service_model = replay_log(args.run, args.config, args.model, sets=split_sets(args.set),
                                              keep_outputs=bool(args.plot or args.out))
         summary = summarise(args.run, replayed, service_model)
-        if not summary["frames"]:
-            raise RunError(f"{args.run}: no CAN frame read ({summary['malformed_lines']} malformed lines): "
-                           "not a CAN log of the drive, or an empty one")
         if (args.plot or args.out) and len(replayed.t) < 2:
             raise RunError(f"{args.run}: {len(replayed.t)} ticks: nothing to plot or write")
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
@@ -192,8 +190,12 @@ def _print_open_loop(args: argparse.Namespace, model: Model, rec: Run, scores: S
     print(f"{model.name} on {args.run}: {len(rec)} samples, open loop")
     print(f"{'sensor':<18}{'MSE K²':>10}{'RMS K':>10}{'max |e| K':>11}")
     for s in scores.mse:
-        print(f"{s:<18}{scores.mse[s]:>10.3f}{scores.rms[s]:>10.3f}{scores.max_abs[s]:>11.3f}")
-    print(f"{'mean':<18}{scores.mean_mse:>10.3f}")
+        if math.isfinite(scores.mse[s]):
+            print(f"{s:<18}{scores.mse[s]:>10.3f}{scores.rms[s]:>10.3f}{scores.max_abs[s]:>11.3f}")
+        else:  # a column with no reading: nothing to compare the prediction with
+            print(f"{s:<18}{'not measured':>31}")
+    mean = scores.mean_mse
+    print(f"{'mean':<18}{mean:>10.3f}" if math.isfinite(mean) else f"{'mean':<18}{'no sensor measured':>31}")
     return 0
 
 

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from ..data import Run
+from ..data import Run, RunError
 from ..estimation.common import ParamSpace, Window, decimate, window_from_arrays
 from ..estimation.gauss_newton import fit_gauss_newton
 from ..estimation.objective import Objective
@@ -74,23 +74,35 @@ def stiff_factor(model: Model, run: Run, theta: np.ndarray | None = None, limit:
     return max(1, int(limit / (fastest * run.dt)))
 
 
+#: samples below which a run cannot be split into a fit and a check of any use
+MIN_SAMPLES = 30
+
+
 def prepare(model: Model, run: Run, sensors: Sequence[str] | None = None, train_frac: float = 2 / 3,
             fit_step_s: float = 5.0) -> Data:
-    """Split and decimation of a run for a model (sensors: those of the model the run has)."""
+    """Split and decimation of a run for a model (sensors: those of the model the run has).
+
+    Raises
+    ------
+    RunError
+        Sensors the model lacks, no measured sample of a sensor, fewer than :data:`MIN_SAMPLES` samples.
+    """
     have = [s for s in model.sensors if s in run.columns and np.isfinite(run.columns[s]).any()]
     if sensors:
         unknown = [s for s in sensors if s not in model.sensors]
         if unknown:
-            raise KeyError(f"model {model.name} has no sensor(s) {', '.join(unknown)} (has: {', '.join(model.sensors)})")
+            raise RunError(f"{run.source}: --sensors: model {model.name} has no sensor(s) {', '.join(unknown)} "
+                           f"(has: {', '.join(model.sensors)})")
         absent = [s for s in sensors if s not in have]
         if absent:
-            raise KeyError(f"{run.source}: no data for sensor(s) {', '.join(absent)}")
+            raise RunError(f"{run.source}: no measured sample of sensor(s) {', '.join(absent)}")
         have = list(sensors)
     if not have:
-        raise KeyError(f"{run.source}: none of the sensors of model {model.name} ({', '.join(model.sensors)}) is in the run")
+        raise RunError(f"{run.source}: none of the sensors of model {model.name} ({', '.join(model.sensors)}) "
+                       "has a measured sample in the run")
     N = len(run)
-    if N < 30:
-        raise KeyError(f"{run.source}: {N} samples are too few for discovery")
+    if N < MIN_SAMPLES:
+        raise RunError(f"{run.source}: {N} samples are too few for discovery (at least {MIN_SAMPLES})")
     split = int(round(N * train_frac))
     factor = max(1, int(round(fit_step_s / run.dt)))
     factor = min(factor, stiff_factor(model, run))

@@ -52,7 +52,9 @@ class Scores:
 
     @property
     def mean_mse(self) -> float:
-        return float(np.mean(list(self.mse.values()))) if self.mse else float("nan")
+        """Mean of the MSE over the sensors with a measured sample (NaN when none has one), K²."""
+        measured = [v for v in self.mse.values() if np.isfinite(v)]
+        return float(np.mean(measured)) if measured else float("nan")
 
     def as_dict(self) -> dict[str, object]:
         return {"mse": self.mse, "mean_mse": self.mean_mse, "rms": self.rms, "max_abs": self.max_abs}

@@ -17,7 +17,7 @@ from .discretise import (
 )
 from .expr import ExprError, parse
 from .loader import load_model
-from .model import Limit, Model, ModelError, Parameter, ParameterError
+from .model import Limit, MissingInputError, Model, ModelError, Parameter, ParameterError
 from .network import Continuous, Network
 from .simulate import Simulator, Trajectory
 from .steady import initial_state, steady_state
@@ -26,7 +26,7 @@ from .vocabulary import DEFAULT_COLUMNS, NodeRole, Role, temperature_name
 
 __all__ = [
     "Continuous", "DEFAULT_COLUMNS", "Discrete", "DiscreteDerivatives", "EulerDerivatives", "ExprError", "Limit",
-    "Model", "ModelError", "Network", "NodeRole", "NotPassive", "Parameter", "ParameterError", "Role", "Simulator",
-    "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down", "discretise", "initial_state",
+    "MissingInputError", "Model", "ModelError", "Network", "NodeRole", "NotPassive", "Parameter", "ParameterError", "Role",
+    "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down", "discretise", "initial_state",
     "load_model", "parse", "steady_state", "temperature_name",
 ]

@@ -284,7 +284,9 @@ def build_model(
         raise ctx.fail("discretisation.method", f"must be zoh or euler, got {method!r}")
     sub = disc.get("max_substep_s")
     substep = None if sub is None else ctx.number("discretisation.max_substep_s", sub, positive=True)
-    drive = {str(k): ctx.number(f"drive.{k}", v) for k, v in _mapping(ctx, raw.get("drive"), "drive").items()}
+    # the torque constant divides a torque into a current: zero or negative gives no or negative current
+    drive = {str(k): ctx.number(f"drive.{k}", v, positive=str(k) == "kt_nm_per_arms")
+             for k, v in _mapping(ctx, raw.get("drive"), "drive").items()}
     if not builder.nodes:
         raise ctx.fail("nodes", "the model has no node with heat capacity")
     return Model(

@@ -19,7 +19,22 @@ from .vocabulary import NodeRole, Role
 
 
 class ModelError(ThermalEdgeError, ValueError):
-    """A machine model file that is invalid; the message names the file and the key."""
+    """A machine model file that is invalid, or a model that lacks what a command needs of it
+    (an input of a role, a node); the message names the file or model and the key."""
+
+
+class MissingInputError(ThermalEdgeError, ValueError):
+    """A run or an operating point lacks inputs the model needs.
+
+    Attributes
+    ----------
+    missing : tuple of str
+        The input names that are missing, in the model's order.
+    """
+
+    def __init__(self, message: str, missing: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.missing = missing
 
 
 #: Relative distance from a bound within which a value counts as on it: ``exp(log(300))`` is
@@ -155,11 +170,19 @@ class Model:
         return next((k for k, r in self.input_roles.items() if r is role), None)
 
     def input_name(self, role: Role) -> str:
-        """The input that has ``role``; ``KeyError`` naming the model when it has none."""
+        """The input that has ``role``.
+
+        Raises
+        ------
+        ModelError
+            The model has no input with that role (the message names the model's file and its inputs).
+        """
         name = self.find_input(role)
         if name is None:
             roles = ", ".join(f"{k} ({r.value})" for k, r in self.input_roles.items())
-            raise KeyError(f"model {self.name} has no input with role {role.value!r} (its inputs: {roles or 'none with a role'})")
+            where = f"{self.path.name}: " if self.path is not None else ""
+            raise ModelError(f"{where}model {self.name} has no input with role {role.value!r} "
+                             f"(its inputs: {roles or 'none with a role'})")
         return name
 
     @property
@@ -219,18 +242,26 @@ class Model:
         )
 
     def parameter_index(self, names: list[str] | tuple[str, ...]) -> np.ndarray:
-        """Indices of the named parameters; raises ``KeyError`` naming an unknown one."""
+        """Indices of the named parameters.
+
+        Raises
+        ------
+        ParameterError
+            A name the model does not have (the first such; the message names the model).
+        """
         idx = {p.name: i for i, p in enumerate(self.parameters)}
         missing = [n for n in names if n not in idx]
         if missing:
-            raise KeyError(f"unknown parameter(s) {', '.join(missing)} in model {self.name}")
+            raise ParameterError(missing[0], f"unknown in model {self.name} (unknown: {', '.join(missing)}; "
+                                             f"known: {', '.join(idx)})")
         return np.array([idx[n] for n in names], dtype=int)
 
     def node_index(self, node: str) -> int:
+        """Index of ``node`` in the state vector; :class:`ModelError` naming the model for an unknown one."""
         try:
             return self.nodes.index(node)
         except ValueError:
-            raise KeyError(f"unknown node {node!r} in model {self.name}") from None
+            raise ModelError(f"unknown node {node!r} in model {self.name}") from None
 
     def check_parameters(self, values: Mapping[str, object]) -> None:
         """Check parameter values against the model: known names, finite numbers within the bounds.

@@ -19,7 +19,7 @@ from scipy import sparse
 from scipy.sparse.csgraph import connected_components
 
 from .expr import Compiled, Expr, Value
-from .model import Model
+from .model import MissingInputError, Model
 
 
 @dataclass
@@ -278,7 +278,8 @@ class Network:
         op = {k: np.asarray(v, dtype=float) for k, v in (op or {}).items()}
         missing = [k for k in self.matrix_inputs if k not in op]
         if missing:
-            raise KeyError(f"operating point lacks input(s) {', '.join(missing)}")
+            raise MissingInputError(f"operating point lacks input(s) {', '.join(missing)} of model {self.model.name}",
+                                    tuple(missing))
         n, nb = self.n, self.n_bound
         g, dg = self.conductances(theta, op, K, wrt)
         L, KU = self._assemble(g)

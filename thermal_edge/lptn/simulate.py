@@ -24,7 +24,7 @@ import numpy as np
 from .discretise import Discrete, DiscreteDerivatives, discretise
 from .expr import Value
 from .losses import LossLaws
-from .model import Model
+from .model import MissingInputError, Model
 from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
@@ -122,7 +122,8 @@ class Simulator:
         N = len(next(iter(inputs.values())))
         missing = [c for c in model.inputs if c not in inputs]
         if missing:
-            raise KeyError(f"run lacks input column(s) {', '.join(missing)} needed by model {model.name}")
+            raise MissingInputError(f"run lacks input column(s) {', '.join(missing)} needed by model {model.name}",
+                                    tuple(missing))
         env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
         steps = max(N - 1, 1)
         if net.matrix_inputs:

@@ -83,9 +83,15 @@ class TickOutput:
                 "TE_T_Magnet": temp(mg, False), "TE_T_MagnetUpper": temp(mg, True)}
 
     def forecast_signals(self) -> dict[str, float]:
-        """``TE_Forecast``: time to limit (s), look-ahead current (A rms), horizon (s)."""
+        """``TE_Forecast``: time to limit (s), look-ahead current (A rms), horizon (s).
+
+        Until the model is initialised the look-ahead current is 0 A: nothing is known to be
+        holdable yet, and an unknown value would saturate to the signal's top (3276.75 A), which a
+        controller reads as a current it may hold for the whole horizon.
+        """
+        lookahead = _finite_or(self.lookahead_a, math.inf) if self.initialized else 0.0
         return {"TE_TimeToLimit": _finite_or(self.time_to_limit_s, math.inf),
-                "TE_LookaheadCurrent": _finite_or(self.lookahead_a, math.inf), "TE_Horizon": self.horizon_s}
+                "TE_LookaheadCurrent": lookahead, "TE_Horizon": self.horizon_s}
 
     def status_signals(self) -> dict[str, float]:
         """``TE_Status``: state, RMS prediction error (K; 0 while it means nothing, the range's top

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bus.logs import FrameLogReader
+from ..bus.logs import FrameLogReader, LogFormatError
 from ..bus.stats import DROP_REASONS
 from ..config import ClockConfig, EdgeConfig, MetricsConfig
 from ..lptn import Model
@@ -132,7 +132,8 @@ def replay_log(path: str | os.PathLike[str], config_path: str | os.PathLike[str]
     :class:`TickOutput`.
 
     Raises ``thermal_edge.config.ConfigError``, ``FileNotFoundError`` or
-    ``thermal_edge.bus.LogFormatError`` with one-line messages.
+    ``thermal_edge.bus.LogFormatError`` with one-line messages (the last also for a log without
+    one tick).
     """
     from ..config import ModelConfig, load_config
 
@@ -142,7 +143,15 @@ def replay_log(path: str | os.PathLike[str], config_path: str | os.PathLike[str]
     if sets:
         cfg = replace(cfg, model=ModelConfig(cfg.model.path, {**cfg.model.parameters, **sets}))
     model = load_service_model(cfg)
-    return replay_candump(path, cfg, model=model, keep_outputs=keep_outputs), model
+    res = replay_candump(path, cfg, model=model, keep_outputs=keep_outputs)
+    if not res.frames:  # nothing of the drive's CAN matrix: the wrong log, not a short one
+        other = int(res.frame_stats.get("unknown_id", 0))
+        raise LogFormatError(f"{path}: no frame of the drive's CAN matrix ({other} frame(s) with other identifiers, "
+                             f"{res.malformed_lines} malformed line(s)): not a CAN log of this drive, or an empty one")
+    if not len(res.t):  # nothing to report but zeros: refused as a log too short, not printed as a result
+        raise LogFormatError(f"{path}: {res.frames} frame(s) of the drive's CAN matrix but not one tick (a tick needs "
+                             f"frames on both sides of a {cfg.clock.tick_s:g} s boundary): too short to replay")
+    return res, model
 
 
 def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[str],

@@ -35,6 +35,7 @@ from prometheus_client import CollectorRegistry
 from ..bus.busconfig import create_bus as bus_factory
 from ..bus.codec import DecodedFrame
 from ..bus.frames import TE_ESTIMATES, TE_FORECAST, TE_LIMITS, TE_STATUS, DerateReason, TeState
+from ..bus.stats import DropReport
 from ..bus.transport import CanTransport
 from ..config import EdgeConfig
 from ..lptn import Model
@@ -121,6 +122,7 @@ class EdgeService:
         self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
                                       bus_factory=bus_factory_fn)
         self.metrics.attach(self.engine, self.codec, self.transport.stats, self.store)
+        self._drop_report = DropReport(self.codec.stats)
         self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
                                    "Wall time minus clock time of the last frame (frame clock; large = behind)"))
         self.serve_metrics = serve_metrics
@@ -291,6 +293,9 @@ class EdgeService:
                     log.error("adaptation %d did not finish within %.0f s: dropped", rid, ADAPT_WAIT_TIMEOUT_S)
             out = self.engine.tick(t)
             self._last_tick_mono = time.monotonic()
+            dropped = self._drop_report.due(self._last_tick_mono)
+            if dropped is not None:  # bad frames are seen in the journal too, not only in the metrics
+                log.warning("%s", dropped)
             self.metrics.observe_tick(out, lateness)
             if lateness is not None:
                 self.max_lateness_s = max(self.max_lateness_s, lateness)

@@ -31,6 +31,16 @@ class CycleError(ThermalEdgeError, ValueError):
     """An invalid cycle file; the message names the file and the key."""
 
 
+#: Samples a cycle may be turned into: 116 days at 1 s, about 1 GB of input columns; beyond it a
+#: ``dt_s`` or a duration typed in ms is the usual cause.
+MAX_SAMPLES = 10_000_000
+
+
+def samples(duration_s: float, dt_s: float) -> int:
+    """Samples of a run of ``duration_s`` at ``dt_s`` (both ends)."""
+    return int(round(duration_s / dt_s)) + 1
+
+
 @dataclass(frozen=True)
 class Segment:
     """One segment: its duration, its values (:data:`FIELDS` -> speed rpm, torque Nm, ambient and
@@ -62,8 +72,8 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
         raise CycleError(f"{f}: (top): expected a mapping")
 
     def num(key: str, v: Any, positive: bool = False) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise CycleError(f"{f}: {key}: expected a number, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise CycleError(f"{f}: {key}: expected a finite number, got {v!r}")
         if positive and not v > 0:
             raise CycleError(f"{f}: {key}: must be positive, got {v}")
         return float(v)
@@ -88,6 +98,10 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
         segs.append(Segment(num(f"{key}.duration_s", s["duration_s"], positive=True), values,
                             num(f"{key}.ramp_s", s.get("ramp_s", 0.0))))
     repeat = int(num("repeat", raw.get("repeat", 1), positive=True))
+    n = samples(sum(s.duration_s for s in segs) * repeat, dt)
+    if n > MAX_SAMPLES:
+        raise CycleError(f"{f}: dt_s: {dt:g} s steps over the cycle's {sum(s.duration_s for s in segs) * repeat:g} s are "
+                         f"{n:.3g} samples, more than {MAX_SAMPLES:.0e} (dt_s and duration_s are in seconds)")
     return Cycle(str(raw.get("name", path.stem)), dt, tuple(segs) * repeat, str(raw.get("description", "")))
 
 
@@ -100,10 +114,18 @@ def cycle_run(cycle: Cycle, kt_nm_per_arms: float, duration_s: float | None = No
     kt_nm_per_arms : float
         Torque constant, Nm per RMS ampere.
     duration_s : float, optional
-        Truncate (or repeat the cycle up to) this duration.
+        Truncate (or repeat the cycle up to) this duration, s.
+
+    Raises
+    ------
+    CycleError
+        More than :data:`MAX_SAMPLES` samples.
     """
     total = cycle.duration_s if duration_s is None else duration_s
-    n = int(round(total / cycle.dt_s)) + 1
+    n = samples(total, cycle.dt_s)
+    if n > MAX_SAMPLES:
+        raise CycleError(f"--duration {total:g} s: cycle {cycle.name} at its {cycle.dt_s:g} s steps gives {n:.3g} samples, "
+                         f"more than {MAX_SAMPLES:.0e} (--duration is in seconds)")
     t = np.arange(n) * cycle.dt_s
     bounds = np.cumsum([0.0] + [s.duration_s for s in cycle.segments])
     cols = {k: np.empty(n) for k in FIELDS}
