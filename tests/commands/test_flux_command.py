@@ -84,3 +84,45 @@ def test_score_of_a_file_that_is_not_a_flux_model(tmp_path):
     (tmp_path / "h.json").write_text('{"params": 3}')  # wrong types: the same one line, no traceback
     r = te_here("flux", "score", tmp_path / "h.json", tmp_path / "use.csv")
     assert r.returncode == 2 and "not a file written by flux calibrate" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_simulate_with_voltages_feeds_flux_calibrate(tmp_path):
+    """``simulate --voltages`` writes what a test bench with a rotor telemetry records: the dq
+    voltages of the simulated machine's electrical side and the magnet's true temperature as ``pm``;
+    ``flux calibrate`` on it gives back the electrical side's flux linkage and its slope."""
+    from thermal_edge.lptn import NodeRole, load_model
+    from thermal_edge.shipped import config_path
+    from thermal_edge.sim.pmsm import Pmsm
+
+    run, nodes = tmp_path / "bench.csv", tmp_path / "nodes.csv"
+    for out, extra in ((run, ()), (nodes, ("--all-nodes",))):
+        r = te_here("simulate", "--model", "pm10kw", "--cycle", "commissioning", "--duration", 5400, "--voltages",
+                    "--out", out, *extra)
+        assert r.returncode == 0, r.stderr
+    import csv
+
+    def columns(path: Path) -> dict[str, np.ndarray]:
+        rows = list(csv.reader(line for line in path.read_text().splitlines() if not line.startswith("#")))
+        return {k: np.array([float(r[i]) for r in rows[1:]]) for i, k in enumerate(rows[0])}
+
+    c, full = columns(run), columns(nodes)
+    assert {"u_d_v", "u_q_v", "pm", "i_d", "i_q"} <= set(c) and not any(k.startswith("T_") for k in c)
+    model = load_model(config_path("machines", "pm10kw.yaml"))
+    magnets = [n for n, role in model.node_roles.items() if role is NodeRole.MAGNET]
+    np.testing.assert_allclose(c["pm"], np.mean([full[f"T_{n}"] for n in magnets], axis=0), rtol=1e-5, atol=1e-4)
+    out = tmp_path / "flux.json"
+    r = te_here("flux", "calibrate", run, "--pole-pairs", Pmsm().pole_pairs, "--winding-column", "slot_winding",
+                "--out", out)
+    assert r.returncode == 0, r.stderr
+    got = json.loads(out.read_text())["params"]
+    pm = Pmsm()
+    assert got["psi20"] == pytest.approx(pm.psi(20.0), rel=0.03)
+    assert got["beta"] == pytest.approx(pm.psi(21.0) - pm.psi(20.0), rel=0.15)
+
+
+def test_simulate_voltages_is_for_a_run_csv(tmp_path):
+    r = te_here("simulate", "--model", "pm10kw", "--cycle", "commissioning", "--voltages", "--format", "can",
+                "--out", tmp_path / "x.log")
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
+        "--voltages: for a run CSV; a CAN log's voltage frames come from the emulator "
+        "(python -m thermal_edge.sim.inverter --voltages)")

@@ -15,11 +15,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import write_run
+from ..data import Run, write_run
 from ..discovery import effects as E
 from ..discovery import hidden
 from ..errors import UsageError
-from ..sim.cycles import cycle_run, load_cycle, samples
+from ..lptn import DEFAULT_COLUMNS, Model, NodeRole, Role
+from ..sim.cycles import SPEED, cycle_run, load_cycle, samples
 from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
 from .common import add_model_args, add_set_arg, parse_sets
@@ -81,6 +82,10 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--seed", type=integer(0), default=0)
     add_simulate_args(p)
     p.add_argument("--all-nodes", action="store_true", help="also write every node's true temperature (T_<node>)")
+    p.add_argument("--voltages", action="store_true",
+                   help="also write the inverter's dq voltage references (u_d_v, u_q_v; V peak) from the simulated "
+                        "machine's electrical side at the plant's true winding and magnet temperatures, and the magnet's "
+                        "true temperature as pm (a test bench's rotor telemetry): a run for thermal-edge flux calibrate")
     p.set_defaults(func=run)
 
 
@@ -89,6 +94,9 @@ def run(args: argparse.Namespace) -> int:
         return simulate_fleet(args)
     if Path(args.out).is_dir():
         raise UsageError(f"--out {args.out}: a directory; give a file name (a directory is written with --fleet only)")
+    if args.voltages and args.format in ("can", "candump"):
+        raise UsageError("--voltages: for a run CSV; a CAN log's voltage frames come from the emulator "
+                         "(python -m thermal_edge.sim.inverter --voltages)")
     if args.format in ("can", "candump"):
         return run_can_log(args)
     if Path(args.out).suffix.lower() != ".csv":  # what is written is a run CSV, whatever the name says
@@ -135,8 +143,10 @@ def run(args: argparse.Namespace) -> int:
         print(desc)
     with np.errstate(over="ignore", invalid="ignore"):  # refused below, by node and sample
         res = simulate_plant(plant, inputs, parse_sets(model, args.set), noise_k=args.noise, resolution_k=args.resolution,
-                             seed=args.seed, all_nodes=args.all_nodes)
+                             seed=args.seed, all_nodes=args.all_nodes or args.voltages)
     require_finite(plant, inputs, res.truth.T, "the simulated plant" + (" (with --effect)" if args.effect else ""))
+    if args.voltages:
+        add_voltages(plant, res.run, args.seed, keep_nodes=args.all_nodes)
     write_run(args.out, res.run, comment=comment)
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
     print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; peak " +
@@ -164,3 +174,28 @@ def run_can_log(args: argparse.Namespace) -> int:
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
     print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s; peak {peaks}")
     return 0
+
+
+def add_voltages(model: Model, run: Run, seed: int, keep_nodes: bool) -> None:
+    """Add ``u_d_v``, ``u_q_v`` (V peak, :class:`~thermal_edge.sim.pmsm.Pmsm`) and ``pm`` (the mean true
+    temperature of the model's magnet nodes, °C) to a simulated ``run`` that has every node's
+    ``T_<node>``; the ``T_`` columns go unless ``keep_nodes``.
+
+    The stator resistance is at the mean true temperature of the winding nodes: the copper the
+    current flows through, not one sensor's reading."""
+    from ..sim.pmsm import Pmsm
+
+    def mean_of(role: NodeRole) -> np.ndarray:
+        names = [n for n, r in model.node_roles.items() if r is role]
+        if not names:
+            raise UsageError(f"--voltages: model {model.name} declares no node with role {role.value}")
+        return np.mean([np.asarray(run.columns[f"T_{n}"], dtype=float) for n in names], axis=0)
+
+    c = run.columns
+    winding, magnet = mean_of(NodeRole.WINDING), mean_of(NodeRole.MAGNET)
+    u_d, u_q = Pmsm().voltages(c[DEFAULT_COLUMNS[Role.CURRENT_D]], c[DEFAULT_COLUMNS[Role.CURRENT_Q]], c[SPEED],
+                               winding, magnet, seed)
+    if not keep_nodes:
+        for k in [k for k in c if k.startswith("T_")]:
+            del c[k]
+    c["u_d_v"], c["u_q_v"], c["pm"] = u_d, u_q, magnet
