@@ -112,7 +112,8 @@ def metrics_ready(text: str, min_ticks: float = 20.0) -> bool:
 
     return (val("thermal_edge_ticks_total") >= min_ticks and val("thermal_edge_frames_received_total") > 0
             and "# TYPE thermal_edge_prediction_error_rms_celsius" in text
-            and "# TYPE thermal_edge_lookahead_current_amperes" in text)
+            and "# TYPE thermal_edge_lookahead_current_amperes" in text
+            and val("thermal_edge_flux_used_total") > 0)  # the voltage input's gauges appear with its first estimate
 
 
 def scrape_demo(timeout: float = 120.0) -> str:
@@ -124,7 +125,9 @@ def scrape_demo(timeout: float = 120.0) -> str:
     for k in ("NOTIFY_SOCKET", "WATCHDOG_USEC"):
         env.pop(k, None)
     state = tempfile.TemporaryDirectory(prefix="gen-docs-demo-")
-    proc = subprocess.Popen([*cmd, "demo", "--metrics-port", str(port), "--quiet", "--speed", "30", "--state-dir", state.name],
+    # with the optional voltage input, so that its metrics are in the table too
+    proc = subprocess.Popen([*cmd, "demo", "--metrics-port", str(port), "--quiet", "--speed", "30", "--voltages",
+                             "--state-dir", state.name],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + timeout

@@ -43,3 +43,28 @@ def test_a_state_directory_given_by_the_user_is_kept(tmp_path):
     assert f"state: {mine}" in r.stdout
     state = json.loads((mine / "state.json").read_text())
     assert state["format"] == "thermal_edge.state"
+
+
+def test_demo_voltages_uses_the_configurations_calibration_and_says_which(tmp_path):
+    """``demo --voltages`` commissions on a simulated bench run only when the configuration has no
+    ``flux.calibration``; a user's own is used as it is, and the demo says which it runs."""
+    import yaml
+
+    r = _demo(tmp_path, "--voltages")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "voltages: commissioned on a simulated bench run of the plant" in r.stdout, r.stdout[-2000:]
+    assert list(tmp_path.iterdir()) == []  # its commissioning file went with it
+
+    from thermal_edge.bench.protection import flux_calibration
+    from thermal_edge.lptn import load_model
+    from thermal_edge.shipped import config_path, example_config
+
+    mine = flux_calibration(load_model(config_path("machines", "pm10kw.yaml")), tmp_path / "mine.json")
+    raw = yaml.safe_load(example_config())
+    raw["flux"] = {**raw["flux"], "calibration": str(mine)}
+    cfg = tmp_path / "edge.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    r = _demo(tmp_path, "--voltages", "--config", str(cfg))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert f"voltages: the calibration of edge.yaml, {mine}" in r.stdout, r.stdout[-2000:]
+    assert mine.exists()

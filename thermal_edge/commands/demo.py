@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         ".mf4, .csv)")
     p.add_argument("--voltages", action="store_true",
                    help="the inverter also sends INV_Voltages and the service fuses the magnet estimate from them "
-                        "(flux:, commissioned first on a simulated bench run)")
+                        "(the configuration's flux.calibration, else one commissioned first on a simulated bench run)")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
 
@@ -102,12 +102,20 @@ def run(args: argparse.Namespace) -> int:
     config = config_from_mapping(raw, cfg_path)  # the model as the service finds it (a file or a packaged name)
     plant_model = load_model(config.model.path)
     flux_dir: Path | None = None
+    voltages = ""
     if args.voltages:
-        from ..bench.protection import flux_calibration
+        given = (raw.get("flux") or {}).get("calibration")
+        if given:  # the user's own commissioning: used as it is, and said so
+            voltages = f"voltages: the calibration of {config.fname}, {config.flux.calibration}"
+            raw["flux"] = {**raw["flux"], "timeout_s": max(float(raw["flux"].get("timeout_s", 0.5)), 5 * args.current_period)}
+        else:
+            from ..bench.protection import flux_calibration
 
-        flux_dir = Path(tempfile.mkdtemp(prefix="thermal-edge-demo-flux-"))  # removed at the end
-        raw["flux"] = {**(raw.get("flux") or {}), "calibration": str(flux_calibration(plant_model, flux_dir / "flux.json")),
-                       "timeout_s": max(float((raw.get("flux") or {}).get("timeout_s", 0.5)), 5 * args.current_period)}
+            flux_dir = Path(tempfile.mkdtemp(prefix="thermal-edge-demo-flux-"))  # removed at the end
+            path = flux_calibration(plant_model, flux_dir / "flux.json")
+            voltages = "voltages: commissioned on a simulated bench run of the plant (thermal-edge flux calibrate)"
+            raw["flux"] = {**(raw.get("flux") or {}), "calibration": str(path),
+                           "timeout_s": max(float((raw.get("flux") or {}).get("timeout_s", 0.5)), 5 * args.current_period)}
         config = config_from_mapping(raw, cfg_path)
     if args.table4:
         raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
@@ -139,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"metrics: not served (port {args.metrics_port} busy?)   state: {state_dir}", flush=True)
         print(f"{'model ' + ('off by Table 4' if args.table4 else 'at the plant')}, cycle {Path(args.cycle).stem}, "
               f"{args.speed:g}x, {'open' if args.open_loop else 'closed'} loop; Ctrl-C stops", flush=True)
+        if voltages:
+            print(voltages, flush=True)
 
         async def status() -> None:
             hs_node = next((lim.node for lim in plant_model.limits if lim.name == config.transmit.hot_spot_limit), None)
