@@ -120,9 +120,28 @@ def test_simulate_with_voltages_feeds_flux_calibrate(tmp_path):
     assert got["beta"] == pytest.approx(pm.psi(21.0) - pm.psi(20.0), rel=0.15)
 
 
-def test_simulate_voltages_is_for_a_run_csv(tmp_path):
-    r = te_here("simulate", "--model", "pm10kw", "--cycle", "commissioning", "--voltages", "--format", "can",
-                "--out", tmp_path / "x.log")
-    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
-        "--voltages: for a run CSV; a CAN log's voltage frames come from the emulator "
-        "(python -m thermal_edge.sim.inverter --voltages)")
+def test_a_can_log_with_voltages_exports_them_per_tick(tmp_path):
+    """``simulate --format can --voltages`` logs INV_Voltages beside the other frames; ``export``
+    writes the dq voltages and currents per tick (what flux calibrate reads). Their mean over the
+    run against the frames decoded independently with cantools."""
+    import cantools
+
+    from thermal_edge.bus import DEFAULT_DBC_PATH
+
+    log = tmp_path / "drive.log"
+    r = te_here("simulate", "--model", "pm10kw", "--cycle", "commissioning", "--duration", 600, "--voltages",
+                "--format", "can", "--out", log)
+    assert r.returncode == 0, r.stderr
+    r = te_here("export", log, "--out", tmp_path / "run.csv")
+    assert r.returncode == 0, r.stderr
+    rows = [ln.split(",") for ln in (tmp_path / "run.csv").read_text().splitlines() if not ln.startswith("#")]
+    cols = {k: np.array([float(x[i]) for x in rows[1:]]) for i, k in enumerate(rows[0])}
+    assert {"u_d_v", "u_q_v", "i_d", "i_q"} <= set(cols) and np.all(np.isfinite(cols["u_q_v"]))
+    db = cantools.database.load_file(str(DEFAULT_DBC_PATH))
+    msg = db.get_message_by_name("INV_Voltages")
+    uq = [db.decode_message(msg.frame_id, bytes.fromhex(ln.split("#")[1].split()[0]))["INV_Uq"]
+          for ln in log.read_text().splitlines() if f" {msg.frame_id:03X}#" in ln]
+    assert len(uq) > 0.9 * 600 * 100  # one per 10 ms
+    assert float(np.mean(cols["u_q_v"])) == pytest.approx(float(np.mean(uq)), rel=0.01)
+
+

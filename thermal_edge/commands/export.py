@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     if not out.parent.is_dir():
         raise UsageError(f"--out {args.out}: no such directory {str(out.parent)!r}")
     config = load_config(args.config)
-    got = log_runs(args.log, config)
+    got = log_runs(args.log, config, voltages=True)  # the dq voltages too where the log has them (flux calibrate)
     print(f"{args.log}: {log_line(got)}", file=sys.stderr)
     for path, r in zip(out_paths(out, len(got.runs)), got.runs):
         epoch = float(r.meta["epoch_s"])

@@ -23,6 +23,7 @@ from ..lptn import DEFAULT_COLUMNS, Model, NodeRole, Role
 from ..sim.cycles import SPEED, cycle_run, load_cycle, samples
 from ..sim.inverter import write_log
 from ..sim.plant import simulate_plant
+from ..sim.pmsm import Pmsm
 from .common import add_model_args, add_set_arg, parse_sets
 from .fleet import add_simulate_args, simulate_fleet
 from .options import MAX_EPOCH_S, frame_period_s, integer, kelvin, number, output_path, positive_s
@@ -85,7 +86,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--voltages", action="store_true",
                    help="also write the inverter's dq voltage references (u_d_v, u_q_v; V peak) from the simulated "
                         "machine's electrical side at the plant's true winding and magnet temperatures, and the magnet's "
-                        "true temperature as pm (a test bench's rotor telemetry): a run for thermal-edge flux calibrate")
+                        "true temperature as pm (a test bench's rotor telemetry): a run for thermal-edge flux calibrate; "
+                        "with --format can the INV_Voltages frames")
     p.set_defaults(func=run)
 
 
@@ -94,9 +96,6 @@ def run(args: argparse.Namespace) -> int:
         return simulate_fleet(args)
     if Path(args.out).is_dir():
         raise UsageError(f"--out {args.out}: a directory; give a file name (a directory is written with --fleet only)")
-    if args.voltages and args.format in ("can", "candump"):
-        raise UsageError("--voltages: for a run CSV; a CAN log's voltage frames come from the emulator "
-                         "(python -m thermal_edge.sim.inverter --voltages)")
     if args.format in ("can", "candump"):
         return run_can_log(args)
     if Path(args.out).suffix.lower() != ".csv":  # what is written is a run CSV, whatever the name says
@@ -170,7 +169,7 @@ def run_can_log(args: argparse.Namespace) -> int:
         st = write_log(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
                        noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
                        current_period_s=args.current_period, temperature_period_s=args.temperature_period,
-                       progress=progress)
+                       progress=progress, pmsm=Pmsm() if args.voltages else None)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
     print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s; peak {peaks}")
     return 0
@@ -183,8 +182,6 @@ def add_voltages(model: Model, run: Run, seed: int, keep_nodes: bool) -> None:
 
     The stator resistance is at the mean true temperature of the winding nodes: the copper the
     current flows through, not one sensor's reading."""
-    from ..sim.pmsm import Pmsm
-
     def mean_of(role: NodeRole) -> np.ndarray:
         names = [n for n, r in model.node_roles.items() if r is role]
         if not names:

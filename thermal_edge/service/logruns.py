@@ -26,6 +26,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,9 +85,43 @@ def _input_roles(model_path: str, mtime_ns: int) -> dict[str, Role]:
     return dict(load_model(model_path).input_roles)
 
 
-def _run(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int) -> tuple[Run | None, int]:
+#: the columns of the dq voltages and currents (``voltages=True``), as ``thermal-edge flux calibrate`` reads them
+VOLTAGE_COLUMNS = ("u_d_v", "u_q_v", Role.CURRENT_D.default_column, Role.CURRENT_Q.default_column)
+
+
+class _DqMeans:
+    """Per tick, the mean of the dq voltage references and currents the configuration's ``flux:``
+    names (its frames and signals, whether or not the input is on): NaN where a tick had none."""
+
+    def __init__(self, config: EdgeConfig) -> None:
+        fx = config.flux
+        self.sources = ((0, fx.frame, (fx.voltage_d, fx.voltage_q)), (2, fx.currents_frame, (fx.current_d, fx.current_q)))
+        self.sums, self.n = np.zeros(4), np.zeros(4, dtype=int)
+        self.seen = False  # a voltage frame at all
+
+    def add(self, frame: Any) -> None:
+        for first, name, signals in self.sources:
+            if frame.name == name:
+                try:
+                    vals = [float(frame.signals[s]) for s in signals]
+                except (KeyError, TypeError, ValueError):
+                    continue
+                if all(math.isfinite(v) for v in vals):
+                    self.sums[first:first + 2] += vals
+                    self.n[first:first + 2] += 1
+                    self.seen |= first == 0
+
+    def take(self) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = np.where(self.n > 0, self.sums / np.maximum(self.n, 1), np.nan)
+        self.sums[:], self.n[:] = 0.0, 0
+        return out
+
+
+def _run(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int,
+         dq: list[np.ndarray] | None = None) -> tuple[Run | None, int]:
     """The run of one stretch of ticks (None if it has fewer than two complete ticks) and the
-    number of its ticks left out."""
+    number of its ticks left out; with ``dq`` (per tick, :class:`_DqMeans`) the voltage columns too."""
     first = next((i for i, tk in enumerate(ticks) if tk.complete), None)
     if first is None or len(ticks) - first < 2:
         return None, len(ticks)
@@ -94,11 +129,14 @@ def _run(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int) ->
     t_abs = np.array([tk.t for tk in kept])
     cols = {name: np.array([tk.inputs[name] for tk in kept]) for name in config.inputs}
     cols.update({name: np.array([tk.measured[name] for tk in kept]) for name in config.sensors})
+    if dq is not None:
+        table = np.array(dq[first:]).reshape(-1, 4)
+        cols.update({name: table[:, k] for k, name in enumerate(VOLTAGE_COLUMNS) if name not in cols or k < 2})
     run = Run(t_abs - t_abs[0], cols, f"{source}#{part}" if part else source, {"epoch_s": f"{t_abs[0]:.6f}"})
     return run, first
 
 
-def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
+def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = False) -> LogRuns:
     """Read a CAN log into runs through the service's codec, frame clock and input accumulation.
 
     Parameters
@@ -108,6 +146,9 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     config : EdgeConfig
         The service configuration whose ``codec:``, ``signals:``, ``timeouts:`` and ``clock:``
         (tick period, ``max_catchup_s``) are used; its model gives the inputs' roles.
+    voltages : bool
+        Also the per-tick means of the dq voltage references and currents (:data:`VOLTAGE_COLUMNS`,
+        V and A peak) from the frames and signals ``flux:`` names, when the log holds such frames.
 
     Returns
     -------
@@ -135,10 +176,11 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
     out = LogRuns([], 0)
     ticks: list[TickInputs] = []
     acc, clock = InputAccumulator(config, roles), FrameClock(tick_s, catchup)
+    dq_means, dq = _DqMeans(config), []
     last = -math.inf
 
     def close_stretch() -> None:
-        run, left_out = _run(ticks, config, source, len(out.runs))
+        run, left_out = _run(ticks, config, source, len(out.runs), dq if voltages and dq_means.seen else None)
         out.ticks_left_out += left_out
         if run is not None:
             out.runs.append(run)
@@ -154,9 +196,15 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> LogRuns:
             if ts - last > silence and ticks:
                 close_stretch()
                 ticks, acc, clock = [], InputAccumulator(config, roles), FrameClock(tick_s, catchup)
+                dq_means.take()
+                dq = []
             last = max(last, ts)
-            ticks += [acc.take(b) for b in clock.observe(ts)]
+            for b in clock.observe(ts):
+                ticks.append(acc.take(b))
+                dq.append(dq_means.take())
             acc.add(frame, clock.now())
+            if voltages:
+                dq_means.add(frame)
             out.frames += 1
     except LogFormatError as exc:
         raise RunError(str(exc)) from None
