@@ -176,7 +176,8 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     out = LogRuns([], 0)
     ticks: list[TickInputs] = []
     acc, clock = InputAccumulator(config, roles), FrameClock(tick_s, catchup)
-    dq_means, dq = _DqMeans(config), []
+    dq_means = _DqMeans(config)
+    dq: list[np.ndarray] = []
     last = -math.inf
 
     def close_stretch() -> None:
