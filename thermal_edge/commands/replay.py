@@ -168,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"{model.name} on {args.run}: {len(rec)} samples, online adaptation from {', '.join(out['adapted_from'])}")
     print("mse: the online trace (each period predicted open loop from the observer's state); fixed: the same, "
-          "parameters never changed; observer: its live estimate; coverage: readings inside its 95 % band")
+          "parameters never changed; observer: its live estimate; coverage: readings inside its 95 % band (the node "
+          "temperature's band: a reading's own noise is not in it, so a measured sensor's coverage can be below 0.95)")
     print(f"{'target':<18}{'seen':>5}{'mse K²':>9}{'fixed K²':>10}{'observer K²':>13}{'coverage':>10}")
     for s, v in rep["targets"].items():
         print(f"{s:<18}{'yes' if v['seen'] else 'no':>5}{v['mse']:>9.3f}{v['fixed_mse']:>10.3f}"
