@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..bus.codec import DecodedFrame
-from ..config import EdgeConfig
+from ..config import EdgeConfig, FluxConfig
 from ..estimation.flux import Electrical, FluxError, FluxModel, steady
 from ..estimation.observer import Observer
 from ..lptn import Model
@@ -85,6 +85,48 @@ class FluxTick:
     sigma_k: float = math.inf
 
 
+class DqMeans:
+    """Per tick, the means of the dq voltage references and currents from the frames and signals
+    ``flux:`` names (voltages and currents in one frame or in two); NaN where a tick had none.
+
+    Parameters
+    ----------
+    config : FluxConfig
+        ``flux:`` (read whether or not the input is on: a CAN log is exported with it).
+    """
+
+    def __init__(self, config: FluxConfig) -> None:
+        self.sources = ((0, config.frame, (config.voltage_d, config.voltage_q)),
+                        (2, config.currents_frame, (config.current_d, config.current_q)))
+        self.sums, self.n = np.zeros(4), np.zeros(4, dtype=int)  # u_d, u_q, i_d, i_q over the tick
+        self.seen = False  # a voltage frame at all
+
+    def add(self, frame: DecodedFrame) -> bool:
+        """Accumulate an accepted frame (others are ignored); True if it carried the voltages. Never raises."""
+        voltages = False
+        for first, name, signals in self.sources:
+            if frame.name != name:
+                continue
+            try:
+                vals = [float(frame.signals[n]) for n in signals]
+            except (KeyError, TypeError, ValueError):
+                continue
+            if not all(math.isfinite(v) for v in vals):
+                continue
+            self.sums[first:first + 2] += vals
+            self.n[first:first + 2] += 1
+            voltages |= first == 0
+        self.seen |= voltages
+        return voltages
+
+    def take(self) -> np.ndarray:
+        """The tick's means (u_d, u_q in V, i_d, i_q in A, peak; NaN: no frame); the sums restart."""
+        out = np.full(4, np.nan)
+        np.divide(self.sums, self.n, out=out, where=self.n > 0)
+        self.sums[:], self.n[:] = 0.0, 0
+        return out
+
+
 class FluxInput:
     """Voltages and currents per tick, and the fusion of their magnet estimate into the observer.
 
@@ -116,8 +158,7 @@ class FluxInput:
         self.magnet_rows = [model.node_index(n) for n in magnets]
         # errors correlated over tau_s are one measurement per that many ticks (estimation.fusion)
         self.inflate = max(1.0, flux.tau_s / self.dt)
-        self._sum = np.zeros(4)  # u_d, u_q, i_d, i_q over the tick
-        self._n = np.zeros(4, dtype=int)
+        self._dq = DqMeans(fx)
         self._last_u_t = -math.inf
         self._prev_speed: float | None = None
         #: ticks per outcome (:data:`OUTCOMES`)
@@ -131,26 +172,12 @@ class FluxInput:
     def add(self, frame: DecodedFrame, t: float) -> None:
         """Accumulate an accepted frame (clock time ``t``); other frames are ignored; never raises.
         The voltages and the currents may come in one frame or in two."""
-        fx = self.config
-        for first, frame_name, names in ((0, fx.frame, (fx.voltage_d, fx.voltage_q)),
-                                         (2, fx.currents_frame, (fx.current_d, fx.current_q))):
-            if frame.name != frame_name:
-                continue
-            try:
-                vals = [float(frame.signals[n]) for n in names]
-            except (KeyError, TypeError, ValueError):
-                continue
-            if not all(math.isfinite(v) for v in vals):
-                continue
-            self._sum[first:first + 2] += vals
-            self._n[first:first + 2] += 1
-            if first == 0:
-                self._last_u_t = t
+        if self._dq.add(frame):
+            self._last_u_t = t
 
     def reset(self) -> None:
         """Forget the tick's sums and the last speed (after a gap in the frames)."""
-        self._sum[:] = 0.0
-        self._n[:] = 0
+        self._dq.take()
         self._prev_speed = None
 
     # -- the tick -----------------------------------------------------------------------------------
@@ -158,9 +185,7 @@ class FluxInput:
         """The tick ending at ``t``: its estimate, fused into ``observer`` where it is informative
         and agrees with the model; the sums restart. With no observer (no state yet) nothing is
         fused or counted (None)."""
-        sums, n = self._sum.copy(), self._n.copy()
-        self._sum[:] = 0.0
-        self._n[:] = 0
+        means = self._dq.take()
         prev, self._prev_speed = self._prev_speed, speed_rpm
         if observer is None:  # no state yet: nothing to fuse into, nothing counted
             return None
@@ -171,10 +196,10 @@ class FluxInput:
             return self._done(FluxTick("low_speed"))
         if prev is None or not bool(steady(np.array([prev, speed_rpm]))[1]):
             return self._done(FluxTick("transient"))
-        if n[0] == 0 or n[2] == 0 or t - self._last_u_t > self.config.timeout_s:
+        if math.isnan(means[0]) or math.isnan(means[2]) or t - self._last_u_t > self.config.timeout_s:
             return self._done(FluxTick("stale"), f"no voltage frame {self.config.frame} within "
                               f"{self.config.timeout_s:g} s at {speed_rpm:.0f} rpm")
-        u_d, u_q, i_d, i_q = sums / n
+        u_d, u_q, i_d, i_q = (float(v) for v in means)
         winding_c = float(observer.T[self.winding_row])
         e = Electrical(*(np.array([v]) for v in (u_d, u_q, i_d, i_q, speed_rpm, winding_c)))
         T, sig, ok = fm.estimate(e)

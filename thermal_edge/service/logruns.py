@@ -26,7 +26,6 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -35,6 +34,7 @@ from ..config import EdgeConfig
 from ..data import Run, RunError
 from ..lptn import Role, load_model
 from .clock import FrameClock
+from .flux_input import DqMeans
 from .inputs import InputAccumulator, TickInputs
 
 __all__ = ["CAN_LOG_SUFFIXES", "LogRuns", "is_can_log", "log_runs", "read_log_runs"]
@@ -89,39 +89,10 @@ def _input_roles(model_path: str, mtime_ns: int) -> dict[str, Role]:
 VOLTAGE_COLUMNS = ("u_d_v", "u_q_v", Role.CURRENT_D.default_column, Role.CURRENT_Q.default_column)
 
 
-class _DqMeans:
-    """Per tick, the mean of the dq voltage references and currents the configuration's ``flux:``
-    names (its frames and signals, whether or not the input is on): NaN where a tick had none."""
-
-    def __init__(self, config: EdgeConfig) -> None:
-        fx = config.flux
-        self.sources = ((0, fx.frame, (fx.voltage_d, fx.voltage_q)), (2, fx.currents_frame, (fx.current_d, fx.current_q)))
-        self.sums, self.n = np.zeros(4), np.zeros(4, dtype=int)
-        self.seen = False  # a voltage frame at all
-
-    def add(self, frame: Any) -> None:
-        for first, name, signals in self.sources:
-            if frame.name == name:
-                try:
-                    vals = [float(frame.signals[s]) for s in signals]
-                except (KeyError, TypeError, ValueError):
-                    continue
-                if all(math.isfinite(v) for v in vals):
-                    self.sums[first:first + 2] += vals
-                    self.n[first:first + 2] += 1
-                    self.seen |= first == 0
-
-    def take(self) -> np.ndarray:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out = np.where(self.n > 0, self.sums / np.maximum(self.n, 1), np.nan)
-        self.sums[:], self.n[:] = 0.0, 0
-        return out
-
-
 def _run(ticks: list[TickInputs], config: EdgeConfig, source: str, part: int,
          dq: list[np.ndarray] | None = None) -> tuple[Run | None, int]:
     """The run of one stretch of ticks (None if it has fewer than two complete ticks) and the
-    number of its ticks left out; with ``dq`` (per tick, :class:`_DqMeans`) the voltage columns too."""
+    number of its ticks left out; with ``dq`` (per tick, :class:`.flux_input.DqMeans`) the voltage columns too."""
     first = next((i for i, tk in enumerate(ticks) if tk.complete), None)
     if first is None or len(ticks) - first < 2:
         return None, len(ticks)
@@ -176,7 +147,7 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     out = LogRuns([], 0)
     ticks: list[TickInputs] = []
     acc, clock = InputAccumulator(config, roles), FrameClock(tick_s, catchup)
-    dq_means = _DqMeans(config)
+    dq_means = DqMeans(config.flux)
     dq: list[np.ndarray] = []
     last = -math.inf
 
