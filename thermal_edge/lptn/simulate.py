@@ -298,5 +298,6 @@ class Simulator:
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
-                             loss_nodes=self.tv, slopes=slopes, prepared=prepared)
+                             loss_nodes=self.tv, slopes=slopes, prepared=prepared,
+                             loss_wrt=self.losses.depends_on(widx))
         return sens.run(held_spans, spans, rows)
