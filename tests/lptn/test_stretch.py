@@ -199,8 +199,8 @@ def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
     seen = []
     real = sensitivity.Sensitivities.stretch_forcing
 
-    def spy(self, o, T, w, dP, Lp=None):
-        X = real(self, o, T, w, dP, Lp)
+    def spy(self, o, T, w, dP, Lp=None, out=None):
+        X = real(self, o, T, w, dP, Lp, out)
         seen.append((self, o, T, w, dP, Lp, X.copy()))  # X is scratch memory, reused by the next stretch
         return X
 

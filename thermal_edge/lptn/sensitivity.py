@@ -34,6 +34,7 @@ import numpy as np
 
 from .discretise import DiscreteDerivatives
 from .expr import Value
+from .scratch import Scratch
 from .stretch import RANK_TOL, NodeStretch, padded_length
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
@@ -113,6 +114,7 @@ class Sensitivities:
                  loss_wrt: bool = True) -> None:
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
         self.slopes, self.prepared, self.loss_wrt = slopes, dict(prepared or {}), loss_wrt
+        self.scratch = Scratch()  # the stretches' large temporaries, reused from one to the next
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
@@ -209,18 +211,19 @@ class Sensitivities:
             ns = NodeStretch(V, Vi, d.mu[o], d.Gam[o][:, self.nb:], self.loss_nodes, self.slopes[a:b])
         w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
         dP = self.loss_theta(np.arange(a, b), self.T[a:b]) if self.loss_wrt else None
-        X = self.stretch_forcing(o, self.T[a:b], w, dP, padded_length(b - a))
-        rows, end = ns.solve(X, s, keep)
+        Lp = padded_length(b - a)
+        X = self.stretch_forcing(o, self.T[a:b], w, dP, Lp, out=self.scratch.get("forcing", (self.n, self.p, Lp)))
+        rows, end = ns.solve(X, s, keep, self.scratch)
         out[:] = rows.transpose(2, 0, 1)
         return end
 
     def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray | None,
-                        Lp: int | None = None) -> np.ndarray:
+                        Lp: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i + Γ_P ∂P/∂θ_j)`` as (n, p, Lp) (time last, for
         :meth:`~thermal_edge.lptn.stretch.Stretch.solve`; zero past the ``B`` steps, ``Lp ≥ B``,
         default ``B``) for temperatures ``T`` (B, n), inputs ``w`` (B, m) of ``Γ`` and the
         losses' derivatives ``dP`` (B, nl, p) at operating point ``o`` (None: no loss law
-        depends on a parameter asked for).
+        depends on a parameter asked for). ``out`` (n, p, Lp), optional, receives it.
 
         One product of ``[dPhit_j | V⁻¹ dΓ_j]`` stacked mode-major
         (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.joined`) with ``[V⁻¹ T; w]``,
@@ -240,7 +243,7 @@ class Sensitivities:
         xi = np.zeros((n + r, Lp))
         np.matmul(Vi, T.T, out=xi[:n, :B])
         xi[n:, :B] = (Ub[:, :r] * sv[:r]).T
-        X = (Jr @ xi).reshape(n, p, Lp)
+        X = np.matmul(Jr, xi, out=None if out is None else out.reshape(n * p, Lp)).reshape(n, p, Lp)
         if dP is not None:
             live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters
             if len(live):

@@ -34,6 +34,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
+from .scratch import Scratch
+
 #: shortest stretch of one operating point run vectorised (its set-up costs about this many steps)
 MIN_STRETCH = 32
 #: steps per block, of the open-loop scan and of the loss nodes' triangular solve alike (the
@@ -115,7 +117,7 @@ def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray) -> np.ndarra
 
 
 def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
-              L: int) -> tuple[np.ndarray, np.ndarray]:
+              L: int, work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`modal_scan` seen through rows: ``R x[1] .. R x[L]`` and ``x[L]``, without the states.
 
     The blocks' responses to their own forcing are computed for every mode (one product per
@@ -134,6 +136,8 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
         The rows wanted.
     L : int
         Steps.
+    work : Scratch, optional
+        Where the blocks' responses go (a new array without).
 
     Returns
     -------
@@ -146,7 +150,8 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
     B = min(BLOCK, Lp)
     nb, nr = Lp // B, R.shape[0]
     pw = powers(mu, B)
-    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
+    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B),  # zero-state response inside each block
+                      out=None if work is None else work.get("scan", (n, c * nb, B)))
     starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
     rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
     Rp = (R[None] * pw.T[1:, None, :]).reshape(B * nr, n)  # R diag(μ^(i+1))
@@ -213,7 +218,8 @@ class Stretch:
         self.Rl = np.ascontiguousarray((pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)
                                        .transpose(1, 0, 2, 3)).reshape(r, BT, n)  # (ρ, (l, b), n)
 
-    def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray,
+              work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The recursion from ``x[0] = x0`` under the forcing ``f``.
 
         Parameters
@@ -224,6 +230,8 @@ class Stretch:
             State at the stretch's first step.
         W : ndarray (nr, n)
             The rows wanted at every step, from the modes.
+        work : Scratch, optional
+            Buffers for the large temporaries (reused from one stretch to the next).
 
         Returns
         -------
@@ -239,9 +247,9 @@ class Stretch:
         E = self.E
         ntv, nr = E.shape[0], W.shape[0]
         if not self.r:
-            rows, end = scan_rows(self.mu, f, x0, W, L)
+            rows, end = scan_rows(self.mu, f, x0, W, L, work)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
-        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L)
+        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L, work)
         rows = both[:nr]  # (nr, c, nblk, B)
         m, BT = self.r * ntv, B * ntv
         # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
@@ -341,7 +349,8 @@ class NodeStretch:
         self.V, self.Vi = V, Vi
         self.core = Stretch(mu, Vi @ GP, V[tv], D)
 
-    def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None,
+              work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The stretch from ``x0``.
 
         Parameters
@@ -352,6 +361,8 @@ class NodeStretch:
             State in node coordinates at the stretch's start.
         keep : ndarray of int, optional
             The nodes wanted at every step (default all).
+        work : Scratch, optional
+            Buffers for the large temporaries.
 
         Returns
         -------
@@ -361,7 +372,7 @@ class NodeStretch:
             ``x[L]`` at every node.
         """
         W = self.V if keep is None else self.V[keep]
-        rows, end = self.core.solve(f, self.Vi @ x0, W)
+        rows, end = self.core.solve(f, self.Vi @ x0, W, work)
         return rows, self.V @ end
 
 
