@@ -154,8 +154,9 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
                       out=None if work is None else work.get("scan", (n, c * nb, B)))
     starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
     rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
-    Rp = (R[None] * pw.T[1:, None, :]).reshape(B * nr, n)  # R diag(μ^(i+1))
-    rows += (Rp @ starts.reshape(n, c * nb)).reshape(B, nr, c, nb).transpose(1, 2, 3, 0)
+    # R diag(μ^(i+1)) with rows (r, i), so that each block's B steps come out contiguous
+    Rp = (R[:, None, :] * pw.T[None, 1:, :]).reshape(nr * B, n)
+    rows += (starts.reshape(n, c * nb).T @ Rp.T).reshape(c, nb, nr, B).transpose(2, 0, 1, 3)
     jL, iL = divmod(L - 1, B)
     end = inner.reshape(n, c, Lp)[:, :, L - 1] + pw[:, iL + 1, None] * starts[:, :, jL]
     return rows, end
@@ -282,15 +283,15 @@ class Stretch:
         z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
         # the feedback's part of the wanted rows: from each block's start state and inside the block
         pw = self.pw
-        Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
-        fb = Wp @ qs.reshape(nblk * c, n).T  # (B nr, nblk c)
+        Wp = (W[:, None, :] * pw[None, 1: B + 1, :]).reshape(nr * B, n)  # W diag(μ^(i+1)), rows (r, i)
+        fb = qs.reshape(nblk * c, n) @ Wp.T  # (nblk c, nr B): each block's steps contiguous
         if 2 * nr < n:  # few rows: straight from the inputs, W diag(μ^(i−l)) G C for l ≤ i
-            fb += _inputs_to_rows(W, pw, self.GC, B) @ z.reshape(nblk * c, B * m).T
+            fb += z.reshape(nblk * c, B * m) @ _inputs_to_rows(W, pw, self.GC, B).T
         else:  # most of the state: the inputs G C z through the modes' block filters, then W
             u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
             inside = np.matmul(u.reshape(n, c * nblk, B), _toeplitz(self.pw.T, B))  # (n, c nblk, B)
             rows += (W @ inside.reshape(n, c * Lp)).reshape(nr, c, nblk, B)
-        rows += fb.reshape(B, nr, nblk, c).transpose(1, 3, 2, 0)
+        rows += fb.reshape(nblk, c, nr, B).transpose(2, 1, 0, 3)
         jL, iL = divmod(L - 1, B)
         # the state at step L: the feedback's from its block's start and the inputs of that block up to L
         carry = pw[iL:: -1][: iL + 1, :, None] * self.GC[None]  # diag(μ^(iL−l)) G C, l = 0 .. iL
@@ -319,12 +320,12 @@ def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, 
 
 def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np.ndarray:
     """``W diag(μ^(i−l)) G C`` for ``l ≤ i`` (the state after step ``i`` of the block from input ``l``),
-    as (B nr, B m)."""
+    as (nr B, B m), rows (r, i)."""
     i = np.arange(B)
     lag = i[:, None] - i[None, :]
-    K = (W[None] * pw[:B, None, :]) @ GC
-    full = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
-    return full.reshape(B * W.shape[0], B * GC.shape[1])
+    K = (W[None] * pw[:B, None, :]) @ GC  # (lag, nr, m)
+    full = np.where((lag >= 0)[None, :, :, None], K[np.maximum(lag, 0)].transpose(2, 0, 1, 3), 0.0)  # (nr, i, l, m)
+    return full.reshape(W.shape[0] * B, B * GC.shape[1])
 
 
 class NodeStretch:
