@@ -159,8 +159,8 @@ class FrameClock(Clock):
       jump (:attr:`CONFIRM_FRAMES` frames or more within ``max_catchup_s`` of each other, covering a
       tick or more, and at least :attr:`CONFIRM_SHARE` of the frames a tick brought before it: a
       new segment brings its whole traffic, whereas stamps shuffled at random put a few frames in
-      a row behind and then one on the clock's time again), it is taken: backwards, as a new recording segment joined on without a gap (the
-      clock's time becomes the frame's timestamp plus an offset, so the clock never goes back and
+      a row behind and then one on the clock's time again), it is taken: backwards, as a new
+      recording segment joined on without a gap (the clock's time becomes the frame's timestamp plus an offset, so the clock never goes back and
       the segment is ticked through); ahead, as a gap in the frames (the boundaries crossed; the
       engine bridges them). If a frame keeps to the clock first, the jump was a corrupt stamp: its
       frames are ignored for the clock. Either way a WARNING line and a counter say so. Until a
