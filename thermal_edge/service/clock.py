@@ -154,17 +154,19 @@ class FrameClock(Clock):
 
     - a frame stamped earlier than the clock by less than a tick (jitter between senders) is used,
       its stamp ignored for the clock, and counted (:attr:`stats`), nothing else;
-    - a **jump** -- a frame a tick or more behind the clock, or more than ``max_catchup_s`` ahead --
-      does not move the clock at once: it is judged by the frames after it. If they keep to the
-      jump (:attr:`CONFIRM_FRAMES` frames or more within ``max_catchup_s`` of each other, covering a
-      tick or more, and at least :attr:`CONFIRM_SHARE` of the frames a tick brought before it: a
-      new segment brings its whole traffic, whereas stamps shuffled at random put a few frames in
-      a row behind and then one on the clock's time again), it is taken: backwards, as a new
-      recording segment joined on without a gap (the clock's time becomes the frame's timestamp plus an offset, so the clock never goes back and
-      the segment is ticked through); ahead, as a gap in the frames (the boundaries crossed; the
-      engine bridges them). If a frame keeps to the clock first, the jump was a corrupt stamp: its
+    - a **jump** -- a frame a tick or more behind the clock, or more than ``max_catchup_s``
+      ahead -- does not move the clock at once: it is judged by the frames after it. If they
+      keep to the jump (:attr:`CONFIRM_FRAMES` frames or more within ``max_catchup_s`` of each
+      other, covering a tick or more, and at least :attr:`CONFIRM_SHARE` of the frames a tick
+      brought before it: a new segment brings its whole traffic, whereas stamps shuffled at
+      random put a few frames in a row behind and then one on the clock's time again), it is
+      taken: backwards, as a new recording segment joined on without a gap (the clock's time
+      becomes the frame's timestamp plus an offset, so the clock never goes back and the segment
+      is ticked through); ahead, as a gap in the frames (the boundaries crossed; the engine
+      bridges them). If a frame keeps to the clock first, the jump was a corrupt stamp: its
       frames are ignored for the clock. Either way a WARNING line and a counter say so. Until a
-      jump is judged, its frames are used at the clock's time (the caller adds them at :meth:`now`).
+      jump is judged, its frames are used at the clock's time (the caller adds them at
+      :meth:`now`).
     """
 
     #: frames (the jump's first among them) that must keep to a jump before it is taken
