@@ -83,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"thermal-edge {args.command}: error: {msg}", file=sys.stderr)
+        # named by the (sub-)sub-command, as its option errors are: `thermal-edge flux calibrate: error:`
+        print(f"{innermost_parser(parser, args).prog}: error: {msg}", file=sys.stderr)
         return 2
 
 
