@@ -257,10 +257,9 @@ class FluxModel:
         number, not a string holding one), else :class:`FluxError` naming the entry."""
         if not isinstance(d, Mapping):
             raise FluxError(f"flux model: the file holds a {_json_type(d)}, not an object with params, sigma, ...")
-        missing = [k for k in ("params", *REQUIRED) if k not in d]
         params, sigma = _mapping(d, "params"), _mapping(d, "sigma")
-        if not missing:
-            missing = [f"params.{k}" for k in PARAMS if k not in params]
+        missing = ([f"params.{k}" for k in PARAMS if k not in params] if "params" in d else ["params"]) \
+            + [k for k in REQUIRED if k not in d]
         if missing:
             raise FluxError(f"flux model: no {', '.join(missing)}")
         pole_pairs = d["pole_pairs"]
@@ -285,10 +284,11 @@ class FluxModel:
             _matrix(d, "cv_params")))
 
 
-#: The entries besides ``params`` a file must hold (all that :meth:`FluxModel.as_dict` writes):
-#: one left out would silently change the estimate's σ (``cov``, ``beta_spread``) or where it is used.
+#: The entries besides ``params`` a file must hold: one left out would silently change the
+#: estimate's σ (``cov``, ``beta_spread``) or where it is used. ``fit_info`` and ``cv_params`` may
+#: be absent (figures of the fit; without the forward fits nothing is extrapolated).
 REQUIRED = ("sigma", "pole_pairs", "bin_a", "var_u", "speed_min_rpm", "sigma_max_k", "tau_s", "cov", "beta_spread",
-            "magnet_mean_c", "fit_info", "cv_params")
+            "magnet_mean_c")
 #: Plausible flux linkage ``ψ_20`` of a PM machine, Wb: from a small servo's few tenths of a mWb to a
 #: direct-drive generator's few Wb; outside, the value is in another unit (mWb) or of another quantity.
 PSI20 = Plausible("Wb", 1e-4, 20.0, (OtherUnit("mWb", 1e-3),), what="flux linkage")
