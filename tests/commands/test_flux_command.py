@@ -365,3 +365,50 @@ def test_calibrate_refuses_a_fit_the_reader_refuses(tmp_path, monkeypatch):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "the fit is no magnet's: flux model: params.psi20 must be positive (the flux linkage), got -0.11" in r.stderr
     assert "are u_d and u_q swapped" in r.stderr and not (tmp_path / "f.json").exists()
+
+
+def _config(tmp_path: Path, **flux: object) -> Path:
+    """The packaged edge.yaml with these ``flux:`` entries."""
+    import yaml
+
+    from thermal_edge.shipped import config_path
+
+    raw = yaml.safe_load(config_path("edge.yaml").read_text())
+    raw["state"] = {"dir": str(tmp_path / "state")}
+    raw["flux"] = {**raw["flux"], "winding_node": "slot_winding_1", **flux}
+    path = tmp_path / "edge.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+def test_run_check_lists_the_voltages_frame_protection_and_timeout(good, tmp_path):
+    """``run --check`` lists INV_Voltages' counter, CRC and staleness (``flux.timeout_s``) as every
+    other read frame's, named here from the DBC."""
+    import cantools
+
+    from thermal_edge.bus.frames import DEFAULT_DBC_PATH
+
+    names = {s.name for s in cantools.database.load_file(str(DEFAULT_DBC_PATH)).get_message_by_name("INV_Voltages").signals}
+    assert {"INV_Voltages_Counter", "INV_Voltages_CRC"} <= names
+    r = te_here("run", "--check", "--config", _config(tmp_path, calibration=str(good[0]), timeout_s=0.7))
+    assert r.returncode == 0, r.stderr
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("  INV_Voltages: protection")]
+    assert len(lines) == 1 and "counter INV_Voltages_Counter, CRC INV_Voltages_CRC" in lines[0], r.stdout
+    assert lines[0].endswith("stale after 0.7 s"), lines
+
+
+def test_run_check_refuses_a_calibration_in_another_unit(good, tmp_path):
+    bad = tmp_path / "mwb.json"
+    d = json.loads(good[0].read_text())
+    bad.write_text(json.dumps({**d, "params": {**d["params"], "psi20": 1000 * d["params"]["psi20"]}}))
+    r = te_here("run", "--check", "--config", _config(tmp_path, calibration=str(bad)))
+    err = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(err) == 1, r.stderr
+    assert "edge.yaml: flux.calibration:" in err[0] and "params.psi20 110" in err[0] and "Wb looks like mWb (0.11 Wb)" in err[0]
+
+
+def test_a_voltage_signal_naming_the_frames_counter_says_so(good, tmp_path):
+    r = te_here("run", "--check", "--config", _config(tmp_path, calibration=str(good[0]), voltage_d="INV_Voltages_Counter"))
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        "thermal-edge run: error: edge.yaml: flux.voltage_d: INV_Voltages_Counter is the alive counter of frame "
+        "INV_Voltages (its protection), not a signal with a value; its signals: INV_Ud, INV_Uq"], r.stderr
