@@ -262,10 +262,12 @@ class _LiveCollector(Collector):
                         yield GaugeMetricFamily(P + "flux_magnet_stddev_celsius", "Standard deviation of that estimate",
                                                 value=flux_last.sigma_k)
                 mg = out.magnet if out is not None else None
-                if mg is not None and math.isfinite(mg.upper_c - mg.estimate_c):
-                    yield GaugeMetricFamily(P + "magnet_band_celsius", "Width of the magnet's 95 % band above its "
-                                            "estimate (upper band minus estimate): what the voltages narrow",
-                                            value=mg.upper_c - mg.estimate_c)
+                if mg is not None and math.isfinite(mg.observer_upper_c - mg.estimate_c):
+                    yield GaugeMetricFamily(P + "magnet_band_celsius", "Width of the observer's band of the magnet "
+                                            "above its estimate (band_z sigma): what the voltages narrow; the upper "
+                                            "band sent is limited_node_celsius band=upper, at least the recent "
+                                            "readings of a sensor that bounds the magnet from below",
+                                            value=mg.observer_upper_c - mg.estimate_c)
             acc = eng.accumulator
             bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=LABELS["bad_readings"])
             for kind in FAULT_KINDS:
