@@ -127,7 +127,8 @@ class _LiveCollector(Collector):
                 if math.isfinite(v):
                     inp.add_metric([k], v)
             yield inp
-            lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
+            lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate, upper band derated on and sent "
+                                    "(TE_Estimates), warn and max",
                                     labels=LABELS["limited_node_celsius"])
             for b, ln in zip(out.bands, eng.limited_nodes):
                 node = model.nodes[ln.row]
