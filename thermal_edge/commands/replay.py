@@ -273,8 +273,8 @@ def per_tick(model: Model, res: ReplayResult) -> dict[str, np.ndarray]:
     observer's 95 % interval), degC; the same but measured for each limited node (``<limit>_…``),
     whose band is the observer's at ``derating.band_z`` and which also gets ``<limit>_upper``: the
     upper band the tick derated on and sent (:class:`.derating.NodeBand` ``upper_c``, in
-    ``TE_T_HotSpotUpper``/``TE_T_MagnetUpper`` for the transmitted nodes; above ``_band_high``
-    where the readings of a sensor that bounds the node from below are); ``current_limit_a`` (the
+    ``TE_T_HotSpotUpper``/``TE_T_MagnetUpper`` for the transmitted nodes; the readings of a sensor
+    that bounds the node from below where they are above ``_band_high``); ``current_limit_a`` (the
     limit sent, A rms), ``state`` and ``reason`` (the codes of ``TE_State`` and the derating
     reason, DBC value tables); ``adaptation`` (0 no decision, 1 a triggered decision, 2 accepted
     parameters).
