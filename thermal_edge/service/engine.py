@@ -376,11 +376,15 @@ class ThermalEngine:
             est = obs.T.copy()
             sigma = obs.std()
             pred = x_ol.copy() if x_ol is not None else np.full(n, math.nan)
-            upper = est + self.config.derating.band_z * sigma
+            observer_upper = est + self.config.derating.band_z * sigma
+            upper = observer_upper.copy()
             # a limited node is at least as hot as a sensor that bounds it from below: an estimate
             # the readings have outrun (a model that runs cold) does not hide that
             self.floor.raise_upper(upper, measured)
-            bands = [NodeBand(ln.name, float(est[ln.row]), float(upper[ln.row]), ln.warn_c, ln.max_c, ln.reason)
+            # the one definition of the band derated on and sent (TE_Estimates); the replay's
+            # per-tick table reads these, never a band of its own
+            bands = [NodeBand(ln.name, float(est[ln.row]), float(upper[ln.row]), ln.warn_c, ln.max_c, ln.reason,
+                              float(observer_upper[ln.row]))
                      for ln in self.limited_nodes]
             u = {k: (v if math.isfinite(v) else self._last_inputs.get(k, 0.0))
                  for k, v in (ti.inputs if ti else self._last_inputs).items()}
