@@ -428,7 +428,7 @@ class OnlineAdapter:
             return self._done(d, t0)
         d.challenger = dict(zip(sc.selected, map(float, res.values)))
         self.challenger = (t, cand)
-        self.shadows = self._start_shadows(t, cand)
+        self.shadows = self._start_shadows(t, cand) if refine else None
         self.iterate = cand[self.model.parameter_index(self.params)].copy()
         d.reason = self._also(d, "challenger fitted; it is judged on the data that follows")
         return self._done(d, t0)
@@ -464,21 +464,22 @@ class OnlineAdapter:
         return out[0], out[1]
 
     def _judge(self, d: Decision, t: float) -> None:
-        """Judge the pending challenger on the samples recorded after its fit: each parameter set
-        predicts every period open loop from the estimate of its own shadow observer at the
-        period's start."""
+        """Judge the pending challenger on the samples recorded after its fit, period by period open
+        loop: a refinement's challenger and the champion each from the estimate of their own
+        shadow observer at the period's start, any other from the recorded state."""
         cfg = self.config
         assert self.challenger is not None
         t_fit, cand = self.challenger
-        if self.shadows is None:
-            self.shadows = self._start_shadows(t_fit, cand)
-        th, inputs, meas, _ = self.history.arrays(self.shadows[0].t)
-        for sh in self.shadows:
-            sh.follow(th, inputs, meas)
+        shadows = self.shadows
+        if shadows is not None:
+            th, inputs, meas, _ = self.history.arrays(shadows[0].t)
+            for sh in shadows:
+                sh.follow(th, inputs, meas)
         t_last = float(self.history.arrays(t_fit)[0][-1])
         d.challenger_t, d.evidence_s = t_fit, t_last - t_fit
-        (champ, blocks), (chal, _) = (self._period_errors(self.theta, t_fit, t_last, self.shadows[0]),
-                                      self._period_errors(cand, t_fit, t_last, self.shadows[1]))
+        sh_champ, sh_chal = shadows if shadows is not None else (None, None)
+        (champ, blocks), (chal, _) = (self._period_errors(self.theta, t_fit, t_last, sh_champ),
+                                      self._period_errors(cand, t_fit, t_last, sh_chal))
         d.evaluations += 2
         v = judge(champ, chal, cfg.noise_k, cfg.promote_z, cfg.min_gain, cfg.sensor_tolerance_k,
                   share=d.evidence_s / cfg.validate_s + 1e-9, blocks=blocks)
@@ -491,7 +492,7 @@ class OnlineAdapter:
         vals = dict(zip(names, map(float, cand[self.model.parameter_index(names)])))
         ev = f"{d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs margin {v.margin_k2:.3g} K²"
         if v.outcome == "promote":
-            self.promoted_state = (t_last, self.shadows[1].state_at(t_last))
+            self.promoted_state = (t_last, sh_chal.state_at(t_last)) if sh_chal is not None else None
             self.theta = cand
             self.version += 1
             self.challenger = None
