@@ -19,6 +19,15 @@ its open-loop prediction drifted by 1 K over a cold light duty. The challenger i
 period by period: judged open loop over all its evidence, it promoted candidates on the real
 machine that made the online trace worse from every wrong start.
 
+Below the threshold a *refinement* is fitted when the window alone pins an adaptable parameter
+away from its value (:func:`.pinned.pinned_step`: more than 5 % and 3σ, pinned to 2 %): the
+pinned Gauss-Newton step, then SLSQP (:func:`.pinned.fit_refine`). Once the model predicts within
+the threshold the error triggers nothing, while the window goes on pinning such a parameter ever
+tighter. Its challenger and the champion are each judged from their own shadow observer
+(:class:`.shadow.ShadowObserver`): the recorded state is the estimate of an observer running with
+the parameters in use, which in the nodes no sensor reads compensates their errors and favours
+them. On a promotion :attr:`OnlineAdapter.promoted_state` holds the promoted parameters' estimate.
+
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
 change only on out-of-sample evidence.
@@ -68,6 +77,8 @@ PINNED_OFFSET = 0.05
 PINNED_Z = 3.0
 #: the refinement's Gauss-Newton step is taken in the directions pinned down to this relative 1σ
 REFINE_STEP_REL_STD = 0.03
+#: SQP iterations of a refinement fit (rare: only when the window says the optimum is far)
+REFINE_MAX_ITER = 10
 
 
 @dataclass
@@ -414,7 +425,7 @@ class OnlineAdapter:
             return self._done(d, t0)
         sub = self.objective(coarse, sc.selected, theta=start)
         if refine:
-            res = fit_refine(sub, cfg.max_iter, REFINE_STEP_REL_STD)
+            res = fit_refine(sub, max(cfg.max_iter, REFINE_MAX_ITER), REFINE_STEP_REL_STD)
         elif cfg.method == "gauss_newton":
             res = fit_gauss_newton(sub, max_iter=cfg.max_iter + 1)
         else:
