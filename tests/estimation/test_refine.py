@@ -48,6 +48,16 @@ def test_a_window_that_pins_a_parameter_away_triggers_a_refinement_toward_the_pl
     assert abs(cand / plant_value - 1.0) < 0.03
 
 
+def test_an_infinite_threshold_never_adapts(pm10kw, varied_3h):
+    theta = pm10kw.nominal()
+    theta[pm10kw.parameter_index(["r_c_hous"])[0]] *= 1.10
+    ad = _adapter(pm10kw, theta, threshold_k=np.inf)
+    n = len(varied_3h.run)
+    _feed(ad, pm10kw, varied_3h, range(n))
+    d = ad.decide(float(varied_3h.run.t[n - 1]))
+    assert not d.triggered and ad.challenger is None
+
+
 def test_at_the_plant_s_parameters_the_window_pins_nothing_away(pm10kw, varied_3h):
     ad = _adapter(pm10kw, pm10kw.nominal(), threshold_k=5.0)
     n = len(varied_3h.run)

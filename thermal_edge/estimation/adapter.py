@@ -381,8 +381,9 @@ class OnlineAdapter:
         d = Decision(t=t, error_before_k=err, horizon_error_k=self.recent_error(max(t_hist0, t - cfg.validate_s)))
         above = bool(err > cfg.threshold_k or d.horizon_error_k > cfg.threshold_k)
         refine = False
-        if (not above and self.challenger is None and cfg.method == "sqp" and np.isfinite(err)
-                and t - t_hist0 >= cfg.min_window_s):
+        # (an infinite threshold means never adapt: the fixed baseline of a replay)
+        if (not above and self.challenger is None and cfg.method == "sqp" and np.isfinite(cfg.threshold_k)
+                and np.isfinite(err) and t - t_hist0 >= cfg.min_window_s):
             name, off = self._pinned_offset(t)
             if name:
                 above = refine = True
