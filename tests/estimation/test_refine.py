@@ -99,3 +99,44 @@ def test_the_shadow_observer_is_the_kalman_filter_with_its_own_parameters(pm10kw
         sl = slice(0, k1)
         sh3.follow(t[sl], {c: v[sl] for c, v in inputs.items()}, {s: v[sl] for s, v in meas.items()})
     np.testing.assert_allclose(sh3.state_at(float(t[-1])), sh.state_at(float(t[-1])), rtol=0, atol=1e-12)
+
+
+def test_a_promoted_refinement_hands_the_service_its_own_estimate(pm10kw, make_run, monkeypatch):
+    """The worker's result of an accepted decision carries the promoted parameters' shadow estimate,
+    and the service steps it to the present with the new parameters (checked against the model
+    step applied by hand)."""
+    from thermal_edge.estimation.adapter import Decision
+    from thermal_edge.lptn import Stepper
+    from thermal_edge.service.adaptation import AdaptationWorker
+
+    plant = make_run(pm10kw, "varied_drive.yaml", 120.0, seed=4)
+    run = plant.run
+    w = AdaptationWorker(pm10kw, AdapterConfig(), 1.0, pm10kw.nominal(), pm10kw.nominal(), mode="sync", bands=False)
+    inputs = [{c: float(run.columns[c][k]) for c in pm10kw.inputs} for k in range(len(run))]
+    for k in range(100):
+        w.record(float(run.t[k]), inputs[k], {s: float(run.columns[s][k]) for s in pm10kw.sensors}, plant.truth.T[k])
+    t_last = float(run.t[99])
+    promoted = plant.truth.T[99] + 1.5  # any estimate other than the recorded one
+    theta_new = pm10kw.nominal()
+    theta_new[pm10kw.parameter_index(["r_c_hous"])[0]] *= 0.9
+
+    def decide(t: float) -> Decision:
+        ad = w.adapter
+        ad.theta, ad.version, ad.promoted_state = theta_new.copy(), ad.version + 1, (t_last, promoted.copy())
+        d = Decision(t=t, error_before_k=0.1, triggered=True, accepted=True, verdict="promoted")
+        ad.decisions.append(d)
+        return d
+
+    monkeypatch.setattr(w.adapter, "decide", decide)
+    rid = w.request(t_last)
+    res = w.result(rid)
+    assert res is not None
+    assert res.accepted and res.state_t == t_last
+    np.testing.assert_array_equal(res.estimate, promoted)
+    stepper = Stepper(pm10kw, theta_new, 1.0)
+    recent = [(float(run.t[k]), inputs[k]) for k in range(95, 105)]
+    x = promoted.copy()
+    for k in range(99, 105):
+        x, _ = stepper.step(x, inputs[k])
+    np.testing.assert_allclose(res.state_now(stepper, recent, "estimate"), x, rtol=0, atol=1e-12)
+    w.close()
