@@ -340,13 +340,16 @@ class ThermalEngine:
 
     def _take_parameters(self, res: AdaptationResult) -> None:
         """Accepted parameters to the estimate, the look-ahead and the reaction-time current; the
-        open-loop state re-derived with them."""
+        open-loop state re-derived with them, the observer's estimate the one they were judged from."""
         theta = self.adaptation.theta
         self.estimate.set_parameters(theta)
         if self.lookahead is not None:
             self.lookahead.set_parameters(theta)
         self.reaction.set_parameters(theta)
         self.estimate.replace_prediction(self.adaptation.state_now(res, self.estimate.stepper))
+        # the observer continues from the estimate the promoted parameters were judged from: its own,
+        # not the one the parameters before them left in the nodes no sensor reads
+        self.estimate.replace_estimate(self.adaptation.state_now(res, self.estimate.stepper, "estimate"))
 
     # -- outputs ------------------------------------------------------------------------------------
     def _finish(self, t: float, ti: TickInputs, forced: list[DerateReason], new_results: list[AdaptationResult],
