@@ -86,3 +86,14 @@ def crc8_bitwise(data: bytes) -> int:
         for _ in range(8):
             reg = ((reg << 1) ^ 0x1D) & 0xFF if reg & 0x80 else (reg << 1) & 0xFF
     return reg ^ 0xFF
+
+
+def udp_socket_drops(sock: socket.socket) -> int:
+    """Datagrams the kernel dropped for this UDP socket so far (a full receive queue), from
+    ``/proc/net/udp``'s per-socket ``drops`` column: an exact count of what never reached the reader."""
+    inode = os.fstat(sock.fileno()).st_ino
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if int(fields[9]) == inode:
+            return int(fields[-1])
+    raise LookupError(f"socket inode {inode} not in /proc/net/udp")
