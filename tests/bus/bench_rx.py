@@ -7,7 +7,8 @@ A sender process puts RATE frames/s on the bus, paced in 1 ms slices, in one of 
 foreign identifiers for the rest) or ``own`` (every frame INV_Currents or INV_Mechanics, at the
 full rate: the dearest case for the decoder). This process receives them through a
 CanTransport and prints one JSON line: our frames sent, received, lost by the codec's count, the
-receiver's CPU seconds and CPU s per 10,000 frames on the bus; ``missing_uncounted`` is the number of
+receiver's CPU seconds and CPU s per 10,000 frames on the bus, the datagrams the kernel dropped from
+the receiver's full queue (``kernel_drops``); ``missing_uncounted`` is the number of
 frames missing up to the last one received of each identifier that the codec did not count
 as lost (0 when the lost count is exact); ``sender_late`` how often the sender, descheduled on a
 busy machine, sent our frames 100 ms or more late (then in a burst: it did not keep the cycle
@@ -25,6 +26,8 @@ import pstats
 import socket
 import sys
 import time
+
+from bus_testlib import udp_socket_drops
 
 from thermal_edge.bus import CanTransport, FrameCodec
 
@@ -117,11 +120,15 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
             await asyncio.sleep(0.5 + seconds / 2)
             time.sleep(stall_s)  # the kernel queue overflows: real drops
         out, _ = await proc.communicate()
-        await asyncio.sleep(0.3)
+        late, sent, total = (int(x) for x in out.decode().split()[-3:])
+        # the last datagrams read: each one taken in or dropped by the kernel (a generous hang guard)
+        end = time.monotonic() + 120.0
+        while tr.stats.rx_messages + udp_socket_drops(tr.bus.socket) < total and time.monotonic() < end:
+            await asyncio.sleep(0.01)
+        kernel_drops = udp_socket_drops(tr.bus.socket)
         if prof:
             prof.disable()
         cpu = time.process_time() - cpu0
-    late, sent, total = (int(x) for x in out.decode().split()[-3:])
     st = tr.codec.stats
     if prof:
         pstats.Stats(prof, stream=sys.stderr).sort_stats("tottime").print_stats(15)
@@ -129,6 +136,7 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
     return {"mode": mode, "rate_fps": rate, "seconds": seconds, "bus_frames": total, "rx_messages": tr.stats.rx_messages,
             "unknown_id": st.unknown_id, "sent": sent, "received": count, "lost_counted": st.lost,
             "missing": sent - count, "missing_uncounted": expected - count - st.lost, "sender_late": late,
+            "kernel_drops": kernel_drops,
             "cpu_s": round(cpu, 2),
             "cpu_s_per_10k": round(cpu / max(tr.stats.rx_messages, 1) * 10_000, 3),
             "rx_fps": round(tr.stats.rx_messages / seconds)}

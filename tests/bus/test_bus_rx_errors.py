@@ -20,7 +20,7 @@ import pytest
 from bus_testlib import DBC_PATH, udp_socket_drops
 
 from thermal_edge.bus import DEFAULT_UDP_MULTICAST_GROUP, CanTransport, DerateReason, FrameCodec
-from thermal_edge.bus.transport import RX_ERROR_RUN_LIMIT
+from thermal_edge.bus.transport import RX_ERROR_RUN_LIMIT, RX_WARN_INTERVAL_S
 from thermal_edge.bus.udp import enlarge_receive_queue
 
 LIMITS = dict(TE_TorqueLimit=50.0, TE_CurrentLimit=30.0, TE_DerateActive=0, TE_DerateReason=DerateReason.NONE)
@@ -142,8 +142,10 @@ async def test_undecodable_datagrams_do_not_stop_te_limits(udp_port, caplog):
     assert te.codec.stats.dlc == 4 and te.codec.stats.dropped_total == 4
     assert stats["reconnects"] == 0 and stats["bus_errors"] == 0 and stats["tx_failed"] == 0
     assert watch.errors >= sent - 1  # the independent bus saw the same garbage (it counts empty ones too)
-    warnings = [r for r in caplog.records if "undecodable" in r.getMessage()]
-    assert 1 <= len(warnings) <= 2  # rate-limited: one line, not one per datagram
+    warnings = [r.created for r in caplog.records if "undecodable" in r.getMessage()]
+    # rate-limited: one line, not one per datagram; another only after RX_WARN_INTERVAL_S (a busy host
+    # may stretch the test past it)
+    assert warnings and all(b - a >= RX_WARN_INTERVAL_S - 0.01 for a, b in zip(warnings, warnings[1:]))
 
 
 FLOOD_N = 6000  # undecodable datagrams
