@@ -95,9 +95,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0, mode: str = "mixed") -> dict:
-    """Run the benchmark; ``stall_s`` blocks this event loop once, mid-run, for that long (s)."""
-    port = free_port()
+async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0, mode: str = "mixed",
+               port: int | None = None) -> dict:
+    """Run the benchmark; ``stall_s`` blocks this event loop once, mid-run, for that long (s); on
+    ``port`` (default: a free one)."""
+    port = port or free_port()
     count = 0
     last = {"INV_Currents": -1, "INV_Mechanics": -1}  # highest frame index received per frame
 

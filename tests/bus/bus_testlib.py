@@ -8,6 +8,8 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
+from own_udp_port import own_udp_port
+
 REPO = Path(__file__).resolve().parents[2]
 DBC_PATH = REPO / "dbc" / "thermal_edge.dbc"
 MATRIX_PATH = Path(os.environ.get("THERMAL_EDGE_CAN_MATRIX", "/work/shared/reference/can-matrix.md"))
@@ -72,10 +74,8 @@ def parse_can_matrix(text: str) -> list[MatrixSignal]:
 
 
 def free_udp_port() -> int:
-    """A UDP port no socket of this host is bound to right now."""
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
-        return s.getsockname()[1]
+    """A UDP port for this test's ``udp_multicast`` buses, no other process's while this one runs."""
+    return own_udp_port()
 
 
 def crc8_bitwise(data: bytes) -> int:

@@ -75,7 +75,7 @@ async def test_full_rate_of_our_frames(udp_port):
     process; each carries its index (an independent count). Prints the rate and the CPU used."""
     from bench_rx import main as bench
 
-    result = await bench(8000.0, 2.0, profile=False, mode="own")
+    result = await bench(8000.0, 2.0, profile=False, mode="own", port=udp_port)
     print(f"\n{result}")
     # the rate a host keeps up with is the benchmark's figure (docs/guide/can-interface.md); here:
     # every frame either taken in or dropped by the kernel, and every one taken in decoded as ours
@@ -92,7 +92,7 @@ async def test_kernel_drops_counted_exactly(udp_port):
     that got through is counted as unknown."""
     from bench_rx import main as bench
 
-    result = await bench(8000.0, 6.0, profile=False, stall_s=2.0, mode="mixed")
+    result = await bench(8000.0, 6.0, profile=False, stall_s=2.0, mode="mixed", port=udp_port)
     print(f"\n{result}")
     assert result["missing"] > 16  # real drops, in holes longer than a counter wrap
     # exact while the sender keeps its cycle; a sender descheduled >= 100 ms that then bursts is

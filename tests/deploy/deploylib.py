@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from own_udp_port import own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -60,9 +61,8 @@ def free_tcp_port() -> int:
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
-        return s.getsockname()[1]
+    """A UDP port for this test's ``udp_multicast`` buses, no other process's while this one runs."""
+    return own_udp_port()
 
 
 def udp_multicast_works(port: int) -> str | None:

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from own_udp_port import own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 EDGE_YAML = REPO / "config" / "edge.yaml"
@@ -78,9 +79,8 @@ def table4_model_params() -> dict[str, float]:
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
-        return s.getsockname()[1]
+    """A UDP port for this test's ``udp_multicast`` buses, no other process's while this one runs."""
+    return own_udp_port()
 
 
 def free_tcp_port() -> int:
