@@ -89,6 +89,22 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
+def logged_metrics_port(log: Path, timeout: float = 300.0) -> int | None:
+    """The port the service bound for its metrics (``metrics.port: 0``), read from its log (``--log-level
+    info``); None if not logged within ``timeout`` s. A port picked by the service itself cannot be taken
+    by another process between a test's choosing it and the service's binding it."""
+    import re
+
+    deadline = time.monotonic() + timeout
+    while True:
+        m = re.search(r"metrics on http://127\.0\.0\.1:(\d+)/metrics", log.read_text(errors="replace") if log.exists() else "")
+        if m:
+            return int(m.group(1))
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(0.05)
+
+
 def udp_available(port: int) -> str | None:
     """None if udp_multicast loopback works on ``port``, else the reason."""
     import can
@@ -304,6 +320,9 @@ def isfinite(x: float) -> bool:
 
 #: Simulated seconds the emulator of :func:`running` may lead the service.
 MAX_LEAD_S = 2.0
+#: Generous upper bound of a wait on the emulator or the service (a hang guard for a busy host, not
+#: a performance bound), s.
+HANG_S = 300.0
 
 
 @contextlib.asynccontextmanager
@@ -327,7 +346,7 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
                            {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
     task = asyncio.get_running_loop().create_task(emu.run())
     try:
-        assert await async_wait_until(lambda: emu.elapsed > 0 and emu.bus is not None, 10)
+        assert await async_wait_until(lambda: emu.elapsed > 0 and emu.bus is not None, HANG_S)
         yield svc, emu
     finally:
         emu.stop()
@@ -336,5 +355,5 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
         await svc.stop()
 
 
-async def sim_until(emu, t_rel: float, timeout: float = 20.0) -> None:
+async def sim_until(emu, t_rel: float, timeout: float = HANG_S) -> None:
     assert await async_wait_until(lambda: emu.elapsed >= t_rel, timeout), f"emulator stuck at {emu.elapsed}"
