@@ -164,7 +164,7 @@ class Monitor:
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._pos = 0
         self.limits = Limits()
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + START_TIMEOUT_S * 4  # a hang guard: a busy host starts it late
         while time.monotonic() < deadline and not (self.path.exists() and self.path.read_text().startswith("ready")):
             time.sleep(0.02)
 
