@@ -29,6 +29,7 @@ from .harness import (
     Inverter,
     bed,
     common_checks,
+    counts,
     env,
     histogram_quantile,
     metric,
@@ -45,11 +46,9 @@ GAP_TARGET_MS = 150.0  # target: the largest TE_Limits gap on a full bus, ms (ha
 
 
 def _counts(b: Bed) -> tuple[dict[str, int], dict[str, float]]:
-    """Frames the inverter sent and the service's metrics, read while the inverter holds."""
+    """Frames the inverter sent and the service's metrics, read while the inverter holds (:func:`.harness.counts`)."""
     assert b.inverter is not None
-    with b.inverter.held() as sent:
-        m = b.service.metrics()
-    return sent, m
+    return counts(b, b.inverter)
 
 
 def _lost(sent0: dict[str, int], m0: dict[str, float], sent1: dict[str, int], m1: dict[str, float]) -> int:

@@ -34,6 +34,11 @@ from .. import ROOT
 from . import wire
 
 GAP_S = 0.3  # the inverter drops TE_Limits after this long
+#: a TE_Limits gap longer than this is an unsafe event; one between GAP_S and it, a target missed. The
+#: bench judges by the contract (GAP_S); the test suite, on a shared host busy with other work, raises
+#: it to a generous guard: there a gap just past GAP_S measures the host's load as much as the service,
+#: a silence of seconds is still the service's
+GAP_UNSAFE_S = GAP_S
 RESOLUTION_A = 0.05  # TE_CurrentLimit's factor: a limit equal to a bound may read one step above
 START_TIMEOUT_S = 30.0
 
@@ -281,7 +286,8 @@ class Service:
         if self.metrics_port is None:
             return {}
         try:
-            text = urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}/metrics", timeout=3).read().decode()
+            # a generous time-out: a scrape answered late on a busy host is answered
+            text = urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}/metrics", timeout=30).read().decode()
         except OSError:
             return {}
         out: dict[str, float] = {}
@@ -463,6 +469,32 @@ class Bed:
     service: Service
     monitor: Monitor
     inverter: Inverter | None
+    #: the last reading of :func:`counts`: frames sent and the service's metrics
+    last_counts: tuple[dict[str, int], dict[str, float]] | None = None
+
+
+#: longest a reading of the service's counters waits for the frames sent since the bed's last reading
+#: to be taken in, s: on a host busy with other work they may wait in the receive queue for a while;
+#: what is still missing after it is lost
+CATCH_UP_S = 10.0
+
+
+def counts(b: Bed, inverter: Inverter) -> tuple[dict[str, int], dict[str, float]]:
+    """Frames ``inverter`` sent and the service's metrics, read while it holds, once the service has
+    taken in every valid frame sent since the bed's last reading (or :data:`CATCH_UP_S` passed)."""
+    with inverter.held() as sent:
+        m = b.service.metrics()
+        if b.last_counts is not None and b.last_counts[1] and m:
+            s0, m0 = b.last_counts
+            r0 = received(m0)
+            deadline = time.monotonic() + CATCH_UP_S
+            while (b.service.alive() and time.monotonic() < deadline
+                   and any(received(m)[n] - r0[n] < sent[n] - s0[n] for n in wire.INPUT_FRAMES)):
+                time.sleep(0.05)
+                m = b.service.metrics() or m
+        sent = dict(sent)
+    b.last_counts = (sent, m)
+    return sent, m
 
 
 @contextlib.contextmanager
@@ -556,7 +588,11 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
     alive = b.service.alive()
     end = t1 if alive else min(t1, time.time())
     g = gaps(lim, t0, end, gap_limit_s)
-    c.add(len(g), f"{len(g)} TE_Limits gap(s) > {gap_limit_s * 1e3:.0f} ms (max {max(g, default=0) * 1e3:.0f} ms)")
+    unsafe_s = max(gap_limit_s, GAP_UNSAFE_S)
+    long_g = [x for x in g if x > unsafe_s]
+    c.add(len(long_g), f"{len(long_g)} TE_Limits gap(s) > {unsafe_s * 1e3:.0f} ms (max {max(g, default=0) * 1e3:.0f} ms)")
+    c.target(len(long_g) == len(g), f"{len(g)} TE_Limits gap(s) > {gap_limit_s * 1e3:.0f} ms "
+                                    f"(max {max(g, default=0) * 1e3:.0f} ms)")
     over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque)
                if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
     c.add(over, f"{over} limit(s) above the maximum")
