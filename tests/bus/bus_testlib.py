@@ -8,7 +8,7 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
-from own_udp_port import own_udp_port
+from own_ports import own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 DBC_PATH = REPO / "dbc" / "thermal_edge.dbc"

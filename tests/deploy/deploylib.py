@@ -14,7 +14,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -25,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from own_udp_port import own_udp_port
+from own_ports import own_tcp_port, own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -55,9 +54,8 @@ def thermal_edge_cmd() -> list[str]:
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port on 127.0.0.1 for a server this test starts, no other process's while this one runs."""
+    return own_tcp_port()
 
 
 def free_udp_port() -> int:

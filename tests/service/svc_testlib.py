@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 import yaml
-from own_udp_port import own_udp_port
+from own_ports import own_tcp_port, own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 EDGE_YAML = REPO / "config" / "edge.yaml"
@@ -84,9 +84,8 @@ def free_udp_port() -> int:
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port on 127.0.0.1 for a server this test starts, no other process's while this one runs."""
+    return own_tcp_port()
 
 
 def logged_metrics_port(log: Path, timeout: float = 300.0) -> int | None:

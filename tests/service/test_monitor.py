@@ -86,13 +86,12 @@ async def test_bus_view_shows_the_frames_an_independent_receiver_decodes(tmp_pat
 
 
 def test_monitor_says_in_one_line_when_the_service_cannot_be_reached(tmp_path):
-    import socket
     import subprocess
 
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as held:  # bound, never listening: refused, and no
-        held.bind(("127.0.0.1", 0))  # other process's server can take the port meanwhile
-        port = held.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "monitor", "--once", "--metrics",
-                            f"http://127.0.0.1:{port}/metrics"], capture_output=True, text=True, env=env(), timeout=300)
+    from svc_testlib import free_tcp_port
+
+    port = free_tcp_port()  # held by this process, never listening: the connection is refused
+    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "monitor", "--once", "--metrics",
+                        f"http://127.0.0.1:{port}/metrics"], capture_output=True, text=True, env=env(), timeout=300)
     assert r.returncode == 2 and r.stdout == ""
     assert len(r.stderr.strip().splitlines()) == 1 and f"127.0.0.1:{port}" in r.stderr
