@@ -371,6 +371,9 @@ class Inverter:
         self.sent = dict.fromkeys(wire.INPUT_FRAMES, 0)
         self.counters = dict.fromkeys(wire.INPUT_FRAMES, 0)
         self.ids = {n: wire.frame_id(n) for n in wire.INPUT_FRAMES}
+        #: per frame: when (``time.monotonic``) the first regular frame after the last :meth:`burst` left
+        #: (None until it has)
+        self.resumed_at: dict[str, float | None] = {}
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self._hold = threading.Event()
@@ -383,6 +386,8 @@ class Inverter:
     def _send(self, name: str) -> None:
         with self.lock:
             self._send_locked(name)
+            if name in self.resumed_at and self.resumed_at[name] is None:
+                self.resumed_at[name] = time.monotonic()
 
     def _send_locked(self, name: str) -> None:
         k = self.counters[name]
@@ -431,6 +436,7 @@ class Inverter:
                     self._send_locked(name)
             finally:
                 self.signals[name] = regular
+                self.resumed_at[name] = None
 
     def inject(self, payload: bytes) -> None:
         self.sock.sendto(payload, (self.group, self.port))
