@@ -138,7 +138,7 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
     return {"mode": mode, "rate_fps": rate, "seconds": seconds, "bus_frames": total, "rx_messages": tr.stats.rx_messages,
             "unknown_id": st.unknown_id, "sent": sent, "received": count, "lost_counted": st.lost,
             "missing": sent - count, "missing_uncounted": expected - count - st.lost, "sender_late": late,
-            "kernel_drops": kernel_drops,
+            "kernel_drops": kernel_drops, "codec_dropped": st.dropped_total,
             "cpu_s": round(cpu, 2),
             "cpu_s_per_10k": round(cpu / max(tr.stats.rx_messages, 1) * 10_000, 3),
             "rx_fps": round(tr.stats.rx_messages / seconds)}

@@ -80,7 +80,8 @@ async def test_full_rate_of_our_frames(udp_port):
     # the rate a host keeps up with is the benchmark's figure (docs/guide/can-interface.md); here:
     # every frame either taken in or dropped by the kernel, and every one taken in decoded as ours
     assert result["rx_messages"] + result["kernel_drops"] == result["bus_frames"] == result["sent"]
-    assert result["received"] == result["rx_messages"] > 0
+    # (a hole of whole counter wraps in what the kernel dropped reads as a repeated counter: dropped)
+    assert result["received"] + result["codec_dropped"] == result["rx_messages"] and result["received"] > 0
     if result["missing"] == 0:  # lost frames of a sender 40x faster than its cycle count modulo 16 only
         assert result["lost_counted"] == 0
 
