@@ -47,9 +47,11 @@ async def test_two_processes_over_udp_multicast(udp_port):
         frames.append(queue.get_nowait())
     currents = [f for f in frames if f.name == "INV_Currents"]
     stats = te.codec.stats
-    # UDP may drop under load; every drop must show up as lost, never as a bad frame
-    assert currents and N_FRAMES - len(currents) <= te_dropped
-    assert stats.crc == 0 and stats.counter_repeat == 0 and stats.dropped_total == 0
+    # UDP may drop under load; every drop must show up as lost, never as a bad frame (a hole of 15
+    # frames brings the same counter again: that frame is dropped as a repeat, and only then)
+    assert currents and N_FRAMES - len(currents) <= te_dropped + stats.counter_repeat
+    assert stats.crc == 0 and stats.dropped_total == stats.counter_repeat
+    assert stats.counter_repeat == 0 or te_dropped >= 15
     index = [round(f.signals["INV_Id"] / 0.05) for f in currents]
     assert index == sorted(set(index))  # in order, none twice
     # the alive counter sees a hole modulo 16: the lost count is exactly that, from the frames' own indices
