@@ -104,6 +104,31 @@ def logged_metrics_port(log: Path, timeout: float = 300.0) -> int | None:
         time.sleep(0.05)
 
 
+@contextlib.contextmanager
+def host_interface_lock(interface: str, timeout: float = 1800.0):
+    """Hold the lock of a network interface every test process of this host shares (``vcan0``): a
+    second suite running beside this one waits for it instead of putting its frames on the same bus.
+    The lock file's path is fixed on purpose (it is the meeting point); ``flock`` frees it when the
+    holder ends, however it ends."""
+    import fcntl
+    import tempfile
+
+    with open(Path(tempfile.gettempdir()) / f"thermal-edge-tests-{interface}.lock", "a") as fh:
+        deadline = time.monotonic() + timeout  # a hang guard
+        while True:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"{interface} held by another test process for {timeout:g} s") from None
+                time.sleep(0.1)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def udp_available(port: int) -> str | None:
     """None if udp_multicast loopback works on ``port``, else the reason."""
     import can
