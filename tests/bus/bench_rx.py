@@ -11,8 +11,9 @@ receiver's CPU seconds and CPU s per 10,000 frames on the bus, the datagrams the
 the receiver's full queue (``kernel_drops``); ``missing_uncounted`` is the number of
 frames missing up to the last one received of each identifier that the codec did not count
 as lost (0 when the lost count is exact); ``sender_late`` how often the sender, descheduled on a
-busy machine, sent our frames 100 ms or more late (then in a burst: it did not keep the cycle
-the count relies on, and each such stretch may count one counter wrap, 16 frames, too many).
+busy machine, sent our frames 100 ms or more late (it did not keep the cycle the count relies on:
+the receiver may take such a silence for counter wraps, 16 frames each), ``sender_late_wraps`` how
+many wraps those stretches span at most.
 ``--profile`` prints the top functions of a cProfile of the receiving process as well.
 """
 
@@ -32,7 +33,7 @@ from bus_testlib import udp_socket_drops
 from thermal_edge.bus import CanTransport, FrameCodec
 
 SENDER = r"""
-import sys, time
+import math, sys, time
 from thermal_edge.bus import FrameCodec, create_bus
 import can
 port, rate, seconds, mode = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
@@ -66,16 +67,18 @@ for due, name, values in plan:
 time.sleep(0.5)
 t0 = time.monotonic()
 late = 0  # times this process was descheduled so long that one of our frames left >= 100 ms late
+late_wraps = 0  # counter wraps (16 cycles) those stretches may hide: each rounded up
 for due, msg in msgs:
     while time.monotonic() < t0 + due - 0.001:
         time.sleep(0.0005)
     if msg.arbitration_id < 0x100 and time.monotonic() - (t0 + due) >= 0.1:
         late += 1
+        late_wraps += math.ceil((time.monotonic() - (t0 + due)) / (16 * codec.cycle_time_s("INV_Currents")))
         t0 += time.monotonic() - (t0 + due)  # count one late stretch once
     msg.timestamp = time.time()
     bus.send(msg)
 bus.shutdown()
-print(late, sum(isinstance(p[1], str) for p in plan), len(plan))
+print(late, late_wraps, sum(isinstance(p[1], str) for p in plan), len(plan))
 """
 
 
@@ -122,7 +125,7 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
             await asyncio.sleep(0.5 + seconds / 2)
             time.sleep(stall_s)  # the kernel queue overflows: real drops
         out, _ = await proc.communicate()
-        late, sent, total = (int(x) for x in out.decode().split()[-3:])
+        late, late_wraps, sent, total = (int(x) for x in out.decode().split()[-4:])
         # the last datagrams read: each one taken in or dropped by the kernel (a generous hang guard)
         end = time.monotonic() + 120.0
         while tr.stats.rx_messages + udp_socket_drops(tr.bus.socket) < total and time.monotonic() < end:
@@ -138,6 +141,7 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
     return {"mode": mode, "rate_fps": rate, "seconds": seconds, "bus_frames": total, "rx_messages": tr.stats.rx_messages,
             "unknown_id": st.unknown_id, "sent": sent, "received": count, "lost_counted": st.lost,
             "missing": sent - count, "missing_uncounted": expected - count - st.lost, "sender_late": late,
+            "sender_late_wraps": late_wraps,
             "kernel_drops": kernel_drops, "codec_dropped": st.dropped_total,
             "cpu_s": round(cpu, 2),
             "cpu_s_per_10k": round(cpu / max(tr.stats.rx_messages, 1) * 10_000, 3),
