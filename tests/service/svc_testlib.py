@@ -287,7 +287,7 @@ def start_service(config: Path, notify: NotifySocket | None = None, watchdog_use
 def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | None = None, table4: str = "none",
                  open_loop: bool = False, fallback_current: float | None = None, seed: int = 0,
                  cycle: str = "overload.yaml", ready_file: Path | None = None, speed: float = SPEED,
-                 flow_timeout: float = 5.0, max_free: float | None = None) -> list[str]:
+                 flow_timeout: float = 5.0, max_free: float | None = None, limits_timeout: float | None = None) -> list[str]:
     cmd = [sys.executable, "-m", "thermal_edge.sim.inverter", "--interface", "udp_multicast", "--port", str(port),
            "--model", str(MODEL), "--cycle", str(CYCLES / cycle), "--speed", str(speed), "--t0", str(T0),
            "--flow-timeout", str(flow_timeout), "--max-lead", str(MAX_LEAD_S),
@@ -298,6 +298,8 @@ def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | Non
         cmd += ["--duration", str(duration)]
     if max_free is not None:
         cmd += ["--max-free", str(max_free)]
+    if limits_timeout is not None:
+        cmd += ["--limits-timeout", str(limits_timeout)]
     if open_loop:
         cmd.append("--open-loop")
     if fallback_current is not None:
