@@ -40,7 +40,9 @@ GAP_S = 0.3  # the inverter drops TE_Limits after this long
 #: a silence of seconds is still the service's
 GAP_UNSAFE_S = GAP_S
 RESOLUTION_A = 0.05  # TE_CurrentLimit's factor: a limit equal to a bound may read one step above
-START_TIMEOUT_S = 30.0
+#: how long a start may take before the service counts as not starting, s: a generous hang guard (a
+#: host busy with other work starts a Python process in tens of seconds)
+START_TIMEOUT_S = 300.0
 
 
 #: environment variable: run the service from another source tree (e.g. an export of an older
@@ -169,7 +171,7 @@ class Monitor:
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._pos = 0
         self.limits = Limits()
-        deadline = time.monotonic() + START_TIMEOUT_S * 4  # a hang guard: a busy host starts it late
+        deadline = time.monotonic() + START_TIMEOUT_S  # a hang guard: a busy host starts it late
         while time.monotonic() < deadline and not (self.path.exists() and self.path.read_text().startswith("ready")):
             time.sleep(0.02)
 

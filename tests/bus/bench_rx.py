@@ -99,9 +99,9 @@ def free_port() -> int:
 
 
 async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0, mode: str = "mixed",
-               port: int | None = None) -> dict:
+               port: int | None = None, rcvbuf_bytes: int | None = None) -> dict:
     """Run the benchmark; ``stall_s`` blocks this event loop once, mid-run, for that long (s); on
-    ``port`` (default: a free one)."""
+    ``port`` (default: a free one); ``rcvbuf_bytes`` the receiving socket's queue (default: the bus's)."""
     port = port or free_port()
     count = 0
     last = {"INV_Currents": -1, "INV_Mechanics": -1}  # highest frame index received per frame
@@ -112,7 +112,10 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
         k = round(frame.signals["INV_IphRms"] / 0.05 if frame.name == "INV_Currents" else frame.signals["INV_Udc"] / 0.1)
         last[frame.name] = max(last[frame.name], k)
 
-    tr = CanTransport({"interface": "udp_multicast", "port": port, "node": "TE"}, FrameCodec(), on_frame=on_frame)
+    bus = {"interface": "udp_multicast", "port": port, "node": "TE"}
+    if rcvbuf_bytes is not None:
+        bus["options"] = {"rcvbuf_bytes": rcvbuf_bytes}
+    tr = CanTransport(bus, FrameCodec(), on_frame=on_frame)
     prof = cProfile.Profile() if profile else None
     async with tr:
         proc = await asyncio.create_subprocess_exec(

@@ -128,7 +128,7 @@ def test_a_sigterm_while_the_service_starts_is_a_clean_stop(tmp_path, bed):
         # the moment it catches SIGTERM (~80 ms after exec now; the old code only once running)
         assert svc.catches(signal.SIGTERM), svc.log_text()[-2000:]
         svc.kill(signal.SIGTERM)
-        assert svc.proc is not None and svc.proc.wait(30) == 0, svc.log_text()[-2000:]
+        assert svc.proc is not None and svc.proc.wait(HANG_S) == 0, svc.log_text()[-2000:]
         assert log_lines(svc, "received SIGTERM while starting: stopping"), svc.log_text()[-2000:]
         assert log_lines(svc, "stopped, state saved to", str(sd / STATE)) and (sd / STATE).exists()
     finally:
@@ -145,7 +145,7 @@ def test_sigquit_stops_cleanly_with_the_state_saved(tmp_path, bed):
     # holds the same value)
     written = (sd / STATE).stat().st_mtime_ns
     svc.kill(signal.SIGQUIT)
-    assert svc.proc is not None and svc.proc.wait(30) == 0, svc.log_text()[-2000:]
+    assert svc.proc is not None and svc.proc.wait(HANG_S) == 0, svc.log_text()[-2000:]
     assert log_lines(svc, "received SIGQUIT: stopping") and log_lines(svc, "stopped, state saved to", str(sd / STATE))
     assert (sd / STATE).stat().st_mtime_ns > written
     assert json.loads((sd / STATE).read_text())["saved_at"] >= before
