@@ -287,7 +287,10 @@ def start_service(config: Path, notify: NotifySocket | None = None, watchdog_use
 def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | None = None, table4: str = "none",
                  open_loop: bool = False, fallback_current: float | None = None, seed: int = 0,
                  cycle: str = "overload.yaml", ready_file: Path | None = None, speed: float = SPEED,
-                 flow_timeout: float = 5.0, max_free: float | None = None, limits_timeout: float | None = None) -> list[str]:
+                 flow_timeout: float = 60.0, max_free: float | None = None, limits_timeout: float | None = None) -> list[str]:
+    """``python -m thermal_edge.sim.inverter`` for a test on udp_multicast ``port``. ``flow_timeout``, the wall
+    time the emulator waits for a silent service before it runs on, is a generous hang guard by default (a
+    busy host may keep the service from ticking for seconds); a test of a service that is gone sets it short."""
     cmd = [sys.executable, "-m", "thermal_edge.sim.inverter", "--interface", "udp_multicast", "--port", str(port),
            "--model", str(MODEL), "--cycle", str(CYCLES / cycle), "--speed", str(speed), "--t0", str(T0),
            "--flow-timeout", str(flow_timeout), "--max-lead", str(MAX_LEAD_S),
