@@ -33,6 +33,7 @@ from .harness import (
     Inverter,
     bed,
     common_checks,
+    counts,
     env,
     metric,
     received,
@@ -78,9 +79,7 @@ def _live(name: str) -> Iterator[tuple[Bed, ShiftedInverter]]:
 
 
 def _counts(b: Bed, inv: ShiftedInverter) -> tuple[dict[str, int], dict[str, float]]:
-    with inv.held() as sent:
-        m = b.service.metrics()
-    return sent, m
+    return counts(b, inv)
 
 
 def _lost(sent0: dict[str, int], m0: dict[str, float], sent1: dict[str, int], m1: dict[str, float]) -> int:

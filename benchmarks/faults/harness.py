@@ -34,8 +34,15 @@ from .. import ROOT
 from . import wire
 
 GAP_S = 0.3  # the inverter drops TE_Limits after this long
+#: a TE_Limits gap longer than this is an unsafe event; one between GAP_S and it, a target missed. The
+#: bench judges by the contract (GAP_S); the test suite, on a shared host busy with other work, raises
+#: it to a generous guard: there a gap just past GAP_S measures the host's load as much as the service,
+#: a silence of seconds is still the service's
+GAP_UNSAFE_S = GAP_S
 RESOLUTION_A = 0.05  # TE_CurrentLimit's factor: a limit equal to a bound may read one step above
-START_TIMEOUT_S = 30.0
+#: how long a start may take before the service counts as not starting, s: a generous hang guard (a
+#: host busy with other work starts a Python process in tens of seconds)
+START_TIMEOUT_S = 300.0
 
 
 #: environment variable: run the service from another source tree (e.g. an export of an older
@@ -164,7 +171,7 @@ class Monitor:
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._pos = 0
         self.limits = Limits()
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + START_TIMEOUT_S  # a hang guard: a busy host starts it late
         while time.monotonic() < deadline and not (self.path.exists() and self.path.read_text().startswith("ready")):
             time.sleep(0.02)
 
@@ -281,7 +288,8 @@ class Service:
         if self.metrics_port is None:
             return {}
         try:
-            text = urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}/metrics", timeout=3).read().decode()
+            # a generous time-out: a scrape answered late on a busy host is answered
+            text = urllib.request.urlopen(f"http://127.0.0.1:{self.metrics_port}/metrics", timeout=30).read().decode()
         except OSError:
             return {}
         out: dict[str, float] = {}
@@ -365,6 +373,9 @@ class Inverter:
         self.sent = dict.fromkeys(wire.INPUT_FRAMES, 0)
         self.counters = dict.fromkeys(wire.INPUT_FRAMES, 0)
         self.ids = {n: wire.frame_id(n) for n in wire.INPUT_FRAMES}
+        #: per frame: when (``time.monotonic``) the first regular frame after the last :meth:`burst` left
+        #: (None until it has)
+        self.resumed_at: dict[str, float | None] = {}
         self.lock = threading.Lock()
         self._stop = threading.Event()
         self._hold = threading.Event()
@@ -377,6 +388,8 @@ class Inverter:
     def _send(self, name: str) -> None:
         with self.lock:
             self._send_locked(name)
+            if name in self.resumed_at and self.resumed_at[name] is None:
+                self.resumed_at[name] = time.monotonic()
 
     def _send_locked(self, name: str) -> None:
         k = self.counters[name]
@@ -425,6 +438,7 @@ class Inverter:
                     self._send_locked(name)
             finally:
                 self.signals[name] = regular
+                self.resumed_at[name] = None
 
     def inject(self, payload: bytes) -> None:
         self.sock.sendto(payload, (self.group, self.port))
@@ -463,6 +477,32 @@ class Bed:
     service: Service
     monitor: Monitor
     inverter: Inverter | None
+    #: the last reading of :func:`counts`: frames sent and the service's metrics
+    last_counts: tuple[dict[str, int], dict[str, float]] | None = None
+
+
+#: longest a reading of the service's counters waits for the frames sent since the bed's last reading
+#: to be taken in, s: on a host busy with other work they may wait in the receive queue for a while;
+#: what is still missing after it is lost
+CATCH_UP_S = 10.0
+
+
+def counts(b: Bed, inverter: Inverter) -> tuple[dict[str, int], dict[str, float]]:
+    """Frames ``inverter`` sent and the service's metrics, read while it holds, once the service has
+    taken in every valid frame sent since the bed's last reading (or :data:`CATCH_UP_S` passed)."""
+    with inverter.held() as sent:
+        m = b.service.metrics()
+        if b.last_counts is not None and b.last_counts[1] and m:
+            s0, m0 = b.last_counts
+            r0 = received(m0)
+            deadline = time.monotonic() + CATCH_UP_S
+            while (b.service.alive() and time.monotonic() < deadline
+                   and any(received(m)[n] - r0[n] < sent[n] - s0[n] for n in wire.INPUT_FRAMES)):
+                time.sleep(0.05)
+                m = b.service.metrics() or m
+        sent = dict(sent)
+    b.last_counts = (sent, m)
+    return sent, m
 
 
 @contextlib.contextmanager
@@ -556,7 +596,11 @@ def common_checks(b: Bed, t0: float, t1: float, *, safe_from: float | None = Non
     alive = b.service.alive()
     end = t1 if alive else min(t1, time.time())
     g = gaps(lim, t0, end, gap_limit_s)
-    c.add(len(g), f"{len(g)} TE_Limits gap(s) > {gap_limit_s * 1e3:.0f} ms (max {max(g, default=0) * 1e3:.0f} ms)")
+    unsafe_s = max(gap_limit_s, GAP_UNSAFE_S)
+    long_g = [x for x in g if x > unsafe_s]
+    c.add(len(long_g), f"{len(long_g)} TE_Limits gap(s) > {unsafe_s * 1e3:.0f} ms (max {max(g, default=0) * 1e3:.0f} ms)")
+    c.target(len(long_g) == len(g), f"{len(g)} TE_Limits gap(s) > {gap_limit_s * 1e3:.0f} ms "
+                                    f"(max {max(g, default=0) * 1e3:.0f} ms)")
     over = sum(1 for t, i, tq in zip(lim.t, lim.current, lim.torque)
                if t0 <= t <= t1 and (i > MAX_A + RESOLUTION_A or tq > MAX_NM + 0.1))
     c.add(over, f"{over} limit(s) above the maximum")

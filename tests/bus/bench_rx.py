@@ -7,11 +7,13 @@ A sender process puts RATE frames/s on the bus, paced in 1 ms slices, in one of 
 foreign identifiers for the rest) or ``own`` (every frame INV_Currents or INV_Mechanics, at the
 full rate: the dearest case for the decoder). This process receives them through a
 CanTransport and prints one JSON line: our frames sent, received, lost by the codec's count, the
-receiver's CPU seconds and CPU s per 10,000 frames on the bus; ``missing_uncounted`` is the number of
+receiver's CPU seconds and CPU s per 10,000 frames on the bus, the datagrams the kernel dropped from
+the receiver's full queue (``kernel_drops``); ``missing_uncounted`` is the number of
 frames missing up to the last one received of each identifier that the codec did not count
 as lost (0 when the lost count is exact); ``sender_late`` how often the sender, descheduled on a
-busy machine, sent our frames 100 ms or more late (then in a burst: it did not keep the cycle
-the count relies on, and each such stretch may count one counter wrap, 16 frames, too many).
+busy machine, sent our frames 100 ms or more late (it did not keep the cycle the count relies on:
+the receiver may take such a silence for counter wraps, 16 frames each), ``sender_late_wraps`` how
+many wraps those stretches span at most.
 ``--profile`` prints the top functions of a cProfile of the receiving process as well.
 """
 
@@ -26,10 +28,12 @@ import socket
 import sys
 import time
 
+from bus_testlib import udp_socket_drops
+
 from thermal_edge.bus import CanTransport, FrameCodec
 
 SENDER = r"""
-import sys, time
+import math, sys, time
 from thermal_edge.bus import FrameCodec, create_bus
 import can
 port, rate, seconds, mode = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), sys.argv[4]
@@ -63,16 +67,18 @@ for due, name, values in plan:
 time.sleep(0.5)
 t0 = time.monotonic()
 late = 0  # times this process was descheduled so long that one of our frames left >= 100 ms late
+late_wraps = 0  # counter wraps (16 cycles) those stretches may hide: each rounded up
 for due, msg in msgs:
     while time.monotonic() < t0 + due - 0.001:
         time.sleep(0.0005)
     if msg.arbitration_id < 0x100 and time.monotonic() - (t0 + due) >= 0.1:
         late += 1
+        late_wraps += math.ceil((time.monotonic() - (t0 + due)) / (16 * codec.cycle_time_s("INV_Currents")))
         t0 += time.monotonic() - (t0 + due)  # count one late stretch once
     msg.timestamp = time.time()
     bus.send(msg)
 bus.shutdown()
-print(late, sum(isinstance(p[1], str) for p in plan), len(plan))
+print(late, late_wraps, sum(isinstance(p[1], str) for p in plan), len(plan))
 """
 
 
@@ -92,9 +98,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0, mode: str = "mixed") -> dict:
-    """Run the benchmark; ``stall_s`` blocks this event loop once, mid-run, for that long (s)."""
-    port = free_port()
+async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0, mode: str = "mixed",
+               port: int | None = None, rcvbuf_bytes: int | None = None) -> dict:
+    """Run the benchmark; ``stall_s`` blocks this event loop once, mid-run, for that long (s); on
+    ``port`` (default: a free one); ``rcvbuf_bytes`` the receiving socket's queue (default: the bus's)."""
+    port = port or free_port()
     count = 0
     last = {"INV_Currents": -1, "INV_Mechanics": -1}  # highest frame index received per frame
 
@@ -104,7 +112,10 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
         k = round(frame.signals["INV_IphRms"] / 0.05 if frame.name == "INV_Currents" else frame.signals["INV_Udc"] / 0.1)
         last[frame.name] = max(last[frame.name], k)
 
-    tr = CanTransport({"interface": "udp_multicast", "port": port, "node": "TE"}, FrameCodec(), on_frame=on_frame)
+    bus = {"interface": "udp_multicast", "port": port, "node": "TE"}
+    if rcvbuf_bytes is not None:
+        bus["options"] = {"rcvbuf_bytes": rcvbuf_bytes}
+    tr = CanTransport(bus, FrameCodec(), on_frame=on_frame)
     prof = cProfile.Profile() if profile else None
     async with tr:
         proc = await asyncio.create_subprocess_exec(
@@ -117,11 +128,15 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
             await asyncio.sleep(0.5 + seconds / 2)
             time.sleep(stall_s)  # the kernel queue overflows: real drops
         out, _ = await proc.communicate()
-        await asyncio.sleep(0.3)
+        late, late_wraps, sent, total = (int(x) for x in out.decode().split()[-4:])
+        # the last datagrams read: each one taken in or dropped by the kernel (a generous hang guard)
+        end = time.monotonic() + 120.0
+        while tr.stats.rx_messages + udp_socket_drops(tr.bus.socket) < total and time.monotonic() < end:
+            await asyncio.sleep(0.01)
+        kernel_drops = udp_socket_drops(tr.bus.socket)
         if prof:
             prof.disable()
         cpu = time.process_time() - cpu0
-    late, sent, total = (int(x) for x in out.decode().split()[-3:])
     st = tr.codec.stats
     if prof:
         pstats.Stats(prof, stream=sys.stderr).sort_stats("tottime").print_stats(15)
@@ -129,6 +144,8 @@ async def main(rate: float, seconds: float, profile: bool, stall_s: float = 0.0,
     return {"mode": mode, "rate_fps": rate, "seconds": seconds, "bus_frames": total, "rx_messages": tr.stats.rx_messages,
             "unknown_id": st.unknown_id, "sent": sent, "received": count, "lost_counted": st.lost,
             "missing": sent - count, "missing_uncounted": expected - count - st.lost, "sender_late": late,
+            "sender_late_wraps": late_wraps,
+            "kernel_drops": kernel_drops, "codec_dropped": st.dropped_total,
             "cpu_s": round(cpu, 2),
             "cpu_s_per_10k": round(cpu / max(tr.stats.rx_messages, 1) * 10_000, 3),
             "rx_fps": round(tr.stats.rx_messages / seconds)}

@@ -8,6 +8,8 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
+from own_ports import own_udp_port
+
 REPO = Path(__file__).resolve().parents[2]
 DBC_PATH = REPO / "dbc" / "thermal_edge.dbc"
 MATRIX_PATH = Path(os.environ.get("THERMAL_EDGE_CAN_MATRIX", "/work/shared/reference/can-matrix.md"))
@@ -72,10 +74,8 @@ def parse_can_matrix(text: str) -> list[MatrixSignal]:
 
 
 def free_udp_port() -> int:
-    """A UDP port no socket of this host is bound to right now."""
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
-        return s.getsockname()[1]
+    """A UDP port for this test's ``udp_multicast`` buses, no other process's while this one runs."""
+    return own_udp_port()
 
 
 def crc8_bitwise(data: bytes) -> int:
@@ -86,3 +86,14 @@ def crc8_bitwise(data: bytes) -> int:
         for _ in range(8):
             reg = ((reg << 1) ^ 0x1D) & 0xFF if reg & 0x80 else (reg << 1) & 0xFF
     return reg ^ 0xFF
+
+
+def udp_socket_drops(sock: socket.socket) -> int:
+    """Datagrams the kernel dropped for this UDP socket so far (a full receive queue), from
+    ``/proc/net/udp``'s per-socket ``drops`` column: an exact count of what never reached the reader."""
+    inode = os.fstat(sock.fileno()).st_ino
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if int(fields[9]) == inode:
+            return int(fields[-1])
+    raise LookupError(f"socket inode {inode} not in /proc/net/udp")

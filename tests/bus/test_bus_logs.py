@@ -11,6 +11,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 
 import can
 import pytest
@@ -66,7 +67,11 @@ def _record(path, channel, **bus) -> CanTransport:
                 for name, values in TE_FRAMES.items():
                     assert te.send(name, values)
                 await asyncio.sleep(0.001)
-            await asyncio.sleep(0.05)
+            # the inverter's frames reach the recorder through the reader thread: wait for all of
+            # them (a generous hang guard; a busy host hands them over late)
+            end = time.monotonic() + 60.0
+            while te.stats.rx_messages < 4 * ROUNDS and time.monotonic() < end:
+                await asyncio.sleep(0.01)
             te.written = te.recorder.frames_written
         return te
 

@@ -1,8 +1,11 @@
 """``start_cyclic(thread=True)``: TE_Limits from its own thread, whatever the event loop does.
 
 Issue 14, defect 5: TE_Limits shared the event loop with metrics, ticks and adaptation, and a
-busy loop delayed it beyond the inverter's 300 ms timeout. The gaps are measured from receive
-time stamps on an independent python-can bus.
+busy loop delayed it beyond the inverter's 300 ms timeout. The frames are received on an
+independent python-can bus and placed against the moments the loop was blocked (the virtual bus
+stamps a frame with the wall clock when it is sent). Whether the cadence holds 300 ms on a busy
+host is the fault bench's figure (``benchmarks/faults``); here it is which sender sends at all
+while the loop cannot run.
 """
 
 from __future__ import annotations
@@ -21,28 +24,44 @@ LIMITS = dict(TE_TorqueLimit=80.0, TE_CurrentLimit=40.0, TE_DerateActive=0, TE_D
 
 
 class _Watch(threading.Thread):
-    """Independent receiver on its own virtual bus: receive times of every TE_Limits."""
+    """Independent receiver on its own virtual bus: send times of every TE_Limits."""
 
     def __init__(self, channel: str) -> None:
         super().__init__(daemon=True)
         self.bus = can.Bus(interface="virtual", channel=channel)
         self.times: list[float] = []
         self.stop = threading.Event()
+        self._lock = threading.Condition()
 
     def run(self) -> None:
         while not self.stop.is_set():
             msg = self.bus.recv(0.05)
             if msg is not None and msg.arbitration_id == 0x2A0:
-                self.times.append(msg.timestamp)
+                with self._lock:
+                    self.times.append(msg.timestamp)
+                    self._lock.notify_all()
 
-    def gaps(self) -> list[float]:
+    def wait_after(self, t: float, n: int, timeout: float) -> bool:
+        """Wait (blocking the calling thread) until ``n`` TE_Limits sent after ``t`` arrived."""
+        with self._lock:
+            return self._lock.wait_for(lambda: sum(x > t for x in self.times) >= n, timeout)
+
+    def between(self, t0: float, t1: float) -> int:
+        with self._lock:
+            return sum(t0 < x < t1 for x in self.times)
+
+    def close(self) -> list[float]:
         self.stop.set()
         self.join(2.0)
         while (msg := self.bus.recv(0)) is not None:  # what was still queued
             if msg.arbitration_id == 0x2A0:
                 self.times.append(msg.timestamp)
         self.bus.shutdown()
-        return [b - a for a, b in zip(self.times, self.times[1:])]
+        return self.times
+
+
+#: generous upper bound of every wait on a condition (a hang guard, not a performance bound), s
+HANG_S = 60.0
 
 
 def _cfg(channel: str) -> dict:
@@ -56,26 +75,38 @@ async def test_blocked_event_loop_does_not_delay_a_threaded_sender(virtual_chann
     te = CanTransport(_cfg(virtual_channel), FrameCodec(DBC_PATH))
     async with te:
         sender = te.start_cyclic("TE_Limits", lambda: LIMITS, thread=thread)
-        await asyncio.sleep(0.5)
-        time.sleep(1.0)  # a coroutine that blocks the loop (a slow tick, a stalled metrics handler)
-        await asyncio.sleep(0.5)
+        assert await asyncio.to_thread(watch.wait_after, 0.0, 3, HANG_S)  # it runs
+        # a coroutine that blocks the loop (a slow tick, a stalled metrics handler): the threaded
+        # sender's frames arrive meanwhile, the loop's cannot
+        t_block = time.time()
+        if thread:
+            during = watch.wait_after(t_block, 5, HANG_S)
+        else:
+            time.sleep(1.0)  # ten periods
+        t_free = time.time()
+        assert await asyncio.to_thread(watch.wait_after, t_free, 3, HANG_S)  # and it goes on
         await sender.stop()
         assert not sender.running
-    gaps = watch.gaps()
-    print(f"\n{'thread' if thread else 'asyncio'} sender: {len(gaps) + 1} TE_Limits, max gap {max(gaps) * 1e3:.0f} ms")
+    times = watch.close()
+    sent_while_blocked = sum(t_block < t < t_free for t in times)
+    print(f"\n{'thread' if thread else 'asyncio'} sender: {len(times)} TE_Limits, {sent_while_blocked} while the loop was "
+          f"blocked for {t_free - t_block:.2f} s")
     if thread:
-        assert len(gaps) >= 18 and max(gaps) < 0.15
-        assert te.stats.cyclic_overruns == 0
+        assert during and sent_while_blocked >= 5
     else:  # the defect, shown: the loop's sender stops while the loop is blocked
-        assert max(gaps) > 0.9
+        assert sent_while_blocked == 0
+    assert len(times) == te.stats.tx_frames == sender.sent  # and every frame sent arrived
 
 
 async def test_threaded_sender_survives_reconnects(virtual_channel):
     """Buses closed under the sender's feet (the loop reopens them meanwhile): sends that hit a
     torn-down bus count as tx_failed, nothing raises, and the cadence goes on."""
     opened: list[can.BusABC] = []
+    te: CanTransport | None = None
 
     def factory(cfg: BusConfig) -> can.BusABC:
+        if opened:  # a reopen: not before the sender thread has met the torn-down bus
+            assert _wait(lambda: te.stats.tx_failed > failed_at_close, HANG_S)
         bus = create_bus(cfg)
         opened.append(bus)
         return bus
@@ -86,20 +117,38 @@ async def test_threaded_sender_survives_reconnects(virtual_channel):
     async with te:
         sender = te.start_cyclic("TE_Limits", lambda: LIMITS, period_s=0.002, thread=True)
         for _ in range(5):
-            await asyncio.sleep(0.1)
-            opened[-1].shutdown()  # receive and send on it now fail
+            sent = sender.sent
+            assert await _until(lambda sent=sent: sender.sent >= sent + 20)  # frames on this bus
+            failed_at_close = te.stats.tx_failed
             n = len(opened)
-            loop = asyncio.get_running_loop()
-            end = loop.time() + 3.0
-            while len(opened) == n and loop.time() < end:
-                await asyncio.sleep(0.005)
-        await asyncio.sleep(0.1)
+            opened[-1].shutdown()  # receive and send on it now fail
+            assert await _until(lambda n=n: len(opened) > n)
+        sent = sender.sent
+        assert await _until(lambda: sender.sent >= sent + 20)  # and on the last one
         assert sender.running
-    watch.gaps()
+    watch.close()
     assert te.stats.reconnects == 5
-    assert te.stats.tx_failed >= 1 and te.stats.tx_frames >= 100
+    assert te.stats.tx_failed >= 5 and te.stats.tx_frames >= 6 * 20
     assert sender.sent == te.stats.tx_frames and sender.attempts == te.stats.tx_frames + te.stats.tx_failed
     assert len(watch.times) == te.stats.tx_frames  # every frame the transport counts as sent arrived
+
+
+def _wait(predicate, timeout: float) -> bool:
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.001)
+    return True
+
+
+async def _until(predicate, timeout: float = HANG_S) -> bool:
+    end = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > end:
+            return False
+        await asyncio.sleep(0.002)
+    return True
 
 
 def test_coroutine_provider_is_refused_for_a_thread():
@@ -125,12 +174,14 @@ async def test_frames_of_one_id_from_thread_and_loop_leave_in_counter_order(virt
     sys.setswitchinterval(1e-6)  # switch threads as often as a busy machine does (without the lock: ~3,000 lost)
     try:
         async with rx, te:
-            te.start_cyclic("TE_Limits", lambda: LIMITS, period_s=0.0005, thread=True)
+            sender = te.start_cyclic("TE_Limits", lambda: LIMITS, period_s=0.0005, thread=True)
             for i in range(2000):
                 te.send("TE_Limits", LIMITS)
                 if i % 20 == 0:
                     await asyncio.sleep(0)
-            await asyncio.sleep(0.2)
+            assert await _until(lambda: sender.sent >= 10)  # the thread's frames among them
+            await sender.stop()
+            assert await _until(lambda: len(got) >= te.stats.tx_frames)  # all delivered
     finally:
         sys.setswitchinterval(interval)
     n = te.stats.tx_frames

@@ -28,7 +28,7 @@ async def main(port: int, n_frames: int) -> dict:
             inv.send("INV_Currents", dict(INV_Id=i * 0.05, INV_Iq=-i * 0.05, INV_IphRms=i * 0.1))
             await asyncio.sleep(0.001)  # pace: UDP drops frames when a receiver falls behind
         loop = asyncio.get_running_loop()
-        end = loop.time() + 5.0
+        end = loop.time() + 60.0  # a hang guard: the limits come every 20 ms
         while len(limits) < 5 and loop.time() < end:
             await asyncio.sleep(0.01)
         await asyncio.sleep(0.1)  # let late echoes of our own frames arrive

@@ -5,16 +5,17 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 from pathlib import Path
 
+from own_ports import own_tcp_port
+
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A TCP port held by this test process (the metrics endpoint binds with SO_REUSEADDR): no other
+    process, a second suite beside this one included, takes it meanwhile."""
+    return own_tcp_port()
 
 
 def _demo(tmp: Path, *extra: str) -> subprocess.CompletedProcess[str]:

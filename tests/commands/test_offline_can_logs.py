@@ -308,8 +308,9 @@ def _guide_blocks(kind: str) -> list[str]:
 
 @pytest.mark.slow  # the guide's demo recording and every command on it (about 40 s)
 def test_the_guides_commands_run_and_print_what_it_shows(tmp_path):
-    port = subprocess.run([sys.executable, "-c", "import socket; s = socket.socket(); s.bind(('127.0.0.1', 0)); "
-                           "print(s.getsockname()[1])"], capture_output=True, text=True).stdout.strip()
+    from own_ports import own_tcp_port
+
+    port = str(own_tcp_port())  # held by this test process: no other process takes it meanwhile
     outputs = {}
     for block in _guide_blocks("sh"):
         (line,) = block.strip().splitlines()

@@ -14,7 +14,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -25,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from own_ports import own_tcp_port, own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -54,15 +54,13 @@ def thermal_edge_cmd() -> list[str]:
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port on 127.0.0.1 for a server this test starts, no other process's while this one runs."""
+    return own_tcp_port()
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
-        return s.getsockname()[1]
+    """A UDP port for this test's ``udp_multicast`` buses, no other process's while this one runs."""
+    return own_udp_port()
 
 
 def udp_multicast_works(port: int) -> str | None:

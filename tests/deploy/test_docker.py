@@ -163,7 +163,7 @@ def test_wheel_of_the_build_context(tmp_path: Path) -> None:
             assert z.read(name) == src.read_bytes(), f"{name} differs from {src}"
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(900)  # a hang guard
 def test_healthcheck_command(tmp_path: Path) -> None:
     """The HEALTHCHECK's own command: 0 against a running service, non-zero with nothing listening."""
     hc = [a for k, a in instructions(DOCKERFILE.read_text()) if k == "HEALTHCHECK"][0]
@@ -178,16 +178,17 @@ def test_healthcheck_command(tmp_path: Path) -> None:
     cfg = dl.write_yaml(tmp_path / "edge.yaml", dl.service_config(
         state, bus={"interface": "virtual", "channel": f"hc-{os.getpid()}"}, metrics_port=port, clock="wall"))
     # nothing listening yet: unhealthy
-    r = subprocess.run(argv, env=dl.env(THERMAL_EDGE_METRICS_PORT=str(port)), capture_output=True, timeout=30)
+    r = subprocess.run(argv, env=dl.env(THERMAL_EDGE_METRICS_PORT=str(port)), capture_output=True, timeout=300)
     assert r.returncode != 0
     proc = subprocess.Popen([*dl.thermal_edge_cmd(), "run", "--config", str(cfg)], env=dl.env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 300  # a hang guard: a busy host starts it late
         rc = None
         while time.monotonic() < deadline:
             assert proc.poll() is None, proc.communicate()[0]
-            rc = subprocess.run(argv, env=dl.env(THERMAL_EDGE_METRICS_PORT=str(port)), capture_output=True, timeout=30).returncode
+            rc = subprocess.run(argv, env=dl.env(THERMAL_EDGE_METRICS_PORT=str(port)), capture_output=True,
+                                timeout=300).returncode
             if rc == 0:
                 break
             time.sleep(0.5)
@@ -195,6 +196,6 @@ def test_healthcheck_command(tmp_path: Path) -> None:
     finally:
         proc.send_signal(signal.SIGTERM)
         try:
-            proc.communicate(timeout=30)
+            proc.communicate(timeout=300)
         except subprocess.TimeoutExpired:
             proc.kill()

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from own_ports import own_tcp_port
 
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
@@ -35,9 +36,9 @@ FIT = ["--params", PARAMS, "--decimate", "60", "--no-progress"]
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port held by this test process (dask's scheduler binds with SO_REUSEADDR): no other
+    process, a second suite beside this one included, takes it meanwhile."""
+    return own_tcp_port()
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +57,7 @@ def scheduler(tmp_path_factory):
     logs = tmp_path_factory.mktemp("dask")
     procs = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
                               stdout=open(logs / "scheduler.log", "w"), stderr=subprocess.STDOUT, env=ENV)]
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + 300  # a hang guard: a busy host starts it late
     while time.monotonic() < deadline:
         try:
             socket.create_connection(("127.0.0.1", port), timeout=1).close()

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from own_ports import own_tcp_port, own_udp_port
 
 REPO = Path(__file__).resolve().parents[2]
 EDGE_YAML = REPO / "config" / "edge.yaml"
@@ -78,15 +79,54 @@ def table4_model_params() -> dict[str, float]:
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
-        s.bind(("::", 0))
-        return s.getsockname()[1]
+    """A UDP port for this test's ``udp_multicast`` buses, no other process's while this one runs."""
+    return own_udp_port()
 
 
 def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port on 127.0.0.1 for a server this test starts, no other process's while this one runs."""
+    return own_tcp_port()
+
+
+def logged_metrics_port(log: Path, timeout: float = 300.0) -> int | None:
+    """The port the service bound for its metrics (``metrics.port: 0``), read from its log (``--log-level
+    info``); None if not logged within ``timeout`` s. A port picked by the service itself cannot be taken
+    by another process between a test's choosing it and the service's binding it."""
+    import re
+
+    deadline = time.monotonic() + timeout
+    while True:
+        m = re.search(r"metrics on http://127\.0\.0\.1:(\d+)/metrics", log.read_text(errors="replace") if log.exists() else "")
+        if m:
+            return int(m.group(1))
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(0.05)
+
+
+@contextlib.contextmanager
+def host_interface_lock(interface: str, timeout: float = 1800.0):
+    """Hold the lock of a network interface every test process of this host shares (``vcan0``): a
+    second suite running beside this one waits for it instead of putting its frames on the same bus.
+    The lock file's path is fixed on purpose (it is the meeting point); ``flock`` frees it when the
+    holder ends, however it ends."""
+    import fcntl
+    import tempfile
+
+    with open(Path(tempfile.gettempdir()) / f"thermal-edge-tests-{interface}.lock", "a") as fh:
+        deadline = time.monotonic() + timeout  # a hang guard
+        while True:
+            try:
+                fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"{interface} held by another test process for {timeout:g} s") from None
+                time.sleep(0.1)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def udp_available(port: int) -> str | None:
@@ -247,7 +287,10 @@ def start_service(config: Path, notify: NotifySocket | None = None, watchdog_use
 def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | None = None, table4: str = "none",
                  open_loop: bool = False, fallback_current: float | None = None, seed: int = 0,
                  cycle: str = "overload.yaml", ready_file: Path | None = None, speed: float = SPEED,
-                 flow_timeout: float = 5.0, max_free: float | None = None) -> list[str]:
+                 flow_timeout: float = 60.0, max_free: float | None = None, limits_timeout: float | None = None) -> list[str]:
+    """``python -m thermal_edge.sim.inverter`` for a test on udp_multicast ``port``. ``flow_timeout``, the wall
+    time the emulator waits for a silent service before it runs on, is a generous hang guard by default (a
+    busy host may keep the service from ticking for seconds); a test of a service that is gone sets it short."""
     cmd = [sys.executable, "-m", "thermal_edge.sim.inverter", "--interface", "udp_multicast", "--port", str(port),
            "--model", str(MODEL), "--cycle", str(CYCLES / cycle), "--speed", str(speed), "--t0", str(T0),
            "--flow-timeout", str(flow_timeout), "--max-lead", str(MAX_LEAD_S),
@@ -258,6 +301,8 @@ def emulator_cmd(port: int, summary: Path, trace: Path, *, duration: float | Non
         cmd += ["--duration", str(duration)]
     if max_free is not None:
         cmd += ["--max-free", str(max_free)]
+    if limits_timeout is not None:
+        cmd += ["--limits-timeout", str(limits_timeout)]
     if open_loop:
         cmd.append("--open-loop")
     if fallback_current is not None:
@@ -304,6 +349,9 @@ def isfinite(x: float) -> bool:
 
 #: Simulated seconds the emulator of :func:`running` may lead the service.
 MAX_LEAD_S = 2.0
+#: Generous upper bound of a wait on the emulator or the service (a hang guard for a busy host, not
+#: a performance bound), s.
+HANG_S = 300.0
 
 
 @contextlib.asynccontextmanager
@@ -327,7 +375,7 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
                            {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
     task = asyncio.get_running_loop().create_task(emu.run())
     try:
-        assert await async_wait_until(lambda: emu.elapsed > 0 and emu.bus is not None, 10)
+        assert await async_wait_until(lambda: emu.elapsed > 0 and emu.bus is not None, HANG_S)
         yield svc, emu
     finally:
         emu.stop()
@@ -336,5 +384,5 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
         await svc.stop()
 
 
-async def sim_until(emu, t_rel: float, timeout: float = 20.0) -> None:
+async def sim_until(emu, t_rel: float, timeout: float = HANG_S) -> None:
     assert await async_wait_until(lambda: emu.elapsed >= t_rel, timeout), f"emulator stuck at {emu.elapsed}"

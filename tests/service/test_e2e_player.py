@@ -10,7 +10,18 @@ import sys
 from pathlib import Path
 
 import can
-from svc_testlib import REPO, edge_raw, env, free_tcp_port, metric_sum, scrape, start_service, wait_until, write_yaml
+from svc_testlib import (
+    HANG_S,
+    REPO,
+    edge_raw,
+    env,
+    logged_metrics_port,
+    metric_sum,
+    scrape,
+    start_service,
+    wait_until,
+    write_yaml,
+)
 
 from thermal_edge.bus import DEFAULT_UDP_MULTICAST_GROUP, FrameCodec
 
@@ -42,21 +53,21 @@ def _recording(path: Path, seconds: float = 3.0) -> dict[str, int]:
 def test_can_player_replays_a_recording_into_the_running_service(tmp_path, udp_port):
     log = tmp_path / "drive.log"
     counts = _recording(log)
-    mport = free_tcp_port()
     raw = edge_raw(tmp_path / "state", {"interface": "udp_multicast", "port": udp_port}, table4=False, adapt=False,
-                   metrics_port=mport)
+                   metrics_port=0)
     svc = start_service(write_yaml(tmp_path / "edge.yaml", raw), log=tmp_path / "service.log")
     try:
-        assert wait_until(lambda: _up(mport), 60), (tmp_path / "service.log").read_text()
+        mport = logged_metrics_port(tmp_path / "service.log")
+        assert mport is not None and wait_until(lambda: _up(mport), HANG_S), (tmp_path / "service.log").read_text()
         player = subprocess.run(_guides_player_command(udp_port, log), env=env(), cwd=str(REPO), capture_output=True,
-                                text=True, timeout=120)
+                                text=True, timeout=HANG_S)
         assert player.returncode == 0, player.stderr
 
         def received() -> dict[str, float]:
             m = scrape(mport)
             return {n: m.get(f'thermal_edge_frames_received_total{{frame="{n}"}}', 0.0) for n in counts}
 
-        wait_until(lambda: received() == counts, 20, interval=0.1)
+        wait_until(lambda: received() == counts, HANG_S, interval=0.1)
         assert received() == counts
         m = scrape(mport)
         assert metric_sum(m, "thermal_edge_frames_dropped_total") == 0

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from svc_testlib import (
     DBC,
+    HANG_S,
     REPO,
     T0,
     async_wait_until,
@@ -72,7 +73,7 @@ def run(tmp_path_factory) -> Run:
         r.summary = await emu.run()
         r.wall_s = time.monotonic() - t
         want = r.summary.frames_sent["INV_Currents"]
-        await async_wait_until(lambda: svc.codec.stats.received["INV_Currents"] >= want, 15)  # frames still in flight
+        await async_wait_until(lambda: svc.codec.stats.received["INV_Currents"] >= want, HANG_S)  # frames still in flight
         await svc.stop()
         r.codec_stats = svc.codec.stats.as_dict()
         r.metrics_text = svc.metrics.text()

@@ -157,12 +157,25 @@ def test_flow_control_keeps_the_lead_from_the_start(delay_s):
 def test_real_time_frames_come_at_their_cycle_not_in_bursts():
     """At speed 1 ``INV_Currents`` leaves every 10 ms, as from the inverter: a plant step's ten
     frames sent in one burst left ~90 ms holes, longer than the 8 cycles after which a receiver
-    stops judging the alive counter (the SocketCAN VM test counted them as resyncs)."""
+    stops judging the alive counter (the SocketCAN VM test counted them as resyncs). No frame
+    leaves before its time (frame k at least k x 10 ms after the run began): a burst sends
+    the step's later frames up to 90 ms early. A busy host may send them late, which proves
+    nothing either way; how evenly they leave on a quiet host is printed."""
+    from thermal_edge.sim.inverter import PACE_MIN_SLEEP_S
+
     channel = f"te-pace-{time.monotonic_ns()}"
     emu = emulator({"interface": "virtual", "channel": channel}, current_period_s=0.01, temperature_period_s=0.1,
                    plant_dt_s=0.1, duration_s=3.0, speed=1.0, flow_control=False, closed_loop=False)
     rx = can.Bus(interface="virtual", channel=channel)  # stamps each frame with the wall clock when sent
-    asyncio.run(emu.run())
+
+    class Started(asyncio.Event):  # the wall time the emulator's schedule begins at (set just before)
+        def set(self) -> None:
+            self.at = time.time()
+            super().set()
+
+    started = Started()
+    asyncio.run(emu.run(started=started))
+    begun = started.at
     cur = emu.codec.frame_id("INV_Currents")
     stamps = []
     while (msg := rx.recv(0)) is not None:
@@ -170,8 +183,8 @@ def test_real_time_frames_come_at_their_cycle_not_in_bursts():
             stamps.append(msg.timestamp)
     rx.shutdown()
     gaps = np.diff(stamps)
+    early = np.array(stamps) - (begun + 0.01 * np.arange(len(stamps)))
     print(f"{len(stamps)} INV_Currents, gap median {np.median(gaps) * 1e3:.1f} ms, p99 {np.percentile(gaps, 99) * 1e3:.1f} ms, "
-          f"max {gaps.max() * 1e3:.1f} ms, {np.sum(gaps > 0.08)} over 80 ms")
+          f"max {gaps.max() * 1e3:.1f} ms, {np.sum(gaps > 0.08)} over 80 ms; earliest vs its time {early.min() * 1e3:+.1f} ms")
     assert len(stamps) == 300
-    assert np.median(gaps) == pytest.approx(0.01, abs=0.002)
-    assert np.sum(gaps > 0.08) <= 3  # only a stall of this shared machine, never one per plant step
+    assert early.min() >= -PACE_MIN_SLEEP_S  # frames due within PACE_MIN_SLEEP_S go at once

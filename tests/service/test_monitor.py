@@ -90,9 +90,9 @@ def test_monitor_says_in_one_line_when_the_service_cannot_be_reached(tmp_path):
 
     from svc_testlib import free_tcp_port
 
-    port = free_tcp_port()
+    port = free_tcp_port()  # held by this process, never listening: the connection is refused
     r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "monitor", "--once", "--metrics",
-                        f"http://127.0.0.1:{port}/metrics"], capture_output=True, text=True, env=env(), timeout=60)
+                        f"http://127.0.0.1:{port}/metrics"], capture_output=True, text=True, env=env(), timeout=300)
     assert r.returncode == 2 and r.stdout == ""
     assert len(r.stderr.strip().splitlines()) == 1 and f"127.0.0.1:{port}" in r.stderr
 

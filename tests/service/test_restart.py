@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from svc_testlib import MODEL, REPO, T0, NotifySocket, edge_raw, emulator_cmd, env, start_service, wait_until, write_yaml
+from svc_testlib import HANG_S, MODEL, REPO, T0, NotifySocket, edge_raw, emulator_cmd, env, start_service, wait_until, write_yaml
 
 from thermal_edge.service.persistence import LOCKNAME
 
@@ -37,25 +37,25 @@ def test_restart_after_sigkill_starts_from_the_cooled_saved_state(tmp_path, udp_
     emu = svc = None
     try:
         svc = start_service(cfg_a, notify, log=tmp_path / "a.log")
-        assert notify.wait_for("READY=1", 60)
+        assert notify.wait_for("READY=1", HANG_S)
         # without TE_Limits the inverter's own protection trips the drive (fallback 0 A: standstill);
         # it runs on for 5 simulated minutes without a service, then waits for service B however
         # long B takes to start on a busy host
         emu = subprocess.Popen(emulator_cmd(udp_port, tmp_path / "summary.json", tmp_path / "trace.npz", duration=3300.0,
                                             fallback_current=0.0, speed=300.0, flow_timeout=0.5, max_free=300.0),
                                env=env(), cwd=str(REPO), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        assert wait_until(lambda: saved_at(state_file) >= T0 + 2400, 120), "service A did not get to 40 min"
+        assert wait_until(lambda: saved_at(state_file) >= T0 + 2400, HANG_S), "service A did not get to 40 min"
         svc.send_signal(signal.SIGKILL)
-        svc.wait(10)
+        svc.wait(HANG_S)
         last_a = saved_at(state_file)
         svc = start_service(cfg_b, None, log=tmp_path / "b.log")
-        assert wait_until(lambda: saved_at(state_file) > last_a, 60), (tmp_path / "b.log").read_text()
+        assert wait_until(lambda: saved_at(state_file) > last_a, HANG_S), (tmp_path / "b.log").read_text()
         time.sleep(0.1)  # the file is replaced atomically; read the first save
         first = json.loads(state_file.read_text())
-        _, err = emu.communicate(timeout=120)  # B keeps answering: the emulator finishes its cycle with it
+        _, err = emu.communicate(timeout=4 * HANG_S)  # B keeps answering: the emulator finishes its cycle with it
         assert emu.returncode == 0, err.decode()
         svc.send_signal(signal.SIGKILL)
-        svc.wait(10)
+        svc.wait(HANG_S)
     finally:
         for p in (svc, emu):
             if p is not None and p.poll() is None:
@@ -131,7 +131,7 @@ def test_the_service_starts_fresh_on_a_corrupt_state_file(tmp_path, kind):
     notify.start_thread()
     svc = start_service(cfg, notify, log=tmp_path / "svc.log")
     try:
-        ready = notify.wait_for("READY=1", 60)
+        ready = notify.wait_for("READY=1", HANG_S)
         svc.send_signal(signal.SIGTERM)
         rc = svc.wait(30)
     finally:
@@ -176,7 +176,7 @@ def test_a_state_saved_with_round_off_below_a_bound_is_restored(tmp_path):
     notify.start_thread()
     svc = start_service(cfg, notify, log=tmp_path / "svc.log")
     try:
-        ready = notify.wait_for("READY=1", 60)
+        ready = notify.wait_for("READY=1", HANG_S)
         svc.send_signal(signal.SIGTERM)
         rc = svc.wait(30)
     finally:

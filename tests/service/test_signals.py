@@ -3,8 +3,8 @@ process of its own) with an independent ``TE_Limits`` monitor process on the bus
 decoding with cantools from the DBC): black-box findings 3, 4 and 5.
 
 - SIGHUP, SIGUSR1, SIGUSR2, SIGALRM: logged by name (WARNING) and ignored; TE_Limits flows on
-  without a gap over the inverter's 300 ms timeout (they used to kill the process at once).
-  Also while the service starts (before its handlers are installed).
+  (they used to kill the process at once). Also while the service starts (before its handlers are
+  installed). The fault bench judges the gaps against the inverter's 300 ms timeout.
 - SIGQUIT: a clean stop like SIGTERM (state saved, exit 0).
 - A final save that fails: an ERROR line saying so, and exit 3 (it used to say "state saved", exit 0);
   saves failing while running are logged again (1st, 2nd, 4th, ...) and once more when they work again.
@@ -23,14 +23,12 @@ from pathlib import Path
 import pytest
 
 from benchmarks.faults.harness import (
-    GAP_S,
     START_TIMEOUT_S,
     Inverter,
     Monitor,
     Service,
     edge_config,
     free_port,
-    gaps,
     metric,
     unique_group,
 )
@@ -51,7 +49,7 @@ def bed(tmp_path, udp_ok):
         svc.start()
         started.append(svc)
         assert mon.first_after(svc.started, START_TIMEOUT_S) is not None, svc.log_text()[-3000:]
-        assert svc.wait_metrics(10) is not None, svc.log_text()[-3000:]
+        assert svc.wait_metrics(HANG_S) is not None, svc.log_text()[-3000:]
         return svc
 
     try:
@@ -68,22 +66,38 @@ def log_lines(svc: Service, *words: str) -> list[str]:
     return [ln for ln in svc.log_text().splitlines() if all(w in ln for w in words)]
 
 
+#: generous upper bound of every wait on a condition (a hang guard, not a performance bound), s
+HANG_S = 120.0
+
+
 def test_hup_usr1_usr2_alrm_are_logged_and_ignored_while_te_limits_flow(tmp_path, bed):
+    """After each signal the service lives, says so, and TE_Limits keeps coming from the same
+    process. Whether a gap reached the inverter's 300 ms on the way is the fault bench's judgement
+    (``benchmarks/faults``, group ``persist``): on a busy host it measures the host."""
     start, mon, _ = bed
     svc = start(tmp_path / "state")
     for sig in (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2, signal.SIGALRM, signal.SIGHUP):
         t0 = time.time()
         svc.kill(sig)
-        time.sleep(1.5)
-        t1 = time.time()
+        # ten TE_Limits after the signal (100 ms cycle: about a second), and the log line for it
+        after = _wait(lambda t0=t0: sum(1 for t in mon.read().t if t > t0) >= 10 or not svc.alive())
         assert svc.alive(), f"{sig.name} killed the service (exit {svc.proc.returncode}):\n{svc.log_text()[-2000:]}"
-        lim = mon.read()
-        assert gaps(lim, t0, t1) == [], f"TE_Limits gaps over {GAP_S * 1e3:.0f} ms after {sig.name}"
-        assert sum(1 for t in lim.t if t0 <= t <= t1) >= 10  # 100 ms cycle: about 15 in 1.5 s
-        assert log_lines(svc, "WARNING", f"received {sig.name}: ignored"), svc.log_text()[-2000:]
+        assert after, f"TE_Limits stopped after {sig.name}"
+        assert _wait_log(svc, f"received {sig.name}: ignored", HANG_S), svc.log_text()[-2000:]
+        assert log_lines(svc, "WARNING", f"received {sig.name}: ignored")
+    assert svc.alive() and svc.proc is not None and svc.proc.poll() is None  # the same process throughout
     assert len(log_lines(svc, "received SIGHUP: ignored")) == 2  # the 1st and the 2nd are logged
     assert svc.stop() == 0
     assert log_lines(svc, "received SIGTERM: stopping") and log_lines(svc, "stopped, state saved")
+
+
+def _wait(predicate, timeout: float = HANG_S) -> bool:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 def test_a_sighup_while_the_service_starts_does_not_kill_it(tmp_path, bed):
@@ -114,7 +128,7 @@ def test_a_sigterm_while_the_service_starts_is_a_clean_stop(tmp_path, bed):
         # the moment it catches SIGTERM (~80 ms after exec now; the old code only once running)
         assert svc.catches(signal.SIGTERM), svc.log_text()[-2000:]
         svc.kill(signal.SIGTERM)
-        assert svc.proc is not None and svc.proc.wait(30) == 0, svc.log_text()[-2000:]
+        assert svc.proc is not None and svc.proc.wait(HANG_S) == 0, svc.log_text()[-2000:]
         assert log_lines(svc, "received SIGTERM while starting: stopping"), svc.log_text()[-2000:]
         assert log_lines(svc, "stopped, state saved to", str(sd / STATE)) and (sd / STATE).exists()
     finally:
@@ -125,13 +139,13 @@ def test_sigquit_stops_cleanly_with_the_state_saved(tmp_path, bed):
     start, _, _ = bed
     sd = tmp_path / "state"
     svc = start(sd)
-    time.sleep(1.5)
+    assert _wait(lambda: (sd / STATE).exists())  # the first save
     before = json.loads((sd / STATE).read_text())["saved_at"]
     # the file written anew (saved_at is the tick's clock time: a periodic save in the same tick
     # holds the same value)
     written = (sd / STATE).stat().st_mtime_ns
     svc.kill(signal.SIGQUIT)
-    assert svc.proc is not None and svc.proc.wait(30) == 0, svc.log_text()[-2000:]
+    assert svc.proc is not None and svc.proc.wait(HANG_S) == 0, svc.log_text()[-2000:]
     assert log_lines(svc, "received SIGQUIT: stopping") and log_lines(svc, "stopped, state saved to", str(sd / STATE))
     assert (sd / STATE).stat().st_mtime_ns > written
     assert json.loads((sd / STATE).read_text())["saved_at"] >= before
@@ -145,7 +159,7 @@ def test_failed_saves_are_logged_with_back_off_and_a_failed_final_save_exits_3(t
     # every save fails for real: the name of its temporary file is taken by a directory (EISDIR)
     blocker = sd / f"{STATE}.tmp-{svc.pid}"
     blocker.mkdir()
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + HANG_S
     while metric(svc.metrics(), "thermal_edge_state_save_errors_total") < 9 and time.monotonic() < deadline:
         time.sleep(0.2)
     m = svc.metrics()
@@ -153,7 +167,7 @@ def test_failed_saves_are_logged_with_back_off_and_a_failed_final_save_exits_3(t
     counts = [int(ln.split(" failed in a row")[0].rsplit("(", 1)[1]) for ln in log_lines(svc, "ERROR", "cannot save state")]
     assert counts[:4] == [1, 2, 4, 8], counts
     blocker.rmdir()
-    assert _wait_log(svc, "state saved again to", 10)
+    assert _wait_log(svc, "state saved again to", HANG_S)
     assert metric(svc.metrics(), "thermal_edge_state_save_failing") == 0
     blocker.mkdir()
     assert svc.stop() == EXIT_STATE_NOT_SAVED == 3
@@ -181,12 +195,13 @@ def test_a_read_only_state_directory_at_start_protects_and_saves_once_writable(t
     try:
         svc = start(ro, state={"save_interval_s": 0.5})  # asserts TE_Limits within the start timeout
         t0 = time.time()
-        time.sleep(2.0)
-        assert svc.alive() and gaps(mon.read(), t0, time.time()) == []
-        assert metric(svc.metrics(), "thermal_edge_state_save_failing") >= 1
+        # saves fail (every 0.5 s) while TE_Limits keeps coming: ten more of them, a failed save counted
+        assert _wait(lambda: sum(1 for t in mon.read().t if t > t0) >= 10
+                     and metric(svc.metrics(), "thermal_edge_state_save_failing") >= 1)
+        assert svc.alive()
         assert log_lines(svc, "ERROR", f"cannot write the state directory {ro}", "Read-only file system")
         subprocess.run(["mount", "-o", "remount,rw", str(ro)], check=True)
-        assert _wait_log(svc, "state saved again", 10), svc.log_text()[-2000:]
+        assert _wait_log(svc, "state saved again", HANG_S), svc.log_text()[-2000:]
         assert svc.stop() == 0
         assert json.loads((ro / STATE).read_text())["T"]
     finally:

@@ -319,8 +319,11 @@ class InverterEmulator:
             return None, None, False
         sim_timeout = (cfg.limits_timeout_sim_s if cfg.limits_timeout_sim_s is not None
                        else cfg.max_lead_s + 3 * cfg.service_tick_s)
+        # an infinite wall-clock time-out leaves the simulated one alone in force (an accelerated run on a
+        # busy host: a pause of this process is no time of the plant's)
+        wall_s = cfg.limits_timeout_s if math.isfinite(cfg.limits_timeout_s) else 0.0
         fresh = (self.limits_wall is not None and (now_wall is None or now_wall - self.limits_wall <= cfg.limits_timeout_s)
-                 and self.sim_time - self.limits_sim <= max(sim_timeout, cfg.limits_timeout_s))
+                 and self.sim_time - self.limits_sim <= max(sim_timeout, wall_s))
         if fresh:
             return self.current_limit, self.torque_limit, True
         if cfg.fallback_current_a is not None:
@@ -691,7 +694,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--flow-timeout", type=float, default=2.0, help="wall s without TE_Status before running on")
     p.add_argument("--max-free", type=float, default=None,
                    help="simulated s to run on without a service before waiting for one again (default: run on)")
-    p.add_argument("--limits-timeout", type=float, default=0.3, help="wall s after which TE_Limits counts as absent")
+    p.add_argument("--limits-timeout", type=float, default=0.3,
+                   help="wall s after which TE_Limits counts as absent (inf: only the simulated time-out)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--voltages", action="store_true",
                    help="also send INV_Voltages (the dq voltage references of the simulated machine, sim.pmsm)")
