@@ -421,8 +421,8 @@ def test_a_late_sender_is_not_counted_as_losing_a_counter_wrap(late_cycles):
 @pytest.mark.parametrize("frame", ["INV_Currents", "INV_StatorTemps"])
 def test_a_frozen_alive_counter_is_never_fresh_data(frame):
     """A hung inverter task whose controller resends its last buffer: the same bytes at the normal
-    cycle for 20 s. Every repeat is dropped (a black-box client saw one in every 3-8 accepted as a
-    'restart' or a 'resync', enough to keep the input from ever going stale); a real restart after
+    cycle for 20 s. Every repeat is dropped (one in every 3-8 accepted as a 'restart' or a 'resync'
+    would be enough to keep the input from ever going stale); a real restart after
     a pause is still accepted."""
     tx, rx = _fresh_pair()
     cycle = tx.cycle_time_s(frame)

@@ -111,9 +111,9 @@ async def test_kernel_drops_counted_exactly(udp_port):
 
 
 async def test_another_node_sending_this_nodes_limits_is_counted_logged_recorded_never_obeyed(udp_port, tmp_path, caplog):
-    """A black-box client's finding F4: TE_Limits from another node (valid CRC and counter, 0 A)
-    went only into ``own_echo``, with no log line, and not into the recording: a second source of
-    limits on the bus was invisible. Our own echoes (sent every 20 ms meanwhile) stay echoes."""
+    """TE_Limits from another node (valid CRC and counter, 0 A) must not pass for our own echo
+    (no log line, not in the recording): a second source of limits on the bus would be invisible.
+    Our own echoes (sent every 20 ms meanwhile) stay echoes."""
     import can
 
     from thermal_edge.bus import create_bus

@@ -241,7 +241,7 @@ BROKEN = [
     ("maximum torque the DBC cannot carry", _set("derating.max_torque_nm", 10000), "derating.max_torque_nm",
      "must be at most 6553.5, the largest value TE_TorqueLimit carries"),
     ("no hold after a model fault", _set("derating.faults.hold_s", 0), "derating.faults.hold_s", "must be at least 10, got 0"),
-    # a black-box client's findings: values that passed --check and switched protection off
+    # values that would switch protection off
     ("a hold shorter than a tick", _set("derating.faults.hold_s", 1e-9), "derating.faults.hold_s", "must be at least 10"),
     ("a frame timeout of 1e9 s", _set("timeouts.INV_StatorTemps", 1e9), "timeouts.INV_StatorTemps", "must be at most 10"),
     ("bus silence of 1e9 s", _set("transmit.bus_silence_s", 1e9), "transmit.bus_silence_s", "must be at most 10"),
@@ -253,7 +253,7 @@ BROKEN = [
     ("plausible current of 1e9 x the maximum", _set("signals.valid_current_factor", 1e9), "signals.valid_current_factor",
      "must be at most 10"),
     ("a tick of a day", _set("clock.tick_s", 86400), "clock.tick_s", "must be at most 10"),
-    # a black-box client's finding F5/F6: periods that passed --check and then starved or flooded
+    # periods that would starve or flood
     ("a tick of a millisecond", _set("clock.tick_s", 0.001), "clock.tick_s", "must be at least 0.1, got 0.001"),
     ("TE_Limits every microsecond", _set("transmit.limits_period_s", 1e-6), "transmit.limits_period_s",
      "must be at least 0.01"),
@@ -300,7 +300,7 @@ def test_check_accepts_the_shipped_file_with_a_state_dir_still_to_create(tmp_pat
     assert not (tmp_path / "not").exists()  # --check creates nothing
 
 
-# what PyYAML alone gets wrong in a hand-typed file (a black-box client's findings): each is still
+# what PyYAML alone gets wrong in a hand-typed file: each is still
 # exit 2 and one line naming the file (and the key or the line)
 TEXT_EDITS = [
     ("a number written 1e9", lambda t: t.replace("  tick_s: 1.0 ", "  tick_s: 1e9 "),

@@ -1,10 +1,9 @@
-"""The frame clock against wrong timestamps (defects F2 and F3 of the red-team findings).
+"""The frame clock against wrong timestamps.
 
-F2: one frame stamped far in the future made ``FrameClock.observe`` build a list of every tick
-boundary crossed (24 GB for a frame in 2100), and after the gap was bridged every correct frame was
-"going backwards", so the clock never ticked again. F3: time going backwards in a CAN log was
-ignored by the clock: a log whose second half is stamped 300 s earlier replayed to 299 ticks
-instead of 599, silently.
+A frame stamped far in the future must not make ``FrameClock.observe`` build a list of every tick
+boundary crossed (24 GB for a frame in 2100), nor leave every correct frame after the bridged gap
+"going backwards" with the clock never ticking again. Time going backwards in a CAN log must not be
+ignored: a log whose second half is stamped 300 s earlier replays to 599 ticks, not 299.
 
 Each behaviour is judged against a computation of the test's own (memory by tracemalloc, tick
 counts from the segments' spans, counts of frames behind by walking the timestamps).
@@ -29,7 +28,7 @@ CLOCK_PY = REPO / "thermal_edge" / "service" / "clock.py"
 def test_a_jump_of_1e9_s_takes_constant_memory() -> None:
     """A jump of 1e9 s kept to by the frames after it: the boundaries crossed (1e9 of them) in
     constant memory, measured by tracemalloc, in a process capped at 1 GiB of address space (the
-    old clock's list of 1e9 floats needs ~32 GB: MemoryError there, not an OOM of the host)."""
+    list of 1e9 floats would need ~32 GB: MemoryError there, not an OOM of the host)."""
     code = textwrap.dedent(f"""
         import importlib.util, resource, tracemalloc
         resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))
@@ -75,7 +74,7 @@ def engine_config(tmp_path_factory):
 
 
 def test_engine_bridges_a_confirmed_1e9_s_gap_and_ticks_once(engine_config) -> None:
-    from thermal_edge.service.clock import Boundaries  # absent before the fix
+    from thermal_edge.service.clock import Boundaries
     from thermal_edge.service.engine import ThermalEngine
 
     eng = ThermalEngine(engine_config, worker_mode="sync")
@@ -95,7 +94,7 @@ def _run(clock: FrameClock, stamps: list[float]) -> list[float]:
 
 
 def test_one_stamp_far_ahead_is_ignored_and_the_clock_keeps_ticking() -> None:
-    """A single frame 1e6 s ahead (1e6 boundaries: safe for the old clock's list too), then the
+    """A single frame 1e6 s ahead (1e6 boundaries: safe for a list of them too), then the
     frames at the right time again: the clock ignores the stamp, ticks every boundary of the good
     frames, and counts it."""
     stamps = [100.0 + 0.01 * i for i in range(1000)]  # 100.00 .. 109.99
@@ -234,7 +233,7 @@ def test_replay_of_a_log_whose_second_half_goes_back(clean, shift_s: float) -> N
 
 
 def test_replay_of_a_log_with_one_stamp_far_ahead(clean) -> None:
-    """One frame stamped 1e6 s ahead in the middle (the old clock: bridged a 1e6 s gap, cooled the
+    """One frame stamped 1e6 s ahead in the middle (a clock that took it: bridged a 1e6 s gap, cooled the
     state, then ticked no more): the same ticks and estimates as the clean log."""
     from thermal_edge.service import replay_candump
 

@@ -159,7 +159,7 @@ def test_frame_clock_ticks_at_boundaries_crossed():
 
 
 def test_absurd_currents_and_speeds_are_bad_readings_left_out_of_the_mean(acc):
-    """1000 A, the d/q signals' 1638 A and +-16000 rpm (black-box finding 6): each frame out of its
+    """1000 A, the d/q signals' 1638 A and +-16000 rpm: each frame out of its
     plausible range (3 x the 40 A maximum current; +-6000 rpm) is left out of the tick's mean, the
     input is faulty (``out_of_range``) for that tick and counted once per entry into the fault."""
     cfg = load_config(EDGE_YAML)
@@ -216,10 +216,9 @@ def test_an_absurd_torque_is_a_bad_reading_left_out_of_the_mean(acc):
 
 
 def test_a_burst_of_frames_weighs_the_time_it_spans_not_its_count(acc):
-    """A black-box client's finding: 40 A rms every 10 ms, and once a second 2,000 INV_Currents
-    frames at 0 A within 2 ms (valid counters and CRC). Averaged per frame the model saw 8.7 A (a
-    21st of the copper loss) and the limit rose to the maximum; over time it is 40 A within the
-    burst's share of the second."""
+    """40 A rms every 10 ms, and once a second 2,000 INV_Currents frames at 0 A within 2 ms (valid
+    counters and CRC). Averaged per frame the model would see 8.7 A (a 21st of the copper loss) and
+    the limit rise to the maximum; over time it is 40 A within the burst's share of the second."""
     t0 = 100.0
     acc.take(t0)
     times, values = [], []

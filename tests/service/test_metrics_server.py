@@ -31,7 +31,7 @@ def _ended(s: socket.socket) -> bool:
 
 
 def test_idle_connections_held_do_not_keep_a_scrape_out_nor_add_threads():
-    """Black-box finding 7: 2,000 idle connections held by one client left every scrape unanswered."""
+    """2,000 idle connections held by one client must not leave a scrape unanswered."""
     reg = CollectorRegistry()
     Counter("probe", "a probe", registry=reg).inc(3)
     server = MetricsServer(reg, "127.0.0.1", 0)

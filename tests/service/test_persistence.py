@@ -106,7 +106,7 @@ CORRUPT_STATE = [
     ("T holds null", lambda m: edited(m, T=[None] * len(m.nodes)), "T[0]: expected a number"),
     ("T is an object", lambda m: edited(m, T={"a": 1}), "T: expected a list"),
     ("temperatures of 900 degC", lambda m: edited(m, T=[900.0] * len(m.nodes)), "temperatures outside"),
-    # well-formed but no machine's state (a black-box client's doctored file, used as it was)
+    # well-formed but no machine's state (a doctored file must not be used as it is)
     ("the magnet at -99 degC", lambda m: edited(m, T=[-99.0 if "magnet" in n else 40.0 for n in m.nodes]),
      "temperatures outside -60..300 degC"),
     ("a state in kelvin", lambda m: edited(m, T=[300.0 + k for k in range(len(m.nodes))]), "looks like kelvin"),
@@ -219,7 +219,7 @@ def test_temporary_files_of_an_interrupted_save_are_removed_at_start(tmp_path, m
 
 SAVER = r"""
 import sys, numpy as np
-sys.path.insert(0, sys.argv[2])
+sys.path[:0] = [sys.argv[2], sys.argv[2] + "/.."]  # tests/service and tests/ (own_ports)
 from test_persistence import state_for
 from thermal_edge.lptn import load_model
 from thermal_edge.service.persistence import StateStore
@@ -479,7 +479,7 @@ def test_engine_persists_what_it_restores(tmp_path, model):
 
 
 # ------------------------------------------------------------------------------------------
-# black-box finding 9: one unknown parameter name no longer costs every learned parameter
+# one unknown parameter name must not cost every learned parameter
 def test_an_unknown_parameter_is_dropped_and_every_known_one_kept(tmp_path, model, caplog):
     known = {"R_e_hous": 8.5, "c_p_ew": 330.0}
     (tmp_path / "state.json").write_bytes(edited(model, parameters={**known, "R_nosuch": 1.0, "R_e_house": 9.0}))
@@ -512,7 +512,7 @@ def test_a_state_with_an_unknown_parameter_is_never_saved(tmp_path, model, caplo
     assert not (tmp_path / "state.json").exists()
 
 
-# black-box findings 4 and 5: failed saves are visible without a flood; an unwritable directory is said at start
+# failed saves are visible without a flood; an unwritable directory is said at start
 def test_failed_saves_are_logged_at_1_2_4_8_and_when_they_work_again(tmp_path, model, caplog):
     store = StateStore(tmp_path, model)
     assert store.save(state_for(model))

@@ -33,7 +33,7 @@ def cycle(tmp_path: Path) -> Path:
 def test_magnet_never_overheats_with_doubled_magnet_losses(tmp_path):
     """The held-out case of session 8 on a short cycle: the plant's magnet would go far past its
     max at the demanded load (its own steady state), the service derates for the magnet, and the
-    true magnet never exceeds its max (on the code before the fix: 121.7 °C, 696 s over max)."""
+    true magnet never exceeds its max (without the magnet's own limit it reached 121.7 °C, 696 s over max)."""
     case = P.parse_plant_changes(["P_pm_ref=+100%", "h_gap1=-30%"])
     cfg = P.edge_config(tmp_path / "state")
     from thermal_edge.service.engine import load_service_model

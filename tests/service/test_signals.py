@@ -1,6 +1,6 @@
 """Signals and an unwritable state directory, against the real service (``thermal-edge run`` in a
 process of its own) with an independent ``TE_Limits`` monitor process on the bus (the fault bench's,
-decoding with cantools from the DBC): black-box findings 3, 4 and 5.
+decoding with cantools from the DBC).
 
 - SIGHUP, SIGUSR1, SIGUSR2, SIGALRM: logged by name (WARNING) and ignored; TE_Limits flows on
   (they used to kill the process at once). Also while the service starts (before its handlers are
@@ -117,15 +117,15 @@ def test_a_sighup_while_the_service_starts_does_not_kill_it(tmp_path, bed):
 
 
 def test_a_sigterm_while_the_service_starts_is_a_clean_stop(tmp_path, bed):
-    """A black-box client's finding: a SIGTERM in the first 1.5 s (imports, model, state) ended the
-    process by the signal's default action (exit -15), with no log line. Now it is remembered and
-    honoured once the service runs: exit 0, said in the log, the state saved."""
+    """A SIGTERM in the first 1.5 s (imports, model, state) must not end the process by the
+    signal's default action (exit -15, no log line): it is remembered and honoured once the service
+    runs: exit 0, said in the log, the state saved."""
     _, _, (group, port) = bed
     sd = tmp_path / "state"
     svc = Service(edge_config(sd, group, port), tmp_path, "early-term")
     svc.start()
     try:
-        # the moment it catches SIGTERM (~80 ms after exec now; the old code only once running)
+        # the moment it catches SIGTERM (~80 ms after exec, long before it runs)
         assert svc.catches(signal.SIGTERM), svc.log_text()[-2000:]
         svc.kill(signal.SIGTERM)
         assert svc.proc is not None and svc.proc.wait(HANG_S) == 0, svc.log_text()[-2000:]

@@ -1,5 +1,5 @@
 """A stuck (frozen) temperature reading is a sensor fault; a healthy reading that sits still at a
-steady state is not (black-box finding 2). And a model fault that recurs right after its hold gets a
+steady state is not. And a model fault that recurs right after its hold gets a
 longer hold each time.
 
 The engine runs in closed loop with a plant of its own here: the plant (the model file's nominal
@@ -205,7 +205,7 @@ def test_only_a_model_that_heats_the_node_makes_a_still_reading_stuck():
 
 
 def test_a_winding_reading_stepping_above_its_max_on_a_cold_machine_gives_zero_and_is_never_withheld(tmp_path, model):
-    """A black-box client's finding F1: the end-winding PT100 steps from 25 to 170 degC (status valid,
+    """The end-winding PT100 steps from 25 to 170 degC (status valid,
     inside the valid range) while the other sensors stay at 25 degC. The model restarts from that
     reading and cools the node towards its neighbours; the reading was then withheld as stuck, the hot
     spot's upper band fell to 54 degC and the limit rose to 9.5 A. The reading is above the hot spot's
