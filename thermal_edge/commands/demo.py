@@ -57,7 +57,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 
 def learned(engine: Any, plant: Any) -> str:
     """What the adaptation learned: the final open-loop prediction error, promotions and refusals,
-    and every adapted parameter against the plant's value, those the sensors pin down apart."""
+    and every adapted parameter against the plant's value."""
     from ..service import adapt_phrase
 
     out = engine.last
@@ -67,25 +67,13 @@ def learned(engine: Any, plant: Any) -> str:
     dropped = sum(1 for d in decisions if d.get("verdict") == "dropped")
     plant_values = dict(zip(plant.parameter_names, plant.nominal()))
     start = dict(zip(engine.model.parameter_names, engine.model.nominal()))
-    _, pinned = ad.parameter_bands()  # what the sensors pin down, judged at the last promotion
-    off = {k: v / plant_values[k] - 1 for k, v in ad.values().items()
-           if k in plant_values and (v != start.get(k) or v != plant_values[k])}
-    ident = [k for k in off if pinned.get(k)]
+    moved = [f"{k} {v:.4g} ({100 * (v / plant_values[k] - 1):+.1f} % vs plant)"
+             for k, v in ad.values().items() if k in plant_values and (v != start.get(k) or v != plant_values[k])]
     refusal = ad.last_refusal
     last = f"; last refusal: {refusal[1]}" if refusal is not None else ""
-    lines = [f"model: open-loop prediction error {err} at the end; {ad.counts.accepted} promoted, {dropped} refused{last}; "
-             f"now {adapt_phrase(ad.status, refusal[1] if refusal else '')}"]
-    if not off:
-        lines.append("parameters: as the plant")
-    if ident:
-        worst = max(abs(off[k]) for k in ident)
-        lines.append(f"parameters the sensors pin down: {', '.join(f'{k} {100 * off[k]:+.1f} %' for k in ident)} vs plant"
-                     f" (worst {100 * worst:.1f} %)")
-    rest = [k for k in off if k not in ident]
-    if rest:
-        lines.append(f"{'not pinned down by the sensors' if pinned else 'parameters'} (their values fit the data "
-                     f"either way): {', '.join(f'{k} {100 * off[k]:+.1f} %' for k in rest)} vs plant")
-    return "\n".join(lines)
+    return (f"model: open-loop prediction error {err} at the end; {ad.counts.accepted} promoted, {dropped} refused{last}; "
+            f"now {adapt_phrase(ad.status, refusal[1] if refusal else '')}\n"
+            f"parameters: {', '.join(moved) if moved else 'as the plant'}")
 
 
 def run(args: argparse.Namespace) -> int:
