@@ -62,9 +62,10 @@ log = logging.getLogger(__name__)
 
 
 #: samples of the history simulated at once when the worker re-derives the open-loop state after
-#: an accepted decision: a simulation's temporaries grow with its length (a few kB a sample for the
-#: 39-node model, more where the operating point moves every sample), the state is carried exactly
-REPLAY_CHUNK = 900
+#: an accepted decision: a simulation's temporaries grow with its length, by a few kB a sample for
+#: the 39-node model on held inputs and by 24 kB where speed and current move every sample (a
+#: transition matrix per step: 260 MB for a 3 h window at once, 13 MB in parts of 300)
+REPLAY_CHUNK = 300
 
 
 def replayed_state(adapter: OnlineAdapter, since: float, chunk: int = REPLAY_CHUNK) -> tuple[np.ndarray, float]:
