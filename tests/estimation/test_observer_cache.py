@@ -1,5 +1,6 @@
-"""The observer keeps its per-operating-point derivatives in single precision: the bands it gives
-agree with those of the same filter in double precision."""
+"""The observer's parameter derivatives: taken from the factored discretisation of a few operating
+points, they are the dense derivatives' (computed independently at every step), and how many
+points it keeps changes its memory, never its estimate."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,32 +10,47 @@ from thermal_edge.lptn import discretise
 from thermal_edge.lptn.discretise import DiscreteDerivatives
 
 
-class DoubleObserver(Observer):
-    """The same filter with its derivatives in double precision, computed at every step."""
+class DenseObserver(Observer):
+    """The same filter with ``dΦ T + dΓ w`` from the dense derivatives, discretised at every step."""
 
-    def _derivatives(self, inputs):
+    def _forcing(self, inputs, w):
         st = self.stepper
         key = tuple(float(f"{float(inputs[k]):.2g}") for k in st.net.matrix_inputs)
         op = {k: np.array([v]) for k, v in zip(st.net.matrix_inputs, key)}
         d = discretise(st.net.continuous(st.theta, op, K=1, wrt=list(self.cidx)), st.dt, st.method, st.max_substep)
         assert isinstance(d, DiscreteDerivatives)
-        return d.dPhi[0], d.dGam[0]
+        return (d.dPhi[0] @ self.T + d.dGam[0] @ w).T
 
 
-def test_single_precision_derivatives_give_the_double_precision_bands(pm10kw):
-    T0 = np.full(len(pm10kw.nodes), 40.0)
-    single, double = Observer(pm10kw, T0), DoubleObserver(pm10kw, T0)
+def _drive(observers, model, ticks=240):
+    """The same inputs (speeds through 30 operating points, back and forth) and readings to each."""
     rng = np.random.default_rng(4)
-    sensors = list(pm10kw.sensors)
-    for k in range(240):
-        u = {c: 25.0 for c in pm10kw.inputs}
+    sensors = list(model.sensors)
+    for k in range(ticks):
+        u = {c: 25.0 for c in model.inputs}
         u.update({"speed_rpm": 300.0 + 40.0 * (k % 30), "i_rms": 20.0 + 5.0 * np.sin(k / 20.0)})
-        for obs in (single, double):
+        for obs in observers:
             obs.predict(u)
         y = {s: 40.0 + 0.1 * k + float(rng.normal(0, 0.1)) for s in sensors}
-        for obs in (single, double):
+        for obs in observers:
             obs.update(y)
-    dPhi, dGam = next(iter(single._dcache.values()))
-    assert dPhi.dtype == np.float32 and dGam.dtype == np.float32 and len(single._dcache) > 1
-    assert np.allclose(single.std(), double.std(), rtol=1e-5, atol=0)
-    assert np.abs(single.T - double.T).max() < 1e-4  # K: through the gain only
+
+
+def test_factored_derivatives_give_the_dense_derivatives_bands(pm10kw):
+    T0 = np.full(len(pm10kw.nodes), 40.0)
+    obs, dense = Observer(pm10kw, T0), DenseObserver(pm10kw, T0)
+    _drive([obs, dense], pm10kw)
+    assert 0 < len(obs._dcache) <= obs.derivative_cache
+    assert np.allclose(obs.std(), dense.std(), rtol=1e-9, atol=0)
+    assert np.allclose(obs.covariance(), dense.covariance(), rtol=1e-9, atol=1e-12)
+    assert np.abs(obs.T - dense.T).max() < 1e-9  # K
+
+
+def test_the_number_of_points_kept_does_not_change_the_estimate(pm10kw):
+    T0 = np.full(len(pm10kw.nodes), 40.0)
+    one, every = Observer(pm10kw, T0), Observer(pm10kw, T0)
+    one.derivative_cache, every.derivative_cache = 1, 1000
+    _drive([one, every], pm10kw)
+    points = {float(f"{300.0 + 40.0 * i:.2g}") for i in range(30)}  # the drive's speeds to two digits
+    assert len(one._dcache) == 1 and len(every._dcache) == len(points)
+    assert np.array_equal(one.T, every.T) and np.array_equal(one.Pa, every.Pa) and np.array_equal(one.S, every.S)

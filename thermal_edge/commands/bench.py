@@ -285,6 +285,9 @@ def run_service(args: argparse.Namespace) -> int:
     ))
     print(f"memory run: thermal-edge run in its own process, adaptation on ({r.memory_run_adaptations[0]} accepted of "
           f"{r.memory_run_adaptations[1]} decisions), {r.memory_run_wall_s:.0f} s wall")
+    marks = [h for h in (1.0, 4.0, 8.0) if h < r.memory_run_hours] + [r.memory_run_hours]
+    at = dict.fromkeys(min(r.rss_samples, key=lambda s: abs(s[0] - h)) for h in marks)  # the samples nearest
+    print(table(["simulated hour", "RSS MB", "peak (VmHWM) MB"], [[f"{h:g}", m, p] for h, m, p in at]))
     print("service RSS / peak by simulated hour: " + ", ".join(f"{h:g} h {m:.0f}/{p:.0f} MB" for h, m, p in r.rss_samples))
     return 0
 

@@ -39,6 +39,9 @@ import numpy as np
 from ..lptn import Model, Stepper, discretise
 from ..lptn.discretise import DiscreteDerivatives
 
+#: operating points whose derivative discretisation the observer keeps (:meth:`Observer._derivatives`)
+DERIVATIVE_CACHE = 16
+
 
 class Observer:
     """Kalman filter over node temperatures; its bands include the parameters' spread.
@@ -91,9 +94,13 @@ class Observer:
         self.rows = {s: model.node_index(node) for s, node in model.sensors.items()}
         self._nb = len(model.boundaries)
         laws = self.stepper.loss_laws
-        # the loss feedback enters the covariance only where a law reads a temperature or a considered parameter
-        self._loss_feedback = laws.temperature_dependent or any(int(i) in law.d for law in laws.laws for i in self.cidx)
-        self._dcache: OrderedDict[tuple[float, ...], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        # the loss feedback enters the covariance where a law reads a temperature or a considered parameter
+        self._loss_params = np.array([q for q, i in enumerate(self.cidx) if any(int(i) in law.d for law in laws.laws)],
+                                     dtype=int)
+        self._dcache: OrderedDict[tuple[float, ...], DiscreteDerivatives] = OrderedDict()
+        self._op = np.zeros(1, dtype=int)  # the one operating point of a cached discretisation, per row
+        #: operating points whose derivatives are kept (see :meth:`_derivatives`)
+        self.derivative_cache = DERIVATIVE_CACHE
         #: direct node estimates used and refused by :meth:`update_node`
         self.node_updates_used = 0
         self.node_updates_refused = 0
@@ -116,16 +123,17 @@ class Observer:
         self.stepper.set_parameters(theta)
         self._dcache.clear()
 
-    def _derivatives(self, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray]:
-        """``dΦ`` (p, n, n) and ``dΓ`` (p, n, m) per unit considered parameter near this operating
-        point: its inputs rounded to two significant digits. They only shape the covariance, and a
+    def _derivatives(self, inputs: Mapping[str, float]) -> DiscreteDerivatives:
+        """The discretisation with its derivatives by the considered parameters near this operating
+        point: its inputs rounded to two significant digits (they only shape the covariance, and a
         drive that changes speed every tick would otherwise cost a derivative discretisation per
-        tick (16 ms median for the 39-node model with 29 parameters).
+        tick, about 5 ms for the 39-node model with 34 parameters).
 
-        Kept in single precision: a drive visits many operating points and the cache holds up to
-        the stepper's ``cache_size`` of them, each ``p·n·(n + m)`` numbers (0.6 MB in double for
-        pm10kw with 34 parameters: 80 MB for 128 points, most of a service's resident memory).
-        Their relative error of 6e-8 is far below what they are used for, a first-order spread."""
+        Kept factored (the modal basis and the rank-one factors of ``dA`` and ``dW``, about 0.13 MB
+        for pm10kw), never as the dense ``dΦ`` and ``dΓ`` (0.6 MB); only the last
+        :attr:`derivative_cache` operating points. A drive ramps through new points and then
+        dwells; what it comes back to after more points than that costs one discretisation again.
+        """
         st = self.stepper
         key = tuple(float(f"{float(inputs[k]):.2g}") for k in st.net.matrix_inputs)
         hit = self._dcache.get(key)
@@ -133,24 +141,39 @@ class Observer:
             op = {k: np.array([v]) for k, v in zip(st.net.matrix_inputs, key)}
             d = discretise(st.net.continuous(st.theta, op, K=1, wrt=list(self.cidx)), st.dt, st.method, st.max_substep)
             assert isinstance(d, DiscreteDerivatives)
-            hit = (d.dPhi[0].astype(np.float32), d.dGam[0].astype(np.float32))
-            self._dcache[key] = hit
-            if len(self._dcache) > st.cache_size:
+            self._dcache[key] = hit = d
+            while len(self._dcache) > self.derivative_cache:
                 self._dcache.popitem(last=False)
         else:
             self._dcache.move_to_end(key)
         return hit
 
+    def _forcing(self, inputs: Mapping[str, float], w: np.ndarray) -> np.ndarray:
+        """``dΦ_j T + dΓ_j w`` (n, p) per unit considered parameter at the estimate ``T`` and the
+        step's inputs ``w`` (boundary temperatures and losses, those of ``Γ``), °C per unit θ_j.
+
+        From the factored derivatives, one row at a time (:meth:`DiscreteDerivatives.forcing` with
+        the operating point given per row): a few hundred kflop, no dense ``dΦ`` built."""
+        d = self._derivatives(inputs)
+        V, Vi = d.basis(0)
+        y = Vi @ self.T + d.Ht[0] @ w
+        v = d.Yt[0] @ w
+        X: np.ndarray = V @ d.forcing(self._op, y[None], v[None])[0]
+        return X
+
     def predict(self, inputs: Mapping[str, float]) -> np.ndarray:
         """Advance one step with these inputs; returns the predicted temperatures."""
         st = self.stepper
         Phi, Gam = st.matrices(inputs)
-        T_next, P_loss = st.step(self.T, inputs)
+        laws = st.loss_laws
+        # the stepper's step with the law environment built once: the losses, their slopes and their
+        # parameter derivatives all read it
+        env = st.env(inputs)
+        w = np.concatenate([st.boundary(inputs), laws.power(env, np.asarray(self.T, dtype=float))])
+        T_next = Phi @ self.T + Gam @ w
         p = len(self.cidx)
         M = Phi.copy()
         GP = Gam[:, self._nb:]
-        laws = st.loss_laws
-        env = st.env(inputs) if self._loss_feedback else {}
         if laws.temperature_dependent:
             M[:, laws.nodes] += GP @ laws.dT(env, self.T)
         n, g = self._n, self.n_gain
@@ -158,12 +181,11 @@ class Observer:
         F[:n, :n] = M
         S = M @ self.S
         if p:
-            dPhi, dGam = self._derivatives(inputs)
-            w = np.concatenate([st.boundary(inputs), P_loss])
-            # in the cache's single precision (a double product would convert the whole cached pair each tick)
-            X = (dPhi @ self.T.astype(np.float32) + dGam @ w.astype(np.float32)).T.astype(float)  # (n, p) per unit θ
-            if self._loss_feedback:
-                X += GP @ laws.dtheta(env, self.T, self.cidx)
+            X = self._forcing(inputs, w)  # (n, p) per unit θ
+            if len(self._loss_params):  # ∂P/∂θ of the parameters some loss law reads (the others' are zero)
+                dP = np.zeros((len(laws.laws), p))
+                dP[:, self._loss_params] = laws.dtheta(env, self.T, self.cidx[self._loss_params])
+                X += GP @ dP
             X = X * st.theta[self.cidx][None, :]  # per unit log θ
             F[:n, n:] = X[:, :g]
             S += X[:, g:]

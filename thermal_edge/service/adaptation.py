@@ -61,6 +61,37 @@ def decision_status(decision: Mapping[str, Any]) -> str:
 log = logging.getLogger(__name__)
 
 
+#: samples of the history simulated at once when the worker re-derives the open-loop state after
+#: an accepted decision: a simulation's temporaries grow with its length, by a few kB a sample for
+#: the 39-node model on held inputs and by 24 kB where speed and current move every sample (a
+#: transition matrix per step: 260 MB for a 3 h window at once, 13 MB in parts of 300)
+REPLAY_CHUNK = 300
+
+
+def replayed_state(adapter: OnlineAdapter, since: float, chunk: int = REPLAY_CHUNK) -> tuple[np.ndarray, float]:
+    """:meth:`OnlineAdapter.replayed_state` (the adapter's parameters' open-loop state at its last
+    recorded sample, simulated from the recorded state at ``since``), ``chunk`` samples at a time:
+    each part starts from the state the previous one ended in, so the whole window is never in
+    memory at once. The same state to round-off.
+
+    Returns
+    -------
+    T : ndarray
+        Node temperatures, °C, at the last sample.
+    t : float
+        Time of that sample, s.
+    """
+    win = adapter._window(since)
+    x = win.T0
+    last = len(win.t) - 1
+    a = 0
+    while a < last:
+        b = min(a + chunk, last)
+        x = adapter.sim.simulate(adapter.theta, {c: v[a: b + 1] for c, v in win.inputs.items()}, win.dt, x).T[-1]
+        a = b
+    return np.array(x, dtype=float), float(win.t[-1])
+
+
 @dataclass
 class AdaptationResult:
     """Outcome of one requested decision."""
@@ -247,7 +278,7 @@ class AdaptationWorker:
             del ad.decisions[:-100]
         res = AdaptationResult(rid, t, decision=d, theta=ad.theta.copy(), version=ad.version)
         if d.accepted:
-            x, x_t = ad.replayed_state(t - self.config.window_s)
+            x, x_t = replayed_state(ad, t - self.config.window_s)
             if np.all(np.isfinite(x)):
                 res.state, res.state_t = x, x_t
                 shadow = ad.promoted_state

@@ -15,6 +15,9 @@ where ``c_k`` follows from the present (upper-band) state with the current-indep
 ``i² <= (max_l - c_k,l) / d_k,l`` at every checkpoint: the look-ahead current is the square root
 of the smallest bound (and the limit it belongs to binds). No search. The time to limit at the
 present ``i²`` is the first checkpoint where ``c_k + i² d_k`` reaches a limit (interpolated linearly between checkpoints).
+
+The checkpoints' rows of ``Φ^k`` and ``Σ_{j<k} Φ^j`` come from the step's modal form
+``Φ = V diag(μ) V⁻¹`` (ZOH), built once per operating point and kept for a few of them.
 """
 from __future__ import annotations
 
@@ -24,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..lptn import Model, Role, Stepper
+from ..lptn import Model, Role, Stepper, discretise
+from ..lptn.discretise import Discrete
 
 __all__ = ["Lookahead", "LookaheadResult"]
 
@@ -48,6 +52,22 @@ def _loss_inputs(model: Model) -> set[str]:
         if n in model.derived:
             todo.extend(model.derived[n].free())
     return seen & set(model.inputs)
+
+
+def _checkpoint_rows(d: Discrete, rows: np.ndarray, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``rows`` of ``Φ^k`` and of ``Σ_{j<k} Φ^j`` for k = 1..steps (each (steps, len(rows), n))
+    from the modal form ``Φ = V diag(μ) V⁻¹`` of a one-point discretisation ``d``: the powers of
+    ``Φ`` are those of ``μ``, one product for all checkpoints instead of a matrix power per step."""
+    V, Vi = d.basis(0)
+    mu = d.mu[0]
+    powers = mu[None, :] ** np.arange(1, steps + 1)[:, None]  # μ^k (steps, n)
+    sums = np.ones_like(powers)  # Σ_{j<k} μ^j
+    np.cumsum(powers[:-1], axis=0, out=sums[1:])
+    sums[1:] += 1.0
+    Vr = V[rows]
+    R = (Vr[None, :, :] * powers[:, None, :]) @ Vi
+    S = (Vr[None, :, :] * sums[:, None, :]) @ Vi
+    return R, S
 
 
 class Lookahead:
@@ -86,7 +106,10 @@ class Lookahead:
         used = set(self.stepper.net.matrix_inputs) | _loss_inputs(model)
         self._key_inputs = tuple(k for k in model.inputs if k in used and k != self.current_input and k not in bounds)
         self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
-        self.cache_size = 64  # operating points (each ~75 kB for 60 checkpoints)
+        # operating points kept (each ~80 kB for 60 checkpoints and two limits): the key is exact, so
+        # a drive whose speed or torque moves misses most ticks whatever the size; a miss costs one
+        # discretisation
+        self.cache_size = 16
 
     def set_parameters(self, theta: np.ndarray) -> None:
         self.stepper.set_parameters(theta)
@@ -101,20 +124,17 @@ class Lookahead:
         hit = self._cache.get(key)
         if hit is not None:
             return hit
-        Phi, Gam = st.matrices(inputs)
-        n = Phi.shape[0]
+        # the step's discretisation, not kept by the stepper (this cache holds what the checkpoints
+        # need of it); ZOH: Φ = V diag(μ) V⁻¹ exactly, so the powers of Φ are those of μ
+        op = {k: np.array([float(inputs[k])]) for k in st.net.matrix_inputs}
+        d = discretise(st.net.continuous(st.theta, op, K=1), st.dt, st.method, st.max_substep)
+        Gam = d.Gam[0]
+        n = Gam.shape[0]
         T_eval = np.full(n, self.loss_T)
         P0 = st.losses(T_eval, {**inputs, self.current_input: 0.0})
         P1 = st.losses(T_eval, {**inputs, self.current_input: 1.0}) - P0  # loss per A²
         GU, GP = Gam[:, : self.nb], Gam[:, self.nb:]
-        R = np.empty((self.steps, len(self.rows), n))  # rows of Φ^k, k = 1..steps
-        S = np.empty_like(R)  # rows of Σ_{j<k} Φ^j
-        Pk = np.eye(n)
-        Sk = np.zeros((n, n))
-        for k in range(self.steps):
-            Sk = Sk + Pk
-            Pk = Phi @ Pk
-            R[k], S[k] = Pk[self.rows], Sk[self.rows]
+        R, S = _checkpoint_rows(d, self.rows, self.steps)
         hit = (R, S, GU, GP @ P0, GP @ P1)
         if len(self._cache) >= self.cache_size:
             self._cache.pop(next(iter(self._cache)))
