@@ -48,7 +48,7 @@ def loop(tmp_path: Path, cyc: Path, *, flux: Path | None, voltages: bool, events
     """Run the engine over the cycle; per tick (t, estimate, sigma, current limit, flux outcome) and the policy."""
     cfg = P.edge_config(tmp_path / name, None, flux)
     model = load_service_model(cfg)
-    emu = P.emulator_for(P.plant_for(model, NOMINAL), cyc, NOMINAL, None, pmsm=Pmsm() if voltages else None)
+    emu = P.emulator_for(P.plant_for(model, NOMINAL), cyc, NOMINAL, None, pmsm=Pmsm(), voltages=voltages)
     pol = P.ThermalEdgePolicy(emu, cfg.derating.max_current_a, cfg.derating.max_torque_nm, cfg)
     ticks: list[tuple[float, np.ndarray, np.ndarray, float, str | None, float]] = []
     pending = sorted(events, key=lambda e: e[0])
@@ -321,3 +321,61 @@ def test_run_check_reads_the_calibration_and_names_it(tmp_path, calibration, cap
     out = capsys.readouterr().out
     pp = json.loads(calibration.read_text())["pole_pairs"]
     assert f"INV_Voltages: the magnet from the voltages, {calibration} ({pp} pole pairs" in out, out
+
+
+def test_a_bad_crc_on_the_voltage_frame_is_counted_by_frame_on_metrics(tmp_path, calibration):
+    """Voltage frames with a corrupted CRC byte are dropped by the service's codec and shown on
+    /metrics under their frame's name (counted here: 3 corrupted of 5 sent), the voltage frame's
+    series present from the first scrape."""
+    from thermal_edge.bus.codec import FrameCodec
+    from thermal_edge.bus.frames import DEFAULT_DBC_PATH
+
+    cfg = P.edge_config(tmp_path / "s", None, calibration)
+    engine = ThermalEngine(cfg, worker_mode="sync")
+    tx, rx = FrameCodec(DEFAULT_DBC_PATH), FrameCodec(DEFAULT_DBC_PATH)
+    metrics = ServiceMetrics()
+    metrics.attach(engine, codec=rx)
+
+    def value(text: str, frame: str) -> float:
+        m = re.search(rf'^thermal_edge_frames_dropped_by_frame_total{{frame="{frame}"}} (\S+)$', text, re.M)
+        assert m, frame
+        return float(m.group(1))
+
+    assert value(metrics.text(), "INV_Voltages") == 0
+    fid = tx.frame_id("INV_Voltages")
+    for k in range(5):
+        data = bytearray(tx.encode("INV_Voltages", {"INV_Ud": -50.0, "INV_Uq": 240.0}))
+        if k % 2 == 0:
+            data[7] ^= 0xFF  # the CRC byte
+        rx.decode(fid, bytes(data), timestamp=0.01 * k)
+    scrape = metrics.text()
+    assert value(scrape, "INV_Voltages") == 3
+    assert rx.stats.crc == 3 and rx.stats.received["INV_Voltages"] == 2
+    engine.close()
+
+
+def test_each_refusal_cause_has_its_own_log_budget(tmp_path, calibration):
+    """Through the journal's rate limit (5 lines per format and minute): 20 implausible refusals
+    use up their own budget only; a disagreement after them is still logged."""
+    from thermal_edge.service.flux_input import FluxTick
+    from thermal_edge.service.journal import RateLimit
+
+    cfg = P.edge_config(tmp_path / "s", None, calibration)
+    engine = ThermalEngine(cfg, worker_mode="sync")
+    lines = io.StringIO()
+    handler = logging.StreamHandler(lines)
+    handler.addFilter(RateLimit(burst=5, window_s=60.0, clock=lambda: 0.0))
+    logger = logging.getLogger("thermal_edge.service.flux_input")
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG)
+    try:
+        for _ in range(20):
+            engine.flux._done(FluxTick("implausible", 900.0), "voltages in kV")
+        engine.flux._done(FluxTick("disagreement", 60.0, 1.0), "the model says 90 degC")
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+        engine.close()
+    text = lines.getvalue().splitlines()
+    assert sum(1 for x in text if x.startswith("flux estimate refused (implausible)")) == 5
+    assert sum(1 for x in text if x.startswith("flux estimate refused (disagreement)")) == 1

@@ -53,6 +53,10 @@ log = logging.getLogger(__name__)
 OUTCOMES = ("used", "disagreement", "stale", "implausible", "uninformative", "transient", "low_speed")
 #: The outcomes that refuse an estimate the tick should have had.
 REFUSALS = ("disagreement", "stale", "implausible")
+#: The WARNING lines, one format per cause: the journal's rate limit counts per format, so a flood
+#: of one cause (voltages in kV for minutes) never uses up the lines of another (a disagreement)
+_WARNINGS = {"disagreement": "flux estimate refused (disagreement): %s",
+             "implausible": "flux estimate refused (implausible): %s"}
 
 
 def load_flux_model(config: EdgeConfig) -> FluxModel:
@@ -225,6 +229,6 @@ class FluxInput:
             self.last_used = tick
         if tick.outcome == "stale":
             notice(log, "flux estimate refused (stale): %s", why)
-        elif tick.outcome in REFUSALS:
-            log.warning("flux estimate refused (%s): %s", tick.outcome, why)
+        elif tick.outcome in _WARNINGS:
+            log.warning(_WARNINGS[tick.outcome], why)
         return tick
