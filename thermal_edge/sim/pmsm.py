@@ -112,9 +112,17 @@ class Pmsm:
         i_d = self.field_weakening(i_q, speed_rpm, winding_c, magnet_c)
         if i_limit_arms is not None:
             cap = math.sqrt(2.0) * max(float(i_limit_arms), 0.0)
-            for _ in range(4):  # less i_q needs less i_d: a few rounds settle within the frames' resolution
-                if not np.any(np.hypot(i_d, i_q) > cap + 1e-9):
-                    break
-                i_q = np.sign(i_q) * np.minimum(np.abs(i_q), np.sqrt(np.maximum(cap * cap - i_d * i_d, 0.0)))
-                i_d = self.field_weakening(i_q, speed_rpm, winding_c, magnet_c)
+            want = i_q
+            if np.any(np.hypot(i_d, i_q) > cap):
+                # i_q = min(wanted, √(cap² − i_d(i_q)²)): less i_q needs less i_d, so the rounds rise
+                # to the limit from below and settle within the frames' resolution in a few
+                for _ in range(8):
+                    q = np.sign(want) * np.minimum(np.abs(want), np.sqrt(np.maximum(cap * cap - i_d * i_d, 0.0)))
+                    i_d = self.field_weakening(q, speed_rpm, winding_c, magnet_c)
+                    done = np.all(np.abs(q - i_q) < 1e-3)
+                    i_q = q
+                    if done:
+                        break
+                # within the limit exactly (less i_q at this i_d only lowers the voltage)
+                i_q = np.sign(want) * np.minimum(np.abs(i_q), np.sqrt(np.maximum(cap * cap - i_d * i_d, 0.0)))
         return i_d, i_q
