@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from svc_testlib import CYCLES, MODEL
+from svc_testlib import MODEL
 
 from thermal_edge.estimation.flux import Electrical, FluxModel
 from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
