@@ -496,6 +496,9 @@ class FluxConfig:
     winding_node: str | None = None
     #: the model nodes whose mean the flux linkage sees (default: the node of ``transmit.magnet_limit``)
     magnet_nodes: tuple[str, ...] | None = None
+    #: at a current the commissioning did not see (same speeds), use the estimate's changes (its offset
+    #: there is unknown) right after an accepted estimate; false: only the commissioned operating points
+    extrapolate: bool = True
 
     @property
     def enabled(self) -> bool:

@@ -45,7 +45,8 @@ def calibration(tmp_path_factory) -> Path:
 
 
 def loop(tmp_path: Path, cyc: Path, *, flux: Path | None, voltages: bool, events=(), name: str = "run"):
-    """Run the engine over the cycle; per tick (t, estimate, sigma, current limit, flux outcome) and the policy."""
+    """Run the engine over the cycle; per tick (t, estimate, sigma, current limit, flux outcome, the plant's
+    magnets' mean, the flux estimate's σ) and the policy."""
     cfg = P.edge_config(tmp_path / name, None, flux)
     model = load_service_model(cfg)
     emu = P.emulator_for(P.plant_for(model, NOMINAL), cyc, NOMINAL, None, pmsm=Pmsm(), voltages=voltages)
@@ -60,7 +61,8 @@ def loop(tmp_path: Path, cyc: Path, *, flux: Path | None, voltages: bool, events
         out = pol.last_out
         if out is not None and (not ticks or ticks[-1][0] != out.t):
             ticks.append((out.t, out.estimate.copy(), out.sigma.copy(), out.limits.current_a,
-                          out.flux.outcome if out.flux is not None else None, float(np.mean(emu.plant.T[magnet_rows]))))
+                          out.flux.outcome if out.flux is not None else None, float(np.mean(emu.plant.T[magnet_rows])),
+                          out.flux.sigma_k if out.flux is not None else math.nan))
 
     limits = [(lim.name, model.node_index(lim.node), cfg.limit_band(lim)[1]) for lim in model.limits]
     try:
@@ -156,7 +158,12 @@ def test_at_speed_the_voltages_narrow_the_magnet_band_around_the_truth(tmp_path,
     late = slice(len(fused) // 2, None)
     sig_plain = np.array([t[2][i] for t in plain[late]])
     sig_fused = np.array([t[2][i] for t in fused[late]])
-    assert np.all(sig_fused < 0.7 * sig_plain)
+    assert np.all(sig_fused < 0.85 * sig_plain)
+    # the error the estimate carries from one tick to the next is a state: the band settles at about
+    # the estimate's own σ (the variance table's), never far above it however the rotor model's band grows
+    sig_flux = np.array([t[6] for t in fused[late]])
+    assert np.all(np.isfinite(sig_flux)) and np.all(sig_fused <= 1.2 * sig_flux)
+    assert sig_plain[-1] - sig_plain[0] > 0.5 and sig_fused[-1] - sig_fused[0] < 0.5 * (sig_plain[-1] - sig_plain[0])
     # the estimate of the magnets' mean (what the flux sees) within its band of the plant's truth
     rows = [model.node_index(n) for n in P.FLUX_MAGNET_NODES]
     err = np.array([np.mean(t[1][rows]) - t[5] for t in fused[late]])

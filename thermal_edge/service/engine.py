@@ -34,6 +34,7 @@ import numpy as np
 from ..bus.codec import DecodedFrame
 from ..bus.frames import DerateReason, TeState
 from ..config import EdgeConfig
+from ..estimation.fusion import FluxObserver
 from ..estimation.observer import Observer
 from ..lptn import Model, Role, load_model
 from .adaptation import Adaptation, AdaptationResult
@@ -118,7 +119,7 @@ class ThermalEngine:
         bound_by = bounding_sensors(m, theta, self.sensor_rows, {n.name: n.row for n in self.limited_nodes},
                                     dc.max_current_a, self.kt, rated)
         self.floor = MeasuredFloor(self.limited_nodes, bound_by)
-        self.estimate = StateEstimate(m, self.dt, config.observer)
+        self.estimate = StateEstimate(m, self.dt, config.observer, FluxObserver if config.flux.enabled else Observer)
         #: the optional voltage input (None without ``flux.calibration``: the engine as without voltages)
         self.flux: FluxInput | None = None
         if config.flux.enabled:
