@@ -147,8 +147,8 @@ def bad_frames(full: bool) -> Iterator[Case]:
         # valid current frames in bursts: 30 A rms at the 10 ms cycle, and once a second 2,000 frames
         # at 0 A (counters continuing; the regular frames wait while the burst is sent, so the 0 A
         # truly lasts its duration d plus a cycle). The tick's current is a mean over time: below
-        # 95 % of 30 A x sqrt(1 - (d + 10 ms) / tick) is unsafe (a second black-box round: counted
-        # per frame, the model saw 8.7 of 40 A and the limit rose to the maximum)
+        # 95 % of 30 A x sqrt(1 - (d + 10 ms) / tick) is unsafe (counted per frame instead, the model
+        # would see 8.7 of 40 A and the limit rise to the maximum)
         amps = 30.0
         with b.inverter.lock:
             b.inverter.signals["INV_Currents"] = {"INV_Id": 0.0, "INV_Iq": amps * 2 ** 0.5, "INV_IphRms": amps}

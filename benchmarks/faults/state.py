@@ -434,8 +434,8 @@ def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
         "tick_a_millisecond": set_("clock.tick_s", 0.001),
         "limits_every_microsecond": set_("transmit.limits_period_s", 1e-6),
         "status_every_microsecond": set_("transmit.status_period_s", 1e-6),
-        # a second black-box round: passed --check, then a fault never reached the bus / stale
-        # inputs went unnoticed while the limit rose
+        # each must be refused by --check: accepted, a fault would never reach the bus, or stale
+        # inputs would go unnoticed while the limit rose
         "hold_a_nanosecond": set_("derating.faults.hold_s", 1e-9),
         "stator_timeout_1e9_s": set_("timeouts.INV_StatorTemps", 1e9),
         "bus_silence_1e9_s": set_("transmit.bus_silence_s", 1e9),

@@ -1,5 +1,6 @@
 """``bench jacobian``: the varying-input case times the new (vectorised) and the old (stepped)
-Jacobian and simulation in one run, and its ratios are the medians of the rounds' own ratios."""
+Jacobian and simulation in one run, by the wall clock and in CPU time, and its ratios are the
+medians of the rounds' own ratios."""
 from __future__ import annotations
 
 import statistics
@@ -8,7 +9,8 @@ from thermal_edge.bench import jacobian
 
 
 def test_varying_case_reports_old_and_new_side_by_side():
-    v = jacobian.run(repeat=3, hours=0.05).varying
+    r = jacobian.run(repeat=3, hours=0.05)
+    v = r.varying
     for key in ("analytic", "analytic_stepped", "numerical", "simulation", "simulation_stepped"):
         runs = v[f"{key}_runs_s"]
         assert len(runs) == 3 and all(t > 0 for t in runs)
@@ -20,5 +22,15 @@ def test_varying_case_reports_old_and_new_side_by_side():
     assert v["speedup_vs_forward"] == pair("numerical_runs_s", "analytic_runs_s")
     assert v["stepped_speedup_vs_forward"] == pair("numerical_runs_s", "analytic_stepped_runs_s")
     assert v["stepped_over_limit"] == v["analytic_stepped_s"] / v["arith_limit_s"]
+    # the same in CPU time, and the bound on forward differences / analytic: p + 1 simulations
+    # against one simulation and the sensitivities
+    for key in ("analytic", "analytic_stepped", "numerical", "simulation", "simulation_stepped"):
+        runs = v[f"{key}_cpu_runs_s"]
+        assert len(runs) == 3 and all(t >= 0 for t in runs)
+        assert v[f"{key}_cpu_s"] == statistics.median(runs)
+    assert v["cpu_speedup_vs_stepped"] == pair("analytic_stepped_cpu_runs_s", "analytic_cpu_runs_s")
+    assert v["cpu_speedup_vs_forward"] == pair("numerical_cpu_runs_s", "analytic_cpu_runs_s")
+    bound = statistics.median([(r.params + 1) * s / a for s, a in zip(v["simulation_runs_s"], v["analytic_runs_s"])])
+    assert v["forward_bound"] == bound
     # the new way is the old one reordered: the same numbers to round-off
     assert v["vectorised_vs_stepped_max_rel"] < 1e-9 and v["simulation_vs_stepped_max_rel"] < 1e-9

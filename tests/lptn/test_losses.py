@@ -58,6 +58,11 @@ def test_derivatives_are_those_of_the_values(which, request):
         fd = (laws.power(e_up, T) - laws.power(e_down, T)) / (2 * h)
         np.testing.assert_allclose(dth[:, j], fd, rtol=1e-5, atol=1e-9 * max(1.0, np.abs(P).max()) / theta[j],
                                    err_msg=model.parameter_names[j])
+    # depends_on: exactly the parameters whose finite-difference column is not zero
+    moves = [j for j in wrt if np.any(dth[:, j] != 0.0)]
+    assert all(laws.depends_on([j]) for j in moves)
+    still = [j for j in wrt if j not in moves]
+    assert not laws.depends_on(still)
 
 
 def test_a_batch_is_its_rows(tiny_plus_model):

@@ -157,6 +157,19 @@ def test_pm10kw_noisy_current_equals_stepping(pm10kw_model, rows, count_stretche
     _agree(m, inputs, dt, T0, list(m.adaptable), list(m.sensors.values()) if rows else None, count_stretches)
 
 
+def test_pm10kw_noisy_current_loss_parameters_equal_stepping(pm10kw_model, count_stretches):
+    """As above with two losses' own parameters among those asked for: the stretches' forcing
+    then carries ``Γ_P ∂P/∂θ`` as well."""
+    from thermal_edge.lptn import steady_state
+
+    m = pm10kw_model
+    inputs, dt, _ = pm10kw_inputs(m, 1500.0)
+    inputs = _noisy(inputs)
+    T0, _ = steady_state(m, {k: float(v[0]) for k, v in inputs.items()})
+    _agree(m, inputs, dt, T0, list(m.adaptable) + ["P_pm_ref", "P_fe_y_ref"], list(m.sensors.values()),
+           count_stretches)
+
+
 def test_paderborn4_equals_stepping(paderborn_model, paderborn_run, count_stretches):
     """Recorded data (run_a, 3000 rows: every input varies every sample), all parameters. The
     conductances of paderborn4 depend on the coolant temperature (a new operating point every
@@ -199,8 +212,8 @@ def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
     seen = []
     real = sensitivity.Sensitivities.stretch_forcing
 
-    def spy(self, o, T, w, dP, Lp=None):
-        X = real(self, o, T, w, dP, Lp)
+    def spy(self, o, T, w, dP, Lp=None, out=None):
+        X = real(self, o, T, w, dP, Lp, out)
         seen.append((self, o, T, w, dP, Lp, X.copy()))  # X is scratch memory, reused by the next stretch
         return X
 

@@ -140,6 +140,28 @@ def test_a_step_back_is_joined_on_and_ticked_through() -> None:
     assert c.stats.jitter == 1 and c.stats.behind_max_s == pytest.approx(seg1[-1] - seg2[0])
 
 
+def test_stamps_shuffled_by_seconds_are_not_taken_for_new_segments() -> None:
+    """A gateway forwarding frames with the stamps they were taken at, each up to 3 s back at
+    random: runs of a few frames a tick or more behind are common, yet none brings a tick's traffic
+    as a new segment does. The clock keeps to the stamps' own span (it ran 10x ahead when three
+    frames in a row confirmed a segment), counts every step back and joins nothing."""
+    import random
+
+    rng = random.Random(7)
+    true = [100.0 + 0.01 * i for i in range(6000)]  # 60 s at 100 frames/s
+    stamps = true[:200] + [t - rng.uniform(0.0, 3.0) for t in true[200:]]
+    c = FrameClock(1.0)
+    ticks = _run(c, stamps)
+    back, latest = 0, stamps[0]  # frames stamped before the latest stamp so far
+    for ts in stamps[1:]:
+        back += ts < latest
+        latest = max(latest, ts)
+    # every boundary the stamps cross, counted from the largest stamp: none beyond it, none twice
+    assert ticks == sorted(set(ticks)) and ticks[-1] <= max(stamps)
+    assert len(ticks) == math.floor(max(stamps)) - math.floor(stamps[0])
+    assert c.stats.joined == 0 and c.stats.behind == back > 1000
+
+
 # -- the same through a replay of a CAN log ------------------------------------------------------
 def _stamp(line: str) -> float:
     return float(line[1:line.index(")")])

@@ -20,12 +20,24 @@ unbinned speed and printed). There the new and the old way are timed side by sid
 round: the analytic Jacobian with stretches at one speed vectorised in time against the same
 Jacobian stepped sample by sample (the reference and the way such inputs were computed before),
 the simulation vectorised against stepped, and forward differences (p+1 vectorised simulations)
-against both Jacobians; every ratio is the median of the rounds' paired ratios.
+against both Jacobians; every ratio is the median of the rounds' paired ratios. Each call is
+timed twice over, wall clock and the process's CPU time: on a busy host the wall clock includes
+the time the process waits for a core, the CPU time does not, so the CPU ratios are the ones that
+hold from one run to the next.
+
+Two figures bound what the ratios can reach. Forward differences are ``p + 1`` simulations and
+the analytic Jacobian is one simulation plus the sensitivities, so forward differences / analytic
+is below ``(p + 1) × simulation / analytic`` (printed beside it) however cheap the sensitivities
+get. The arithmetic limit counts the sensitivity recursion only (no discretisation, no
+simulation); it is printed at the BLAS rate of a product into a fresh array (whose pages the
+kernel zeroes on first touch, part of any real computation's cost) and into an array already
+touched (the rate of the arithmetic alone).
 """
 from __future__ import annotations
 
 import statistics
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,7 +47,7 @@ from ..lptn import Role, Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
 from ..shipped import config_path
 from ..sim.cycles import cycle_run, load_cycle
-from .common import Progress, no_progress, timed, timed_together
+from .common import Progress, no_progress, timed_together
 
 #: relative noise (one standard deviation) on current and speed in the varying-input case
 NOISE = 1e-3
@@ -82,6 +94,7 @@ class JacobianResult:
     blas_gflops: float
     arith_limit_s: float
     analytic_over_limit: float
+    arith_limit_reused_s: float  #: the arithmetic limit at the rate of a product into an array already touched
     when: str
     #: inputs that vary every sample: the same figures, the binning's effect and the agreement
     varying: dict[str, Any] = field(default_factory=dict)
@@ -140,12 +153,17 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
     assert isinstance(S, np.ndarray) and isinstance(S_st, np.ndarray)
 
     # arithmetic limit: 2 products of N x n by n x (n p) (forcing and recursion), at the BLAS rate
+    # of one such product into a fresh array and into one already touched (wall and CPU)
     a_ = np.random.default_rng(0).standard_normal((N, n))
     b_ = np.random.default_rng(1).standard_normal((n, n * p))
-    t_blas, _, _ = timed(lambda: a_ @ b_, 5)
+    out_ = a_ @ b_
+    (t_blas, _, _, c_blas, _), (t_warm, _, _, c_warm, _) = _rounds(
+        [lambda: a_ @ b_, lambda: np.matmul(a_, b_, out=out_)], 7)
     flops = 2.0 * 2.0 * N * n * n * p
     rate = 2.0 * N * n * n * p / t_blas
-    varying = _varying(model, cols, dt, T0, theta, wrt, sensor_nodes, idx, repeat, flops / rate,
+    limits = {"arith_limit_s": 2.0 * t_blas, "arith_limit_cpu_s": 2.0 * c_blas,
+              "arith_limit_reused_s": 2.0 * t_warm, "arith_limit_reused_cpu_s": 2.0 * c_warm}
+    varying = _varying(model, cols, dt, T0, theta, wrt, sensor_nodes, idx, repeat, limits,
                        lambda stage, *a: progress(f"varying inputs: {stage}", *a))
 
     # accuracy: fourth-order central differences (step 1 % of the value: the simulation's own
@@ -185,17 +203,38 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
         blas_gflops=rate / 1e9,
         arith_limit_s=flops / rate,
         analytic_over_limit=t_an / (flops / rate),
+        arith_limit_reused_s=2.0 * t_warm,
         when=time.strftime("%Y-%m-%dT%H:%M:%S"),
         varying=varying,
     )
 
 
+def _rounds(fns: Sequence[Callable[[], object]], repeat: int,
+            progress: Progress = no_progress) -> list[tuple[float, list[float], object, float, list[float]]]:
+    """The functions called in turn, round after round (as :func:`~thermal_edge.bench.common.timed_together`),
+    each call timed by the wall clock and by the process's CPU time: per function the median wall
+    time (s), the wall times, the last result, the median CPU time (s) and the CPU times."""
+    wall: list[list[float]] = [[] for _ in fns]
+    cpu: list[list[float]] = [[] for _ in fns]
+    outs: list[object] = [None] * len(fns)
+    for r in range(repeat):
+        progress("timed rounds", r, repeat, "round")
+        for i, fn in enumerate(fns):
+            c0, t0 = time.process_time(), time.perf_counter()
+            outs[i] = fn()
+            wall[i].append(time.perf_counter() - t0)
+            cpu[i].append(time.process_time() - c0)
+    progress("timed rounds", repeat, repeat, "round")
+    return [(statistics.median(w), w, out, statistics.median(c), c) for w, c, out in zip(wall, cpu, outs)]
+
+
 def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarray, theta: np.ndarray,
-             wrt: list[str], sensor_nodes: list[str], idx: np.ndarray, repeat: int, limit_s: float,
+             wrt: list[str], sensor_nodes: list[str], idx: np.ndarray, repeat: int, limits: dict[str, float],
              progress: Progress) -> dict[str, object]:
-    """The varying-input case (see the module docstring): times side by side (with the arithmetic
-    limit ``limit_s``, s), the agreement of the vectorised and stepped Jacobians, and the
-    binning's effect on the sensors."""
+    """The varying-input case (see the module docstring): times side by side, wall and CPU (with
+    the arithmetic limits ``limits``, s: ``arith_limit_s`` and the same ``_cpu``, ``_reused``),
+    the agreement of the vectorised and stepped Jacobians, and the binning's effect on the
+    sensors."""
     current, speed = model.input_name(Role.CURRENT), model.input_name(Role.SPEED)  # type: ignore[attr-defined]
     noisy = recorded_like(cols, current, speed)
     sim, stepper = Simulator(model), Simulator(model, closed_form=False, vectorised=False)  # type: ignore[arg-type]
@@ -211,10 +250,11 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
         return forward_differences(sim, theta, noisy, dt, T0, idx, rows)
 
     jac(sim)  # warm-up
-    (t_an, times_an, S), (t_st, times_st, S_st), (t_num, times_num, _), (t_sim, times_sim, T_v), (t_sim_st, times_sim_st, T_s) = \
-        timed_together([lambda: jac(sim), lambda: jac(stepper), forward,
-                        lambda: sim.simulate(theta, noisy, dt, T0).T, lambda: stepper.simulate(theta, noisy, dt, T0).T],
-                       repeat, progress)
+    timings = _rounds([lambda: jac(sim), lambda: jac(stepper), forward,
+                       lambda: sim.simulate(theta, noisy, dt, T0).T, lambda: stepper.simulate(theta, noisy, dt, T0).T],
+                      repeat, progress)
+    (t_an, times_an, S, c_an, cpu_an), (t_st, times_st, S_st, c_st, cpu_st), (t_num, times_num, _, c_num, cpu_num), \
+        (t_sim, times_sim, T_v, c_sim, cpu_sim), (t_sim_st, times_sim_st, T_s, c_sim_st, cpu_sim_st) = timings
     # binning: the first hour with the noisy speed as it is (an operating point per sample) against binned
     hour = min(N, int(round(3600.0 / dt)))
     raw = recorded_like(cols, current, speed, speed_bin=None)
@@ -222,10 +262,12 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
     binned = {k: np.asarray(v)[:hour] for k, v in noisy.items()}
     T_first, T_binned = sim.simulate(theta, first, dt, T0).T, sim.simulate(theta, binned, dt, T0).T
     bin_err = float(np.max(np.abs(T_first[:, rows] - T_binned[:, rows])))
-    def paired(num: list[float], den: list[float]) -> float:
-        """The median over rounds of each round's ratio ``num / den`` (times taken seconds apart)."""
-        return statistics.median([a / b for a, b in zip(num, den)])
+    def paired(num: list[float], den: list[float], scale: float = 1.0) -> float:
+        """The median over rounds of each round's ratio ``scale · num / den`` (times taken seconds apart)."""
+        return statistics.median([scale * a / b for a, b in zip(num, den)])
 
+    p1 = len(wrt) + 1.0
+    limit_s = limits["arith_limit_s"]
     return {
         "noise": NOISE,
         "speed_bin_rpm": SPEED_BIN_RPM,
@@ -250,6 +292,25 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
         "simulation_speedup": paired(times_sim_st, times_sim),
         "vectorised_vs_stepped_max_rel": _max_rel(S, S_st),
         "simulation_vs_stepped_max_rel": _max_rel(T_v, T_s),
+        # the same in CPU time, and the bounds (see the module docstring)
+        **limits,
+        "analytic_cpu_s": c_an, "analytic_cpu_runs_s": cpu_an,
+        "analytic_stepped_cpu_s": c_st, "analytic_stepped_cpu_runs_s": cpu_st,
+        "numerical_cpu_s": c_num, "numerical_cpu_runs_s": cpu_num,
+        "simulation_cpu_s": c_sim, "simulation_cpu_runs_s": cpu_sim,
+        "simulation_stepped_cpu_s": c_sim_st, "simulation_stepped_cpu_runs_s": cpu_sim_st,
+        "cpu_speedup_vs_stepped": paired(cpu_st, cpu_an),
+        "cpu_speedup_vs_forward": paired(cpu_num, cpu_an),
+        "cpu_stepped_speedup_vs_forward": paired(cpu_num, cpu_st),
+        "cpu_simulation_speedup": paired(cpu_sim_st, cpu_sim),
+        "forward_bound": paired(times_sim, times_an, p1),
+        "stepped_forward_bound": paired(times_sim, times_st, p1),
+        "cpu_forward_bound": paired(cpu_sim, cpu_an, p1),
+        "cpu_stepped_forward_bound": paired(cpu_sim, cpu_st, p1),
+        "cpu_analytic_over_limit": c_an / limits["arith_limit_cpu_s"],
+        "cpu_stepped_over_limit": c_st / limits["arith_limit_cpu_s"],
+        "analytic_over_reused_limit": t_an / limits["arith_limit_reused_s"],
+        "cpu_analytic_over_reused_limit": c_an / limits["arith_limit_reused_cpu_s"],
     }
 
 

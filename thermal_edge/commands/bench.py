@@ -149,6 +149,7 @@ def run_jacobian(args: argparse.Namespace) -> int:
             ["forward differences (p+1 sims)", r.numerical_s, f"{r.speedup:.1f}x slower"],
             ["one simulation", r.simulation_s, f"{r.simulation_s / r.analytic_s:.2f}x"],
             ["arithmetic limit (BLAS rate)", r.arith_limit_s, f"{r.arith_limit_s / r.analytic_s:.2f}x"],
+            ["  the same, output array reused", r.arith_limit_reused_s, f"{r.arith_limit_reused_s / r.analytic_s:.2f}x"],
         ],
     ))
     rounds = ", ".join(f"{x:.2f}" for x in r.speedup_rounds)
@@ -159,17 +160,28 @@ def run_jacobian(args: argparse.Namespace) -> int:
     v = r.varying
     print(f"\nInputs that vary every sample: relative noise {v['noise']:g} on current and speed, speed binned to "
           f"{v['speed_bin_rpm']:g} rpm ({v['operating_points']} operating points; binning changes the sensor "
-          f"temperatures by at most {v['binning_max_err_k']:.2g} K over the first hour); median of {args.repeat}")
+          f"temperatures by at most {v['binning_max_err_k']:.2g} K over the first hour); median of {args.repeat}, "
+          "wall clock and CPU time")
+    x = lambda w, c: f"{w:.2f}x (CPU {c:.2f}x)"  # noqa: E731
     print(table(
         ["", "new: vectorised s", "old: stepped s", "old / new"],
         [
             ["analytic Jacobian (sim + sensitivities)", v["analytic_s"], v["analytic_stepped_s"],
-             f"{v['speedup_vs_stepped']:.2f}x"],
-            ["one simulation", v["simulation_s"], v["simulation_stepped_s"], f"{v['simulation_speedup']:.2f}x"],
+             x(v["speedup_vs_stepped"], v["cpu_speedup_vs_stepped"])],
+            ["  CPU s", v["analytic_cpu_s"], v["analytic_stepped_cpu_s"], ""],
+            ["one simulation", v["simulation_s"], v["simulation_stepped_s"],
+             x(v["simulation_speedup"], v["cpu_simulation_speedup"])],
+            ["  CPU s", v["simulation_cpu_s"], v["simulation_stepped_cpu_s"], ""],
             ["forward differences (p+1 sims)", v["numerical_s"], "", ""],
-            ["forward differences / analytic", f"{v['speedup_vs_forward']:.2f}x", f"{v['stepped_speedup_vs_forward']:.2f}x", ""],
+            ["forward differences / analytic", x(v["speedup_vs_forward"], v["cpu_speedup_vs_forward"]),
+             x(v["stepped_speedup_vs_forward"], v["cpu_stepped_speedup_vs_forward"]), ""],
+            ["  its bound, (p+1) x simulation / analytic", x(v["forward_bound"], v["cpu_forward_bound"]),
+             x(v["stepped_forward_bound"], v["cpu_stepped_forward_bound"]), ""],
             ["arithmetic limit (BLAS rate)", v["arith_limit_s"], "", ""],
-            ["analytic / arithmetic limit", f"{v['analytic_over_limit']:.2f}x", f"{v['stepped_over_limit']:.2f}x", ""],
+            ["analytic / arithmetic limit", x(v["analytic_over_limit"], v["cpu_analytic_over_limit"]),
+             x(v["stepped_over_limit"], v["cpu_stepped_over_limit"]), ""],
+            ["arithmetic limit, output array reused", v["arith_limit_reused_s"], "", ""],
+            ["analytic / that limit", x(v["analytic_over_reused_limit"], v["cpu_analytic_over_reused_limit"]), "", ""],
         ],
     ))
     print("ratios: medians of the rounds' paired ratios; agreement of new with old: sensitivities "

@@ -130,26 +130,24 @@ class DiscreteDerivatives(Discrete):
             return X
         return self._forcing_rows(np.asarray(o), y, self.phi[o][:, :, None] * v[:, None, :])
 
-    def forcing_modal(self, o: int, T: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """:meth:`forcing` for many steps at one operating point, laid out for a filter in time:
-        ``V⁻¹ (dΦ_j T_i + dΓ_j w_i)`` as (n, B, p) from temperatures ``T`` (B, n) and inputs ``w``
-        (B, m) of ``Γ``.
+    def joined(self, o: int) -> np.ndarray:
+        """``[dPhit_j | V⁻¹ dΓ_j]`` (n p, n + m) at operating point ``o``, rows mode-major
+        (row ``a p + j``: mode ``a``, parameter ``j``); built once per operating point.
 
-        One product of ``[dPhit_j | V⁻¹ dΓ_j]`` (p n, n + m, built once per operating point)
-        with ``[V⁻¹ T; w]``: the factored ``dΓ`` folded into a dense block costs ``m`` columns
-        instead of the ``e`` edges per row that :meth:`forcing` spends on it.
+        With ``ξ = [V⁻¹ T; w]`` (n + m, B) one product gives the forcing ``V⁻¹ (dΦ_j T + dΓ_j w)``
+        of ``B`` steps as (n, p, B), time last (what a filter in time wants): the factored ``dΓ``
+        folded into a dense block costs ``m`` columns instead of a gather and scatter over the
+        edges of every parameter (:meth:`forcing`).
         """
-        p, n, B = self.dg.shape[1], self.Phi.shape[1], len(T)
         key = int(o)
         if key not in self._joined:
-            dp = self.dphit(o)
-            low = (self.Zh[o][None] * self.dg[o][:, None, :]) @ self.Yt[o]  # (p, n, m)
-            dgam = dp @ self.Ht[o] - self.phi[o][None, :, None] * low
-            self._joined[key] = np.concatenate([dp, dgam], axis=2).reshape(p * n, -1)
-        _, Vi = self.basis(o)
-        rhs = np.concatenate([Vi @ T.T, w.T], axis=0)  # (n + m, B)
-        X = (self._joined[key] @ rhs).reshape(p, n, B)
-        return np.ascontiguousarray(X.transpose(1, 2, 0))
+            p, n = self.dg.shape[1], self.Phi.shape[1]
+            dp = self.dphit(key)
+            low = (self.Zh[key][None] * self.dg[key][:, None, :]) @ self.Yt[key]  # (p, n, m)
+            dgam = dp @ self.Ht[key] - self.phi[key][None, :, None] * low
+            both = np.concatenate([dp, dgam], axis=2)  # (p, n, n + m)
+            self._joined[key] = np.ascontiguousarray(both.transpose(1, 0, 2)).reshape(n * p, -1)
+        return self._joined[key]
 
     @property
     def dPhit(self) -> np.ndarray:

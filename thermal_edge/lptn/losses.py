@@ -117,6 +117,10 @@ class LossLaws:
                     out[..., j, q] = law.d[pi](e)
         return out
 
+    def depends_on(self, wrt: Sequence[int] | np.ndarray) -> bool:
+        """Whether some law depends on one of the parameter indices ``wrt`` (else :meth:`dtheta` is zero)."""
+        return any(int(pi) in law.d for law in self.laws for pi in wrt)
+
     def stepwise(self, env: Mapping[str, Value], N: int, which: Sequence[int]) -> Callable[[int, np.ndarray], np.ndarray]:
         """An evaluator ``at(k, T)`` of the laws ``which`` at sample ``k`` of a run of ``N`` samples
         and temperatures ``T`` (n,): for a simulation that evaluates them step by step.

@@ -34,7 +34,8 @@ import numpy as np
 
 from .discretise import DiscreteDerivatives
 from .expr import Value
-from .stretch import NodeStretch, padded_length
+from .scratch import Scratch
+from .stretch import RANK_TOL, NodeStretch, padded_length
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -99,14 +100,21 @@ class Sensitivities:
     slopes : ndarray (N-1, nl, len(loss_nodes)), optional
         ``∂P/∂T`` of losses affine in temperature at each step (W/K): what the stretches run
         vectorised in time need (:meth:`run`).
+    prepared : mapping, optional
+        The simulation's stretches ``(a, b)`` already set up (shared: their set-up depends on
+        the feedback only).
+    loss_wrt : bool, optional
+        Whether some loss law depends on a parameter asked for (default True); without,
+        ``∂P/∂θ`` is zero and the stretches skip it.
     """
 
     def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
                  U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray,
-                 slopes: np.ndarray | None = None, prepared: Mapping[tuple[int, int], NodeStretch] | None = None) -> None:
+                 slopes: np.ndarray | None = None, prepared: Mapping[tuple[int, int], NodeStretch] | None = None,
+                 loss_wrt: bool = True) -> None:
         self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
-        self.slopes, self.prepared = slopes, dict(prepared or {})
-        self._joined: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.slopes, self.prepared, self.loss_wrt = slopes, dict(prepared or {}), loss_wrt
+        self.scratch = Scratch()  # the stretches' large temporaries, reused from one to the next
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
         self.n, self.p = T.shape[1], disc.dg.shape[1]
@@ -202,49 +210,46 @@ class Sensitivities:
             V, Vi = d.basis(o)
             ns = NodeStretch(V, Vi, d.mu[o], d.Gam[o][:, self.nb:], self.loss_nodes, self.slopes[a:b])
         w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
-        X = self.stretch_forcing(o, self.T[a:b], w, self.loss_theta(np.arange(a, b), self.T[a:b]), padded_length(b - a))
-        rows, end = ns.solve(X, s, keep)
+        dP = self.loss_theta(np.arange(a, b), self.T[a:b]) if self.loss_wrt else None
+        Lp = padded_length(b - a)
+        X = self.stretch_forcing(o, self.T[a:b], w, dP, Lp, out=self.scratch.get("forcing", (self.n, self.p, Lp)))
+        rows, end = ns.solve(X, s, keep, self.scratch)
         out[:] = rows.transpose(2, 0, 1)
         return end
 
-    def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray, Lp: int | None = None) -> np.ndarray:
+    def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray | None,
+                        Lp: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i + Γ_P ∂P/∂θ_j)`` as (n, p, Lp) (time last, for
         :meth:`~thermal_edge.lptn.stretch.Stretch.solve`; zero past the ``B`` steps, ``Lp ≥ B``,
         default ``B``) for temperatures ``T`` (B, n), inputs ``w`` (B, m) of ``Γ`` and the
-        losses' derivatives ``dP`` (B, nl, p) at operating point ``o``.
+        losses' derivatives ``dP`` (B, nl, p) at operating point ``o`` (None: no loss law
+        depends on a parameter asked for). ``out`` (n, p, Lp), optional, receives it.
 
-        With ``y = V⁻¹ T + Ht w`` and ``v = Yt w`` the forcing is ``dPhit_j y − phi ∘ Zh (dg_j ∘ v)``
-        (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.forcing`): one product of the
-        ``dPhit_j`` stacked mode-major (built once per operating point) with ``y``, and per
-        parameter a product over the few edges it changes (all in one batched product).
+        One product of ``[dPhit_j | V⁻¹ dΓ_j]`` stacked mode-major
+        (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.joined`) with ``[V⁻¹ T; w]``,
+        ``w`` through its singular value decomposition;
+        the losses' own parameters add ``V⁻¹ Γ_P ∂P/∂θ_j`` one parameter at a time.
         """
         d, n, p, B = self.d, self.n, self.p, len(T)
-        if o not in self._joined:
-            dg = d.dg[o]  # (p, e)
-            low = -d.phi[o][:, None] * d.Zh[o]  # (n, e)
-            live_e = np.nonzero(np.any(dg != 0.0, axis=1))[0]  # the parameters of some edge
-            per = max((np.count_nonzero(dg[j]) for j in live_e), default=0)
-            edges = np.zeros((len(live_e), per), dtype=int)  # each one's edges, padded with a zero weight
-            lows = np.zeros((len(live_e), n, per))
-            for i, j in enumerate(live_e):
-                e = np.nonzero(dg[j])[0]
-                edges[i, : len(e)] = e
-                lows[i, :, : len(e)] = low[:, e] * dg[j, e]
-            self._joined[o] = (np.ascontiguousarray(d.dphit(o).transpose(1, 0, 2)).reshape(n * p, n), live_e, edges, lows)
-        J, live_e, edges, lows = self._joined[o]
+        J = d.joined(o)
         _, Vi = d.basis(o)
         Lp = B if Lp is None else Lp
-        wT = w.T
-        y = np.zeros((n, Lp))
-        np.matmul(Vi, T.T, out=y[:, :B])
-        y[:, :B] += d.Ht[o] @ wT
-        X = (J @ y).reshape(n, p, Lp)
-        v = d.Yt[o] @ wT  # (e, B)
-        X[:, live_e, :B] += np.matmul(lows, v[edges]).transpose(1, 0, 2)
-        live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters
-        if len(live):  # V⁻¹ Γ_P ∂P/∂θ
-            GPt = Vi @ d.Gam[o][:, self.nb:]
-            X[:, live, :B] += (GPt @ dP[:, :, live].transpose(1, 2, 0).reshape(dP.shape[1], -1)).reshape(n, len(live), B)
+        # the inputs of a stretch have a small rank (a constant part, the current's square and
+        # the copper losses' temperature terms): w = Ub Wt with Wt (r, m), so V⁻¹ dΓ_j w costs
+        # r columns of the product instead of m (terms below RANK_TOL of the largest are round-off)
+        Ub, sv, Wt = np.linalg.svd(w, full_matrices=False)
+        r = int(np.count_nonzero(sv > RANK_TOL * sv[0])) if len(sv) and sv[0] > 0.0 else 0
+        Jr = np.concatenate([J[:, :n], J[:, n:] @ Wt[:r].T], axis=1)
+        xi = np.zeros((n + r, Lp))
+        np.matmul(Vi, T.T, out=xi[:n, :B])
+        xi[n:, :B] = (Ub[:, :r] * sv[:r]).T
+        X = np.matmul(Jr, xi, out=None if out is None else out.reshape(n * p, Lp)).reshape(n, p, Lp)
+        if dP is not None:
+            live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters
+            if len(live):
+                GPt = Vi @ d.Gam[o][:, self.nb:]
+                for j in live:
+                    X[:, j, :B] += GPt @ dP[:, :, j].T
         return X
 
     def _forcing(self, ks: np.ndarray) -> np.ndarray:

@@ -184,7 +184,7 @@ class Simulator:
         prep = self._prepare(np.asarray(theta, dtype=float), inputs, float(dt), widx)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
-        GU, GP = d.Gam[:, :, :nb], d.Gam[:, :, nb:]
+        GP = d.Gam[:, :, nb:]
         P0, dPdT0 = self._loss_terms(prep.env, N, None)
         assert dPdT0 is not None  # asked for with the slopes
         na = self.nonaffine
@@ -193,9 +193,14 @@ class Simulator:
         ops = prep.ops[: max(N - 1, 0)]
         # input-driven part of every step, for all steps at once (grouped by operating point)
         f = np.empty((max(N - 1, 0), n))
-        for o in range(d.Phi.shape[0]):
-            sel = np.nonzero(ops == o)[0]
-            f[sel] = prep.U[sel] @ GU[o].T + P0[sel] @ GP[o].T
+        order = np.argsort(ops, kind="stable")  # the steps of each operating point together: one slice each
+        bounds = np.searchsorted(ops[order], np.arange(d.Phi.shape[0] + 1))
+        w = np.concatenate([prep.U[: len(ops)], P0[: len(ops)]], axis=1)[order]
+        fs = np.empty_like(f)
+        for op in np.nonzero(np.diff(bounds))[0].tolist():
+            lo, hi = int(bounds[op]), int(bounds[op + 1])
+            np.matmul(w[lo:hi], d.Gam[op].T, out=fs[lo:hi])
+        f[order] = fs
         T = np.empty((N, n))
         T[0] = T0
         steps = max(N - 1, 0)
@@ -298,5 +303,6 @@ class Simulator:
         sens = Sensitivities(d, ops, *steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
-                             loss_nodes=self.tv, slopes=slopes, prepared=prepared)
+                             loss_nodes=self.tv, slopes=slopes, prepared=prepared,
+                             loss_wrt=self.losses.depends_on(widx))
         return sens.run(held_spans, spans, rows)

@@ -34,6 +34,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg.lapack import dtrtrs
 
+from .scratch import Scratch
+
 #: shortest stretch of one operating point run vectorised (its set-up costs about this many steps)
 MIN_STRETCH = 32
 #: steps per block, of the open-loop scan and of the loss nodes' triangular solve alike (the
@@ -115,7 +117,7 @@ def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray) -> np.ndarra
 
 
 def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
-              L: int) -> tuple[np.ndarray, np.ndarray]:
+              L: int, work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`modal_scan` seen through rows: ``R x[1] .. R x[L]`` and ``x[L]``, without the states.
 
     The blocks' responses to their own forcing are computed for every mode (one product per
@@ -134,6 +136,8 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
         The rows wanted.
     L : int
         Steps.
+    work : Scratch, optional
+        Where the blocks' responses go (a new array without).
 
     Returns
     -------
@@ -146,11 +150,13 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
     B = min(BLOCK, Lp)
     nb, nr = Lp // B, R.shape[0]
     pw = powers(mu, B)
-    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
+    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B),  # zero-state response inside each block
+                      out=None if work is None else work.get("scan", (n, c * nb, B)))
     starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
     rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
-    Rp = (R[None] * pw.T[1:, None, :]).reshape(B * nr, n)  # R diag(μ^(i+1))
-    rows += (Rp @ starts.reshape(n, c * nb)).reshape(B, nr, c, nb).transpose(1, 2, 3, 0)
+    # R diag(μ^(i+1)) with rows (r, i), so that each block's B steps come out contiguous
+    Rp = (R[:, None, :] * pw.T[None, 1:, :]).reshape(nr * B, n)
+    rows += (starts.reshape(n, c * nb).T @ Rp.T).reshape(c, nb, nr, B).transpose(2, 0, 1, 3)
     jL, iL = divmod(L - 1, B)
     end = inner.reshape(n, c, Lp)[:, :, L - 1] + pw[:, iL + 1, None] * starts[:, :, jL]
     return rows, end
@@ -213,7 +219,8 @@ class Stretch:
         self.Rl = np.ascontiguousarray((pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)
                                        .transpose(1, 0, 2, 3)).reshape(r, BT, n)  # (ρ, (l, b), n)
 
-    def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray,
+              work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The recursion from ``x[0] = x0`` under the forcing ``f``.
 
         Parameters
@@ -224,6 +231,8 @@ class Stretch:
             State at the stretch's first step.
         W : ndarray (nr, n)
             The rows wanted at every step, from the modes.
+        work : Scratch, optional
+            Buffers for the large temporaries (reused from one stretch to the next).
 
         Returns
         -------
@@ -239,9 +248,9 @@ class Stretch:
         E = self.E
         ntv, nr = E.shape[0], W.shape[0]
         if not self.r:
-            rows, end = scan_rows(self.mu, f, x0, W, L)
+            rows, end = scan_rows(self.mu, f, x0, W, L, work)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
-        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L)
+        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L, work)
         rows = both[:nr]  # (nr, c, nblk, B)
         m, BT = self.r * ntv, B * ntv
         # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
@@ -274,15 +283,15 @@ class Stretch:
         z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
         # the feedback's part of the wanted rows: from each block's start state and inside the block
         pw = self.pw
-        Wp = (W[None] * pw[1: B + 1, None, :]).reshape(B * nr, n)  # W diag(μ^(i+1))
-        fb = Wp @ qs.reshape(nblk * c, n).T  # (B nr, nblk c)
+        Wp = (W[:, None, :] * pw[None, 1: B + 1, :]).reshape(nr * B, n)  # W diag(μ^(i+1)), rows (r, i)
+        fb = qs.reshape(nblk * c, n) @ Wp.T  # (nblk c, nr B): each block's steps contiguous
         if 2 * nr < n:  # few rows: straight from the inputs, W diag(μ^(i−l)) G C for l ≤ i
-            fb += _inputs_to_rows(W, pw, self.GC, B) @ z.reshape(nblk * c, B * m).T
+            fb += z.reshape(nblk * c, B * m) @ _inputs_to_rows(W, pw, self.GC, B).T
         else:  # most of the state: the inputs G C z through the modes' block filters, then W
             u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
             inside = np.matmul(u.reshape(n, c * nblk, B), _toeplitz(self.pw.T, B))  # (n, c nblk, B)
             rows += (W @ inside.reshape(n, c * Lp)).reshape(nr, c, nblk, B)
-        rows += fb.reshape(B, nr, nblk, c).transpose(1, 3, 2, 0)
+        rows += fb.reshape(nblk, c, nr, B).transpose(2, 1, 0, 3)
         jL, iL = divmod(L - 1, B)
         # the state at step L: the feedback's from its block's start and the inputs of that block up to L
         carry = pw[iL:: -1][: iL + 1, :, None] * self.GC[None]  # diag(μ^(iL−l)) G C, l = 0 .. iL
@@ -311,12 +320,12 @@ def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, 
 
 def _inputs_to_rows(W: np.ndarray, pw: np.ndarray, GC: np.ndarray, B: int) -> np.ndarray:
     """``W diag(μ^(i−l)) G C`` for ``l ≤ i`` (the state after step ``i`` of the block from input ``l``),
-    as (B nr, B m)."""
+    as (nr B, B m), rows (r, i)."""
     i = np.arange(B)
     lag = i[:, None] - i[None, :]
-    K = (W[None] * pw[:B, None, :]) @ GC
-    full = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
-    return full.reshape(B * W.shape[0], B * GC.shape[1])
+    K = (W[None] * pw[:B, None, :]) @ GC  # (lag, nr, m)
+    full = np.where((lag >= 0)[None, :, :, None], K[np.maximum(lag, 0)].transpose(2, 0, 1, 3), 0.0)  # (nr, i, l, m)
+    return full.reshape(W.shape[0] * B, B * GC.shape[1])
 
 
 class NodeStretch:
@@ -341,7 +350,8 @@ class NodeStretch:
         self.V, self.Vi = V, Vi
         self.core = Stretch(mu, Vi @ GP, V[tv], D)
 
-    def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None,
+              work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The stretch from ``x0``.
 
         Parameters
@@ -352,6 +362,8 @@ class NodeStretch:
             State in node coordinates at the stretch's start.
         keep : ndarray of int, optional
             The nodes wanted at every step (default all).
+        work : Scratch, optional
+            Buffers for the large temporaries.
 
         Returns
         -------
@@ -361,7 +373,7 @@ class NodeStretch:
             ``x[L]`` at every node.
         """
         W = self.V if keep is None else self.V[keep]
-        rows, end = self.core.solve(f, self.Vi @ x0, W)
+        rows, end = self.core.solve(f, self.Vi @ x0, W, work)
         return rows, self.V @ end
 
 

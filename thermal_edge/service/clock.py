@@ -154,19 +154,25 @@ class FrameClock(Clock):
 
     - a frame stamped earlier than the clock by less than a tick (jitter between senders) is used,
       its stamp ignored for the clock, and counted (:attr:`stats`), nothing else;
-    - a **jump** -- a frame a tick or more behind the clock, or more than ``max_catchup_s`` ahead --
-      does not move the clock at once: it is judged by the frames after it. If they keep to the
-      jump (:attr:`CONFIRM_FRAMES` frames within ``max_catchup_s`` of each other, covering a tick
-      or more), it is taken: backwards, as a new recording segment joined on without a gap (the
-      clock's time becomes the frame's timestamp plus an offset, so the clock never goes back and
-      the segment is ticked through); ahead, as a gap in the frames (the boundaries crossed; the
-      engine bridges them). If a frame keeps to the clock first, the jump was a corrupt stamp: its
+    - a **jump** -- a frame a tick or more behind the clock, or more than ``max_catchup_s``
+      ahead -- does not move the clock at once: it is judged by the frames after it. If they
+      keep to the jump (:attr:`CONFIRM_FRAMES` frames or more within ``max_catchup_s`` of each
+      other, covering a tick or more, and at least :attr:`CONFIRM_SHARE` of the frames a tick
+      brought before it: a new segment brings its whole traffic, whereas stamps shuffled at
+      random put a few frames in a row behind and then one on the clock's time again), it is
+      taken: backwards, as a new recording segment joined on without a gap (the clock's time
+      becomes the frame's timestamp plus an offset, so the clock never goes back and the segment
+      is ticked through); ahead, as a gap in the frames (the boundaries crossed; the engine
+      bridges them). If a frame keeps to the clock first, the jump was a corrupt stamp: its
       frames are ignored for the clock. Either way a WARNING line and a counter say so. Until a
-      jump is judged, its frames are used at the clock's time (the caller adds them at :meth:`now`).
+      jump is judged, its frames are used at the clock's time (the caller adds them at
+      :meth:`now`).
     """
 
     #: frames (the jump's first among them) that must keep to a jump before it is taken
     CONFIRM_FRAMES = 3
+    #: share of the frames of the last full tick that must keep to a jump before it is taken
+    CONFIRM_SHARE = 0.5
 
     def __init__(self, period: float = 1.0, max_catchup_s: float = 300.0) -> None:
         self.period = float(period)
@@ -177,6 +183,8 @@ class FrameClock(Clock):
         self._offset = 0.0  # clock time = timestamp + offset (joined segments)
         self._jump: list[float] | None = None  # a jump being judged: [first, last clock time, frames]
         self._none = Boundaries(range(0), self.period)
+        self._frames_tick = 0  # frames observed since the last boundary crossed
+        self._frames_per_tick = 0  # frames observed in the last interval that ended at a boundary
 
     @property
     def started(self) -> bool:
@@ -199,6 +207,7 @@ class FrameClock(Clock):
         """Advance to a frame timestamp; return the boundaries crossed (oldest first)."""
         if ts is None or not math.isfinite(ts):
             return self._none
+        self._frames_tick += 1
         t = float(ts) + self._offset
         if self._now is None:
             self._now = t
@@ -225,15 +234,20 @@ class FrameClock(Clock):
             if jump is not None:
                 self._ignore_jump()
             jump = self._jump = [t, t, 1.0]
-        if jump[2] >= self.CONFIRM_FRAMES and jump[1] - jump[0] >= self.period:
+        if jump[2] >= self._confirm_frames() and jump[1] - jump[0] >= self.period:
             return self._take_jump()
         return self._none
+
+    def _confirm_frames(self) -> int:
+        """Frames that must keep to a jump before it is taken (see the class docstring)."""
+        return max(self.CONFIRM_FRAMES, math.ceil(self.CONFIRM_SHARE * self._frames_per_tick))
 
     def _advance(self, t: float) -> Boundaries:
         self._now = t
         p = self.period
         if self._k_next * p > t:
             return self._none
+        self._frames_per_tick, self._frames_tick = self._frames_tick, 0
         k_last = math.floor(t / p)
         if (k_last + 1) * p <= t:  # round-off of the division
             k_last += 1
