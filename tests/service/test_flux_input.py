@@ -386,3 +386,27 @@ def test_each_refusal_cause_has_its_own_log_budget(tmp_path, calibration):
     text = lines.getvalue().splitlines()
     assert sum(1 for x in text if x.startswith("flux estimate refused (implausible)")) == 5
     assert sum(1 for x in text if x.startswith("flux estimate refused (disagreement)")) == 1
+
+
+def test_a_wrong_inductance_table_is_refused_in_field_weakening_only(tmp_path, calibration):
+    """Every inductance of the calibration 20 % high (the voltage error right): at 900 rpm the
+    inverter runs at i_d = 0 and the estimate is unaffected (used, never refused); at 1500 rpm it
+    weakens the field, L_d i_d enters the estimate, and the disagreement check refuses it; the
+    magnet's estimate there is then the model's without voltages, tick for tick."""
+    from thermal_edge.bench.commissioning import miscalibrated
+
+    flux = FluxModel.from_dict(json.loads(calibration.read_text()))
+    bad = tmp_path / "l_high.json"
+    bad.write_text(json.dumps(miscalibrated(flux, inductance_factor=1.2, voltage_error_factor=1.0).as_dict()))
+    slow, pol_s, _ = loop(tmp_path, cycle(tmp_path, (300.0, 900.0, 150.0)), flux=bad, voltages=True, name="s")
+    assert pol_s.engine.flux.counts["used"] > 250 and pol_s.engine.flux.counts["disagreement"] == 0
+    fast_cycle = cycle(tmp_path, (300.0, 1500.0, 150.0))
+    fast, pol_f, model = loop(tmp_path, fast_cycle, flux=bad, voltages=True, name="f")
+    plain, _, _ = loop(tmp_path, fast_cycle, flux=None, voltages=False, name="p")
+    counts = pol_f.engine.flux.counts
+    steady_ticks = [t for t in fast if t[4] not in (None, "transient", "low_speed")]
+    assert counts["disagreement"] >= 0.9 * len(steady_ticks) and counts["used"] <= 0.1 * len(steady_ticks)
+    if counts["used"] == 0:
+        i = model.node_index(MAGNET)
+        for a, b in zip(plain, fast):
+            assert a[1][i] == pytest.approx(b[1][i], abs=1e-9)

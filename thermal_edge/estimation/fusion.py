@@ -1,11 +1,17 @@
-"""The observer over a recorded run with the magnet temperature from the inverter's voltages as a
-measurement of the magnet node (:meth:`~thermal_edge.estimation.observer.Observer.update_node`).
+"""The observer with the magnet temperature from the inverter's voltages as a measurement of the
+magnet node(s), tick by tick (:class:`FluxFusion`, what the service runs) and over a recorded run
+(:func:`run_fused`).
 
-Where the commissioning run saw the operating point, the flux estimate's errors are correlated
-over minutes (an operating point's bias does not average out from one sample to the next), so each
-sample's variance is inflated by the number of samples in the estimate's correlation time
-(:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`): a minute of samples carries about the
-information of one, not of twenty-four.
+Where the commissioning run saw the operating point, the flux estimate's error is partly held
+over minutes (an operating point's bias does not average out from one sample to the next) and
+partly white. The held part is a state of the filter: an offset ``b`` that decays over the
+estimate's correlation time (:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`, first-order
+Gauss–Markov, stationary variance the held share of the estimate's), measured with the magnet as
+``T_flux = h T + b + w`` (``w`` the white share, :attr:`~thermal_edge.estimation.flux.FluxModel.white_share`).
+A minute of samples from one point then tells the magnet what the held error leaves, not what
+sixty independent samples would, and the band settles near the estimate's own σ wherever the
+voltages keep coming. A current jump of more than one bin starts the offset afresh (another
+operating point, another error); an estimate the disagreement check refuses adds no state.
 
 Where it did not (another current, the same speed), the estimate's offset is unknown: the
 inductance at that current and the voltage error's share are extrapolations, worth tens of kelvin.
@@ -305,8 +311,8 @@ def flux_samples(flux: FluxModel, e: Electrical, dt: float, steady_mask: np.ndar
 
 class FluxFusion:
     """The flux estimate into a :class:`FluxObserver`, tick by tick: the commissioned estimate
-    through :meth:`~thermal_edge.estimation.observer.Observer.update_node` (its variance inflated
-    by the error's correlation time), and where :class:`FluxSamples` allows, an unseen current's
+    with its held error as a decaying offset state (:meth:`FluxObserver.anchor` with a decay,
+    :meth:`FluxObserver.update_relative` without a change), and where :class:`FluxSamples` allows, an unseen current's
     changes through :meth:`FluxObserver.update_relative`, anchored within
     :data:`ANCHOR_WITHIN_TAU` correlation times of an accepted estimate and started afresh after a
     current jump of more than one bin or as long without any use.
