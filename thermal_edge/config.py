@@ -499,6 +499,10 @@ class FluxConfig:
     #: at a current the commissioning did not see (same speeds), use the estimate's changes (its offset
     #: there is unknown) right after an accepted estimate; false: only the commissioned operating points
     extrapolate: bool = True
+    #: the derating's margin below the magnet's max while the voltages observe it (an estimate fused
+    #: within the error's correlation time), K: the measured band then covers the rotor model's error
+    #: that ``derating.margin_k`` is for; ``derating.margin_k`` otherwise
+    magnet_margin_k: float = setting(0.5, min=0.0, max=50.0)
 
     @property
     def enabled(self) -> bool:

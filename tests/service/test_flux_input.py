@@ -170,6 +170,9 @@ def test_at_speed_the_voltages_narrow_the_magnet_band_around_the_truth(tmp_path,
     assert np.all(np.abs(err) <= 1.96 * sig_fused)
     counts = pol.engine.flux.counts
     assert counts["used"] > 0.9 * len(fused) and not any(counts[r] for r in ("disagreement", "stale", "implausible"))
+    # the magnet's band is the measured one: its derating margin is flux.magnet_margin_k, the hot spot's the usual
+    out = pol.last_out
+    assert out.magnet.margin_k == pol.config.flux.magnet_margin_k == 0.5 and out.hot_spot.margin_k is None
 
 
 def test_refusals_are_counted_logged_with_their_priority_and_on_metrics(tmp_path, calibration):

@@ -381,7 +381,11 @@ class ThermalEngine:
             # a limited node is at least as hot as a sensor that bounds it from below: an estimate
             # the readings have outrun (a model that runs cold) does not hide that
             self.floor.raise_upper(upper, measured)
-            bands = [NodeBand(ln.name, float(est[ln.row]), float(upper[ln.row]), ln.warn_c, ln.max_c, ln.reason)
+            # while the voltages observe the magnet its band is a measured one: the smaller margin
+            observed = self.flux is not None and self.flux.observing(t)
+            bands = [NodeBand(ln.name, float(est[ln.row]), float(upper[ln.row]), ln.warn_c, ln.max_c, ln.reason,
+                              self.config.flux.magnet_margin_k if observed and ln.name == self.config.transmit.magnet_limit
+                              else None)
                      for ln in self.limited_nodes]
             u = {k: (v if math.isfinite(v) else self._last_inputs.get(k, 0.0))
                  for k, v in (ti.inputs if ti else self._last_inputs).items()}

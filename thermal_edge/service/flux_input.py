@@ -236,6 +236,11 @@ class FluxInput:
                               "(is the electrical calibration still right?)")
         return self._done(FluxTick("uninformative", value, sigma))
 
+    def observing(self, t: float) -> bool:
+        """Whether an estimate was fused into the observer within the error's correlation time
+        before ``t`` (s): the magnet's band is then the measured one."""
+        return self._observer is not None and t - self._fusion.last_ok <= self._fusion.window
+
     def _done(self, tick: FluxTick, why: str = "") -> FluxTick:
         self.counts[tick.outcome] += 1
         self.last = tick
