@@ -37,7 +37,7 @@ def test_a_bug_inside_a_command_shows_its_traceback():
 def test_a_user_error_is_one_line_and_exit_2():
     r = _run("UsageError('--model pm11: no such file')", "config", "example")
     assert r.returncode == 2
-    assert r.stderr.splitlines() == ["thermal-edge config: error: --model pm11: no such file"]
+    assert r.stderr.splitlines() == ["thermal-edge config example: error: --model pm11: no such file"]
 
 
 def test_debug_shows_the_traceback_of_a_user_error():

@@ -84,6 +84,18 @@ def test_config_example_with_a_model_beside_it_uses_that_file(tmp_path, capsys):
     assert "pm10kw.yaml" in capsys.readouterr().err
 
 
-def test_config_example_refuses_a_model_that_is_not_a_plain_path(capsys):
-    assert main(["config", "example", "--model", "a b.yaml"]) == 2
-    assert "--model 'a b.yaml'" in capsys.readouterr().err
+@pytest.mark.parametrize("path", ["a b.yaml", "#m.yaml", "[x].yaml", "m: x.yaml", "'q.yaml", "C:\\m x.yaml"])
+def test_config_example_writes_any_printable_path_as_yaml_reads_it(capsys, path):
+    assert main(["config", "example", "--model", path]) == 0
+    assert yaml.safe_load(capsys.readouterr().out)["model"]["path"] == path
+
+
+def test_config_example_refuses_a_path_with_a_control_character(capsys):
+    assert main(["config", "example", "--model", "a\nb.yaml"]) == 2
+    assert "--model 'a\\nb.yaml': a path of printable characters" in capsys.readouterr().err
+
+
+def test_config_example_help_says_which_models_map_onto_the_example(capsys):
+    with pytest.raises(SystemExit):
+        main(["config", "example", "--help"])
+    assert "only pm10kw (or a copy of it) maps onto them" in " ".join(capsys.readouterr().out.split())

@@ -21,7 +21,7 @@ import sys  # noqa: E402
 import typing  # noqa: E402
 
 from . import __version__  # noqa: E402
-from .commands import COMMANDS, add_commands, resolve_named_files  # noqa: E402
+from .commands import COMMANDS, add_commands, resolve_named_files, warnings_to_stderr  # noqa: E402
 from .errors import ThermalEdgeError  # noqa: E402
 
 
@@ -71,6 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     args, unknown = parser.parse_known_args(argv)
     if unknown:  # named by the command that does not know them, as its other option errors are
         innermost_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
+    warnings_to_stderr()
     try:
         resolve_named_files(args)
         return int(args.func(args) or 0)
@@ -83,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"thermal-edge {args.command}: error: {msg}", file=sys.stderr)
+        # named by the (sub-)sub-command, as its option errors are: `thermal-edge flux calibrate: error:`
+        print(f"{innermost_parser(parser, args).prog}: error: {msg}", file=sys.stderr)
         return 2
 
 

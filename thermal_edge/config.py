@@ -781,8 +781,14 @@ class EdgeConfig:
             if codec.protection(frame) is None:
                 raise self.error(f"codec.protection.{frame}", f"flux.{frame_key} reads {frame}, and "
                                  f"{codec.protection_problem(frame)} (counter: and/or crc: with crc_algorithm:, or none)")
+            prot = codec.protection(frame)
             for k in sig_keys:
                 sig = getattr(fx, k)
+                for what in ("counter", "crc"):  # in the frame, but its protection: not a value
+                    if sig == getattr(prot, what, None):
+                        raise self.error(f"flux.{k}", f"{sig} is the {'alive counter' if what == 'counter' else 'CRC'} "
+                                         f"of frame {frame} (its protection), not a signal with a value; "
+                                         f"its signals: {', '.join(sorted(signals))}")
                 if sig not in signals:
                     raise self.error(f"flux.{k}", f"frame {frame} has no signal {sig!r}{_did_you_mean(sig, signals)}")
 

@@ -137,7 +137,37 @@ def _step_back(seconds: float) -> Any:
     return fault
 
 
+def silent_bus() -> Case:
+    """The inverter goes silent with the frame clock: no frame, so no tick. TE_Limits must carry the
+    safe limit, and the metrics must say what it carries (they showed the last tick's full limit,
+    nominal state and fresh inputs), with one WARNING line."""
+    with _live("clock-silent") as (b, inv):
+        time.sleep(3.0)  # ticking, full current
+        t0 = time.time()
+        inv.paused.update(wire.INPUT_FRAMES)  # every frame stops
+        time.sleep(3.0)  # transmit.bus_silence_s is 1 s
+        m = b.service.metrics()
+        t1 = time.time()
+        lim = b.monitor.read()
+        c = common_checks(b, t0, t1, safe_from=t0 + 1.5)
+        sent = [(t, i, r) for t, i, r in zip(lim.t, lim.current, lim.reason) if t0 + 1.5 <= t <= t1]
+        last_a = sent[-1][1] if sent else float("nan")
+        shown_a = metric(m, "thermal_edge_current_limit_amperes") if m else float("nan")
+        c.add(int(not sent or abs(shown_a - last_a) > 0.05),
+              f"/metrics shows {shown_a:g} A while TE_Limits carries {last_a:g} A")
+        stale = [v for k, v in m.items() if k.startswith("thermal_edge_input_stale{")]
+        c.add(int(not stale or min(stale) < 1.0), f"/metrics: {sum(stale):.0f} of {len(stale)} inputs stale")
+        silent_s = metric(m, "thermal_edge_bus_silent_seconds") if m else 0.0
+        c.add(int(silent_s <= 0.0), "/metrics: thermal_edge_bus_silent_seconds 0 on a silent bus")
+        warned = b.service.log_text().count("the bus is silent")
+        c.add(int(warned != 1), f"{warned} WARNING line(s) on the silence, not one")
+        did = (f"every inverter frame stopped (frame clock): TE_Limits {last_a:g} A, /metrics {shown_a:g} A, "
+               f"{sum(stale):.0f}/{len(stale)} inputs stale, silent for {silent_s:.1f} s, {warned} WARNING line(s)")
+        return Case.of("inverter_silent_frame_clock", "clock", 1, did, c)
+
+
 def live_cases(full: bool) -> Iterator[Case]:
+    yield silent_bus()
     yield _live_case("frame_stamped_2100", "one valid INV_Currents stamped 2100-01-01 (frame clock)",
                      _stamp_once(lambda: YEAR_2100))
     yield _live_case("frame_stamped_1e9s_ahead", "one valid INV_Currents stamped 1e9 s ahead",

@@ -658,9 +658,10 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
          "--no-report"], str(p), ["10 samples", "too few for discovery"]),
     "flux score: a JSON list": lambda tmp, g: (
         ["flux", "score", _text(tmp / "l.json", "[1, 2]"), _flux_run(g, tmp / "f.csv")], "l.json",
-        ["not a file written by flux calibrate", "list"]),
+        ["holds a list, not an object"]),
     "flux score: a JSON object without the parameters": lambda tmp, g: (
-        ["flux", "score", _text(tmp / "e.json", "{}"), _flux_run(g, tmp / "f.csv")], "e.json", ["no r20"]),
+        ["flux", "score", _text(tmp / "e.json", "{}"), _flux_run(g, tmp / "f.csv")], "e.json",
+        ["flux model: no params, sigma, pole_pairs"]),
     "flux calibrate --pole-pairs 0": lambda tmp, g: (
         ["flux", "calibrate", _flux_run(g, tmp / "f.csv"), "--out", tmp / "f.json", "--pole-pairs", "0"], "--pole-pairs",
         ["integer >= 1"]),

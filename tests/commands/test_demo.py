@@ -68,3 +68,39 @@ def test_demo_voltages_uses_the_configurations_calibration_and_says_which(tmp_pa
     assert r.returncode == 0, r.stderr[-2000:]
     assert f"voltages: the calibration of edge.yaml, {mine}" in r.stdout, r.stdout[-2000:]
     assert mine.exists()
+
+
+def _frames_with_id(log: Path, frame_id: int) -> int:
+    """Frames of this identifier in a candump -L log, counted from its text."""
+    n = 0
+    for line in log.read_text().splitlines():
+        parts = line.split()
+        if len(parts) >= 3 and "#" in parts[2] and int(parts[2].split("#")[0], 16) == frame_id:
+            n += 1
+    return n
+
+
+def test_demo_without_voltages_sends_none_although_the_configuration_has_a_calibration(tmp_path):
+    """As ``demo --help`` says, ``--voltages`` is what makes the inverter send INV_Voltages: a
+    configuration with ``flux.calibration`` does not (with it, the same configuration does)."""
+    import cantools
+    import yaml
+
+    from thermal_edge.bench.protection import flux_calibration
+    from thermal_edge.bus.frames import DEFAULT_DBC_PATH
+    from thermal_edge.lptn import load_model
+    from thermal_edge.shipped import config_path, example_config
+
+    mine = flux_calibration(load_model(config_path("machines", "pm10kw.yaml")), tmp_path / "mine.json")
+    raw = yaml.safe_load(example_config())
+    raw["flux"] = {**raw["flux"], "calibration": str(mine)}
+    cfg = tmp_path / "edge.yaml"
+    cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
+    voltages_id = cantools.database.load_file(str(DEFAULT_DBC_PATH)).get_message_by_name("INV_Voltages").frame_id
+    counts = {}
+    for extra in ((), ("--voltages",)):
+        log = tmp_path / f"rec{len(extra)}.log"
+        r = _demo(tmp_path, "--config", str(cfg), "--record", str(log), *extra)
+        assert r.returncode == 0, r.stderr[-2000:]
+        counts[extra] = _frames_with_id(log, voltages_id)
+    assert counts[()] == 0 and counts[("--voltages",)] > 0, counts

@@ -111,6 +111,35 @@ def test_the_demo_scenario_that_stalled_learns_in_closed_loop():
     assert r.derated_s > 0.0 and r.peak_hot_spot_c > 140.0  # closed loop: the hot spot near its limit, derated
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["demo", "varied"])
+def test_the_identifiable_parameters_end_within_10_percent_of_the_plant(name: str):
+    """The whole 3 h in closed loop. Once the open-loop error was within the threshold no fit was
+    made, and a challenger at the window's optimum, judged from the observer's state (which suits
+    the parameters in use), was dropped: ``r_c_hous`` (yoke to housing, pinned to 2 % by the data)
+    ended +12.9 % in the demo and +15.6 % on the varied cycle. Now the window's pinned step
+    triggers a refinement, judged from the challenger's own shadow observer, and every
+    identifiable parameter ends within 10 % of the plant's (the bench's own figures, computed from
+    the plant's parameters), with no promotion that made the next hour worse."""
+    from thermal_edge.bench import adaptation as ab
+
+    r = ab.run_scenario(ab.SCENARIOS[name])
+    assert "r_c_hous" in r.identifiable
+    errors = r.param_errors_pct
+    assert all(abs(errors[k]) <= 100 * ab.PARAM_TOLERANCE for k in r.identifiable), errors
+    assert any(kind.startswith("the window pins") for kind in r.outcomes)
+    assert r.final_pred_err_k <= ab.WITHIN_K and not any(p.harmed for p in r.promotions)
+    assert r.passed
+
+
+@pytest.mark.slow
+def test_at_the_plant_s_parameters_nothing_is_promoted_in_closed_loop():
+    from thermal_edge.bench import adaptation as ab
+
+    r = ab.run_scenario(ab.SCENARIOS["at_plant"])
+    assert not r.promotions and not any(kind.startswith("the window pins") for kind in r.outcomes)
+
+
 def test_a_restart_shows_what_the_saved_decisions_left(tmp_path: Path):
     from thermal_edge.bench.protection import edge_config
     from thermal_edge.service.adaptation import Adaptation

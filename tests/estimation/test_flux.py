@@ -124,7 +124,7 @@ def test_round_trip_and_errors():
         fit_flux_model(e, t_m, P, dt=1.0, priors={"psi": (0.1, 0.1)})
     with pytest.raises(FluxError, match="rises with the magnet"):
         fit_flux_model(e, 200.0 - t_m, P, dt=1.0, speed_min_rpm=0.0, priors={"beta": (1e-4, 1e-5)})
-    with pytest.raises(FluxError, match="no pole_pairs"):
+    with pytest.raises(FluxError, match="no sigma, pole_pairs"):
         FluxModel.from_dict({"params": TRUE, "bin_a": 20.0, "speed_min_rpm": 0.0})
 
 

@@ -231,7 +231,7 @@ def test_refusals_are_counted_logged_with_their_priority_and_on_metrics(tmp_path
     assert value("flux_refused_total", '{reason="disagreement"}') == 0
     assert value("flux_used_total") == counts["used"] > 0
     mg = pol.last_out.magnet
-    assert value("magnet_band_celsius") == pytest.approx(mg.upper_c - mg.estimate_c)
+    assert value("magnet_band_celsius") == pytest.approx(mg.observer_upper_c - mg.estimate_c)
     assert math.isfinite(value("flux_magnet_celsius"))
     # the wrong calibration's run ends refusing: the gauge shows the last fused value, never a refused one
     fw = pol_w.engine.flux

@@ -137,3 +137,26 @@ async def test_safety_events_reach_the_journal_with_their_priorities(tmp_path, c
     assert cleared == [[5]], prio  # notice, once
     reasons = [line for line in lines if "derate reason" in line and "sensor_fault" in line.split("->")[1]]
     assert len(reasons) == 1 and reasons[0].startswith("<4>"), reasons
+
+
+def test_every_command_rate_limits_its_warnings():
+    """A command that warns on every tick of a persisting condition (a replay or a demo at 100x)
+    prints a few lines, not one per tick: the command line installs the rate limit before any
+    command runs. Counted on the stderr of a real ``thermal-edge`` process."""
+    import subprocess
+    import sys
+
+    code = (
+        "import logging, thermal_edge.commands.config as c\n"
+        "def warn_every_tick(args):\n"
+        "    for k in range(200):\n"
+        "        logging.getLogger('thermal_edge.probe').warning('the same condition at tick %d', k)\n"
+        "    return 0\n"
+        "c.run_example = warn_every_tick\n"
+        "from thermal_edge import cli\n"
+        "raise SystemExit(cli.main(['config', 'example']))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert lines == [f"WARNING thermal_edge.probe: the same condition at tick {k}" for k in range(RateLimit().burst)]

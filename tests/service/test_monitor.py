@@ -95,3 +95,26 @@ def test_monitor_says_in_one_line_when_the_service_cannot_be_reached(tmp_path):
                         f"http://127.0.0.1:{port}/metrics"], capture_output=True, text=True, env=env(), timeout=60)
     assert r.returncode == 2 and r.stdout == ""
     assert len(r.stderr.strip().splitlines()) == 1 and f"127.0.0.1:{port}" in r.stderr
+
+
+def test_the_screen_shows_the_voltage_input_the_silence_and_no_inf():
+    """The voltage input's counts and last fused magnet, a silent bus, and a time to limit beyond
+    the horizon in words, from exposition text written here."""
+    from thermal_edge.monitor.snapshot import from_metrics
+    from thermal_edge.monitor.view import render
+
+    text = "\n".join([
+        "# TYPE thermal_edge_flux_used counter", "thermal_edge_flux_used_total 12",
+        "# TYPE thermal_edge_flux_refused counter",
+        'thermal_edge_flux_refused_total{reason="stale"} 1', 'thermal_edge_flux_refused_total{reason="disagreement"} 2',
+        'thermal_edge_flux_refused_total{reason="implausible"} 0',
+        "# TYPE thermal_edge_flux_magnet_celsius gauge", "thermal_edge_flux_magnet_celsius 63.25",
+        "# TYPE thermal_edge_flux_magnet_stddev_celsius gauge", "thermal_edge_flux_magnet_stddev_celsius 1.21",
+        "# TYPE thermal_edge_bus_silent_seconds gauge", "thermal_edge_bus_silent_seconds 4.5",
+        "# TYPE thermal_edge_time_to_limit_seconds gauge", "thermal_edge_time_to_limit_seconds +Inf", ""])
+    screen = render(from_metrics(text))
+    assert "voltages: used 12 ticks, refused 3 (disagreement 2, stale 1); last fused magnet 63.2 °C, σ 1.2 K" in screen
+    assert "BUS SILENT for 4.5 s" in screen
+    assert "time to limit at this load not within the horizon" in screen and "inf" not in screen
+    quiet = render(from_metrics("# TYPE thermal_edge_bus_silent_seconds gauge\nthermal_edge_bus_silent_seconds 0\n"))
+    assert "voltages:" not in quiet and "BUS SILENT" not in quiet

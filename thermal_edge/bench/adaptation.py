@@ -189,14 +189,18 @@ class _Recorder:
         self.inner(t, inputs, measured, state)
 
 
-def _open_loop_rms(sim: Any, model: Any, theta: np.ndarray, rec: _Recorder, k0: int, k1: int, sensors: list[str]) -> float:
+def _open_loop_rms(sim: Any, model: Any, theta: np.ndarray, rec: _Recorder, k0: int, k1: int, sensors: list[str],
+                   scored_from: int | None = None) -> float:
+    """RMS error (K, ``sensors``) of the open loop from the recorded state at sample ``k0`` over
+    the samples up to ``k1`` (excluded), scored after ``scored_from`` (default ``k0``)."""
     inputs = {c: np.array([rec.u[k][c] for k in range(k0, k1)]) for c in model.inputs}
     traj = sim.simulate(theta, inputs, rec.t[1] - rec.t[0], rec.x[k0])
+    skip = 1 + max((scored_from if scored_from is not None else k0) - k0, 0)
     err = []
     for s in sensors:
         row = model.node_index(model.sensors[s])
         y = np.array([rec.y[k].get(s, math.nan) for k in range(k0, k1)])
-        e = traj.T[1:, row] - y[1:] if len(y) > 1 else np.zeros(0)
+        e = traj.T[skip:, row] - y[skip:] if len(y) > skip else np.zeros(0)
         err.append(e[np.isfinite(e)])
     e = np.concatenate(err) if err else np.zeros(0)
     return float(np.sqrt(np.mean(e**2))) if len(e) else math.nan
@@ -284,6 +288,8 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
         theta = model0.nominal()
         idx = {n: i for i, n in enumerate(model0.parameter_names)}
         t_arr = np.array(rec.t)
+        applied = cfg.adaptation.apply_delay_ticks  # ticks from a decision's request to its result in use
+        tick_s = float(t_arr[1] - t_arr[0]) if len(t_arr) > 1 else 1.0
         promotions: list[Promotion] = []
         refusals: list[tuple[float, str]] = []
         outcomes: dict[str, int] = {}
@@ -297,11 +303,14 @@ def run_scenario(scenario: Scenario, config_file: Path | None = None,
             after = theta.copy()
             for k, v in (d.get("params") or {}).items():
                 after[idx[k]] = float(v)
+            # before: from the observer's state at the decision; after: from the state the service
+            # continued from once the promotion was applied (the promoted parameters' own estimate)
             k0 = int(np.searchsorted(t_arr, float(d["t"])))
+            ka = int(np.searchsorted(t_arr, float(d["t"]) + (applied + 1) * tick_s))
             k1 = int(np.searchsorted(t_arr, float(d["t"]) + NEXT_S))
-            if k1 - k0 > 1:
-                promotions.append(Promotion(float(d["t"]) - T0, _open_loop_rms(sim, model0, theta, rec, k0, k1, sensors),
-                                            _open_loop_rms(sim, model0, after, rec, k0, k1, sensors), t_arr[k1 - 1] - t_arr[k0]))
+            if k1 - ka > 1:
+                promotions.append(Promotion(float(d["t"]) - T0, _open_loop_rms(sim, model0, theta, rec, k0, k1, sensors, ka),
+                                            _open_loop_rms(sim, model0, after, rec, ka, k1, sensors), t_arr[k1 - 1] - t_arr[ka]))
             else:
                 promotions.append(Promotion(float(d["t"]) - T0, math.nan, math.nan, 0.0))
             theta = after

@@ -12,7 +12,9 @@ import importlib
 from dataclasses import dataclass
 from types import ModuleType
 
-__all__ = ["COMMANDS", "Command", "add_commands", "resolve_named_files"]
+from ..log_rate import warnings_to_stderr
+
+__all__ = ["COMMANDS", "Command", "add_commands", "resolve_named_files", "warnings_to_stderr"]
 
 
 @dataclass(frozen=True)

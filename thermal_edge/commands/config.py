@@ -11,6 +11,7 @@ another model instead, e.g. a copy of the model beside the configuration that th
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import sys
 
@@ -24,7 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex = which.add_parser("example", help="print the example edge.yaml (every key, commented)")
     ex.add_argument("--model", dest="model_path", metavar="PATH", default=None,
                     help="the model the printed configuration names (a file relative to the configuration's "
-                         "directory, or a packaged model's name); default: the packaged pm10kw")
+                         "directory, or a packaged model's name); default: the packaged pm10kw. The example's "
+                         "signals, sensors and flux nodes are pm10kw's: only pm10kw (or a copy of it) maps onto "
+                         "them; another model (paderborn4 too) needs its own signals: section")
     ex.set_defaults(func=run_example)
 
 
@@ -34,9 +37,13 @@ _MODEL_PATH = re.compile(r"^(model:\n  path: )(\S+)", re.M)
 
 def with_model(text: str, model: str) -> str:
     """The example configuration ``text`` with its ``model.path`` set to ``model``."""
-    if any(c.isspace() for c in model) or model[:1] in "{[&*!|>'\"%@`#":
-        raise UsageError(f"--model {model!r}: write a plain path without spaces or YAML punctuation")
-    new, n = _MODEL_PATH.subn(lambda m: m.group(1) + model, text, count=1)
+    if not model or any(not c.isprintable() for c in model):
+        raise UsageError(f"--model {model!r}: a path of printable characters")
+    # a path YAML would not read as itself (spaces, a leading quote or bracket, ': ', ' #') goes in
+    # double quotes: a JSON string is a YAML double-quoted scalar
+    plain = not any(c.isspace() for c in model) and model[:1] not in "{[&*!|>'\"%@`#-?:,]}" and ": " not in model
+    value = model if plain else json.dumps(model)
+    new, n = _MODEL_PATH.subn(lambda m: m.group(1) + value, text, count=1)
     if n != 1:  # the packaged example is tested to have the line; this guards a hand-edited copy
         raise RuntimeError("the example configuration has no 'model:' / 'path:' line")
     return new

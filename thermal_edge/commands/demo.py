@@ -49,7 +49,8 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                         ".mf4, .csv)")
     p.add_argument("--voltages", action="store_true",
                    help="the inverter also sends INV_Voltages and the service fuses the magnet estimate from them "
-                        "(the configuration's flux.calibration, else one commissioned first on a simulated bench run)")
+                        "(the configuration's flux.calibration, else one commissioned first on a simulated bench run); "
+                        "without it no INV_Voltages are sent and flux.calibration is not used")
     p.add_argument("--quiet", action="store_true", help="no status lines")
     p.set_defaults(func=run)
 
@@ -117,6 +118,11 @@ def run(args: argparse.Namespace) -> int:
             raw["flux"] = {**(raw.get("flux") or {}), "calibration": str(path),
                            "timeout_s": max(float((raw.get("flux") or {}).get("timeout_s", 0.5)), 5 * args.current_period)}
         config = config_from_mapping(raw, cfg_path)
+    elif (raw.get("flux") or {}).get("calibration"):  # as --help says: voltages only with --voltages
+        raw["flux"] = {**raw["flux"], "calibration": None}
+        config = config_from_mapping(raw, cfg_path)
+        voltages = (f"voltages: off (the inverter sends no INV_Voltages without --voltages; the flux.calibration of "
+                    f"{config.fname} is not used)")
     if args.table4:
         raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
         config = config_from_mapping(raw, cfg_path)

@@ -270,10 +270,14 @@ def per_tick(model: Model, res: ReplayResult) -> dict[str, np.ndarray]:
     The model's inputs as the tick accumulated them; per sensor ``<s>_measured`` (the reading the
     tick used, NaN if none), ``<s>_predicted`` (the service's open-loop prediction),
     ``<s>_observer`` (its observer's estimate) and ``<s>_band_low``/``<s>_band_high`` (the
-    observer's 95 % interval), degC; the same but measured for each limited node (``<limit>_…``);
-    ``current_limit_a`` (the limit sent, A rms), ``state`` and ``reason`` (the codes of
-    ``TE_State`` and the derating reason, DBC value tables); ``adaptation`` (0 no decision, 1 a
-    triggered decision, 2 accepted parameters).
+    observer's 95 % interval), degC; the same but measured for each limited node (``<limit>_…``),
+    whose band is the observer's at ``derating.band_z`` and which also gets ``<limit>_upper``: the
+    upper band the tick derated on and sent (:class:`.derating.NodeBand` ``upper_c``, in
+    ``TE_T_HotSpotUpper``/``TE_T_MagnetUpper`` for the transmitted nodes; the readings of a sensor
+    that bounds the node from below where they are above ``_band_high``); ``current_limit_a`` (the
+    limit sent, A rms), ``state`` and ``reason`` (the codes of ``TE_State`` and the derating
+    reason, DBC value tables); ``adaptation`` (0 no decision, 1 a triggered decision, 2 accepted
+    parameters).
 
     Parameters
     ----------
@@ -298,6 +302,11 @@ def per_tick(model: Model, res: ReplayResult) -> dict[str, np.ndarray]:
             node(s, model.node_index(n))
     for lim in model.limits:
         node(lim.name, model.node_index(lim.node))
+        # the tick's own band (the service's z, the bounding sensors' floor), not one derived here
+        bands = [next((b for b in o.bands if b.name == lim.name), None) for o in outs]
+        cols[f"{lim.name}_band_low"] = np.array([b.observer_lower_c if b else np.nan for b in bands])
+        cols[f"{lim.name}_band_high"] = np.array([b.observer_upper_c if b else np.nan for b in bands])
+        cols[f"{lim.name}_upper"] = np.array([b.upper_c if b else np.nan for b in bands])
     cols["current_limit_a"] = np.asarray(res.current_limit_a, dtype=float)
     cols["state"] = np.asarray(res.state, dtype=float)
     cols["reason"] = np.asarray(res.reason, dtype=float)

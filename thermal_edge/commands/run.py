@@ -70,7 +70,11 @@ def run(args: argparse.Namespace) -> int:
                 if config.flux.enabled:
                     print(f"  {config.flux.frame}: the magnet from the voltages, {config.flux.calibration} "
                           f"({flux.pole_pairs} pole pairs, informative from {flux.speed_min_rpm:.0f} rpm)")
-                for frame, timeout in config.timeouts.items():  # what each read frame is checked for
+                # what each read frame is checked for; the voltages' frame goes stale after flux.timeout_s
+                read = dict(config.timeouts)
+                if config.flux.enabled and config.flux.frame not in read:
+                    read[config.flux.frame] = config.flux.timeout_s
+                for frame, timeout in read.items():
                     prot = codec.protection(frame)
                     unseen = "; ".join(prot.unseen()) if prot is not None else ""
                     print(f"  {frame}: protection {prot.describe() if prot is not None else 'none'}, stale after "

@@ -19,6 +19,15 @@ its open-loop prediction drifted by 1 K over a cold light duty. The challenger i
 period by period: judged open loop over all its evidence, it promoted candidates on the real
 machine that made the online trace worse from every wrong start.
 
+Below the threshold a *refinement* is fitted when the window alone pins an adaptable parameter
+away from its value (:func:`.pinned.pinned_step`: more than 5 % and 3σ, pinned to 2 %): the
+pinned Gauss-Newton step, then SLSQP (:func:`.pinned.fit_refine`). Once the model predicts within
+the threshold the error triggers nothing, while the window goes on pinning such a parameter ever
+tighter. Its challenger and the champion are each judged from their own shadow observer
+(:class:`.shadow.ShadowObserver`): the recorded state is the estimate of an observer running with
+the parameters in use, which in the nodes no sensor reads compensates their errors and favours
+them. On a promotion :attr:`OnlineAdapter.promoted_state` holds the promoted parameters' estimate.
+
 The optimiser resumes from its last candidate (unless the data refuted it), so that fits capped
 at ``max_iter`` iterations add up across decisions as in the paper, while the parameters in use
 change only on out-of-sample evidence.
@@ -51,9 +60,25 @@ from ..settings import METHODS, AdapterConfig  # plain settings (edge.yaml adapt
 from .common import ParamSpace, Window, decimate, rms_inputs
 from .gauss_newton import fit_gauss_newton
 from .objective import Objective
+from .pinned import fit_refine, pinned_step
 from .screening import screen
+from .shadow import ShadowObserver
 from .sqp import fit_sqp
 from .uncertainty import Uncertainty, estimate_uncertainty
+
+#: how long before a challenger's fit its shadow observer and the champion's start (from the
+#: recorded state), s: long enough for the filter to forget the state it starts from
+SHADOW_LEAD_S = 1800.0
+#: below the error threshold a refinement fit is triggered when the window alone (no prior) pins a
+#: parameter down to PINNED_REL_STD (relative 1σ, residuals independent, all others free) and its
+#: Gauss-Newton step in the pinned directions moves it by more than PINNED_OFFSET and PINNED_Z σ
+PINNED_REL_STD = 0.02
+PINNED_OFFSET = 0.05
+PINNED_Z = 3.0
+#: the refinement's Gauss-Newton step is taken in the directions pinned down to this relative 1σ
+REFINE_STEP_REL_STD = 0.03
+#: SQP iterations of a refinement fit (rare: only when the window says the optimum is far)
+REFINE_MAX_ITER = 10
 
 
 @dataclass
@@ -265,6 +290,11 @@ class OnlineAdapter:
         self.challenger: tuple[float, np.ndarray] | None = None  # (fitted at, full parameters)
         #: where the optimiser resumes (values of ``params``; None: from the parameters in use)
         self.iterate: np.ndarray | None = None
+        #: the champion's and the challenger's shadow observers while a challenger is judged
+        self.shadows: tuple[ShadowObserver, ShadowObserver] | None = None
+        #: after a promotion: the time of the last sample and the promoted parameters' observer
+        #: estimate then (the state the service's observer continues from), °C
+        self.promoted_state: tuple[float, np.ndarray] | None = None
 
     # -- data --------------------------------------------------------------------------------
     def record(self, t: float, inputs: Mapping[str, float], measured: Mapping[str, float], state: np.ndarray) -> None:
@@ -289,25 +319,35 @@ class OnlineAdapter:
                 T0[self.model.node_index(self.model.sensors[s])] = y
         return Window(inputs, meas, T0, self.dt, t, rms_inputs(self.model))
 
-    def _errors(self, theta: np.ndarray, since: float, until: float = np.inf) -> dict[str, np.ndarray]:
+    def _errors(self, theta: np.ndarray, since: float, until: float = np.inf,
+                shadow: ShadowObserver | None = None) -> dict[str, np.ndarray]:
         """Per-sensor errors (K, NaN where not read) of the open-loop prediction from the recorded
-        state at ``since`` (measured nodes at their readings) at the samples in ``(since, until]``."""
+        state at ``since`` (or ``shadow``'s estimate then; measured nodes at their readings) at the
+        samples in ``(since, until]``."""
         win = self._window(since)
+        T0 = win.T0
+        if shadow is not None:
+            T0 = shadow.state_at(win.t[0])
+            for s in self.sensors:
+                y = win.measured[s][0]
+                if np.isfinite(y):
+                    T0[self.model.node_index(self.model.sensors[s])] = y
         keep = win.t <= until
-        traj = self.sim.simulate(theta, {c: v[keep] for c, v in win.inputs.items()}, win.dt, win.T0)
+        traj = self.sim.simulate(theta, {c: v[keep] for c, v in win.inputs.items()}, win.dt, T0)
         t = win.t[keep]
         scored = t > t[0]
         return {s: (traj.node(self.model.sensors[s]) - win.measured[s][keep])[scored] for s in self.sensors}
 
-    def _period_errors(self, theta: np.ndarray, since: float, until: float) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    def _period_errors(self, theta: np.ndarray, since: float, until: float,
+                       shadow: ShadowObserver | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """:meth:`_errors` period by period over ``(since, until]``: each ``period_s`` predicted
-        open loop from the recorded state at its start, as the online trace is scored. Also the
-        period (0, 1, …) of every sample."""
+        open loop from the state at its start (``shadow``'s estimate, else the recorded one), as
+        the online trace is scored. Also the period (0, 1, …) of every sample."""
         parts: list[dict[str, np.ndarray]] = []
         a = since
         while a < until - 1e-9:
             b = min(a + self.config.period_s, until)
-            parts.append(self._errors(theta, a, b))
+            parts.append(self._errors(theta, a, b, shadow))
             a = b
         errors = {s: np.concatenate([p[s] for p in parts]) if parts else np.zeros(0) for s in self.sensors}
         blocks = np.concatenate([np.full(len(p[self.sensors[0]]), j) for j, p in enumerate(parts)]) if parts else np.zeros(0)
@@ -340,6 +380,14 @@ class OnlineAdapter:
         t_hist0 = float(self.history.arrays()[0][0]) if len(self.history) else t
         d = Decision(t=t, error_before_k=err, horizon_error_k=self.recent_error(max(t_hist0, t - cfg.validate_s)))
         above = bool(err > cfg.threshold_k or d.horizon_error_k > cfg.threshold_k)
+        refine = False
+        # (an infinite threshold means never adapt: the fixed baseline of a replay)
+        if (not above and self.challenger is None and cfg.method == "sqp" and np.isfinite(cfg.threshold_k)
+                and np.isfinite(err) and t - t_hist0 >= cfg.min_window_s):
+            name, off = self._pinned_offset(t)
+            if name:
+                above = refine = True
+                d.reason = f"the window pins {name} {100 * off:+.1f} % from its value in use"
         d.triggered = above
         if self.challenger is not None:
             d.triggered = True
@@ -360,7 +408,7 @@ class OnlineAdapter:
         # at the same point if each restarted from the parameters in use, which change only on
         # out-of-sample evidence.
         start = self.theta.copy()
-        if self.iterate is not None:
+        if self.iterate is not None and not refine:
             start[self.model.parameter_index(self.params)] = self.iterate
         obj = self.objective(coarse, theta=start)
         phi = np.log(start[obj.space.index])
@@ -377,7 +425,9 @@ class OnlineAdapter:
             d.reason = self._also(d, "no identifiable parameter can reduce the error within its bounds")
             return self._done(d, t0)
         sub = self.objective(coarse, sc.selected, theta=start)
-        if cfg.method == "gauss_newton":
+        if refine:
+            res = fit_refine(sub, max(cfg.max_iter, REFINE_MAX_ITER), REFINE_STEP_REL_STD)
+        elif cfg.method == "gauss_newton":
             res = fit_gauss_newton(sub, max_iter=cfg.max_iter + 1)
         else:
             res = fit_sqp(sub, max_iter=cfg.max_iter, gradient="numerical" if cfg.method == "numerical" else "analytic")
@@ -390,23 +440,58 @@ class OnlineAdapter:
             return self._done(d, t0)
         d.challenger = dict(zip(sc.selected, map(float, res.values)))
         self.challenger = (t, cand)
+        self.shadows = self._start_shadows(t, cand) if refine else None
         self.iterate = cand[self.model.parameter_index(self.params)].copy()
         d.reason = self._also(d, "challenger fitted; it is judged on the data that follows")
         return self._done(d, t0)
+
+    def _pinned_offset(self, t: float) -> tuple[str, float]:
+        """The adaptable parameter that the history window alone (no prior) pins down (see
+        :data:`PINNED_REL_STD`) and its pinned Gauss-Newton step moves most by more than
+        :data:`PINNED_OFFSET` and :data:`PINNED_Z` of its 1σ, and by how much (relative, log);
+        ``("", 0.0)`` if none."""
+        cfg = self.config
+        obj = self.objective(decimate(self._window(t - cfg.window_s), cfg.decimate))
+        obj.prior_weight = 0.0  # what the window says, not the prior (which pins every parameter a little)
+        ev = obj.evaluate(np.log(self.theta[obj.space.index]))
+        step, sigma = pinned_step(obj, ev, PINNED_REL_STD)
+        off = np.where((sigma <= PINNED_REL_STD) & (np.abs(step) > np.maximum(PINNED_OFFSET, PINNED_Z * sigma)), step, 0.0)
+        j = int(np.argmax(np.abs(off)))
+        return (obj.space.names[j], float(off[j])) if off[j] else ("", 0.0)
 
     @staticmethod
     def _also(d: Decision, why: str) -> str:
         return f"{d.reason}; {why}" if d.reason else why
 
+    def _start_shadows(self, t: float, cand: np.ndarray) -> tuple[ShadowObserver, ShadowObserver]:
+        """The champion's and the challenger's shadow observers, started :data:`SHADOW_LEAD_S`
+        before ``t`` (or at the oldest sample) from the recorded state there and followed to ``t``."""
+        th, inputs, meas, states = self.history.arrays(t - SHADOW_LEAD_S)
+        out = []
+        for theta in (self.theta, cand):
+            sh = ShadowObserver(self.model, theta, self.dt, float(th[0]), states[0],
+                                {c: float(v[0]) for c, v in inputs.items()})
+            sh.follow(th, inputs, meas)
+            out.append(sh)
+        return out[0], out[1]
+
     def _judge(self, d: Decision, t: float) -> None:
-        """Judge the pending challenger on the samples recorded after its fit (both predictions
-        open loop from the same recorded state at the time of the fit)."""
+        """Judge the pending challenger on the samples recorded after its fit, period by period open
+        loop: a refinement's challenger and the champion each from the estimate of their own
+        shadow observer at the period's start, any other from the recorded state."""
         cfg = self.config
         assert self.challenger is not None
         t_fit, cand = self.challenger
+        shadows = self.shadows
+        if shadows is not None:
+            th, inputs, meas, _ = self.history.arrays(shadows[0].t)
+            for sh in shadows:
+                sh.follow(th, inputs, meas)
         t_last = float(self.history.arrays(t_fit)[0][-1])
         d.challenger_t, d.evidence_s = t_fit, t_last - t_fit
-        (champ, blocks), (chal, _) = self._period_errors(self.theta, t_fit, t_last), self._period_errors(cand, t_fit, t_last)
+        sh_champ, sh_chal = shadows if shadows is not None else (None, None)
+        (champ, blocks), (chal, _) = (self._period_errors(self.theta, t_fit, t_last, sh_champ),
+                                      self._period_errors(cand, t_fit, t_last, sh_chal))
         d.evaluations += 2
         v = judge(champ, chal, cfg.noise_k, cfg.promote_z, cfg.min_gain, cfg.sensor_tolerance_k,
                   share=d.evidence_s / cfg.validate_s + 1e-9, blocks=blocks)
@@ -419,9 +504,11 @@ class OnlineAdapter:
         vals = dict(zip(names, map(float, cand[self.model.parameter_index(names)])))
         ev = f"{d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs margin {v.margin_k2:.3g} K²"
         if v.outcome == "promote":
+            self.promoted_state = (t_last, sh_chal.state_at(t_last)) if sh_chal is not None else None
             self.theta = cand
             self.version += 1
             self.challenger = None
+            self.shadows = None
             self.iterate = None
             d.accepted = True
             d.params = vals
@@ -429,6 +516,7 @@ class OnlineAdapter:
             d.reason = f"challenger promoted: better on the {ev}"
         elif v.outcome == "drop":
             self.challenger = None
+            self.shadows = None
             if v.improvement_k2 < 0:  # refuted: the search restarts from the parameters in use
                 self.iterate = None
             why = f"predicts {', '.join(v.vetoed_by)} worse" if v.vetoed_by else "not better"

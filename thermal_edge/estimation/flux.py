@@ -35,6 +35,7 @@ wrong ``p`` gives the same magnet temperature.
 """
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
@@ -44,6 +45,7 @@ import numpy as np
 
 from ..errors import ThermalEdgeError
 from ..lptn import Role
+from ..lptn.vocabulary import OtherUnit, Plausible
 
 #: copper's temperature coefficient of resistance near 20 °C, 1/K
 ALPHA_CU = 0.00393
@@ -255,22 +257,95 @@ class FluxModel:
         return d
 
     @staticmethod
-    def from_dict(d: Mapping[str, Any]) -> FluxModel:
-        """Inverse of :meth:`as_dict`; :class:`FluxError` names a missing entry."""
-        params = dict(d.get("params", {}))
-        missing = [k for k in PARAMS if k not in params] + [k for k in ("pole_pairs", "bin_a", "speed_min_rpm") if k not in d]
+    def from_dict(d: Any) -> FluxModel:
+        """Inverse of :meth:`as_dict`: every entry :meth:`as_dict` writes, each of its type (a JSON
+        number, not a string holding one), else :class:`FluxError` naming the entry."""
+        if not isinstance(d, Mapping):
+            raise FluxError(f"flux model: the file holds a {_json_type(d)}, not an object with params, sigma, ...")
+        params, sigma = _mapping(d, "params"), _mapping(d, "sigma")
+        missing = ([f"params.{k}" for k in PARAMS if k not in params] if "params" in d else ["params"]) \
+            + [k for k in REQUIRED if k not in d]
         if missing:
             raise FluxError(f"flux model: no {', '.join(missing)}")
-        sigma = {k: float(v) for k, v in dict(d.get("sigma", {})).items()}
-        return _validated(FluxModel({k: float(params[k]) for k in PARAMS}, sigma,
-                         int(d["pole_pairs"]), float(d["bin_a"]),
-                         {int(k): float(v) for k, v in dict(d.get("var_u", {})).items()}, float(d["speed_min_rpm"]),
-                         float(d.get("sigma_max_k", 10.0)), float(d.get("tau_s", 0.0)),
-                         [[float(x) for x in row] for row in d.get("cov", [])],
-                         float(d.get("beta_spread", 0.0)), float(d.get("magnet_mean_c", T_REF_C)),
-                         {k: float(v) for k, v in dict(d.get("fit_info", {})).items()},
-                         [[float(x) for x in row] for row in d.get("cv_params", [])],
-                         float(d.get("white_share", 0.0))))
+        pole_pairs = d["pole_pairs"]
+        if isinstance(pole_pairs, float) and pole_pairs.is_integer():
+            pole_pairs = int(pole_pairs)
+        if not isinstance(pole_pairs, int) or isinstance(pole_pairs, bool):
+            raise FluxError(f"flux model: pole_pairs must be a whole number, got {_shown(pole_pairs)}")
+        var_u = _mapping(d, "var_u")
+        bins = {}
+        for k, v in var_u.items():
+            try:
+                bins[int(k)] = _number(f"var_u.{k}", v)
+            except ValueError:
+                raise FluxError(f"flux model: var_u: bin {k!r} is not a whole number (the current bin index)") from None
+        return _validated(FluxModel(
+            {k: _number(f"params.{k}", params[k]) for k in PARAMS},
+            {str(k): _number(f"sigma.{k}", v) for k, v in sigma.items()},
+            pole_pairs, _number("bin_a", d["bin_a"]), bins, _number("speed_min_rpm", d["speed_min_rpm"]),
+            _number("sigma_max_k", d["sigma_max_k"]), _number("tau_s", d["tau_s"]), _matrix(d, "cov"),
+            _number("beta_spread", d["beta_spread"]), _number("magnet_mean_c", d["magnet_mean_c"]),
+            {str(k): _number(f"fit_info.{k}", v) for k, v in _mapping(d, "fit_info").items()},
+            _matrix(d, "cv_params"), _number("white_share", d.get("white_share", 0.0))))
+
+
+#: The entries besides ``params`` a file must hold: one left out would silently change the
+#: estimate's σ (``cov``, ``beta_spread``) or where it is used. ``fit_info`` and ``cv_params`` may
+#: be absent (figures of the fit; without the forward fits nothing is extrapolated).
+REQUIRED = ("sigma", "pole_pairs", "bin_a", "var_u", "speed_min_rpm", "sigma_max_k", "tau_s", "cov", "beta_spread",
+            "magnet_mean_c")
+#: Plausible flux linkage ``ψ_20`` of a PM machine, Wb: from a small servo's few tenths of a mWb to a
+#: direct-drive generator's few Wb; outside, the value is in another unit (mWb) or of another quantity.
+PSI20 = Plausible("Wb", 1e-4, 20.0, (OtherUnit("mWb", 1e-3),), what="flux linkage")
+#: Plausible temperature coefficient ``β / ψ_20`` of a magnet's flux linkage, 1/K: SmCo about
+#: −0.03 %/K, NdFeB −0.1 %/K, ferrite −0.2 %/K; ten times ferrite's is no magnet.
+TEMPCO_MIN_PER_K = -0.02
+
+
+def _json_type(v: object) -> str:
+    """What JSON calls ``v``'s type."""
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return "boolean"
+    if isinstance(v, (int, float)):
+        return "number"
+    if isinstance(v, str):
+        return "string"
+    return "list" if isinstance(v, (list, tuple)) else "object" if isinstance(v, Mapping) else type(v).__name__
+
+
+def _shown(v: object) -> str:
+    """``v`` as a message shows it: its JSON text when short, and its JSON type."""
+    try:
+        text = json.dumps(v)
+    except (TypeError, ValueError):
+        text = ""
+    kind = _json_type(v)
+    return text if kind == "null" else f"{text} (a {kind})" if 0 < len(text) <= 40 else f"a {kind}"
+
+
+def _number(key: str, v: object) -> float:
+    """``v`` if it is a JSON number, as float; else :class:`FluxError` naming ``key``."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise FluxError(f"flux model: {key} must be a number, got {_shown(v)}")
+    return float(v)
+
+
+def _mapping(d: Mapping[str, Any], key: str) -> Mapping[str, Any]:
+    """``d[key]`` (empty if absent) if it is a JSON object, else :class:`FluxError` naming ``key``."""
+    v = d.get(key, {})
+    if not isinstance(v, Mapping):
+        raise FluxError(f"flux model: {key} must be an object, got {_shown(v)}")
+    return v
+
+
+def _matrix(d: Mapping[str, Any], key: str) -> list[list[float]]:
+    """``d[key]`` (empty if absent) if it is a list of lists of numbers, else :class:`FluxError`."""
+    v = d.get(key, [])
+    if not isinstance(v, list) or not all(isinstance(row, list) for row in v):
+        raise FluxError(f"flux model: {key} must be a list of rows of numbers, got {_shown(v)}")
+    return [[_number(f"{key}[{i}][{j}]", x) for j, x in enumerate(row)] for i, row in enumerate(v)]
 
 
 def _validated(m: FluxModel) -> FluxModel:
@@ -289,6 +364,12 @@ def _validated(m: FluxModel) -> FluxModel:
             raise bad(f"params.{k}", f"must be positive ({why}), got {m.params[k]:g}")
     if not m.params["beta"] < 0:  # a magnet's flux linkage falls as it warms: no other sign is a magnet
         raise bad("params.beta", f"must be negative (the flux linkage falls with temperature), got {m.params['beta']:g}")
+    psi_problem = PSI20.problem(m.params["psi20"])
+    if psi_problem is not None:
+        raise bad("params.psi20", psi_problem)
+    if m.tempco_per_k < TEMPCO_MIN_PER_K:
+        raise bad("params.beta", f"{m.params['beta']:g} Wb/K is {100 * m.tempco_per_k:+.2f} %/K of params.psi20: no "
+                  f"magnet's flux linkage falls faster than {100 * TEMPCO_MIN_PER_K:g} %/K (NdFeB about -0.1 %/K)")
     if not 1 <= m.pole_pairs <= 100:
         raise bad("pole_pairs", f"must be 1 to 100, got {m.pole_pairs}")
     for key, v, lo in (("bin_a", m.bin_a, 0.0), ("sigma_max_k", m.sigma_max_k, 0.0)):
@@ -303,7 +384,7 @@ def _validated(m: FluxModel) -> FluxModel:
         raise bad("var_u", "is empty: no current bin has a variance (the estimate would never be informative)")
     if any(not (math.isfinite(v) and v >= 0) for v in m.var_u.values()) or any(b < 0 for b in m.var_u):
         raise bad("var_u", "holds a negative or non-finite variance or bin")
-    if m.cov and (len(m.cov) != len(PARAMS) or any(len(row) != len(PARAMS) for row in m.cov)
+    if (len(m.cov) != len(PARAMS) or any(len(row) != len(PARAMS) for row in m.cov)
                   or not np.all(np.isfinite(np.asarray(m.cov, dtype=float)))):
         raise bad("cov", f"must be a finite {len(PARAMS)} x {len(PARAMS)} matrix ({', '.join(PARAMS)})")
     if any(len(row) != len(PARAMS) for row in m.cv_params):

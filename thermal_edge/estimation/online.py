@@ -83,6 +83,8 @@ def run_online(model: Model, run: Run, config: AdapterConfig, theta0: np.ndarray
             ad.decide(float(t[k]))
             if ad.version != before:
                 obs.set_parameters(ad.theta)
+                if ad.promoted_state is not None and ad.promoted_state[0] == float(t[k]):
+                    obs.T = ad.promoted_state[1].copy()  # the estimate the promoted parameters were judged from
         for p, i in zip(ad.params, pidx):  # in use from this sample on (a decision here included)
             trace[p][k] = ad.theta[i]
         if progress is not None:

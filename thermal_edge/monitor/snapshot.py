@@ -88,6 +88,14 @@ class Snapshot:
         Frame name -> seconds since last seen (bus).
     dropped : int
         Frames dropped by the integrity checks (metrics).
+    bus_silent_s : float
+        Seconds without an accepted frame once beyond ``transmit.bus_silence_s`` (0: frames come; metrics).
+    flux_used : int
+        Ticks whose magnet estimate from the inverter's voltages was fused (None: no voltage input; metrics).
+    flux_refused : dict
+        Reason -> ticks whose estimate was refused (metrics).
+    flux_magnet_c, flux_magnet_sigma_k : float
+        The last fused magnet estimate from the voltages and its standard deviation (°C, K; metrics).
     """
 
     source: str
@@ -112,6 +120,11 @@ class Snapshot:
     stale: list[str] = field(default_factory=list)
     frame_ages: dict[str, float] = field(default_factory=dict)
     dropped: int | None = None
+    bus_silent_s: float = 0.0
+    flux_used: int | None = None
+    flux_refused: dict[str, int] = field(default_factory=dict)
+    flux_magnet_c: float = math.nan
+    flux_magnet_sigma_k: float = math.nan
 
 
 def _enum_name(enum_cls: type[DerateReason] | type[TeState], code: float) -> str:
@@ -189,6 +202,16 @@ def from_metrics(text: str, source: str = "metrics") -> Snapshot:
                 snap.stale.append(lab["frame"])
             elif key == "frames_dropped_total":
                 snap.dropped = (snap.dropped or 0) + int(v)
+            elif key == "bus_silent_seconds":
+                snap.bus_silent_s = v
+            elif key == "flux_used_total":
+                snap.flux_used = int(v)
+            elif key == "flux_refused_total":
+                snap.flux_refused[lab.get("reason", "?")] = int(v)
+            elif key == "flux_magnet_celsius":
+                snap.flux_magnet_c = v
+            elif key == "flux_magnet_stddev_celsius":
+                snap.flux_magnet_sigma_k = v
     snap.nodes = list(nodes.values())
     snap.sensors = sorted(sensors.values(), key=lambda x: x.name)
     return snap

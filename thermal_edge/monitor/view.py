@@ -36,8 +36,16 @@ def render(snap: Snapshot, now: float | None = None) -> str:
             lines.append(f"{n.name:12s} {_f(n.estimate_c, '8.1f')}  {_f(n.upper_c, '9.1f')}  {_f(n.warn_c)} {_f(n.max_c)}"
                          f"  {_bar(n.upper_c, 20.0, n.max_c)}")
         lines.append("")
+    to_limit = ("not within the horizon" if snap.time_to_limit_s == math.inf
+                else f"{_f(snap.time_to_limit_s, '.0f')} s")
     lines.append(f"look-ahead {_f(snap.lookahead_a)} A over {_f(snap.horizon_s, '.0f')} s;"
-                 f" time to limit at this load {_f(snap.time_to_limit_s, '.0f')} s")
+                 f" time to limit at this load {to_limit}")
+    if snap.flux_used is not None:
+        refused = sum(snap.flux_refused.values())
+        why = ", ".join(f"{k} {v}" for k, v in sorted(snap.flux_refused.items()) if v)
+        fused = (f"; last fused magnet {_f(snap.flux_magnet_c, '.1f')} °C, σ {_f(snap.flux_magnet_sigma_k, '.1f')} K"
+                 if math.isfinite(snap.flux_magnet_c) else "; none fused yet")
+        lines.append(f"voltages: used {snap.flux_used} ticks, refused {refused}" + (f" ({why})" if why else "") + fused)
     adapt = []
     if snap.adapt_runs is not None:
         adapt.append(f"runs {snap.adapt_runs}")
@@ -66,6 +74,8 @@ def render(snap: Snapshot, now: float | None = None) -> str:
         for name, age in snap.frame_ages.items():
             lines.append(f"{name:18s} {age:11.2f}{'  STALE' if name in snap.stale else ''}")
     lines.append("")
+    if snap.bus_silent_s > 0.0:
+        lines.append(f"BUS SILENT for {snap.bus_silent_s:.1f} s: TE_Limits carries the safe limit")
     lines.append(f"stale inputs: {', '.join(snap.stale) if snap.stale else 'none'}"
                  + (f"   frames dropped: {snap.dropped}" if snap.dropped is not None else ""))
     return "\n".join(lines)

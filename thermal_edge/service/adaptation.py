@@ -72,6 +72,9 @@ class AdaptationResult:
     version: int = 0
     state_t: float | None = None  # time of the last recorded sample
     state: np.ndarray | None = None  # open-loop state at state_t with the new parameters (accepted only)
+    #: the observer's estimate at state_t with the new parameters (accepted only): the shadow
+    #: observer's the challenger was judged from
+    estimate: np.ndarray | None = None
     bands: dict[str, tuple[float, float]] = field(default_factory=dict)
     identifiable: dict[str, bool] = field(default_factory=dict)
     error: str | None = None
@@ -81,14 +84,16 @@ class AdaptationResult:
     def accepted(self) -> bool:
         return self.decision is not None and self.decision.accepted
 
-    def state_now(self, stepper: Stepper, recent: Iterable[tuple[float, Mapping[str, float]]]) -> np.ndarray | None:
+    def state_now(self, stepper: Stepper, recent: Iterable[tuple[float, Mapping[str, float]]],
+                  which: str = "state") -> np.ndarray | None:
         """The open-loop state with the new parameters now (°C), derived once: the state at the end
         of the decision's window (``state_t``, simulated by the worker), stepped by ``stepper`` (the
         new parameters) over the inputs of the samples recorded since. None without a state or if
-        it is not finite."""
-        if self.state is None or self.state_t is None:
+        it is not finite. ``which="estimate"``: the same for :attr:`estimate`."""
+        x0 = self.estimate if which == "estimate" else self.state
+        if x0 is None or self.state_t is None:
             return None
-        x = self.state.copy()
+        x = x0.copy()
         for ts, u in recent:
             if ts + 1e-9 >= self.state_t:
                 x, _ = stepper.step(x, dict(u))
@@ -245,6 +250,9 @@ class AdaptationWorker:
             x, x_t = ad.replayed_state(t - self.config.window_s)
             if np.all(np.isfinite(x)):
                 res.state, res.state_t = x, x_t
+                shadow = ad.promoted_state
+                if shadow is not None and shadow[0] == x_t and np.all(np.isfinite(shadow[1])):
+                    res.estimate = shadow[1].copy()
             if self.bands:
                 try:
                     unc = ad.current_uncertainty(t - self.config.window_s)
@@ -432,9 +440,10 @@ class Adaptation:
                 self._next_t = t_rec + self.config.adapter.period_s
         return applied
 
-    def state_now(self, res: AdaptationResult, stepper: Stepper) -> np.ndarray | None:
-        """The open-loop state after the accepted ``res`` (see :meth:`AdaptationResult.state_now`)."""
-        return res.state_now(stepper, self._recent)
+    def state_now(self, res: AdaptationResult, stepper: Stepper, which: str = "state") -> np.ndarray | None:
+        """The open-loop state (or, ``which="estimate"``, the observer's estimate) after the
+        accepted ``res`` (see :meth:`AdaptationResult.state_now`)."""
+        return res.state_now(stepper, self._recent, which)
 
     def restart(self) -> None:
         """A gap in the data: the worker forgets its history, the next decision is a period away."""

@@ -134,7 +134,17 @@ STALL_TICKS = 3
 
 @dataclass(frozen=True)
 class NodeBand:
-    """A limited node's estimate and band for one tick (°C)."""
+    """A limited node's estimate and band for one tick (°C).
+
+    ``upper_c`` is the upper band the policy derates on and the service sends
+    (``TE_T_HotSpotUpper``, ``TE_T_MagnetUpper``): the observer's band ``observer_upper_c``
+    (estimate + ``derating.band_z`` σ, the parameters' declared spread included) raised to the
+    mean of the last :data:`FLOOR_TICKS` readings of each sensor that bounds the node from below
+    (:class:`MeasuredFloor`). Where such a reading is above the observer's band (the housing PT100
+    under the magnet while an overload heats the stator first), ``upper_c`` is that reading, and
+    what narrows the observer's band (the inverter's voltages on the magnet) does not move it.
+    ``observer_upper_c`` is NaN for a band that is a reading (:meth:`MeasuredFloor.bands`).
+    """
 
     name: str
     estimate_c: float
@@ -142,8 +152,14 @@ class NodeBand:
     warn_c: float
     max_c: float
     reason: DerateReason
+    observer_upper_c: float = math.nan
     #: the margin below ``max_c`` the approach ends at, K (None: ``derating.margin_k``)
     margin_k: float | None = None
+
+    @property
+    def observer_lower_c(self) -> float:
+        """Lower end of the observer's band (estimate - ``band_z`` σ), °C; NaN without it."""
+        return 2.0 * self.estimate_c - self.observer_upper_c
 
     @property
     def factor(self) -> float:

@@ -341,13 +341,16 @@ class ThermalEngine:
 
     def _take_parameters(self, res: AdaptationResult) -> None:
         """Accepted parameters to the estimate, the look-ahead and the reaction-time current; the
-        open-loop state re-derived with them."""
+        open-loop state re-derived with them, the observer's estimate the one they were judged from."""
         theta = self.adaptation.theta
         self.estimate.set_parameters(theta)
         if self.lookahead is not None:
             self.lookahead.set_parameters(theta)
         self.reaction.set_parameters(theta)
         self.estimate.replace_prediction(self.adaptation.state_now(res, self.estimate.stepper))
+        # the observer continues from the estimate the promoted parameters were judged from: its own,
+        # not the one the parameters before them left in the nodes no sensor reads
+        self.estimate.replace_estimate(self.adaptation.state_now(res, self.estimate.stepper, "estimate"))
 
     # -- outputs ------------------------------------------------------------------------------------
     def _finish(self, t: float, ti: TickInputs, forced: list[DerateReason], new_results: list[AdaptationResult],
@@ -377,15 +380,19 @@ class ThermalEngine:
             est = obs.T.copy()
             sigma = obs.std()
             pred = x_ol.copy() if x_ol is not None else np.full(n, math.nan)
-            upper = est + self.config.derating.band_z * sigma
+            observer_upper = est + self.config.derating.band_z * sigma
+            upper = observer_upper.copy()
             # a limited node is at least as hot as a sensor that bounds it from below: an estimate
             # the readings have outrun (a model that runs cold) does not hide that
             self.floor.raise_upper(upper, measured)
-            # while the voltages observe the magnet its band is a measured one: the smaller margin
+            # the one definition of the band derated on and sent (TE_Estimates); the replay's
+            # per-tick table reads these, never a band of its own. While the voltages observe the
+            # magnet its band is a measured one: the smaller margin
             observed = self.flux is not None and self.flux.observing(t)
             bands = [NodeBand(ln.name, float(est[ln.row]), float(upper[ln.row]), ln.warn_c, ln.max_c, ln.reason,
-                              self.config.flux.magnet_margin_k if observed and ln.name == self.config.transmit.magnet_limit
-                              else None)
+                              float(observer_upper[ln.row]),
+                              margin_k=(self.config.flux.magnet_margin_k
+                                        if observed and ln.name == self.config.transmit.magnet_limit else None))
                      for ln in self.limited_nodes]
             u = {k: (v if math.isfinite(v) else self._last_inputs.get(k, 0.0))
                  for k, v in (ti.inputs if ti else self._last_inputs).items()}

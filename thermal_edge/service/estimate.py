@@ -194,6 +194,12 @@ class StateEstimate:
         if prediction is not None and np.all(np.isfinite(prediction)):
             self._prediction = prediction
 
+    def replace_estimate(self, estimate: np.ndarray | None) -> None:
+        """The observer's estimate consistent with new parameters, °C (ignored if None or not
+        finite; its covariance is kept)."""
+        if self._observer is not None and estimate is not None and np.all(np.isfinite(estimate)):
+            self._observer.T = np.asarray(estimate, dtype=float).copy()
+
     def saved(self) -> dict[str, list] | None:
         """The state to persist (nodes, T, sigma, P, T_pred), or None if not started or not finite."""
         obs = self._observer

@@ -33,6 +33,7 @@ from .inputs import FAULT_KINDS
 from .metrics_server import MetricsServer
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .derating import Limits
     from .engine import ThermalEngine, TickOutput
 
 __all__ = ["ServiceMetrics"]
@@ -128,7 +129,8 @@ class _LiveCollector(Collector):
                 if math.isfinite(v):
                     inp.add_metric([k], v)
             yield inp
-            lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate and 95 % upper band",
+            lim = GaugeMetricFamily(P + "limited_node_celsius", "Limited nodes: estimate, upper band derated on and sent "
+                                    "(TE_Estimates), warn and max",
                                     labels=LABELS["limited_node_celsius"])
             for b, ln in zip(out.bands, eng.limited_nodes):
                 node = model.nodes[ln.row]
@@ -137,13 +139,14 @@ class _LiveCollector(Collector):
                 lim.add_metric([ln.name, node, "warn"], ln.warn_c)
                 lim.add_metric([ln.name, node, "max"], ln.max_c)
             yield lim
+            sent = m.limits_now() if m.limits_now is not None else out.limits
             yield GaugeMetricFamily(P + "current_limit_amperes", "Current limit sent in TE_Limits (A rms)",
-                                    value=out.limits.current_a)
+                                    value=sent.current_a)
             yield GaugeMetricFamily(P + "torque_limit_newton_meters", "Torque limit sent in TE_Limits",
-                                    value=out.limits.torque_nm)
-            yield GaugeMetricFamily(P + "derate_active", "1 while the limits are reduced", value=float(out.limits.active))
-            yield GaugeMetricFamily(P + "derate_reason_code", "TE_DerateReason of the last tick (enumeration value)",
-                                    value=float(int(out.limits.reason)))
+                                    value=sent.torque_nm)
+            yield GaugeMetricFamily(P + "derate_active", "1 while the limits are reduced", value=float(sent.active))
+            yield GaugeMetricFamily(P + "derate_reason_code", "TE_DerateReason sent in TE_Limits (enumeration value)",
+                                    value=float(int(sent.reason)))
             if math.isfinite(out.lookahead_a):
                 yield GaugeMetricFamily(P + "lookahead_current_amperes",
                                         "Largest RMS current that keeps every limit over the horizon",
@@ -164,8 +167,14 @@ class _LiveCollector(Collector):
                     age.add_metric([s], a)
             yield age
         if eng is not None and model is not None:
-            # before the first tick: starting, nothing stale, no fault (as TE_Limits says)
-            reason = out.limits.reason if out is not None else DerateReason.STARTING
+            # what TE_Limits says now: before the first tick starting, nothing stale, no fault; on a
+            # silent bus stale input, every frame missing
+            sent_now = m.limits_now() if m.limits_now is not None else (out.limits if out is not None else None)
+            reason = sent_now.reason if sent_now is not None else DerateReason.STARTING
+            silent = m.silent_s() if m.silent_s is not None else None
+            yield GaugeMetricFamily(P + "bus_silent_seconds", "Seconds since the last accepted frame once that exceeds "
+                                    "transmit.bus_silence_s (TE_Limits then carries the safe limit); 0 otherwise",
+                                    value=silent if silent is not None else 0.0)
             state = out.state if out is not None else TeState.STARTING
             yield StateSetMetricFamily(P + "derate_reason", "Why the limits are reduced",
                                        value={r.name.lower(): r == reason for r in DerateReason})
@@ -173,7 +182,7 @@ class _LiveCollector(Collector):
             stale = GaugeMetricFamily(P + "input_stale", "1 for each frame missing longer than its timeout",
                                       labels=LABELS["input_stale"])
             for f in eng.config.timeouts:
-                stale.add_metric([f], float(out is not None and f in out.stale))
+                stale.add_metric([f], float(silent is not None or (out is not None and f in out.stale)))
             yield stale
             fault = GaugeMetricFamily(P + "sensor_fault", "1 for each required sensor/input reporting a fault",
                                       labels=LABELS["sensor_fault"])
@@ -263,10 +272,12 @@ class _LiveCollector(Collector):
                         yield GaugeMetricFamily(P + "flux_magnet_stddev_celsius", "Standard deviation of that estimate",
                                                 value=flux_last.sigma_k)
                 mg = out.magnet if out is not None else None
-                if mg is not None and math.isfinite(mg.upper_c - mg.estimate_c):
-                    yield GaugeMetricFamily(P + "magnet_band_celsius", "Width of the magnet's 95 % band above its "
-                                            "estimate (upper band minus estimate): what the voltages narrow",
-                                            value=mg.upper_c - mg.estimate_c)
+                if mg is not None and math.isfinite(mg.observer_upper_c - mg.estimate_c):
+                    yield GaugeMetricFamily(P + "magnet_band_celsius", "Width of the observer's band of the magnet "
+                                            "above its estimate (band_z sigma): what the voltages narrow; the upper "
+                                            "band sent is limited_node_celsius band=upper, at least the recent "
+                                            "readings of a sensor that bounds the magnet from below",
+                                            value=mg.observer_upper_c - mg.estimate_c)
             acc = eng.accumulator
             bad = CounterMetricFamily(P + "bad_readings", "Sensor readings rejected, by kind", labels=LABELS["bad_readings"])
             for kind in FAULT_KINDS:
@@ -358,6 +369,11 @@ class ServiceMetrics:
         self.transport_stats: Any = None
         self.store: Any = None
         self.extra: list[tuple[str, Callable[[], float], str]] = []
+        #: the limits TE_Limits carries now (between ticks too: a silent bus, a stalled tick); without
+        #: it, the last tick's
+        self.limits_now: Callable[[], Limits] | None = None
+        #: seconds the bus has been silent beyond ``transmit.bus_silence_s`` (None: it is not)
+        self.silent_s: Callable[[], float | None] | None = None
         r = self.registry
         buckets = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0)
         self.tick_duration = Histogram(P + "tick_duration_seconds", "Compute (CPU) time of one tick", registry=r,

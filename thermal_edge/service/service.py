@@ -41,7 +41,9 @@ from ..config import EdgeConfig
 from ..lptn import Model
 from ..process_signals import EXIT_STATE_NOT_SAVED, IGNORED_SIGNALS, STOP_SIGNALS, stop_requested_while_starting
 from .clock import FrameClock, WallClock
+from .derating import Limits
 from .engine import ThermalEngine, load_service_model
+from .journal import notice
 from .memory import limit_heap_retention
 from .metrics import ServiceMetrics
 from .outputs import TickOutput
@@ -122,6 +124,9 @@ class EdgeService:
         self.transport = CanTransport(config.bus, self.codec, on_frame=self._on_frame, timestamp_fn=self._tx_time,
                                       bus_factory=bus_factory_fn)
         self.metrics.attach(self.engine, self.codec, self.transport.stats, self.store)
+        self.metrics.limits_now = self._limits_now
+        self.metrics.silent_s = self._silent_for
+        self._silent = False  # the bus silent longer than transmit.bus_silence_s (said once in the log)
         self._drop_report = DropReport(self.codec.stats)
         self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
                                    "Wall time minus clock time of the last frame (frame clock; large = behind)"))
@@ -322,12 +327,30 @@ class EdgeService:
         out = self.engine.last
         return out if out is not None else self.engine.placeholder(self.clock.now())
 
-    def _limits_signals(self) -> dict[str, float | int]:
-        # called in the TE_Limits sender thread: reads only references and numbers the loop replaces whole;
-        # the rule (silence, stalled ticks) is the derating policy's
+    def _limits_now(self) -> Limits:
+        """The limits TE_Limits carries now (any thread: reads only references and numbers the loop
+        replaces whole); the rule (silence, stalled ticks) is the derating policy's."""
         out = self.engine.last
         return self.engine.policy.between_ticks(out.limits if out is not None else None, self._frame_age(),
-                                                self._tick_age()).signals()
+                                                self._tick_age())
+
+    def _silent_for(self) -> float | None:
+        """Seconds the bus has been silent beyond ``transmit.bus_silence_s`` began (None: not silent)."""
+        age = self._frame_age()
+        return age if age is not None and age > self.engine.policy.bus_silence_s else None
+
+    def _limits_signals(self) -> dict[str, float | int]:
+        # called in the TE_Limits sender thread
+        silent = self._silent_for()
+        if (silent is not None) != self._silent:  # said once when it begins and once when it ends
+            self._silent = silent is not None
+            if self._silent:
+                log.warning("no frame accepted for %.1f s (transmit.bus_silence_s %.1f s): the bus is silent, "
+                            "TE_Limits carries the safe limit until frames come again", silent,
+                            self.engine.policy.bus_silence_s)
+            else:
+                notice(log, "frames accepted again after the bus was silent: TE_Limits follows the ticks again")
+        return self._limits_now().signals()
 
     def _frame_age(self) -> float | None:
         """Seconds since the last accepted frame (or the start); None while silence is expected (the
