@@ -496,6 +496,13 @@ class FluxConfig:
     winding_node: str | None = None
     #: the model nodes whose mean the flux linkage sees (default: the node of ``transmit.magnet_limit``)
     magnet_nodes: tuple[str, ...] | None = None
+    #: at a current the commissioning did not see (same speeds), use the estimate's changes (its offset
+    #: there is unknown) right after an accepted estimate; false: only the commissioned operating points
+    extrapolate: bool = True
+    #: the derating's margin below the magnet's max while the voltages observe it (an estimate fused
+    #: within the error's correlation time), K: the measured band then covers the rotor model's error
+    #: that ``derating.margin_k`` is for; ``derating.margin_k`` otherwise
+    magnet_margin_k: float = setting(0.5, min=0.0, max=50.0)
 
     @property
     def enabled(self) -> bool:

@@ -118,7 +118,9 @@ def test_an_informative_estimate_narrows_the_magnet_band(pm10kw, heated):
     fused = run_fused(pm10kw, heated, SENSORS, flux_model(), MAGNET, electrical=e)
     m = pm10kw.node_index(MAGNET)
     assert fused.used.sum() > 0.9 * len(heated)
-    assert np.median(fused.sigma[300:, m]) < 0.5 * np.median(plain.sigma[300:, m])
+    # the estimate's error correlated over tau_s is a state of the filter: consecutive estimates
+    # tell less than as many independent ones, and the band narrows by what they do tell
+    assert np.median(fused.sigma[300:, m]) < 0.6 * np.median(plain.sigma[300:, m])
     err = lambda r: np.sqrt(np.mean((r.estimate[300:, m] - truth[300:]) ** 2))  # noqa: E731
     assert err(fused) <= err(plain)
 

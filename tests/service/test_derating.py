@@ -60,6 +60,18 @@ def test_approach_falls_linearly_below_max_less_the_margin():
     assert lim.current_a == pytest.approx(40.0 * 3.0 / 5.0)
 
 
+def test_a_band_with_a_margin_of_its_own_ends_its_approach_there():
+    """A node band that carries its own margin (the magnet while the voltages observe it, 0.5 K)
+    approaches max - 0.5 K; the other bands keep derating.margin_k (1.5 K)."""
+    for mag in (112.0, 116.0, 117.5, 118.5, 119.0, 119.6):
+        own = [NodeBand("hot_spot", 98.0, 100.0, 140.0, 155.0, W),
+               NodeBand("magnet", mag - 1, mag, 100.0, 120.0, M, margin_k=0.5)]
+        lim = policy().update(own, (math.inf, M))
+        assert lim.current_a == pytest.approx(40.0 * min(1.0, max(0.0, (120.0 - 0.5 - mag) / 3.0)))
+    hot_own = [NodeBand("hot_spot", 150.0, 152.0, 140.0, 155.0, W), NodeBand("magnet", 50.0, 52.0, 100.0, 120.0, M, margin_k=0.5)]
+    assert policy().update(hot_own, (math.inf, W)).current_a == pytest.approx(40.0 * (155.0 - 1.5 - 152.0) / 3.0)
+
+
 def test_limits_fall_at_once_and_rise_slowly_with_hysteresis_reason_recovering():
     p = policy(rise_rate_a_per_s=0.5, hysteresis_a=1.0)
     assert p.update(bands(150.0, 50.0), (20.0, W)).current_a == 20.0  # falls at once

@@ -44,7 +44,12 @@ plant, but ``thermal_edge_voltages`` runs with the electrical calibration delibe
 inductances +20 %, the inverter's voltage error doubled; the disagreement check must refuse what
 would mislead it, and nothing may overheat).
 
-Figures per case and policy: ``headroom_pct`` (current-time delivered ÷ demanded, %),
+The simulated machine has the field weakening of its electrical model (:class:`..sim.pmsm.Pmsm`) for
+every policy: above about 1,400 rpm under load the inverter adds a negative ``i_d``, which heats
+the winding but makes no torque, and which an inductance error carries into the flux estimate.
+
+Figures per case and policy: ``headroom_pct`` (the torque's current-time delivered ÷ demanded, %;
+the field-weakening current is not counted),
 ``oracle_share_pct`` (delivered ÷ the oracle's delivered, %), ``peak_hot_spot_c``,
 ``peak_magnet_c`` (true plant temperatures), ``seconds_over_max`` (plant time with a limited node
 above its max); for ``thermal_edge_voltages`` also ``flux`` (ticks per outcome of the flux
@@ -289,16 +294,16 @@ def plant_for(service_model: Any, case: Case) -> Any:
 
 
 def emulator_for(plant: Any, cycle: Path, case: Case, duration_s: float | None, codec: Any = None,
-                 pmsm: Any = None) -> Any:
+                 pmsm: Any = None, voltages: bool = False) -> Any:
     """The emulator of a case's plant on the bench's frame periods; with ``pmsm`` (:class:`..sim.pmsm.Pmsm`)
-    it also sends ``INV_Voltages``."""
+    its currents have the field-weakening ``i_d``, and with ``voltages`` it also sends ``INV_Voltages``."""
     from ..sim.inverter import EmulatorConfig, InverterEmulator
 
     cfg = EmulatorConfig(model_path=plant.path, cycle_path=cycle, duration_s=duration_s, speed=0.0, t0=T0,
                          current_period_s=CURRENT_PERIOD_S, temperature_period_s=TEMPERATURE_PERIOD_S,
                          plant_dt_s=PLANT_DT_S, closed_loop=True, flow_control=False, trace_every_s=math.inf,
                          record_estimates=False, ambient_offset_k=case.ambient_offset_k, limits_timeout_sim_s=math.inf,
-                         pmsm=pmsm)
+                         pmsm=pmsm, voltages=voltages)
     return InverterEmulator(cfg, codec=codec, model=plant)
 
 
@@ -336,7 +341,8 @@ def closed_loop(emu: Any, policy: _Policy, kt: float, limits: list[tuple[str, in
         _, torque_d, _ = emu.demand(emu.elapsed)
         sent = emu.step(None)
         frames = [DecodedFrame(name, ids[name], sig, 0, ts) for ts, name, sig in sent if name not in emu.paused]
-        i_applied = [sig["INV_IphRms"] for _, name, sig in sent if name == "INV_Currents"]
+        # delivered: the torque's current (the field-weakening share of the current makes no torque)
+        i_applied = [abs(sig["INV_Torque"]) / kt for _, name, sig in sent if name == "INV_Mechanics"]
         demanded += abs(torque_d) / kt * PLANT_DT_S
         delivered += (float(np.mean(i_applied)) if i_applied else 0.0) * PLANT_DT_S
         T = emu.plant.T
@@ -402,15 +408,15 @@ def run_case(case: Case, policies: tuple[str, ...] = POLICIES, cycle: Path | Non
         signal = cfg.sensors[sensor].signal
         i_cont = nominal_values(service_model).get("i_rated", imax / 2)  # the continuous rating
         warm: dict[str, dict[str, Any]] = {}
+        pmsm = Pmsm()  # every policy's machine has the same electrical side (its field weakening)
         for name in policies:
             voltages = name == "thermal_edge_voltages"
-            pmsm = Pmsm() if voltages else None
-            emu = emulator_for(plant, cycle, case, duration_s, pmsm=pmsm)
+            emu = emulator_for(plant, cycle, case, duration_s, pmsm=pmsm, voltages=voltages)
             restored = None
             if case.warm_restart:
                 key = name if name in SERVICE_POLICIES else "thermal_edge"  # the others start from the same machine
                 if key not in warm:
-                    warm[key] = _warm_start(case, plant, cycle, cfgs[key], kt, pmsm)
+                    warm[key] = _warm_start(case, plant, cycle, cfgs[key], kt, pmsm, voltages)
                 emu.plant.T = warm[key]["T"].copy()
                 restored = copy.deepcopy(warm[key]["state"])
                 if isinstance(restored, PersistedState):
@@ -465,7 +471,8 @@ class _quiet_flux_refusals:
         self.logger.setLevel(self.level)
 
 
-def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float, pmsm: Any = None) -> dict[str, Any]:
+def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float, pmsm: Any = None,
+                voltages: bool = False) -> dict[str, Any]:
     """warm_restart: the machine at WARM_UP_TORQUE_NM for WARM_UP_S with the service running, then
     stopped for RESTART_DOWNTIME_S; returns the plant's temperatures at the restart and the state the
     service saved when it stopped."""
@@ -478,7 +485,7 @@ def _warm_start(case: Case, plant: Any, cycle: Path, cfg: Any, kt: float, pmsm: 
         col = DEFAULT_COLUMNS  # a drive cycle is data without a model
         warm_cycle.write_text(yaml.safe_dump({"name": "warm_up", "dt_s": 1.0, col[Role.AMBIENT]: 25.0, "segments": [
             {"duration_s": WARM_UP_S, col[Role.SPEED]: 900.0, col[Role.TORQUE]: WARM_UP_TORQUE_NM, "ramp_s": 10.0}]}))
-        emu = emulator_for(plant, warm_cycle, case, None, pmsm=pmsm)
+        emu = emulator_for(plant, warm_cycle, case, None, pmsm=pmsm, voltages=voltages)
         pol = ThermalEdgePolicy(emu, cfg.derating.max_current_a, cfg.derating.max_torque_nm, cfg)
         try:
             closed_loop(emu, pol, kt, [])

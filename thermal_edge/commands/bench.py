@@ -384,14 +384,24 @@ def run_magnet(args: argparse.Namespace) -> int:
           p["observer_mse"], p["fused_mse"], p["observer_coverage"], p["fused_coverage"], p["used"], p["refused"]]
          for m, p in parts.items()],
     ))
-    print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative")
+    print("MSE in K2 over the scored rest; cover: share of readings inside the 95 % band; flux: where informative; "
+          "fused: the commissioned operating points only (flux.extrapolate: false)")
     print(table(
-        ["commissioned on, unseen currents by their changes", "fused MSE", "fused cover", "used", "of them relative",
-         "refused", "stator MSE (winding, yoke, tooth)"],
+        ["commissioned on, unseen currents by their changes (the service's default)", "fused MSE", "fused cover", "used",
+         "of them relative", "refused", "stator MSE observer -> fused (winding, yoke, tooth)"],
         [[f"{m} min", p["extrapolated"]["fused_mse"], p["extrapolated"]["fused_coverage"], p["extrapolated"]["used"],
           p["extrapolated"]["relative"], p["extrapolated"]["refused"],
-          ", ".join(f"{v:.2f}" for v in p["extrapolated"]["stator_mse"].values())] for m, p in parts.items()],
+          ", ".join(f"{p['stator_mse'][s]['observer']:.3f} -> {v:.3f}" for s, v in p["extrapolated"]["stator_mse"].items())]
+         for m, p in parts.items()],
     ))
+    for m, p in parts.items():
+        x = p["extrapolated"]
+        worse = [s for s, v in x["stator_mse"].items() if v > p["stator_mse"][s]["observer"]]
+        print(f"{m} min, the service's default: fused MSE {x['fused_mse']:.2f} K2 against the LPTN's "
+              f"{p['open_loop_mse']:.2f} ({'no worse' if x['fused_mse'] <= p['open_loop_mse'] else 'WORSE'}); "
+              f"95 % band covers {100 * x['fused_coverage']:.1f} % "
+              f"({'within' if 0.85 <= x['fused_coverage'] <= 0.99 else 'OUTSIDE'} 85-99 %); stator targets worse than "
+              f"the observer's: {', '.join(worse) if worse else 'none'}")
     print(table(
         ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused",
          "used by changes", "their fused MSE"],

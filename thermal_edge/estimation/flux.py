@@ -163,6 +163,10 @@ class FluxModel:
         :data:`PARAMS` of each forward cross-validation fit: how far fits on less of the run
         disagree where the run has not been (the spread of an extrapolation, see
         :mod:`thermal_edge.estimation.fusion`). Empty: nothing is extrapolated.
+    white_share : float
+        Share of the cross-validated error's variance that is white (from one sample to the
+        next: half the mean square of consecutive differences), 0 to 1; the rest holds over
+        :attr:`tau_s` and the fusion carries it as a state. 0 (a file without it): all of it held.
     """
 
     params: dict[str, float]
@@ -178,6 +182,7 @@ class FluxModel:
     magnet_mean_c: float = T_REF_C
     fit_info: dict[str, float] = field(default_factory=dict)
     cv_params: list[list[float]] = field(default_factory=list)
+    white_share: float = 0.0
 
     @property
     def tempco_per_k(self) -> float:
@@ -281,7 +286,7 @@ class FluxModel:
             _number("sigma_max_k", d["sigma_max_k"]), _number("tau_s", d["tau_s"]), _matrix(d, "cov"),
             _number("beta_spread", d["beta_spread"]), _number("magnet_mean_c", d["magnet_mean_c"]),
             {str(k): _number(f"fit_info.{k}", v) for k, v in _mapping(d, "fit_info").items()},
-            _matrix(d, "cv_params")))
+            _matrix(d, "cv_params"), _number("white_share", d.get("white_share", 0.0))))
 
 
 #: The entries besides ``params`` a file must hold: one left out would silently change the
@@ -373,6 +378,8 @@ def _validated(m: FluxModel) -> FluxModel:
     for key, v in (("speed_min_rpm", m.speed_min_rpm), ("tau_s", m.tau_s), ("beta_spread", m.beta_spread)):
         if not (math.isfinite(v) and v >= 0):
             raise bad(key, f"must be zero or more, got {v:g}")
+    if not (math.isfinite(m.white_share) and 0.0 <= m.white_share <= 1.0):
+        raise bad("white_share", f"must be between 0 and 1, got {m.white_share:g}")
     if not m.var_u:
         raise bad("var_u", "is empty: no current bin has a variance (the estimate would never be informative)")
     if any(not (math.isfinite(v) and v >= 0) for v in m.var_u.values()) or any(b < 0 for b in m.var_u):
@@ -512,6 +519,11 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
         betas.append(float(th[PARAMS.index("beta")]))
         res_u[blk] = uq[blk] - aq[blk] @ th
         res_t[blk] = res_u[blk] / (w[blk] * th[PARAMS.index("beta")])
+    # the white share of the error: consecutive samples' differences (the held part cancels in them)
+    nxt = (np.diff(idx) == 1) & np.isfinite(res_u[1:]) & np.isfinite(res_u[:-1])
+    total = float(np.nanmean(res_u**2))
+    white = float(np.mean(np.diff(res_u)[nxt] ** 2)) / 2.0 if nxt.any() else total
+    white_share = min(1.0, white / total) if total > 0 else 1.0
     ia = np.hypot(e.i_d[idx], e.i_q[idx])
     bins = np.where(np.isfinite(res_u), np.floor(ia / bin_a), -1).astype(int)
     res_t = res_t[np.isfinite(res_t)]
@@ -529,7 +541,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
                       float(np.std(betas + [float(theta[PARAMS.index("beta")])])), float(np.mean(magnet_c[idx])),
                       {"samples": float(len(idx)), "q_residual_v": sq, "d_residual_v": sdd,
                        "cv_rms_k": float(np.sqrt(np.mean(res_t**2)))},
-                      fits + [[float(x) for x in theta]])
+                      fits + [[float(x) for x in theta]], float(white_share))
     if params["beta"] >= 0.0:
         raise FluxError(f"the fitted flux linkage rises with the magnet temperature (beta {params['beta']:.3g} Wb/K): "
                         "the run does not show the magnet (too little temperature change, or a wrong column)")

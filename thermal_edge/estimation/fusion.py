@@ -1,11 +1,17 @@
-"""The observer over a recorded run with the magnet temperature from the inverter's voltages as a
-measurement of the magnet node (:meth:`~thermal_edge.estimation.observer.Observer.update_node`).
+"""The observer with the magnet temperature from the inverter's voltages as a measurement of the
+magnet node(s), tick by tick (:class:`FluxFusion`, what the service runs) and over a recorded run
+(:func:`run_fused`).
 
-Where the commissioning run saw the operating point, the flux estimate's errors are correlated
-over minutes (an operating point's bias does not average out from one sample to the next), so each
-sample's variance is inflated by the number of samples in the estimate's correlation time
-(:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`): a minute of samples carries about the
-information of one, not of twenty-four.
+Where the commissioning run saw the operating point, the flux estimate's error is partly held
+over minutes (an operating point's bias does not average out from one sample to the next) and
+partly white. The held part is a state of the filter: an offset ``b`` that decays over the
+estimate's correlation time (:attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`, first-order
+Gauss–Markov, stationary variance the held share of the estimate's), measured with the magnet as
+``T_flux = h T + b + w`` (``w`` the white share, :attr:`~thermal_edge.estimation.flux.FluxModel.white_share`).
+A minute of samples from one point then tells the magnet what the held error leaves, not what
+sixty independent samples would, and the band settles near the estimate's own σ wherever the
+voltages keep coming. A current jump of more than one bin starts the offset afresh (another
+operating point, another error); an estimate the disagreement check refuses adds no state.
 
 Where it did not (another current, the same speed), the estimate's offset is unknown: the
 inductance at that current and the voltage error's share are extrapolations, worth tens of kelvin.
@@ -72,15 +78,23 @@ class FluxObserver(Observer):
         self.Ve = np.zeros((2, 2))
         self.Ce = np.zeros((len(self.Pa), 2))
         self.Se = np.zeros((2, self.S.shape[1]))
+        #: the offset's decay per step and its stationary variance (K²): 1 and 0 for a constant offset
+        self.decay = 1.0
+        self.offset_var = 0.0
 
-    def anchor(self, offset_sigma_k: float, slope_sigma: float) -> None:
+    def anchor(self, offset_sigma_k: float, slope_sigma: float, decay: float = 1.0) -> None:
         """Start the extra states afresh (an operating point entered): offset and relative change
-        error zero with these σ (K, 1), uncorrelated with the temperatures."""
+        error zero with these σ (K, 1), uncorrelated with the temperatures. ``decay`` < 1: the
+        offset is a first-order Gauss–Markov error, ``b ← decay · b + w`` per step with the
+        stationary σ ``offset_sigma_k`` (the flux estimate's error correlated over its correlation
+        time); 1: a constant offset."""
         self.anchored = True
         self.xe = np.zeros(2)
         self.Ve = np.diag([offset_sigma_k**2, slope_sigma**2])
         self.Ce = np.zeros((len(self.Pa), 2))
         self.Se = np.zeros((2, self.S.shape[1]))
+        self.decay = float(decay)
+        self.offset_var = offset_sigma_k**2 if decay < 1.0 else 0.0
 
     def release(self) -> None:
         """Drop the extra states (the operating point left)."""
@@ -96,6 +110,14 @@ class FluxObserver(Observer):
         T = super().predict(inputs)
         if self.anchored:
             self.Ce = self.transition @ self.Ce
+            a = self.decay
+            if a < 1.0:  # the Gauss-Markov offset: b <- a b + w, Var w = (1 - a²) σ_b²
+                self.xe[0] *= a
+                self.Ce[:, 0] *= a
+                self.Se[0] *= a
+                self.Ve[0, 1] *= a
+                self.Ve[1, 0] *= a
+                self.Ve[0, 0] = a * a * self.Ve[0, 0] + (1.0 - a * a) * self.offset_var
         return T
 
     def _joint(self) -> tuple[np.ndarray, np.ndarray]:
@@ -140,14 +162,29 @@ class FluxObserver(Observer):
         self._apply(P, S, K, H, R, y - self.T[idx])
         return self.T
 
+    def disagrees(self, node: int | Sequence[int], value: float, sigma: float, z: float = 1.959963984540054) -> bool:
+        """Whether ``value`` (°C, σ ``sigma`` K) of the mean of ``node`` lies beyond both 95 % bands,
+        the model's and its own (counted in :attr:`node_updates_refused`, as
+        :meth:`Observer.update_node` counts it)."""
+        idx = [int(node)] if isinstance(node, (int, np.integer)) else [int(i) for i in node]
+        h = np.zeros(self._n)
+        h[idx] = 1.0 / len(idx)
+        far = abs(float(value) - float(h @ self.T)) > z * (float(np.sqrt(max(float(h @ self.covariance() @ h), 0.0)))
+                                                          + float(sigma))
+        if far:
+            self.node_updates_refused += 1
+        return far
+
     def update_relative(self, node: int | Sequence[int], value: float, var: float, change: float,
-                        z: float = 1.959963984540054) -> bool:
+                        z: float = 1.959963984540054, own_sigma: float | None = None) -> bool:
         """Correct with ``value = h T + b + s · change`` (°C, white-noise variance ``var`` K²;
         ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``;
         the gain is the optimal one for the whole covariance with the rows of the adaptable
         parameters and of ``s`` zero (Schmidt).
         Refused and counted as :meth:`Observer.update_node` is: beyond both 95 % bands (the
-        offset's and the change error's included). Requires :meth:`anchor`."""
+        offset's and the change error's included; with ``own_sigma`` (K) the estimate's own band
+        and the model's, ``|value − h T̂| > z (σ_model + own_sigma)``, as :meth:`Observer.update_node`
+        judges). Requires :meth:`anchor`."""
         if not (self.anchored and np.isfinite(value) and np.isfinite(var) and var > 0.0 and np.isfinite(change)):
             return False
         n, m = self._n, len(self.Pa)
@@ -161,7 +198,13 @@ class FluxObserver(Observer):
         Ch = C @ H[0]
         s2 = float(H[0] @ Ch)
         nu = float(value) - float(H[0, :n] @ self.T) - float(H[0, m:] @ self.xe)
-        if abs(nu) > z * (float(np.sqrt(max(s2, 0.0))) + float(np.sqrt(var))):
+        if own_sigma is not None:
+            hm = H[0, :n]
+            far = abs(float(value) - float(hm @ self.T)) > z * (float(np.sqrt(max(float(hm @ self.covariance() @ hm), 0.0)))
+                                                               + float(own_sigma))
+        else:
+            far = abs(nu) > z * (float(np.sqrt(max(s2, 0.0))) + float(np.sqrt(var)))
+        if far:
             self.node_updates_refused += 1
             return False
         K = (Ch / (s2 + var))[:, None]
@@ -268,8 +311,8 @@ def flux_samples(flux: FluxModel, e: Electrical, dt: float, steady_mask: np.ndar
 
 class FluxFusion:
     """The flux estimate into a :class:`FluxObserver`, tick by tick: the commissioned estimate
-    through :meth:`~thermal_edge.estimation.observer.Observer.update_node` (its variance inflated
-    by the error's correlation time), and where :class:`FluxSamples` allows, an unseen current's
+    with its held error as a decaying offset state (:meth:`FluxObserver.anchor` with a decay,
+    :meth:`FluxObserver.update_relative` without a change), and where :class:`FluxSamples` allows, an unseen current's
     changes through :meth:`FluxObserver.update_relative`, anchored within
     :data:`ANCHOR_WITHIN_TAU` correlation times of an accepted estimate and started afresh after a
     current jump of more than one bin or as long without any use.
@@ -286,18 +329,38 @@ class FluxFusion:
     def __init__(self, flux: FluxModel, magnet: int | Sequence[int], dt: float) -> None:
         self.flux = flux
         self.magnet = magnet
-        self.inflate = max(1.0, flux.tau_s / dt)
         self.window = ANCHOR_WITHIN_TAU * max(flux.tau_s, dt)
+        #: per step, the decay of the estimate's error at a commissioned operating point (its
+        #: correlation time :attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`)
+        self.decay = float(np.exp(-dt / flux.tau_s)) if flux.tau_s > dt else 0.0
         self.last_ok = -np.inf
         self.entry = np.nan
         self.current_entry = np.nan
+        #: the extra states carry the error at a commissioned point (True) or an unseen one's offset
+        self.at_commissioned = False
 
     def step(self, obs: FluxObserver, t_s: float, fs: FluxSamples, k: int, e: Electrical) -> tuple[bool, bool]:
         """Apply sample ``k`` of ``fs`` (of ``e``) at time ``t_s`` (s) after the observer's
         sensor update; returns whether an estimate was used and whether for its changes."""
+        ia = float(fs.current_a[k])
         if np.isfinite(fs.sigma[k]):
-            obs.release()
-            used = obs.update_node(self.magnet, float(fs.value[k]), float(fs.sigma[k]) ** 2, inflate=self.inflate)
+            sig = float(fs.sigma[k])
+            white = self.flux.white_share * sig**2
+            if self.decay <= 0.0 or self.flux.white_share >= 1.0:  # uncorrelated from one step to the next
+                obs.release()
+                used = obs.update_node(self.magnet, float(fs.value[k]), sig**2)
+            else:
+                # the estimate's error held over tau_s: an offset state that decays over it, started
+                # afresh where the operating point jumps (another point, another error); the rest white
+                held = sig * np.sqrt(1.0 - self.flux.white_share)
+                if not (obs.anchored and self.at_commissioned and abs(ia - self.current_entry) <= self.flux.bin_a):
+                    if obs.disagrees(self.magnet, float(fs.value[k]), sig):
+                        return False, False  # refused before any state is added: the observer as without it
+                    obs.anchor(held, 0.0, self.decay)
+                    self.at_commissioned, self.current_entry = True, ia
+                obs.offset_var = held**2
+                used = obs.update_relative(self.magnet, float(fs.value[k]), max(white, 1e-6 * sig**2), 0.0,
+                                           own_sigma=sig)
             if used:
                 self.last_ok = t_s
             return used, False
@@ -305,14 +368,14 @@ class FluxFusion:
             if obs.anchored and t_s - self.last_ok > self.window:
                 obs.release()  # away from any usable point for longer than the errors' correlation
             return False, False
-        ia = float(fs.current_a[k])
-        if obs.anchored and abs(ia - self.current_entry) > self.flux.bin_a:
+        if obs.anchored and (self.at_commissioned or abs(ia - self.current_entry) > self.flux.bin_a):
             obs.release()  # another operating point: another offset
         if not obs.anchored and t_s - self.last_ok <= self.window:
             ss = slope_sigma(self.flux, e, k)
             if np.isfinite(ss):
                 obs.anchor(OFFSET_PRIOR_K, ss)
                 self.entry, self.current_entry = float(fs.raw[k]), ia
+                self.at_commissioned = False
         if not obs.anchored:
             return False, False
         used = obs.update_relative(self.magnet, float(fs.raw[k]), float(fs.white[k]), float(fs.raw[k]) - self.entry)

@@ -68,6 +68,8 @@ adapter has corrected it (the adapter needs 30 min of history; the winding resis
 constant, not a parameter with a spread): with the winding conductivity 25 % lower than modelled (copper losses +33 %) the
 unmeasured hot spot's estimate trails the truth by up to 1.5 K. The margin covers that, and costs
 ~1 % of the current held at the max; the readings of the bounding sensors are the second line.
+A band may carry a margin of its own (:attr:`NodeBand.margin_k`): the magnet's while the
+inverter's voltages observe it (``flux.magnet_margin_k``), whose band is then a measured one.
 
 **The magnet's band carries the rotor model's error.** The magnet is far from every sensor, and no
 reading tells a wrong rotor model: with the rotor-side coefficients as exact constants, magnet
@@ -151,6 +153,8 @@ class NodeBand:
     max_c: float
     reason: DerateReason
     observer_upper_c: float = math.nan
+    #: the margin below ``max_c`` the approach ends at, K (None: ``derating.margin_k``)
+    margin_k: float | None = None
 
     @property
     def observer_lower_c(self) -> float:
@@ -344,7 +348,8 @@ class DeratingPolicy:
             forced.append(DerateReason.MODEL_FAULT)
         else:
             for b in bands:  # the approach: linear over approach_k below max - margin
-                i = imax * min(1.0, max(0.0, (b.max_c - cfg.margin_k - b.upper_c) / cfg.approach_k))
+                margin = cfg.margin_k if b.margin_k is None else b.margin_k
+                i = imax * min(1.0, max(0.0, (b.max_c - margin - b.upper_c) / cfg.approach_k))
                 if i < cand:
                     cand, reason = i, b.reason
             if reaction is not None and reaction[0] < cand:

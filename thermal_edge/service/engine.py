@@ -34,6 +34,7 @@ import numpy as np
 from ..bus.codec import DecodedFrame
 from ..bus.frames import DerateReason, TeState
 from ..config import EdgeConfig
+from ..estimation.fusion import FluxObserver
 from ..estimation.observer import Observer
 from ..lptn import Model, Role, load_model
 from .adaptation import Adaptation, AdaptationResult
@@ -118,7 +119,7 @@ class ThermalEngine:
         bound_by = bounding_sensors(m, theta, self.sensor_rows, {n.name: n.row for n in self.limited_nodes},
                                     dc.max_current_a, self.kt, rated)
         self.floor = MeasuredFloor(self.limited_nodes, bound_by)
-        self.estimate = StateEstimate(m, self.dt, config.observer)
+        self.estimate = StateEstimate(m, self.dt, config.observer, FluxObserver if config.flux.enabled else Observer)
         #: the optional voltage input (None without ``flux.calibration``: the engine as without voltages)
         self.flux: FluxInput | None = None
         if config.flux.enabled:
@@ -385,9 +386,13 @@ class ThermalEngine:
             # the readings have outrun (a model that runs cold) does not hide that
             self.floor.raise_upper(upper, measured)
             # the one definition of the band derated on and sent (TE_Estimates); the replay's
-            # per-tick table reads these, never a band of its own
+            # per-tick table reads these, never a band of its own. While the voltages observe the
+            # magnet its band is a measured one: the smaller margin
+            observed = self.flux is not None and self.flux.observing(t)
             bands = [NodeBand(ln.name, float(est[ln.row]), float(upper[ln.row]), ln.warn_c, ln.max_c, ln.reason,
-                              float(observer_upper[ln.row]))
+                              float(observer_upper[ln.row]),
+                              margin_k=(self.config.flux.magnet_margin_k
+                                        if observed and ln.name == self.config.transmit.magnet_limit else None))
                      for ln in self.limited_nodes]
             u = {k: (v if math.isfinite(v) else self._last_inputs.get(k, 0.0))
                  for k, v in (ti.inputs if ti else self._last_inputs).items()}

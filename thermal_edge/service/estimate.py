@@ -42,10 +42,13 @@ class StateEstimate:
         Noise levels (K).
     """
 
-    def __init__(self, model: Model, dt: float, config: ObserverConfig) -> None:
+    def __init__(self, model: Model, dt: float, config: ObserverConfig, observer_type: type[Observer] = Observer) -> None:
         self.model = model
         self.dt = float(dt)
         self.config = config
+        #: the observer's class (a FluxObserver where the voltages are fused: the same filter with room for
+        #: the flux estimate's error states)
+        self.observer_type = observer_type
         self._observer: Observer | None = None
         self._prediction: np.ndarray | None = None
 
@@ -127,7 +130,7 @@ class StateEstimate:
 
     def _begin(self, T0: np.ndarray, theta: np.ndarray, measured: Mapping[str, float], P0: np.ndarray | None) -> None:
         c = self.config
-        obs = Observer(self.model, T0, theta, self.dt, c.q_k, c.r_k, c.p0_k)
+        obs = self.observer_type(self.model, T0, theta, self.dt, c.q_k, c.r_k, c.p0_k)
         obs.stepper.cache_size = STEPPER_CACHE
         if P0 is not None:
             obs.P = 0.5 * (P0 + P0.T)

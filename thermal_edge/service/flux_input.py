@@ -41,6 +41,7 @@ import numpy as np
 from ..bus.codec import DecodedFrame
 from ..config import EdgeConfig, FluxConfig
 from ..estimation.flux import Electrical, FluxError, FluxModel, steady
+from ..estimation.fusion import FluxFusion, FluxObserver, flux_samples
 from ..estimation.observer import Observer
 from ..lptn import Model
 from .journal import notice
@@ -53,6 +54,10 @@ log = logging.getLogger(__name__)
 OUTCOMES = ("used", "disagreement", "stale", "implausible", "uninformative", "transient", "low_speed")
 #: The outcomes that refuse an estimate the tick should have had.
 REFUSALS = ("disagreement", "stale", "implausible")
+#: The WARNING lines, one format per cause: the journal's rate limit counts per format, so a flood
+#: of one cause (voltages in kV for minutes) never uses up the lines of another (a disagreement)
+_WARNINGS = {"disagreement": "flux estimate refused (disagreement): %s",
+             "implausible": "flux estimate refused (implausible): %s"}
 
 
 def load_flux_model(config: EdgeConfig) -> FluxModel:
@@ -156,8 +161,10 @@ class FluxInput:
         else:
             magnets = [next(lim.node for lim in model.limits if lim.name == config.transmit.magnet_limit)]
         self.magnet_rows = [model.node_index(n) for n in magnets]
-        # errors correlated over tau_s are one measurement per that many ticks (estimation.fusion)
-        self.inflate = max(1.0, flux.tau_s / self.dt)
+        #: the observer fused into and its fusion (estimation.fusion: the estimate's error correlated over
+        #: tau_s as a state of its own; with flux.extrapolate the changes at unseen currents)
+        self._observer: FluxObserver | None = None
+        self._fusion = FluxFusion(flux, self.magnet_rows, self.dt)
         self._dq = DqMeans(fx)
         self._last_u_t = -math.inf
         self._prev_speed: float | None = None
@@ -209,14 +216,30 @@ class FluxInput:
             return self._done(FluxTick("implausible", value), f"u_d {u_d:.1f} V, u_q {u_q:.1f} V at {speed_rpm:.0f} rpm "
                               f"and {math.hypot(i_d, i_q):.1f} A imply a magnet at {value:.0f} degC, outside "
                               f"[{lo:g}, {hi:g}] degC (a voltage in another unit or scaling?)")
-        if not bool(ok[0]):
+        if not isinstance(observer, FluxObserver):
+            raise TypeError("the voltage input fuses into a FluxObserver (the engine makes one with flux.calibration)")
+        if observer is not self._observer:  # a new state (start, restart after a fault): nothing fused into it yet
+            self._observer, self._fusion = observer, FluxFusion(fm, self.magnet_rows, self.dt)
+        fs = flux_samples(fm, e, self.dt, steady_mask=np.array([True]), extrapolate=self.config.extrapolate)
+        if not (bool(ok[0]) or bool(fs.changes[0])):
             return self._done(FluxTick("uninformative", value, sigma))
         model_c = float(np.mean(observer.T[self.magnet_rows]))
-        if observer.update_node(self.magnet_rows, value, sigma * sigma, inflate=self.inflate):
-            return self._done(FluxTick("used", value, sigma))
-        return self._done(FluxTick("disagreement", value, sigma), f"magnet {value:.1f} degC +- {1.96 * sigma:.1f} K "
-                          f"from the voltages, {model_c:.1f} degC from the thermal model: beyond both 95 % bands "
-                          "(is the electrical calibration still right?)")
+        refused = observer.node_updates_refused
+        used, changes = self._fusion.step(observer, t, fs, 0, e)
+        if used:
+            # the magnet the voltages show: their estimate less the offset the filter carries for it
+            shown = value - float(observer.xe[0]) if observer.anchored else value
+            return self._done(FluxTick("used", shown, math.sqrt(float(fs.white[0])) if changes else sigma))
+        if observer.node_updates_refused > refused:
+            return self._done(FluxTick("disagreement", value, sigma), f"magnet {value:.1f} degC +- {1.96 * sigma:.1f} K "
+                              f"from the voltages, {model_c:.1f} degC from the thermal model: beyond both 95 % bands "
+                              "(is the electrical calibration still right?)")
+        return self._done(FluxTick("uninformative", value, sigma))
+
+    def observing(self, t: float) -> bool:
+        """Whether an estimate was fused into the observer within the error's correlation time
+        before ``t`` (s): the magnet's band is then the measured one."""
+        return self._observer is not None and t - self._fusion.last_ok <= self._fusion.window
 
     def _done(self, tick: FluxTick, why: str = "") -> FluxTick:
         self.counts[tick.outcome] += 1
@@ -225,6 +248,6 @@ class FluxInput:
             self.last_used = tick
         if tick.outcome == "stale":
             notice(log, "flux estimate refused (stale): %s", why)
-        elif tick.outcome in REFUSALS:
-            log.warning("flux estimate refused (%s): %s", tick.outcome, why)
+        elif tick.outcome in _WARNINGS:
+            log.warning(_WARNINGS[tick.outcome], why)
         return tick

@@ -61,6 +61,7 @@ LABELS: dict[str, tuple[str, ...]] = {
     "frames_received": ("frame",),
     "frames_sent": ("frame",),
     "frames_dropped": ("reason",),
+    "frames_dropped_by_frame": ("frame",),
     "frames_lost": ("frame",),
     "frame_clock_jumps": ("outcome",),
     "adaptation_last_refusal_timestamp_seconds": ("reason",),
@@ -302,6 +303,13 @@ class _LiveCollector(Collector):
             for r in DROP_REASONS:
                 dr.add_metric([r], getattr(st, r))
             yield dr
+            # the same drops by the frame they were of (a known identifier's; e.g. a bad CRC on the voltage frame)
+            flux_frame = (eng.config.flux.frame,) if eng is not None and eng.flux is not None else ()
+            dbf = CounterMetricFamily(P + "frames_dropped_by_frame", "Received frames of a known identifier dropped "
+                                      "(any reason), by frame", labels=LABELS["frames_dropped_by_frame"])
+            for k, v in _with_known(st.dropped_by_frame, (*received, *flux_frame)):
+                dbf.add_metric([k], v)
+            yield dbf
             lost = CounterMetricFamily(P + "frames_lost", "Frames missing according to the alive counter",
                                        labels=LABELS["frames_lost"])
             for k, v in _with_known(st.lost_by_frame, received):

@@ -7,7 +7,8 @@ or aging over time) -- with PT100 noise and quantisation and a drifting ambient,
 cycle (a file, or one shipped with the package: :mod:`thermal_edge.shipped`).
 
 Closed loop, it **obeys** the ``TE_Limits`` it receives: the torque demand of the cycle is clamped
-to the torque limit and to the current limit times the torque constant (i_d = 0 control). Without
+to the torque limit and to the current limit times the torque constant (i_d = 0 control; with an
+electrical model the field-weakening i_d at high speed, and the current magnitude within the limit). Without
 a valid ``TE_Limits`` for ``limits_timeout_s`` (wall clock, 300 ms like the real inverter) it falls
 back to its own protection: ``fallback_current_a`` (None: no limit); accelerated, a limit also
 counts as absent after ``limits_timeout_sim_s`` of simulated time (300 ms of wall time would be
@@ -28,11 +29,13 @@ that much simulated time and then waits for a service's ``TE_Limits`` (up to ``F
 of wall time): a test that restarts its service gets a downtime of known length however long the new
 process takes to start on a busy host.
 
-With an electrical model (``EmulatorConfig.pmsm``, :class:`.pmsm.Pmsm`) it also sends the optional
-``INV_Voltages`` with every ``INV_Currents``: the dq voltage references the current controller
-would command for those currents at that speed, from the plant's *true* winding and magnet
-temperatures (plus the model's voltage noise, from a random stream of its own, so that the
-PT100 readings are the same with and without the voltages).
+With an electrical model (``EmulatorConfig.pmsm``, :class:`.pmsm.Pmsm`) the currents have the
+field-weakening ``i_d`` above the machine's base speed (it heats the winding like ``i_q``), and with
+``EmulatorConfig.voltages`` it also sends the optional ``INV_Voltages`` with every
+``INV_Currents``: the dq voltage references the current controller would command for those
+currents at that speed, from the plant's *true* winding and magnet temperatures (plus the model's
+voltage noise, from a random stream of its own, so that the PT100 readings are the same with and
+without the voltage frame).
 
 The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
 ``trace_every_s``) for tests.
@@ -146,8 +149,12 @@ class EmulatorConfig:
     record_estimates: bool = True  # keep every TE_Estimates and TE_Limits change received (tests); off for long runs
     seed: int = 0
     sensor_signals: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_SENSOR_SIGNALS))
-    #: the machine's electrical side: with it, INV_Voltages goes out with every INV_Currents (None: not sent)
+    #: the machine's electrical side: with it the currents have the field-weakening ``i_d`` at high speed
+    #: (:meth:`.pmsm.Pmsm.currents`; None: ``i_d = 0``) and, with ``voltages``, INV_Voltages goes out with
+    #: every INV_Currents
     pmsm: Pmsm | None = None
+    #: send INV_Voltages (with ``pmsm``)
+    voltages: bool = True
     #: the plant node whose temperature the stator resistance has ...
     pmsm_winding_node: str = "slot_winding_1"
     #: ... and the nodes whose mean temperature the flux linkage has
@@ -227,14 +234,17 @@ class InverterEmulator:
         # the model's inputs the emulator drives (a model may lack torque), by role
         self._input_of = {r: self.model.find_input(r) for r in (Role.SPEED, Role.TORQUE, Role.CURRENT, Role.AMBIENT)}
         self.rng = np.random.default_rng(cfg.seed)
-        self._voltage_rows: tuple[int, list[int]] | None = None
+        #: rows of the winding node (the stator resistance's temperature) and of the magnet nodes (the
+        #: flux linkage's) that the electrical model reads; the voltage frame's rows where it is sent
+        self._electrical_rows: tuple[int, list[int]] | None = None
         if cfg.pmsm is not None:
             missing = [n for n in (cfg.pmsm_winding_node, *cfg.pmsm_magnet_nodes) if n not in self.model.nodes]
             if missing or not cfg.pmsm_magnet_nodes:
                 raise UsageError(f"inverter voltages: model {self.model.name} has no node(s) "
                                  f"{', '.join(missing) or '(none given)'} (has: {', '.join(self.model.nodes)})")
-            self._voltage_rows = (self.model.node_index(cfg.pmsm_winding_node),
-                                  [self.model.node_index(n) for n in cfg.pmsm_magnet_nodes])
+            self._electrical_rows = (self.model.node_index(cfg.pmsm_winding_node),
+                                     [self.model.node_index(n) for n in cfg.pmsm_magnet_nodes])
+        self._voltage_rows = self._electrical_rows if cfg.voltages else None
         # the voltage noise from a stream of its own: the PT100 readings stay those of a run without voltages
         self._u_rng = np.random.default_rng([cfg.seed, 0x2D0])
         self.t0 = float(cfg.t0) if cfg.t0 is not None else time.time()
@@ -355,7 +365,21 @@ class InverterEmulator:
             self.summary.limits_applied_s += dt
         if limited:
             self.summary.limited_s += dt
-        i_rms = abs(torque) / self.kt
+        i_d = 0.0
+        if cfg.pmsm is not None:  # field weakening: i_d at high speed, the current magnitude within the limit
+            T = self.plant.T
+            assert self._electrical_rows is not None  # set with pmsm
+            w_row, m_rows = self._electrical_rows
+            d, q = cfg.pmsm.currents(np.array(torque), self.kt, np.array(speed), np.array(T[w_row]),
+                                     np.array(float(np.mean(T[m_rows]))), i_lim)
+            i_d, i_q_peak = float(d), float(q)
+            if abs(i_q_peak) < math.sqrt(2.0) * abs(torque) / self.kt - 1e-9:  # the current limit took torque
+                torque = i_q_peak / math.sqrt(2.0) * self.kt
+                limited = True
+            i_rms = math.hypot(i_d, i_q_peak) / math.sqrt(2.0)
+            iq_rms = abs(i_q_peak) / math.sqrt(2.0)
+        else:
+            i_rms = iq_rms = abs(torque) / self.kt
         frames: list[tuple[float, str, dict[str, float]]] = []
         # current/mechanics frames in [tau, tau + dt)
         i2 = []
@@ -365,11 +389,12 @@ class InverterEmulator:
             if cfg.current_ripple:
                 ripple = (1.0 + cfg.current_ripple * math.sin(2 * math.pi * self._frame_k / 7.0)) / math.sqrt(
                     1.0 + cfg.current_ripple**2 / 2)
-            iq = math.sqrt(2.0) * i_rms * ripple * (1.0 if torque >= 0 else -1.0)
-            i2.append(iq * iq / 2.0)
-            frames.append((ft, INV_CURRENTS, {"INV_Id": 0.0, "INV_Iq": iq, "INV_IphRms": i_rms * ripple}))
+            iq = math.sqrt(2.0) * iq_rms * ripple * (1.0 if torque >= 0 else -1.0)
+            idr = i_d * ripple
+            i2.append((iq * iq + idr * idr) / 2.0)
+            frames.append((ft, INV_CURRENTS, {"INV_Id": idr, "INV_Iq": iq, "INV_IphRms": i_rms * ripple}))
             if self._voltage_rows is not None:
-                frames.append((ft, INV_VOLTAGES, self._voltage_signals(0.0, iq, speed)))
+                frames.append((ft, INV_VOLTAGES, self._voltage_signals(idr, iq, speed)))
             frames.append((ft, INV_MECHANICS, {"INV_Speed": speed, "INV_Torque": torque, "INV_Udc": cfg.udc_v}))
             self._frame_k += 1
         while self._temp_k * cfg.temperature_period_s < tau + dt - 1e-9:
