@@ -41,9 +41,10 @@ class StepMatrices:
     """
 
     def __init__(self, Phi: np.ndarray, GP: np.ndarray, tv: np.ndarray, ops: np.ndarray, dPdT: np.ndarray,
-                 need: np.ndarray | None = None, chunk: int = CHUNK) -> None:
+                 need: np.ndarray | None = None, chunk: int | None = None) -> None:
         steps = len(ops)
-        self.Phi, self.GP, self.tv, self.chunk = Phi, GP, np.asarray(tv, dtype=int), max(int(chunk), 1)
+        self.Phi, self.GP, self.tv = Phi, GP, np.asarray(tv, dtype=int)
+        self.chunk = max(int(CHUNK if chunk is None else chunk), 1)
         self._cached: tuple[int, list[np.ndarray]] | None = None
         if not len(self.tv) or not np.any(dPdT) or not steps:
             # no temperature feedback: the open-loop matrix of each operating point, all at once
