@@ -36,6 +36,7 @@ from .discretise import DiscreteDerivatives
 from .expr import Value
 from .scratch import Scratch
 from .stretch import RANK_TOL, NodeStretch, padded_length
+from .transitions import StepMatrices
 
 #: shortest run of held inputs worth the closed form (its set-up costs about as much as 60 steps)
 MIN_HELD = 64
@@ -85,8 +86,8 @@ class Sensitivities:
         Discretisation with modal derivatives at every operating point.
     ops : ndarray (N-1,)
         Operating point of each step.
-    mats, mi : list of ndarray, list of int
-        Distinct transition matrices ``M`` and each step's index into them.
+    mats : StepMatrices
+        The transition matrix ``M`` of each step, computed a block at a time.
     T : ndarray (N, n)
         Simulated temperatures, °C.
     U : ndarray (N, nb)
@@ -108,11 +109,11 @@ class Sensitivities:
         ``∂P/∂θ`` is zero and the stretches skip it.
     """
 
-    def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: list[np.ndarray], mi: list[int], T: np.ndarray,
+    def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: StepMatrices, T: np.ndarray,
                  U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray,
                  slopes: np.ndarray | None = None, prepared: Mapping[tuple[int, int], NodeStretch] | None = None,
                  loss_wrt: bool = True) -> None:
-        self.d, self.ops, self.mats, self.mi = disc, ops, mats, mi
+        self.d, self.ops, self.mats = disc, ops, mats
         self.slopes, self.prepared, self.loss_wrt = slopes, dict(prepared or {}), loss_wrt
         self.scratch = Scratch()  # the stretches' large temporaries, reused from one to the next
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
@@ -164,7 +165,6 @@ class Sensitivities:
         blocks = (self._forcing(ks[c: c + BLOCK]) for c in range(0, len(ks), BLOCK))
         X = np.zeros((0, self.n, self.p))
         used = 0  # rows of X consumed
-        mats, mi = self.mats, self.mi
         full = rows is None
 
         def step(a: int, b: int, s: np.ndarray) -> np.ndarray:
@@ -175,9 +175,11 @@ class Sensitivities:
                     X, used = next(blocks), 0
                 m = min(b - a, len(X) - used)
                 Xb = X[used: used + m]  # becomes S[a + 1 .. a + m] in place
-                for i in range(m):
-                    Xb[i] += mats[mi[a + i]] @ s
-                    s = Xb[i]
+                for lo, hi, ms, mi in self.mats.segments(a, a + m):
+                    for k in range(lo, hi):
+                        Xk = Xb[k - a]
+                        Xk += ms[mi[k]] @ s
+                        s = Xk
                 S[a + 1: a + m + 1] = Xb if full else Xb[:, keep]
                 used += m
                 a += m
@@ -308,10 +310,10 @@ class Sensitivities:
         """Group the runs starting at ``starts`` by their transition ``M`` (operating point and
         current: a set point met again) and decompose each distinct one (:meth:`_modes`)."""
         seen: dict[bytes, int] = {}
-        index = np.array([seen.setdefault(self.mats[self.mi[a]].tobytes(), len(seen)) for a in starts])
+        index = np.array([seen.setdefault(self.mats.matrix(int(a)).tobytes(), len(seen)) for a in starts])
         first = np.unique(index, return_index=True)[1]
         members = np.split(np.argsort(index, kind="stable"), np.cumsum(np.bincount(index))[:-1])
-        modes = self._modes(ops[first], np.stack([self.mats[self.mi[a]] for a in starts[first]]))
+        modes = self._modes(ops[first], np.stack([self.mats.matrix(int(a)) for a in starts[first]]))
         return _Transitions(index, first, members, modes)
 
     def _run_states(self, tr: _Transitions, starts: np.ndarray, ops: np.ndarray, lengths: np.ndarray,

@@ -28,6 +28,7 @@ from .model import MissingInputError, Model
 from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
+from .transitions import StepMatrices
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -218,21 +219,23 @@ class Simulator:
         need = ~covered(sim_spans, steps)
         if names:
             need |= ~covered(sens_spans, steps)
-        mats, mi = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
+        mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
         opl = ops.tolist()
 
         def step(a: int, b: int) -> None:
-            if step_losses is None:
-                for k in range(a, b):
-                    np.matmul(mats[mi[k]], T[k], out=T[k + 1])
-                    T[k + 1] += f[k]
-            else:
-                for k in range(a, b):
-                    np.matmul(mats[mi[k]], T[k], out=T[k + 1])
-                    T[k + 1] += f[k]
-                    T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
+            # the matrices a block at a time (:mod:`.transitions`): bounded memory on noisy inputs
+            for lo, hi, ms, mi in mats.segments(a, b):
+                if step_losses is None:
+                    for k in range(lo, hi):
+                        np.matmul(ms[mi[k]], T[k], out=T[k + 1])
+                        T[k + 1] += f[k]
+                else:
+                    for k in range(lo, hi):
+                        np.matmul(ms[mi[k]], T[k], out=T[k + 1])
+                        T[k + 1] += f[k]
+                        T[k + 1] += GPna[opl[k]] @ step_losses(k, T[k])  # losses at T_k, before the update
 
         done = 0
         prepared: dict[tuple[int, int], NodeStretch] = {}  # shared with the sensitivities' stretches
@@ -251,41 +254,24 @@ class Simulator:
         P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
-            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), (mats, mi),
+            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), mats,
                                          held_spans, sens_spans, dPdT0[:steps], prepared)
         return traj
 
     def _step_matrices(
         self, Phi: np.ndarray, GP: np.ndarray, ops: np.ndarray, dPdT: np.ndarray, need: np.ndarray | None = None
-    ) -> tuple[list[np.ndarray], list[int]]:
+    ) -> StepMatrices:
         """Per-step transition matrices ``Φ + Γ_P ∂P/∂T`` (temperature feedback of the losses folded in).
 
         Steps with the same operating point and the same loss slopes share one matrix (a drive
-        cycle holds its current over a segment); the list of distinct matrices and each step's
-        index into it are returned. Only the steps in ``need`` (default all) get one (the others
-        are run vectorised: a noisy current would otherwise make a matrix per step); the others'
-        index is −1.
+        cycle holds its current over a segment); the matrices are computed a block at a time
+        when stepped (:class:`~thermal_edge.lptn.transitions.StepMatrices`). Only the steps in
+        ``need`` (default all) get one (the others are run vectorised).
         """
-        steps = len(ops)
-        if not len(self.tv) or not np.any(dPdT) or not steps:
-            return [Phi[o] for o in range(Phi.shape[0])], ops.tolist()
-        ks = np.arange(steps) if need is None else np.nonzero(need[:steps])[0]
-        slopes = dPdT[ks].reshape(len(ks), int(np.prod(dPdT.shape[1:])))
-        on = ops[ks]
-        # a new matrix where the operating point or the slopes change from the previous needed step
-        change = np.ones(len(ks), dtype=bool)
-        change[1:] = (on[1:] != on[:-1]) | np.any(slopes[1:] != slopes[:-1], axis=1)
-        starts = np.nonzero(change)[0]
-        mi_arr = np.full(steps, -1, dtype=np.intp)
-        mi_arr[ks] = np.cumsum(change) - 1
-        mi = mi_arr.tolist()
-        o = on[starts]
-        mats = Phi[o].copy()  # (distinct, n, n)
-        mats[:, :, self.tv] += GP[o] @ slopes[starts].reshape(len(starts), len(self.losses), len(self.tv))
-        return list(mats), mi
+        return StepMatrices(Phi, GP, self.tv, ops, dPdT, need)
 
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray | None, widx: Sequence[int],
-                       rows: np.ndarray | None, steps: tuple[list[np.ndarray], list[int]],
+                       rows: np.ndarray | None, steps: StepMatrices,
                        held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
                        slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch]) -> np.ndarray:
         d = prep.disc
@@ -300,7 +286,7 @@ class Simulator:
         def at(k: np.ndarray) -> dict[str, Value]:
             return {key: (v[k] if isinstance(v, np.ndarray) and v.ndim == 1 and len(v) == N else v) for key, v in env.items()}
 
-        sens = Sensitivities(d, ops, *steps, T, prep.U, P,
+        sens = Sensitivities(d, ops, steps, T, prep.U, P,
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
                              loss_nodes=self.tv, slopes=slopes, prepared=prepared,
