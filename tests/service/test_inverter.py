@@ -112,6 +112,10 @@ class _LateTicker:
 
     async def run(self, emu: InverterEmulator, done: asyncio.Event) -> None:
         await asyncio.sleep(self.delay_s)
+        if self.delay_s:  # late until the emulator has run up to its lead, however slow the host is
+            deadline = time.monotonic() + 120  # a hang guard
+            while emu.elapsed < emu.config.max_lead_s and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
         status = self.codec.frame_id("TE_Status")
         while not done.is_set():
             msg = self.bus.recv(0)
