@@ -18,6 +18,7 @@ import can
 import msgpack
 import pytest
 from bus_testlib import DBC_PATH, udp_socket_drops
+from waiting import wait_until
 
 from thermal_edge.bus import DEFAULT_UDP_MULTICAST_GROUP, CanTransport, DerateReason, FrameCodec
 from thermal_edge.bus.transport import RX_ERROR_RUN_LIMIT, RX_WARN_INTERVAL_S
@@ -99,12 +100,7 @@ class _LimitsWatch(threading.Thread):
 
 
 def _wait(predicate) -> bool:
-    end = time.monotonic() + HANG_S
-    while not predicate():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.01)
-    return True
+    return wait_until(predicate, HANG_S, 0.01)
 
 
 async def test_undecodable_datagrams_do_not_stop_te_limits(udp_port, caplog):

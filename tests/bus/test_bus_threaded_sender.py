@@ -17,6 +17,7 @@ import time
 import can
 import pytest
 from bus_testlib import DBC_PATH
+from waiting import async_wait_until, wait_until
 
 from thermal_edge.bus import BusConfig, CanTransport, DerateReason, FrameCodec, create_bus
 
@@ -134,21 +135,11 @@ async def test_threaded_sender_survives_reconnects(virtual_channel):
 
 
 def _wait(predicate, timeout: float) -> bool:
-    end = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.001)
-    return True
+    return wait_until(predicate, timeout, 0.001)
 
 
 async def _until(predicate, timeout: float = HANG_S) -> bool:
-    end = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > end:
-            return False
-        await asyncio.sleep(0.002)
-    return True
+    return await async_wait_until(predicate, timeout, 0.002)
 
 
 def test_coroutine_provider_is_refused_for_a_thread():

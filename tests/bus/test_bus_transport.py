@@ -8,6 +8,7 @@ import logging
 import can
 import pytest
 from bus_testlib import DBC_PATH
+from waiting import async_wait_until
 
 from thermal_edge.bus import (
     DEFAULT_UDP_MULTICAST_GROUP,
@@ -34,13 +35,7 @@ HANG_S = 60.0
 
 
 async def _until(predicate, timeout: float = HANG_S, step: float = 0.005) -> bool:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout
-    while loop.time() < end:
-        if predicate():
-            return True
-        await asyncio.sleep(step)
-    return predicate()
+    return await async_wait_until(predicate, timeout, step)
 
 
 # ----------------------------------------------------------------- configuration

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 from bus_testlib import DBC_PATH, REPO, udp_socket_drops
+from waiting import async_wait_until
 
 from thermal_edge.bus import CanTransport, DerateReason, FrameCodec
 from thermal_edge.bus.transport import RX_WARN_INTERVAL_S
@@ -153,10 +154,4 @@ async def test_another_node_sending_this_nodes_limits_is_counted_logged_recorded
 
 
 async def _until(predicate, timeout: float = HANG_S) -> bool:
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout
-    while not predicate():
-        if loop.time() > end:
-            return False
-        await asyncio.sleep(0.01)
-    return True
+    return await async_wait_until(predicate, timeout, 0.01)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import yaml
 from own_ports import own_tcp_port, own_udp_port
+from waiting import async_wait_until, wait_until  # noqa: F401 (the tests import them from here)
 
 REPO = Path(__file__).resolve().parents[2]
 EDGE_YAML = REPO / "config" / "edge.yaml"
@@ -319,24 +320,6 @@ def emulator_config(**kw: Any):
                 temperature_period_s=TEMPERATURE_PERIOD_S, plant_dt_s=PLANT_DT_S)
     base.update(kw)
     return EmulatorConfig(**base)
-
-
-def wait_until(pred, timeout: float, interval: float = 0.05) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(interval)
-    return bool(pred())
-
-
-async def async_wait_until(pred, timeout: float, interval: float = 0.01) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        await asyncio.sleep(interval)
-    return bool(pred())
 
 
 def deep_copy(x: Any) -> Any:

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
+from waiting import wait_until
 
 from benchmarks.faults.harness import (
     START_TIMEOUT_S,
@@ -92,12 +93,7 @@ def test_hup_usr1_usr2_alrm_are_logged_and_ignored_while_te_limits_flow(tmp_path
 
 
 def _wait(predicate, timeout: float = HANG_S) -> bool:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.05)
-    return True
+    return wait_until(predicate, timeout, 0.05)
 
 
 def test_a_sighup_while_the_service_starts_does_not_kill_it(tmp_path, bed):

@@ -90,6 +90,9 @@ class _LiveCollector(Collector):
         eng = m.engine
         out: TickOutput | None = eng.last if eng is not None else None
         model = eng.model if eng is not None else None
+        # what TE_Limits carries now: the last tick's limits, or the policy's between ticks (a silent
+        # bus, a stalled tick); None before the first tick
+        sent = m.limits_now() if m.limits_now is not None else (out.limits if out is not None else None)
         if eng is not None and out is not None and model is not None:
             est = GaugeMetricFamily(P + "node_estimate_celsius", "Best estimate (observer) of each node's temperature",
                                     labels=LABELS["node_estimate_celsius"])
@@ -139,7 +142,7 @@ class _LiveCollector(Collector):
                 lim.add_metric([ln.name, node, "warn"], ln.warn_c)
                 lim.add_metric([ln.name, node, "max"], ln.max_c)
             yield lim
-            sent = m.limits_now() if m.limits_now is not None else out.limits
+            assert sent is not None
             yield GaugeMetricFamily(P + "current_limit_amperes", "Current limit sent in TE_Limits (A rms)",
                                     value=sent.current_a)
             yield GaugeMetricFamily(P + "torque_limit_newton_meters", "Torque limit sent in TE_Limits",
@@ -169,8 +172,7 @@ class _LiveCollector(Collector):
         if eng is not None and model is not None:
             # what TE_Limits says now: before the first tick starting, nothing stale, no fault; on a
             # silent bus stale input, every frame missing
-            sent_now = m.limits_now() if m.limits_now is not None else (out.limits if out is not None else None)
-            reason = sent_now.reason if sent_now is not None else DerateReason.STARTING
+            reason = sent.reason if sent is not None else DerateReason.STARTING
             silent = m.silent_s() if m.silent_s is not None else None
             yield GaugeMetricFamily(P + "bus_silent_seconds", "Seconds since the last accepted frame once that exceeds "
                                     "transmit.bus_silence_s (TE_Limits then carries the safe limit); 0 otherwise",
