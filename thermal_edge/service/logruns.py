@@ -138,9 +138,9 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
         The configuration's CAN matrix lacks a frame or signal its ``signals:`` name.
     """
     codec = config.codec.frame_codec(config.fname)
-    config.check_dbc(codec)
     path_m = Path(config.model.path)
     roles = _input_roles(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
+    config.check_dbc(codec, roles)
     tick_s, catchup = config.clock.tick_s, config.clock.max_catchup_s
     silence = max(config.timeouts.values(), default=tick_s)
     source = str(path)

@@ -96,7 +96,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
                   metrics=MetricsConfig(enabled=False))
     model = model if model is not None else load_service_model(cfg)
     codec = cfg.codec.frame_codec(cfg.fname)
-    cfg.check_dbc(codec)
+    cfg.check_dbc(codec, model.input_roles)
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s, cfg.clock.max_catchup_s)
     reader = FrameLogReader(Path(path), codec, include_tx=False)
