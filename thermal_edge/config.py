@@ -738,8 +738,9 @@ class EdgeConfig:
                         raise self.error(key, f"frame {spec.frame} has no signal {sig!r}")
                 role = (roles or {}).get(name) if section == "inputs" else None
                 want = TEMPERATURE.unit if section == "sensors" else (role.plausible.unit if role is not None else None)
-                for sig in (spec.signals if isinstance(spec, InputSignal) else [spec.signal]) if want else ():
-                    self._check_unit(key, codec, spec.frame, sig, want)
+                if want is not None:
+                    for sig in spec.signals if isinstance(spec, InputSignal) else [spec.signal]:
+                        self._check_unit(key, codec, spec.frame, sig, want)
         self._check_flux_dbc(codec)
         # a frame the model reads with no timeout never goes stale: its last values would drive the
         # model and the limit however long it is gone (so `timeouts: {}` is refused)
