@@ -712,26 +712,48 @@ class EdgeConfig:
         ConfigError
             ``<file>: state.dir: ...``.
         """
-        d = self.state.dir
+        self._check_dir("state.dir", self.state.dir, create)
+
+    def check_recording(self) -> None:
+        """Check that ``recording.candump`` names a file whose directory is, or can be made, one
+        (judged as :meth:`check_state_dir` judges ``state.dir``, without making it): a path that is
+        a directory, or lies under a file or where the file system refuses any directory, is a
+        configuration error. One the file system's state refuses at start (full, read-only, not
+        this user's) only turns the recording off (logged); protection never depends on it.
+
+        Raises
+        ------
+        ConfigError
+            ``<file>: recording.candump: ...``.
+        """
+        if self.bus.record_path is None:
+            return
+        path = Path(self.bus.record_path)
+        if path.is_dir():
+            raise self.error("recording.candump", f"{path} is a directory, not a log file")
+        self._check_dir("recording.candump", path.parent, create=False, what=f"the directory of {path.name}")
+
+    def _check_dir(self, key: str, d: Path, create: bool, what: str = "") -> None:
         probe = d
         while not os.path.lexists(probe) and probe != probe.parent:
             probe = probe.parent
+        said = f"{d} ({what})" if what else f"{d}"
         if not probe.is_dir():
-            msg = f"{d} is not a directory" if probe == d else f"{d} cannot be created: {probe} is not a directory"
-            raise self.error("state.dir", msg)
+            msg = f"{said} is not a directory" if probe == d else f"{said} cannot be created: {probe} is not a directory"
+            raise self.error(key, msg)
         if not create:
             if probe != d:  # try to make a directory where it would go, then remove it
                 try:
                     os.rmdir(tempfile.mkdtemp(prefix=".thermal-edge-check-", dir=probe))
                 except OSError as exc:
                     if exc.errno not in _STATE_DIR_CONDITIONS:
-                        raise self.error("state.dir", f"{d} cannot be created under {probe}: {exc.strerror or exc}") from None
+                        raise self.error(key, f"{said} cannot be created under {probe}: {exc.strerror or exc}") from None
             return
         try:
             d.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             if exc.errno not in _STATE_DIR_CONDITIONS:
-                raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
+                raise self.error(key, f"cannot create {said}: {exc.strerror or exc}") from None
 
     def check_dbc(self, codec: Any, roles: Mapping[str, Role] | None = None) -> None:
         """Check that every mapped frame and signal exists in the DBC and every read frame has a
