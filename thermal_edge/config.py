@@ -376,6 +376,9 @@ class FaultConfig:
     innovation_k: float = setting(15.0, positive=True, max=100.0)
     innovation_ticks: int = setting(5, min=1)
     prediction_error_k: float = setting(40.0, positive=True, max=200.0)
+    #: ... for this many ticks in a row: one glitched reading is not a model fault (a restart from it
+    #: would make the next, good, reading disagree by as much and fault again)
+    prediction_error_ticks: int = setting(3, min=1, max=60)
     # at least the longest tick: a hold shorter than a tick never reaches the bus (0 or 1e-9 s
     # would hand a diverged model back at once, and the limit would keep rising after the fault)
     hold_s: float = setting(30.0, min=MAX_TICK_S)

@@ -222,3 +222,23 @@ def test_a_winding_reading_stepping_above_its_max_on_a_cold_machine_gives_zero_a
     assert all(o.limits.current_a == 0.0 for o in outs[FLOOR_TICKS:]), [o.limits.current_a for o in outs]
     assert "end_winding" not in eng.stuck.stuck
     assert all(o.faults.get("end_winding") != "stuck" for o in outs)
+
+
+@pytest.mark.parametrize("glitch_ticks, faults", [(1, 0), (2, 0), (3, 1), (10, 1)])
+def test_one_glitched_reading_is_not_a_model_fault(tmp_path, model, glitch_ticks, faults):
+    """Every PT100 reads 45 K high (above the 40 K of ``prediction_error_k``) for a tick or two: a
+    glitch, not a model fault; the state is not restarted from it (the next good reading would
+    disagree by as much and fault again, two holds of the safe limit). For
+    ``prediction_error_ticks`` (3) ticks in a row it is a model fault."""
+    cfg = _engine_config(tmp_path)
+    assert cfg.derating.faults.prediction_error_ticks == 3
+    eng = ThermalEngine(cfg, model, None, worker_mode="sync")
+    op = {"speed_rpm": 900.0, "i_rms": 19.0, "torque_nm": 106.0, "ambient_c": 25.0}
+    T, _ = steady_state(model, op)
+    reasons = []
+    for k in range(1, 121):
+        glitch = 60 <= k < 60 + glitch_ticks
+        out = _feed(eng, model, 1000.0 + k, T + (45.0 if glitch else 0.0), i=19.0, speed=900.0)
+        reasons.append(out.limits.reason)
+    assert (eng.health.faults >= 1) == bool(faults) and eng.health.faults <= 2
+    assert (DerateReason.MODEL_FAULT in reasons) == bool(faults)

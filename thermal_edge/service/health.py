@@ -5,9 +5,9 @@
 - the model (:class:`ModelHealth`): diverged when its state is not finite, when an innovation
   (reading minus the observer's prediction) stays above ``derating.faults.innovation_k`` for
   ``innovation_ticks`` ticks, or when the open-loop prediction error exceeds
-  ``prediction_error_k``; a fault forces ``model_fault`` for ``hold_s``, doubled for each fault that
-  recurs within ``repeat_s`` after the previous hold ended (up to ``hold_max_s``): a cause that
-  persists does not get full power back after every hold. It also keeps the window of squared
+  ``prediction_error_k`` for ``prediction_error_ticks`` ticks; a fault forces ``model_fault`` for
+  ``hold_s``, doubled for each fault that recurs within ``repeat_s`` after the previous hold ended
+  (up to ``hold_max_s``): a cause that persists does not get full power back after every hold. It also keeps the window of squared
   open-loop prediction errors over the adaptation period, whose RMS is ``TE_PredErrRms``;
 - the sensors' plausibility over time (:class:`StuckSensors`): a reading that sits still while the
   model, stepped with the measured losses, heats its node by several kelvin is stuck (frozen), a
@@ -55,7 +55,7 @@ class ModelHealth:
         self.window_s = float(window_s)
         self._window: deque[tuple[float, float]] = deque()  # (t, squared error)
         self._sum = 0.0
-        self._innovation_ticks = 0
+        self._innovation_ticks = self._prediction_ticks = 0
         self._fault_until = -math.inf
         self._faults = 0
         self._repeats = 0  # faults in a row, each within repeat_s of the previous hold's end
@@ -103,8 +103,10 @@ class ModelHealth:
             return "non-finite state"
         if self._innovation_ticks >= fc.innovation_ticks:
             return f"innovation above {fc.innovation_k:.0f} K for {fc.innovation_ticks} ticks"
-        if any(abs(e) > fc.prediction_error_k for e in pred_error.values()):
-            return f"open-loop prediction error above {fc.prediction_error_k:.0f} K"
+        off = any(abs(e) > fc.prediction_error_k for e in pred_error.values())
+        self._prediction_ticks = self._prediction_ticks + 1 if off else 0
+        if self._prediction_ticks >= fc.prediction_error_ticks:
+            return f"open-loop prediction error above {fc.prediction_error_k:.0f} K for {self._prediction_ticks} ticks"
         return None
 
     def fault(self, t: float) -> float:
@@ -127,11 +129,11 @@ class ModelHealth:
         """The state was re-initialised: the errors of the old one no longer count."""
         self._window.clear()
         self._sum = 0.0
-        self._innovation_ticks = 0
+        self._innovation_ticks = self._prediction_ticks = 0
 
     def new_state(self) -> None:
         """A fresh state (first initialisation): innovations count from zero, the window is kept."""
-        self._innovation_ticks = 0
+        self._innovation_ticks = self._prediction_ticks = 0
 
 
 class StuckSensors:
