@@ -205,12 +205,15 @@ def test_model_fault_reports_the_error_that_caused_it(tmp_path, model):
     assert out.limits.reason != DerateReason.MODEL_FAULT
     before = {s: out.prediction[model.node_index(n)] for s, n in model.sensors.items()}
     hot = T + 60.0  # every reading 60 K above anything the model predicts (limit: 40 K)
-    out = _feed(eng, model, 104.0, hot, i=12.0, speed=600.0)
+    ticks = eng.config.derating.faults.prediction_error_ticks  # in a row: a fault, not a glitch
+    for k in range(ticks):
+        out = _feed(eng, model, 104.0 + k, hot, i=12.0, speed=600.0)
+        assert (out.limits.reason == DerateReason.MODEL_FAULT) == (k == ticks - 1)
     assert out.state == TeState.FAULT and out.limits.reason == DerateReason.MODEL_FAULT
     for s, n in model.sensors.items():
-        # one more 1 s step from the steady state barely moves the prediction
+        # a few more 1 s steps from the steady state barely move the prediction
         assert out.pred_error[s] == pytest.approx(before[s] - hot[model.node_index(n)], abs=1.0)
         assert out.pred_error[s] < -55.0
     # the state was restarted from the readings: the next tick's error is small again
-    out = _feed(eng, model, 105.0, hot, i=12.0, speed=600.0)
+    out = _feed(eng, model, 104.0 + ticks, hot, i=12.0, speed=600.0)
     assert all(abs(e) < 5.0 for e in out.pred_error.values())
