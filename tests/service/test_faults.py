@@ -206,9 +206,9 @@ def test_model_fault_reports_the_error_that_caused_it(tmp_path, model):
     before = {s: out.prediction[model.node_index(n)] for s, n in model.sensors.items()}
     hot = T + 60.0  # every reading 60 K above anything the model predicts (limit: 40 K)
     ticks = eng.config.derating.faults.prediction_error_ticks  # in a row: a fault, not a glitch
-    for k in range(ticks):
+    for k in range(ticks):  # not trusted from the first tick (the safe limit), a fault at the last
         out = _feed(eng, model, 104.0 + k, hot, i=12.0, speed=600.0)
-        assert (out.limits.reason == DerateReason.MODEL_FAULT) == (k == ticks - 1)
+        assert out.limits.reason == DerateReason.MODEL_FAULT and eng.health.faults == (k == ticks - 1)
     assert out.state == TeState.FAULT and out.limits.reason == DerateReason.MODEL_FAULT
     for s, n in model.sensors.items():
         # a few more 1 s steps from the steady state barely move the prediction

@@ -315,7 +315,9 @@ class ThermalEngine:
             log.error("model fault at t=%.0f: %s; safe limit for %.0f s, state re-initialised from the readings", t, why, hold)
             est.restart_from_readings(ti, self.adaptation.theta)
             self.health.restart()
-        if self.health.holding(t):
+        if self.health.holding(t) or (why is None and self.health.disagreeing):
+            # a disagreement not yet confirmed is not trusted either: the safe limit (bounded by the
+            # band at the readings) for its ticks, without the hold and the restart of a fault
             forced.insert(0, DerateReason.MODEL_FAULT)
         obs = est.observer
         assert obs is not None  # stepped, or restarted from the readings

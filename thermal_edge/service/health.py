@@ -109,6 +109,12 @@ class ModelHealth:
             return f"open-loop prediction error above {fc.prediction_error_k:.0f} K for {self._prediction_ticks} ticks"
         return None
 
+    @property
+    def disagreeing(self) -> bool:
+        """The open-loop prediction error is above ``prediction_error_k`` this tick, not yet for
+        ``prediction_error_ticks`` in a row: the estimate is not trusted (a glitch or a fault to come)."""
+        return self._prediction_ticks > 0
+
     def fault(self, t: float) -> float:
         """A model fault at ``t``: count it and hold the safe limit; returns the hold, s.
 
