@@ -23,6 +23,7 @@ import numpy as np
 
 from .discretise import Discrete, DiscreteDerivatives, discretise
 from .expr import Value
+from .held import POW_BLOCK, Transitions, run_temperatures, transitions
 from .losses import LossLaws
 from .model import MissingInputError, Model
 from .network import Network
@@ -205,20 +206,18 @@ class Simulator:
         T = np.empty((N, n))
         T[0] = T0
         steps = max(N - 1, 0)
-        # stretches of one operating point run vectorised in time (losses affine in T only: the
-        # others are evaluated step by step); the sensitivities' own stretches leave the held
-        # runs to their closed form
+        # runs of held inputs in closed form (:mod:`.held`; their modes serve the sensitivities
+        # too), stretches of one operating point where the loss feedback changes every step
+        # vectorised in time (losses affine in T only: the others are evaluated step by step)
+        held_spans = held_runs(held_steps(prep.env, steps), self.closed_form and not len(na))
+        held_tr = None
+        closed: list[tuple[int, int, int]] = []  # held runs in closed form: (a, b, transition)
+        if held_spans:
+            held_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in held_spans]))
+            closed = [(a, b, int(u)) for (a, b), u in zip(held_spans, held_tr.index) if held_tr.modes.ok[u]]
         varying = varying_steps(dPdT0[:steps]) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
-        sim_spans = stretches(ops, varying)
-        sens_spans: list[tuple[int, int]] = []
-        held_spans: list[tuple[int, int]] = []
-        if names:
-            held_spans = held_runs(held_steps(prep.env, steps), self.closed_form and not len(na))
-            if self.vectorised and not len(na):
-                sens_spans = stretches(ops, varying & ~covered(held_spans, steps))
-        need = ~covered(sim_spans, steps)
-        if names:
-            need |= ~covered(sens_spans, steps)
+        spans = stretches(ops, varying & ~covered(held_spans, steps))
+        need = ~covered(spans, steps) & ~covered([(a, b) for a, b, _ in closed], steps)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
@@ -239,15 +238,22 @@ class Simulator:
 
         done = 0
         prepared: dict[tuple[int, int], NodeStretch] = {}  # shared with the sensitivities' stretches
-        for a, b in sim_spans:
+        longest = max((b - a for a, b, _ in closed), default=0)
+        work = np.empty((n, -(-longest // POW_BLOCK) * POW_BLOCK))
+        events = sorted([(a, b, u) for a, b, u in closed] + [(a, b, -1) for a, b in spans])
+        for a, b, u in events:
             step(done, a)
-            o = int(ops[a])
-            V, Vi = d.basis(o)
-            ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
-            fm = np.zeros((n, 1, padded_length(b - a)))
-            np.matmul(Vi, f[a:b].T, out=fm[:, 0, : b - a])
-            Ta, _ = ns.solve(fm, T[a][:, None])
-            T[a + 1: b + 1] = Ta[:, 0, :].T
+            if u >= 0:
+                assert held_tr is not None
+                run_temperatures(held_tr.modes, u, f[a], T[a], T[a + 1: b + 1], work)
+            else:
+                o = int(ops[a])
+                V, Vi = d.basis(o)
+                ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
+                fm = np.zeros((n, 1, padded_length(b - a)))
+                np.matmul(Vi, f[a:b].T, out=fm[:, 0, : b - a])
+                Ta, _ = ns.solve(fm, T[a][:, None])
+                T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T
@@ -255,7 +261,7 @@ class Simulator:
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
             traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), mats,
-                                         held_spans, sens_spans, dPdT0[:steps], prepared)
+                                         held_spans, spans, dPdT0[:steps], prepared, held_tr)
         return traj
 
     def _step_matrices(
@@ -273,7 +279,8 @@ class Simulator:
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray | None, widx: Sequence[int],
                        rows: np.ndarray | None, steps: StepMatrices,
                        held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
-                       slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch]) -> np.ndarray:
+                       slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch],
+                       held: Transitions | None) -> np.ndarray:
         d = prep.disc
         assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
         N = T.shape[0]
@@ -290,5 +297,5 @@ class Simulator:
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
                              loss_nodes=self.tv, slopes=slopes, prepared=prepared,
-                             loss_wrt=self.losses.depends_on(widx))
+                             loss_wrt=self.losses.depends_on(widx), held=held)
         return sens.run(held_spans, spans, rows)

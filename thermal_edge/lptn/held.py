@@ -1,0 +1,141 @@
+"""Runs of held inputs in closed form: the closed-loop modes and the temperatures of such a run.
+
+Over a run where every input is the same (a drive cycle's segment, a test bench's set point) and
+the losses are affine in temperature, one step is ``T[k+1] = M T[k] + f`` with a constant
+transition ``M = Φ + Γ_P ∂P/∂T`` and a constant forcing ``f = Γ w``. ``Φ`` is similar to a
+symmetric matrix (``Φ = V diag(μ_Φ) V⁻¹``, :class:`~thermal_edge.lptn.discretise.Discrete`), and
+the copper-loss feedback keeps that: in the modal basis of ``Φ``, scaled by ``r = √phi``, ``M``
+is symmetric when each loss law reads the temperature of its own node only. So
+``M = Om diag(μ) Xi`` with real ``μ`` (``Xi = Om⁻¹``), and the run is
+
+    T[a + k] = T∞ + Om diag(μ^k) Xi (T[a] − T∞),     T∞ = Om diag(1/(1 − μ)) Xi f,
+
+every step of it one product of the power basis ``μ^k`` with ``Om``: ``2·n²`` flops a step and no
+loop in time. The same modes serve the sensitivities' closed form (:mod:`.sensitivity`); runs
+that meet a set point again share them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from .discretise import Discrete
+
+#: the powers μ^k of a held run are built in blocks of this many steps, ``μ^(jB + i) = μ^(jB) μ^i``:
+#: ``exp`` for one block and the block offsets, one product for the rest
+POW_BLOCK = 64
+#: floor of the exponents of both factors: their product stays above e^−708 (no subnormals, which
+#: would slow the product of the basis with the coefficients), and e^−350 is far below round-off
+#: of any term that matters
+LOG_FLOOR = -350.0
+
+
+class Modes(NamedTuple):
+    """Closed-loop modes ``ξ`` of transitions (leading axis): eigenvalues ``mu`` and whether the
+    closed form applies (``ok``); ``rQ2``/``Q2r`` map ``ξ`` to the modal basis of ``Φ`` and back,
+    ``Om``/``Xi`` to node temperatures and back."""
+
+    mu: np.ndarray
+    ok: np.ndarray
+    rQ2: np.ndarray
+    Q2r: np.ndarray
+    Om: np.ndarray
+    Xi: np.ndarray
+
+
+@dataclass(frozen=True)
+class Transitions:  # not a NamedTuple: its field ``index`` would shadow tuple.index
+    """The distinct transitions of a run's held runs: each run's transition (``index``), the first
+    run of each transition (``first``), the runs of each (``members``) and their modes."""
+
+    index: np.ndarray
+    first: np.ndarray
+    members: list[np.ndarray]
+    modes: Modes
+
+
+def closed_loop_modes(d: Discrete, ops: np.ndarray, M: np.ndarray) -> Modes:
+    """Eigendecomposition of the transitions ``M`` (U, n, n) at operating points ``ops`` (U,):
+    in the modal basis of ``Φ``, ``diag(r)^-1 V⁻¹ M V diag(r)`` with ``r = √phi`` is symmetric
+    (up to round-off) when no loss law couples nodes; ``ok`` is False where it is not, or where
+    an eigenvalue falls outside (0, 1)."""
+    V, Vi = d.basis(ops)  # modal basis of Φ at each operating point
+    r = np.sqrt(d.phi[ops])
+    Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
+    asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
+    mu, Q2 = np.linalg.eigh((Sym + np.swapaxes(Sym, -1, -2)) / 2.0)
+    ok = (asym < 1e-9) & (mu.min(axis=1) > -1e-12) & (mu.max(axis=1) < 1.0)
+    rQ2 = r[:, :, None] * Q2
+    Q2r = np.swapaxes(Q2, -1, -2) / r[:, None, :]
+    # modes far faster than the step (e^(λ dt) below round-off) are zero after one step
+    return Modes(mu=np.maximum(mu, 1e-300), ok=ok, rQ2=rQ2, Q2r=Q2r, Om=V @ rQ2, Xi=Q2r @ Vi)
+
+
+def transitions(d: Discrete, GP: np.ndarray, tv: np.ndarray, ops: np.ndarray, slopes: np.ndarray,
+                starts: np.ndarray) -> Transitions:
+    """Group the held runs starting at steps ``starts`` by their transition
+    ``M = Φ + Γ_P ∂P/∂T`` (operating point and loss slopes: a set point met again) and decompose
+    each distinct one (:func:`closed_loop_modes`).
+
+    Parameters
+    ----------
+    d : Discrete
+        The run's discretisation.
+    GP : ndarray (K, n, nl)
+        ``Γ_P`` at each operating point, K/W.
+    tv : ndarray of int
+        The nodes whose temperatures the loss laws read.
+    ops : ndarray (steps,)
+        Operating point of each step.
+    slopes : ndarray (steps, nl, len(tv))
+        ``∂P/∂T`` of each step, W/K.
+    starts : ndarray of int
+        First step of each run.
+    """
+    o = ops[starts]
+    M = d.Phi[o].copy()
+    if len(tv):
+        M[:, :, tv] += GP[o] @ slopes[starts]
+    seen: dict[bytes, int] = {}
+    index = np.array([seen.setdefault(m.tobytes(), len(seen)) for m in M], dtype=np.intp)
+    first = np.unique(index, return_index=True)[1]
+    members = np.split(np.argsort(index, kind="stable"), np.cumsum(np.bincount(index))[:-1])
+    return Transitions(index, first, members, closed_loop_modes(d, o[first], M[first]))
+
+
+def power_basis(logmu: np.ndarray, L: int, out: np.ndarray) -> np.ndarray:
+    """``μ^k`` for ``k = 1 .. L`` (len(mu), L) into ``out`` (len(mu), ≥ L rounded up to
+    :data:`POW_BLOCK`), from ``log μ``; returns the view of the ``L`` columns.
+
+    In blocks: ``exp`` for one block and the block offsets, one product for the rest
+    (``μ^(jB + i) = μ^(jB) μ^i``); exponents below :data:`LOG_FLOOR` are floored.
+
+    >>> out = np.empty((1, 64))
+    >>> power_basis(np.log(np.array([0.5])), 3, out).tolist()
+    [[0.5, 0.25, 0.125]]
+    """
+    nb = -(-L // POW_BLOCK)
+    blocks = out[:, : nb * POW_BLOCK].reshape(len(logmu), nb, POW_BLOCK)
+    first = np.exp(np.maximum(logmu[:, None] * np.arange(1.0, POW_BLOCK + 1.0), LOG_FLOOR))
+    offset = np.exp(np.maximum(logmu[:, None] * (POW_BLOCK * np.arange(nb)), LOG_FLOOR))
+    np.multiply(offset[:, :, None], first[:, None, :], out=blocks)
+    res: np.ndarray = out[:, :L]
+    return res
+
+
+def run_temperatures(modes: Modes, u: int, f: np.ndarray, T0: np.ndarray, out: np.ndarray,
+                     work: np.ndarray) -> None:
+    """The temperatures of a held run with transition ``u`` of ``modes``, forcing ``f`` (n,) K a
+    step and ``T0`` (n,) °C at its start: ``out`` (L, n) receives ``T[1] .. T[L]``.
+
+    ``work`` is scratch space of at least (n, L rounded up to :data:`POW_BLOCK`).
+    """
+    mu, Om, Xi = modes.mu[u], modes.Om[u], modes.Xi[u]
+    xi_inf = (Xi @ f) / (1.0 - mu)
+    delta = Xi @ T0 - xi_inf
+    basis = power_basis(np.log(mu), len(out), work)  # (n, L)
+    basis *= delta[:, None]
+    np.matmul(basis.T, Om.T, out=out)
+    out += Om @ xi_inf
