@@ -1,18 +1,24 @@
-"""Runs of held inputs in closed form: the closed-loop modes and the temperatures of such a run.
+"""Runs of held inputs: the transitions they share, stepped in blocks, and their closed-loop modes.
 
 Over a run where every input is the same (a drive cycle's segment, a test bench's set point) and
 the losses are affine in temperature, one step is ``T[k+1] = M T[k] + f`` with a constant
-transition ``M = Φ + Γ_P ∂P/∂T`` and a constant forcing ``f = Γ w``. ``Φ`` is similar to a
+transition ``M = Φ + Γ_P ∂P/∂T`` and a constant forcing ``f = Γ w``. Runs that meet a set point
+again share ``M`` (:func:`transitions` groups them).
+
+The temperatures of a run (:func:`run_temperatures`) come from the powers ``M, M², …, M^B``
+(:data:`POWERS` of them, built by doubling for all transitions at once): the states at the
+block starts ``s[j+1] = M^B s[j] + c_B`` (one matrix-vector product per ``B`` steps), then every
+step of every block in one product, ``T[jB + i] = M^i s[j] + c_i`` with ``c_i = Σ_{l<i} M^l f``.
+That is ``2·n²`` flops a step, as many as stepping, without a loop over the steps, and the
+round-off of stepping (products of ``M``): a closed form through the eigenvalues of ``M`` would
+carry their round-off divided by ``1 − μ`` (about 1e-4 for the slowest mode at 1 Hz), enough to
+be seen by finite differences of the simulation.
+
+The sensitivities' closed form (:mod:`.sensitivity`) needs ``M``'s modes: ``Φ`` is similar to a
 symmetric matrix (``Φ = V diag(μ_Φ) V⁻¹``, :class:`~thermal_edge.lptn.discretise.Discrete`), and
 the copper-loss feedback keeps that: in the modal basis of ``Φ``, scaled by ``r = √phi``, ``M``
-is symmetric when each loss law reads the temperature of its own node only. So
-``M = Om diag(μ) Xi`` with real ``μ`` (``Xi = Om⁻¹``), and the run is
-
-    T[a + k] = T∞ + Om diag(μ^k) Xi (T[a] − T∞),     T∞ = Om diag(1/(1 − μ)) Xi f,
-
-every step of it one product of the power basis ``μ^k`` with ``Om``: ``2·n²`` flops a step and no
-loop in time. The same modes serve the sensitivities' closed form (:mod:`.sensitivity`); runs
-that meet a set point again share them.
+is symmetric when each loss law reads the temperature of its own node only, so
+``M = Om diag(μ) Xi`` with real ``μ`` (:func:`closed_loop_modes`, computed when first asked for).
 """
 from __future__ import annotations
 
@@ -23,6 +29,9 @@ import numpy as np
 
 from .discretise import Discrete
 
+#: powers of a held run's transition (steps per block of :func:`run_temperatures`): the
+#: products that build them grow with it, the loop over the blocks shrinks
+POWERS = 32
 #: the powers μ^k of a held run are built in blocks of this many steps, ``μ^(jB + i) = μ^(jB) μ^i``:
 #: ``exp`` for one block and the block offsets, one product for the rest
 POW_BLOCK = 64
@@ -45,15 +54,34 @@ class Modes(NamedTuple):
     Xi: np.ndarray
 
 
-@dataclass(frozen=True)
-class Transitions:  # not a NamedTuple: its field ``index`` would shadow tuple.index
+class Transitions:
     """The distinct transitions of a run's held runs: each run's transition (``index``), the first
-    run of each transition (``first``), the runs of each (``members``) and their modes."""
+    run of each transition (``first``), the runs of each (``members``), the transitions ``M``
+    (U, n, n) at their operating points ``ops`` (U,), and their modes (:attr:`modes`, computed
+    when first asked for)."""
 
-    index: np.ndarray
-    first: np.ndarray
-    members: list[np.ndarray]
-    modes: Modes
+    def __init__(self, d: Discrete, index: np.ndarray, first: np.ndarray, members: list[np.ndarray],
+                 M: np.ndarray, ops: np.ndarray) -> None:
+        self.d, self.index, self.first, self.members, self.M, self.ops = d, index, first, members, M, ops
+        self._modes: Modes | None = None
+        self._powers: np.ndarray | None = None
+
+    @property
+    def modes(self) -> Modes:
+        """The closed-loop modes of every transition (:func:`closed_loop_modes`)."""
+        if self._modes is None:
+            self._modes = closed_loop_modes(self.d, self.ops, self.M)
+        return self._modes
+
+    @property
+    def powers(self) -> np.ndarray:
+        """``M^1 .. M^B`` (U, B, n, n), ``B =`` :data:`POWERS`, by doubling: ``M^(m + i) = M^i M^m``."""
+        if self._powers is None:
+            pw = self.M[:, None]
+            while pw.shape[1] < POWERS:
+                pw = np.concatenate([pw, pw @ pw[:, -1:]], axis=1)
+            self._powers = pw[:, :POWERS]
+        return self._powers
 
 
 def closed_loop_modes(d: Discrete, ops: np.ndarray, M: np.ndarray) -> Modes:
@@ -77,7 +105,7 @@ def transitions(d: Discrete, GP: np.ndarray, tv: np.ndarray, ops: np.ndarray, sl
                 starts: np.ndarray) -> Transitions:
     """Group the held runs starting at steps ``starts`` by their transition
     ``M = Φ + Γ_P ∂P/∂T`` (operating point and loss slopes: a set point met again) and decompose
-    each distinct one (:func:`closed_loop_modes`).
+    each distinct one.
 
     Parameters
     ----------
@@ -102,7 +130,7 @@ def transitions(d: Discrete, GP: np.ndarray, tv: np.ndarray, ops: np.ndarray, sl
     index = np.array([seen.setdefault(m.tobytes(), len(seen)) for m in M], dtype=np.intp)
     first = np.unique(index, return_index=True)[1]
     members = np.split(np.argsort(index, kind="stable"), np.cumsum(np.bincount(index))[:-1])
-    return Transitions(index, first, members, closed_loop_modes(d, o[first], M[first]))
+    return Transitions(d, index, first, members, M[first], o[first])
 
 
 def power_basis(logmu: np.ndarray, L: int, out: np.ndarray) -> np.ndarray:
@@ -125,17 +153,27 @@ def power_basis(logmu: np.ndarray, L: int, out: np.ndarray) -> np.ndarray:
     return res
 
 
-def run_temperatures(modes: Modes, u: int, f: np.ndarray, T0: np.ndarray, out: np.ndarray,
-                     work: np.ndarray) -> None:
-    """The temperatures of a held run with transition ``u`` of ``modes``, forcing ``f`` (n,) K a
-    step and ``T0`` (n,) °C at its start: ``out`` (L, n) receives ``T[1] .. T[L]``.
-
-    ``work`` is scratch space of at least (n, L rounded up to :data:`POW_BLOCK`).
-    """
-    mu, Om, Xi = modes.mu[u], modes.Om[u], modes.Xi[u]
-    xi_inf = (Xi @ f) / (1.0 - mu)
-    delta = Xi @ T0 - xi_inf
-    basis = power_basis(np.log(mu), len(out), work)  # (n, L)
-    basis *= delta[:, None]
-    np.matmul(basis.T, Om.T, out=out)
-    out += Om @ xi_inf
+def run_temperatures(powers: np.ndarray, f: np.ndarray, T0: np.ndarray, out: np.ndarray) -> None:
+    """The temperatures of a held run from its transition's powers ``M^1 .. M^B`` (B, n, n), its
+    forcing ``f`` (n,) K a step and ``T0`` (n,) °C at its start: ``out`` (L, n) receives
+    ``T[1] .. T[L]`` (see the module docstring)."""
+    B, n, _ = powers.shape
+    L = len(out)
+    c = np.empty((B, n))  # c_i = Σ_{l<i} M^l f, i = 1 .. B
+    c[0] = f
+    c[1:] = powers[:-1] @ f
+    np.cumsum(c, axis=0, out=c)
+    nb, rem = divmod(L, B)
+    starts = np.empty((nb + 1, n))
+    starts[0] = T0
+    MB, cB = powers[-1], c[-1]
+    for j in range(nb):
+        np.matmul(MB, starts[j], out=starts[j + 1])
+        starts[j + 1] += cB
+    P2 = powers.transpose(2, 0, 1).reshape(n, B * n)  # column (i, r): row r of M^(i+1)
+    if nb:
+        head = out[: nb * B].reshape(nb, B * n)
+        np.matmul(starts[:nb], P2, out=head)
+        head.reshape(nb, B, n)[:] += c
+    if rem:
+        out[nb * B:] = (starts[nb] @ P2[:, : rem * n]).reshape(rem, n) + c[:rem]

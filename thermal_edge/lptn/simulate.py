@@ -23,7 +23,7 @@ import numpy as np
 
 from .discretise import Discrete, DiscreteDerivatives, discretise
 from .expr import Value
-from .held import POW_BLOCK, Transitions, run_temperatures, transitions
+from .held import Transitions, run_temperatures, transitions
 from .losses import LossLaws
 from .model import MissingInputError, Model
 from .network import Network
@@ -193,31 +193,28 @@ class Simulator:
         P0[:, na] = 0.0  # laws not affine in T are evaluated per step instead
         dPdT0[:, na] = 0.0
         ops = prep.ops[: max(N - 1, 0)]
-        # input-driven part of every step, for all steps at once (grouped by operating point)
-        f = np.empty((max(N - 1, 0), n))
-        order = np.argsort(ops, kind="stable")  # the steps of each operating point together: one slice each
-        bounds = np.searchsorted(ops[order], np.arange(d.Phi.shape[0] + 1))
-        w = np.concatenate([prep.U[: len(ops)], P0[: len(ops)]], axis=1)[order]
-        fs = np.empty_like(f)
-        for op in np.nonzero(np.diff(bounds))[0].tolist():
-            lo, hi = int(bounds[op]), int(bounds[op + 1])
-            np.matmul(w[lo:hi], d.Gam[op].T, out=fs[lo:hi])
-        f[order] = fs
         T = np.empty((N, n))
         T[0] = T0
         steps = max(N - 1, 0)
         # runs of held inputs in closed form (:mod:`.held`; their modes serve the sensitivities
         # too), stretches of one operating point where the loss feedback changes every step
         # vectorised in time (losses affine in T only: the others are evaluated step by step)
-        held_spans = held_runs(held_steps(prep.env, steps), self.closed_form and not len(na))
+        held = held_steps(prep.env, steps)
+        held_spans = held_runs(held, self.closed_form and not len(na))
         held_tr = None
         closed: list[tuple[int, int, int]] = []  # held runs in closed form: (a, b, transition)
         if held_spans:
             held_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in held_spans]))
-            closed = [(a, b, int(u)) for (a, b), u in zip(held_spans, held_tr.index) if held_tr.modes.ok[u]]
-        varying = varying_steps(dPdT0[:steps]) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
+            # runs the sensitivities leave to stepping (no closed form: its modes) are stepped here too
+            ok = held_tr.modes.ok if names else np.ones(len(held_tr.first), dtype=bool)
+            closed = [(a, b, int(u)) for (a, b), u in zip(held_spans, held_tr.index) if ok[u]]
+        varying = varying_steps(dPdT0[:steps], may_change=~held) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
         spans = stretches(ops, varying & ~covered(held_spans, steps))
         need = ~covered(spans, steps) & ~covered([(a, b) for a, b, _ in closed], steps)
+        # the input-driven part of the steps that use it (a held run only its first step's)
+        want = need | covered(spans, steps)
+        want[[a for a, _, _ in closed]] = True
+        f = self._forcing(d.Gam, ops, np.concatenate([prep.U[:steps], P0[:steps]], axis=1), want)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
@@ -238,14 +235,12 @@ class Simulator:
 
         done = 0
         prepared: dict[tuple[int, int], NodeStretch] = {}  # shared with the sensitivities' stretches
-        longest = max((b - a for a, b, _ in closed), default=0)
-        work = np.empty((n, -(-longest // POW_BLOCK) * POW_BLOCK))
         events = sorted([(a, b, u) for a, b, u in closed] + [(a, b, -1) for a, b in spans])
         for a, b, u in events:
             step(done, a)
             if u >= 0:
                 assert held_tr is not None
-                run_temperatures(held_tr.modes, u, f[a], T[a], T[a + 1: b + 1], work)
+                run_temperatures(held_tr.powers[u], f[a], T[a], T[a + 1: b + 1])
             else:
                 o = int(ops[a])
                 V, Vi = d.basis(o)
@@ -257,12 +252,33 @@ class Simulator:
             done = b
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T
-        P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
+        if na:
+            P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names))
+        else:  # affine laws: P(T) = P(0) + ∂P/∂T T, without evaluating the laws again
+            P, dPdT = P0, None
+            for i, node in enumerate(self.tv.tolist()):
+                P += dPdT0[:, :, i] * T[:, node, None]
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
             traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), mats,
                                          held_spans, spans, dPdT0[:steps], prepared, held_tr)
         return traj
+
+    @staticmethod
+    def _forcing(Gam: np.ndarray, ops: np.ndarray, w: np.ndarray, want: np.ndarray) -> np.ndarray:
+        """``f_k = Γ(u_k) w_k`` (steps, n) at the steps in ``want`` (the others are left
+        uninitialised), grouped by operating point: one product per operating point."""
+        ks = np.nonzero(want)[0]
+        f = np.empty((len(ops), Gam.shape[1]))
+        order = ks[np.argsort(ops[ks], kind="stable")]  # the steps of each operating point together
+        bounds = np.searchsorted(ops[order], np.arange(Gam.shape[0] + 1))
+        fs = np.empty((len(order), Gam.shape[1]))
+        wo = w[order]
+        for op in np.nonzero(np.diff(bounds))[0].tolist():
+            lo, hi = int(bounds[op]), int(bounds[op + 1])
+            np.matmul(wo[lo:hi], Gam[op].T, out=fs[lo:hi])
+        f[order] = fs
+        return f
 
     def _step_matrices(
         self, Phi: np.ndarray, GP: np.ndarray, ops: np.ndarray, dPdT: np.ndarray, need: np.ndarray | None = None

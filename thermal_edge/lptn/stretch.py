@@ -390,11 +390,14 @@ def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH)
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if eligible[a] and b - a >= min_len]
 
 
-def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
+def varying_steps(D: np.ndarray, window: int = MIN_STRETCH, may_change: np.ndarray | None = None) -> np.ndarray:
     """Steps (L,) whose neighbourhood of ``window`` steps has the feedback ``D`` (L, ...) change on
     at least a quarter of its steps: where a noisy current makes a transition per step. Elsewhere
-    (held inputs) the step-by-step recursion reuses one transition over many steps and is cheaper
-    than the vectorised stretch.
+    (held inputs) one transition serves many steps and the closed form or the step-by-step
+    recursion is cheaper than the vectorised stretch.
+
+    ``may_change`` (L,), optional, marks the steps whose ``D`` can differ from the previous
+    step's (the others hold their inputs: only these are compared).
 
     >>> varying_steps(np.array([1.0, 2, 3, 4, 4, 4, 4, 4]), window=4).tolist()
     [True, True, True, True, True, True, False, False]
@@ -402,7 +405,11 @@ def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
     L = len(D)
     change = np.zeros(L)
     if L > 1:
-        change[1:] = np.any((D[1:] != D[:-1]).reshape(L - 1, -1), axis=1)
+        if may_change is None:
+            change[1:] = np.any((D[1:] != D[:-1]).reshape(L - 1, -1), axis=1)
+        else:
+            k = np.nonzero(may_change[1:])[0] + 1
+            change[k] = np.any((D[k] != D[k - 1]).reshape(len(k), int(np.prod(D.shape[1:]))), axis=1)
     # changes among the steps k − window/2 .. k + window/2 − 1 (clipped at the ends)
     cs = np.concatenate([[0.0], np.cumsum(change)])
     k = np.arange(L)
