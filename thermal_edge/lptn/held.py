@@ -31,7 +31,7 @@ from .discretise import Discrete
 
 #: powers of a held run's transition (steps per block of :func:`run_temperatures`): the
 #: products that build them grow with it, the loop over the blocks shrinks
-POWERS = 32
+POWERS = 16
 #: the powers μ^k of a held run are built in blocks of this many steps, ``μ^(jB + i) = μ^(jB) μ^i``:
 #: ``exp`` for one block and the block offsets, one product for the rest
 POW_BLOCK = 64
@@ -77,10 +77,15 @@ class Transitions:
     def powers(self) -> np.ndarray:
         """``M^1 .. M^B`` (U, B, n, n), ``B =`` :data:`POWERS`, by doubling: ``M^(m + i) = M^i M^m``."""
         if self._powers is None:
-            pw = self.M[:, None]
-            while pw.shape[1] < POWERS:
-                pw = np.concatenate([pw, pw @ pw[:, -1:]], axis=1)
-            self._powers = pw[:, :POWERS]
+            U, n, _ = self.M.shape
+            pw = np.empty((U, POWERS, n, n))
+            pw[:, 0] = self.M
+            m = 1
+            while m < POWERS:  # [M .. M^m] stacked on top of each other, times M^m: one product each
+                k = min(m, POWERS - m)
+                np.matmul(pw[:, :k].reshape(U, k * n, n), pw[:, m - 1], out=pw[:, m: m + k].reshape(U, k * n, n))
+                m += k
+            self._powers = pw
         return self._powers
 
 
