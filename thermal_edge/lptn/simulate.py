@@ -214,7 +214,7 @@ class Simulator:
         # the input-driven part of the steps that use it (a held run only its first step's)
         want = need | covered(spans, steps)
         want[[a for a, _, _ in closed]] = True
-        f = self._forcing(d.Gam, ops, np.concatenate([prep.U[:steps], P0[:steps]], axis=1), want)
+        f = self._forcing(d.Gam, ops, prep.U, P0, want)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])]
@@ -252,12 +252,7 @@ class Simulator:
             done = b
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T
-        if na:
-            P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names))
-        else:  # affine laws: P(T) = P(0) + ∂P/∂T T, without evaluating the laws again
-            P, dPdT = P0, None
-            for i, node in enumerate(self.tv.tolist()):
-                P += dPdT0[:, :, i] * T[:, node, None]
+        P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
         traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
         if names:
             traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), mats,
@@ -265,15 +260,15 @@ class Simulator:
         return traj
 
     @staticmethod
-    def _forcing(Gam: np.ndarray, ops: np.ndarray, w: np.ndarray, want: np.ndarray) -> np.ndarray:
-        """``f_k = Γ(u_k) w_k`` (steps, n) at the steps in ``want`` (the others are left
+    def _forcing(Gam: np.ndarray, ops: np.ndarray, U: np.ndarray, P: np.ndarray, want: np.ndarray) -> np.ndarray:
+        """``f_k = Γ(u_k) [U_k; P_k]`` (steps, n) at the steps in ``want`` (the others are left
         uninitialised), grouped by operating point: one product per operating point."""
         ks = np.nonzero(want)[0]
         f = np.empty((len(ops), Gam.shape[1]))
         order = ks[np.argsort(ops[ks], kind="stable")]  # the steps of each operating point together
         bounds = np.searchsorted(ops[order], np.arange(Gam.shape[0] + 1))
         fs = np.empty((len(order), Gam.shape[1]))
-        wo = w[order]
+        wo = np.concatenate([U[order], P[order]], axis=1)
         for op in np.nonzero(np.diff(bounds))[0].tolist():
             lo, hi = int(bounds[op]), int(bounds[op + 1])
             np.matmul(wo[lo:hi], Gam[op].T, out=fs[lo:hi])
