@@ -211,8 +211,9 @@ class Simulator:
         varying = varying_steps(dPdT0[:steps], may_change=~held) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
         spans = stretches(ops, varying & ~covered(held_spans, steps))
         need = ~covered(spans, steps) & ~covered([(a, b) for a, b, _ in closed], steps)
-        # the input-driven part of the steps that use it (a held run only its first step's)
-        want = need | covered(spans, steps)
+        # the input-driven part of the stepped steps and of each held run's first step (the
+        # stretches make their own, in the modal basis)
+        want = need.copy()
         want[[a for a, _, _ in closed]] = True
         f = self._forcing(d.Gam, ops, prep.U, P0, want)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
@@ -246,7 +247,8 @@ class Simulator:
                 V, Vi = d.basis(o)
                 ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
                 fm = np.zeros((n, 1, padded_length(b - a)))
-                np.matmul(Vi, f[a:b].T, out=fm[:, 0, : b - a])
+                wab = np.concatenate([prep.U[a:b], P0[a:b]], axis=1)
+                np.matmul(Vi @ d.Gam[o], wab.T, out=fm[:, 0, : b - a])
                 Ta, _ = ns.solve(fm, T[a][:, None])
                 T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
