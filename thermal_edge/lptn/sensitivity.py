@@ -135,8 +135,10 @@ class Sensitivities:
         return d.forcing(o, y, v, left)
 
     # -- runs ---------------------------------------------------------------------------------
-    def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None) -> np.ndarray:
-        """``S`` (N, rows, p) (all nodes when ``rows`` is None).
+    def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None,
+            S0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``S`` (N, rows, p) (all nodes when ``rows`` is None) from ``S[0] = S0`` (n, p; default
+        zero: an initial state that does not depend on θ), and ``S`` at the last sample (n, p).
 
         ``runs`` are the held runs ``(a, b)`` (steps ``a .. b−1``) to try in closed form
         (:func:`held_runs`), ``spans`` the stretches at one operating point to run vectorised in
@@ -147,7 +149,8 @@ class Sensitivities:
         steps = N - 1
         keep = np.arange(self.n) if rows is None else np.asarray(rows, dtype=int)
         S = np.zeros((N, len(keep), self.p))
-        s = np.zeros((self.n, self.p))
+        s = np.zeros((self.n, self.p)) if S0 is None else np.array(S0, dtype=float)
+        S[0] = s[keep]
         forms = self._held_runs(runs, keep) if runs else []
         stepped = np.ones(steps, dtype=bool)
         for (a, b), form in zip(runs, forms):
@@ -194,8 +197,8 @@ class Sensitivities:
             else:
                 s = form.apply(s, S[a + 1: b + 1], work)
             pending = b
-        step(pending, steps, s)
-        return S
+        s = step(pending, steps, s)
+        return S, s
 
     def _span(self, a: int, b: int, s: np.ndarray, out: np.ndarray, keep: np.ndarray) -> np.ndarray:
         """Steps ``a .. b−1`` at one operating point from ``S[a] = s`` (n, p), vectorised in time

@@ -9,10 +9,17 @@ values of the inputs that enter conductances). Losses that are affine in the tem
 copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that is evaluated for the
 whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
 
-Stretches at one operating point where the loss feedback changes every step (a noisy current)
-run vectorised in time (``thermal_edge.lptn.stretch``); the rest is stepped. Sensitivities run after the
-simulation (:mod:`.sensitivity`): in closed form over runs of held inputs, vectorised over the
-same kind of stretches, step by step elsewhere.
+Runs of held inputs are stepped in blocks of their transition's powers, without a loop over
+the steps (:mod:`.held`); stretches at one operating point where the loss feedback changes every
+step (a noisy current) run vectorised in time (:mod:`.stretch`); the rest is stepped.
+Sensitivities run after the simulation (:mod:`.sensitivity`): in closed form over runs of held
+inputs, vectorised over the same kind of stretches, step by step elsewhere.
+
+A run whose inputs visit more than :data:`MAX_OPERATING_POINTS` operating points (a speed that
+sweeps continuously) is simulated in time chunks that visit at most that many each, the
+temperatures and sensitivities carried from one chunk to the next: the discretisations (``n²``
+numbers and more per operating point, several times that with sensitivities) are held for one
+chunk at a time, not for the whole run.
 """
 from __future__ import annotations
 
@@ -30,6 +37,11 @@ from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 from .transitions import StepMatrices
+
+
+#: operating points discretised at once: a run that visits more is simulated in time chunks
+#: (about 0.2 MB per operating point for a 39-node model, 0.3 MB with sensitivities)
+MAX_OPERATING_POINTS = 128
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,7 +109,8 @@ class Simulator:
     max_substep : float, optional
         Euler sub-step limit (s); default: the model's.
     closed_form : bool, optional
-        Sensitivities in closed form over runs of held inputs (default); False steps every
+        Runs of held inputs without a loop over their steps: the temperatures in blocks of the
+        transition's powers, the sensitivities in closed form (default); False steps every
         sample (the same result to round-off, for checking and for timing the general case).
     vectorised : bool, optional
         Run stretches at one operating point vectorised in time (default,
@@ -182,8 +195,55 @@ class Simulator:
         """
         names = tuple(wrt or ())
         widx = list(self.model.parameter_index(names)) if names else []
+        theta = np.asarray(theta, dtype=float)
+        keep = None if rows is None else self._rows(rows)
         N = len(next(iter(inputs.values())))
-        prep = self._prepare(np.asarray(theta, dtype=float), inputs, float(dt), widx)
+        chunks = self._chunks(theta, inputs, N)
+        if len(chunks) == 1:
+            T, P, S, _ = self._run(theta, inputs, float(dt), np.asarray(T0, dtype=float), names, widx, keep, None)
+            return Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes, S=S)
+        # chunk by chunk, each from the last sample of the one before (temperatures and full S)
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        Tc, Sc = np.asarray(T0, dtype=float), None
+        for a, b in chunks:  # samples a .. b
+            piece = {k: (v[a: b + 1] if np.ndim(v) and len(v) == N else v) for k, v in inputs.items()}
+            T, P, S, Sc = self._run(theta, piece, float(dt), Tc, names, widx, keep, Sc)
+            Tc = T[-1]
+            last = b == N - 1
+            parts.append((T if last else T[:-1], P if last else P[:-1], None if S is None else (S if last else S[:-1])))
+        S_all = np.concatenate([x[2] for x in parts if x[2] is not None]) if names else None
+        return Trajectory(T=np.concatenate([x[0] for x in parts]), P=np.concatenate([x[1] for x in parts]),
+                          wrt=names, nodes=self.model.nodes, S=S_all)
+
+    def _chunks(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], N: int) -> list[tuple[int, int]]:
+        """Sample ranges ``(a, b)`` (samples ``a .. b``, consecutive ranges sharing their end
+        sample) whose steps visit at most :data:`MAX_OPERATING_POINTS` operating points; one
+        range for the whole run when it visits no more."""
+        net = self.net
+        if N < 2 or not net.matrix_inputs or any(c not in inputs for c in self.model.inputs):
+            return [(0, max(N - 1, 0))]
+        env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
+        keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[: N - 1] for k in net.matrix_inputs], axis=1)
+        _, ops = unique_rows(keys)
+        limit = max(int(MAX_OPERATING_POINTS), 1)
+        if ops.max() < limit:
+            return [(0, N - 1)]
+        chunks, a, seen = [], 0, set()
+        for k, o in enumerate(ops.tolist()):
+            if o not in seen and len(seen) == limit:  # step k starts the next chunk
+                chunks.append((a, k))
+                a, seen = k, set()
+            seen.add(o)
+        chunks.append((a, N - 1))
+        return chunks
+
+    def _run(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
+             names: tuple[str, ...], widx: list[int], rows: np.ndarray | None,
+             S0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """One chunk of :meth:`simulate` from ``T0`` and ``S0`` (full, n × p; None: zero): the
+        temperatures, losses, sensitivities (``rows``) and the full ``S`` at the last sample."""
+        N = len(next(iter(inputs.values())))
+        prep = self._prepare(theta, inputs, dt, widx)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
         GP = d.Gam[:, :, nb:]
@@ -255,11 +315,11 @@ class Simulator:
         step(done, steps)
         # the slopes along the run only serve the sensitivities of laws not affine in T
         P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
-        traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
-        if names:
-            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), mats,
-                                         held_spans, spans, dPdT0[:steps], prepared, held_tr)
-        return traj
+        if not names:
+            return T, P, None, None
+        S, S_end = self._sensitivities(prep, T, P, dPdT, widx, rows, mats, held_spans, spans, dPdT0[:steps],
+                                       prepared, held_tr, S0)
+        return T, P, S, S_end
 
     @staticmethod
     def _forcing(Gam: np.ndarray, ops: np.ndarray, U: np.ndarray, P: np.ndarray, want: np.ndarray) -> np.ndarray:
@@ -293,7 +353,7 @@ class Simulator:
                        rows: np.ndarray | None, steps: StepMatrices,
                        held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
                        slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch],
-                       held: Transitions | None) -> np.ndarray:
+                       held: Transitions | None, S0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         d = prep.disc
         assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
         N = T.shape[0]
@@ -311,4 +371,4 @@ class Simulator:
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
                              loss_nodes=self.tv, slopes=slopes, prepared=prepared,
                              loss_wrt=self.losses.depends_on(widx), held=held)
-        return sens.run(held_spans, spans, rows)
+        return sens.run(held_spans, spans, rows, S0)
