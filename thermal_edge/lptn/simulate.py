@@ -115,11 +115,15 @@ class Simulator:
     vectorised : bool, optional
         Run stretches at one operating point vectorised in time (default,
         ``thermal_edge.lptn.stretch``); False steps them (the reference, to round-off).
+    max_operating_points : int, optional
+        Operating points discretised at once (default :data:`MAX_OPERATING_POINTS`); a run that
+        visits more is simulated in time chunks.
     """
 
     def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None,
-                 closed_form: bool = True, vectorised: bool = True) -> None:
+                 closed_form: bool = True, vectorised: bool = True, max_operating_points: int | None = None) -> None:
         self.model = model
+        self.max_operating_points = max_operating_points
         self.closed_form = closed_form
         self.vectorised = vectorised
         self.net = Network(model)
@@ -217,15 +221,15 @@ class Simulator:
 
     def _chunks(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], N: int) -> list[tuple[int, int]]:
         """Sample ranges ``(a, b)`` (samples ``a .. b``, consecutive ranges sharing their end
-        sample) whose steps visit at most :data:`MAX_OPERATING_POINTS` operating points; one
-        range for the whole run when it visits no more."""
+        sample) whose steps visit at most ``max_operating_points`` operating points; one range for
+        the whole run when it visits no more."""
         net = self.net
         if N < 2 or not net.matrix_inputs or any(c not in inputs for c in self.model.inputs):
             return [(0, max(N - 1, 0))]
         env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
         keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[: N - 1] for k in net.matrix_inputs], axis=1)
         _, ops = unique_rows(keys)
-        limit = max(int(MAX_OPERATING_POINTS), 1)
+        limit = max(int(MAX_OPERATING_POINTS if self.max_operating_points is None else self.max_operating_points), 1)
         if ops.max() < limit:
             return [(0, N - 1)]
         chunks, a, seen = [], 0, set()
