@@ -47,6 +47,7 @@ import time
 import tracemalloc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -365,9 +366,10 @@ def _sweep(model: Any, cols: dict[str, np.ndarray], dt: float, T0: np.ndarray, t
     results = {}
     for label, sim in (("whole", Simulator(model, max_operating_points=N)), ("chunked", Simulator(model))):
         for what, kw in (("simulation", {}), ("jacobian", {"wrt": wrt, "rows": sensor_nodes})):
-            results[label, what], out[f"{label}_{what}_peak_mb"] = _peak(lambda: sim.simulate(theta, inputs, dt, T0, **kw))
+            call = partial(sim.simulate, theta, inputs, dt, T0, **kw)
+            results[label, what], out[f"{label}_{what}_peak_mb"] = _peak(call)
             t0 = time.perf_counter()
-            sim.simulate(theta, inputs, dt, T0, **kw)
+            call()
             out[f"{label}_{what}_s"] = time.perf_counter() - t0
     out["temperatures_max_rel"] = _max_rel(results["chunked", "simulation"].T, results["whole", "simulation"].T)
     out["sensitivities_max_rel"] = _max_rel(results["chunked", "jacobian"].S, results["whole", "jacobian"].S)

@@ -22,7 +22,6 @@ is symmetric when each loss law reads the temperature of its own node only, so
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np

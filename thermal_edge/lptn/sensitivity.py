@@ -27,7 +27,6 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, cho
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np

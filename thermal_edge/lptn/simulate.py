@@ -38,7 +38,6 @@ from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 from .transitions import StepMatrices
 
-
 #: operating points discretised at once: a run that visits more is simulated in time chunks
 #: (about 0.2 MB per operating point for a 39-node model, 0.3 MB with sensitivities)
 MAX_OPERATING_POINTS = 128
@@ -232,7 +231,8 @@ class Simulator:
         limit = max(int(MAX_OPERATING_POINTS if self.max_operating_points is None else self.max_operating_points), 1)
         if ops.max() < limit:
             return [(0, N - 1)]
-        chunks, a, seen = [], 0, set()
+        chunks: list[tuple[int, int]] = []
+        a, seen = 0, set[int]()
         for k, o in enumerate(ops.tolist()):
             if o not in seen and len(seen) == limit:  # step k starts the next chunk
                 chunks.append((a, k))
@@ -272,7 +272,9 @@ class Simulator:
             # runs the sensitivities leave to stepping (no closed form: its modes) are stepped here too
             ok = held_tr.modes.ok if names else np.ones(len(held_tr.first), dtype=bool)
             closed = [(a, b, int(u)) for (a, b), u in zip(held_spans, held_tr.index) if ok[u]]
-        varying = varying_steps(dPdT0[:steps], may_change=~held) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
+        varying = np.zeros(steps, dtype=bool)
+        if self.vectorised and not len(na):
+            varying = varying_steps(dPdT0[:steps], may_change=~held)
         spans = stretches(ops, varying & ~covered(held_spans, steps))
         need = ~covered(spans, steps) & ~covered([(a, b) for a, b, _ in closed], steps)
         # the input-driven part of the stepped steps and of each held run's first step (the
