@@ -101,7 +101,7 @@ def test_chunks_share_their_end_samples(pm10kw_model, monkeypatch):
     monkeypatch.setattr(simulate, "MAX_OPERATING_POINTS", LIMIT)
     sim = Simulator(m)
     N = len(inputs["i_rms"])
-    chunks = sim._chunks(m.nominal(), inputs, N)
+    chunks = sim._chunks(sim._grouped(m.nominal(), inputs).ops, N)
     assert chunks[0][0] == 0 and chunks[-1][1] == N - 1
     assert all(b == a2 for (_, b), (a2, _) in zip(chunks[:-1], chunks[1:]))
     speed = inputs["speed_rpm"]

@@ -90,6 +90,13 @@ class Trajectory:
 
 
 @dataclass
+class _Grouped:
+    env: dict[str, Value]  # per-sample law environment (arrays of length N)
+    uniq: np.ndarray  # the distinct operating points (K, len(matrix_inputs))
+    ops: np.ndarray  # operating point index per step (N-1,)
+
+
+@dataclass
 class _Prepared:
     ops: np.ndarray  # operating point index per step (N-1,)
     disc: Discrete
@@ -135,7 +142,8 @@ class Simulator:
         self.nonaffine = self.losses.nonaffine
 
     # ---------------------------------------------------------------------------------------
-    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int]) -> _Prepared:
+    def _grouped(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> _Grouped:
+        """The run's law environment and its steps grouped by operating point."""
         model, net = self.model, self.net
         N = len(next(iter(inputs.values())))
         missing = [c for c in model.inputs if c not in inputs]
@@ -147,9 +155,17 @@ class Simulator:
         if net.matrix_inputs:
             keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[:steps] for k in net.matrix_inputs], axis=1)
             uniq, ops = unique_rows(keys)
-            op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
         else:
-            uniq, ops, op = np.zeros((1, 0)), np.zeros(steps, dtype=int), {}
+            uniq, ops = np.zeros((1, 0)), np.zeros(steps, dtype=int)
+        return _Grouped(env=env, uniq=uniq, ops=np.asarray(ops).reshape(-1))
+
+    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int],
+                 grouped: _Grouped | None = None) -> _Prepared:
+        model, net = self.model, self.net
+        N = len(next(iter(inputs.values())))
+        g = self._grouped(theta, inputs) if grouped is None else grouped
+        env, uniq, ops = g.env, g.uniq, g.ops
+        op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
         cont = net.continuous(theta, op, K=len(uniq), wrt=wrt)
         disc = discretise(cont, dt, self.method, self.max_substep)
         U = np.zeros((N, 0))
@@ -201,9 +217,11 @@ class Simulator:
         theta = np.asarray(theta, dtype=float)
         keep = None if rows is None else self._rows(rows)
         N = len(next(iter(inputs.values())))
-        chunks = self._chunks(theta, inputs, N)
+        grouped = self._grouped(theta, inputs)
+        chunks = self._chunks(grouped.ops, N)
         if len(chunks) == 1:
-            T, P, S, _ = self._run(theta, inputs, float(dt), np.asarray(T0, dtype=float), names, widx, keep, None)
+            T, P, S, _ = self._run(theta, inputs, float(dt), np.asarray(T0, dtype=float), names, widx, keep, None,
+                                   grouped)
             return Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes, S=S)
         # chunk by chunk, each from the last sample of the one before (temperatures and full S)
         parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
@@ -218,16 +236,12 @@ class Simulator:
         return Trajectory(T=np.concatenate([x[0] for x in parts]), P=np.concatenate([x[1] for x in parts]),
                           wrt=names, nodes=self.model.nodes, S=S_all)
 
-    def _chunks(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], N: int) -> list[tuple[int, int]]:
+    def _chunks(self, ops: np.ndarray, N: int) -> list[tuple[int, int]]:
         """Sample ranges ``(a, b)`` (samples ``a .. b``, consecutive ranges sharing their end
-        sample) whose steps visit at most ``max_operating_points`` operating points; one range for
-        the whole run when it visits no more."""
-        net = self.net
-        if N < 2 or not net.matrix_inputs or any(c not in inputs for c in self.model.inputs):
+        sample) whose steps (operating points ``ops``) visit at most ``max_operating_points``
+        operating points; one range for the whole run when it visits no more."""
+        if N < 2:
             return [(0, max(N - 1, 0))]
-        env = net.env(theta, {k: np.asarray(v, dtype=float) for k, v in inputs.items()})
-        keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[: N - 1] for k in net.matrix_inputs], axis=1)
-        _, ops = unique_rows(keys)
         limit = max(int(MAX_OPERATING_POINTS if self.max_operating_points is None else self.max_operating_points), 1)
         if ops.max() < limit:
             return [(0, N - 1)]
@@ -243,11 +257,13 @@ class Simulator:
 
     def _run(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
              names: tuple[str, ...], widx: list[int], rows: np.ndarray | None,
-             S0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+             S0: np.ndarray | None, grouped: _Grouped | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
         """One chunk of :meth:`simulate` from ``T0`` and ``S0`` (full, n × p; None: zero): the
-        temperatures, losses, sensitivities (``rows``) and the full ``S`` at the last sample."""
+        temperatures, losses, sensitivities (``rows``) and the full ``S`` at the last sample
+        (``grouped``: the chunk's steps grouped by operating point, when already known)."""
         N = len(next(iter(inputs.values())))
-        prep = self._prepare(theta, inputs, dt, widx)
+        prep = self._prepare(theta, inputs, dt, widx, grouped)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
         GP = d.Gam[:, :, nb:]
