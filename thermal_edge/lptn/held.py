@@ -6,7 +6,7 @@ transition ``M = Φ + Γ_P ∂P/∂T`` and a constant forcing ``f = Γ w``. Runs
 again share ``M`` (:func:`transitions` groups them).
 
 The temperatures of a run (:func:`run_temperatures`) come from the powers ``M, M², …, M^B``
-(:data:`POWERS` of them, built by doubling for all transitions at once): the states at the
+(:data:`POWERS` of them, built by doubling): the states at the
 block starts ``s[j+1] = M^B s[j] + c_B`` (one matrix-vector product per ``B`` steps), then every
 step of every block in one product, ``T[jB + i] = M^i s[j] + c_i`` with ``c_i = Σ_{l<i} M^l f``.
 That is ``2·n²`` flops a step, as many as stepping, without a loop over the steps, and the
@@ -56,14 +56,13 @@ class Modes(NamedTuple):
 class Transitions:
     """The distinct transitions of a run's held runs: each run's transition (``index``), the first
     run of each transition (``first``), the runs of each (``members``), the transitions ``M``
-    (U, n, n) at their operating points ``ops`` (U,), and their modes (:attr:`modes`, computed
-    when first asked for)."""
+    (U, n, n) at their operating points ``ops`` (U,), their modes (:attr:`modes`, computed when
+    first asked for) and powers (:meth:`powers`)."""
 
     def __init__(self, d: Discrete, index: np.ndarray, first: np.ndarray, members: list[np.ndarray],
                  M: np.ndarray, ops: np.ndarray) -> None:
         self.d, self.index, self.first, self.members, self.M, self.ops = d, index, first, members, M, ops
         self._modes: Modes | None = None
-        self._powers: np.ndarray | None = None
 
     @property
     def modes(self) -> Modes:
@@ -72,20 +71,19 @@ class Transitions:
             self._modes = closed_loop_modes(self.d, self.ops, self.M)
         return self._modes
 
-    @property
-    def powers(self) -> np.ndarray:
-        """``M^1 .. M^B`` (U, B, n, n), ``B =`` :data:`POWERS`, by doubling: ``M^(m + i) = M^i M^m``."""
-        if self._powers is None:
-            U, n, _ = self.M.shape
-            pw = np.empty((U, POWERS, n, n))
-            pw[:, 0] = self.M
-            m = 1
-            while m < POWERS:  # [M .. M^m] stacked on top of each other, times M^m: one product each
-                k = min(m, POWERS - m)
-                np.matmul(pw[:, :k].reshape(U, k * n, n), pw[:, m - 1], out=pw[:, m: m + k].reshape(U, k * n, n))
-                m += k
-            self._powers = pw
-        return self._powers
+    def powers(self, u: int) -> np.ndarray:
+        """``M^1 .. M^B`` (B, n, n) of transition ``u``, ``B =`` :data:`POWERS`, by doubling:
+        ``[M .. M^m]`` stacked on top of each other times ``M^m``, one product each. Not kept:
+        a few hundred kilobytes per transition, which the allocator reuses from one to the next."""
+        n = self.M.shape[1]
+        pw = np.empty((POWERS, n, n))
+        pw[0] = self.M[u]
+        m = 1
+        while m < POWERS:
+            k = min(m, POWERS - m)
+            np.matmul(pw[:k].reshape(k * n, n), pw[m - 1], out=pw[m: m + k].reshape(k * n, n))
+            m += k
+        return pw
 
 
 def closed_loop_modes(d: Discrete, ops: np.ndarray, M: np.ndarray) -> Modes:

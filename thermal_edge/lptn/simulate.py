@@ -323,7 +323,7 @@ class Simulator:
             step(done, a)
             if u >= 0:
                 assert held_tr is not None
-                run_temperatures(held_tr.powers[u], f[a], T[a], T[a + 1: b + 1])
+                run_temperatures(held_tr.powers(u), f[a], T[a], T[a + 1: b + 1])
             else:
                 o = int(ops[a])
                 V, Vi = d.basis(o)
