@@ -139,6 +139,8 @@ class Simulator:
         # loss laws: the affine ones are split into constant + slope, the others evaluated per step
         self.losses = LossLaws(model)
         self.tv = self.losses.nodes  # nodes whose temperature enters losses
+        #: (law, column of tv) of every temperature a loss law reads
+        self._slope_pairs = [(j, i) for j, ds in enumerate(self.losses.reads) for i in ds]
         self.nonaffine = self.losses.nonaffine
 
     # ---------------------------------------------------------------------------------------
@@ -300,7 +302,7 @@ class Simulator:
         f = self._forcing(d.Gam, ops, prep.U, P0, want)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
-        GPna = [GP[o][:, na] for o in range(GP.shape[0])]
+        GPna = [GP[o][:, na] for o in range(GP.shape[0])] if na else []
         opl = ops.tolist()
 
         def step(a: int, b: int) -> None:
@@ -335,8 +337,12 @@ class Simulator:
                 T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)
-        # the slopes along the run only serve the sensitivities of laws not affine in T
-        P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
+        if na:  # the slopes along the run only serve the sensitivities of laws not affine in T
+            P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names))
+        else:  # affine laws: P(T) = P(0) + ∂P/∂T T, for the few laws that read a temperature
+            P, dPdT = P0, None
+            for j, i in self._slope_pairs:
+                P[:, j] += dPdT0[:, j, i] * T[:, self.tv[i]]
         if not names:
             return T, P, None, None
         S, S_end = self._sensitivities(prep, T, P, dPdT, widx, rows, mats, held_spans, spans, dPdT0[:steps],
