@@ -166,12 +166,14 @@ def run_temperatures(powers: np.ndarray, f: np.ndarray, T0: np.ndarray, out: np.
     c[1:] = powers[:-1] @ f
     np.cumsum(c, axis=0, out=c)
     nb, rem = divmod(L, B)
-    starts = np.empty((nb + 1, n))
-    starts[0] = T0
-    MB, cB = powers[-1], c[-1]
+    # the block starts with a trailing 1: [s; 1] → [M^B s + c_B; 1], one product a block
+    aug = np.zeros((n + 1, n + 1))
+    aug[:n, :n], aug[:n, n], aug[n, n] = powers[-1], c[-1], 1.0
+    starts_1 = np.empty((nb + 1, n + 1))
+    starts_1[0, :n], starts_1[0, n] = T0, 1.0
     for j in range(nb):
-        np.matmul(MB, starts[j], out=starts[j + 1])
-        starts[j + 1] += cB
+        np.matmul(aug, starts_1[j], out=starts_1[j + 1])
+    starts = starts_1[:, :n]
     P2 = powers.transpose(2, 0, 1).reshape(n, B * n)  # column (i, r): row r of M^(i+1)
     if nb:
         head = out[: nb * B].reshape(nb, B * n)
