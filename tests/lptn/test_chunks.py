@@ -107,3 +107,22 @@ def test_chunks_share_their_end_samples(pm10kw_model, monkeypatch):
     speed = inputs["speed_rpm"]
     assert all(len(np.unique(speed[a:b])) <= LIMIT for a, b in chunks)
     assert all(len(np.unique(speed[a:b + 1])) > LIMIT for a, b in chunks[:-1])  # each as long as it may be
+
+
+def test_held_runs_do_not_depend_on_later_samples(pm10kw_model):
+    """The simulation up to a sample is the same to the last bit whatever the inputs after it:
+    the same drive cycle with its ambient temperature changed after t* (which cuts a held run
+    short), and cut off at t*."""
+    m = pm10kw_model
+    inputs, dt, _ = pm10kw_inputs(m, 3000.0)
+    T0, _ = steady_state(m, {k: float(v[0]) for k, v in inputs.items()})
+    sim = Simulator(m)
+    whole = sim.simulate(m.nominal(), inputs, dt, T0).T
+    for k in (1000, 1234, 2017):
+        later = {c: v.copy() for c, v in inputs.items()}
+        later["ambient_c"][k + 1:] += 15.0
+        changed = sim.simulate(m.nominal(), later, dt, T0).T
+        cut = sim.simulate(m.nominal(), {c: v[: k + 1] for c, v in inputs.items()}, dt, T0).T
+        np.testing.assert_array_equal(changed[: k + 1], whole[: k + 1])
+        np.testing.assert_array_equal(cut, whole[: k + 1])
+        assert np.abs(changed[k + 2:] - whole[k + 2:]).max() > 1.0  # the change is seen after t*

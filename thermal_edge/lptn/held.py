@@ -31,6 +31,13 @@ from .discretise import Discrete
 #: powers of a held run's transition (steps per block of :func:`run_temperatures`): the
 #: products that build them grow with it, the loop over the blocks shrinks
 POWERS = 16
+#: steps of a held run stepped before its blocks start (shorter runs are stepped whole): the
+#: powers cost about as much as this many steps
+LEAD = 16
+#: block rows per product in :func:`run_temperatures`: every product has this one shape, so
+#: that a step's temperatures do not depend on how long its run goes on (a product's kernel,
+#: and with it the order of its sums, can change with its shape)
+ROWS = 32
 #: the powers μ^k of a held run are built in blocks of this many steps, ``μ^(jB + i) = μ^(jB) μ^i``:
 #: ``exp`` for one block and the block offsets, one product for the rest
 POW_BLOCK = 64
@@ -165,19 +172,23 @@ def run_temperatures(powers: np.ndarray, f: np.ndarray, T0: np.ndarray, out: np.
     c[0] = f
     c[1:] = powers[:-1] @ f
     np.cumsum(c, axis=0, out=c)
-    nb, rem = divmod(L, B)
+    nb = -(-L // B)  # blocks, the last one maybe partial
     # the block starts with a trailing 1: [s; 1] → [M^B s + c_B; 1], one product a block
     aug = np.zeros((n + 1, n + 1))
     aug[:n, :n], aug[:n, n], aug[n, n] = powers[-1], c[-1], 1.0
-    starts_1 = np.empty((nb + 1, n + 1))
+    starts_1 = np.empty((nb, n + 1))
     starts_1[0, :n], starts_1[0, n] = T0, 1.0
-    for j in range(nb):
+    for j in range(nb - 1):
         np.matmul(aug, starts_1[j], out=starts_1[j + 1])
-    starts = starts_1[:, :n]
     P2 = powers.transpose(2, 0, 1).reshape(n, B * n)  # column (i, r): row r of M^(i+1)
-    if nb:
-        head = out[: nb * B].reshape(nb, B * n)
-        np.matmul(starts[:nb], P2, out=head)
-        head.reshape(nb, B, n)[:] += c
-    if rem:
-        out[nb * B:] = (starts[nb] @ P2[:, : rem * n]).reshape(rem, n) + c[:rem]
+    S = np.zeros((ROWS, n))
+    Y = np.empty((ROWS, B * n))
+    Yb = Y.reshape(ROWS, B, n)
+    for j0 in range(0, nb, ROWS):  # ROWS blocks a product: T[jB + i] = M^i s[j] + c_i
+        m = min(ROWS, nb - j0)
+        S[:m] = starts_1[j0: j0 + m, :n]
+        np.matmul(S, P2, out=Y)
+        Yb += c
+        r0 = j0 * B
+        r1 = min(L, r0 + m * B)
+        out[r0:r1] = Y.reshape(ROWS * B, n)[: r1 - r0]

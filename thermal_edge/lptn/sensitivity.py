@@ -506,14 +506,15 @@ class _HeldRun:
         return sigma
 
 
-def held_runs(held: np.ndarray, closed: bool) -> list[tuple[int, int]]:
+def held_runs(held: np.ndarray, closed: bool, min_len: int = MIN_HELD) -> list[tuple[int, int]]:
     """The runs ``(a, b)`` of steps ``a .. b−1`` with held inputs (``held``, :func:`held_steps`) at
-    least :data:`MIN_HELD` long; none unless ``closed`` (the closed form is allowed)."""
+    least ``min_len`` long (default :data:`MIN_HELD`); none unless ``closed`` (the closed form is
+    allowed)."""
     steps = len(held)
     if not closed or not steps:
         return []
     bounds: list[int] = np.nonzero(~held)[0].tolist() + [steps]
-    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= min_len]
 
 
 def held_steps(env: Mapping[str, Value], steps: int) -> np.ndarray:

@@ -30,7 +30,7 @@ import numpy as np
 
 from .discretise import Discrete, DiscreteDerivatives, discretise
 from .expr import Value
-from .held import Transitions, run_temperatures, transitions
+from .held import LEAD, Transitions, run_temperatures, transitions
 from .losses import LossLaws
 from .model import MissingInputError, Model
 from .network import Network
@@ -38,6 +38,8 @@ from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 from .transitions import StepMatrices
 
+#: steps per product of the input-driven part of stepped steps (:meth:`Simulator._forcing`)
+FORCING_ROWS = 64
 #: operating points discretised at once: a run that visits more is simulated in time chunks
 #: (about 0.2 MB per operating point for a 39-node model, 0.3 MB with sensitivities)
 MAX_OPERATING_POINTS = 128
@@ -282,22 +284,36 @@ class Simulator:
         # too), stretches of one operating point where the loss feedback changes every step
         # vectorised in time (losses affine in T only: the others are evaluated step by step)
         held = held_steps(prep.env, steps)
-        held_spans = held_runs(held, self.closed_form and not len(na))
-        held_tr = None
-        closed: list[tuple[int, int, int]] = []  # held runs in closed form: (a, b, transition)
-        if held_spans:
-            held_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in held_spans]))
-            # runs the sensitivities leave to stepping (no closed form: its modes) are stepped here too
-            ok = held_tr.modes.ok if names else np.ones(len(held_tr.first), dtype=bool)
-            closed = [(a, b, int(u)) for (a, b), u in zip(held_spans, held_tr.index) if ok[u]]
+        closed_ok = self.closed_form and not len(na)
+        held_spans = held_runs(held, closed_ok)  # the sensitivities' closed form
         varying = np.zeros(steps, dtype=bool)
         if self.vectorised and not len(na):
             varying = varying_steps(dPdT0[:steps], may_change=~held)
         spans = stretches(ops, varying & ~covered(held_spans, steps))
-        need = ~covered(spans, steps) & ~covered([(a, b) for a, b, _ in closed], steps)
-        # the input-driven part of the stepped steps and of each held run's first step (the
+        in_span = covered(spans, steps)
+        # the simulation's held runs: every run of held inputs from its LEAD-th step on, in blocks
+        # of its transition's powers (the steps before, and shorter runs, are stepped). Which steps
+        # run in blocks, and how the blocks fall, depends only on the inputs up to them: a run
+        # that goes on longer gives the same temperatures up to any of its steps
+        blocks = [(a + LEAD, b) for a, b in held_runs(held, closed_ok, LEAD + 1) if not in_span[a:b].any()]
+        closed: list[tuple[int, int, int]] = []  # (a, b, transition)
+        sim_tr = None
+        if blocks:
+            sim_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in blocks]))
+            closed = [(a, b, int(u)) for (a, b), u in zip(blocks, sim_tr.index)]
+        stepped = ~in_span & ~covered(blocks, steps)
+        held_tr = None
+        need = stepped.copy()
+        if names:  # the steps the sensitivities step: not in a stretch nor in a run in closed form
+            sens_closed: list[tuple[int, int]] = []
+            if held_spans:
+                held_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in held_spans]))
+                ok = held_tr.modes.ok[held_tr.index]
+                sens_closed = [r for r, good in zip(held_spans, ok) if good]
+            need |= ~in_span & ~covered(sens_closed, steps)
+        # the input-driven part of the stepped steps and of each block run's first step (the
         # stretches make their own, in the modal basis)
-        want = need.copy()
+        want = stepped.copy()
         want[[a for a, _, _ in closed]] = True
         f = self._forcing(d.Gam, ops, prep.U, P0, want)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
@@ -324,8 +340,8 @@ class Simulator:
         for a, b, u in events:
             step(done, a)
             if u >= 0:
-                assert held_tr is not None
-                run_temperatures(held_tr.powers(u), f[a], T[a], T[a + 1: b + 1])
+                assert sim_tr is not None
+                run_temperatures(sim_tr.powers(u), f[a], T[a], T[a + 1: b + 1])
             else:
                 o = int(ops[a])
                 V, Vi = d.basis(o)
@@ -352,16 +368,24 @@ class Simulator:
     @staticmethod
     def _forcing(Gam: np.ndarray, ops: np.ndarray, U: np.ndarray, P: np.ndarray, want: np.ndarray) -> np.ndarray:
         """``f_k = Γ(u_k) [U_k; P_k]`` (steps, n) at the steps in ``want`` (the others are left
-        uninitialised), grouped by operating point: one product per operating point."""
+        uninitialised), grouped by operating point: products of :data:`FORCING_ROWS` steps of
+        one operating point. Every product has that one shape (the last of each operating point
+        padded), so that a step's forcing does not depend on how many other steps are asked for
+        (a product's kernel, and with it the order of its sums, can change with its shape)."""
         ks = np.nonzero(want)[0]
-        f = np.empty((len(ops), Gam.shape[1]))
+        n = Gam.shape[1]
+        f = np.empty((len(ops), n))
         order = ks[np.argsort(ops[ks], kind="stable")]  # the steps of each operating point together
         bounds = np.searchsorted(ops[order], np.arange(Gam.shape[0] + 1))
-        fs = np.empty((len(order), Gam.shape[1]))
+        fs = np.empty((len(order), n))
         wo = np.concatenate([U[order], P[order]], axis=1)
+        buf, res = np.zeros((FORCING_ROWS, wo.shape[1])), np.empty((FORCING_ROWS, n))
         for op in np.nonzero(np.diff(bounds))[0].tolist():
-            lo, hi = int(bounds[op]), int(bounds[op + 1])
-            np.matmul(wo[lo:hi], Gam[op].T, out=fs[lo:hi])
+            for lo in range(int(bounds[op]), int(bounds[op + 1]), FORCING_ROWS):
+                hi = min(lo + FORCING_ROWS, int(bounds[op + 1]))
+                buf[: hi - lo] = wo[lo:hi]
+                np.matmul(buf, Gam[op].T, out=res)
+                fs[lo:hi] = res[: hi - lo]
         f[order] = fs
         return f
 
