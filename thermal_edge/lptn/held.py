@@ -183,12 +183,14 @@ def run_temperatures(powers: np.ndarray, f: np.ndarray, T0: np.ndarray, out: np.
     P2 = powers.transpose(2, 0, 1).reshape(n, B * n)  # column (i, r): row r of M^(i+1)
     S = np.zeros((ROWS, n))
     Y = np.empty((ROWS, B * n))
-    Yb = Y.reshape(ROWS, B, n)
     for j0 in range(0, nb, ROWS):  # ROWS blocks a product: T[jB + i] = M^i s[j] + c_i
         m = min(ROWS, nb - j0)
-        S[:m] = starts_1[j0: j0 + m, :n]
-        np.matmul(S, P2, out=Y)
-        Yb += c
         r0 = j0 * B
         r1 = min(L, r0 + m * B)
-        out[r0:r1] = Y.reshape(ROWS * B, n)[: r1 - r0]
+        S[:m] = starts_1[j0: j0 + m, :n]
+        whole = r1 - r0 == ROWS * B  # straight into the output, else through Y
+        dest = out[r0:r1].reshape(ROWS, B * n) if whole else Y
+        np.matmul(S, P2, out=dest)
+        dest.reshape(ROWS, B, n)[:] += c
+        if not whole:
+            out[r0:r1] = Y.reshape(ROWS * B, n)[: r1 - r0]
