@@ -34,3 +34,9 @@ def test_varying_case_reports_old_and_new_side_by_side():
     assert v["forward_bound"] == bound
     # the new way is the old one reordered: the same numbers to round-off
     assert v["vectorised_vs_stepped_max_rel"] < 1e-9 and v["simulation_vs_stepped_max_rel"] < 1e-9
+    # a speed that sweeps: one piece and chunks agree, peaks and times measured for both
+    w = r.sweep
+    assert w["operating_points"] > 1
+    for key in ("whole_simulation", "chunked_simulation", "whole_jacobian", "chunked_jacobian"):
+        assert w[f"{key}_peak_mb"] > 0 and w[f"{key}_s"] > 0
+    assert w["temperatures_max_rel"] < 1e-9 and w["sensitivities_max_rel"] < 1e-9

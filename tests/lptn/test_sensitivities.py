@@ -242,7 +242,8 @@ def test_pm10kw_closed_form_equals_stepping(pm10kw_model, rows, monkeypatch):
     n_calls = len(calls)
     stepped = Simulator(m, closed_form=False).simulate(m.nominal(), inputs, dt, T0, wrt=m.adaptable, rows=keep)
     assert len(calls) == n_calls  # no closed form the second time
-    np.testing.assert_array_equal(closed.T, stepped.T)
+    # the simulation steps the held runs in blocks of the transition's powers: the same to round-off
+    assert np.abs(closed.T - stepped.T).max() <= 1e-12 * np.abs(stepped.T).max()
     for j, name in enumerate(m.adaptable):
         scale = np.abs(stepped.S[:, :, j]).max()
         err = np.abs(closed.S[:, :, j] - stepped.S[:, :, j]).max()

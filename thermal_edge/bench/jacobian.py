@@ -25,6 +25,13 @@ timed twice over, wall clock and the process's CPU time: on a busy host the wall
 the time the process waits for a core, the CPU time does not, so the CPU ratios are the ones that
 hold from one run to the next.
 
+A third case has a speed that sweeps continuously (the varied cycle's speed plus a slow
+oscillation of :data:`SWEEP_RPM`, rounded to 1 rpm, and the noisy current): a new operating point
+every few steps, thousands in the run. Its figure is memory: the tracemalloc peak of one
+simulation and of one Jacobian with every operating point discretised at once and in time chunks
+of at most :data:`~thermal_edge.lptn.simulate.MAX_OPERATING_POINTS`, their wall times (one call
+each, outside tracemalloc) and their agreement.
+
 Two figures bound what the ratios can reach. Forward differences are ``p + 1`` simulations and
 the analytic Jacobian is one simulation plus the sensitivities, so forward differences / analytic
 is below ``(p + 1) × simulation / analytic`` (printed beside it) however cheap the sensitivities
@@ -37,14 +44,17 @@ from __future__ import annotations
 
 import statistics
 import time
+import tracemalloc
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 
 from ..lptn import Role, Simulator, load_model, steady_state
 from ..lptn.sensitivity import held_steps
+from ..lptn.simulate import MAX_OPERATING_POINTS
 from ..shipped import config_path
 from ..sim.cycles import cycle_run, load_cycle
 from .common import Progress, no_progress, timed_together
@@ -53,6 +63,9 @@ from .common import Progress, no_progress, timed_together
 NOISE = 1e-3
 #: the noisy speed is rounded to this resolution (rpm): operating points of one discretisation
 SPEED_BIN_RPM = 10.0
+#: amplitude (rpm) and period (s) of the slow oscillation added to the speed in the sweep case
+SWEEP_RPM = 200.0
+SWEEP_PERIOD_S = 1200.0
 
 
 def recorded_like(cols: dict[str, np.ndarray], current: str, speed: str, noise: float = NOISE,
@@ -98,6 +111,8 @@ class JacobianResult:
     when: str
     #: inputs that vary every sample: the same figures, the binning's effect and the agreement
     varying: dict[str, Any] = field(default_factory=dict)
+    #: a speed that sweeps continuously: peak memory and time in one piece and in chunks
+    sweep: dict[str, Any] = field(default_factory=dict)
 
 
 def central_difference(sim: Simulator, theta: np.ndarray, i: int, cols: dict, dt: float, T0: np.ndarray,
@@ -165,6 +180,9 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
               "arith_limit_reused_s": 2.0 * t_warm, "arith_limit_reused_cpu_s": 2.0 * c_warm}
     varying = _varying(model, cols, dt, T0, theta, wrt, sensor_nodes, idx, repeat, limits,
                        lambda stage, *a: progress(f"varying inputs: {stage}", *a))
+    progress("sweeping speed", 0, 1, "case")
+    sweep = _sweep(model, cols, dt, T0, theta, wrt, sensor_nodes)
+    progress("sweeping speed", 1, 1, "case")
 
     # accuracy: fourth-order central differences (step 1 % of the value: the simulation's own
     # round-off, ~1e-10 K, swamps smaller steps), relative error on entries above 1 % of that
@@ -206,6 +224,7 @@ def run(repeat: int = 7, model_path: str | None = None, cycle_path: str | None =
         arith_limit_reused_s=2.0 * t_warm,
         when=time.strftime("%Y-%m-%dT%H:%M:%S"),
         varying=varying,
+        sweep=sweep,
     )
 
 
@@ -312,6 +331,49 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
         "analytic_over_reused_limit": t_an / limits["arith_limit_reused_s"],
         "cpu_analytic_over_reused_limit": c_an / limits["arith_limit_reused_cpu_s"],
     }
+
+
+def swept(cols: dict[str, np.ndarray], speed: str, dt: float, amplitude: float = SWEEP_RPM,
+          period_s: float = SWEEP_PERIOD_S) -> dict[str, np.ndarray]:
+    """The inputs with a slow oscillation of ``amplitude`` rpm and period ``period_s`` added to
+    ``speed`` where the machine turns, rounded to 1 rpm: a speed that sweeps continuously."""
+    out = dict(cols)
+    sp = np.asarray(cols[speed], dtype=float)
+    t = np.arange(len(sp)) * dt
+    out[speed] = np.where(sp > 0.0, np.round(sp + amplitude * np.sin(2.0 * np.pi * t / period_s)), 0.0)
+    return out
+
+
+def _peak(fn: Callable[[], Any]) -> tuple[Any, float]:
+    """``fn()`` and the tracemalloc peak of the call (MB)."""
+    tracemalloc.start()
+    try:
+        out = fn()
+        return out, tracemalloc.get_traced_memory()[1] / 1e6
+    finally:
+        tracemalloc.stop()
+
+
+def _sweep(model: Any, cols: dict[str, np.ndarray], dt: float, T0: np.ndarray, theta: np.ndarray,
+           wrt: list[str], sensor_nodes: list[str]) -> dict[str, Any]:
+    """The sweeping-speed case (see the module docstring): peak memory (MB) and wall time (s) of a
+    simulation and a Jacobian in one piece and in chunks, and their agreement."""
+    current, speed = model.input_name(Role.CURRENT), model.input_name(Role.SPEED)
+    inputs = swept(recorded_like(cols, current, speed, speed_bin=None), speed, dt)
+    N = len(inputs[speed])
+    out: dict[str, Any] = {"operating_points": int(len(np.unique(inputs[speed][: N - 1]))),
+                           "max_operating_points": MAX_OPERATING_POINTS, "amplitude_rpm": SWEEP_RPM}
+    results = {}
+    for label, sim in (("whole", Simulator(model, max_operating_points=N)), ("chunked", Simulator(model))):
+        for what, kw in (("simulation", {}), ("jacobian", {"wrt": wrt, "rows": sensor_nodes})):
+            call = partial(sim.simulate, theta, inputs, dt, T0, **kw)
+            results[label, what], out[f"{label}_{what}_peak_mb"] = _peak(call)
+            t0 = time.perf_counter()
+            call()
+            out[f"{label}_{what}_s"] = time.perf_counter() - t0
+    out["temperatures_max_rel"] = _max_rel(results["chunked", "simulation"].T, results["whole", "simulation"].T)
+    out["sensitivities_max_rel"] = _max_rel(results["chunked", "jacobian"].S, results["whole", "jacobian"].S)
+    return out
 
 
 def _max_rel(a: object, ref: object) -> float:

@@ -186,6 +186,20 @@ def run_jacobian(args: argparse.Namespace) -> int:
     ))
     print("ratios: medians of the rounds' paired ratios; agreement of new with old: sensitivities "
           f"{v['vectorised_vs_stepped_max_rel']:.1e}, temperatures {v['simulation_vs_stepped_max_rel']:.1e} of the largest entry")
+    w = r.sweep
+    print(f"\nA speed that sweeps continuously (+-{w['amplitude_rpm']:g} rpm around the cycle's, 1 rpm resolution, "
+          f"noisy current): {w['operating_points']} operating points; peak memory (tracemalloc) and wall time of one call")
+    print(table(
+        ["", "all operating points at once", f"chunks of <= {w['max_operating_points']}"],
+        [
+            ["simulation: peak MB", w["whole_simulation_peak_mb"], w["chunked_simulation_peak_mb"]],
+            ["  wall s", w["whole_simulation_s"], w["chunked_simulation_s"]],
+            ["Jacobian: peak MB", w["whole_jacobian_peak_mb"], w["chunked_jacobian_peak_mb"]],
+            ["  wall s", w["whole_jacobian_s"], w["chunked_jacobian_s"]],
+        ],
+    ))
+    print(f"agreement of chunks with one piece: temperatures {w['temperatures_max_rel']:.1e}, sensitivities "
+          f"{w['sensitivities_max_rel']:.1e} of the largest entry")
     return 0
 
 

@@ -280,7 +280,8 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
         m = euler_substeps(lam, dt, max_substep)
         h = dt / m
         mu = (1.0 + h * lam) ** m
-        phi = (mu - 1.0) / lam
+        pos = 1.0 + h * lam > 0.0  # there μ − 1 = expm1(m log1p(hλ)), without cancellation
+        phi = np.where(pos, np.expm1(m * np.log1p(np.where(pos, h * lam, 0.0))), mu - 1.0) / lam
         F = cont.A / cont.c[:, None]
         Phi1 = eye + h * F
         PmI = h * F
@@ -289,13 +290,16 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
     else:
         raise ValueError(f"unknown discretisation method {method!r} (zoh, euler)")
     Phi = PmI + eye
-    H = np.linalg.solve(cont.A, cont.W)
-    values = dict(Phi=Phi, Gam=PmI @ H, substeps=m, s=s, Q=Qm, mu=mu, phi=phi)
+    # Γ = (Φ − I) A⁻¹ W = V diag(phi) V⁻¹ C⁻¹ W with V = C^-½ Q: through the eigenvectors (two
+    # products) instead of a solve, and with phi = (μ − 1)/λ the slow modes keep their digits
+    QtW = Qt @ (cont.W / s[:, None])  # V⁻¹ C⁻¹ W
+    values = dict(Phi=Phi, Gam=(Qm * phi[:, None, :]) @ QtW / s[:, None], substeps=m, s=s, Q=Qm, mu=mu, phi=phi)
     if not with_d:
         return Discrete(**values)
     assert cont.dc is not None and cont.dZ is not None and cont.dV is not None and cont.dg is not None
+    H = (Qm * (1.0 / lam)[:, None, :]) @ QtW / s[:, None]  # A⁻¹ W = V diag(1/λ) V⁻¹ C⁻¹ W
     factors = dict(
-        Ht=Qt @ (s[:, None] * H),  # V⁻¹ H
+        Ht=QtW / lam[:, :, None],  # V⁻¹ H
         Zh=Qt @ (cont.dZ / s[:, None]),
         Yt=np.swapaxes(cont.dV, -1, -2) - np.swapaxes(cont.dZ, -1, -2) @ H,
         dg=cont.dg,

@@ -51,6 +51,11 @@ class LossLaws:
         return len(self.laws)
 
     @property
+    def reads(self) -> list[list[int]]:
+        """Per law, the columns of :meth:`dT` (indices into :attr:`nodes`) it reads."""
+        return [[i for i, _ in ds] for ds in self._dT]
+
+    @property
     def temperature_dependent(self) -> bool:
         """Whether any law reads a node temperature."""
         return bool(len(self.nodes))

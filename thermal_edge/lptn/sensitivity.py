@@ -27,13 +27,13 @@ the forcing ``X_k = dΦ T_k + dΓ w_k + Γ_P ∂P/∂θ``. Three exact ways, cho
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from .discretise import DiscreteDerivatives
 from .expr import Value
+from .held import POW_BLOCK, Transitions, power_basis
 from .scratch import Scratch
 from .stretch import RANK_TOL, NodeStretch, padded_length
 from .transitions import StepMatrices
@@ -44,13 +44,6 @@ MIN_HELD = 64
 #: basis a pair loses about 1e-16/gap of relative accuracy to cancellation
 CLOSE = 1e-6
 BLOCK = 256  # time steps per block of the step-by-step forcing
-#: the powers μ^k of a held run are built in blocks of this many steps, ``μ^(jB + i) = μ^(jB) μ^i``:
-#: ``exp`` for one block and the block offsets, one product for the rest
-POW_BLOCK = 64
-#: floor of the exponents of both factors: their product stays above e^−708 (no subnormals, which
-#: would slow the product of the basis with the coefficients), and e^−350 is far below round-off
-#: of any term that matters
-LOG_FLOOR = -350.0
 #: an operating point used by fewer stepped steps than this gets the Daleckii–Krein form vector by
 #: vector instead of its dense derivative (a ramp: a new speed every step)
 FEW_STEPS = 8
@@ -107,14 +100,17 @@ class Sensitivities:
     loss_wrt : bool, optional
         Whether some loss law depends on a parameter asked for (default True); without,
         ``∂P/∂θ`` is zero and the stretches skip it.
+    held : Transitions, optional
+        The closed-loop modes of the held runs :meth:`run` is given (the simulation's,
+        :func:`~thermal_edge.lptn.held.transitions`); needed when it is given any.
     """
 
     def __init__(self, disc: DiscreteDerivatives, ops: np.ndarray, mats: StepMatrices, T: np.ndarray,
                  U: np.ndarray, P: np.ndarray, losses: AtSteps, loss_theta: AtSteps, loss_nodes: np.ndarray,
                  slopes: np.ndarray | None = None, prepared: Mapping[tuple[int, int], NodeStretch] | None = None,
-                 loss_wrt: bool = True) -> None:
+                 loss_wrt: bool = True, held: Transitions | None = None) -> None:
         self.d, self.ops, self.mats = disc, ops, mats
-        self.slopes, self.prepared, self.loss_wrt = slopes, dict(prepared or {}), loss_wrt
+        self.slopes, self.prepared, self.loss_wrt, self.held = slopes, dict(prepared or {}), loss_wrt, held
         self.scratch = Scratch()  # the stretches' large temporaries, reused from one to the next
         self.T, self.U, self.P, self.nb = T, U, P, U.shape[1]
         self.losses, self.loss_theta, self.loss_nodes = losses, loss_theta, np.asarray(loss_nodes, dtype=int)
@@ -138,8 +134,10 @@ class Sensitivities:
         return d.forcing(o, y, v, left)
 
     # -- runs ---------------------------------------------------------------------------------
-    def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None) -> np.ndarray:
-        """``S`` (N, rows, p) (all nodes when ``rows`` is None).
+    def run(self, runs: list[tuple[int, int]], spans: list[tuple[int, int]], rows: np.ndarray | None,
+            S0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``S`` (N, rows, p) (all nodes when ``rows`` is None) from ``S[0] = S0`` (n, p; default
+        zero: an initial state that does not depend on θ), and ``S`` at the last sample (n, p).
 
         ``runs`` are the held runs ``(a, b)`` (steps ``a .. b−1``) to try in closed form
         (:func:`held_runs`), ``spans`` the stretches at one operating point to run vectorised in
@@ -150,7 +148,8 @@ class Sensitivities:
         steps = N - 1
         keep = np.arange(self.n) if rows is None else np.asarray(rows, dtype=int)
         S = np.zeros((N, len(keep), self.p))
-        s = np.zeros((self.n, self.p))
+        s = np.zeros((self.n, self.p)) if S0 is None else np.array(S0, dtype=float)
+        S[0] = s[keep]
         forms = self._held_runs(runs, keep) if runs else []
         stepped = np.ones(steps, dtype=bool)
         for (a, b), form in zip(runs, forms):
@@ -197,8 +196,8 @@ class Sensitivities:
             else:
                 s = form.apply(s, S[a + 1: b + 1], work)
             pending = b
-        step(pending, steps, s)
-        return S
+        s = step(pending, steps, s)
+        return S, s
 
     def _span(self, a: int, b: int, s: np.ndarray, out: np.ndarray, keep: np.ndarray) -> np.ndarray:
         """Steps ``a .. b−1`` at one operating point from ``S[a] = s`` (n, p), vectorised in time
@@ -280,7 +279,8 @@ class Sensitivities:
         None where it does not apply: the closed-loop transition is not symmetrisable (a loss law
         couples nodes) or has an eigenvalue outside (0, 1).
 
-        In steps: runs with the same transition share its modes (:meth:`_transitions`); each run's
+        In steps: runs with the same transition share its modes (the simulation's
+        :class:`~thermal_edge.lptn.held.Transitions`); each run's
         temperatures in those modes, ``ξ_k = ξ∞ + μ^k δ`` (:meth:`_run_states`); the forcing in
         the modes per transition, applied to each run's states (:meth:`_modal_forcing`); from
         those, the coefficients of the chosen rows on the time basis (:meth:`_coefficients`), the
@@ -290,7 +290,8 @@ class Sensitivities:
         starts = np.array([a for a, _ in runs])
         lengths = np.array([b - a for a, b in runs])
         ops = self.ops[starts]
-        tr = self._transitions(starts, ops)
+        tr = self.held
+        assert tr is not None and len(tr.index) == len(runs)  # the simulation's, of the same runs
         probe, w0 = self._probe_forcing(starts, ops)
         st = self._run_states(tr, starts, ops, lengths, w0)
         pairs = _ModePairs.of(tr.modes.mu)
@@ -306,17 +307,7 @@ class Sensitivities:
         return [_HeldRun(mu_ext[i], coef[i], to_rows[i], modes.Om[u], modes.Xi[u], st.mu_end[i], end[i], extra[i])
                 if modes.ok[u] else None for i, u in enumerate(tr.index)]
 
-    def _transitions(self, starts: np.ndarray, ops: np.ndarray) -> _Transitions:
-        """Group the runs starting at ``starts`` by their transition ``M`` (operating point and
-        current: a set point met again) and decompose each distinct one (:meth:`_modes`)."""
-        seen: dict[bytes, int] = {}
-        index = np.array([seen.setdefault(self.mats.matrix(int(a)).tobytes(), len(seen)) for a in starts])
-        first = np.unique(index, return_index=True)[1]
-        members = np.split(np.argsort(index, kind="stable"), np.cumsum(np.bincount(index))[:-1])
-        modes = self._modes(ops[first], np.stack([self.mats.matrix(int(a)) for a in starts[first]]))
-        return _Transitions(index, first, members, modes)
-
-    def _run_states(self, tr: _Transitions, starts: np.ndarray, ops: np.ndarray, lengths: np.ndarray,
+    def _run_states(self, tr: Transitions, starts: np.ndarray, ops: np.ndarray, lengths: np.ndarray,
                     w0: np.ndarray) -> _RunStates:
         """Each run's temperatures in its modes, ``ξ_k = ξ∞ + μ^k δ``, and the powers ``μ^L``, ``μ^(L−1)``."""
         modes = tr.modes
@@ -328,7 +319,7 @@ class Sensitivities:
             mu_before_end = mu ** (lengths[:, None] - 1)
         return _RunStates(mu, xi_inf, delta, mu_end, mu_before_end)
 
-    def _modal_forcing(self, tr: _Transitions, ops: np.ndarray, probe: np.ndarray, st: _RunStates,
+    def _modal_forcing(self, tr: Transitions, ops: np.ndarray, probe: np.ndarray, st: _RunStates,
                        pairs: _ModePairs, keep: np.ndarray) -> _ModalForcing:
         """The forcing ``F_u[j, a, b]`` of parameter ``j`` on mode ``a`` per unit of mode ``b`` of each
         transition ``u``, applied to the runs' states: only these products leave the loop (all
@@ -360,7 +351,7 @@ class Sensitivities:
             F_delta[sel], F_delta_end[sel] = G[:, :, : len(sel)].transpose(2, 1, 0), G[:, :, len(sel):].transpose(2, 1, 0)
         return _ModalForcing(F_xinf, F_delta, F_delta_end, rows_F, diag_F, close_F)
 
-    def _coefficients(self, tr: _Transitions, st: _RunStates, pairs: _ModePairs, fo: _ModalForcing,
+    def _coefficients(self, tr: Transitions, st: _RunStates, pairs: _ModePairs, fo: _ModalForcing,
                       const: np.ndarray, to_rows: np.ndarray) -> np.ndarray:
         """Coefficients (runs, 2n+1, rows, p) of the chosen rows on the time basis ``μ_b^k`` (b ≤ n)
         and ``k μ_a^(k−1)`` (a < n), without the part of ``σ_0``."""
@@ -374,7 +365,7 @@ class Sensitivities:
         coef[:, n + 1:] = to_rows_t * (fo.diag_F[tr.index] * st.delta[:, :, None])[:, :, None, :]
         return coef
 
-    def _ends(self, tr: _Transitions, st: _RunStates, lengths: np.ndarray, fo: _ModalForcing,
+    def _ends(self, tr: Transitions, st: _RunStates, lengths: np.ndarray, fo: _ModalForcing,
               const: np.ndarray) -> np.ndarray:
         """``σ_L`` (runs, n, p) of each run without the part of ``σ_0``, in ``ξ``: the sums of
         :meth:`_coefficients` at ``k = L`` (close pairs: :meth:`_close_pairs` adds theirs)."""
@@ -384,7 +375,7 @@ class Sensitivities:
             end += divided_powers(st.mu, np.ones_like(st.mu), lengths[:, None].astype(float))[:, :, None] * const
         return end
 
-    def _close_pairs(self, tr: _Transitions, st: _RunStates, lengths: np.ndarray, pairs: _ModePairs,
+    def _close_pairs(self, tr: Transitions, st: _RunStates, lengths: np.ndarray, pairs: _ModePairs,
                      fo: _ModalForcing, const: np.ndarray, to_rows: np.ndarray,
                      end: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
         """The close eigenvalue pairs (none in most models), which keep their divided differences:
@@ -402,22 +393,6 @@ class Sensitivities:
                 c = np.concatenate([c, const[i, near_one]])
                 extra[i] = (pa, pb, to_rows[i].T[pa][:, :, None] * c[:, None, :])
         return extra
-
-    def _modes(self, ops: np.ndarray, M: np.ndarray) -> _Modes:
-        """Eigendecomposition of the transitions ``M`` (U, n, n) at operating points ``ops`` (U,):
-        in the modal basis of ``Φ``, ``diag(r)^-1 V⁻¹ M V diag(r)`` with ``r = √phi`` is
-        symmetric (up to round-off) when no loss law couples nodes."""
-        d = self.d
-        V, Vi = d.basis(ops)  # modal basis of Φ at each operating point
-        r = np.sqrt(d.phi[ops])
-        Sym = (Vi @ M @ V) * r[:, None, :] / r[:, :, None]
-        asym = np.max(np.abs(Sym - np.swapaxes(Sym, -1, -2)), axis=(1, 2)) / np.max(np.abs(Sym), axis=(1, 2))
-        mu, Q2 = np.linalg.eigh((Sym + np.swapaxes(Sym, -1, -2)) / 2.0)
-        ok = (asym < 1e-9) & (mu.min(axis=1) > -1e-12) & (mu.max(axis=1) < 1.0)
-        rQ2 = r[:, :, None] * Q2
-        Q2r = np.swapaxes(Q2, -1, -2) / r[:, None, :]
-        # modes far faster than the step (e^(λ dt) below round-off) are zero after one step
-        return _Modes(mu=np.maximum(mu, 1e-300), ok=ok, rQ2=rQ2, Q2r=Q2r, Om=V @ rQ2, Xi=Q2r @ Vi)
 
     def _probe_forcing(self, a_: np.ndarray, o_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The forcing ``V⁻¹ X`` (runs, 1 + tv, n, p) of held runs starting at steps ``a_`` (at
@@ -443,30 +418,6 @@ class Sensitivities:
             X += (GPt @ dP.transpose(1, 0, 2).reshape(dP.shape[1], -1)).reshape(n, -1, p).transpose(1, 0, 2)
             Xf[sel] = X.reshape(len(sel), nt, n, p)
         return Xf, wp[:, 0]
-
-
-class _Modes(NamedTuple):
-    """Closed-loop modes ``ξ`` of transitions (leading axis): eigenvalues ``mu`` and whether the
-    closed form applies (``ok``); ``rQ2``/``Q2r`` map ``ξ`` to the modal basis of ``Φ`` and back,
-    ``Om``/``Xi`` to node temperatures and back."""
-
-    mu: np.ndarray
-    ok: np.ndarray
-    rQ2: np.ndarray
-    Q2r: np.ndarray
-    Om: np.ndarray
-    Xi: np.ndarray
-
-
-@dataclass(frozen=True)
-class _Transitions:  # not a NamedTuple: its field ``index`` would shadow tuple.index
-    """The distinct transitions of the held runs: each run's transition (``index``), the first
-    run of each transition (``first``), the runs of each (``members``) and their modes."""
-
-    index: np.ndarray
-    first: np.ndarray
-    members: list[np.ndarray]
-    modes: _Modes
 
 
 class _RunStates(NamedTuple):
@@ -541,12 +492,7 @@ class _HeldRun:
         # the basis [μ^k, k μ^(k−1)] at k = 1 .. L, in place, one row per function (contiguous
         # passes); μ^k in blocks: μ^(jB + i) = μ^(jB) μ^i, i = 1 .. B
         k = np.arange(1.0, L + 1.0)
-        nb = -(-L // POW_BLOCK)
-        blocks = work[: n + 1, : nb * POW_BLOCK].reshape(n + 1, nb, POW_BLOCK)
-        assert np.may_share_memory(blocks, work)  # a view: the product below fills work
-        first = np.exp(np.maximum(self.logmue[:, None] * np.arange(1.0, POW_BLOCK + 1.0), LOG_FLOOR))
-        offset = np.exp(np.maximum(self.logmue[:, None] * (POW_BLOCK * np.arange(nb)), LOG_FLOOR))
-        np.multiply(offset[:, :, None], first[:, None, :], out=blocks)
+        power_basis(self.logmue, L, work[: n + 1])
         basis = work[:, :L]
         Pw = basis[: n + 1]
         basis[n + 1:, 0] = 1.0
@@ -560,14 +506,15 @@ class _HeldRun:
         return sigma
 
 
-def held_runs(held: np.ndarray, closed: bool) -> list[tuple[int, int]]:
+def held_runs(held: np.ndarray, closed: bool, min_len: int = MIN_HELD) -> list[tuple[int, int]]:
     """The runs ``(a, b)`` of steps ``a .. b−1`` with held inputs (``held``, :func:`held_steps`) at
-    least :data:`MIN_HELD` long; none unless ``closed`` (the closed form is allowed)."""
+    least ``min_len`` long (default :data:`MIN_HELD`); none unless ``closed`` (the closed form is
+    allowed)."""
     steps = len(held)
     if not closed or not steps:
         return []
     bounds: list[int] = np.nonzero(~held)[0].tolist() + [steps]
-    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= MIN_HELD]
+    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= min_len]
 
 
 def held_steps(env: Mapping[str, Value], steps: int) -> np.ndarray:

@@ -9,10 +9,17 @@ values of the inputs that enter conductances). Losses that are affine in the tem
 copper law ``P20 (1 + α (T − 20))``) are split at load time into a part that is evaluated for the
 whole run at once and a per-step feedback ``∂P/∂T``; other loss laws are evaluated per step.
 
-Stretches at one operating point where the loss feedback changes every step (a noisy current)
-run vectorised in time (``thermal_edge.lptn.stretch``); the rest is stepped. Sensitivities run after the
-simulation (:mod:`.sensitivity`): in closed form over runs of held inputs, vectorised over the
-same kind of stretches, step by step elsewhere.
+Runs of held inputs are stepped in blocks of their transition's powers, without a loop over
+the steps (:mod:`.held`); stretches at one operating point where the loss feedback changes every
+step (a noisy current) run vectorised in time (:mod:`.stretch`); the rest is stepped.
+Sensitivities run after the simulation (:mod:`.sensitivity`): in closed form over runs of held
+inputs, vectorised over the same kind of stretches, step by step elsewhere.
+
+A run whose inputs visit more than :data:`MAX_OPERATING_POINTS` operating points (a speed that
+sweeps continuously) is simulated in time chunks that visit at most that many each, the
+temperatures and sensitivities carried from one chunk to the next: the discretisations (``n²``
+numbers and more per operating point, several times that with sensitivities) are held for one
+chunk at a time, not for the whole run.
 """
 from __future__ import annotations
 
@@ -23,12 +30,19 @@ import numpy as np
 
 from .discretise import Discrete, DiscreteDerivatives, discretise
 from .expr import Value
+from .held import LEAD, Transitions, run_temperatures, transitions
 from .losses import LossLaws
 from .model import MissingInputError, Model
 from .network import Network
 from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 from .transitions import StepMatrices
+
+#: steps per product of the input-driven part of stepped steps (:meth:`Simulator._forcing`)
+FORCING_ROWS = 64
+#: operating points discretised at once: a run that visits more is simulated in time chunks
+#: (about 0.2 MB per operating point for a 39-node model, 0.3 MB with sensitivities)
+MAX_OPERATING_POINTS = 128
 
 
 def unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -78,6 +92,13 @@ class Trajectory:
 
 
 @dataclass
+class _Grouped:
+    env: dict[str, Value]  # per-sample law environment (arrays of length N)
+    uniq: np.ndarray  # the distinct operating points (K, len(matrix_inputs))
+    ops: np.ndarray  # operating point index per step (N-1,)
+
+
+@dataclass
 class _Prepared:
     ops: np.ndarray  # operating point index per step (N-1,)
     disc: Discrete
@@ -96,16 +117,21 @@ class Simulator:
     max_substep : float, optional
         Euler sub-step limit (s); default: the model's.
     closed_form : bool, optional
-        Sensitivities in closed form over runs of held inputs (default); False steps every
+        Runs of held inputs without a loop over their steps: the temperatures in blocks of the
+        transition's powers, the sensitivities in closed form (default); False steps every
         sample (the same result to round-off, for checking and for timing the general case).
     vectorised : bool, optional
         Run stretches at one operating point vectorised in time (default,
         ``thermal_edge.lptn.stretch``); False steps them (the reference, to round-off).
+    max_operating_points : int, optional
+        Operating points discretised at once (default :data:`MAX_OPERATING_POINTS`); a run that
+        visits more is simulated in time chunks.
     """
 
     def __init__(self, model: Model, method: str | None = None, max_substep: float | None = None,
-                 closed_form: bool = True, vectorised: bool = True) -> None:
+                 closed_form: bool = True, vectorised: bool = True, max_operating_points: int | None = None) -> None:
         self.model = model
+        self.max_operating_points = max_operating_points
         self.closed_form = closed_form
         self.vectorised = vectorised
         self.net = Network(model)
@@ -115,10 +141,13 @@ class Simulator:
         # loss laws: the affine ones are split into constant + slope, the others evaluated per step
         self.losses = LossLaws(model)
         self.tv = self.losses.nodes  # nodes whose temperature enters losses
+        #: (law, column of tv) of every temperature a loss law reads
+        self._slope_pairs = [(j, i) for j, ds in enumerate(self.losses.reads) for i in ds]
         self.nonaffine = self.losses.nonaffine
 
     # ---------------------------------------------------------------------------------------
-    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int]) -> _Prepared:
+    def _grouped(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> _Grouped:
+        """The run's law environment and its steps grouped by operating point."""
         model, net = self.model, self.net
         N = len(next(iter(inputs.values())))
         missing = [c for c in model.inputs if c not in inputs]
@@ -130,9 +159,17 @@ class Simulator:
         if net.matrix_inputs:
             keys = np.stack([np.broadcast_to(np.asarray(env[k], dtype=float), (N,))[:steps] for k in net.matrix_inputs], axis=1)
             uniq, ops = unique_rows(keys)
-            op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
         else:
-            uniq, ops, op = np.zeros((1, 0)), np.zeros(steps, dtype=int), {}
+            uniq, ops = np.zeros((1, 0)), np.zeros(steps, dtype=int)
+        return _Grouped(env=env, uniq=uniq, ops=np.asarray(ops).reshape(-1))
+
+    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int],
+                 grouped: _Grouped | None = None) -> _Prepared:
+        model, net = self.model, self.net
+        N = len(next(iter(inputs.values())))
+        g = self._grouped(theta, inputs) if grouped is None else grouped
+        env, uniq, ops = g.env, g.uniq, g.ops
+        op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
         cont = net.continuous(theta, op, K=len(uniq), wrt=wrt)
         disc = discretise(cont, dt, self.method, self.max_substep)
         U = np.zeros((N, 0))
@@ -181,8 +218,56 @@ class Simulator:
         """
         names = tuple(wrt or ())
         widx = list(self.model.parameter_index(names)) if names else []
+        theta = np.asarray(theta, dtype=float)
+        keep = None if rows is None else self._rows(rows)
         N = len(next(iter(inputs.values())))
-        prep = self._prepare(np.asarray(theta, dtype=float), inputs, float(dt), widx)
+        grouped = self._grouped(theta, inputs)
+        chunks = self._chunks(grouped.ops, N)
+        if len(chunks) == 1:
+            T, P, S, _ = self._run(theta, inputs, float(dt), np.asarray(T0, dtype=float), names, widx, keep, None,
+                                   grouped)
+            return Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes, S=S)
+        # chunk by chunk, each from the last sample of the one before (temperatures and full S)
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        Tc, Sc = np.asarray(T0, dtype=float), None
+        for a, b in chunks:  # samples a .. b
+            piece = {k: (v[a: b + 1] if np.ndim(v) and len(v) == N else v) for k, v in inputs.items()}
+            T, P, S, Sc = self._run(theta, piece, float(dt), Tc, names, widx, keep, Sc)
+            Tc = T[-1]
+            last = b == N - 1
+            parts.append((T if last else T[:-1], P if last else P[:-1], None if S is None else (S if last else S[:-1])))
+        S_all = np.concatenate([x[2] for x in parts if x[2] is not None]) if names else None
+        return Trajectory(T=np.concatenate([x[0] for x in parts]), P=np.concatenate([x[1] for x in parts]),
+                          wrt=names, nodes=self.model.nodes, S=S_all)
+
+    def _chunks(self, ops: np.ndarray, N: int) -> list[tuple[int, int]]:
+        """Sample ranges ``(a, b)`` (samples ``a .. b``, consecutive ranges sharing their end
+        sample) whose steps (operating points ``ops``) visit at most ``max_operating_points``
+        operating points; one range for the whole run when it visits no more."""
+        if N < 2:
+            return [(0, max(N - 1, 0))]
+        limit = max(int(MAX_OPERATING_POINTS if self.max_operating_points is None else self.max_operating_points), 1)
+        if ops.max() < limit:
+            return [(0, N - 1)]
+        chunks: list[tuple[int, int]] = []
+        a, seen = 0, set[int]()
+        for k, o in enumerate(ops.tolist()):
+            if o not in seen and len(seen) == limit:  # step k starts the next chunk
+                chunks.append((a, k))
+                a, seen = k, set()
+            seen.add(o)
+        chunks.append((a, N - 1))
+        return chunks
+
+    def _run(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
+             names: tuple[str, ...], widx: list[int], rows: np.ndarray | None,
+             S0: np.ndarray | None, grouped: _Grouped | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """One chunk of :meth:`simulate` from ``T0`` and ``S0`` (full, n × p; None: zero): the
+        temperatures, losses, sensitivities (``rows``) and the full ``S`` at the last sample
+        (``grouped``: the chunk's steps grouped by operating point, when already known)."""
+        N = len(next(iter(inputs.values())))
+        prep = self._prepare(theta, inputs, dt, widx, grouped)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
         GP = d.Gam[:, :, nb:]
@@ -192,36 +277,48 @@ class Simulator:
         P0[:, na] = 0.0  # laws not affine in T are evaluated per step instead
         dPdT0[:, na] = 0.0
         ops = prep.ops[: max(N - 1, 0)]
-        # input-driven part of every step, for all steps at once (grouped by operating point)
-        f = np.empty((max(N - 1, 0), n))
-        order = np.argsort(ops, kind="stable")  # the steps of each operating point together: one slice each
-        bounds = np.searchsorted(ops[order], np.arange(d.Phi.shape[0] + 1))
-        w = np.concatenate([prep.U[: len(ops)], P0[: len(ops)]], axis=1)[order]
-        fs = np.empty_like(f)
-        for op in np.nonzero(np.diff(bounds))[0].tolist():
-            lo, hi = int(bounds[op]), int(bounds[op + 1])
-            np.matmul(w[lo:hi], d.Gam[op].T, out=fs[lo:hi])
-        f[order] = fs
         T = np.empty((N, n))
         T[0] = T0
         steps = max(N - 1, 0)
-        # stretches of one operating point run vectorised in time (losses affine in T only: the
-        # others are evaluated step by step); the sensitivities' own stretches leave the held
-        # runs to their closed form
-        varying = varying_steps(dPdT0[:steps]) if self.vectorised and not len(na) else np.zeros(steps, dtype=bool)
-        sim_spans = stretches(ops, varying)
-        sens_spans: list[tuple[int, int]] = []
-        held_spans: list[tuple[int, int]] = []
-        if names:
-            held_spans = held_runs(held_steps(prep.env, steps), self.closed_form and not len(na))
-            if self.vectorised and not len(na):
-                sens_spans = stretches(ops, varying & ~covered(held_spans, steps))
-        need = ~covered(sim_spans, steps)
-        if names:
-            need |= ~covered(sens_spans, steps)
+        # runs of held inputs in closed form (:mod:`.held`; their modes serve the sensitivities
+        # too), stretches of one operating point where the loss feedback changes every step
+        # vectorised in time (losses affine in T only: the others are evaluated step by step)
+        held = held_steps(prep.env, steps)
+        closed_ok = self.closed_form and not len(na)
+        held_spans = held_runs(held, closed_ok)  # the sensitivities' closed form
+        varying = np.zeros(steps, dtype=bool)
+        if self.vectorised and not len(na):
+            varying = varying_steps(dPdT0[:steps], may_change=~held)
+        spans = stretches(ops, varying & ~covered(held_spans, steps))
+        in_span = covered(spans, steps)
+        # the simulation's held runs: every run of held inputs from its LEAD-th step on, in blocks
+        # of its transition's powers (the steps before, and shorter runs, are stepped). Which steps
+        # run in blocks, and how the blocks fall, depends only on the inputs up to them: a run
+        # that goes on longer gives the same temperatures up to any of its steps
+        blocks = [(a + LEAD, b) for a, b in held_runs(held, closed_ok, LEAD + 1) if not in_span[a:b].any()]
+        closed: list[tuple[int, int, int]] = []  # (a, b, transition)
+        sim_tr = None
+        if blocks:
+            sim_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in blocks]))
+            closed = [(a, b, int(u)) for (a, b), u in zip(blocks, sim_tr.index)]
+        stepped = ~in_span & ~covered(blocks, steps)
+        held_tr = None
+        need = stepped.copy()
+        if names:  # the steps the sensitivities step: not in a stretch nor in a run in closed form
+            sens_closed: list[tuple[int, int]] = []
+            if held_spans:
+                held_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in held_spans]))
+                ok = held_tr.modes.ok[held_tr.index]
+                sens_closed = [r for r, good in zip(held_spans, ok) if good]
+            need |= ~in_span & ~covered(sens_closed, steps)
+        # the input-driven part of the stepped steps and of each block run's first step (the
+        # stretches make their own, in the modal basis)
+        want = stepped.copy()
+        want[[a for a, _, _ in closed]] = True
+        f = self._forcing(d.Gam, ops, prep.U, P0, want)
         mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
-        GPna = [GP[o][:, na] for o in range(GP.shape[0])]
+        GPna = [GP[o][:, na] for o in range(GP.shape[0])] if na else []
         opl = ops.tolist()
 
         def step(a: int, b: int) -> None:
@@ -239,24 +336,58 @@ class Simulator:
 
         done = 0
         prepared: dict[tuple[int, int], NodeStretch] = {}  # shared with the sensitivities' stretches
-        for a, b in sim_spans:
+        events = sorted([(a, b, u) for a, b, u in closed] + [(a, b, -1) for a, b in spans])
+        for a, b, u in events:
             step(done, a)
-            o = int(ops[a])
-            V, Vi = d.basis(o)
-            ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
-            fm = np.zeros((n, 1, padded_length(b - a)))
-            np.matmul(Vi, f[a:b].T, out=fm[:, 0, : b - a])
-            Ta, _ = ns.solve(fm, T[a][:, None])
-            T[a + 1: b + 1] = Ta[:, 0, :].T
+            if u >= 0:
+                assert sim_tr is not None
+                run_temperatures(sim_tr.powers(u), f[a], T[a], T[a + 1: b + 1])
+            else:
+                o = int(ops[a])
+                V, Vi = d.basis(o)
+                ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
+                fm = np.zeros((n, 1, padded_length(b - a)))
+                wab = np.concatenate([prep.U[a:b], P0[a:b]], axis=1)
+                np.matmul(Vi @ d.Gam[o], wab.T, out=fm[:, 0, : b - a])
+                Ta, _ = ns.solve(fm, T[a][:, None])
+                T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)
-        # the slopes along the run only serve the sensitivities of laws not affine in T
-        P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names and self.nonaffine))
-        traj = Trajectory(T=T, P=P, wrt=names, nodes=self.model.nodes)
-        if names:
-            traj.S = self._sensitivities(prep, T, P, dPdT, widx, None if rows is None else self._rows(rows), mats,
-                                         held_spans, sens_spans, dPdT0[:steps], prepared)
-        return traj
+        if na:  # the slopes along the run only serve the sensitivities of laws not affine in T
+            P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names))
+        else:  # affine laws: P(T) = P(0) + ∂P/∂T T, for the few laws that read a temperature
+            P, dPdT = P0, None
+            for j, i in self._slope_pairs:
+                P[:, j] += dPdT0[:, j, i] * T[:, self.tv[i]]
+        if not names:
+            return T, P, None, None
+        S, S_end = self._sensitivities(prep, T, P, dPdT, widx, rows, mats, held_spans, spans, dPdT0[:steps],
+                                       prepared, held_tr, S0)
+        return T, P, S, S_end
+
+    @staticmethod
+    def _forcing(Gam: np.ndarray, ops: np.ndarray, U: np.ndarray, P: np.ndarray, want: np.ndarray) -> np.ndarray:
+        """``f_k = Γ(u_k) [U_k; P_k]`` (steps, n) at the steps in ``want`` (the others are left
+        uninitialised), grouped by operating point: products of :data:`FORCING_ROWS` steps of
+        one operating point. Every product has that one shape (the last of each operating point
+        padded), so that a step's forcing does not depend on how many other steps are asked for
+        (a product's kernel, and with it the order of its sums, can change with its shape)."""
+        ks = np.nonzero(want)[0]
+        n = Gam.shape[1]
+        f = np.empty((len(ops), n))
+        order = ks[np.argsort(ops[ks], kind="stable")]  # the steps of each operating point together
+        bounds = np.searchsorted(ops[order], np.arange(Gam.shape[0] + 1))
+        fs = np.empty((len(order), n))
+        wo = np.concatenate([U[order], P[order]], axis=1)
+        buf, res = np.zeros((FORCING_ROWS, wo.shape[1])), np.empty((FORCING_ROWS, n))
+        for op in np.nonzero(np.diff(bounds))[0].tolist():
+            for lo in range(int(bounds[op]), int(bounds[op + 1]), FORCING_ROWS):
+                hi = min(lo + FORCING_ROWS, int(bounds[op + 1]))
+                buf[: hi - lo] = wo[lo:hi]
+                np.matmul(buf, Gam[op].T, out=res)
+                fs[lo:hi] = res[: hi - lo]
+        f[order] = fs
+        return f
 
     def _step_matrices(
         self, Phi: np.ndarray, GP: np.ndarray, ops: np.ndarray, dPdT: np.ndarray, need: np.ndarray | None = None
@@ -273,7 +404,8 @@ class Simulator:
     def _sensitivities(self, prep: _Prepared, T: np.ndarray, P: np.ndarray, dPdT: np.ndarray | None, widx: Sequence[int],
                        rows: np.ndarray | None, steps: StepMatrices,
                        held_spans: list[tuple[int, int]], spans: list[tuple[int, int]],
-                       slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch]) -> np.ndarray:
+                       slopes: np.ndarray, prepared: dict[tuple[int, int], NodeStretch],
+                       held: Transitions | None, S0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         d = prep.disc
         assert isinstance(d, DiscreteDerivatives)  # discretised with the derivatives by ``wrt``
         N = T.shape[0]
@@ -290,5 +422,5 @@ class Simulator:
                              losses=lambda k, temps: self._loss_terms(at(k), len(temps), temps, slopes=False)[0],
                              loss_theta=lambda k, temps: self.losses.dtheta(at(k), temps, widx, len(temps)),
                              loss_nodes=self.tv, slopes=slopes, prepared=prepared,
-                             loss_wrt=self.losses.depends_on(widx))
-        return sens.run(held_spans, spans, rows)
+                             loss_wrt=self.losses.depends_on(widx), held=held)
+        return sens.run(held_spans, spans, rows, S0)

@@ -216,8 +216,12 @@ class Stretch:
         # a block's right-hand side y₀ + E diag(μ^i) q, and in one product from [q; y] the next
         # block's start μ^B q + Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
         self.EpT = (E[None] * pw[:B, None, :]).reshape(BT, n).T.copy()  # (n, BT)
-        self.Rl = np.ascontiguousarray((pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n)
-                                       .transpose(1, 0, 2, 3)).reshape(r, BT, n)  # (ρ, (l, b), n)
+        Rl = (pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n).transpose(1, 0, 2, 3).reshape(r, BT, n)
+        # both scaled by the block's s[l, ρ] over the unknowns l: stacked, one product a block
+        # gives the block's matrix (first BT rows) and its carry (the rest, transposed)
+        self.HR = np.ascontiguousarray(np.concatenate([self.Hneg, Rl.transpose(0, 2, 1)], axis=1))  # (ρ, BT + n, BT)
+        # one product of the start state q gives the block's right-hand side part and μ^B q
+        self.G = np.ascontiguousarray(np.concatenate([self.EpT, np.diag(pw[B])], axis=1))  # (n, BT + n)
 
     def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray,
               work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -260,26 +264,23 @@ class Stretch:
         yk[0, 0] = (E @ x0).T
         yk[:, 1:] = ye[:, :-1]
         yk[1:, 0] = ye[:-1, -1]
-        # per block [q; y]: the feedback's modal state at its start and its loss-node values
-        Z = np.zeros((nblk + 1, c, n + BT))
-        EpT, Hneg, Rl, scol = self.EpT, self.Hneg, self.Rl, self.scol
-        A = np.empty((BT, BT))  # the block's matrix; A.T is it in Fortran order, for LAPACK
-        RA = np.empty((n + BT, n))  # [diag(μ^B); Σ_ρ R_ρ diag(s_ρ)]ᵀ, the carry
-        RA[:n] = np.diag(self.pw[B])
-        rhs = np.empty((c, BT))  # (BT, c) in Fortran order: LAPACK solves it in place
+        # per block: the feedback's modal state q at its start and its loss-node values y (y0 in place)
+        Q = np.zeros((nblk + 1, c, n))
+        HR, G, scol = self.HR, self.G, self.scol
+        HRs = np.empty(HR.shape[1:])  # the block's matrix A (rows :BT) and carry (rows BT:, transposed)
+        A, Rs = HRs[:BT], HRs[BT:].T  # A.T is A in Fortran order, for LAPACK
+        tmp = np.empty((c, BT + n))
         for j in range(nblk):
-            np.multiply(Hneg[0], scol[0, j], out=A)  # the unit diagonal is implied (unitdiag)
-            np.multiply(Rl[0], scol[0, j, :, None], out=RA[n:])
+            np.multiply(HR[0], scol[0, j], out=HRs)  # the unit diagonal of A is implied (unitdiag)
             for k in range(1, self.r):
-                A += Hneg[k] * scol[k, j]
-                RA[n:] += Rl[k] * scol[k, j, :, None]
-            np.matmul(Z[j, :, :n], EpT, out=rhs)
-            rhs += y0[j]
-            dtrtrs(A.T, rhs.T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
-            Z[j, :, n:] = rhs
-            np.matmul(Z[j], RA, out=Z[j + 1, :, :n])
-        qs = Z[:nblk, :, :n]  # (nblk, c, n)
-        Yb = Z[:nblk, :, n:].reshape(nblk, c, B, ntv)
+                HRs += HR[k] * scol[k, j]
+            np.matmul(Q[j], G, out=tmp)
+            y0[j] += tmp[:, :BT]
+            dtrtrs(A.T, y0[j].T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
+            np.matmul(y0[j], Rs, out=Q[j + 1])
+            Q[j + 1] += tmp[:, BT:]
+        qs = Q[:nblk]  # (nblk, c, n)
+        Yb = y0.reshape(nblk, c, B, ntv)
         z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
         # the feedback's part of the wanted rows: from each block's start state and inside the block
         pw = self.pw
@@ -390,11 +391,14 @@ def stretches(ops: np.ndarray, eligible: np.ndarray, min_len: int = MIN_STRETCH)
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:]) if eligible[a] and b - a >= min_len]
 
 
-def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
+def varying_steps(D: np.ndarray, window: int = MIN_STRETCH, may_change: np.ndarray | None = None) -> np.ndarray:
     """Steps (L,) whose neighbourhood of ``window`` steps has the feedback ``D`` (L, ...) change on
     at least a quarter of its steps: where a noisy current makes a transition per step. Elsewhere
-    (held inputs) the step-by-step recursion reuses one transition over many steps and is cheaper
-    than the vectorised stretch.
+    (held inputs) one transition serves many steps and the closed form or the step-by-step
+    recursion is cheaper than the vectorised stretch.
+
+    ``may_change`` (L,), optional, marks the steps whose ``D`` can differ from the previous
+    step's (the others hold their inputs: only these are compared).
 
     >>> varying_steps(np.array([1.0, 2, 3, 4, 4, 4, 4, 4]), window=4).tolist()
     [True, True, True, True, True, True, False, False]
@@ -402,7 +406,11 @@ def varying_steps(D: np.ndarray, window: int = MIN_STRETCH) -> np.ndarray:
     L = len(D)
     change = np.zeros(L)
     if L > 1:
-        change[1:] = np.any((D[1:] != D[:-1]).reshape(L - 1, -1), axis=1)
+        if may_change is None or 4 * np.count_nonzero(may_change) > L:  # most steps: compare them all
+            change[1:] = np.any((D[1:] != D[:-1]).reshape(L - 1, -1), axis=1)
+        else:
+            k = np.nonzero(may_change[1:])[0] + 1
+            change[k] = np.any((D[k] != D[k - 1]).reshape(len(k), int(np.prod(D.shape[1:]))), axis=1)
     # changes among the steps k − window/2 .. k + window/2 − 1 (clipped at the ends)
     cs = np.concatenate([[0.0], np.cumsum(change)])
     k = np.arange(L)
