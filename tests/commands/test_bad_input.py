@@ -458,6 +458,8 @@ LOG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]
                                    lambda ls: [ls[i] for i in np.random.default_rng(4).permutation(len(ls))])),
         str(p), ["time runs backwards"]),
     "BLF cut in half": lambda tmp, g: (can_replay(tmp / "half.blf"), str(tmp / "half.blf"), ["cut short"]),
+    "candump -ta display output": lambda tmp, g: (can_replay(tmp / "timed.log"), str(tmp / "timed.log"),
+                                                  [":1:", "-ta, -td or -tz", "record with candump -L"]),
     "plain candump output without -L": lambda tmp, g: (can_replay(tmp / "plain.log"), str(tmp / "plain.log"),
                                                        ["line 1" if False else ":1:", "candump -L"]),
     "a run CSV given with --format can": lambda tmp, g: (can_replay(g), str(g), ["not python-can's CSV log",
@@ -706,6 +708,8 @@ def files(tmp_path: Path, good_run: Path) -> Path:
     (tmp_path / "bin.blf").write_bytes(bytes(range(256)) * 40)
     (tmp_path / "plain.log").write_text("  can0  101   [8]  00 00 00 00 00 00 00 00\n"
                                         "  can0  101   [8]  01 00 00 00 00 00 00 00\n")
+    (tmp_path / "timed.log").write_text(" (1795782237.000000)  can0  2A0   [8]  30 02 C8 00 0F 00 00 80\n"
+                                        " (1795782237.010000)  can0  0A0   [8]  00 00 17 02 7B 01 00 6F\n")
     (tmp_path / "notes.log").write_text("hello\nworld\n")
     (tmp_path / "notes.txt").write_text("hello\n")
     (tmp_path / "edge.yaml").write_text("")

@@ -86,6 +86,9 @@ _CANDUMP_LINE = re.compile(
 
 #: A line of plain ``candump can0`` output (no ``-L``): ``  can0  123   [8]  11 22 33 44 55 66 77 88``.
 _PLAIN_CANDUMP_LINE = re.compile(r"^\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d+\]")
+#: ``candump -ta``/``-td``/``-tz`` output: a stamp in brackets, then the plain line (a display
+#: format; ``-td`` stamps are differences, ``-tz`` from zero: not the log format)
+_TIMED_CANDUMP_LINE = re.compile(r"^\(\S+\)\s+\S+\s+[0-9A-Fa-f]{3,8}\s+\[\d+\]")
 #: The header python-can writes first in its CSV logs (and reads by position).
 _CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
 #: Latest time stamp taken as seconds since the epoch (the year 2286): a larger one is in ms or µs.
@@ -174,6 +177,9 @@ class _CheckedLines:
             if _CANDUMP_LINE.match(text):
                 yield text
                 continue
+            if _TIMED_CANDUMP_LINE.match(text):
+                raise LogFormatError(f"{self._path}:{lineno}: candump display output ({text[:40]!r}: -ta, -td or -tz), "
+                                     "not its log format; record with candump -L (the log format: '(time) can0 123#...')")
             if _PLAIN_CANDUMP_LINE.match(text):  # no time stamps: nothing can be replayed from it
                 raise LogFormatError(f"{self._path}:{lineno}: candump output without time stamps ({text[:40]!r}); "
                                      "record with candump -L (the log format: '(time) can0 123#...')")
