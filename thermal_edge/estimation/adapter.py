@@ -79,6 +79,10 @@ PINNED_Z = 3.0
 REFINE_STEP_REL_STD = 0.03
 #: SQP iterations of a refinement fit (rare: only when the window says the optimum is far)
 REFINE_MAX_ITER = 10
+#: the pinned check runs again once this share of the window is new since the last check (or the
+#: parameters in use changed): what a 3 h window pins moves little in one 3 min period, and each
+#: check costs a window's sensitivities (at 1.7 % new data a decision, every sixth decision)
+PINNED_RECHECK_SHARE = 0.1
 
 
 @dataclass
@@ -279,6 +283,8 @@ class OnlineAdapter:
             raise ValueError(f"adaptation.method must be one of {', '.join(METHODS)}, got {config.method!r}")
         self.model, self.config, self.dt = model, config, float(dt)
         self.theta = model.nominal() if theta is None else np.asarray(theta, dtype=float).copy()
+        #: when the pinned check last ran, and with which parameters (:meth:`_pinned_due`)
+        self._pinned_checked: tuple[float, bytes] | None = None
         self.prior = self.theta.copy()
         self.params = tuple(config.params or model.adaptable)
         self.sensors = tuple(config.sensors or model.sensors)
@@ -383,7 +389,8 @@ class OnlineAdapter:
         refine = False
         # (an infinite threshold means never adapt: the fixed baseline of a replay)
         if (not above and self.challenger is None and cfg.method == "sqp" and np.isfinite(cfg.threshold_k)
-                and np.isfinite(err) and t - t_hist0 >= cfg.min_window_s):
+                and np.isfinite(err) and t - t_hist0 >= cfg.min_window_s and self._pinned_due(t, t - t_hist0)):
+            self._pinned_checked = (t, self.theta.tobytes())
             name, off = self._pinned_offset(t)
             if name:
                 above = refine = True
@@ -444,6 +451,15 @@ class OnlineAdapter:
         self.iterate = cand[self.model.parameter_index(self.params)].copy()
         d.reason = self._also(d, "challenger fitted; it is judged on the data that follows")
         return self._done(d, t0)
+
+    def _pinned_due(self, t: float, history_s: float) -> bool:
+        """Whether the pinned check runs at ``t``: never run, other parameters in use since, or
+        :data:`PINNED_RECHECK_SHARE` of the window (``history_s`` of history, s) new since."""
+        if self._pinned_checked is None:
+            return True
+        t_last, theta = self._pinned_checked
+        new = min(self.config.window_s, history_s) * PINNED_RECHECK_SHARE
+        return theta != self.theta.tobytes() or t - t_last >= new - 1e-9
 
     def _pinned_offset(self, t: float) -> tuple[str, float]:
         """The adaptable parameter that the history window alone (no prior) pins down (see
