@@ -118,3 +118,44 @@ def test_the_screen_shows_the_voltage_input_the_silence_and_no_inf():
     assert "time to limit at this load not within the horizon" in screen and "inf" not in screen
     quiet = render(from_metrics("# TYPE thermal_edge_bus_silent_seconds gauge\nthermal_edge_bus_silent_seconds 0\n"))
     assert "voltages:" not in quiet and "BUS SILENT" not in quiet
+
+
+def test_the_bus_view_lists_the_frames_of_the_configurations_own_matrix(tmp_path):
+    """``monitor --bus --config`` with an inverter's own DBC (the MC-7 example): its frames, sent
+    here by an independent python-can bus encoded with cantools, are listed with their age, not
+    only the ``TE_*`` frames of the shipped matrix."""
+    import threading
+
+    import yaml
+    from cli_in_process import te_here
+
+    assert te_here("config", "inverter-example", tmp_path / "mc7").returncode == 0
+    raw = yaml.safe_load((tmp_path / "mc7" / "edge.yaml").read_text())
+    channel = f"monitor-mc7-{tmp_path.name}"
+    raw["bus"] = {"interface": "virtual", "channel": channel}
+    raw["state"] = {"dir": str(tmp_path / "state")}
+    cfg = tmp_path / "mc7" / "edge.yaml"
+    cfg.write_text(yaml.safe_dump(raw))
+    db = cantools.database.load_file(str(tmp_path / "mc7" / "acme-mc7.dbc"))
+    msg = db.get_message_by_name("MC7_Currents")
+    data = msg.encode({s.name: 0 for s in msg.signals}, strict=False)
+    stop = threading.Event()
+
+    def send() -> None:
+        bus = can.Bus(interface="virtual", channel=channel)
+        try:
+            while not stop.is_set():
+                bus.send(can.Message(arbitration_id=msg.frame_id, data=data, is_extended_id=False))
+                stop.wait(0.01)
+        finally:
+            bus.shutdown()
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    try:
+        r = te_here("monitor", "--bus", "--once", "--config", cfg)
+    finally:
+        stop.set()
+        sender.join(10)
+    assert r.returncode == 0, r.stderr
+    assert "MC7_Currents" in r.stdout, r.stdout

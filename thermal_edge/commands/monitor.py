@@ -103,7 +103,13 @@ def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int | None) -> in
         cfg = BusConfig.coerce(_bus_config(args))
     except BusConfigError as exc:
         raise UsageError(f"--bus: {str(exc).strip().splitlines()[0]}") from None
-    codec = FrameCodec()
+    if args.config:  # the configuration's CAN matrix: its inverter's frames are the ones read
+        from ..config import load_config
+
+        config = load_config(args.config)
+        codec = config.codec.frame_codec(config.fname)
+    else:
+        codec = FrameCodec()
     cycles = {codec.frame_name(fid): c for fid in codec.frame_ids() if (c := codec.cycle_time_s(fid))}
     watch = FrameWatch(f"bus {cfg.interface}:{cfg.channel}", cycles)
     try:
