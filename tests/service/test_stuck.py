@@ -245,3 +245,37 @@ def test_one_glitched_reading_is_not_a_model_fault(tmp_path, model, glitch_ticks
     assert all(r == DerateReason.MODEL_FAULT for r in reasons[59:59 + glitch_ticks])
     if not faults:
         assert DerateReason.MODEL_FAULT not in reasons[59 + glitch_ticks:]
+
+
+def test_readings_that_fall_below_the_model_are_not_trusted_until_they_agree_again(tmp_path, model, caplog):
+    """Every PT100 reads 45 K low from one moment on (one bad reference in the inverter): a model
+    fault. The state restarts from those readings, but they are not trusted: the safe limit stays
+    after the hold for as long as they lie more than ``prediction_error_k / 2`` below the prediction
+    from before the fault (run on with the inputs), and full current comes back only once the
+    readings are right again. Readings above the prediction (a machine hotter than modelled) are
+    believed after the hold, as before."""
+    import logging
+
+    cfg = _engine_config(tmp_path)
+    fc = cfg.derating.faults
+    eng = ThermalEngine(cfg, model, None, worker_mode="sync")
+    op = {"speed_rpm": 900.0, "i_rms": 19.0, "torque_nm": 106.0, "ambient_c": 25.0}
+    T, _ = steady_state(model, op)
+    limits, reasons = [], []
+    with caplog.at_level(logging.INFO, logger="thermal_edge.service.engine"):
+        for k in range(1, 61):
+            _feed(eng, model, 1000.0 + k, T, i=19.0, speed=900.0)
+        for k in range(61, 61 + int(3 * fc.hold_s)):  # three holds long
+            out = _feed(eng, model, 1000.0 + k, T - 45.0, i=19.0, speed=900.0)
+            limits.append(out.limits.current_a)
+            reasons.append(out.limits.reason)
+        assert eng.health.faults == 1
+        after = slice(int(fc.prediction_error_ticks), None)
+        assert all(r == DerateReason.MODEL_FAULT for r in reasons[after])
+        assert max(limits[after]) <= cfg.derating.safe_current_a
+        for k in range(61 + int(3 * fc.hold_s), 61 + int(5 * fc.hold_s)):  # the readings right again
+            out = _feed(eng, model, 1000.0 + k, T, i=19.0, speed=900.0)
+        assert out.limits.reason != DerateReason.MODEL_FAULT and out.limits.current_a > cfg.derating.safe_current_a
+    said = [r.getMessage() for r in caplog.records]
+    assert any("not trusted until they agree" in m for m in said)
+    assert any("agree again with the prediction from before the model fault" in m for m in said)

@@ -310,12 +310,25 @@ class ThermalEngine:
         assert x_ol is not None
         pred_error = {s: float(x_ol[r] - y[s]) for s, r in self.sensor_rows.items() if math.isfinite(y.get(s, math.nan))}
         why = self.health.judge(t, innov, pred_error, est.finite)
+        fc = self.config.derating.faults
         if why is not None:
             hold = self.health.fault(t)
-            log.error("model fault at t=%.0f: %s; safe limit for %.0f s, state re-initialised from the readings", t, why, hold)
-            est.restart_from_readings(ti, self.adaptation.theta)
+            # readings below the prediction would raise the limit if believed: a sensor or
+            # calibration fault (every PT100 offset by one bad reference) looks the same as a model
+            # that runs hot, so the prediction from before runs on until they agree again
+            low = bool(pred_error) and max(pred_error.values()) > fc.prediction_error_k
+            log.error("model fault at t=%.0f: %s; safe limit for %.0f s, state re-initialised from the readings%s", t,
+                      why, hold, "; the readings lie below the prediction: not trusted until they agree with it" if low else "")
+            est.restart_from_readings(ti, self.adaptation.theta, doubt=low)
             self.health.restart()
-        if self.health.holding(t) or (why is None and self.health.disagreeing):
+        gap = est.doubt_gap(y, self.sensor_rows)
+        doubted = gap is not None and gap > fc.prediction_error_k / 2.0
+        if gap is not None and not doubted:
+            notice(log, "the readings agree again with the prediction from before the model fault (%.1f K below it): "
+                   "trusted", gap)
+            est.resolve_doubt()
+            self.health.restart()
+        if self.health.holding(t) or (why is None and self.health.disagreeing) or doubted:
             # a disagreement not yet confirmed is not trusted either: the safe limit (bounded by the
             # band at the readings) for its ticks, without the hold and the restart of a fault
             forced.insert(0, DerateReason.MODEL_FAULT)

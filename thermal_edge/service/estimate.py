@@ -51,6 +51,10 @@ class StateEstimate:
         self.observer_type = observer_type
         self._observer: Observer | None = None
         self._prediction: np.ndarray | None = None
+        #: after a model fault whose readings lay below the open-loop prediction (the direction that
+        #: would raise the limit): that prediction, run on open loop with the parameters of the
+        #: fault (:meth:`doubt_gap`); None when no such fault is unresolved
+        self._doubt: tuple[Stepper, np.ndarray] | None = None
 
     # -- read-only views -------------------------------------------------------------------------
     @property
@@ -112,9 +116,13 @@ class StateEstimate:
         self._begin(T0, theta, ti.measured, P0)
         return info
 
-    def restart_from_readings(self, ti: TickInputs, theta: np.ndarray) -> None:
-        """After a model fault: start again from the usable readings alone."""
+    def restart_from_readings(self, ti: TickInputs, theta: np.ndarray, doubt: bool = False) -> None:
+        """After a model fault: start again from the usable readings alone. With ``doubt`` (the
+        readings lay below the prediction) the prediction from before the fault runs on beside
+        the new state until the readings agree with it again (:meth:`doubt_gap`)."""
         m = self.model
+        if doubt and self._prediction is not None and np.all(np.isfinite(self._prediction)):
+            self._doubt = (Stepper(m, theta, self.dt), self._prediction.copy())
         ok = {k: v for k, v in ti.measured.items() if math.isfinite(v)}
         try:
             T0 = initial_state(m, ti.inputs, ok, theta)
@@ -123,6 +131,25 @@ class StateEstimate:
         if not np.all(np.isfinite(T0)):
             T0 = np.full(len(m.nodes), 25.0)
         self._begin(T0, theta, ok, None)
+
+    def doubt_gap(self, measured: Mapping[str, float], sensor_rows: Mapping[str, int]) -> float | None:
+        """By how much (K) the readings lie below the prediction from before an unresolved model
+        fault, at the sensor where most (None without such a fault, or without a reading)."""
+        if self._doubt is None:
+            return None
+        x = self._doubt[1]
+        gaps = [x[r] - measured[s] for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
+        return max(gaps) if gaps and math.isfinite(max(gaps)) else None
+
+    def resolve_doubt(self) -> None:
+        """The readings agree with the prediction from before the fault again: the state and the
+        open-loop prediction continue from it (the state restarted from the doubted readings
+        would disagree with the good ones as much as they did), and it is forgotten."""
+        if self._doubt is not None:
+            x = self._doubt[1]
+            self.replace_estimate(x.copy())
+            self.replace_prediction(x.copy())
+        self._doubt = None
 
     def drop(self) -> None:
         """Forget the state (a tick failed): the next usable tick starts it again."""
@@ -163,6 +190,9 @@ class StateEstimate:
         obs, x = self._observer, self._prediction
         assert obs is not None and x is not None
         self._prediction, _ = obs.stepper.step(x, dict(u))
+        if self._doubt is not None:
+            st, xd = self._doubt
+            self._doubt = (st, st.step(xd, dict(u))[0])
         obs.predict(dict(u))
         prior = obs.T.copy()
         innov = [abs(measured[s] - prior[r]) for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
