@@ -252,7 +252,9 @@ class FusedRun:
     """Per sample: the observer's estimate (N, n) °C and σ (N, n) K; the flux estimate of the
     magnet (°C), its σ (K, ``inf`` where uninformative) and whether it was used; counts.
     ``relative``: samples where an estimate at an operating point the commissioning did not see
-    was used for its changes (its σ there is the white part only)."""
+    was used for its changes (its σ there is the white part only). ``prediction`` (N, n) °C: the
+    estimate before the sample's sensor readings (the one-step prediction; a sensor the observer
+    reads is judged by it, the estimate after the reading is partly that reading)."""
 
     estimate: np.ndarray
     sigma: np.ndarray
@@ -262,6 +264,7 @@ class FusedRun:
     refused: int
     informative: int
     relative: np.ndarray | None = None
+    prediction: np.ndarray | None = None
 
 
 def slope_sigma(flux: FluxModel, e: Electrical, k: int) -> float:
@@ -443,7 +446,7 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     N, n = len(run), len(model.nodes)
     obs = FluxObserver(model, initial_from_run(model, run, theta), theta, dt)
     m = [model.node_index(magnet_node)] if isinstance(magnet_node, str) else [model.node_index(x) for x in magnet_node]
-    est, sig = np.empty((N, n)), np.empty((N, n))
+    est, sig, pred = np.empty((N, n)), np.empty((N, n)), np.empty((N, n))
     used = np.zeros(N, dtype=bool)
     rel = np.zeros(N, dtype=bool)
     e = electrical if electrical is not None or flux is None else Electrical.of(run.columns)
@@ -452,10 +455,12 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     for k in range(N):
         if k:
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
+        pred[k] = obs.T
         obs.update({s: float(v[k]) for s, v in meas.items()})
         if fusion is not None and fs is not None and e is not None:
             used[k], rel[k] = fusion.step(obs, k * dt, fs, k, e)
         est[k], sig[k] = obs.T, obs.std()
     if fs is None:
-        return FusedRun(est, sig, np.full(N, np.nan), np.full(N, np.inf), used, obs.node_updates_refused, 0, rel)
-    return FusedRun(est, sig, fs.value, fs.sigma, used, obs.node_updates_refused, int(np.isfinite(fs.sigma).sum()), rel)
+        return FusedRun(est, sig, np.full(N, np.nan), np.full(N, np.inf), used, obs.node_updates_refused, 0, rel, pred)
+    return FusedRun(est, sig, fs.value, fs.sigma, used, obs.node_updates_refused, int(np.isfinite(fs.sigma).sum()), rel,
+                    pred)
