@@ -89,7 +89,8 @@ def flux_model(sigma_max_k: float = 10.0, speed_min_rpm: float = 500.0) -> FluxM
 
 
 def test_without_the_voltages_the_observer_is_as_before(pm10kw, heated):
-    """No flux model: exactly the service's loop (and its prediction before each sample's readings); a flux model whose every point is uninformative
+    """No flux model: exactly the service's loop (and its prediction before each sample's
+    readings); a flux model whose every point is uninformative
     (the machine slower than the run it was commissioned on: low speed): the same, bit for bit."""
     inputs = model_inputs(pm10kw, heated)
     obs = Observer(pm10kw, initial_from_run(pm10kw, heated), None, heated.dt)

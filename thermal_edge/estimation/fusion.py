@@ -204,7 +204,7 @@ class FluxObserver(Observer):
 
     def update_relative(self, node: int | Sequence[int], value: float, var: float, change: float,
                         z: float = 1.959963984540054, own_sigma: float | None = None,
-                        corrects: Sequence[int] | None = None) -> bool:
+                        corrects: Sequence[int] | np.ndarray | None = None) -> bool:
         """Correct with ``value = h T + b + s · change`` (°C, white-noise variance ``var`` K²;
         ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``;
         the gain is the optimal one for the whole covariance with the rows of the adaptable

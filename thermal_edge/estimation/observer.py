@@ -222,7 +222,7 @@ class Observer:
         return self.T
 
     def update_node(self, node: int | Sequence[int], value: float, var: float, inflate: float = 1.0,
-                    z: float = 1.959963984540054, corrects: Sequence[int] | None = None) -> bool:
+                    z: float = 1.959963984540054, corrects: Sequence[int] | np.ndarray | None = None) -> bool:
         """Correct the estimate with a direct estimate ``value`` (°C, variance ``var`` K²) of node
         index ``node``, or of the mean of several nodes (the flux linkage sees all magnets, a
         model may split them); returns whether it was used. ``inflate`` (≥ 1) weakens the update
