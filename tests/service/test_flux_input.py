@@ -509,3 +509,29 @@ async def test_voltage_frames_far_behind_the_frame_clock_are_refused_as_old(tmp_
     lines = [r for r in caplog.records if r.getMessage().startswith("flux estimate refused (old)")]
     assert len(lines) == old and all(r.levelno == logging.WARNING for r in lines)
     assert "1200.0 s behind the frame clock" in lines[0].getMessage()
+
+
+def test_how_far_a_frame_lies_behind_the_frame_clock() -> None:
+    """``FrameClock.behind`` against the stamps' own differences: 0 for a frame that advances the
+    clock, the jitter for one a little back, 20 min for one stamped 20 min back, and 0 again for
+    the frames of a backward segment once the clock has joined it on (and the wall clock: 0)."""
+    from thermal_edge.service.clock import FrameClock, WallClock
+
+    c = FrameClock(1.0)
+    seg1 = [100.0 + 0.1 * i for i in range(50)]  # 100.0 .. 104.9
+    seen = []
+    for ts in seg1:
+        c.observe(ts)
+        seen.append(c.behind(ts))
+    assert seen == [0.0] * len(seg1)
+    c.observe(104.85)  # jitter
+    assert c.behind(104.85) == pytest.approx(0.05)
+    c.observe(104.9 - 1200.0)  # a stamp 20 min back, between frames on time
+    assert c.behind(104.9 - 1200.0) == pytest.approx(1200.0)
+    seg2 = [50.0 + 0.1 * i for i in range(50)]  # a new segment 55 s back: joined on after a few frames
+    last = []
+    for ts in seg2:
+        c.observe(ts)
+        last.append(c.behind(ts))
+    assert c.stats.joined == 1 and last[0] == pytest.approx(104.9 - 50.0) and last[-1] == 0.0
+    assert c.behind(None) == 0.0 and WallClock().behind(100.0) == 0.0
