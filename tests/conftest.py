@@ -68,3 +68,22 @@ def unit_nice() -> Iterator[int]:
         os.setpriority(os.PRIO_PROCESS, 0, before)
     except PermissionError:
         pass
+
+
+@pytest.fixture(autouse=True)
+def _command_log_handlers_removed() -> Iterator[None]:
+    """A test that calls ``thermal_edge.cli.main`` in this process leaves the root logger as the
+    command set it (``run`` installs its handler at its level): the handlers the commands install
+    (those with the rate limit's filter) and the level are undone after the test, so that a later
+    test's command does not print another command's log lines."""
+    import logging
+
+    from thermal_edge.log_rate import RateLimit
+
+    root = logging.getLogger()
+    before, level = set(root.handlers), root.level
+    yield
+    for h in list(root.handlers):
+        if h not in before and any(isinstance(f, RateLimit) for f in h.filters):
+            root.removeHandler(h)
+    root.setLevel(level)

@@ -37,7 +37,7 @@ from .bus.frames import DEFAULT_DBC_PATH, INV_CURRENTS, INV_VOLTAGES, NODE_THERM
 from .bus.logs import DEFAULT_KEEP, DEFAULT_MAX_BYTES
 from .bus.protection import FrameProtection
 from .errors import ThermalEdgeError
-from .lptn.vocabulary import LIMIT, TEMPERATURE, NodeRole, Role
+from .lptn.vocabulary import LIMIT, TEMPERATURE, UNIT_SPELLINGS, NodeRole, Role, foreign_unit, is_unit
 from .settings import AdapterConfig, setting, spec_of
 from .shipped import MACHINES, find
 from .yamlfile import read_document
@@ -711,9 +711,12 @@ class EdgeConfig:
             if exc.errno not in _STATE_DIR_CONDITIONS:
                 raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
 
-    def check_dbc(self, codec: Any) -> None:
+    def check_dbc(self, codec: Any, roles: Mapping[str, Role] | None = None) -> None:
         """Check that every mapped frame and signal exists in the DBC and every read frame has a
-        known protection (the CAN matrix's, or declared under ``codec.protection``)."""
+        known protection (the CAN matrix's, or declared under ``codec.protection``), and that the
+        unit the DBC declares for a mapped signal is the package's (sensors °C; with ``roles``, the
+        model's input roles, each input with a role in its role's unit): nothing in ``edge.yaml`` converts units, so a speed
+        the DBC gives in rad/s would be read as rpm."""
         for section, items in (("inputs", self.inputs), ("sensors", self.sensors)):
             for name, spec in items.items():
                 key = f"signals.{section}.{name}"
@@ -733,6 +736,11 @@ class EdgeConfig:
                 for sig in wanted:
                     if sig not in signals:
                         raise self.error(key, f"frame {spec.frame} has no signal {sig!r}")
+                role = (roles or {}).get(name) if section == "inputs" else None
+                want = TEMPERATURE.unit if section == "sensors" else (role.plausible.unit if role is not None else None)
+                if want is not None:
+                    for sig in spec.signals if isinstance(spec, InputSignal) else [spec.signal]:
+                        self._check_unit(key, codec, spec.frame, sig, want)
         self._check_flux_dbc(codec)
         # a frame the model reads with no timeout never goes stale: its last values would drive the
         # model and the limit however long it is gone (so `timeouts: {}` is refused)
@@ -758,6 +766,23 @@ class EdgeConfig:
             if value is not None and top is not None and value > top:
                 raise self.error(f"derating.{key}", f"must be at most {top:g}, the largest value {signal} carries in "
                                  f"{Path(codec.dbc_path).name}; got {value:g}")
+
+    def _check_unit(self, key: str, codec: Any, frame: str, sig: str, want: str) -> None:
+        """Refuse a signal whose DBC unit is not ``want`` (an empty unit is not checked: many DBCs
+        leave it out), naming the scaling that would give ``want`` where the unit is a known one."""
+        signal = codec.message(frame).get_signal_by_name(sig)
+        unit = (signal.unit or "").strip()
+        if not unit or is_unit(want, unit):
+            return
+        dbc = Path(codec.dbc_path).name
+        said = f"{dbc} gives {sig} in {unit!r}, and {key.rsplit('.', 1)[-1]} must be in {want} (edge.yaml converts no units)"
+        other = foreign_unit(want, unit)
+        if other is None:
+            raise self.error(key, f"{said}: give the signal in {want} in the DBC (its unit written "
+                             f"{' or '.join(repr(u) for u in sorted(UNIT_SPELLINGS[want]))})")
+        factor, offset = float(signal.scale) * other.scale, float(signal.offset) * other.scale + other.offset
+        raise self.error(key, f"{said}: scale the signal to {want} in the DBC: factor {factor:.7g}, offset {offset:.7g}, "
+                         f"unit \"{want}\" (now {float(signal.scale):g}, {float(signal.offset):g})")
 
     def _check_flux_dbc(self, codec: Any) -> None:
         """``flux:``: its frames and signals are in the DBC with a known protection (only when it is on)."""
@@ -791,6 +816,7 @@ class EdgeConfig:
                                          f"its signals: {', '.join(sorted(signals))}")
                 if sig not in signals:
                     raise self.error(f"flux.{k}", f"frame {frame} has no signal {sig!r}{_did_you_mean(sig, signals)}")
+                self._check_unit(f"flux.{k}", codec, frame, sig, "V" if k.startswith("voltage") else "A")
 
     # -- derived values -------------------------------------------------------------------------
     def kt(self, model: Any) -> float | None:

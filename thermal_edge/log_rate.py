@@ -58,6 +58,23 @@ class RateLimit(logging.Filter):
         return False
 
 
+class StderrHandler(logging.StreamHandler):
+    """A stream handler that writes to ``sys.stderr`` as it is when a record is emitted, not as it
+    was when the handler was made: a program that embeds the CLI (a test runner capturing output)
+    replaces and closes ``sys.stderr`` between calls, and a handler holding an old one would fail."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:  # the stream is always the current stderr
+        pass
+
+
 def warnings_to_stderr() -> None:
     """Warnings of every command to stderr through a :class:`RateLimit`, unless the root logger
     has a handler already (an embedding program's, the test runner's). ``run`` replaces it with
@@ -65,7 +82,7 @@ def warnings_to_stderr() -> None:
     root = logging.getLogger()
     if root.handlers:
         return
-    handler = logging.StreamHandler(sys.stderr)
+    handler = StderrHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
     handler.addFilter(RateLimit())
     root.addHandler(handler)

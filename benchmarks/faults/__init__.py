@@ -20,11 +20,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from . import bus, clock, control, stamps, state
+from . import bus, clock, control, stamps, state, units
 from .harness import Case
 
 #: group name -> cases of the group (``full``: the full lengths and counts)
-GROUPS: dict[str, Callable[[bool], Iterator[Case]]] = {**bus.GROUPS, **state.GROUPS, **clock.GROUPS, **stamps.GROUPS}
+GROUPS: dict[str, Callable[[bool], Iterator[Case]]] = {**bus.GROUPS, **state.GROUPS, **clock.GROUPS, **stamps.GROUPS,
+                                                     **units.GROUPS}
 #: groups that run only when named: cases the bench must judge unsafe
 CONTROLS: dict[str, Callable[[bool], Iterator[Case]]] = dict(control.GROUPS)
 

@@ -210,7 +210,7 @@ def test_counter_resync_after_long_silence():
     assert rx.stats.counter_repeat == 1
 
 
-# holes of every kind: single frames, a 4-bit wrap exactly (16), the 17 / 40 / 100
+# holes of every kind: single frames, a 4-bit wrap exactly (16), 17 / 40 / 100
 HOLES = {5: 1, 30: 2, 60: 15, 100: 16, 150: 17, 200: 40, 300: 100, 450: 33, 520: 3}
 
 

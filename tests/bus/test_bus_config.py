@@ -25,7 +25,7 @@ def test_socketcan_receive_queue_is_enlarged():
     assert after >= want > 0, (before, after, want)
 
 
-# ------------------------------------------------------- strict bus: section (issue 14 #8, 18 #6)
+# ------------------------------------------------------- strict bus: section
 
 @pytest.mark.parametrize(
     "mapping, key, message",

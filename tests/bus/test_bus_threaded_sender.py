@@ -1,7 +1,7 @@
 """``start_cyclic(thread=True)``: TE_Limits from its own thread, whatever the event loop does.
 
-Issue 14, defect 5: TE_Limits shared the event loop with metrics, ticks and adaptation, and a
-busy loop delayed it beyond the inverter's 300 ms timeout. The frames are received on an
+Sharing the event loop with metrics, ticks and adaptation, TE_Limits would be delayed by a
+busy loop beyond the inverter's 300 ms timeout. The frames are received on an
 independent python-can bus and placed against the moments the loop was blocked (the virtual bus
 stamps a frame with the wall clock when it is sent). Whether the cadence holds 300 ms on a busy
 host is the fault bench's figure (``benchmarks/faults``); here it is which sender sends at all

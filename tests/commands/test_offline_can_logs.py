@@ -387,3 +387,47 @@ def test_a_foreign_inverters_recording_is_decoded_by_its_configuration(tmp_path)
     np.testing.assert_allclose(run.column("slot_winding"), 100.0 + 5 * np.arange(1, seconds) - 1, atol=0.06)
     r = te_here("export", log, "--out", tmp_path / "native.csv")
     assert r.returncode == 2 and "0 frames of the configuration's CAN matrix" in r.stderr, r.stderr
+
+
+def _config_with_dbc(tmp_path: Path, signal: str, scaling: str) -> Path:
+    """The example configuration on the shipped CAN matrix with ``signal``'s factor and offset
+    replaced (its unit kept): a recording of the shipped matrix read through a scaling error."""
+    import yaml
+
+    text, n = re.subn(rf"(SG_ {signal} : [^(]*)\([^)]*\)", rf"\g<1>({scaling})", DBC.read_text())
+    assert n == 1
+    dbc = tmp_path / "wrong.dbc"
+    dbc.write_text(text)
+    raw = yaml.safe_load(CONFIG.read_text())
+    raw["codec"] = {**(raw.get("codec") or {}), "dbc": str(dbc)}
+    raw["model"]["path"] = str(config_path("machines", "pm10kw.yaml"))
+    cfg = tmp_path / "edge.yaml"
+    cfg.write_text(yaml.safe_dump(raw))
+    return cfg
+
+
+def test_a_sensor_read_in_kelvin_is_named_not_exported_as_nan(recording, exported, tmp_path):
+    """The housing PT100 decoded 273.15 K too high (an offset of -50 taken as +223.15): every
+    reading is implausible in degC and plausible in kelvin. export refuses the log naming the sensor,
+    its signal and the unit, with the reading converted back (within the recording's housing)."""
+    cfg = _config_with_dbc(tmp_path, "INV_T_Housing", "0.1,223.15")
+    r = te_here("export", recording, "--config", cfg, "--out", tmp_path / "x.csv")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    m = re.search(r"every reading of housing \(INV_StatorTemps INV_T_Housing\) was refused: (\S+) degC looks like "
+                  r"kelvin \((\S+) degC\)", r.stderr)
+    assert m, r.stderr
+    housing = read_run(exported).column("housing")
+    assert float(m[1]) == pytest.approx(float(m[2]) + 273.15, abs=0.01)
+    assert housing.min() - 0.2 <= float(m[2]) <= housing.max() + 0.2
+
+
+def test_currents_read_in_milliampere_are_named(recording, tmp_path):
+    """The dq currents decoded 1000x too large: the RMS current is refused in every tick, and the
+    line says why (mA) instead of only that no tick was complete."""
+    cfg = _config_with_dbc(tmp_path, "INV_Id", "50,0")
+    text = (tmp_path / "wrong.dbc").read_text()
+    (tmp_path / "wrong.dbc").write_text(re.sub(r"(SG_ INV_Iq : [^(]*)\([^)]*\)", r"\g<1>(50,0)", text))
+    r = te_here("export", recording, "--config", cfg, "--out", tmp_path / "x.csv")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "no run in this CAN log (i_rms (INV_Currents INV_Id/INV_Iq) refused: " in r.stderr
+    assert re.search(r"refused: \S+ A looks like mA \(\S+ A\); give it in A\)", r.stderr), r.stderr

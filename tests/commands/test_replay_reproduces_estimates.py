@@ -6,6 +6,7 @@ of the last readings of the housing PT100 (which bounds the magnet from below), 
 the table's own columns."""
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -15,11 +16,13 @@ import can
 import cantools
 import numpy as np
 import pytest
+import yaml
 from cmd_testlib import te_here
 
 from thermal_edge.bus.frames import DEFAULT_DBC_PATH
 from thermal_edge.data import read_run
 from thermal_edge.service.derating import FLOOR_TICKS
+from thermal_edge.service.flux_input import OUTCOMES
 
 #: simulated seconds recorded: long enough for the overload to heat the housing PT100 above the
 #: magnet's observer band (from ~250 s on in the demo's cycle)
@@ -57,11 +60,8 @@ def _sent_estimates(log: Path) -> dict[float, dict[str, float]]:
     return sent
 
 
-@pytest.mark.slow  # a demo run of 420 simulated s (about 15 s) and its replay
-def test_replay_reproduces_the_te_estimates_the_service_sent(recording, tmp_path):
-    out = tmp_path / "ticks.csv"
-    r = te_here("replay", "--format", "can", "--run", recording, "--out", out)
-    assert r.returncode == 0, r.stderr
+def _assert_reproduced(recording: Path, out: Path):
+    """Every tick's TE_Estimates signals in the replay's table ``out`` as the service sent them; the table."""
     ticks = read_run(out)
     t0 = float(re.search(r"first tick at ([\d.]+) s since the epoch", out.read_text()).group(1))
     sent = _sent_estimates(recording)
@@ -82,6 +82,15 @@ def test_replay_reproduces_the_te_estimates_the_service_sent(recording, tmp_path
             compared += 1
     assert compared >= 4 * (len(ticks) - 1) and len(ticks) >= DURATION_S - 5  # initialised from the first tick
     assert len(sent) == len(ticks)  # one TE_Estimates per tick with the frame clock, none the replay lacks
+    return ticks
+
+
+@pytest.mark.slow  # a demo run of 420 simulated s (about 15 s) and its replay
+def test_replay_reproduces_the_te_estimates_the_service_sent(recording, tmp_path):
+    out = tmp_path / "ticks.csv"
+    r = te_here("replay", "--format", "can", "--run", recording, "--out", out)
+    assert r.returncode == 0, r.stderr
+    ticks = _assert_reproduced(recording, out)
 
     # the band sent on the magnet: the observer's band (symmetric about the estimate) raised to the
     # mean of the housing PT100's last FLOOR_TICKS readings, as the table's own columns give them
@@ -102,3 +111,63 @@ def test_replay_reproduces_the_te_estimates_the_service_sent(recording, tmp_path
     # the recording covers both: the observer's band binding, and the housing's readings above it
     raised = up[ok] > hi[ok] + 0.5
     assert 0.2 < np.mean(raised) < 0.8
+
+
+@pytest.fixture(scope="module")
+def voltage_recording(tmp_path_factory) -> tuple[Path, Path]:
+    """The demo with the inverter's voltages, fused with a calibration commissioned on a simulated
+    bench run and named in the configuration, so that the replay fuses what the service fused."""
+    from thermal_edge.bench.protection import flux_calibration
+    from thermal_edge.lptn import load_model
+    from thermal_edge.shipped import config_path, example_config
+
+    d = tmp_path_factory.mktemp("voltages")
+    flux = flux_calibration(load_model(config_path("machines", "pm10kw.yaml")), d / "flux.json")
+    raw = yaml.safe_load(example_config())
+    raw["flux"] = {**(raw.get("flux") or {}), "calibration": str(flux)}
+    cfg = d / "edge.yaml"
+    cfg.write_text(yaml.safe_dump(raw))
+    log = d / "drive.log"
+    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "demo", "--no-table4", "--duration", str(DURATION_S),
+                        "--speed", "200", "--quiet", "--metrics-port", "0", "--voltages", "--config", str(cfg),
+                        "--record", str(log)],
+                       capture_output=True, text=True, timeout=600, cwd=d,
+                       env={"OPENBLAS_NUM_THREADS": "1", "PATH": "/usr/bin:/bin", "TMPDIR": str(d)})
+    assert r.returncode == 0, r.stderr[-2000:]
+    return log, cfg
+
+
+@pytest.mark.slow  # a demo run of 420 simulated s with the voltages' commissioning (about 25 s) and its replay
+def test_replay_accounts_for_the_voltage_input(voltage_recording, tmp_path):
+    """With the voltages fused, the replay still reproduces every TE_Estimates frame (the magnet
+    included, which the fusion moves); it says per tick what became of the flux estimate, and its
+    summary counts the same outcomes the table shows."""
+    log, cfg = voltage_recording
+    out = tmp_path / "ticks.csv"
+    r = te_here("replay", "--format", "can", "--run", log, "--config", cfg, "--out", out, "--json")
+    assert r.returncode == 0, r.stderr
+    ticks = _assert_reproduced(log, out)
+    counts = json.loads(r.stdout)["voltage_input"]
+    assert set(counts) == set(OUTCOMES)
+    outcome = ticks.column("flux_outcome")
+    per_tick = {name: int(np.sum(outcome == i)) for i, name in enumerate(OUTCOMES)}
+    assert per_tick == counts
+    # one outcome a tick, but for the first (no state to fuse into yet)
+    assert sum(counts.values()) == np.sum(np.isfinite(outcome)) >= len(ticks) - 1
+    assert counts["used"] > 0.9 * len(ticks)  # the overload cycle keeps the machine turning: informative
+    used = outcome == OUTCOMES.index("used")
+    magnet, sigma = ticks.column("flux_magnet"), ticks.column("flux_sigma")
+    assert np.all(np.isfinite(magnet[used])) and np.all((sigma[used] > 0) & np.isfinite(sigma[used]))
+    # what the voltages said of the magnet agrees with the observer they were fused into, within their σ
+    gap = np.abs(magnet[used] - ticks.column("magnet_observer")[used])
+    assert np.median(gap / sigma[used]) < 3.0
+
+    r = te_here("replay", "--format", "can", "--run", log, "--config", cfg)
+    assert r.returncode == 0 and f"voltage input: {counts['used']} tick(s) fused into the magnet" in r.stdout
+
+
+@pytest.mark.slow
+def test_replay_without_the_voltage_input_says_so(recording):
+    r = te_here("replay", "--format", "can", "--run", recording)
+    assert r.returncode == 0, r.stderr
+    assert "voltage input: off (no flux.calibration" in r.stdout

@@ -1,4 +1,4 @@
-"""The discovery report's figures (issue 18): the score plot keeps its whole x-label on the canvas
+"""The discovery report's figures: the score plot keeps its whole x-label on the canvas
 and marks the winner and the runner-up; the residual and temperature plots show the operating
 point (speed, current) beneath, and the residual-against-variable plot where the run was.
 

@@ -1,4 +1,4 @@
-"""The issue's acceptance check: on 200 simulated machines with 5 faulty ones, ``fleet screen``
+"""The acceptance check of fleet screening: on 200 simulated machines with 5 faulty ones, ``fleet screen``
 names at least 4 faulty machines with the faulty parameter and at most 1 healthy machine."""
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ from benchmarks.faults import control, harness, stamps, wire
 
 #: groups within the suite's budget (the whole suite must stay under 10 min on 2 cores); the rest are
 #: marked slow (make test-all; the bench itself runs them all)
-FAST = ("bad_frames", "security", "metrics", "sensor_age")
+FAST = ("bad_frames", "security", "metrics", "sensor_age", "units")
 SLOW = ("floods", "stale", "bus", "sensors", "stuck", "absurd", "band", "configs", "states", "crash", "load", "soak",
         "persist", "clock", "time_back")
 

@@ -127,7 +127,7 @@ def test_forced_safe_limit_and_precedence():
 
 
 def test_forced_limit_never_above_the_band_at_the_measured_temperature():
-    """Issue 14, defect 9: 10 A was sent with the measured end winding at 151-155 degC. Forced, the
+    """10 A must not be sent with the measured end winding at 151-155 degC. Forced, the
     limit is min(safe, band at the reading): 40 A x (155 - T) / 15 below 10 A from 151.25 degC."""
     for reading in (120.0, 145.0, 151.0, 152.0, 153.0, 154.9, 155.0, 160.0):
         measured = [NodeBand("hot_spot", reading, reading, 140.0, 155.0, W)]

@@ -317,3 +317,27 @@ def test_each_dq_convention_gives_the_rms_of_the_phase_currents(tmp_path, dq, tu
         acc.add(frame("INV_Currents", 10.0 + t, INV_Id=d, INV_Iq=q, INV_IphRms=0.0), 10.0 + t)
     expected = math.sqrt(zoh_mean(list(10.0 + times), squares, 11.0))
     assert acc.take(11.0).inputs["i_rms"] == pytest.approx(expected, rel=1e-9)
+
+
+def test_a_refused_reading_names_the_unit_it_looks_like(acc, caplog):
+    """A housing reading of 313.15 (40 °C in kelvin) is out of the valid range and plausible in
+    kelvin; an RMS current of 20,000 (20 A in mA) is out of the current's range and plausible in mA;
+    a winding at 900 °C is plausible in no unit. The sensor-fault log line carries the cause."""
+    import logging
+
+    from thermal_edge.bus.frames import DerateReason, TeState
+    from thermal_edge.service.derating import Limits
+    from thermal_edge.service.events import SafetyEvents
+
+    acc.add(stator(10.0, hous=313.15, slot=900.0), 10.0)
+    acc.add(frame("INV_Currents", 10.0, INV_Id=0.0, INV_Iq=20000.0 * math.sqrt(2), INV_IphRms=0.0), 10.0)
+    ti = acc.take(11.0)
+    assert ti.faults["housing"] == ti.faults["slot_winding"] == ti.faults["i_rms"] == "out_of_range"
+    assert acc.refusal("housing") == "313.15 degC looks like kelvin (40 degC); give it in degC"
+    assert acc.refusal("i_rms") == "20000 A looks like mA (20 A); give it in A"
+    assert "looks like" not in acc.refusal("slot_winding") and "900" in acc.refusal("slot_winding")
+    assert acc.refusal("end_winding") is None
+    with caplog.at_level(logging.WARNING, logger="thermal_edge.service.events"):
+        SafetyEvents().record(TeState.DEGRADED, Limits(10.0, 56.0, DerateReason.SENSOR_FAULT, True), [], ti.faults, acc.refusal)
+    line = next(r.getMessage() for r in caplog.records if "sensor fault" in r.getMessage())
+    assert "housing (out_of_range: 313.15 degC looks like kelvin (40 degC); give it in degC)" in line

@@ -160,3 +160,30 @@ def test_every_command_rate_limits_its_warnings():
     assert r.returncode == 0, r.stderr
     lines = r.stderr.splitlines()
     assert lines == [f"WARNING thermal_edge.probe: the same condition at tick {k}" for k in range(RateLimit().burst)]
+
+
+def test_the_stderr_handler_writes_to_stderr_as_it_is_now(monkeypatch):
+    """A program embedding the CLI replaces sys.stderr and closes the old one between calls (a test
+    runner does): the handler of the warnings and of ``run`` writes to the current one, never to a
+    closed stream (a "Logging error" traceback on the next command's stderr)."""
+    import io
+    import logging
+
+    from thermal_edge.log_rate import StderrHandler
+
+    handler = StderrHandler()
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    logger = logging.getLogger("thermal_edge.test_stderr_handler")
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        first = io.StringIO()
+        monkeypatch.setattr("sys.stderr", first)
+        logger.warning("one")
+        first.close()
+        second = io.StringIO()
+        monkeypatch.setattr("sys.stderr", second)
+        logger.warning("two")
+        assert second.getvalue() == "two\n"
+    finally:
+        logger.removeHandler(handler)

@@ -314,7 +314,7 @@ def test_refusing_a_huge_or_hostile_file_costs_little_memory(tmp_path, model):
 
 
 def test_a_parameter_adapted_onto_its_bound_saves_and_loads_back(tmp_path, model, caplog):
-    """Defect 4: exp(log(300)) = 299.99999999999994 below c_p_ew's bound 300 must not lose the state."""
+    """exp(log(300)) = 299.99999999999994 below c_p_ew's bound 300 must not lose the state."""
     at_bound = float(np.exp(np.log(300.0)))
     assert at_bound < 300.0
     st = state_for(model)

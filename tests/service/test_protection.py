@@ -113,7 +113,7 @@ def test_recovering_reason_after_a_short_dropout(tmp_path):
 
 
 def test_forced_limit_obeys_the_band_at_the_measured_end_winding(tmp_path):
-    """Issue 14, defect 9, through the engine: the housing PT100 open (sensor fault, safe limit) on a
+    """The forced limit at the measured end winding, through the engine: the housing PT100 open (sensor fault, safe limit) on a
     machine whose measured end winding is ~153.5 degC: the limit is min(10 A, band at the reading)."""
     loop = Loop(tmp_path, cycle(tmp_path, (120.0, 900.0, 140.0)))
     # the plant's steady state with the measured end winding at 153.5 degC (bisection on the current)

@@ -117,7 +117,7 @@ def _corrupt(kind: str, state, model) -> bytes | None:
 
 @pytest.mark.parametrize("kind", ["100,000 nested [", "5,000-digit number", 'decisions: "abc"', "directory", "256 MiB"])
 def test_the_service_starts_fresh_on_a_corrupt_state_file(tmp_path, kind):
-    """Defect 2 at the level of the process: ready, one log line naming the file, the file moved
+    """A corrupt state file at the level of the process: ready, one log line naming the file, the file moved
     aside, a clean stop that saves a loadable state; never a traceback, never exit 1."""
     from thermal_edge.lptn import load_model
     from thermal_edge.service.persistence import StateStore
@@ -154,7 +154,7 @@ def test_the_service_starts_fresh_on_a_corrupt_state_file(tmp_path, kind):
 
 
 def test_a_state_saved_with_round_off_below_a_bound_is_restored(tmp_path):
-    """Defect 4 at the level of the process: a file written by the earlier release with
+    """A parameter adapted onto its bound, at the level of the process: a file written by the earlier release with
     c_p_ew = exp(log(300)) = 299.99999999999994 (bounds [300, 900]) keeps every learned parameter
     and the thermal state; the next save holds the bound itself."""
     from thermal_edge.lptn import load_model, steady_state

@@ -39,6 +39,7 @@ from ..estimation.uncertainty import Z95
 from ..lptn import Model
 from ..lptn.vocabulary import Role
 from ..plots import missing
+from ..service.flux_input import OUTCOMES
 from ..service.replay import ReplayResult, format_summary, replay_log, summarise
 from ..shipped import config_path
 from .common import add_model_args, add_set_arg, model_from_args, model_with_sets, parse_sets, split_sets
@@ -277,7 +278,11 @@ def per_tick(model: Model, res: ReplayResult) -> dict[str, np.ndarray]:
     that bounds the node from below where they are above ``_band_high``); ``current_limit_a`` (the
     limit sent, A rms), ``state`` and ``reason`` (the codes of ``TE_State`` and the derating
     reason, DBC value tables); ``adaptation`` (0 no decision, 1 a triggered decision, 2 accepted
-    parameters).
+    parameters). With the voltage input (``flux.calibration``): ``flux_outcome`` (the index of the
+    tick's outcome in :data:`.flux_input.OUTCOMES`: 0 used, 1 disagreement, 2 stale, 3 implausible,
+    4 uninformative, 5 transient, 6 low_speed; NaN for a tick without an estimate), ``flux_magnet``
+    (the magnet temperature the voltages imply, degC) and ``flux_sigma`` (its σ, K; inf where
+    uninformative).
 
     Parameters
     ----------
@@ -316,6 +321,11 @@ def per_tick(model: Model, res: ReplayResult) -> dict[str, np.ndarray]:
             k = min(int(np.searchsorted(res.t, float(d["t"]))), len(outs) - 1)
             flag[k] = 2.0 if d.get("accepted") else 1.0
     cols["adaptation"] = flag
+    if res.flux is not None:
+        ticks = [o.flux for o in outs]
+        cols["flux_outcome"] = np.array([OUTCOMES.index(f.outcome) if f else np.nan for f in ticks])
+        cols["flux_magnet"] = np.array([f.estimate_c if f else np.nan for f in ticks])
+        cols["flux_sigma"] = np.array([f.sigma_k if f else np.nan for f in ticks])
     return cols
 
 

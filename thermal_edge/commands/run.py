@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
             if args.check:  # (the service checks the model itself when it starts)
                 config.check_model(model)
                 codec = config.codec.frame_codec(config.fname)
-                config.check_dbc(codec)
+                config.check_dbc(codec, model.input_roles)
                 if config.flux.enabled:  # read now, as the service reads it at start
                     from ..service.flux_input import load_flux_model
 

@@ -25,7 +25,7 @@ from .model import (
     Parameter,
 )
 from .tables import Lookup, load_table
-from .vocabulary import LIMIT, TEMPERATURE, UNIT_SPELLINGS, NodeRole, Role, parse_role, temperature_name, unit_problem
+from .vocabulary import LIMIT, TEMPERATURE, NodeRole, Role, is_unit, parse_role, temperature_name, unit_problem
 
 MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
 
@@ -205,7 +205,7 @@ def build_model(
         hi = ctx.number(f"{key}.max", _req(ctx, spec, "max", key))
         if not lo <= value <= hi:
             raise ctx.fail(key, f"value {value} outside [min, max] = [{lo}, {hi}]")
-        if str(spec.get("unit", "")).strip() in UNIT_SPELLINGS[TEMPERATURE.unit]:  # a temperature, degC
+        if is_unit(TEMPERATURE.unit, str(spec.get("unit", ""))):  # a temperature, degC
             for what, v in (("value", value), ("min", lo), ("max", hi)):
                 if (why := TEMPERATURE.problem(v)):
                     raise ctx.fail(f"{key}.{what}", why)

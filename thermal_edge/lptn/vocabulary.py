@@ -179,19 +179,51 @@ PLAUSIBLE: dict[Role, Plausible] = {
     Role.COOLANT: Plausible("degC", -60.0, 150.0, (KELVIN,), whole_above=TEMPERATURE.whole_above, what="coolant temperature"),
 }
 
-#: How a model file may write each role's unit (``inputs.<name>.unit``).
+#: How a model file or a DBC may write each unit the package works in (compared without case).
 UNIT_SPELLINGS: dict[str, frozenset[str]] = {
     "A": frozenset({"A", "A rms", "Arms", "A_rms", "A RMS"}),
-    "rpm": frozenset({"rpm", "1/min", "min^-1", "r/min"}),
+    "rpm": frozenset({"rpm", "1/min", "min^-1", "min-1", "r/min", "rev/min", "U/min"}),
     "Nm": frozenset({"Nm", "N m", "N*m", "N·m", "N.m"}),
-    "degC": frozenset({"degC", "°C", "C", "deg C", "celsius"}),
+    "degC": frozenset({"degC", "°C", "C", "deg C", "celsius", "deg_C"}),
+    "V": frozenset({"V", "volt"}),
 }
+
+#: Units a DBC (or a file) often declares in place of the package's, and how they convert into it
+#: (``ours = x * scale + offset``), by the package's unit; compared without case. Other units are
+#: refused without a conversion.
+FOREIGN_UNITS: dict[str, dict[str, OtherUnit]] = {
+    "rpm": {u: OtherUnit(u, 60.0 / (2.0 * np.pi)) for u in ("rad/s", "rad/sec")}
+           | {u: OtherUnit(u, 60.0) for u in ("rev/s", "rps")},
+    "degC": {"K": OtherUnit("K", 1.0, -273.15), "kelvin": OtherUnit("kelvin", 1.0, -273.15)}
+            | {u: OtherUnit(u, 5.0 / 9.0, -32.0 * 5.0 / 9.0) for u in ("degF", "°F", "F", "deg F")},
+    "A": {"mA": OtherUnit("mA", 1e-3), "kA": OtherUnit("kA", 1e3)},
+    "Nm": {"kNm": OtherUnit("kNm", 1e3), "Ncm": OtherUnit("Ncm", 1e-2), "mNm": OtherUnit("mNm", 1e-3)},
+    "V": {"mV": OtherUnit("mV", 1e-3), "kV": OtherUnit("kV", 1e3)},
+}
+
+
+def _unit_key(unit: str) -> str:
+    # a DBC saved in UTF-8 and read as cp1252 (cantools' default) spells the degree sign "Â°"
+    return unit.strip().replace("Â°", "°").casefold()
+
+
+def is_unit(want: str, unit: str) -> bool:
+    """Whether ``unit`` (as a file declares it) is a spelling of the package's unit ``want``."""
+    u = _unit_key(unit)
+    return any(u == x.casefold() for x in UNIT_SPELLINGS.get(want, frozenset({want})))
+
+
+def foreign_unit(want: str, unit: str) -> OtherUnit | None:
+    """The conversion into ``want`` of ``unit`` when it is a unit often declared in its place
+    (:data:`FOREIGN_UNITS`); None otherwise."""
+    u = _unit_key(unit)
+    return next((o for k, o in FOREIGN_UNITS.get(want, {}).items() if k.casefold() == u), None)
 
 
 def unit_problem(role: Role, unit: str) -> str | None:
     """Why ``unit`` (as a model file writes an input's unit) is not the unit of ``role``; None if it is."""
     want = role.plausible.unit
-    if unit.strip() in UNIT_SPELLINGS.get(want, frozenset({want})):
+    if is_unit(want, unit):
         return None
     return f"{unit!r} is not the unit of role {role.value!r}: its values must be in {want}"
 

@@ -417,7 +417,7 @@ class ThermalEngine:
             pred = np.full(n, math.nan)
             bands = []
             limits = self.policy.update([], None, forced or [DerateReason.STARTING], floor)
-        self.events.record(state, limits, stale, faults)
+        self.events.record(state, limits, stale, faults, self.accumulator.refusal)
         if pred_error is None:
             pred_error = {}
             if obs is not None and x_ol is not None:

@@ -7,7 +7,7 @@ limit (:mod:`.journal`) keeps a flapping input from flooding the journal.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 from ..bus.frames import DerateReason, TeState
 from .derating import Limits
@@ -30,8 +30,10 @@ class SafetyEvents:
         self._stale: frozenset[str] = frozenset()
         self._faults: dict[str, str] = {}
 
-    def record(self, state: TeState, limits: Limits, stale: Sequence[str], faults: Mapping[str, str]) -> None:
-        """Log this tick's changes of stale inputs, sensor faults, state and derate reason."""
+    def record(self, state: TeState, limits: Limits, stale: Sequence[str], faults: Mapping[str, str],
+               why: Callable[[str], str | None] | None = None) -> None:
+        """Log this tick's changes of stale inputs, sensor faults, state and derate reason; ``why``
+        gives the cause of an ``out_of_range`` reading (the unit it looks like)."""
         now_stale = frozenset(stale)
         if now_stale - self._stale:
             log.warning("input(s) stale: %s (no valid frame within the timeout); safe limit",
@@ -41,7 +43,11 @@ class SafetyEvents:
         self._stale = now_stale
         new = {k: v for k, v in faults.items() if self._faults.get(k) != v}
         if new:
-            log.warning("sensor fault: %s; safe limit", ", ".join(f"{k} ({v})" for k, v in sorted(new.items())))
+            def cause(k: str, v: str) -> str:
+                said = why(k) if why is not None and v == "out_of_range" else None
+                return f"{k} ({v}: {said})" if said else f"{k} ({v})"
+
+            log.warning("sensor fault: %s; safe limit", ", ".join(cause(k, v) for k, v in sorted(new.items())))
         gone = sorted(set(self._faults) - set(faults))
         if gone:
             notice(log, "sensor fault cleared: %s", ", ".join(gone))

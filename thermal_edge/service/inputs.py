@@ -28,6 +28,7 @@ are counted by kind in :attr:`InputAccumulator.bad_readings`.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import Counter
 from collections.abc import Callable, Mapping
@@ -38,6 +39,7 @@ from ..bus.codec import DecodedFrame
 from ..bus.frames import SensorStatus
 from ..config import DQ_SQUARE_SHARE, EdgeConfig, InputSignal, SensorSignal
 from ..lptn import Role
+from ..lptn.vocabulary import TEMPERATURE
 
 __all__ = ["FAULT_KINDS", "InputAccumulator", "TickInputs", "input_ranges"]
 
@@ -150,6 +152,7 @@ class InputAccumulator:
 
     def __init__(self, config: EdgeConfig, roles: Mapping[str, Role]) -> None:
         self.config = config
+        self.roles = dict(roles)
         self.lo, self.hi = config.valid_range_c
         self.reduced: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce != "latest"}
         self.latest_inputs: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce == "latest"}
@@ -181,6 +184,8 @@ class InputAccumulator:
         self.bad_readings: Counter[str] = Counter()
         #: Frames whose signals did not have the expected names/values (counted, ignored).
         self.malformed: int = 0
+        #: The last reading refused as out of range, by input or sensor (:meth:`refusal` says why).
+        self.refused: dict[str, float] = {}
 
     # ------------------------------------------------------------------------------------------
     def add(self, frame: DecodedFrame, t: float) -> None:
@@ -229,6 +234,7 @@ class InputAccumulator:
             v = math.sqrt(x) if spec.reduce in ("rms", "dq_rms") else x  # this frame's value (rms: its magnitude)
             if not rng[0] <= v <= rng[1]:
                 self._implausible.add(name)
+                self.refused[name] = v
                 return
         self._hold[name] = (x, t)
         self._sum[name] += x
@@ -246,6 +252,7 @@ class InputAccumulator:
             fault = "no_value"
         elif not self.lo <= value <= self.hi:
             fault = "out_of_range"
+            self.refused[name] = value
         if fault is not None:
             if slot.fault != fault:
                 self.bad_readings[fault] += 1
@@ -254,6 +261,21 @@ class InputAccumulator:
         slot.fault = None
         slot.value = value
         slot.t = t
+
+    def refusal(self, name: str) -> str | None:
+        """Why the last reading of ``name`` refused as out of range was refused, naming the unit
+        it looks like where it is plausible in one ("300.2 degC looks like kelvin"); None if no
+        reading of ``name`` was."""
+        x = self.refused.get(name)
+        if x is None:
+            return None
+        role, rng = self.roles.get(name), self.ranges.get(name)
+        if rng is not None and role is not None:
+            plausible = dataclasses.replace(role.plausible, lo=rng[0], hi=rng[1])
+        else:  # a temperature: the configured valid range
+            base = role.plausible if role is not None and role.is_temperature else TEMPERATURE
+            plausible = dataclasses.replace(base, lo=self.lo, hi=self.hi)
+        return plausible.problem(x)
 
     # ------------------------------------------------------------------------------------------
     def take(self, t: float) -> TickInputs:

@@ -19,7 +19,7 @@ import os
 import sys
 from typing import IO, Any
 
-from ..log_rate import RateLimit
+from ..log_rate import RateLimit, StderrHandler
 
 __all__ = ["NOTICE", "PRIORITY", "JournalFormatter", "RateLimit", "notice", "priority", "setup_logging",
            "stream_is_journal"]
@@ -82,13 +82,12 @@ def setup_logging(level: str | int, stream: IO[str] | None = None) -> logging.Ha
     logging.Handler
         The installed handler (its filter is the :class:`RateLimit`).
     """
-    stream = stream if stream is not None else sys.stderr
-    journal = stream_is_journal(stream)
+    journal = stream_is_journal(stream if stream is not None else sys.stderr)
     if journal:  # the journal adds the time
         formatter: logging.Formatter = JournalFormatter("%(levelname)s %(name)s: %(message)s")
     else:
         formatter = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
-    handler = logging.StreamHandler(stream)
+    handler = logging.StreamHandler(stream) if stream is not None else StderrHandler()
     handler.setFormatter(formatter)
     handler.addFilter(RateLimit())
     root = logging.getLogger()

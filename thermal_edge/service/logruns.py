@@ -138,9 +138,9 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
         The configuration's CAN matrix lacks a frame or signal its ``signals:`` name.
     """
     codec = config.codec.frame_codec(config.fname)
-    config.check_dbc(codec)
     path_m = Path(config.model.path)
     roles = _input_roles(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
+    config.check_dbc(codec, roles)
     tick_s, catchup = config.clock.tick_s, config.clock.max_catchup_s
     silence = max(config.timeouts.values(), default=tick_s)
     source = str(path)
@@ -151,7 +151,10 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     dq: list[np.ndarray] = []
     last = -math.inf
 
+    why: dict[str, str] = {}  # input or sensor -> why its last refused reading was refused
+
     def close_stretch() -> None:
+        why.update({name: w for name in [*config.inputs, *config.sensors] if (w := acc.refusal(name))})
         run, left_out = _run(ticks, config, source, len(out.runs), dq if voltages and dq_means.seen else None)
         out.ticks_left_out += left_out
         if run is not None:
@@ -189,9 +192,23 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
         raise RunError(f"{Path(path)}: not one CAN frame read: an empty log, or not a {log_suffix(Path(path))} log"
                        + (f" ({out.malformed_lines} damaged lines)" if out.malformed_lines else ""))
     if not out.runs:
+        refused = "; ".join(f"{_signal_of(config, k)} refused: {w}" for k, w in why.items() if k in config.inputs)
         raise RunError(f"{Path(path)}: {out.frames} frames of the configuration's CAN matrix, not two complete "
-                       f"ticks of every input ({', '.join(config.inputs)}): no run in this CAN log")
+                       f"ticks of every input ({', '.join(config.inputs)}): no run in this CAN log"
+                       + (f" ({refused})" if refused else ""))
+    # a column no reading of which was used, because they were implausible: a unit or scaling error
+    # of the CAN matrix, named rather than written as a column of NaN
+    for name, w in why.items():
+        if all(np.all(np.isnan(r.columns[name])) for r in out.runs if name in r.columns):
+            raise RunError(f"{Path(path)}: every reading of {_signal_of(config, name)} was refused: {w}")
     return out
+
+
+def _signal_of(config: EdgeConfig, name: str) -> str:
+    """``name (frame signal)`` of a mapped input or sensor, for a message."""
+    spec = config.inputs.get(name) or config.sensors[name]
+    signals = "/".join(spec.signals) if hasattr(spec, "signals") else spec.signal
+    return f"{name} ({spec.frame} {signals})"
 
 
 def read_log_runs(path: str | os.PathLike[str], config: EdgeConfig) -> list[Run]:

@@ -28,10 +28,12 @@ from ..config import ClockConfig, EdgeConfig, MetricsConfig
 from ..lptn import Model
 from .clock import FrameClock
 from .engine import ThermalEngine, load_service_model
+from .flux_input import OUTCOMES
 from .outputs import TickOutput
 from .persistence import PersistedState
 
-__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_log", "replay_summary", "summarise"]
+__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_log", "replay_summary", "summarise",
+           "voltage_line"]
 
 
 @dataclass
@@ -60,6 +62,9 @@ class ReplayResult:
     #: the frame clock's counters (:meth:`.clock.FrameClockStats.as_dict`), ``gaps`` (bridged by the
     #: engine) and ``judging`` (frames of a jump the log ended before judging)
     clock: dict[str, float] = field(default_factory=dict)
+    #: the voltage input's ticks per outcome (:data:`.flux_input.OUTCOMES`, every one listed), None
+    #: without ``flux.calibration`` (the service then fuses no voltages)
+    flux: dict[str, int] | None = None
 
     def node(self, name: str) -> np.ndarray:
         return self.estimate[:, self.nodes.index(name)]
@@ -91,7 +96,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
                   metrics=MetricsConfig(enabled=False))
     model = model if model is not None else load_service_model(cfg)
     codec = cfg.codec.frame_codec(cfg.fname)
-    cfg.check_dbc(codec)
+    cfg.check_dbc(codec, model.input_roles)
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s, cfg.clock.max_catchup_s)
     reader = FrameLogReader(Path(path), codec, include_tx=False)
@@ -119,6 +124,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
         decisions=engine.adaptation.decisions, parameters=engine.adaptation.values(), frame_stats=codec.stats.as_dict(),
         frames=n_frames, malformed_lines=len(reader.malformed_lines), outputs=outs if keep_outputs else [],
         clock={**clock.stats.as_dict(), "gaps": engine.gaps, "judging": clock.judging},
+        flux=None if engine.flux is None else {k: int(engine.flux.counts[k]) for k in OUTCOMES},
     )
 
 
@@ -174,6 +180,7 @@ def summarise(path: str | os.PathLike[str], res: ReplayResult, model: Model) -> 
         "adaptations": {"decisions": len(res.decisions), "accepted": sum(1 for d in res.decisions if d.get("accepted"))},
         "parameters": res.parameters,
         "frame_clock": res.clock,
+        "voltage_input": res.flux,
     }
     if len(res.t):
         out["t_first"], out["t_last"] = float(res.t[0]), float(res.t[-1])
@@ -205,6 +212,16 @@ def clock_line(c: Mapping[str, float]) -> str:
     return "frame clock: " + "; ".join(parts)
 
 
+def voltage_line(counts: Mapping[str, int] | None) -> str:
+    """One line of what became of the voltage input's estimates of the magnet, tick by tick."""
+    if counts is None:
+        return "voltage input: off (no flux.calibration: no voltage fused)"
+    refused = {k: v for k, v in counts.items() if k != "used" and v}
+    why = ", ".join(f"{k} {v}" for k, v in refused.items())
+    return (f"voltage input: {counts.get('used', 0)} tick(s) fused into the magnet, "
+            f"{sum(refused.values())} not" + (f" ({why})" if why else ""))
+
+
 def format_summary(s: dict[str, Any]) -> str:
     """Human-readable lines of :func:`replay_summary`."""
     lines = [f"{s['log']}: {s['frames']} frames, {s['ticks']} ticks of model {s['model']}; "
@@ -212,6 +229,8 @@ def format_summary(s: dict[str, Any]) -> str:
              f"adaptations: {s['adaptations']['accepted']} accepted of {s['adaptations']['decisions']} decisions"]
     if "frame_clock" in s:
         lines.append(clock_line(s["frame_clock"]))
+    if "voltage_input" in s:
+        lines.append(voltage_line(s["voltage_input"]))
     if "max_estimate_c" in s:
         lines.append("peak estimates: " + ", ".join(f"{k} {v:.1f} °C" for k, v in s["max_estimate_c"].items())
                      + f"; lowest current limit {s['min_current_limit_a']:.1f} A")

@@ -107,7 +107,7 @@ class EdgeService:
         self.config = config
         self.model = model if model is not None else load_service_model(config)
         self.codec = config.codec.frame_codec(config.fname)
-        config.check_dbc(self.codec)
+        config.check_dbc(self.codec, self.model.input_roles)
         self.state_lock = StateLock(config.state.dir)
         self.state_lock.acquire()  # before anything is read: a second service on the directory stops here
         self.store = StateStore(config.state.dir, self.model)

@@ -181,6 +181,8 @@ class EmulatorSummary:
     flow_wait_wall_s: float = 0.0
     #: waits given up after ``flow_timeout_s`` of the service's silence (the emulator then runs on)
     flow_timeouts: int = 0
+    #: received datagrams that were no CAN message (garbage on a udp_multicast group): skipped
+    rx_undecodable: int = 0
     true_max_c: dict[str, float] = field(default_factory=dict)  # per limited node of the model
     true_max_t: dict[str, float] = field(default_factory=dict)
     closed_loop: bool = True
@@ -496,6 +498,8 @@ class InverterEmulator:
         """
         import can
 
+        from ..bus.udp import UndecodableDatagram
+
         if self.bus_config is None:
             raise ValueError("no bus configured")
         cfg = self.config
@@ -509,6 +513,11 @@ class InverterEmulator:
             while True:
                 try:
                     msg = bus.recv(0)
+                except UndecodableDatagram as exc:  # one bad datagram is not a dead bus: skipped, counted
+                    self.summary.rx_undecodable += 1
+                    if self.summary.rx_undecodable == 1:
+                        log.warning("emulator: undecodable datagram(s) on the bus skipped (first: %s)", exc)
+                    continue
                 except Exception as exc:  # a broken bus ends the run
                     raise RuntimeError(f"emulator bus receive failed: {exc}") from exc
                 if msg is None:
