@@ -578,6 +578,17 @@ class EdgeConfig:
             if name not in model.inputs:
                 raise self.error(f"signals.inputs.{name}",
                                  f"model {model.name} has no input {name!r} (has: {', '.join(model.inputs)})")
+        for name, role in model.input_roles.items():
+            reduce = self.inputs[name].reduce
+            if role is Role.CURRENT and reduce not in ("rms", "dq_rms"):
+                # the copper loss goes with the mean square: a mean or one sample of a current that
+                # varies within the tick under-reads it (pulses of 25 % duty: a quarter of the loss)
+                raise self.error(f"signals.inputs.{name}.reduce", f"is {reduce!r}; input {name} is the current of model "
+                                 f"{model.name}, whose losses need its mean square over the tick: rms (one signal) or "
+                                 "dq_rms (the d and q currents)")
+            if role in (Role.SPEED, Role.TORQUE) and reduce in ("rms", "dq_rms"):
+                raise self.error(f"signals.inputs.{name}.reduce", f"is {reduce!r}; input {name} is the {role.value} of "
+                                 f"model {model.name}, signed: mean (or latest)")
         for name in self.sensors:
             if name not in model.sensors:
                 raise self.error(f"signals.sensors.{name}",
@@ -614,6 +625,17 @@ class EdgeConfig:
         if kt is None:
             raise self.error("derating.kt_nm_per_arms", f"model {model.name} has no drive.kt_nm_per_arms: give it here")
         d = self.derating
+        drive_kt = model.drive.get("kt_nm_per_arms") if getattr(model, "drive", None) else None
+        if d.kt_nm_per_arms is not None and drive_kt and not 0.5 <= d.kt_nm_per_arms / float(drive_kt) <= 2.0:
+            # a torque constant off by a decade (a typo, Nm/A peak for rms) would scale every torque limit sent
+            raise self.error("derating.kt_nm_per_arms", f"{d.kt_nm_per_arms:g} Nm/A is {d.kt_nm_per_arms / float(drive_kt):.3g}"
+                             f" x model {model.name}'s drive.kt_nm_per_arms ({float(drive_kt):g} Nm/A): "
+                             "give the machine's torque constant (Nm per A rms), within a factor of 2 of the model's")
+        if d.safe_torque_nm is None and kt * d.safe_current_a > d.max_torque_nm * (1 + 1e-9):
+            # the safe torque derived from kt would be the full torque: no torque derating on a fault
+            raise self.error("derating.kt_nm_per_arms", f"kt x safe_current_a = {kt:g} Nm/A x {d.safe_current_a:g} A = "
+                             f"{kt * d.safe_current_a:g} Nm exceeds max_torque_nm ({d.max_torque_nm:g}): the safe torque "
+                             "would be the full torque; check kt or give derating.safe_torque_nm")
         if d.safe_torque_nm is not None and d.safe_torque_nm > kt * d.safe_current_a * (1 + 1e-9):
             # the torque limit is never above kt x the current limit: a higher safe torque is never sent
             raise self.error("derating.safe_torque_nm", f"must not exceed kt x safe_current_a ({kt:g} Nm/A x "
@@ -690,26 +712,48 @@ class EdgeConfig:
         ConfigError
             ``<file>: state.dir: ...``.
         """
-        d = self.state.dir
+        self._check_dir("state.dir", self.state.dir, create)
+
+    def check_recording(self) -> None:
+        """Check that ``recording.candump`` names a file whose directory is, or can be made, one
+        (judged as :meth:`check_state_dir` judges ``state.dir``, without making it): a path that is
+        a directory, or lies under a file or where the file system refuses any directory, is a
+        configuration error. One the file system's state refuses at start (full, read-only, not
+        this user's) only turns the recording off (logged); protection never depends on it.
+
+        Raises
+        ------
+        ConfigError
+            ``<file>: recording.candump: ...``.
+        """
+        if self.bus.record_path is None:
+            return
+        path = Path(self.bus.record_path)
+        if path.is_dir():
+            raise self.error("recording.candump", f"{path} is a directory, not a log file")
+        self._check_dir("recording.candump", path.parent, create=False, what=f"the directory of {path.name}")
+
+    def _check_dir(self, key: str, d: Path, create: bool, what: str = "") -> None:
         probe = d
         while not os.path.lexists(probe) and probe != probe.parent:
             probe = probe.parent
+        said = f"{d} ({what})" if what else f"{d}"
         if not probe.is_dir():
-            msg = f"{d} is not a directory" if probe == d else f"{d} cannot be created: {probe} is not a directory"
-            raise self.error("state.dir", msg)
+            msg = f"{said} is not a directory" if probe == d else f"{said} cannot be created: {probe} is not a directory"
+            raise self.error(key, msg)
         if not create:
             if probe != d:  # try to make a directory where it would go, then remove it
                 try:
                     os.rmdir(tempfile.mkdtemp(prefix=".thermal-edge-check-", dir=probe))
                 except OSError as exc:
                     if exc.errno not in _STATE_DIR_CONDITIONS:
-                        raise self.error("state.dir", f"{d} cannot be created under {probe}: {exc.strerror or exc}") from None
+                        raise self.error(key, f"{said} cannot be created under {probe}: {exc.strerror or exc}") from None
             return
         try:
             d.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             if exc.errno not in _STATE_DIR_CONDITIONS:
-                raise self.error("state.dir", f"cannot create {d}: {exc.strerror or exc}") from None
+                raise self.error(key, f"cannot create {said}: {exc.strerror or exc}") from None
 
     def check_dbc(self, codec: Any, roles: Mapping[str, Role] | None = None) -> None:
         """Check that every mapped frame and signal exists in the DBC and every read frame has a

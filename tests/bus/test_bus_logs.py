@@ -370,3 +370,33 @@ def test_the_service_configuration_caps_its_recording(tmp_path):
         load({"candump": "can.trc"})
     with pytest.raises(ConfigError, match=r"edge\.yaml: recording\.candump: .*can\.xyz: unknown CAN log format"):
         load({"candump": "can.xyz"})
+
+
+def test_a_recording_that_cannot_be_opened_leaves_the_bus_running(tmp_path, caplog):
+    """The file system refuses the recording at start (here: its directory lies under a file, which
+    the configuration check refuses, but a disk or a mount can do it after the check): one ERROR
+    line, no recording, and the transport sends and receives on as without one."""
+    (tmp_path / "a_file").write_text("x")
+    channel = f"rec-refused-{tmp_path.name}"
+
+    async def run() -> tuple[int, object]:
+        te = CanTransport({"interface": "virtual", "channel": channel, "node": "TE",
+                           "record_path": str(tmp_path / "a_file" / "can.log")}, FrameCodec(DBC_PATH))
+        listener = can.Bus(interface="virtual", channel=channel)
+        try:
+            async with te:
+                for _ in range(5):
+                    assert te.send("TE_Limits", {"TE_TorqueLimit": 50.0, "TE_CurrentLimit": 30.0, "TE_DerateActive": 0,
+                                                 "TE_DerateReason": 0})
+                    await asyncio.sleep(0.01)
+                got = 0
+                while listener.recv(0.5) is not None:
+                    got += 1
+                return got, te.recorder
+        finally:
+            listener.shutdown()
+
+    with caplog.at_level(logging.ERROR, logger="thermal_edge.bus.transport"):
+        got, recorder = asyncio.run(run())
+    assert got == 5 and recorder is None
+    assert any("cannot be written" in r.getMessage() and r.levelno == logging.ERROR for r in caplog.records)

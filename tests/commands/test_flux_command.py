@@ -412,3 +412,25 @@ def test_a_voltage_signal_naming_the_frames_counter_says_so(good, tmp_path):
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         "thermal-edge run: error: edge.yaml: flux.voltage_d: INV_Voltages_Counter is the alive counter of frame "
         "INV_Voltages (its protection), not a signal with a value; its signals: INV_Ud, INV_Uq"], r.stderr
+
+
+@pytest.mark.parametrize("column, convert, words", [
+    ("stator_winding", lambda x: x + 273.15, "looks like kelvin"),
+    ("pm", lambda x: x + 273.15, "looks like kelvin"),
+    ("i_q", lambda x: x * 1000.0, "looks like mA"),
+])
+def test_calibrate_and_score_refuse_a_column_in_another_unit(tmp_path, good, column, convert, words):
+    """The winding's temperature sets R_s, the magnet's the flux linkage's slope, the currents the
+    inductances: a whole column in kelvin or mA would be fitted into a calibration wrong
+    throughout. Both commands refuse it naming the column and the unit, with nothing written."""
+    cols = synthetic_columns(3)
+    cols[column] = convert(cols[column])
+    run = write_columns(tmp_path / "run.csv", cols)
+    out = tmp_path / "flux.json"
+    r = te_here("flux", "calibrate", run, "--pole-pairs", 4, "--out", out)
+    assert r.returncode == 2 and not out.exists(), r.stderr
+    assert r.stderr.startswith(f"thermal-edge flux calibrate: error: {run}: column '{column}': ") and words in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    flux, _ = good
+    r = te_here("flux", "score", flux, run)
+    assert r.returncode == 2 and f"column '{column}'" in r.stderr and words in r.stderr, r.stderr

@@ -431,3 +431,25 @@ def test_currents_read_in_milliampere_are_named(recording, tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "no run in this CAN log (i_rms (INV_Currents INV_Id/INV_Iq) refused: " in r.stderr
     assert re.search(r"refused: \S+ A looks like mA \(\S+ A\); give it in A\)", r.stderr), r.stderr
+
+
+def test_a_replay_whose_sensor_frames_never_pass_their_crc_says_so(recording, tmp_path):
+    """Every INV_StatorTemps frame with its CRC byte flipped: the observer never starts. The summary
+    names the drops by reason (as many as the frames changed here) and says there is no estimate,
+    instead of printing a NaN peak and a numpy warning."""
+    changed = 0
+    lines = []
+    for line in recording.read_text().splitlines():
+        m = re.match(r"^(\(\S+\) \S+ 0B0#)([0-9A-F]{14})([0-9A-F]{2})( R)?$", line)
+        if m:
+            line = f"{m[1]}{m[2]}{int(m[3], 16) ^ 0xFF:02X}{m[4] or ''}"
+            changed += 1
+        lines.append(line)
+    log = tmp_path / "bad_crc.log"
+    log.write_text("\n".join(lines) + "\n")
+    assert changed > 100
+    r = te_here("replay", "--format", "can", "--run", log)
+    assert r.returncode == 0, r.stderr
+    assert f"dropped {changed} (crc {changed})" in r.stdout
+    assert "no estimate: the observer never started" in r.stdout
+    assert "nan" not in r.stdout.lower() and "RuntimeWarning" not in r.stderr

@@ -118,6 +118,21 @@ def test_config_example_then_run_check(installed: Installed) -> None:
     assert "ok" in r.stdout and "model pm10kw" in r.stdout and "39 nodes" in r.stdout, r.stdout
 
 
+def test_config_dbc_and_the_inverter_example_from_the_wheel(installed: Installed) -> None:
+    """Outside a checkout: the DBC the package ships decodes with cantools, and the MC-7 example
+    written into a directory passes its own check there."""
+    import cantools
+
+    dbc = installed.work / "thermal_edge.dbc"
+    dbc.write_text(installed.run("config", "dbc").stdout, encoding="utf-8")
+    db = cantools.database.load_file(str(dbc))
+    assert {"TE_Limits", "INV_Currents", "INV_StatorTemps"} <= {m.name for m in db.messages}
+    out = installed.work / "mc7"
+    installed.run("config", "inverter-example", str(out))
+    r = installed.run("run", "--check", "--config", str(out / "edge.yaml"))
+    assert "edge.yaml: ok (model pm10kw" in r.stdout and "MC7_Currents" in r.stdout, r.stdout
+
+
 def _csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
     with path.open(newline="") as fh:
         rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))

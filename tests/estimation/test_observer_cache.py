@@ -54,3 +54,27 @@ def test_the_number_of_points_kept_does_not_change_the_estimate(pm10kw):
     points = {float(f"{300.0 + 40.0 * i:.2g}") for i in range(30)}  # the drive's speeds to two digits
     assert len(one._dcache) == 1 and len(every._dcache) == len(points)
     assert np.array_equal(one.T, every.T) and np.array_equal(one.Pa, every.Pa) and np.array_equal(one.S, every.S)
+
+
+def test_a_drive_that_dwells_gets_the_dense_derivatives_estimate(pm10kw):
+    """Speeds held for six steps each (and back): from the second step at a point the forcing is
+    its dense map, taken once from the factored form; estimate, covariance and sensitivities stay
+    those of the dense derivatives discretised at every step."""
+    T0 = np.full(len(pm10kw.nodes), 40.0)
+    obs, dense = Observer(pm10kw, T0), DenseObserver(pm10kw, T0)
+    rng = np.random.default_rng(5)
+    sensors = list(pm10kw.sensors)
+    dwelt = 0
+    for k in range(120):
+        u = {c: 25.0 for c in pm10kw.inputs}
+        u.update({"speed_rpm": (600.0, 1500.0, 3000.0, 1500.0)[(k // 6) % 4], "i_rms": 20.0 + 5.0 * np.sin(k / 20.0)})
+        for o in (obs, dense):
+            o.predict(u)
+        dwelt += obs._dwell is not None and obs._dwell[0] is obs._last_point
+        y = {s: 40.0 + 0.1 * k + float(rng.normal(0, 0.1)) for s in sensors}
+        for o in (obs, dense):
+            o.update(y)
+    assert dwelt >= 120 * 5 // 6 - 1  # every step but the first at each point
+    assert np.allclose(obs.covariance(), dense.covariance(), rtol=1e-9, atol=1e-12)
+    assert np.abs(obs.T - dense.T).max() < 1e-9  # K
+    assert np.allclose(obs.S, dense.S, rtol=1e-9, atol=1e-12)

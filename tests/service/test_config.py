@@ -99,6 +99,18 @@ def test_broken_config_names_file_and_key(tmp_path, edit, key, words):
          "no limited node"),
         (lambda r: r["model"]["parameters"].__setitem__("R_e_hous", 1000.0), "model.parameters.R_e_hous",
          "1000 is outside the model's bounds [3, 30] K/W (bounds of pm10kw.yaml)"),
+        # a torque constant off by a decade: every torque limit sent would be 10 x too high
+        (lambda r: r["derating"].__setitem__("kt_nm_per_arms", 56.0), "derating.kt_nm_per_arms",
+         "56 Nm/A is 10 x model pm10kw's drive.kt_nm_per_arms (5.6 Nm/A)"),
+        # kt x safe current above the maximum torque: the safe torque would be the full torque
+        (lambda r: (r["derating"].pop("safe_torque_nm"), r["derating"].update(kt_nm_per_arms=11.0, safe_current_a=25.0)),
+         "derating.kt_nm_per_arms",
+         "= 275 Nm exceeds max_torque_nm (220): the safe torque would be the full torque"),
+        (lambda r: r["signals"]["inputs"].__setitem__("i_rms", {"frame": "INV_Currents", "reduce": "mean",
+                                                                "signal": "INV_IphRms"}),
+         "signals.inputs.i_rms.reduce", "need its mean square over the tick"),
+        (lambda r: r["signals"]["inputs"]["speed_rpm"].__setitem__("reduce", "rms"), "signals.inputs.speed_rpm.reduce",
+         "signed: mean (or latest)"),
     ],
 )
 def test_config_checked_against_the_model(tmp_path, edit, key, words):
@@ -202,6 +214,12 @@ BROKEN = [
      "at most 0.15 s"),
     ("state.dir is a file", _set("state.dir", _a_file), "state.dir", "is not a directory"),
     ("state.dir under a file", _set("state.dir", lambda t: _a_file(t) + "/state"), "state.dir", "cannot be created"),
+    ("recording a directory", _set("recording.candump", lambda t: (t / "dir.log").mkdir() or str(t / "dir.log")),
+     "recording.candump", "is a directory, not a log file"),
+    ("recording under a file", _set("recording.candump", lambda t: _a_file(t) + "/can.log"), "recording.candump",
+     "(the directory of can.log) is not a directory"),
+    ("recording where no directory can be", _set("recording.candump", "/proc/thermal-edge/can.log"), "recording.candump",
+     "cannot be created under /proc"),
     ("parameter below its bound", _set("model.parameters", {"R_e_hous": 0.91}), "model.parameters.R_e_hous",
      "0.91 is outside the model's bounds [3, 30] K/W"),
     ("parameter a round-off below its bound", _set("model.parameters", {"c_p_ew": 299.99999999999994}),

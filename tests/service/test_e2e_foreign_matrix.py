@@ -252,17 +252,19 @@ def _blocks(kind: str) -> list[str]:
     return re.findall(rf"```{kind}\n(.*?)```", GUIDE.read_text(), re.S)
 
 
-def test_the_guides_check_command_prints_what_the_guide_shows():
+def test_the_guides_check_command_prints_what_the_guide_shows(tmp_path):
     import shlex
 
     from cli_in_process import te_here
 
     consoles = _blocks("console")
     assert consoles
+    # the example's files where the guide has them written (``config inverter-example mc7``)
+    assert te_here("config", "inverter-example", tmp_path / "mc7").returncode == 0
     for block in consoles:
         command, *shown = block.rstrip("\n").split("\n")
         assert command.startswith("$ thermal-edge ")
-        args = [str(REPO / a) if a.startswith("config/") else a for a in shlex.split(command[2:])[1:]]
+        args = [str(tmp_path / a) if a.startswith("mc7/") else a for a in shlex.split(command[2:])[1:]]
         proc = te_here(*args)
         assert proc.returncode == 0, proc.stderr
         assert proc.stdout.rstrip("\n").split("\n") == shown

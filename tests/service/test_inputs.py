@@ -341,3 +341,27 @@ def test_a_refused_reading_names_the_unit_it_looks_like(acc, caplog):
         SafetyEvents().record(TeState.DEGRADED, Limits(10.0, 56.0, DerateReason.SENSOR_FAULT, True), [], ti.faults, acc.refusal)
     line = next(r.getMessage() for r in caplog.records if "sensor fault" in r.getMessage())
     assert "housing (out_of_range: 313.15 degC looks like kelvin (40 degC); give it in degC)" in line
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_current_frame_without_a_value_is_a_fault_not_the_last_value(acc, bad):
+    """A float signal's NaN or inf (or a NoValueRaw) on a mean/rms input: frames keep coming, so the
+    input never goes stale; the tick is faulty (``no_value``) instead of carrying the last value on."""
+    good_iq = 30.0 * math.sqrt(2)
+    for k in range(10):
+        t = 10.0 + 0.1 * k
+        acc.add(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=good_iq, INV_IphRms=0.0), t)
+    first = acc.take(11.0)
+    assert first.inputs["i_rms"] == pytest.approx(30.0) and "i_rms" not in first.faults
+    for k in range(10):
+        t = 11.0 + 0.1 * k
+        acc.add(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=bad, INV_IphRms=0.0), t)
+    second = acc.take(12.0)
+    assert second.faults["i_rms"] == "no_value" and "i_rms" not in second.fresh
+    assert acc.bad_readings["no_value"] == 10
+    for k in range(10):
+        t = 12.0 + 0.1 * k
+        acc.add(frame("INV_Currents", t, INV_Id=0.0, INV_Iq=good_iq, INV_IphRms=0.0), t)
+    third = acc.take(13.0)
+    assert "i_rms" not in third.faults and third.inputs["i_rms"] == pytest.approx(30.0)
+    assert "i_rms" in acc.fault_sources

@@ -211,8 +211,12 @@ class CanTransport:
         self._connected = asyncio.Event()
         self._stopping = False
         if self.config.record_path is not None and self._recorder is None:
-            self._recorder = LogRecorder(self.config.record_path, channel=self.config.record_channel,
-                                         max_bytes=self.config.record_max_bytes, keep=self.config.record_keep)
+            try:
+                self._recorder = LogRecorder(self.config.record_path, channel=self.config.record_channel,
+                                             max_bytes=self.config.record_max_bytes, keep=self.config.record_keep)
+            except OSError as exc:  # a diagnostic recording is never worth the protection: without it
+                log.error("CAN recording %s cannot be written (%s): recording off, the bus runs without it",
+                          self.config.record_path, exc.strerror or exc)
         try:
             self._open()
         except (BusConfigError, can.CanInterfaceNotImplementedError, TypeError):

@@ -4,6 +4,15 @@
     thermal-edge config example > /etc/thermal-edge/edge.yaml
     thermal-edge run --check --config /etc/thermal-edge/edge.yaml
 
+``thermal-edge config dbc`` prints the CAN matrix the package ships (the frames the service reads
+and sends), for ``cantools`` and ``candump`` on a machine without a checkout::
+
+    thermal-edge config dbc > thermal_edge.dbc
+    candump -L can0 | python -m cantools decode thermal_edge.dbc
+
+``thermal-edge config inverter-example DIR`` writes the worked example of an inverter with a CAN
+matrix of its own (the Acme MC-7: its ``edge.yaml`` and ``acme-mc7.dbc``) into ``DIR``.
+
 Its model is named (``pm10kw``), so the copy works wherever it is written. ``--model`` writes
 another model instead, e.g. a copy of the model beside the configuration that the user edits
 (``--model machines/pm10kw.yaml``, relative to the configuration file's directory).
@@ -14,9 +23,13 @@ import argparse
 import json
 import re
 import sys
+from pathlib import Path
 
 from ..errors import UsageError
-from ..shipped import example_config
+from ..shipped import config_path, example_config
+
+#: the files of the worked example of a foreign inverter (``resources/examples/acme-mc7``)
+INVERTER_EXAMPLE = ("examples", "acme-mc7", ("edge.yaml", "acme-mc7.dbc"))
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,6 +42,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "signals, sensors and flux nodes are pm10kw's: only pm10kw (or a copy of it) maps onto "
                          "them; another model (paderborn4 too) needs its own signals: section")
     ex.set_defaults(func=run_example)
+    dbc = which.add_parser("dbc", help="print the CAN matrix the package ships (thermal_edge.dbc)")
+    dbc.set_defaults(func=run_dbc)
+    inv = which.add_parser("inverter-example", help="write the Acme MC-7 example (edge.yaml, acme-mc7.dbc) into DIR")
+    inv.add_argument("dir", metavar="DIR", help="a directory (made if missing); files there of the same names are "
+                                                "not overwritten")
+    inv.set_defaults(func=run_inverter_example)
 
 
 #: the example's ``model.path`` line: its value is what ``--model`` replaces
@@ -54,4 +73,33 @@ def run_example(args: argparse.Namespace) -> int:
     if args.model_path is not None:  # not ``model``: that name is resolved to a file for every command
         text = with_model(text, args.model_path)
     sys.stdout.write(text)
+    return 0
+
+
+def run_dbc(args: argparse.Namespace) -> int:
+    from ..bus.frames import DEFAULT_DBC_PATH
+
+    sys.stdout.write(Path(DEFAULT_DBC_PATH).read_text(encoding="utf-8"))
+    return 0
+
+
+def run_inverter_example(args: argparse.Namespace) -> int:
+    folder, name, files = INVERTER_EXAMPLE
+    out = Path(args.dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"DIR {out}: not a directory")
+    taken = [f for f in files if (out / f).exists()]
+    if taken:
+        raise UsageError(f"DIR {out}: {', '.join(taken)} already there (not overwritten)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for f in files:
+            text = config_path(folder, name, f).read_text(encoding="utf-8")
+            if f == "edge.yaml":  # its model beside the package's files: by its packaged name, wherever written
+                text = with_model(text, "pm10kw")
+            (out / f).write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise UsageError(f"DIR {out}: {exc.strerror or exc}") from None
+    print(f"wrote {', '.join(str(out / f) for f in files)}; check with: thermal-edge run --check --config {out / 'edge.yaml'}",
+          file=sys.stderr)
     return 0

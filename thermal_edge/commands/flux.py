@@ -23,7 +23,7 @@ from ..data import FORMATS, Run, read_run
 from ..errors import UsageError
 from ..estimation.flux import PARAMS, UNITS, Electrical, FluxError, FluxModel, fit_flux_model, steady
 from ..lptn import Model, ModelError, NodeRole, Role, load_model
-from ..lptn.vocabulary import OtherUnit, Plausible
+from ..lptn.vocabulary import TEMPERATURE, OtherUnit, Plausible
 from ..text_table import table
 from .options import integer, number, output_file
 
@@ -199,10 +199,31 @@ def identification_warning(m: FluxModel, magnet_c: np.ndarray) -> str | None:
             "; the estimate is unreliable away from the temperatures seen: commission on a run that heats the magnet")
 
 
+#: the unit each column the flux commands read must be in, judged as a run's columns are everywhere
+#: (a whole column plausible only in kelvin or mA is refused naming that unit)
+_COLUMN_UNITS = {"current_d": Role.CURRENT_D.plausible, "current_q": Role.CURRENT_Q.plausible,
+                 "speed": Role.SPEED.plausible, "winding": TEMPERATURE, "magnet": TEMPERATURE}
+
+
+def check_column_units(args: argparse.Namespace, run: Run) -> None:
+    """Refuse a column of ``run`` in another unit (winding or magnet in kelvin, currents in mA):
+    the winding's temperature sets the stator resistance and the magnet's the flux linkage's
+    slope, so either one off by 273 K gives a calibration that is wrong throughout."""
+    for key, plausible in _COLUMN_UNITS.items():
+        column = getattr(args, f"{key}_column")
+        x = run.columns.get(column)
+        found = plausible.series_problem(np.asarray(x, dtype=float)) if x is not None else None
+        if found is not None:
+            k, why = found
+            where = "" if k is None else f" (sample {k + 1}, t = {run.t[k]:g} s)"
+            raise FluxError(f"{args.run}: column {column!r}{where}: {why}")
+
+
 def main(args: argparse.Namespace) -> int:
     run = read_run(args.run, args.format)
     if args.magnet_column not in run.columns:
         raise FluxError(f"{args.run}: no magnet temperature column {args.magnet_column!r}")
+    check_column_units(args, run)
     e = _electrical(args, run.columns)
     tm = run.columns[args.magnet_column]
     if args.flux == "calibrate":

@@ -57,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"{config.fname}: model.path: {line(exc)}") from None
         # only a path where no directory can be is an error; one that cannot be written now is the state store's to report
         config.check_state_dir(create=not args.check)
+        config.check_recording()
         try:
             if args.check:  # (the service checks the model itself when it starts)
                 config.check_model(model)

@@ -174,6 +174,7 @@ class InputAccumulator:
         self.ranges = input_ranges(config, roles)
         self._implausible: set[str] = set()  # checked inputs with a frame out of range this tick
         self._was_implausible: set[str] = set()  # ... and in the last tick (a fault is counted when it starts)
+        self._no_value: set[str] = set()  # mean/rms inputs with a frame carrying no value (NaN, inf) this tick
         self._held = {k: math.nan for k in config.inputs}
         self._latest: dict[str, _Latest] = {k: _Latest() for k in [*self.latest_inputs, *self.sensors]}
         self._last_frame_t: dict[str, float] = {}
@@ -226,8 +227,9 @@ class InputAccumulator:
                 x = x * x
         self._integrate(name, t)
         self._hold[name] = None  # a bad frame holds nothing: its time is left out of the mean
-        if not math.isfinite(x):
+        if not math.isfinite(x):  # the signal's "no value" (NoValueRaw) or a float NaN/inf: no reading
             self.bad_readings["no_value"] += 1
+            self._no_value.add(name)
             return
         rng = self.ranges.get(name)
         if rng is not None:
@@ -299,9 +301,13 @@ class InputAccumulator:
         self._tick_start = t
         ages: dict[str, float] = {}
         status: dict[str, int | None] = {}
-        faults: dict[str, str] = dict.fromkeys(sorted(self._implausible), "out_of_range")
+        # a frame of a mean/rms input without a value makes the tick's value unknown: the last one is
+        # not carried on as if it were current (frames keep coming, so the input never goes stale)
+        faults: dict[str, str] = dict.fromkeys(sorted(self._no_value), "no_value")
+        faults.update(dict.fromkeys(sorted(self._implausible), "out_of_range"))
         self.bad_readings["out_of_range"] += len(self._implausible - self._was_implausible)
         self._was_implausible, self._implausible = self._implausible, set()
+        self._no_value = set()
         for name in self.latest_inputs:
             slot = self._latest[name]
             inputs[name] = slot.value
@@ -331,9 +337,9 @@ class InputAccumulator:
 
     @property
     def fault_sources(self) -> list[str]:
-        """The names whose fault is reported in :attr:`TickInputs.faults`: range-checked mean/rms
-        inputs, latest-value inputs and required sensors."""
-        return [*self.ranges, *self.latest_inputs, *(n for n, spec in self.sensors.items() if spec.required)]
+        """The names whose fault is reported in :attr:`TickInputs.faults`: mean/rms inputs (no value,
+        out of range), latest-value inputs and required sensors."""
+        return [*self.reduced, *self.latest_inputs, *(n for n, spec in self.sensors.items() if spec.required)]
 
     def last_valid_t(self, name: str) -> float:
         """Clock time (s) of the last valid reading of a sensor or a latest-value input (-inf: none yet)."""

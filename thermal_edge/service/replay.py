@@ -185,7 +185,10 @@ def summarise(path: str | os.PathLike[str], res: ReplayResult, model: Model) -> 
     if len(res.t):
         out["t_first"], out["t_last"] = float(res.t[0]), float(res.t[-1])
         out["final_estimate_c"] = {n: float(res.estimate[-1, i]) for n, i in lim.items()}
-        out["max_estimate_c"] = {l.name: float(np.nanmax(res.estimate[:, lim[l.node]])) for l in model.limits}
+        # a limited node never estimated (the observer never started: a sensor frame always refused)
+        # has no peak: left out, not NaN
+        out["max_estimate_c"] = {l.name: float(np.nanmax(col)) for l in model.limits
+                                 if np.isfinite(col := res.estimate[:, lim[l.node]]).any()}
         out["min_current_limit_a"] = float(np.min(res.current_limit_a))
     return out
 
@@ -224,15 +227,20 @@ def voltage_line(counts: Mapping[str, int] | None) -> str:
 
 def format_summary(s: dict[str, Any]) -> str:
     """Human-readable lines of :func:`replay_summary`."""
+    why = ", ".join(f"{k} {v}" for k, v in s["frames_dropped"].items() if v)
     lines = [f"{s['log']}: {s['frames']} frames, {s['ticks']} ticks of model {s['model']}; "
-             f"lost {s['frames_lost']}, dropped {sum(s['frames_dropped'].values())}, malformed lines {s['malformed_lines']}",
+             f"lost {s['frames_lost']}, dropped {sum(s['frames_dropped'].values())}" + (f" ({why})" if why else "")
+             + f", malformed lines {s['malformed_lines']}",
              f"adaptations: {s['adaptations']['accepted']} accepted of {s['adaptations']['decisions']} decisions"]
     if "frame_clock" in s:
         lines.append(clock_line(s["frame_clock"]))
     if "voltage_input" in s:
         lines.append(voltage_line(s["voltage_input"]))
-    if "max_estimate_c" in s:
+    if s.get("max_estimate_c"):
         lines.append("peak estimates: " + ", ".join(f"{k} {v:.1f} °C" for k, v in s["max_estimate_c"].items())
                      + f"; lowest current limit {s['min_current_limit_a']:.1f} A")
+    elif "max_estimate_c" in s:
+        lines.append(f"no estimate: the observer never started (no usable sensor reading; see the frames dropped); "
+                     f"lowest current limit {s['min_current_limit_a']:.1f} A")
     lines.append("parameters: " + ", ".join(f"{k}={v:.4g}" for k, v in s["parameters"].items()))
     return "\n".join(lines)
