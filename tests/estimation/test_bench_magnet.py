@@ -41,6 +41,11 @@ def test_fused_magnet_no_worse_than_the_observer_on_the_real_machine():
     assert 0.85 <= x["fused_coverage"] <= 0.99
     for s, v in x["stator_mse"].items():
         assert v <= p["stator_mse"][s]["observer"] + 0.05, s
+    # the read sensors by the prediction before each reading, the unread tooth by its estimate: no worse
+    assert set(x["stator_prediction_mse"]) == set(magnet.SENSORS)
+    for s, v in x["stator_prediction_mse"].items():
+        assert v["fused"] <= v["observer"], s
+    assert x["stator_mse"]["stator_tooth"] <= p["stator_mse"]["stator_tooth"]["observer"]
     assert w["extrapolated_used"] == 0 and w["extrapolated_fused_mse"] == pytest.approx(p["observer_mse"], abs=1e-12)
 
 

@@ -89,20 +89,23 @@ def flux_model(sigma_max_k: float = 10.0, speed_min_rpm: float = 500.0) -> FluxM
 
 
 def test_without_the_voltages_the_observer_is_as_before(pm10kw, heated):
-    """No flux model: exactly the service's loop; a flux model whose every point is uninformative
+    """No flux model: exactly the service's loop (and its prediction before each sample's
+    readings); a flux model whose every point is uninformative
     (the machine slower than the run it was commissioned on: low speed): the same, bit for bit."""
     inputs = model_inputs(pm10kw, heated)
     obs = Observer(pm10kw, initial_from_run(pm10kw, heated), None, heated.dt)
-    ref_T, ref_s = [], []
+    ref_T, ref_s, ref_p = [], [], []
     for k in range(len(heated)):
         if k:
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
+        ref_p.append(obs.T.copy())
         obs.update({s: float(heated.columns[s][k]) for s in SENSORS})
         ref_T.append(obs.T.copy())
         ref_s.append(obs.std())
     plain = run_fused(pm10kw, heated, SENSORS, None, MAGNET)
     np.testing.assert_array_equal(plain.estimate, np.array(ref_T))
     np.testing.assert_array_equal(plain.sigma, np.array(ref_s))
+    np.testing.assert_array_equal(plain.prediction, np.array(ref_p))  # before each sample's readings
     truth = heated.columns["magnet_true"]
     slow = run_fused(pm10kw, heated, SENSORS, flux_model(speed_min_rpm=1e6), MAGNET,
                      electrical=electrical(heated, truth))
@@ -148,3 +151,60 @@ def test_inflation_weakens_the_gain_not_the_check(pm10kw, heated):
     assert obs.update_node(m, float(T0[m]) + 1.0, 1.0, inflate=100.0)
     gain = C0[:, m] / (C0[m, m] + 100.0)
     np.testing.assert_allclose(obs.T, T0 + gain * 1.0, atol=1e-10)
+
+
+def test_the_stator_considered_the_rotor_rows_are_the_kalman_gains(pm10kw, heated):
+    """``corrects`` = the rotor's nodes: the stator's estimates and their covariance stay as they
+    were (Schmidt), the rotor's move by the textbook gain's rows, and the whole covariance is the
+    Joseph form of that gain (computed here by hand)."""
+    from thermal_edge.estimation.fusion import rotor_nodes
+
+    obs = warmed(pm10kw, heated)
+    m = pm10kw.node_index(MAGNET)
+    rotor = rotor_nodes(pm10kw, [m])
+    roles = {pm10kw.node_roles[pm10kw.nodes[i]] for i in rotor}
+    assert {"magnet", "rotor_iron", "shaft"} == {str(r) for r in roles}
+    stator = np.setdiff1d(np.arange(len(obs.T)), rotor)
+    assert {pm10kw.node_index(n) for n in pm10kw.sensors.values()} <= set(stator)
+    T0, C0 = obs.T.copy(), obs.covariance()
+    value, var = float(T0[m]) + 2.0, 0.8**2
+    assert obs.update_node(m, value, var, corrects=rotor)
+    gain = C0[:, m] / (C0[m, m] + var)
+    gain[stator] = 0.0
+    np.testing.assert_allclose(obs.T, T0 + gain * 2.0, atol=1e-10)
+    np.testing.assert_array_equal(obs.T[stator], T0[stator])
+    A = np.eye(len(T0)) - np.outer(gain, np.eye(len(T0))[m])
+    np.testing.assert_allclose(obs.covariance(), A @ C0 @ A.T + var * np.outer(gain, gain), atol=1e-8)
+    np.testing.assert_allclose(obs.covariance()[np.ix_(stator, stator)], C0[np.ix_(stator, stator)], atol=1e-9)
+    # the magnet's own correction is the unconstrained filter's
+    full = warmed(pm10kw, heated)
+    assert full.update_node(m, value, var)
+    assert obs.T[m] == pytest.approx(full.T[m], abs=1e-10)
+    assert obs.std()[m] == pytest.approx(full.std()[m], abs=1e-9)
+
+
+def test_the_fusion_never_moves_a_sensed_stator_node(pm10kw, heated):
+    """Over a fused run every flux update leaves the stator's nodes where the sensor update put
+    them: replayed tick by tick, the stator's estimate after the fusion step equals the one before."""
+    from thermal_edge.estimation.fusion import FluxFusion, FluxObserver, flux_samples, rotor_nodes
+
+    truth = heated.columns["magnet_true"]
+    e = electrical(heated, truth, rpm_floor=1000.0)
+    fm = flux_model()
+    m = pm10kw.node_index(MAGNET)
+    stator = np.setdiff1d(np.arange(len(pm10kw.nodes)), rotor_nodes(pm10kw, [m]))
+    inputs = model_inputs(pm10kw, heated)
+    obs = FluxObserver(pm10kw, initial_from_run(pm10kw, heated), None, heated.dt)
+    fusion = FluxFusion(fm, [m], heated.dt)
+    fs = flux_samples(fm, e, heated.dt)
+    used = 0
+    for k in range(len(heated)):
+        if k:
+            obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
+        obs.update({s: float(heated.columns[s][k]) for s in SENSORS})
+        before = obs.T.copy()
+        u, _ = fusion.step(obs, k * heated.dt, fs, k, e)
+        used += u
+        np.testing.assert_array_equal(obs.T[stator], before[stator])
+        assert obs.T[m] != before[m] or not u
+    assert used > 0.9 * len(heated)

@@ -365,8 +365,8 @@ def test_a_bad_crc_on_the_voltage_frame_is_counted_by_frame_on_metrics(tmp_path,
 
 
 def test_each_refusal_cause_has_its_own_log_budget(tmp_path, calibration):
-    """Through the journal's rate limit (5 lines per format and minute): 20 implausible refusals
-    use up their own budget only; a disagreement after them is still logged."""
+    """Through the journal's rate limit (5 lines per format and minute): 20 implausible and 20 old
+    refusals use up their own budgets only; a disagreement after them is still logged."""
     from thermal_edge.service.flux_input import FluxTick
     from thermal_edge.service.journal import RateLimit
 
@@ -381,6 +381,8 @@ def test_each_refusal_cause_has_its_own_log_budget(tmp_path, calibration):
     try:
         for _ in range(20):
             engine.flux._done(FluxTick("implausible", 900.0), "voltages in kV")
+        for _ in range(20):
+            engine.flux._done(FluxTick("old"), "voltages 1200 s behind the frame clock")
         engine.flux._done(FluxTick("disagreement", 60.0, 1.0), "the model says 90 degC")
     finally:
         logger.removeHandler(handler)
@@ -388,6 +390,7 @@ def test_each_refusal_cause_has_its_own_log_budget(tmp_path, calibration):
         engine.close()
     text = lines.getvalue().splitlines()
     assert sum(1 for x in text if x.startswith("flux estimate refused (implausible)")) == 5
+    assert sum(1 for x in text if x.startswith("flux estimate refused (old)")) == 5
     assert sum(1 for x in text if x.startswith("flux estimate refused (disagreement)")) == 1
 
 
@@ -413,3 +416,122 @@ def test_a_wrong_inductance_table_is_refused_in_field_weakening_only(tmp_path, c
         i = model.node_index(MAGNET)
         for a, b in zip(plain, fast):
             assert a[1][i] == pytest.approx(b[1][i], abs=1e-9)
+
+
+@pytest.mark.async_timeout(600)
+async def test_voltage_frames_far_behind_the_frame_clock_are_refused_as_old(tmp_path, channel, calibration, caplog):
+    """The service in frame-clock mode on a ``virtual`` bus with the inverter emulator (voltages on,
+    900 rpm): once the emulator's INV_Voltages stop, an independent client sends the voltages it
+    heard, stamped 20 min before the newest frame on the bus. Every tick with such frames is refused
+    as ``old`` (the ticks counted by the client from its own stamps; on /metrics; a WARNING line
+    each) and nothing is fused; the same voltages stamped on time are fused again (it is the stamp
+    that is refused, not the values)."""
+    import asyncio
+
+    import can
+    from svc_testlib import MAX_LEAD_S, async_wait_until, edge_raw, emulator_config, scrape, sim_until, write_yaml
+
+    from thermal_edge.bus.codec import FrameCodec
+    from thermal_edge.config import load_config
+    from thermal_edge.service import EdgeService
+    from thermal_edge.sim.inverter import InverterEmulator
+
+    raw = edge_raw(tmp_path / "state", {"interface": "virtual", "channel": channel}, table4=False, adapt=False,
+                   metrics_port=0, flux={"calibration": str(calibration)})
+    cfg = load_config(write_yaml(tmp_path / "edge.yaml", raw))
+    tick = cfg.clock.tick_s
+    svc = EdgeService(cfg)
+    await svc.start()
+    emu = InverterEmulator(emulator_config(duration_s=3600.0, speed=100.0, max_lead_s=MAX_LEAD_S, pmsm=Pmsm(),
+                                           cycle_path=config_path("cycles", "rated_heat_cool.yaml")),
+                           {"interface": "virtual", "channel": channel, "preserve_timestamps": True})
+    client = can.Bus(interface="virtual", channel=channel, preserve_timestamps=True)
+    codec = FrameCodec()  # the client's own: its own counters
+    ids = {n: codec.frame_id(n) for n in ("INV_Currents", "INV_Voltages")}
+    heard: dict[str, float] = {}
+    mode: dict[str, float | None] = {"age": None}  # None: listen only; else the age (s) of the voltages sent
+    old_ticks: set[int] = set()  # the service's ticks that get the client's old voltages
+    sent = {"old": 0, "on time": 0}
+
+    async def listen_and_send() -> None:
+        """Drain the bus, then (when sending) an INV_Voltages for each INV_Currents heard, stamped
+        ``age`` s before the newest frame heard. The service reads it right after that frame, so
+        it falls in the tick that frame's time falls in: the one ending at the next boundary."""
+        while True:
+            newest, currents = -math.inf, 0
+            while (msg := client.recv(timeout=0.0)) is not None:
+                newest = max(newest, msg.timestamp)
+                if msg.arbitration_id == ids["INV_Voltages"]:
+                    heard.update(codec.decode(msg.arbitration_id, msg.data, timestamp=msg.timestamp).signals)
+                currents += msg.arbitration_id == ids["INV_Currents"]
+            age = mode["age"]
+            for _ in range(currents if age is not None and heard else 0):
+                data = codec.encode("INV_Voltages", {"INV_Ud": heard["INV_Ud"], "INV_Uq": heard["INV_Uq"]})
+                client.send(can.Message(timestamp=newest - age, arbitration_id=ids["INV_Voltages"], data=data,
+                                        is_extended_id=False))
+                sent["old" if age else "on time"] += 1
+                if age:
+                    old_ticks.add(math.floor(newest / tick))
+            await asyncio.sleep(0.0002)
+
+    loop = asyncio.get_running_loop()
+    tasks = [loop.create_task(emu.run()), loop.create_task(listen_and_send())]
+    caplog.set_level(logging.WARNING, logger="thermal_edge.service.flux_input")
+    fx = svc.engine.flux
+    try:
+        assert await async_wait_until(lambda: emu.elapsed > 0 and emu.bus is not None, 300.0)
+        await sim_until(emu, 120.0)
+        first = dict(fx.counts)
+        emu.paused.add("INV_Voltages")
+        await sim_until(emu, 120.0 + 2 * MAX_LEAD_S)  # the emulator's last voltages through
+        used = fx.counts["used"]
+        mode["age"] = 1200.0
+        await sim_until(emu, 240.0)
+        mode["age"] = None  # a gap: no tick has old voltages and on-time ones
+        await sim_until(emu, 240.0 + 2 * MAX_LEAD_S)
+        old, used_old = fx.counts["old"], fx.counts["used"]
+        mode["age"] = 0.0  # the same voltages, on time
+        await sim_until(emu, 360.0)
+        m = scrape(svc.metrics.port)
+    finally:
+        emu.stop()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        client.shutdown()
+        await svc.stop()
+    assert first.get("used", 0) > 100 and first.get("old", 0) == 0  # the emulator's voltages: on time
+    assert sent["old"] > 100 and len(old_ticks) > 30
+    assert old == len(old_ticks)  # every tick with only old voltages refused, as the client counts them
+    assert used_old == used  # none fused
+    assert fx.counts["old"] == old and fx.counts["used"] > used  # on time: fused again, none old
+    assert m['thermal_edge_flux_refused_total{reason="old"}'] == old
+    lines = [r for r in caplog.records if r.getMessage().startswith("flux estimate refused (old)")]
+    assert len(lines) == old and all(r.levelno == logging.WARNING for r in lines)
+    assert "1200.0 s behind the frame clock" in lines[0].getMessage()
+
+
+def test_how_far_a_frame_lies_behind_the_frame_clock() -> None:
+    """``FrameClock.behind`` against the stamps' own differences: 0 for a frame that advances the
+    clock, the jitter for one a little back, 20 min for one stamped 20 min back, and 0 again for
+    the frames of a backward segment once the clock has joined it on (and the wall clock: 0)."""
+    from thermal_edge.service.clock import FrameClock, WallClock
+
+    c = FrameClock(1.0)
+    seg1 = [100.0 + 0.1 * i for i in range(50)]  # 100.0 .. 104.9
+    seen = []
+    for ts in seg1:
+        c.observe(ts)
+        seen.append(c.behind(ts))
+    assert seen == [0.0] * len(seg1)
+    c.observe(104.85)  # jitter
+    assert c.behind(104.85) == pytest.approx(0.05)
+    c.observe(104.9 - 1200.0)  # a stamp 20 min back, between frames on time
+    assert c.behind(104.9 - 1200.0) == pytest.approx(1200.0)
+    seg2 = [50.0 + 0.1 * i for i in range(50)]  # a new segment 55 s back: joined on after a few frames
+    last = []
+    for ts in seg2:
+        c.observe(ts)
+        last.append(c.behind(ts))
+    assert c.stats.joined == 1 and last[0] == pytest.approx(104.9 - 50.0) and last[-1] == 0.0
+    assert c.behind(None) == 0.0 and WallClock().behind(100.0) == 0.0

@@ -616,7 +616,9 @@ SIDE_BY_SIDE_HEADERS = ["case", "without voltages % / s over", "with voltages % 
 def side_by_side_rows(res: ProtectionResult) -> list[list[Any]]:
     """One row per case: thermal_edge without and with the voltage frame beside the PT100 rule and
     I²t, each as ``share of the oracle % / seconds over max``, and the flux estimate's ticks used
-    and refused (disagreement, stale, implausible) with the frame."""
+    and refused (every cause of :data:`~thermal_edge.service.flux_input.REFUSALS`) with the frame."""
+    from ..service.flux_input import REFUSALS
+
     rows: list[list[Any]] = []
     for case, by_policy in res.cases.items():
         row: list[Any] = [case]
@@ -624,7 +626,7 @@ def side_by_side_rows(res: ProtectionResult) -> list[list[Any]]:
             f = by_policy.get(p)
             row.append(f"{f['oracle_share_pct']:.1f} / {f['seconds_over_max']:g}" if f is not None else "-")
         flux = by_policy.get("thermal_edge_voltages", {}).get("flux")
-        row.append(f"{flux.get('used', 0)} / {sum(flux.get(k, 0) for k in ('disagreement', 'stale', 'implausible'))}"
+        row.append(f"{flux.get('used', 0)} / {sum(flux.get(k, 0) for k in REFUSALS)}"
                    if flux is not None else "-")
         rows.append(row)
     return rows

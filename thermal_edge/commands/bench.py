@@ -402,20 +402,29 @@ def run_magnet(args: argparse.Namespace) -> int:
           "fused: the commissioned operating points only (flux.extrapolate: false)")
     print(table(
         ["commissioned on, unseen currents by their changes (the service's default)", "fused MSE", "fused cover", "used",
-         "of them relative", "refused", "stator MSE observer -> fused (winding, yoke, tooth)"],
+         "of them relative", "refused", "stator MSE observer -> fused (winding, yoke, tooth)",
+         "read sensors' prediction MSE observer -> fused (winding, yoke)"],
         [[f"{m} min", p["extrapolated"]["fused_mse"], p["extrapolated"]["fused_coverage"], p["extrapolated"]["used"],
           p["extrapolated"]["relative"], p["extrapolated"]["refused"],
-          ", ".join(f"{p['stator_mse'][s]['observer']:.3f} -> {v:.3f}" for s, v in p["extrapolated"]["stator_mse"].items())]
+          ", ".join(f"{p['stator_mse'][s]['observer']:.4g} -> {v:.4g}" for s, v in p["extrapolated"]["stator_mse"].items()),
+          ", ".join(f"{v['observer']:.4g} -> {v['fused']:.4g}"
+                    for v in p["extrapolated"].get("stator_prediction_mse", {}).values())]
          for m, p in parts.items()],
     ))
     for m, p in parts.items():
         x = p["extrapolated"]
-        worse = [s for s, v in x["stator_mse"].items() if v > p["stator_mse"][s]["observer"]]
+        worse = [f"{s} ({v - p['stator_mse'][s]['observer']:+.1e} K2)" for s, v in x["stator_mse"].items()
+                 if v > p["stator_mse"][s]["observer"]]
+        pworse = [f"{s} ({v['fused'] - v['observer']:+.1e} K2)" for s, v in x.get("stator_prediction_mse", {}).items()
+                  if v["fused"] > v["observer"]]
         print(f"{m} min, the service's default: fused MSE {x['fused_mse']:.2f} K2 against the LPTN's "
               f"{p['open_loop_mse']:.2f} ({'no worse' if x['fused_mse'] <= p['open_loop_mse'] else 'WORSE'}); "
               f"95 % band covers {100 * x['fused_coverage']:.1f} % "
               f"({'within' if 0.85 <= x['fused_coverage'] <= 0.99 else 'OUTSIDE'} 85-99 %); stator targets worse than "
-              f"the observer's: {', '.join(worse) if worse else 'none'}")
+              f"the observer's: {', '.join(worse) if worse else 'none'}; read sensors predicted worse: "
+              f"{', '.join(pworse) if pworse else 'none'}")
+    print("stator MSE: of the estimate; prediction: of the estimate before each reading (the estimate after a reading "
+          "is partly that reading, and copies it less the better the prediction is)")
     print(table(
         ["commissioned on, then wrong (L x1.2, V_err x2)", "flux RMS K", "fused MSE", "fused cover", "used", "refused",
          "used by changes", "their fused MSE"],
@@ -425,7 +434,7 @@ def run_magnet(args: argparse.Namespace) -> int:
     ))
     for m, p in parts.items():
         sig = ", ".join(f"{k} {v:.2f} K" for k, v in p["sigma_table_k"].items())
-        st = ", ".join(f"{s} {v['observer']:.2f} -> {v['fused']:.2f}" for s, v in p["stator_mse"].items())
+        st = ", ".join(f"{s} {v['observer']:.4g} -> {v['fused']:.4g}" for s, v in p["stator_mse"].items())
         print(f"{m} min: tempco {p['tempco_pct_per_k']:+.3f} %/K, psi20 {p['params']['psi20']:.4f} Wb, "
               f"Ld0 {p['params']['ld0'] * 1e3:.3f} mH, R20 {p['params']['r20'] * 1e3:.1f} mOhm, "
               f"V_err {p['params']['v_err']:+.2f} V; sigma by current at {p['speed_min_rpm']:.0f} rpm and up: {sig}; "

@@ -31,6 +31,21 @@ confidence). Their cross-covariances with the temperatures follow the observer's
 and gains, so the magnet's band narrows by what the changes tell and no more. A wrong calibration
 never gets there: it is refused where the commissioning saw the point, and only an estimate
 accepted shortly before may enter a new one.
+
+The flux estimate corrects the rotor only (:func:`rotor_nodes`: the magnet node(s) and the nodes
+whose role is one of :data:`ROTOR_SIDE`); the stator's nodes are considered (Schmidt): their rows
+of the gain are zero, their covariance with the rotor follows the Joseph form. The stator PT100s
+read the winding and the yoke every tick to a tenth of a kelvin. What the flux linkage says
+about a stator node comes only through the model's cross-covariance, that is through the
+rotor–stator coupling and the rotor-side parameters' spread (the part of the model the stator
+sensors cannot identify) and through the estimate's own error, held over minutes: moved so, a
+stator node takes a share of the flux estimate's error and of the model's rotor-side error, which
+its own sensors then have to take back. The rows of the rotor's nodes are the optimal gain's all
+the same (a zero row elsewhere does not change them), so the magnet learns what it learnt before.
+And the winding's protection (the hot spot) keeps resting on the stator's sensors and the model
+alone: an electrical calibration that slips past the disagreement check cannot cool it. The
+corrected rotor still reaches the stator, through the model's conduction in the next prediction,
+as the heat does.
 """
 from __future__ import annotations
 
@@ -41,6 +56,7 @@ import numpy as np
 
 from ..data import Run
 from ..lptn import Model
+from ..lptn.vocabulary import NodeRole
 from .flux import Electrical, FluxModel, steady
 from .observer import Observer
 from .predict import initial_from_run, model_inputs
@@ -57,6 +73,17 @@ DI_PROBE_A = 1.0
 #: share its blind spot (they all saw one current), and a saturating machine's incremental
 #: inductance differs by tens of per cent between currents
 SLOPE_SIGMA_MIN = 0.3
+#: node roles the flux estimate corrects besides the magnet node(s) it measures: the rotor, which
+#: no sensor reads; the stator's nodes are considered (see the module's description)
+ROTOR_SIDE: frozenset[NodeRole] = frozenset({NodeRole.MAGNET, NodeRole.ROTOR_IRON, NodeRole.SHAFT})
+
+
+def rotor_nodes(model: Model, magnet: int | Sequence[int]) -> np.ndarray:
+    """Indices (ascending) of the nodes the flux estimate corrects: ``magnet`` (the node or nodes it
+    measures) and every node whose role is one of :data:`ROTOR_SIDE`."""
+    idx = {int(magnet)} if isinstance(magnet, (int, np.integer)) else {int(i) for i in magnet}
+    idx |= {model.node_index(x) for x in model.nodes_with(*ROTOR_SIDE)}
+    return np.array(sorted(idx), dtype=int)
 
 
 class FluxObserver(Observer):
@@ -176,7 +203,8 @@ class FluxObserver(Observer):
         return far
 
     def update_relative(self, node: int | Sequence[int], value: float, var: float, change: float,
-                        z: float = 1.959963984540054, own_sigma: float | None = None) -> bool:
+                        z: float = 1.959963984540054, own_sigma: float | None = None,
+                        corrects: Sequence[int] | np.ndarray | None = None) -> bool:
         """Correct with ``value = h T + b + s · change`` (°C, white-noise variance ``var`` K²;
         ``change``: the estimate's change since :meth:`anchor`, K) where ``h`` averages ``node``;
         the gain is the optimal one for the whole covariance with the rows of the adaptable
@@ -184,7 +212,9 @@ class FluxObserver(Observer):
         Refused and counted as :meth:`Observer.update_node` is: beyond both 95 % bands (the
         offset's and the change error's included; with ``own_sigma`` (K) the estimate's own band
         and the model's, ``|value − h T̂| > z (σ_model + own_sigma)``, as :meth:`Observer.update_node`
-        judges). Requires :meth:`anchor`."""
+        judges). ``corrects`` (node indices, default all): the temperatures it may move, the others
+        considered, as in :meth:`Observer.update_node` (the offset is always corrected). Requires
+        :meth:`anchor`."""
         if not (self.anchored and np.isfinite(value) and np.isfinite(var) and var > 0.0 and np.isfinite(change)):
             return False
         n, m = self._n, len(self.Pa)
@@ -210,6 +240,8 @@ class FluxObserver(Observer):
         K = (Ch / (s2 + var))[:, None]
         K[n:m] = 0.0
         K[m + 1] = 0.0  # the change error: considered (see the module's description)
+        if corrects is not None:
+            K[np.setdiff1d(np.arange(n), np.asarray(corrects, dtype=int))] = 0.0
         self._apply(P, S, K, H, np.array([[var]]), np.array([nu]))
         self.node_updates_used += 1
         return True
@@ -220,7 +252,9 @@ class FusedRun:
     """Per sample: the observer's estimate (N, n) °C and σ (N, n) K; the flux estimate of the
     magnet (°C), its σ (K, ``inf`` where uninformative) and whether it was used; counts.
     ``relative``: samples where an estimate at an operating point the commissioning did not see
-    was used for its changes (its σ there is the white part only)."""
+    was used for its changes (its σ there is the white part only). ``prediction`` (N, n) °C: the
+    estimate before the sample's sensor readings (the one-step prediction; a sensor the observer
+    reads is judged by it, the estimate after the reading is partly that reading)."""
 
     estimate: np.ndarray
     sigma: np.ndarray
@@ -230,6 +264,7 @@ class FusedRun:
     refused: int
     informative: int
     relative: np.ndarray | None = None
+    prediction: np.ndarray | None = None
 
 
 def slope_sigma(flux: FluxModel, e: Electrical, k: int) -> float:
@@ -329,6 +364,8 @@ class FluxFusion:
     def __init__(self, flux: FluxModel, magnet: int | Sequence[int], dt: float) -> None:
         self.flux = flux
         self.magnet = magnet
+        #: the nodes the estimate corrects (:func:`rotor_nodes` of the observer's model, on its first step)
+        self.corrects: np.ndarray | None = None
         self.window = ANCHOR_WITHIN_TAU * max(flux.tau_s, dt)
         #: per step, the decay of the estimate's error at a commissioned operating point (its
         #: correlation time :attr:`~thermal_edge.estimation.flux.FluxModel.tau_s`)
@@ -343,12 +380,14 @@ class FluxFusion:
         """Apply sample ``k`` of ``fs`` (of ``e``) at time ``t_s`` (s) after the observer's
         sensor update; returns whether an estimate was used and whether for its changes."""
         ia = float(fs.current_a[k])
+        if self.corrects is None:
+            self.corrects = rotor_nodes(obs.model, self.magnet)
         if np.isfinite(fs.sigma[k]):
             sig = float(fs.sigma[k])
             white = self.flux.white_share * sig**2
             if self.decay <= 0.0 or self.flux.white_share >= 1.0:  # uncorrelated from one step to the next
                 obs.release()
-                used = obs.update_node(self.magnet, float(fs.value[k]), sig**2)
+                used = obs.update_node(self.magnet, float(fs.value[k]), sig**2, corrects=self.corrects)
             else:
                 # the estimate's error held over tau_s: an offset state that decays over it, started
                 # afresh where the operating point jumps (another point, another error); the rest white
@@ -360,7 +399,7 @@ class FluxFusion:
                     self.at_commissioned, self.current_entry = True, ia
                 obs.offset_var = held**2
                 used = obs.update_relative(self.magnet, float(fs.value[k]), max(white, 1e-6 * sig**2), 0.0,
-                                           own_sigma=sig)
+                                           own_sigma=sig, corrects=self.corrects)
             if used:
                 self.last_ok = t_s
             return used, False
@@ -378,7 +417,8 @@ class FluxFusion:
                 self.at_commissioned = False
         if not obs.anchored:
             return False, False
-        used = obs.update_relative(self.magnet, float(fs.raw[k]), float(fs.white[k]), float(fs.raw[k]) - self.entry)
+        used = obs.update_relative(self.magnet, float(fs.raw[k]), float(fs.white[k]), float(fs.raw[k]) - self.entry,
+                                   corrects=self.corrects)
         if used:
             self.last_ok = t_s
             self.current_entry = ia
@@ -406,7 +446,7 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     N, n = len(run), len(model.nodes)
     obs = FluxObserver(model, initial_from_run(model, run, theta), theta, dt)
     m = [model.node_index(magnet_node)] if isinstance(magnet_node, str) else [model.node_index(x) for x in magnet_node]
-    est, sig = np.empty((N, n)), np.empty((N, n))
+    est, sig, pred = np.empty((N, n)), np.empty((N, n)), np.empty((N, n))
     used = np.zeros(N, dtype=bool)
     rel = np.zeros(N, dtype=bool)
     e = electrical if electrical is not None or flux is None else Electrical.of(run.columns)
@@ -415,10 +455,12 @@ def run_fused(model: Model, run: Run, sensors: Sequence[str], flux: FluxModel | 
     for k in range(N):
         if k:
             obs.predict({c: float(v[k - 1]) for c, v in inputs.items()})
+        pred[k] = obs.T
         obs.update({s: float(v[k]) for s, v in meas.items()})
         if fusion is not None and fs is not None and e is not None:
             used[k], rel[k] = fusion.step(obs, k * dt, fs, k, e)
         est[k], sig[k] = obs.T, obs.std()
     if fs is None:
-        return FusedRun(est, sig, np.full(N, np.nan), np.full(N, np.inf), used, obs.node_updates_refused, 0, rel)
-    return FusedRun(est, sig, fs.value, fs.sigma, used, obs.node_updates_refused, int(np.isfinite(fs.sigma).sum()), rel)
+        return FusedRun(est, sig, np.full(N, np.nan), np.full(N, np.inf), used, obs.node_updates_refused, 0, rel, pred)
+    return FusedRun(est, sig, fs.value, fs.sigma, used, obs.node_updates_refused, int(np.isfinite(fs.sigma).sum()), rel,
+                    pred)

@@ -25,7 +25,8 @@ without it the band would reflect state noise only and be optimistic wherever th
 A direct estimate of one node from elsewhere (the magnet temperature from the inverter's voltages,
 :mod:`thermal_edge.estimation.flux`) enters through :meth:`Observer.update_node` with its own
 variance. Its gain uses the whole band (state and parameters' part): the magnet's band is mostly
-the parameters' part, and a gain from the state part alone would barely move it. The update
+the parameters' part, and a gain from the state part alone would barely move it. Its caller may
+name the nodes it corrects (the flux estimate: the rotor's), the others are then considered. The update
 refuses an estimate whose 95 % band does not overlap the model's: a wrong electrical calibration
 must not pull the magnet down; the refusals are counted.
 """
@@ -239,7 +240,7 @@ class Observer:
         return self.T
 
     def update_node(self, node: int | Sequence[int], value: float, var: float, inflate: float = 1.0,
-                    z: float = 1.959963984540054) -> bool:
+                    z: float = 1.959963984540054, corrects: Sequence[int] | np.ndarray | None = None) -> bool:
         """Correct the estimate with a direct estimate ``value`` (°C, variance ``var`` K²) of node
         index ``node``, or of the mean of several nodes (the flux linkage sees all magnets, a
         model may split them); returns whether it was used. ``inflate`` (≥ 1) weakens the update
@@ -252,6 +253,11 @@ class Observer:
         the whole covariance ``C = P + S Σ Sᵀ``: ``K = C h / (hᵀ C h + r)``, ``r = var · inflate``;
         the update ``A = I − K hᵀ`` is applied to the state part (Joseph form, ``+ r K Kᵀ``) and to ``S``,
         so the two parts again sum to the covariance of the corrected estimate.
+
+        ``corrects`` (node indices, default all): the nodes the estimate may move; the gain's rows
+        of the others are zero (Schmidt–Kalman: those nodes are considered, their covariance with
+        the corrected ones follows the Joseph form, which is valid for any gain). The corrected
+        rows are the optimal gain's: a zero row elsewhere does not change them.
         """
         if not (np.isfinite(value) and np.isfinite(var) and var > 0.0):
             return False
@@ -269,6 +275,8 @@ class Observer:
         K = np.zeros(m)
         r = var * max(float(inflate), 1.0)
         K[:n] = Ch / (s2 + r)
+        if corrects is not None:
+            K[np.setdiff1d(np.arange(n), np.asarray(corrects, dtype=int))] = 0.0
         self.T = self.T + K[:n] * nu
         A = np.eye(m)
         A[:, :n] -= np.outer(K, h)

@@ -39,6 +39,11 @@ class Clock:
     def now(self) -> float:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def behind(self, ts: float | None) -> float:
+        """How far a frame stamped ``ts`` lies behind the clock, s: 0 here (a frame is of the time
+        it arrives); :class:`FrameClock` measures it."""
+        return 0.0
+
 
 class WallClock(Clock):
     """Wall clock (``time.time``); :meth:`wait_next_tick` sleeps to the next boundary."""
@@ -202,6 +207,16 @@ class FrameClock(Clock):
 
     def now(self) -> float:
         return self._now if self._now is not None else time.time()
+
+    def behind(self, ts: float | None) -> float:
+        """How far a frame stamped ``ts`` lies behind the clock after :meth:`observe` took it, s
+        (its timestamp on the clock's scale, joined segments' offset included): 0 for a frame
+        that advanced the clock, under a tick for jitter, as far as it is for the frames of a jump
+        being judged (used at the clock's time meanwhile) and for a corrupt stamp. 0 without a
+        timestamp or before the first frame."""
+        if ts is None or not math.isfinite(ts) or self._now is None:
+            return 0.0
+        return max(0.0, self._now - (float(ts) + self._offset))
 
     def observe(self, ts: float | None) -> Boundaries:
         """Advance to a frame timestamp; return the boundaries crossed (oldest first)."""

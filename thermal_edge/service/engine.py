@@ -181,13 +181,14 @@ class ThermalEngine:
         return self.adaptation.counts.accepted
 
     # -- frames -------------------------------------------------------------------------------------
-    def add_frame(self, frame: DecodedFrame, t: float) -> None:
-        """Accumulate one accepted frame (clock time ``t``)."""
+    def add_frame(self, frame: DecodedFrame, t: float, behind_s: float = 0.0) -> None:
+        """Accumulate one accepted frame (clock time ``t``; its own time ``behind_s`` s before it,
+        :meth:`.clock.Clock.behind`)."""
         if self._start_t is None:
             self._start_t = t
         self.accumulator.add(frame, t)
         if self.flux is not None:
-            self.flux.add(frame, t)
+            self.flux.add(frame, t, behind_s)
 
     def ticks_for(self, boundaries: Sequence[float]) -> Sequence[float]:
         """Frame clock: the ticks to run for the boundaries a frame's timestamp crossed (oldest

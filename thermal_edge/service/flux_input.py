@@ -15,6 +15,11 @@ to it, :data:`OUTCOMES`:
 - ``transient``: the speed moved by more than the steady-state tolerance since the last tick
   (the voltage equations are steady-state);
 - ``stale``: no voltage frame within ``flux.timeout_s`` (refused);
+- ``old``: the tick's voltage (or current) frames lie further behind the frame clock than
+  ``flux.timeout_s`` and a tick (:meth:`~thermal_edge.service.clock.Clock.behind`): a measurement
+  that old describes another moment (a sender's clock off, a log's segments out of order, a
+  corrupt stamp), so those frames never enter the tick's means; refused when the tick has no
+  other. The wall clock takes every frame as of the time it arrives (never ``old``);
 - ``implausible``: the voltages imply a magnet temperature outside ``signals.valid_range_c``: a
   voltage in another unit (mV, kV, RMS instead of peak), a sign turned round or a frame of zeros
   gives hundreds of kelvin (refused);
@@ -24,8 +29,8 @@ to it, :data:`OUTCOMES`:
   calibration must not cool the magnet;
 - ``used``: the observer corrected by it; the magnet's band narrows.
 
-The three refusals (:data:`REFUSALS`) are counted (metrics) and logged with their journald
-priority: ``disagreement`` and ``implausible`` at WARNING (4), ``stale`` at NOTICE (5).
+The refusals (:data:`REFUSALS`) are counted (metrics) and logged with their journald priority:
+``disagreement``, ``implausible`` and ``old`` at WARNING (4), ``stale`` at NOTICE (5).
 """
 from __future__ import annotations
 
@@ -51,13 +56,14 @@ __all__ = ["OUTCOMES", "REFUSALS", "FluxInput", "FluxTick", "load_flux_model"]
 log = logging.getLogger(__name__)
 
 #: What became of a tick's flux estimate (see the module docstring).
-OUTCOMES = ("used", "disagreement", "stale", "implausible", "uninformative", "transient", "low_speed")
+OUTCOMES = ("used", "disagreement", "stale", "old", "implausible", "uninformative", "transient", "low_speed")
 #: The outcomes that refuse an estimate the tick should have had.
-REFUSALS = ("disagreement", "stale", "implausible")
+REFUSALS = ("disagreement", "stale", "old", "implausible")
 #: The WARNING lines, one format per cause: the journal's rate limit counts per format, so a flood
 #: of one cause (voltages in kV for minutes) never uses up the lines of another (a disagreement)
 _WARNINGS = {"disagreement": "flux estimate refused (disagreement): %s",
-             "implausible": "flux estimate refused (implausible): %s"}
+             "implausible": "flux estimate refused (implausible): %s",
+             "old": "flux estimate refused (old): %s"}
 
 
 def load_flux_model(config: EdgeConfig) -> FluxModel:
@@ -166,6 +172,11 @@ class FluxInput:
         self._observer: FluxObserver | None = None
         self._fusion = FluxFusion(flux, self.magnet_rows, self.dt)
         self._dq = DqMeans(fx)
+        #: how far a voltage or current frame may lie behind the clock, s: the timeout, and at least
+        #: a tick (the frame clock's own tolerance of senders' jitter)
+        self.max_behind_s = max(float(fx.timeout_s), float(self.dt))
+        self._flux_frames = {fx.frame, fx.currents_frame}
+        self._old = (0, 0.0)  # the tick's frames refused as old, and the furthest behind (s)
         self._last_u_t = -math.inf
         self._prev_speed: float | None = None
         #: ticks per outcome (:data:`OUTCOMES`)
@@ -176,15 +187,21 @@ class FluxInput:
         self.last_used: FluxTick | None = None
 
     # -- frames -------------------------------------------------------------------------------------
-    def add(self, frame: DecodedFrame, t: float) -> None:
-        """Accumulate an accepted frame (clock time ``t``); other frames are ignored; never raises.
-        The voltages and the currents may come in one frame or in two."""
+    def add(self, frame: DecodedFrame, t: float, behind_s: float = 0.0) -> None:
+        """Accumulate an accepted frame (clock time ``t``; its own time ``behind_s`` s before it);
+        other frames are ignored; never raises. The voltages and the currents may come in one
+        frame or in two. One more than :attr:`max_behind_s` behind is kept out of the tick's means
+        (the tick is ``old`` if it has no other)."""
+        if behind_s > self.max_behind_s and frame.name in self._flux_frames:
+            self._old = (self._old[0] + 1, max(self._old[1], float(behind_s)))
+            return
         if self._dq.add(frame):
             self._last_u_t = t
 
     def reset(self) -> None:
         """Forget the tick's sums and the last speed (after a gap in the frames)."""
         self._dq.take()
+        self._old = (0, 0.0)
         self._prev_speed = None
 
     # -- the tick -----------------------------------------------------------------------------------
@@ -193,6 +210,7 @@ class FluxInput:
         and agrees with the model; the sums restart. With no observer (no state yet) nothing is
         fused or counted (None)."""
         means = self._dq.take()
+        (old, old_s), self._old = self._old, (0, 0.0)
         prev, self._prev_speed = self._prev_speed, speed_rpm
         if observer is None:  # no state yet: nothing to fuse into, nothing counted
             return None
@@ -204,6 +222,10 @@ class FluxInput:
         if prev is None or not bool(steady(np.array([prev, speed_rpm]))[1]):
             return self._done(FluxTick("transient"))
         if math.isnan(means[0]) or math.isnan(means[2]) or t - self._last_u_t > self.config.timeout_s:
+            if old:
+                return self._done(FluxTick("old"), f"{old} frame(s) {' or '.join(sorted(self._flux_frames))} up to "
+                                  f"{old_s:.1f} s behind the frame clock (more than {self.max_behind_s:g} s: "
+                                  f"another moment) at {speed_rpm:.0f} rpm")
             return self._done(FluxTick("stale"), f"no voltage frame {self.config.frame} within "
                               f"{self.config.timeout_s:g} s at {speed_rpm:.0f} rpm")
         u_d, u_q, i_d, i_q = (float(v) for v in means)

@@ -258,8 +258,9 @@ class _LiveCollector(Collector):
             fx = eng.flux
             if fx is not None:  # the optional voltage input (flux:), every refusal reason from the start
                 refused = CounterMetricFamily(P + "flux_refused", "Flux-linkage estimates of the magnet refused, by reason: "
-                                              "disagreement (beyond both 95 % bands), stale (no voltage frame), implausible "
-                                              "(a voltage that implies a magnet outside the valid range)",
+                                              "disagreement (beyond both 95 % bands), stale (no voltage frame), old (voltage "
+                                              "frames far behind the frame clock), implausible (a voltage that implies a "
+                                              "magnet outside the valid range)",
                                               labels=LABELS["flux_refused"])
                 for r in REFUSALS:
                     refused.add_metric([r], fx.counts.get(r, 0))

@@ -107,7 +107,7 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
             n_frames += 1
             for b in engine.ticks_for(clock.observe(frame.timestamp)):
                 outs.append(engine.tick(b))
-            engine.add_frame(frame, clock.now())
+            engine.add_frame(frame, clock.now(), clock.behind(frame.timestamp))
     finally:
         engine.close()
     n = len(model.nodes)

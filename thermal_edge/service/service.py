@@ -260,7 +260,7 @@ class EdgeService:
             boundaries = clock.observe(frame.timestamp)
             if boundaries:
                 return self._frame_ticks(boundaries, frame)
-            self.engine.add_frame(frame, clock.now())
+            self.engine.add_frame(frame, clock.now(), clock.behind(frame.timestamp))
             return None
         self.engine.add_frame(frame, time.time())
         return None
@@ -268,7 +268,7 @@ class EdgeService:
     async def _frame_ticks(self, boundaries: Sequence[float], frame: DecodedFrame) -> None:
         for b in self.engine.ticks_for(boundaries):
             await self._run_tick(b, None)
-        self.engine.add_frame(frame, self.clock.now())
+        self.engine.add_frame(frame, self.clock.now(), self.clock.behind(frame.timestamp))
 
     async def _wall_ticks(self) -> None:
         clock = self.clock
