@@ -79,6 +79,9 @@ PINNED_Z = 3.0
 REFINE_STEP_REL_STD = 0.03
 #: SQP iterations of a refinement fit (rare: only when the window says the optimum is far)
 REFINE_MAX_ITER = 10
+#: whole periods whose errors are kept for the judging of a challenger (a few kB each): as many as
+#: two sets of parameters judged over the longest evidence
+PERIOD_CACHE = 64
 #: the pinned check runs again once this share of the window is new since the last check (or the
 #: parameters in use changed): what a 3 h window pins moves little in one 3 min period, and each
 #: check costs a window's sensitivities (at 1.7 % new data a decision, every sixth decision)
@@ -283,6 +286,8 @@ class OnlineAdapter:
             raise ValueError(f"adaptation.method must be one of {', '.join(METHODS)}, got {config.method!r}")
         self.model, self.config, self.dt = model, config, float(dt)
         self.theta = model.nominal() if theta is None else np.asarray(theta, dtype=float).copy()
+        #: a whole period's errors by (parameters, start) (:meth:`_period_errors`)
+        self._period_cache: dict[tuple[bytes, float], dict[str, np.ndarray]] = {}
         #: when the pinned check last ran, and with which parameters (:meth:`_pinned_due`)
         self._pinned_checked: tuple[float, bytes] | None = None
         self.prior = self.theta.copy()
@@ -351,10 +356,21 @@ class OnlineAdapter:
         the online trace is scored. Also the period (0, 1, …) of every sample."""
         parts: list[dict[str, np.ndarray]] = []
         a = since
+        key = theta.tobytes()
         while a < until - 1e-9:
             b = min(a + self.config.period_s, until)
-            parts.append(self._errors(theta, a, b, shadow))
+            # a whole period's errors never change once recorded: a challenger judged at every
+            # decision against the same parameters predicts only the new period
+            whole = shadow is None and b == a + self.config.period_s
+            part = self._period_cache.get((key, a)) if whole else None
+            if part is None:
+                part = self._errors(theta, a, b, shadow)
+                if whole:
+                    self._period_cache[(key, a)] = part
+            parts.append(part)
             a = b
+        while len(self._period_cache) > PERIOD_CACHE:
+            self._period_cache.pop(next(iter(self._period_cache)))
         errors = {s: np.concatenate([p[s] for p in parts]) if parts else np.zeros(0) for s in self.sensors}
         blocks = np.concatenate([np.full(len(p[self.sensors[0]]), j) for j, p in enumerate(parts)]) if parts else np.zeros(0)
         return errors, blocks
