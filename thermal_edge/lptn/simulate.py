@@ -15,7 +15,7 @@ step (a noisy current) run vectorised in time (:mod:`.stretch`); the rest is ste
 Sensitivities run after the simulation (:mod:`.sensitivity`): in closed form over runs of held
 inputs, vectorised over the same kind of stretches, step by step elsewhere.
 
-A run whose inputs visit more than :data:`MAX_OPERATING_POINTS` operating points (a speed that
+A run whose inputs visit more than ``MAX_OPERATING_POINTS`` (128) operating points (a speed that
 sweeps continuously) is simulated in time chunks that visit at most that many each, the
 temperatures and sensitivities carried from one chunk to the next: the discretisations (``n²``
 numbers and more per operating point, several times that with sensitivities) are held for one
@@ -124,7 +124,7 @@ class Simulator:
         Run stretches at one operating point vectorised in time (default,
         ``thermal_edge.lptn.stretch``); False steps them (the reference, to round-off).
     max_operating_points : int, optional
-        Operating points discretised at once (default :data:`MAX_OPERATING_POINTS`); a run that
+        Operating points discretised at once (default ``MAX_OPERATING_POINTS``, 128); a run that
         visits more is simulated in time chunks.
     """
 
