@@ -44,13 +44,21 @@ def _te(*args: str | Path) -> subprocess.CompletedProcess[str]:
                           timeout=600, env={"OPENBLAS_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
 
 
+def rescaled(dbc: str, signal: str, scaling: str, unit: str | None = None) -> str:
+    """The DBC text ``dbc`` with ``signal``'s factor and offset set to ``scaling`` (``"0.01,0"``)
+    and, if given, its declared ``unit``: a CAN matrix with a unit or scaling error."""
+    repl = rf'\g<1>({scaling})\2 "{unit}"' if unit is not None else rf"\g<1>({scaling})\2 \3"
+    text, n = re.subn(rf'(SG_ {signal} : [^(]*)\([^)]*\)( \[[^]]*\]) ("[^"]*")', repl, dbc)
+    if n != 1:
+        raise ValueError(f"no signal {signal} in the DBC text")
+    return text
+
+
 def _config(d: Path, signals: list[str], scaling: str, unit: str | None) -> Path:
     """The example configuration on the shipped DBC with ``signals`` scaled (and declared in ``unit``)."""
     text = DEFAULT_DBC_PATH.read_text()
     for signal in signals:
-        repl = rf'\g<1>({scaling})\2 "{unit}"' if unit is not None else rf"\g<1>({scaling})\2 \3"
-        text, n = re.subn(rf'(SG_ {signal} : [^(]*)\([^)]*\)( \[[^]]*\]) ("[^"]*")', repl, text)
-        assert n == 1, signal
+        text = rescaled(text, signal, scaling, unit)
     (d / "inverter.dbc").write_text(text)
     raw = yaml.safe_load(example_config())
     raw["codec"] = {**(raw.get("codec") or {}), "dbc": str(d / "inverter.dbc")}

@@ -394,10 +394,10 @@ def _config_with_dbc(tmp_path: Path, signal: str, scaling: str) -> Path:
     replaced (its unit kept): a recording of the shipped matrix read through a scaling error."""
     import yaml
 
-    text, n = re.subn(rf"(SG_ {signal} : [^(]*)\([^)]*\)", rf"\g<1>({scaling})", DBC.read_text())
-    assert n == 1
+    from benchmarks.faults.units import rescaled
+
     dbc = tmp_path / "wrong.dbc"
-    dbc.write_text(text)
+    dbc.write_text(rescaled(DBC.read_text(), signal, scaling))
     raw = yaml.safe_load(CONFIG.read_text())
     raw["codec"] = {**(raw.get("codec") or {}), "dbc": str(dbc)}
     raw["model"]["path"] = str(config_path("machines", "pm10kw.yaml"))
@@ -425,8 +425,9 @@ def test_currents_read_in_milliampere_are_named(recording, tmp_path):
     """The dq currents decoded 1000x too large: the RMS current is refused in every tick, and the
     line says why (mA) instead of only that no tick was complete."""
     cfg = _config_with_dbc(tmp_path, "INV_Id", "50,0")
-    text = (tmp_path / "wrong.dbc").read_text()
-    (tmp_path / "wrong.dbc").write_text(re.sub(r"(SG_ INV_Iq : [^(]*)\([^)]*\)", r"\g<1>(50,0)", text))
+    from benchmarks.faults.units import rescaled
+
+    (tmp_path / "wrong.dbc").write_text(rescaled((tmp_path / "wrong.dbc").read_text(), "INV_Iq", "50,0"))
     r = te_here("export", recording, "--config", cfg, "--out", tmp_path / "x.csv")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "no run in this CAN log (i_rms (INV_Currents INV_Id/INV_Iq) refused: " in r.stderr

@@ -13,6 +13,7 @@ import pytest
 import yaml
 from svc_testlib import EDGE_YAML, REPO
 
+from benchmarks.faults.units import rescaled
 from thermal_edge.config import ConfigError, config_from_mapping
 from thermal_edge.service.engine import load_service_model
 
@@ -21,10 +22,8 @@ DBC = REPO / "dbc" / "thermal_edge.dbc"
 
 def _config(tmp_path: Path, signal: str, scaling: str, unit: str):
     """The shipped configuration on the shipped DBC with ``signal`` declared as ``(scaling) "unit"``."""
-    text, n = re.subn(rf'(SG_ {signal} : [^(]*)\([^)]*\)( \[[^]]*\]) "[^"]*"', rf'\g<1>({scaling})\2 "{unit}"', DBC.read_text())
-    assert n == 1
     dbc = tmp_path / "inverter.dbc"
-    dbc.write_text(text)
+    dbc.write_text(rescaled(DBC.read_text(), signal, scaling, unit))
     raw = yaml.safe_load(EDGE_YAML.read_text())
     raw["model"]["path"] = str(REPO / "config" / "machines" / "pm10kw.yaml")
     raw["codec"]["dbc"] = str(dbc)
@@ -56,9 +55,7 @@ def test_a_unit_not_the_packages_is_refused_with_the_scaling_that_gives_it(tmp_p
     factor, offset, ours = re.search(r'factor (\S+), offset (\S+), unit "([^"]+)"', msg).groups()
     # the same bytes, decoded through the corrected DBC, are the value in the package's unit
     theirs = cantools.database.load_file(str(dbc)).get_message_by_name(frame)
-    fixed, n = re.subn(rf'(SG_ {signal} : [^(]*)\([^)]*\)( \[[^]]*\]) "[^"]*"', rf'\g<1>({factor},{offset})\2 "{ours}"',
-                       dbc.read_text())
-    assert n == 1
+    fixed = rescaled(dbc.read_text(), signal, f"{factor},{offset}", ours)
     mine = cantools.database.load_string(fixed, "dbc").get_message_by_name(frame)
     values = {s.name: (s.minimum or 0) if s.name != signal else value for s in theirs.signals}
     data = theirs.encode(values, strict=False, scaling=True)

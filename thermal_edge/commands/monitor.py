@@ -16,9 +16,13 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import TYPE_CHECKING
 
 from ..errors import UsageError
 from .options import http_url, integer, number
+
+if TYPE_CHECKING:
+    from ..config import EdgeConfig
 
 DEFAULT_URL = "http://127.0.0.1:9108/metrics"
 CLEAR = "\x1b[H\x1b[2J"
@@ -39,12 +43,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=run)
 
 
-def _bus_config(args: argparse.Namespace) -> dict[str, object]:
+def _bus_config(args: argparse.Namespace, config: EdgeConfig | None = None) -> dict[str, object]:
+    """The bus to listen on: the configuration's (``config``, loaded from ``--config``), with
+    ``--interface``/``--channel`` over it."""
     raw: dict[str, object] = {}
-    if args.config:
-        from ..config import load_config
-
-        bus = load_config(args.config).bus
+    if config is not None:
+        bus = config.bus
         raw = {"interface": bus.interface, "channel": bus.channel, **bus.options}
     if args.interface:
         raw["interface"] = args.interface
@@ -99,17 +103,16 @@ def _run_bus(args: argparse.Namespace, screen: _Screen, limit: int | None) -> in
     from ..monitor.snapshot import FrameWatch
     from ..monitor.view import render
 
-    try:
-        cfg = BusConfig.coerce(_bus_config(args))
-    except BusConfigError as exc:
-        raise UsageError(f"--bus: {str(exc).strip().splitlines()[0]}") from None
-    if args.config:  # the configuration's CAN matrix: its inverter's frames are the ones read
+    config = None
+    if args.config:  # its bus, and its CAN matrix: the inverter's own frames are the ones read
         from ..config import load_config
 
         config = load_config(args.config)
-        codec = config.codec.frame_codec(config.fname)
-    else:
-        codec = FrameCodec()
+    try:
+        cfg = BusConfig.coerce(_bus_config(args, config))
+    except BusConfigError as exc:
+        raise UsageError(f"--bus: {str(exc).strip().splitlines()[0]}") from None
+    codec = config.codec.frame_codec(config.fname) if config is not None else FrameCodec()
     cycles = {codec.frame_name(fid): c for fid in codec.frame_ids() if (c := codec.cycle_time_s(fid))}
     watch = FrameWatch(f"bus {cfg.interface}:{cfg.channel}", cycles)
     try:
