@@ -401,6 +401,10 @@ class FaultConfig:
     stuck_window_s: float = setting(600.0, positive=True, max=3600.0)
     stuck_model_k: float = setting(5.0, positive=True, max=50.0)
     stuck_still_k: float = setting(0.2, min=0.0)
+    #: ... on the reading averaged over this long (an exponential mean), s: a frozen channel still
+    #: carries its ADC's noise (0.1 K sigma flickers over more than 0.2 K within seconds), which
+    #: the mean takes out; a healthy reading that rises keeps rising in its mean, this much later
+    stuck_smooth_s: float = setting(10.0, min=0.0, max=120.0)
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Readings that lie together: every PT100 drifting low at once, through ``thermal-edge replay``.
+"""Readings that lie plausibly, through ``thermal-edge replay``: every PT100 drifting low at once,
+and the winding PT100s frozen with their converter's noise.
 
 One reference or excitation current shared by the inverter's PT100 inputs drifts, and every
 temperature reads low by the same growing amount, slowly enough that each reading agrees with the
@@ -8,7 +9,9 @@ maximum. The bench simulates the overload cycle (the plant: the model file, open
 temperatures are the simulation's), writes its CAN log with every ``INV_StatorTemps`` frame
 re-encoded (counter and CRC as the matrix says) reading low by the drift, replays it with
 adaptation on, and counts the ticks at which the plant's slot winding is above the hot spot's
-``max_c`` while the limit sent is above the safe current: each is unsafe. The control case
+``max_c`` while the limit sent is above the safe current: each is unsafe. The winding PT100s
+frozen from 100 min on, still flickering with 0.1 K of noise in 0.1 K steps (a channel whose
+converter holds its last sample), are judged the same way and must be named stuck. The control case
 (:func:`drift_unguarded`) replays the same log with ``derating.faults.commissioned_gap_k`` at its
 upper bound, which the drift never reaches: it must be judged unsafe.
 """
@@ -17,10 +20,11 @@ from __future__ import annotations
 import csv
 import subprocess
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import can
+import numpy as np
 import yaml
 
 from thermal_edge.bus.codec import FrameCodec
@@ -34,9 +38,41 @@ DRIFT_FROM_S, DRIFT_RATE_K_PER_S, DRIFT_CAP_K = 3000.0, 0.5 / 60.0, 40.0
 TEMPS = "INV_StatorTemps"
 
 
-def _drifted(log: Path, out: Path, t0: float) -> int:
-    """``log`` with every ``INV_StatorTemps`` frame re-encoded reading low by the drift at its
-    stamp (``t0``: the log's first stamp); returns the frames changed."""
+#: the winding PT100s freeze from this time on (s), flickering with this noise (K, sigma) in steps of
+#: their resolution (K)
+FREEZE_FROM_S, FREEZE_NOISE_K, RESOLUTION_K = 6000.0, 0.1, 0.1
+WINDING = ("INV_T_WindingSlot", "INV_T_EndWinding")
+
+#: a fault: (seconds since the log's first stamp, the frame's temperatures) -> the temperatures read
+Fault = Callable[[float, dict[str, float]], dict[str, float]]
+
+
+def common_drift(dt: float, temps: dict[str, float]) -> dict[str, float]:
+    """Every temperature low by the drift ``dt`` s into the log."""
+    low = min(max(dt - DRIFT_FROM_S, 0.0) * DRIFT_RATE_K_PER_S, DRIFT_CAP_K)
+    return {k: v - low for k, v in temps.items()}
+
+
+def frozen_with_noise(seed: int = 0) -> Fault:
+    """The winding temperatures held at their value at :data:`FREEZE_FROM_S`, with the converter's
+    noise, quantised to the resolution."""
+    rng = np.random.default_rng(seed)
+    held: dict[str, float] = {}
+
+    def fault(dt: float, temps: dict[str, float]) -> dict[str, float]:
+        if dt < FREEZE_FROM_S:
+            return temps
+        if not held:
+            held.update({k: temps[k] for k in WINDING})
+        noisy = {k: round((v + rng.normal(0.0, FREEZE_NOISE_K)) / RESOLUTION_K) * RESOLUTION_K for k, v in held.items()}
+        return {**temps, **noisy}
+    return fault
+
+
+def _faulted(log: Path, out: Path, t0: float, fault: Fault) -> int:
+    """``log`` with every ``INV_StatorTemps`` frame's temperatures passed through ``fault`` and
+    re-encoded (the frame's own counter, the matrix's CRC; ``t0``: the log's first stamp); returns
+    the frames changed."""
     codec = FrameCodec()
     changed = 0
     lines = []
@@ -47,9 +83,8 @@ def _drifted(log: Path, out: Path, t0: float) -> int:
         msg = can.Message(arbitration_id=int(ident, 16), data=bytes.fromhex(data), is_extended_id=len(ident) > 3)
         dec = codec.decode_message(msg)
         if dec is not None and dec.name == TEMPS:
-            low = min(max(t - t0 - DRIFT_FROM_S, 0.0) * DRIFT_RATE_K_PER_S, DRIFT_CAP_K)
-            sig = {k: (v - low if k.startswith("INV_T_") else v) for k, v in dec.signals.items()}
-            data = codec.encode(TEMPS, sig, counter=dec.counter).hex().upper()
+            temps = fault(t - t0, {k: v for k, v in dec.signals.items() if k.startswith("INV_T_")})
+            data = codec.encode(TEMPS, {**dec.signals, **temps}, counter=dec.counter).hex().upper()
             changed += 1
         lines.append(" ".join([stamp, chan, f"{ident}#{data}", *rest]))
     out.write_text("\n".join(lines) + "\n")
@@ -88,48 +123,64 @@ def _judge(rows: list[dict[str, str]], truth: list[dict[str, str]], max_c: float
     return hot, unsafe
 
 
-def _cases(full: bool, control: bool) -> Iterator[Case]:
-    duration = 10800 if full else 7200
+def _clean(d: Path, full: bool) -> tuple[Path, list[dict[str, str]], float]:
+    """The overload cycle simulated: its CAN log, the plant's temperatures and the log's first stamp."""
+    common = ["simulate", "--model", str(service_config_path("machines", "pm10kw.yaml")), "--cycle",
+              str(service_config_path("cycles", "overload.yaml")), "--duration", "10800" if full else "7200", "--seed", "0"]
+    for fmt, out in (("csv", d / "truth.csv"), ("can", d / "clean.log")):
+        subprocess.run(thermal_edge_cmd() + [*common, "--format", fmt, "--out", str(out)], env=env(), cwd=str(ROOT),
+                       check=True, capture_output=True, timeout=900)
+    truth = list(csv.DictReader(ln for ln in (d / "truth.csv").read_text().splitlines() if not ln.startswith("#")))
+    clean = d / "clean.log"
+    return clean, truth, float(clean.read_text().split(maxsplit=1)[0].strip("()"))
+
+
+def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str]], t0: float, fault: Fault,
+          tried: str, said: str, faults: dict[str, float], control: bool = False) -> Case:
+    """Replay ``clean`` through ``fault`` and judge it: no tick above the safe current while the plant's
+    winding is over its max, and ``said`` in the log (not for a control)."""
     raw = yaml.safe_load(service_config_path("edge.yaml").read_text())
     max_c = float(raw["derating"]["limits"]["hot_spot"]["max_c"])
     safe_a = float(raw["derating"]["safe_current_a"])
-    with tempfile.TemporaryDirectory(prefix="te-faults-readings-") as tmp:
-        d = Path(tmp)
-        common = ["simulate", "--model", str(service_config_path("machines", "pm10kw.yaml")), "--cycle",
-                  str(service_config_path("cycles", "overload.yaml")), "--duration", str(duration), "--seed", "0"]
-        for fmt, out in (("csv", d / "truth.csv"), ("can", d / "clean.log")):
-            subprocess.run(thermal_edge_cmd() + [*common, "--format", fmt, "--out", str(out)], env=env(), cwd=str(ROOT),
-                           check=True, capture_output=True, timeout=900)
-        truth = list(csv.DictReader(ln for ln in (d / "truth.csv").read_text().splitlines() if not ln.startswith("#")))
-        clean = d / "clean.log"
-        t0 = float(clean.read_text().split(maxsplit=1)[0].strip("()"))
-        changed = _drifted(clean, d / "drift.log", t0)
-        gap = {} if not control else {"commissioned_gap_k": 100.0}
-        rows, err, rc = _replay(d, d / "drift.log", gap)
-        c = Check()
-        c.add(0 if rc == 0 and rows else 1, f"replay exit {rc}: {err.strip()[-200:]}")
-        hot, unsafe = _judge(rows, truth, max_c, safe_a)
-        c.add(unsafe, f"{unsafe} of {hot} ticks with the slot winding above {max_c:.0f} degC sent more than "
-                      f"{safe_a:.0f} A")
-        c.add(0 if hot else 1, f"the plant never passed {max_c:.0f} degC: nothing was judged")
-        said = "readings not believed" in err
-        if not control:
-            c.add(0 if said else 1, "no log line says the readings are not believed")
-        name = "pt100_common_drift_guard_off" if control else "pt100_common_drift"
-        did = (f"{changed} {TEMPS} frames {DRIFT_RATE_K_PER_S * 60:.1f} K/min low from {DRIFT_FROM_S:.0f} s (up to "
-               f"{DRIFT_CAP_K:.0f} K); winding above max {hot} ticks, {unsafe} of them above {safe_a:.0f} A"
-               + ("; 'readings not believed' logged" if said else ""))
-        yield Case.of(name, "control" if control else "readings", 1, did, c, control=control)
+    changed = _faulted(clean, d / f"{name}.log", t0, fault)
+    rows, err, rc = _replay(d, d / f"{name}.log", faults)
+    c = Check()
+    c.add(0 if rc == 0 and rows else 1, f"replay exit {rc}: {err.strip()[-200:]}")
+    hot, unsafe = _judge(rows, truth, max_c, safe_a)
+    c.add(unsafe, f"{unsafe} of {hot} ticks with the slot winding above {max_c:.0f} degC sent more than {safe_a:.0f} A")
+    c.add(0 if hot else 1, f"the plant never passed {max_c:.0f} degC: nothing was judged")
+    heard = said in err
+    if not control:
+        c.add(0 if heard else 1, f"no log line says {said!r}")
+    did = (f"{changed} {TEMPS} frames {tried}; winding above max {hot} ticks, {unsafe} of them above {safe_a:.0f} A"
+           + (f"; {said!r} logged" if heard else ""))
+    return Case.of(name, group, 1, did, c, control=control)
+
+
+DRIFT_TRIED = f"{DRIFT_RATE_K_PER_S * 60:.1f} K/min low from {DRIFT_FROM_S:.0f} s (up to {DRIFT_CAP_K:.0f} K)"
 
 
 def drift(full: bool) -> Iterator[Case]:
-    """Every PT100 drifting low together: not believed, the safe limit while the winding is over max."""
-    yield from _cases(full, control=False)
+    """Every PT100 drifting low together: not believed; the winding PT100s frozen with noise: stuck.
+    Either way the safe limit while the winding is over its max."""
+    with tempfile.TemporaryDirectory(prefix="te-faults-readings-") as tmp:
+        d = Path(tmp)
+        clean, truth, t0 = _clean(d, full)
+        yield _case(d, "pt100_common_drift", "readings", clean, truth, t0, common_drift, DRIFT_TRIED,
+                    "readings not believed", {})
+        yield _case(d, "winding_pt100s_frozen_with_noise", "readings", clean, truth, t0, frozen_with_noise(),
+                    f"with the windings held from {FREEZE_FROM_S:.0f} s (+ {FREEZE_NOISE_K} K noise, "
+                    f"{RESOLUTION_K} K steps)", "stuck at", {})
 
 
 def drift_unguarded(full: bool) -> Iterator[Case]:
-    """The same drift with the commissioned check out of its reach: must be judged unsafe."""
-    yield from _cases(full, control=True)
+    """The common drift with ``commissioned_gap_k`` at its upper bound, which the drift never
+    reaches: must be judged unsafe."""
+    with tempfile.TemporaryDirectory(prefix="te-faults-readings-") as tmp:
+        d = Path(tmp)
+        clean, truth, t0 = _clean(d, full)
+        yield _case(d, "pt100_common_drift_guard_off", "control", clean, truth, t0, common_drift, DRIFT_TRIED,
+                    "readings not believed", {"commissioned_gap_k": 100.0}, control=True)
 
 
 GROUPS = {"readings": drift}

@@ -51,24 +51,36 @@ def _closed_loop(tmp_path, model, demand_a: float, freeze_at: float | None, seco
     return outs, true_ew, freeze_at
 
 
-def test_a_stuck_stator_sensor_under_load_forces_the_safe_limit_with_sensor_fault(tmp_path, model):
+@pytest.mark.parametrize("noise", [False, True], ids=["exact", "pt100_noise"])
+def test_a_stuck_stator_sensor_under_load_forces_the_safe_limit_with_sensor_fault(tmp_path, model, noise):
     """Frozen stator readings at full load: the safe limit with ``sensor_fault`` before the true winding
     has moved by twice ``stuck_model_k`` since the freeze (the model, stepped with the same losses from a
     state held at the frozen reading, moves the node about as fast as the plant; twice allows for the
     difference), and it holds while the readings stay frozen. Before the check the engine gave 40 A
-    until the open-loop error passed 40 K, then full power again after each 30 s hold."""
+    until the open-loop error passed 40 K, then full power again after each 30 s hold. A frozen
+    channel that still carries the converter's noise (0.1 K sigma, 0.1 K steps: it flickers over
+    more than ``stuck_still_k`` within seconds) is found on the readings' mean, within the same
+    bound plus the mean's ``stuck_smooth_s``."""
     fc = _engine_config(tmp_path).derating.faults
     freeze = 120.0  # s: the machine is warm and heating at 40 A
-    outs, true_ew, _ = _closed_loop(tmp_path, model, MAX, freeze, 420.0)
+    outs, true_ew, _ = _closed_loop(tmp_path, model, MAX, freeze, 420.0, noise=noise)
     k0 = int(freeze) - 1
     moved = [abs(v - true_ew[k0]) for v in true_ew[k0:]]
     bound_s = next(n for n, d in enumerate(moved) if d >= 2 * fc.stuck_model_k) + 1  # + the tick that decides
+    bound_s += int(fc.stuck_smooth_s) if noise else 0
     safe_at = next(n for n, o in enumerate(outs[k0:]) if o.limits.reason == DerateReason.SENSOR_FAULT)
     assert safe_at <= bound_s, (safe_at, bound_s)
     after = outs[k0 + safe_at:]
+    assert set(after[-1].faults.values()) == {"stuck"}
+    if noise:
+        # each noisy channel is found when its mean has stayed still over 5 K of the model's rise; the
+        # readings left, 20 K below the commissioned model, are not believed either: the safe limit
+        assert {"slot_winding", "end_winding"} & set(after[-1].faults)
+        assert all(o.limits.current_a <= SAFE for o in after)
+        assert all(o.limits.reason in (DerateReason.SENSOR_FAULT, DerateReason.MODEL_FAULT) for o in after)
+        return
     assert all(o.limits.reason == DerateReason.SENSOR_FAULT and o.limits.current_a <= SAFE for o in after)
     assert all(o.state == TeState.DEGRADED for o in after)
-    assert set(after[-1].faults.values()) == {"stuck"}
     assert "end_winding" in after[-1].faults
     # no model fault on the way: the stuck sensor is named, not the model
     assert all(o.limits.reason != DerateReason.MODEL_FAULT for o in outs)
@@ -179,7 +191,7 @@ def test_no_stuck_sensor_on_the_paderborn_run():
     for k in range(1, len(run.t)):
         y = {s: float(run.column(s)[k]) for s in model.sensors}
         moved = {s: float(traj.node(n)[k] - traj.node(n)[k - 1]) for s, n in model.sensors.items()}
-        found.update(check.observe(float(run.t[k]), y, moved))
+        found.update(check.observe(float(run.t[k]), y, moved, check.smooth(float(run.t[k]), y)))
     assert found == {}
 
 

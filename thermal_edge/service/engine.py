@@ -248,8 +248,9 @@ class ThermalEngine:
     def _tick(self, t: float) -> TickOutput:
         cfg = self.config
         ti = self.accumulator.take(t)
-        readings = dict(ti.measured)  # as received: a stuck sensor is released when its reading moves
-        self._withhold_stuck(ti, self.stuck.release(readings))
+        readings = dict(ti.measured)  # as received (the stuck check judges them and their mean)
+        means = self.stuck.smooth(t, readings)  # a stuck sensor is released when its mean moves
+        self._withhold_stuck(ti, self.stuck.release(readings, means))
         forced = input_reasons(ti)
         for k, v in ti.inputs.items():
             if math.isfinite(v):
@@ -294,7 +295,7 @@ class ThermalEngine:
         x_now = est.prediction
         assert x_now is not None
         moved = {s: float(x_now[r] - x_prev[r]) for s, r in self.sensor_rows.items()}
-        newly = self.stuck.observe(t, readings, moved)
+        newly = self.stuck.observe(t, readings, moved, means)
         if newly:
             for s, stuck_why in sorted(newly.items()):
                 log.error("sensor %s stuck at t=%.0f: %s; its reading is withheld%s", s, t, stuck_why,

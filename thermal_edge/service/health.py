@@ -231,7 +231,8 @@ class StuckSensors:
     ----------
     config : FaultConfig
         ``derating.faults``: ``stuck_window_s`` (s), ``stuck_model_k`` and ``stuck_still_k`` (K).
-        ``stuck_still_k`` is two steps of the reading's resolution: a frozen reading may flicker by a
+        ``stuck_still_k`` is two steps of the reading's resolution, judged on the reading's mean over
+        ``stuck_smooth_s`` (:meth:`smooth`): a frozen reading may flicker by a
         step; a reading with a coarser resolution needs a larger one.
     sensors : iterable of str
         The sensors to watch.
@@ -239,27 +240,52 @@ class StuckSensors:
 
     def __init__(self, config: FaultConfig, sensors: Iterable[str]) -> None:
         self.config = config
-        self._runs: dict[str, _StillRun] = {s: _StillRun() for s in sensors}
-        self._frozen: dict[str, float] = {}  # stuck sensor -> the reading it froze at, degC
+        #: per sensor: the still stretch of its readings and of their mean
+        self._runs: dict[str, tuple[_StillRun, _StillRun]] = {s: (_StillRun(), _StillRun()) for s in sensors}
+        self._frozen: dict[str, float] = {}  # stuck sensor -> the reading (or mean) it froze at, degC
+        self._on_mean: dict[str, bool] = {}  # stuck sensor -> found on its mean (else on its readings)
+        self._mean: dict[str, tuple[float, float]] = {}  # sensor -> (time, exponential mean of its readings)
+
+    def smooth(self, t: float, readings: Mapping[str, float]) -> dict[str, float]:
+        """The readings of the tick at ``t`` averaged over ``stuck_smooth_s`` (an exponential mean,
+        degC; NaN where a sensor has no reading, which restarts its mean): what :meth:`release` and
+        :meth:`observe` judge. A frozen channel still carries its converter's noise; the mean of a
+        healthy reading that rises keeps rising."""
+        tau = self.config.stuck_smooth_s
+        out: dict[str, float] = {}
+        for s, v in readings.items():
+            prev = self._mean.get(s)
+            if not math.isfinite(v) or tau <= 0.0:
+                self._mean.pop(s, None)
+                out[s] = v
+                continue
+            m = v if prev is None else prev[1] + (1.0 - math.exp(-max(t - prev[0], 0.0) / tau)) * (v - prev[1])
+            self._mean[s] = (t, m)
+            out[s] = m
+        return out
 
     @property
     def stuck(self) -> dict[str, float]:
         """The sensors found stuck, with the reading each froze at (degC)."""
         return dict(self._frozen)
 
-    def release(self, readings: Mapping[str, float]) -> list[str]:
-        """Release the stuck sensors whose reading moved by more than ``stuck_still_k`` (or has none
-        now: the input's own fault or staleness speaks for it); returns them."""
+    def release(self, readings: Mapping[str, float], means: Mapping[str, float] | None = None) -> list[str]:
+        """Release the stuck sensors whose reading (or, found stuck on it, whose mean, :meth:`smooth`)
+        moved by more than ``stuck_still_k`` (or has none now: the input's own fault or staleness
+        speaks for it); returns them."""
         out = []
         for s, v0 in list(self._frozen.items()):
-            v = readings.get(s, math.nan)
+            v = (means if means is not None and self._on_mean.get(s) else readings).get(s, math.nan)
             if not math.isfinite(v) or abs(v - v0) > self.config.stuck_still_k:
                 del self._frozen[s]
-                self._runs[s].clear()
+                self._on_mean.pop(s, None)
+                for run in self._runs[s]:
+                    run.clear()
                 out.append(s)
         return out
 
-    def observe(self, t: float, readings: Mapping[str, float], moved: Mapping[str, float]) -> dict[str, str]:
+    def observe(self, t: float, readings: Mapping[str, float], moved: Mapping[str, float],
+                means: Mapping[str, float] | None = None) -> dict[str, str]:
         """Record a tick; returns the sensors newly found stuck, each with the evidence (a sentence).
 
         Parameters
@@ -270,28 +296,37 @@ class StuckSensors:
             Sensor -> reading of the tick, degC (NaN: none; the sensor's history restarts).
         moved : mapping of str to float
             Sensor -> the open-loop prediction's one-step change of its node this tick, K.
+        means : mapping of str to float, optional
+            Sensor -> the readings' mean (:meth:`smooth`), degC: judged beside the readings, so that
+            a frozen channel with noise is found as well as an exactly frozen one, which the
+            readings themselves show without the mean's lag. Default: the readings.
         """
         fc = self.config
         new: dict[str, str] = {}
-        for s, run in self._runs.items():
+        means = readings if means is None else means
+        for s, runs in self._runs.items():
             if s in self._frozen:
                 continue
-            v, d = readings.get(s, math.nan), moved.get(s, math.nan)
-            if not (math.isfinite(v) and math.isfinite(d)):
-                run.clear()
-                continue
-            run.add(t, v, d, fc.stuck_still_k, t - fc.stuck_window_s)
-            rise_k = run.path - run.p_min.value
-            if rise_k >= fc.stuck_model_k:
-                self._frozen[s] = v
-                new[s] = (f"reading within {run.v_max.value - run.v_min.value:.1f} K at {v:.1f} degC for "
-                          f"{t - run.since:.0f} s while the model heated its node {rise_k:.1f} K with the measured losses")
+            d = moved.get(s, math.nan)
+            for on_mean, run, v in zip((False, True), runs, (readings.get(s, math.nan), means.get(s, math.nan))):
+                if not (math.isfinite(v) and math.isfinite(d)):
+                    run.clear()
+                    continue
+                run.add(t, v, d, fc.stuck_still_k, t - fc.stuck_window_s)
+                rise_k = run.path - run.p_min.value
+                if rise_k >= fc.stuck_model_k and s not in self._frozen:
+                    self._frozen[s], self._on_mean[s] = v, on_mean
+                    what = "mean reading" if on_mean else "reading"
+                    new[s] = (f"{what} within {run.v_max.value - run.v_min.value:.1f} K at {v:.1f} degC for "
+                              f"{t - run.since:.0f} s while the model heated its node {rise_k:.1f} K with the measured losses")
         return new
 
     def restart(self) -> None:
         """A gap in the data: the histories no longer describe one stretch of time."""
-        for run in self._runs.values():
-            run.clear()
+        for runs in self._runs.values():
+            for run in runs:
+                run.clear()
+        self._mean.clear()
 
 
 class _Extreme:
