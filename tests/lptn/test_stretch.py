@@ -88,6 +88,44 @@ def test_stretch_serves_several_forcings():
         np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("nr", [2, 8])
+def test_rank_one_feedback_with_steps_without_current(nr):
+    """One current (rank one in time) that is zero on some steps, blocks among them entirely:
+    the feedback's unknowns on those steps are exactly zero (1/s = inf on the block's diagonal);
+    few rows and most of the state, against the loop."""
+    rng = np.random.default_rng(nr)
+    n, nl, ntv, L, c = 8, 3, 2, 70, 3
+    mu = rng.uniform(0.0, 0.999, n)
+    G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
+    i2 = rng.uniform(0.5, 1.5, L) ** 2
+    i2[[0, 5, 6, 40]] = 0.0
+    i2[16:32] = 0.0  # a whole block
+    D = i2[:, None, None] * rng.standard_normal((1, nl, ntv)) * 0.1
+    st = stretch.Stretch(mu, G, E, D)
+    assert st.r == 1
+    f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((nr, n))
+    ref = _loop(mu, f, x0, G, E, D)
+    rows, end = st.solve(f, x0, W)
+    assert np.all(np.isfinite(rows)) and np.all(np.isfinite(end))
+    want = np.tensordot(W, ref, axes=1)
+    np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+def test_time_factors_rank_one_and_svd():
+    """Proportional rows give one series without a decomposition, and it reproduces D; two
+    independent series go through the SVD (rank two), reproducing D to round-off."""
+    rng = np.random.default_rng(7)
+    D1 = np.outer(rng.uniform(0.0, 2.0, 50), rng.standard_normal(6))
+    s, Wt = stretch.time_factors(D1)
+    assert s.shape == (50, 1)
+    np.testing.assert_allclose(s @ Wt, D1, rtol=0, atol=1e-15 * np.abs(D1).max() * 10)
+    D2 = D1 + np.outer(rng.uniform(0.0, 1.0, 50), rng.standard_normal(6))
+    s, Wt = stretch.time_factors(D2)
+    assert s.shape == (50, 2)
+    np.testing.assert_allclose(s @ Wt, D2, rtol=0, atol=1e-14 * np.abs(D2).max())
+
+
 def test_stretch_without_feedback_is_the_scan():
     """No loss feedback (no current): the stretch is the open-loop scan, against the loop."""
     rng = np.random.default_rng(4)

@@ -513,8 +513,9 @@ def held_runs(held: np.ndarray, closed: bool, min_len: int = MIN_HELD) -> list[t
     steps = len(held)
     if not closed or not steps:
         return []
-    bounds: list[int] = np.nonzero(~held)[0].tolist() + [steps]
-    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= min_len]
+    bounds = np.append(np.nonzero(~held)[0], steps)
+    long = np.nonzero(np.diff(bounds) >= min_len)[0]  # inputs that vary every step: few long runs
+    return list(zip(bounds[long].tolist(), bounds[long + 1].tolist()))
 
 
 def held_steps(env: Mapping[str, Value], steps: int) -> np.ndarray:

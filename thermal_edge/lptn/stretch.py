@@ -43,6 +43,9 @@ MIN_STRETCH = 32
 BLOCK = 16
 #: terms of the feedback's time series below this fraction of the largest are round-off
 RANK_TOL = 1e-15
+#: a feedback series is taken as rank one (:func:`time_factors`) when no entry differs from the
+#: rank-one fit by more than this fraction of the largest: a few roundings of each entry
+RANK1_TOL = 1e-14
 #: powers ``μ^i`` below this are set to zero: they are far below round-off of any term, and
 #: subnormal numbers would slow every product they enter by an order of magnitude
 TINY = 1e-280
@@ -54,6 +57,29 @@ def powers(mu: np.ndarray, B: int) -> np.ndarray:
         pw = mu[:, None] ** np.arange(B + 1)
     pw[pw < TINY] = 0.0
     return pw
+
+
+def time_factors(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``D`` (L, q) as ``s Wt``, ``s`` (L, r), ``Wt`` (r, q): the feedback's series in time.
+
+    One current feeding every copper law makes every row a multiple of the largest one: then
+    ``r = 1`` (checked entry by entry against :data:`RANK1_TOL`, without a decomposition);
+    otherwise the terms of the singular value decomposition above :data:`RANK_TOL` of the largest.
+
+    >>> s, Wt = time_factors(np.outer([1.0, 2.0, 0.0], [3.0, 4.0]))
+    >>> s.shape, np.allclose(s @ Wt, [[3, 4], [6, 8], [0, 0]])
+    ((3, 1), True)
+    """
+    big = float(np.max(np.abs(D))) if D.size else 0.0
+    if big == 0.0:
+        return np.zeros((len(D), 0)), np.zeros((0, D.shape[1]))
+    row = D[int(np.argmax(np.max(np.abs(D), axis=1)))]
+    s = D @ (row / (row @ row))
+    if np.max(np.abs(D - s[:, None] * row)) <= RANK1_TOL * big:
+        return s[:, None], row[None, :]
+    U_, sv, Wt = np.linalg.svd(D, full_matrices=False)
+    r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
+    return U_[:, :r] * sv[:r], Wt[:r]
 
 
 def padded_length(L: int) -> int:
@@ -192,13 +218,13 @@ class Stretch:
         self.r = 0
         if not len(cols):
             return
-        U_, sv, Wt = np.linalg.svd(D2[:, cols], full_matrices=False)
-        r = self.r = int(np.count_nonzero(sv > RANK_TOL * sv[0]))
+        s_, Wt = time_factors(D2[:, cols])
+        r = self.r = s_.shape[1]
         Wfull = np.zeros((r, D2.shape[1]))
-        Wfull[:, cols] = Wt[:r]
+        Wfull[:, cols] = Wt
         GC = self.GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
         sp = np.zeros((nblk * B, r))
-        sp[:L] = U_[:, :r] * sv[:r]
+        sp[:L] = s_
         spb = self.spb = sp.reshape(nblk, B, r)
         pw = self.pw
         BT = B * ntv
@@ -211,17 +237,26 @@ class Stretch:
         K = (E[None] * pw[:B, None, :]) @ GC  # (B, ntv, r ntv): E diag(μ^m) G C
         He = np.where((lag >= 0)[:, None, :, None], K[np.maximum(lag, 0)].transpose(0, 2, 1, 3), 0.0)
         self.Hneg = -np.ascontiguousarray(He.reshape(B, ntv, B, r, ntv).transpose(3, 0, 1, 2, 4)).reshape(r, BT, BT)
-        # s[l, ρ] per unknown (l, b) of each block
-        self.scol = np.ascontiguousarray(np.repeat(spb.transpose(2, 0, 1), ntv, axis=2))  # (ρ, nblk, BT)
         # a block's right-hand side y₀ + E diag(μ^i) q, and in one product from [q; y] the next
         # block's start μ^B q + Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
         self.EpT = (E[None] * pw[:B, None, :]).reshape(BT, n).T.copy()  # (n, BT)
         Rl = (pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n).transpose(1, 0, 2, 3).reshape(r, BT, n)
+        # one product of the start state q gives the block's right-hand side part and μ^B q
+        self.G = np.ascontiguousarray(np.concatenate([self.EpT, np.diag(pw[B])], axis=1))  # (n, BT + n)
+        if r == 1:
+            # one series (one current feeds every copper law): the feedback's inputs w = s ∘ y
+            # solve (diag(1/s) + Hneg) w = y₀ + E diag(μ^i) q, the next start is μ^B q + Rl w.
+            # Only the diagonal changes from block to block: no matrix to scale per block. A step
+            # without feedback (s = 0) has 1/s = inf on the diagonal, and its w is exactly 0
+            with np.errstate(divide="ignore"):
+                self.inv_s = np.repeat(1.0 / spb[:, :, 0], ntv, axis=1)  # (nblk, BT)
+            self.Rl1 = np.ascontiguousarray(Rl[0])  # (BT, n)
+            return
+        # s[l, ρ] per unknown (l, b) of each block
+        self.scol = np.ascontiguousarray(np.repeat(spb.transpose(2, 0, 1), ntv, axis=2))  # (ρ, nblk, BT)
         # both scaled by the block's s[l, ρ] over the unknowns l: stacked, one product a block
         # gives the block's matrix (first BT rows) and its carry (the rest, transposed)
         self.HR = np.ascontiguousarray(np.concatenate([self.Hneg, Rl.transpose(0, 2, 1)], axis=1))  # (ρ, BT + n, BT)
-        # one product of the start state q gives the block's right-hand side part and μ^B q
-        self.G = np.ascontiguousarray(np.concatenate([self.EpT, np.diag(pw[B])], axis=1))  # (n, BT + n)
 
     def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray,
               work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -254,50 +289,79 @@ class Stretch:
         if not self.r:
             rows, end = scan_rows(self.mu, f, x0, W, L, work)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
-        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]), L, work)
-        rows = both[:nr]  # (nr, c, nblk, B)
+        # few rows (the sensors): the open loop seen through them and the loss nodes, the
+        # feedback's part added from the blocks' inputs; most of the state (the simulation): the
+        # loss nodes' open loop only, then the whole recursion again with the feedback's inputs
+        # added to the forcing (one projection on the rows instead of two)
+        few = 2 * nr < n
+        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]) if few else E, L, work)
+        ye = both[nr:] if few else both
         m, BT = self.r * ntv, B * ntv
         # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
         y0 = np.empty((nblk, c, BT))
         yk = np.moveaxis(y0.reshape(nblk, c, B, ntv), 2, 1)  # (nblk, B, c, ntv), a view of y0
-        ye = both[nr:].transpose(2, 3, 1, 0)  # (nblk, B, c, ntv): E x[k + 1] at k = j B + i
+        ye = ye.transpose(2, 3, 1, 0)  # (nblk, B, c, ntv): E x[k + 1] at k = j B + i
         yk[0, 0] = (E @ x0).T
         yk[:, 1:] = ye[:, :-1]
         yk[1:, 0] = ye[:-1, -1]
-        # per block: the feedback's modal state q at its start and its loss-node values y (y0 in place)
+        # per block: the feedback's modal state q at its start and its inputs z (in place of y0)
         Q = np.zeros((nblk + 1, c, n))
-        HR, G, scol = self.HR, self.G, self.scol
-        HRs = np.empty(HR.shape[1:])  # the block's matrix A (rows :BT) and carry (rows BT:, transposed)
-        A, Rs = HRs[:BT], HRs[BT:].T  # A.T is A in Fortran order, for LAPACK
-        tmp = np.empty((c, BT + n))
-        for j in range(nblk):
-            np.multiply(HR[0], scol[0, j], out=HRs)  # the unit diagonal of A is implied (unitdiag)
-            for k in range(1, self.r):
-                HRs += HR[k] * scol[k, j]
-            np.matmul(Q[j], G, out=tmp)
-            y0[j] += tmp[:, :BT]
-            dtrtrs(A.T, y0[j].T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
-            np.matmul(y0[j], Rs, out=Q[j + 1])
-            Q[j + 1] += tmp[:, BT:]
+        z = self._blocks(y0, Q)
         qs = Q[:nblk]  # (nblk, c, n)
-        Yb = y0.reshape(nblk, c, B, ntv)
-        z = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, B * m)  # s[l, ρ] y_l
-        # the feedback's part of the wanted rows: from each block's start state and inside the block
         pw = self.pw
+        if not few:
+            u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
+            u += f.reshape(n, c * Lp)
+            rows, end = scan_rows(self.mu, u.reshape(n, c, Lp), x0, W, L, work)
+            return rows.reshape(nr, c, Lp)[:, :, :L], end
+        rows = both[:nr]  # (nr, c, nblk, B)
+        # the feedback's part of the wanted rows: from each block's start state and inside the block
         Wp = (W[:, None, :] * pw[None, 1: B + 1, :]).reshape(nr * B, n)  # W diag(μ^(i+1)), rows (r, i)
         fb = qs.reshape(nblk * c, n) @ Wp.T  # (nblk c, nr B): each block's steps contiguous
-        if 2 * nr < n:  # few rows: straight from the inputs, W diag(μ^(i−l)) G C for l ≤ i
-            fb += z.reshape(nblk * c, B * m) @ _inputs_to_rows(W, pw, self.GC, B).T
-        else:  # most of the state: the inputs G C z through the modes' block filters, then W
-            u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
-            inside = np.matmul(u.reshape(n, c * nblk, B), _toeplitz(self.pw.T, B))  # (n, c nblk, B)
-            rows += (W @ inside.reshape(n, c * Lp)).reshape(nr, c, nblk, B)
+        fb += z.reshape(nblk * c, B * m) @ _inputs_to_rows(W, pw, self.GC, B).T  # W diag(μ^(i−l)) G C, l ≤ i
         rows += fb.reshape(nblk, c, nr, B).transpose(2, 1, 0, 3)
         jL, iL = divmod(L - 1, B)
         # the state at step L: the feedback's from its block's start and the inputs of that block up to L
         carry = pw[iL:: -1][: iL + 1, :, None] * self.GC[None]  # diag(μ^(iL−l)) G C, l = 0 .. iL
         end_fb = pw[iL + 1][:, None] * qs[jL].T + np.tensordot(carry, z[jL].reshape(c, B, m)[:, : iL + 1], axes=([0, 2], [1, 2]))
         return rows.reshape(nr, c, Lp)[:, :, :L], end + end_fb
+
+    def _blocks(self, y: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """The loss nodes' block-triangular system, block after block: ``y`` (nblk, c, B ntv) holds
+        the open-loop values (overwritten); ``Q`` (nblk + 1, c, n) receives the feedback's modal
+        state at each block's start (``Q[0]`` zero). Returns the feedback's inputs
+        ``z = s[l, ρ] y_l`` (nblk, c, B r ntv), per step ρ-major (``y`` itself when r = 1)."""
+        n, BT = self.G.shape[0], self.EpT.shape[1]
+        G = self.G
+        tmp = np.empty((y.shape[1], BT + n))
+        if self.r == 1:
+            M = self.Hneg[0].copy()  # diag(1/s) + Hneg, lower-triangular; M.T is it in Fortran order
+            diag = M.reshape(-1)[:: BT + 1]
+            Rl = self.Rl1
+            for j, inv_s in enumerate(self.inv_s):
+                np.matmul(Q[j], G, out=tmp)
+                y[j] += tmp[:, :BT]
+                diag[:] = inv_s
+                dtrtrs(M.T, y[j].T, lower=0, trans=1, overwrite_b=1)  # in place: w = s ∘ y
+                np.matmul(y[j], Rl, out=Q[j + 1])
+                Q[j + 1] += tmp[:, BT:]
+            return y
+        HR, scol = self.HR, self.scol
+        HRs = np.empty(HR.shape[1:])  # the block's matrix A (rows :BT) and carry (rows BT:, transposed)
+        A, Rs = HRs[:BT], HRs[BT:].T  # A.T is A in Fortran order, for LAPACK
+        for j in range(len(y)):
+            np.multiply(HR[0], scol[0, j], out=HRs)  # the unit diagonal of A is implied (unitdiag)
+            for k in range(1, self.r):
+                HRs += HR[k] * scol[k, j]
+            np.matmul(Q[j], G, out=tmp)
+            y[j] += tmp[:, :BT]
+            dtrtrs(A.T, y[j].T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
+            np.matmul(y[j], Rs, out=Q[j + 1])
+            Q[j + 1] += tmp[:, BT:]
+        nblk, c, _ = y.shape
+        Yb = y.reshape(nblk, c, self.B, BT // self.B)
+        z: np.ndarray = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, -1)  # s[l, ρ] y_l
+        return z
 
 
 def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
