@@ -238,12 +238,14 @@ class Sensitivities:
         # the inputs of a stretch have a small rank (a constant part, the current's square and
         # the copper losses' temperature terms): w = Ub Wt with Wt (r, m), so V⁻¹ dΓ_j w costs
         # r columns of the product instead of m (terms below RANK_TOL of the largest are round-off)
-        Ub, sv, Wt = np.linalg.svd(w, full_matrices=False)
+        # (the singular values and right vectors of w from its triangular factor: a long, narrow
+        # w decomposes several times faster so; its left factor is then w Wtᵀ)
+        _, sv, Wt = np.linalg.svd(np.linalg.qr(w, mode="r"))
         r = int(np.count_nonzero(sv > RANK_TOL * sv[0])) if len(sv) and sv[0] > 0.0 else 0
         Jr = np.concatenate([J[:, :n], J[:, n:] @ Wt[:r].T], axis=1)
         xi = np.zeros((n + r, Lp))
         np.matmul(Vi, T.T, out=xi[:n, :B])
-        xi[n:, :B] = (Ub[:, :r] * sv[:r]).T
+        np.matmul(Wt[:r], w.T, out=xi[n:, :B])
         X = np.matmul(Jr, xi, out=None if out is None else out.reshape(n * p, Lp)).reshape(n, p, Lp)
         if dP is not None:
             live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters

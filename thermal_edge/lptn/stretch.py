@@ -143,7 +143,8 @@ def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray) -> np.ndarra
 
 
 def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
-              L: int, work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
+              L: int, work: Scratch | None = None,
+              filters: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`modal_scan` seen through rows: ``R x[1] .. R x[L]`` and ``x[L]``, without the states.
 
     The blocks' responses to their own forcing are computed for every mode (one product per
@@ -164,6 +165,9 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
         Steps.
     work : Scratch, optional
         Where the blocks' responses go (a new array without).
+    filters : tuple of ndarray, optional
+        ``powers(mu, B)`` and its block filter ``_toeplitz`` when already built (a stretch
+        scanned more than once).
 
     Returns
     -------
@@ -175,8 +179,12 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
     n, c, Lp = f.shape
     B = min(BLOCK, Lp)
     nb, nr = Lp // B, R.shape[0]
-    pw = powers(mu, B)
-    inner = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B),  # zero-state response inside each block
+    if filters is None:
+        pw = powers(mu, B)
+        toe = _toeplitz(pw, B)
+    else:
+        pw, toe = filters
+    inner = np.matmul(f.reshape(n, c * nb, B), toe,  # zero-state response inside each block
                       out=None if work is None else work.get("scan", (n, c * nb, B)))
     starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
     rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
@@ -212,7 +220,9 @@ class Stretch:
         self.Lp = padded_length(L)
         B = self.B = min(BLOCK, self.Lp)
         nblk = self.nblk = self.Lp // B
-        self.pw = powers(self.mu, B).T  # (B+1, n)
+        pwn = powers(self.mu, B)
+        self.filters = (pwn, _toeplitz(pwn, B))  # what every scan of the stretch uses
+        self.pw = pwn.T  # (B+1, n)
         D2 = D.reshape(L, -1)
         cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
         self.r = 0
@@ -287,14 +297,14 @@ class Stretch:
         E = self.E
         ntv, nr = E.shape[0], W.shape[0]
         if not self.r:
-            rows, end = scan_rows(self.mu, f, x0, W, L, work)
+            rows, end = scan_rows(self.mu, f, x0, W, L, work, self.filters)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
         # few rows (the sensors): the open loop seen through them and the loss nodes, the
         # feedback's part added from the blocks' inputs; most of the state (the simulation): the
         # loss nodes' open loop only, then the whole recursion again with the feedback's inputs
         # added to the forcing (one projection on the rows instead of two)
         few = 2 * nr < n
-        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]) if few else E, L, work)
+        both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]) if few else E, L, work, self.filters)
         ye = both[nr:] if few else both
         m, BT = self.r * ntv, B * ntv
         # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
@@ -312,7 +322,7 @@ class Stretch:
         if not few:
             u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
             u += f.reshape(n, c * Lp)
-            rows, end = scan_rows(self.mu, u.reshape(n, c, Lp), x0, W, L, work)
+            rows, end = scan_rows(self.mu, u.reshape(n, c, Lp), x0, W, L, work, self.filters)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
         rows = both[:nr]  # (nr, c, nblk, B)
         # the feedback's part of the wanted rows: from each block's start state and inside the block
