@@ -52,20 +52,22 @@ def test_solve_stretch_with_time_varying_feedback(L):
     np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("nr", [2, 6])
 @pytest.mark.parametrize("L", [7, 16, 33, 160, 170])
-def test_scan_rows_is_the_recursion_seen_through_rows(L):
-    """The rows of the padded scan and the end state, against the plain loop."""
+def test_scan_rows_is_the_recursion_seen_through_rows(L, nr):
+    """The rows of the padded scan and the end state, against the plain loop: a few rows (the
+    block starts projected on their own) and as many rows as modes (projected with the blocks)."""
     rng = np.random.default_rng(L)
     n, c = 6, 3
     mu = np.concatenate([[1e-60, 0.99999], rng.uniform(0.0, 1.0, n - 2)])
     Lp = stretch.padded_length(L)
     f = np.zeros((n, c, Lp))
     f[:, :, :L] = rng.standard_normal((n, c, L))
-    x0, R = rng.standard_normal((n, c)), rng.standard_normal((2, n))
+    x0, R = rng.standard_normal((n, c)), rng.standard_normal((nr, n))
     ref = _loop(mu, f[:, :, :L], x0, np.zeros((n, 1)), np.zeros((1, n)), np.zeros((L, 1, 1)))
     rows, end = stretch.scan_rows(mu, f, x0, R, L)
     want = np.tensordot(R, ref, axes=1)
-    np.testing.assert_allclose(rows.reshape(2, c, Lp)[:, :, :L], want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(rows.reshape(nr, c, Lp)[:, :, :L], want, rtol=0, atol=1e-12 * np.abs(want).max())
     np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-12 * np.abs(ref).max())
 
 

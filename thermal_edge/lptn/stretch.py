@@ -187,6 +187,10 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
     inner = np.matmul(f.reshape(n, c * nb, B), toe,  # zero-state response inside each block
                       out=None if work is None else work.get("scan", (n, c * nb, B)))
     starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
+    if 2 * nr >= n:  # most of the state: the start states into the blocks' responses, then one projection
+        inner += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
+        rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
+        return rows, inner.reshape(n, c, Lp)[:, :, L - 1].copy()
     rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
     # R diag(μ^(i+1)) with rows (r, i), so that each block's B steps come out contiguous
     Rp = (R[:, None, :] * pw.T[None, 1:, :]).reshape(nr * B, n)
