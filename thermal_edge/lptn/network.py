@@ -133,7 +133,7 @@ class Network:
             self.loss_map[index[loss.point], j] = 1.0
         self._q_losses = np.nonzero(np.any(self.loss_map[n:] != 0.0, axis=0))[0]  # losses at algebraic points
         #: the algebraic point of each of those (a loss source sits at one point, weight 1)
-        self._q_loss_point = np.argmax(self.loss_map[n:, self._q_losses] != 0.0, axis=0)
+        self._q_loss_point = np.array([int(np.argmax(self.loss_map[n:, j])) for j in self._q_losses], dtype=int)
         # the nonzeros of L_DQ row by row, padded to the most a node has (weight 0 beyond):
         # L_DQ X summed over them (a node touches a few algebraic points; the dense product is
         # 20 times the arithmetic)
