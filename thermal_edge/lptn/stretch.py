@@ -264,7 +264,7 @@ class Stretch:
             # without feedback (s = 0) has 1/s = inf on the diagonal, and its w is exactly 0
             with np.errstate(divide="ignore"):
                 self.inv_s = np.repeat(1.0 / spb[:, :, 0], ntv, axis=1)  # (nblk, BT)
-            self.Rl1 = np.ascontiguousarray(Rl[0])  # (BT, n)
+            self.Rl1 = Rl[0]  # (BT, n)
             return
         # s[l, ρ] per unknown (l, b) of each block
         self.scol = np.ascontiguousarray(np.repeat(spb.transpose(2, 0, 1), ntv, axis=2))  # (ρ, nblk, BT)
@@ -312,16 +312,15 @@ class Stretch:
         ye = both[nr:] if few else both
         m, BT = self.r * ntv, B * ntv
         # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
-        y0 = np.empty((nblk, c, BT))
-        yk = np.moveaxis(y0.reshape(nblk, c, B, ntv), 2, 1)  # (nblk, B, c, ntv), a view of y0
+        # per block [q | y₀]: the feedback's modal state at its start (filled block by block) and
+        # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, columns first
+        Zb = np.zeros((nblk + 1, c, n + BT))
+        yk = np.moveaxis(Zb[:nblk, :, n:].reshape(nblk, c, B, ntv), 2, 1)  # (nblk, B, c, ntv), a view
         ye = ye.transpose(2, 3, 1, 0)  # (nblk, B, c, ntv): E x[k + 1] at k = j B + i
         yk[0, 0] = (E @ x0).T
         yk[:, 1:] = ye[:, :-1]
         yk[1:, 0] = ye[:-1, -1]
-        # per block: the feedback's modal state q at its start and its inputs z (in place of y0)
-        Q = np.zeros((nblk + 1, c, n))
-        z = self._blocks(y0, Q)
-        qs = Q[:nblk]  # (nblk, c, n)
+        z, qs = self._blocks(Zb)
         pw = self.pw
         if not few:
             u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
@@ -340,30 +339,36 @@ class Stretch:
         end_fb = pw[iL + 1][:, None] * qs[jL].T + np.tensordot(carry, z[jL].reshape(c, B, m)[:, : iL + 1], axes=([0, 2], [1, 2]))
         return rows.reshape(nr, c, Lp)[:, :, :L], end + end_fb
 
-    def _blocks(self, y: np.ndarray, Q: np.ndarray) -> np.ndarray:
-        """The loss nodes' block-triangular system, block after block: ``y`` (nblk, c, B ntv) holds
-        the open-loop values (overwritten); ``Q`` (nblk + 1, c, n) receives the feedback's modal
-        state at each block's start (``Q[0]`` zero). Returns the feedback's inputs
-        ``z = s[l, ρ] y_l`` (nblk, c, B r ntv), per step ρ-major (``y`` itself when r = 1)."""
+    def _blocks(self, Zb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The loss nodes' block-triangular system, block after block, from ``Zb``
+        (nblk + 1, c, n + B ntv): per block ``[q | y₀]``, ``q`` zero, ``y₀`` the open-loop values
+        (overwritten). Returns the feedback's inputs ``z = s[l, ρ] y_l`` (nblk, c, B r ntv), per
+        step ρ-major, and its modal states ``q`` (nblk, c, n) at the blocks' starts."""
+        nblk = len(Zb) - 1
         n, BT = self.G.shape[0], self.EpT.shape[1]
-        G = self.G
-        tmp = np.empty((y.shape[1], BT + n))
         if self.r == 1:
-            M = self.Hneg[0].copy()  # diag(1/s) + Hneg, lower-triangular; M.T is it in Fortran order
-            diag = M.reshape(-1)[:: BT + 1]
-            Rl = self.Rl1
+            # [q; w] of a block solve one lower-triangular system, [[I, 0], [−E diag(μ^i), diag(1/s)
+            # + Hneg]] [q; w] = [q; y₀] (the start state's part of the right-hand side taken by
+            # the solve itself), and the next start is [q | w] [[diag(μ^B)], [Rl]]: two calls a block
+            M = np.zeros((n + BT, n + BT))
+            M[:n, :n] = np.eye(n)
+            M[n:, :n] = -self.EpT.T
+            M[n:, n:] = self.Hneg[0]
+            diag = M.reshape(-1)[n * (n + BT + 1):: n + BT + 1]  # the diagonal of the lower-right block
+            carry = np.concatenate([np.diag(self.pw[-1]), self.Rl1])  # (n + BT, n)
             for j, inv_s in enumerate(self.inv_s):
-                np.matmul(Q[j], G, out=tmp)
-                y[j] += tmp[:, :BT]
                 diag[:] = inv_s
-                dtrtrs(M.T, y[j].T, lower=0, trans=1, overwrite_b=1)  # in place: w = s ∘ y
-                np.matmul(y[j], Rl, out=Q[j + 1])
-                Q[j + 1] += tmp[:, BT:]
-            return y
-        HR, scol = self.HR, self.scol
+                dtrtrs(M.T, Zb[j].T, lower=0, trans=1, overwrite_b=1)  # in place: [q | s ∘ y]
+                np.matmul(Zb[j], carry, out=Zb[j + 1, :, :n])
+            return Zb[:nblk, :, n:], Zb[:nblk, :, :n]
+        y = np.ascontiguousarray(Zb[:nblk, :, n:])
+        c = y.shape[1]
+        Q = np.zeros((nblk + 1, c, n))
+        G, HR, scol = self.G, self.HR, self.scol
+        tmp = np.empty((c, BT + n))
         HRs = np.empty(HR.shape[1:])  # the block's matrix A (rows :BT) and carry (rows BT:, transposed)
         A, Rs = HRs[:BT], HRs[BT:].T  # A.T is A in Fortran order, for LAPACK
-        for j in range(len(y)):
+        for j in range(nblk):
             np.multiply(HR[0], scol[0, j], out=HRs)  # the unit diagonal of A is implied (unitdiag)
             for k in range(1, self.r):
                 HRs += HR[k] * scol[k, j]
@@ -372,10 +377,9 @@ class Stretch:
             dtrtrs(A.T, y[j].T, lower=0, trans=1, unitdiag=1, overwrite_b=1)  # in place
             np.matmul(y[j], Rs, out=Q[j + 1])
             Q[j + 1] += tmp[:, BT:]
-        nblk, c, _ = y.shape
         Yb = y.reshape(nblk, c, self.B, BT // self.B)
         z: np.ndarray = (self.spb[:, None, :, :, None] * Yb[:, :, :, None, :]).reshape(nblk, c, -1)  # s[l, ρ] y_l
-        return z
+        return z, Q[:nblk]
 
 
 def solve_stretch(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, G: np.ndarray, E: np.ndarray,
