@@ -142,8 +142,8 @@ class Network:
         self._dq_q = np.zeros((n, width), dtype=int)
         self._dq_w = np.zeros((n, width))
         for i in range(n):
-            q = np.nonzero(touch[i])[0]
-            self._dq_q[i, : len(q)], self._dq_w[i, : len(q)] = q, 1.0
+            near = np.nonzero(touch[i])[0]
+            self._dq_q[i, : len(near)], self._dq_w[i, : len(near)] = near, 1.0
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
