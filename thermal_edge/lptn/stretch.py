@@ -95,7 +95,24 @@ def _toeplitz(pw: np.ndarray, B: int) -> np.ndarray:
     return out
 
 
-def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
+#: the block filters of a stretch's scans by level (0: the steps, 1: the block starts, ...):
+#: block length, powers and Toeplitz matrix, built once per stretch for all its scans
+FilterCache = dict[int, tuple[int, np.ndarray, np.ndarray]]
+
+
+def _filters(mu: np.ndarray, B: int, cache: FilterCache | None, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """``powers(mu, B)`` and its block filter ``_toeplitz``, from ``cache`` when built for this level and ``B``."""
+    if cache is not None and level in cache and cache[level][0] == B:
+        return cache[level][1], cache[level][2]
+    pw = powers(mu, B)
+    toe = _toeplitz(pw, B)
+    if cache is not None:
+        cache[level] = (B, pw, toe)
+    return pw, toe
+
+
+def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, cache: FilterCache | None = None,
+               level: int = 0) -> np.ndarray:
     """``x[k+1] = μ ∘ x[k] + f[k]``, ``k = 0 .. L−1``, for all modes and columns at once.
 
     In blocks of :data:`BLOCK` steps: inside a block, each mode's response to the block's
@@ -112,6 +129,8 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
         Forcing per mode, column and step (the units of ``x``).
     x0 : ndarray (n, c)
         State at the stretch's first step.
+    cache, level : optional
+        The block filters already built (:data:`FilterCache`) and this scan's level in it.
 
     Returns
     -------
@@ -123,28 +142,29 @@ def modal_scan(mu: np.ndarray, f: np.ndarray, x0: np.ndarray) -> np.ndarray:
     nb = -(-L // B)
     if nb * B != L:
         f = np.concatenate([f, np.zeros((n, c, nb * B - L))], axis=2)
-    pw = powers(mu, B)
-    out = np.matmul(f.reshape(n, c * nb, B), _toeplitz(pw, B))  # zero-state response inside each block
-    starts = _block_starts(pw, out[:, :, B - 1].reshape(n, c, nb), x0)
+    pw, toe = _filters(mu, B, cache, level)
+    out = np.matmul(f.reshape(n, c * nb, B), toe)  # zero-state response inside each block
+    starts = _block_starts(pw, out[:, :, B - 1].reshape(n, c, nb), x0, cache, level + 1)
     out += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
     res: np.ndarray = out.reshape(n, c, nb * B)[:, :, :L]
     return res
 
 
-def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray) -> np.ndarray:
+def _block_starts(pw: np.ndarray, ends: np.ndarray, x0: np.ndarray, cache: FilterCache | None = None,
+                  level: int = 1) -> np.ndarray:
     """The states (n, c, nb) at the start of each block from the blocks' zero-state end values
-    ``ends`` (n, c, nb) and ``x0``: ``s[j+1] = μ^B s[j] + ends[j]``."""
+    ``ends`` (n, c, nb) and ``x0``: ``s[j+1] = μ^B s[j] + ends[j]`` (a scan at ``level``)."""
     n, c, nb = ends.shape
     starts = np.empty((n, c, nb))
     starts[:, :, 0] = x0
     if nb > 1:
-        starts[:, :, 1:] = modal_scan(pw[:, -1], ends[:, :, :-1], x0)
+        starts[:, :, 1:] = modal_scan(pw[:, -1], ends[:, :, :-1], x0, cache, level)
     return starts
 
 
 def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
               L: int, work: Scratch | None = None,
-              filters: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+              cache: FilterCache | None = None) -> tuple[np.ndarray, np.ndarray]:
     """:func:`modal_scan` seen through rows: ``R x[1] .. R x[L]`` and ``x[L]``, without the states.
 
     The blocks' responses to their own forcing are computed for every mode (one product per
@@ -165,9 +185,8 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
         Steps.
     work : Scratch, optional
         Where the blocks' responses go (a new array without).
-    filters : tuple of ndarray, optional
-        ``powers(mu, B)`` and its block filter ``_toeplitz`` when already built (a stretch
-        scanned more than once).
+    cache : FilterCache, optional
+        The block filters of every level, kept from one scan of a stretch to the next.
 
     Returns
     -------
@@ -179,14 +198,10 @@ def scan_rows(mu: np.ndarray, f: np.ndarray, x0: np.ndarray, R: np.ndarray,
     n, c, Lp = f.shape
     B = min(BLOCK, Lp)
     nb, nr = Lp // B, R.shape[0]
-    if filters is None:
-        pw = powers(mu, B)
-        toe = _toeplitz(pw, B)
-    else:
-        pw, toe = filters
+    pw, toe = _filters(mu, B, cache, 0)
     inner = np.matmul(f.reshape(n, c * nb, B), toe,  # zero-state response inside each block
                       out=None if work is None else work.get("scan", (n, c * nb, B)))
-    starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0)
+    starts = _block_starts(pw, inner[:, :, B - 1].reshape(n, c, nb), x0, cache)
     if 2 * nr >= n:  # most of the state: the start states into the blocks' responses, then one projection
         inner += starts.reshape(n, c * nb, 1) * pw[:, None, 1:]
         rows = (R @ inner.reshape(n, c * Lp)).reshape(nr, c, nb, B)
@@ -224,9 +239,8 @@ class Stretch:
         self.Lp = padded_length(L)
         B = self.B = min(BLOCK, self.Lp)
         nblk = self.nblk = self.Lp // B
-        pwn = powers(self.mu, B)
-        self.filters = (pwn, _toeplitz(pwn, B))  # what every scan of the stretch uses
-        self.pw = pwn.T  # (B+1, n)
+        self.filters: FilterCache = {}  # what every scan of the stretch uses
+        self.pw = _filters(self.mu, B, self.filters, 0)[0].T  # (B+1, n)
         D2 = D.reshape(L, -1)
         cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
         self.r = 0
