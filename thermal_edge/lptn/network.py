@@ -134,16 +134,6 @@ class Network:
         self._q_losses = np.nonzero(np.any(self.loss_map[n:] != 0.0, axis=0))[0]  # losses at algebraic points
         #: the algebraic point of each of those (a loss source sits at one point, weight 1)
         self._q_loss_point = np.array([int(np.argmax(self.loss_map[n:, j])) for j in self._q_losses], dtype=int)
-        # the nonzeros of L_DQ row by row, padded to the most a node has (weight 0 beyond):
-        # L_DQ X summed over them (a node touches a few algebraic points; the dense product is
-        # 20 times the arithmetic)
-        touch = (np.abs(self.inc[:, :n]).T @ np.abs(self.inc[:, n:])) > 0
-        width = int(touch.sum(axis=1).max()) if touch.size else 0
-        self._dq_q = np.zeros((n, width), dtype=int)
-        self._dq_w = np.zeros((n, width))
-        for i in range(n):
-            near = np.nonzero(touch[i])[0]
-            self._dq_q[i, : len(near)], self._dq_w[i, : len(near)] = near, 1.0
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
@@ -306,10 +296,7 @@ class Network:
         else:
             X, HK, HM = np.zeros((K, 0, n)), np.zeros((K, 0, nb)), np.zeros((K, 0, len(self._q_losses)))
         Xt = np.swapaxes(X, -1, -2)
-        A = -L[:, D, D]
-        if self._dq_q.size:  # + L_DQ X over the nonzeros of L_DQ
-            LDQ = L[:, np.arange(n)[:, None], n + self._dq_q] * self._dq_w  # (K, n, width)
-            A += np.einsum("kia,kiaj->kij", LDQ, X[:, self._dq_q, :])
+        A = -(L[:, D, D] - L[:, D, Q] @ X)
         B = KU[:, D, :] - Xt @ KU[:, Q, :]
         # M_D − Xᵀ M_Q: a loss source at an algebraic point q reaches the nodes through X[q]
         W = np.concatenate([B, np.broadcast_to(self.loss_map[D], (K, n, self.n_loss))], axis=-1)
