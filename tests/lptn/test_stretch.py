@@ -90,13 +90,14 @@ def test_stretch_serves_several_forcings():
         np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("c", [1, 3])
 @pytest.mark.parametrize("nr", [2, 8])
-def test_rank_one_feedback_with_steps_without_current(nr):
+def test_rank_one_feedback_with_steps_without_current(nr, c):
     """One current (rank one in time) that is zero on some steps, blocks among them entirely:
     the feedback's unknowns on those steps are exactly zero (1/s = inf on the block's diagonal);
-    few rows and most of the state, against the loop."""
+    few rows and most of the state, one column (BLAS trsv) and several (trsm), against the loop."""
     rng = np.random.default_rng(nr)
-    n, nl, ntv, L, c = 8, 3, 2, 70, 3
+    n, nl, ntv, L = 8, 3, 2, 70
     mu = rng.uniform(0.0, 0.999, n)
     G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
     i2 = rng.uniform(0.5, 1.5, L) ** 2

@@ -32,6 +32,7 @@ sensitivities alike.
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.blas import dtrsm, dtrsv
 from scipy.linalg.lapack import dtrtrs
 
 from .scratch import Scratch
@@ -370,10 +371,22 @@ class Stretch:
             M[n:, n:] = self.Hneg[0]
             diag = M.reshape(-1)[n * (n + BT + 1):: n + BT + 1]  # the diagonal of the lower-right block
             carry = np.concatenate([np.diag(self.pw[-1]), self.Rl1])  # (n + BT, n)
-            for j, inv_s in enumerate(self.inv_s):
-                diag[:] = inv_s
-                dtrtrs(M.T, Zb[j].T, lower=0, trans=1, overwrite_b=1)  # in place: [q | s ∘ y]
-                np.matmul(Zb[j], carry, out=Zb[j + 1, :, :n])
+            # BLAS directly, in place ([q | s ∘ y]), and np.dot into contiguous rows: per block
+            # the calls' overhead is most of the cost
+            Mt = M.T
+            if Zb.shape[1] == 1:
+                rows = Zb[:, 0]  # (nblk + 1, n + BT)
+                for j, inv_s in enumerate(self.inv_s):
+                    diag[:] = inv_s
+                    dtrsv(Mt, rows[j], lower=0, trans=1, overwrite_x=1)
+                    np.dot(rows[j], carry, out=rows[j + 1, :n])
+            else:
+                nxt = np.empty((Zb.shape[1], n))
+                for j, inv_s in enumerate(self.inv_s):
+                    diag[:] = inv_s
+                    dtrsm(1.0, Mt, Zb[j].T, lower=0, trans_a=1, overwrite_b=1)
+                    np.dot(Zb[j], carry, out=nxt)
+                    Zb[j + 1, :, :n] = nxt
             return Zb[:nblk, :, n:], Zb[:nblk, :, :n]
         y = np.ascontiguousarray(Zb[:nblk, :, n:])
         c = y.shape[1]
