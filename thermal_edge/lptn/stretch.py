@@ -17,15 +17,17 @@ The feedback is low-rank twice over, and solved exactly (no iteration):
 
 * in space: it reads only the loss nodes, ``y[k] = E x[k]`` with ``E = V[tv]`` (a few rows);
 * in time: the series ``D[k]`` has a small rank ``r`` (a copper loss ``∝ i²`` gives
-  ``D[k] = i[k]² C``: rank one), ``D[k] = Σ_ρ s[k, ρ] C_ρ`` from its singular value
-  decomposition (terms below round-off of the largest are dropped).
+  ``D[k] = i[k]² C``: rank one, recognised without a decomposition), ``D[k] = Σ_ρ s[k, ρ] C_ρ``
+  (:func:`time_factors`; terms below round-off of the largest are dropped).
 
 So ``x = x₀ + 𝓛z`` with the open-loop response ``x₀`` and ``z[k] = (s[k, ρ] y[k])_ρ`` fed through
 ``G C_ρ`` (``G = V⁻¹ Γ_P``). The loss nodes obey ``y = y₀ + E 𝓛 z``: lower block-triangular
 in time. It is solved in blocks of :data:`BLOCK` steps: inside a block a unit lower-triangular
 system of ``BLOCK · ntv`` unknowns (forward substitution: exact up to round-off, with the same
 operations the stepped recursion does, reordered), and the feedback's modal state ``q`` carried
-from block to block exactly. Then the wanted rows of ``x₀ + 𝓛z``. What depends on the feedback
+from block to block exactly. With rank one the unknowns are ``w = s ∘ y`` and ``q`` together: the
+block's triangular matrix then differs from block to block in its diagonal ``1/s`` only, and a
+block costs one triangular solve and one product. Then the wanted rows of ``x₀ + 𝓛z``. What depends on the feedback
 alone is set up once per stretch (:class:`Stretch`) and serves the simulation and the
 sensitivities alike.
 """
@@ -270,8 +272,6 @@ class Stretch:
         # block's start μ^B q + Σ_l diag(μ^(B−1−l)) G Σ_ρ s[l, ρ] C_ρ y_l
         self.EpT = (E[None] * pw[:B, None, :]).reshape(BT, n).T.copy()  # (n, BT)
         Rl = (pw[B - 1:: -1][:B, None, :] * GC.T[None]).reshape(B, r, ntv, n).transpose(1, 0, 2, 3).reshape(r, BT, n)
-        # one product of the start state q gives the block's right-hand side part and μ^B q
-        self.G = np.ascontiguousarray(np.concatenate([self.EpT, np.diag(pw[B])], axis=1))  # (n, BT + n)
         if r == 1:
             # one series (one current feeds every copper law): the feedback's inputs w = s ∘ y
             # solve (diag(1/s) + Hneg) w = y₀ + E diag(μ^i) q, the next start is μ^B q + Rl w.
@@ -286,6 +286,8 @@ class Stretch:
         # both scaled by the block's s[l, ρ] over the unknowns l: stacked, one product a block
         # gives the block's matrix (first BT rows) and its carry (the rest, transposed)
         self.HR = np.ascontiguousarray(np.concatenate([self.Hneg, Rl.transpose(0, 2, 1)], axis=1))  # (ρ, BT + n, BT)
+        # one product of the start state q gives the block's right-hand side part and μ^B q
+        self.G = np.ascontiguousarray(np.concatenate([self.EpT, np.diag(pw[B])], axis=1))  # (n, BT + n)
 
     def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray,
               work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -326,7 +328,6 @@ class Stretch:
         both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]) if few else E, L, work, self.filters)
         ye = both[nr:] if few else both
         m, BT = self.r * ntv, B * ntv
-        # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, per block, columns first
         # per block [q | y₀]: the feedback's modal state at its start (filled block by block) and
         # the open-loop loss-node values y₀[k] = E x₀[k], k = 0 .. L−1, columns first
         Zb = np.zeros((nblk + 1, c, n + BT))
@@ -360,7 +361,7 @@ class Stretch:
         (overwritten). Returns the feedback's inputs ``z = s[l, ρ] y_l`` (nblk, c, B r ntv), per
         step ρ-major, and its modal states ``q`` (nblk, c, n) at the blocks' starts."""
         nblk = len(Zb) - 1
-        n, BT = self.G.shape[0], self.EpT.shape[1]
+        n, BT = self.EpT.shape
         if self.r == 1:
             # [q; w] of a block solve one lower-triangular system, [[I, 0], [−E diag(μ^i), diag(1/s)
             # + Hneg]] [q; w] = [q; y₀] (the start state's part of the right-hand side taken by
