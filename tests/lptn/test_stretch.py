@@ -242,8 +242,8 @@ def test_held_inputs_are_stepped(pm10kw_model, count_stretches):
 
 def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
     """The sensitivities' forcing of a stretch (mode-major product, the edges per parameter,
-    padded in time) against ``V⁻¹ (dΦ T + dΓ w + Γ_P ∂P/∂θ)`` from the dense node-coordinate
-    derivatives, step by step."""
+    padded in time, the simulation's modal temperatures) against ``V⁻¹ (dΦ T + dΓ w + Γ_P ∂P/∂θ)``
+    from the dense node-coordinate derivatives, step by step."""
     from thermal_edge.lptn import sensitivity, steady_state
 
     m = pm10kw_model
@@ -253,18 +253,21 @@ def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
     seen = []
     real = sensitivity.Sensitivities.stretch_forcing
 
-    def spy(self, o, T, w, dP, Lp=None, out=None):
-        X = real(self, o, T, w, dP, Lp, out)
-        seen.append((self, o, T, w, dP, Lp, X.copy()))  # X is scratch memory, reused by the next stretch
+    def spy(self, o, T, w, dP, Lp=None, out=None, modal=None):
+        X = real(self, o, T, w, dP, Lp, out, modal)
+        seen.append((self, o, T, w, dP, Lp, X.copy(), modal))  # X is scratch memory, reused by the next stretch
         return X
 
     monkeypatch.setattr(sensitivity.Sensitivities, "stretch_forcing", spy)
     wrt = list(m.adaptable) + ["P_pm_ref", "P_fe_y_ref"]  # two losses' own parameters too
     Simulator(m).simulate(m.nominal(), inputs, dt, T0, wrt=wrt)
     assert seen
-    self, o, T, w, dP, Lp, X = seen[0]
+    self, o, T, w, dP, Lp, X, modal = seen[0]
     d = self.d
     _, Vi = d.basis(o)
+    # the simulation's own modal temperatures of the stretch serve the forcing: they are V⁻¹ T
+    assert modal is not None
+    np.testing.assert_allclose(modal, Vi @ T.T, rtol=0, atol=1e-12 * np.abs(modal).max())
     nb = self.nb
     ref = np.einsum("jab,kb->ajk", d.dPhi[o], T) + np.einsum("jam,km->ajk", d.dGam[o], w)
     ref += np.einsum("al,klj->ajk", d.Gam[o][:, nb:], dP)

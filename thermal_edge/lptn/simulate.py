@@ -352,7 +352,7 @@ class Simulator:
                 fm = np.zeros((n, 1, padded_length(b - a)))
                 wab = np.concatenate([prep.U[a:b], P0[a:b]], axis=1)
                 np.matmul(Vi @ d.Gam[o], wab.T, out=fm[:, 0, : b - a])
-                Ta, _ = ns.solve(fm, T[a][:, None])
+                Ta, _ = ns.solve(fm, T[a][:, None], states=bool(names))  # modal temperatures for the sensitivities
                 T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)

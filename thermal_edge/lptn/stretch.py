@@ -238,6 +238,7 @@ class Stretch:
 
     def __init__(self, mu: np.ndarray, G: np.ndarray, E: np.ndarray, D: np.ndarray) -> None:
         self.mu, self.E, self.L = np.maximum(mu, 0.0), E, D.shape[0]
+        self.states: np.ndarray | None = None  # the last solve's states, when asked for
         n, ntv, L = len(mu), E.shape[0], D.shape[0]
         self.Lp = padded_length(L)
         B = self.B = min(BLOCK, self.Lp)
@@ -290,7 +291,7 @@ class Stretch:
         self.G = np.ascontiguousarray(np.concatenate([self.EpT, np.diag(pw[B])], axis=1))  # (n, BT + n)
 
     def solve(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray,
-              work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
+              work: Scratch | None = None, states: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The recursion from ``x[0] = x0`` under the forcing ``f``.
 
         Parameters
@@ -303,6 +304,10 @@ class Stretch:
             The rows wanted at every step, from the modes.
         work : Scratch, optional
             Buffers for the large temporaries (reused from one stretch to the next).
+        states : bool, optional
+            Keep the states ``x[1] .. x[Lp]`` (n, c, Lp) as :attr:`states` (when ``W`` has most
+            of the state's rows: the simulation, whose modal temperatures the sensitivities'
+            forcing reads).
 
         Returns
         -------
@@ -317,14 +322,16 @@ class Stretch:
             f = np.concatenate([f, np.zeros((n, c, Lp - f.shape[2]))], axis=2)
         E = self.E
         ntv, nr = E.shape[0], W.shape[0]
+        few = 2 * nr < n
         if not self.r:
+            if states and not few:
+                return self._states_seen(f, x0, W)
             rows, end = scan_rows(self.mu, f, x0, W, L, work, self.filters)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
         # few rows (the sensors): the open loop seen through them and the loss nodes, the
         # feedback's part added from the blocks' inputs; most of the state (the simulation): the
         # loss nodes' open loop only, then the whole recursion again with the feedback's inputs
         # added to the forcing (one projection on the rows instead of two)
-        few = 2 * nr < n
         both, end = scan_rows(self.mu, f, x0, np.concatenate([W, E]) if few else E, L, work, self.filters)
         ye = both[nr:] if few else both
         m, BT = self.r * ntv, B * ntv
@@ -341,6 +348,8 @@ class Stretch:
         if not few:
             u = self.GC @ z.reshape(nblk, c, B, m).transpose(3, 1, 0, 2).reshape(m, c * Lp)  # (n, c Lp)
             u += f.reshape(n, c * Lp)
+            if states:
+                return self._states_seen(u.reshape(n, c, Lp), x0, W)
             rows, end = scan_rows(self.mu, u.reshape(n, c, Lp), x0, W, L, work, self.filters)
             return rows.reshape(nr, c, Lp)[:, :, :L], end
         rows = both[:nr]  # (nr, c, nblk, B)
@@ -354,6 +363,14 @@ class Stretch:
         carry = pw[iL:: -1][: iL + 1, :, None] * self.GC[None]  # diag(μ^(iL−l)) G C, l = 0 .. iL
         end_fb = pw[iL + 1][:, None] * qs[jL].T + np.tensordot(carry, z[jL].reshape(c, B, m)[:, : iL + 1], axes=([0, 2], [1, 2]))
         return rows.reshape(nr, c, Lp)[:, :, :L], end + end_fb
+
+    def _states_seen(self, f: np.ndarray, x0: np.ndarray, W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The open loop under ``f`` (n, c, Lp) from ``x0``, its states kept as :attr:`states`; the
+        rows ``W x[1] .. W x[L]`` and ``x[L]``."""
+        xs = self.states = modal_scan(self.mu, f, x0, self.filters)
+        n, c, Lp = xs.shape
+        rows = (W @ xs.reshape(n, c * Lp)).reshape(len(W), c, Lp)[:, :, : self.L]
+        return rows, xs[:, :, self.L - 1].copy()
 
     def _blocks(self, Zb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The loss nodes' block-triangular system, block after block, from ``Zb``
@@ -460,9 +477,11 @@ class NodeStretch:
                  D: np.ndarray) -> None:
         self.V, self.Vi = V, Vi
         self.core = Stretch(mu, Vi @ GP, V[tv], D)
+        #: ``V⁻¹ x[0] .. V⁻¹ x[L−1]`` (n, c, L) of the last solve asked to keep them
+        self.modal: np.ndarray | None = None
 
     def solve(self, f: np.ndarray, x0: np.ndarray, keep: np.ndarray | None = None,
-              work: Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
+              work: Scratch | None = None, states: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """The stretch from ``x0``.
 
         Parameters
@@ -475,6 +494,10 @@ class NodeStretch:
             The nodes wanted at every step (default all).
         work : Scratch, optional
             Buffers for the large temporaries.
+        states : bool, optional
+            Keep the states of every step in the modal basis as :attr:`modal` (all nodes
+            wanted only: the simulation's temperatures, which the sensitivities' forcing reads
+            in that basis).
 
         Returns
         -------
@@ -484,7 +507,12 @@ class NodeStretch:
             ``x[L]`` at every node.
         """
         W = self.V if keep is None else self.V[keep]
-        rows, end = self.core.solve(f, self.Vi @ x0, W, work)
+        xm0 = self.Vi @ x0
+        rows, end = self.core.solve(f, xm0, W, work, states and keep is None)
+        if states and keep is None:
+            assert self.core.states is not None
+            L = self.core.L
+            self.modal = np.concatenate([xm0[:, :, None], self.core.states[:, :, : L - 1]], axis=2)
         return rows, self.V @ end
 
 
