@@ -115,6 +115,27 @@ def test_rank_one_feedback_with_steps_without_current(nr, c):
     np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
+def test_live_entries_given_or_found():
+    """The entries of D that can be nonzero, given (as the simulator does) or found by scanning
+    D, give the same stretch; given entries that stay zero all along leave no feedback."""
+    rng = np.random.default_rng(11)
+    n, nl, ntv, L, c = 7, 3, 2, 40, 2
+    mu = rng.uniform(0.0, 0.999, n)
+    G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
+    D = np.zeros((L, nl, ntv))
+    D[:, 0, 1] = rng.uniform(0.5, 1.5, L) ** 2 * 0.1
+    D[:, 2, 0] = D[:, 0, 1] * 0.3
+    f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((2, n))
+    found = stretch.Stretch(mu, G, E, D).solve(f, x0, W)
+    given = stretch.Stretch(mu, G, E, D, live=np.array([0 * ntv + 1, 2 * ntv + 0, 1 * ntv + 1])).solve(f, x0, W)
+    np.testing.assert_allclose(given[0], found[0], rtol=0, atol=1e-13 * np.abs(found[0]).max())
+    quiet = stretch.Stretch(mu, G, E, np.zeros((L, nl, ntv)), live=np.array([1]))
+    assert quiet.r == 0
+    ref = _loop(mu, f, x0, G, E, np.zeros((L, nl, ntv)))
+    np.testing.assert_allclose(quiet.solve(f, x0, W)[0], np.tensordot(W, ref, axes=1), rtol=0,
+                               atol=1e-12 * np.abs(ref).max())
+
+
 def test_time_factors_rank_one_and_svd():
     """Proportional rows give one series without a decomposition, and it reproduces D; two
     independent series go through the SVD (rank two), reproducing D to round-off."""

@@ -145,6 +145,7 @@ class Simulator:
         self._slope_pairs = [(j, i) for j, ds in enumerate(self.losses.reads) for i in ds]
         self._slope_laws = np.array([j for j, _ in self._slope_pairs], dtype=int)
         self._slope_reads = np.array([i for _, i in self._slope_pairs], dtype=int)
+        self._slope_live = self._slope_laws * len(self.tv) + self._slope_reads  # flat in (law, column of tv)
         self.nonaffine = self.losses.nonaffine
 
     # ---------------------------------------------------------------------------------------
@@ -348,7 +349,7 @@ class Simulator:
             else:
                 o = int(ops[a])
                 V, Vi = d.basis(o)
-                ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
+                ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b], self._slope_live)
                 fm = np.zeros((n, 1, padded_length(b - a)))
                 wab = np.concatenate([prep.U[a:b], P0[a:b]], axis=1)
                 np.matmul(Vi @ d.Gam[o], wab.T, out=fm[:, 0, : b - a])

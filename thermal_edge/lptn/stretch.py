@@ -234,11 +234,16 @@ class Stretch:
         ``V[tv]``: the loss nodes' temperatures from the modes.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step (W/K).
+    live : ndarray of int, optional
+        The entries of ``D[k]`` (flat, ``nl · ntv``) that can be nonzero (the temperatures each
+        loss law reads); default: those nonzero somewhere in ``D``.
     """
 
-    def __init__(self, mu: np.ndarray, G: np.ndarray, E: np.ndarray, D: np.ndarray) -> None:
+    def __init__(self, mu: np.ndarray, G: np.ndarray, E: np.ndarray, D: np.ndarray,
+                 live: np.ndarray | None = None) -> None:
         self.mu, self.E, self.L = np.maximum(mu, 0.0), E, D.shape[0]
         self.states: np.ndarray | None = None  # the last solve's states, when asked for
+        self._rank_one: tuple[np.ndarray, np.ndarray] | None = None  # a rank-one block's matrix and carry
         n, ntv, L = len(mu), E.shape[0], D.shape[0]
         self.Lp = padded_length(L)
         B = self.B = min(BLOCK, self.Lp)
@@ -246,12 +251,15 @@ class Stretch:
         self.filters: FilterCache = {}  # what every scan of the stretch uses
         self.pw = _filters(self.mu, B, self.filters, 0)[0].T  # (B+1, n)
         D2 = D.reshape(L, -1)
-        cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0]  # a loss law reads one node or a few: most are zero
+        # a loss law reads one node or a few: most entries are zero
+        cols = np.nonzero(np.any(D2 != 0.0, axis=0))[0] if live is None else live
         self.r = 0
         if not len(cols):
             return
         s_, Wt = time_factors(D2[:, cols])
         r = self.r = s_.shape[1]
+        if not r:  # the live entries are zero all along (no current)
+            return
         Wfull = np.zeros((r, D2.shape[1]))
         Wfull[:, cols] = Wt
         GC = self.GC = np.concatenate([G @ Wfull[k].reshape(D.shape[1], ntv) for k in range(r)], axis=1)  # (n, r ntv)
@@ -383,12 +391,14 @@ class Stretch:
             # [q; w] of a block solve one lower-triangular system, [[I, 0], [−E diag(μ^i), diag(1/s)
             # + Hneg]] [q; w] = [q; y₀] (the start state's part of the right-hand side taken by
             # the solve itself), and the next start is [q | w] [[diag(μ^B)], [Rl]]: two calls a block
-            M = np.zeros((n + BT, n + BT))
-            M[:n, :n] = np.eye(n)
-            M[n:, :n] = -self.EpT.T
-            M[n:, n:] = self.Hneg[0]
+            if self._rank_one is None:  # built once per stretch; each block rewrites the diagonal
+                M = np.zeros((n + BT, n + BT))
+                M[:n, :n] = np.eye(n)
+                M[n:, :n] = -self.EpT.T
+                M[n:, n:] = self.Hneg[0]
+                self._rank_one = (M, np.concatenate([np.diag(self.pw[-1]), self.Rl1]))  # carry (n + BT, n)
+            M, carry = self._rank_one
             diag = M.reshape(-1)[n * (n + BT + 1):: n + BT + 1]  # the diagonal of the lower-right block
-            carry = np.concatenate([np.diag(self.pw[-1]), self.Rl1])  # (n + BT, n)
             # BLAS directly, in place ([q | s ∘ y]), and np.dot into contiguous rows: per block
             # the calls' overhead is most of the cost
             Mt = M.T
@@ -471,12 +481,14 @@ class NodeStretch:
         Nodes whose temperatures the loss laws read.
     D : ndarray (L, nl, ntv)
         ``∂P/∂T`` at each step, W/K.
+    live : ndarray of int, optional
+        The entries of ``D[k]`` that can be nonzero (see :class:`Stretch`).
     """
 
     def __init__(self, V: np.ndarray, Vi: np.ndarray, mu: np.ndarray, GP: np.ndarray, tv: np.ndarray,
-                 D: np.ndarray) -> None:
+                 D: np.ndarray, live: np.ndarray | None = None) -> None:
         self.V, self.Vi = V, Vi
-        self.core = Stretch(mu, Vi @ GP, V[tv], D)
+        self.core = Stretch(mu, Vi @ GP, V[tv], D, live)
         #: ``V⁻¹ x[0] .. V⁻¹ x[L−1]`` (n, c, L) of the last solve asked to keep them
         self.modal: np.ndarray | None = None
 
