@@ -134,15 +134,6 @@ class Network:
         self._q_losses = np.nonzero(np.any(self.loss_map[n:] != 0.0, axis=0))[0]  # losses at algebraic points
         #: the algebraic point of each of those (a loss source sits at one point, weight 1)
         self._q_loss_point = np.array([int(np.argmax(self.loss_map[n:, j])) for j in self._q_losses], dtype=int)
-        # the nonzeros of L_DQ row by row, padded to the most a node has (weight 0 beyond): L_DQ X
-        # as a sum over those few (a node touches a handful of the algebraic points)
-        touch = (np.abs(self.inc[:, :n]).T @ np.abs(self.inc[:, n:])) > 0
-        width = int(touch.sum(axis=1).max()) if touch.size else 0
-        self._dq_q = np.zeros((width, n), dtype=int)
-        self._dq_w = np.zeros((width, n))
-        for i in range(n):
-            near = np.nonzero(touch[i])[0]
-            self._dq_q[: len(near), i], self._dq_w[: len(near), i] = near, 1.0
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
@@ -313,10 +304,7 @@ class Network:
         else:
             X, HK, HM = np.zeros((K, 0, n)), np.zeros((K, 0, nb)), np.zeros((K, 0, len(self._q_losses)))
         Xt = np.swapaxes(X, -1, -2)
-        A = -L[:, D, D]
-        rows = np.arange(n)
-        for q, wq in zip(self._dq_q, self._dq_w):  # + L_DQ X, one nonzero of each row at a time
-            A += (L[:, rows, n + q] * wq)[:, :, None] * X[:, q, :]
+        A = -(L[:, D, D] - L[:, D, Q] @ X)
         B = KU[:, D, :] - Xt @ KU[:, Q, :]
         # M_D − Xᵀ M_Q: a loss source at an algebraic point q reaches the nodes through X[q]
         W = np.concatenate([B, np.broadcast_to(self.loss_map[D], (K, n, self.n_loss))], axis=-1)
