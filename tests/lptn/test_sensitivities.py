@@ -335,3 +335,24 @@ def test_close_modes_and_repeated_set_points(monkeypatch):
     stepped = Simulator(m, closed_form=False).simulate(m.nominal(), inputs, 10.0, T0, wrt=m.parameter_names)
     scale = np.abs(stepped.S).max(axis=(0, 1))
     assert np.all(np.abs(traj.S - stepped.S).max(axis=(0, 1)) <= 1e-9 * scale)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_held_runs_are_the_long_runs_of_held_steps(seed):
+    """The runs of held inputs at least ``min_len`` long, against a plain walk over the steps
+    (mostly varying steps with a few long holds, as recorded data give)."""
+    from thermal_edge.lptn.sensitivity import held_runs
+
+    rng = np.random.default_rng(seed)
+    held = rng.random(3000) < 0.3
+    for a in rng.integers(0, 2900, 6):
+        held[a: a + rng.integers(10, 100)] = True
+    held[0] = False
+    ref, start = [], 0
+    for k in range(1, len(held) + 1):
+        if k == len(held) or not held[k]:
+            if k - start >= 20:
+                ref.append((start, k))
+            start = k
+    assert held_runs(held, True, 20) == ref
+    assert held_runs(held, False, 20) == []

@@ -52,20 +52,22 @@ def test_solve_stretch_with_time_varying_feedback(L):
     np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
 
 
+@pytest.mark.parametrize("nr", [2, 6])
 @pytest.mark.parametrize("L", [7, 16, 33, 160, 170])
-def test_scan_rows_is_the_recursion_seen_through_rows(L):
-    """The rows of the padded scan and the end state, against the plain loop."""
+def test_scan_rows_is_the_recursion_seen_through_rows(L, nr):
+    """The rows of the padded scan and the end state, against the plain loop: a few rows (the
+    block starts projected on their own) and as many rows as modes (projected with the blocks)."""
     rng = np.random.default_rng(L)
     n, c = 6, 3
     mu = np.concatenate([[1e-60, 0.99999], rng.uniform(0.0, 1.0, n - 2)])
     Lp = stretch.padded_length(L)
     f = np.zeros((n, c, Lp))
     f[:, :, :L] = rng.standard_normal((n, c, L))
-    x0, R = rng.standard_normal((n, c)), rng.standard_normal((2, n))
+    x0, R = rng.standard_normal((n, c)), rng.standard_normal((nr, n))
     ref = _loop(mu, f[:, :, :L], x0, np.zeros((n, 1)), np.zeros((1, n)), np.zeros((L, 1, 1)))
     rows, end = stretch.scan_rows(mu, f, x0, R, L)
     want = np.tensordot(R, ref, axes=1)
-    np.testing.assert_allclose(rows.reshape(2, c, Lp)[:, :, :L], want, rtol=0, atol=1e-12 * np.abs(want).max())
+    np.testing.assert_allclose(rows.reshape(nr, c, Lp)[:, :, :L], want, rtol=0, atol=1e-12 * np.abs(want).max())
     np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
@@ -86,6 +88,66 @@ def test_stretch_serves_several_forcings():
         want = np.tensordot(W, ref, axes=1)
         np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
         np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("c", [1, 3])
+@pytest.mark.parametrize("nr", [2, 8])
+def test_rank_one_feedback_with_steps_without_current(nr, c):
+    """One current (rank one in time) that is zero on some steps, blocks among them entirely:
+    the feedback's unknowns on those steps are exactly zero (1/s = inf on the block's diagonal);
+    few rows and most of the state, one column (BLAS trsv) and several (trsm), against the loop."""
+    rng = np.random.default_rng(nr)
+    n, nl, ntv, L = 8, 3, 2, 70
+    mu = rng.uniform(0.0, 0.999, n)
+    G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
+    i2 = rng.uniform(0.5, 1.5, L) ** 2
+    i2[[0, 5, 6, 40]] = 0.0
+    i2[16:32] = 0.0  # a whole block
+    D = i2[:, None, None] * rng.standard_normal((1, nl, ntv)) * 0.1
+    st = stretch.Stretch(mu, G, E, D)
+    assert st.r == 1
+    f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((nr, n))
+    ref = _loop(mu, f, x0, G, E, D)
+    rows, end = st.solve(f, x0, W)
+    assert np.all(np.isfinite(rows)) and np.all(np.isfinite(end))
+    want = np.tensordot(W, ref, axes=1)
+    np.testing.assert_allclose(rows, want, rtol=0, atol=1e-11 * np.abs(want).max())
+    np.testing.assert_allclose(end, ref[:, :, -1], rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+def test_live_entries_given_or_found():
+    """The entries of D that can be nonzero, given (as the simulator does) or found by scanning
+    D, give the same stretch; given entries that stay zero all along leave no feedback."""
+    rng = np.random.default_rng(11)
+    n, nl, ntv, L, c = 7, 3, 2, 40, 2
+    mu = rng.uniform(0.0, 0.999, n)
+    G, E = 0.1 * rng.standard_normal((n, nl)), rng.standard_normal((ntv, n))
+    D = np.zeros((L, nl, ntv))
+    D[:, 0, 1] = rng.uniform(0.5, 1.5, L) ** 2 * 0.1
+    D[:, 2, 0] = D[:, 0, 1] * 0.3
+    f, x0, W = rng.standard_normal((n, c, L)), rng.standard_normal((n, c)), rng.standard_normal((2, n))
+    found = stretch.Stretch(mu, G, E, D).solve(f, x0, W)
+    given = stretch.Stretch(mu, G, E, D, live=np.array([0 * ntv + 1, 2 * ntv + 0, 1 * ntv + 1])).solve(f, x0, W)
+    np.testing.assert_allclose(given[0], found[0], rtol=0, atol=1e-13 * np.abs(found[0]).max())
+    quiet = stretch.Stretch(mu, G, E, np.zeros((L, nl, ntv)), live=np.array([1]))
+    assert quiet.r == 0
+    ref = _loop(mu, f, x0, G, E, np.zeros((L, nl, ntv)))
+    np.testing.assert_allclose(quiet.solve(f, x0, W)[0], np.tensordot(W, ref, axes=1), rtol=0,
+                               atol=1e-12 * np.abs(ref).max())
+
+
+def test_time_factors_rank_one_and_svd():
+    """Proportional rows give one series without a decomposition, and it reproduces D; two
+    independent series go through the SVD (rank two), reproducing D to round-off."""
+    rng = np.random.default_rng(7)
+    D1 = np.outer(rng.uniform(0.0, 2.0, 50), rng.standard_normal(6))
+    s, Wt = stretch.time_factors(D1)
+    assert s.shape == (50, 1)
+    np.testing.assert_allclose(s @ Wt, D1, rtol=0, atol=1e-15 * np.abs(D1).max() * 10)
+    D2 = D1 + np.outer(rng.uniform(0.0, 1.0, 50), rng.standard_normal(6))
+    s, Wt = stretch.time_factors(D2)
+    assert s.shape == (50, 2)
+    np.testing.assert_allclose(s @ Wt, D2, rtol=0, atol=1e-14 * np.abs(D2).max())
 
 
 def test_stretch_without_feedback_is_the_scan():
@@ -201,8 +263,8 @@ def test_held_inputs_are_stepped(pm10kw_model, count_stretches):
 
 def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
     """The sensitivities' forcing of a stretch (mode-major product, the edges per parameter,
-    padded in time) against ``V⁻¹ (dΦ T + dΓ w + Γ_P ∂P/∂θ)`` from the dense node-coordinate
-    derivatives, step by step."""
+    padded in time, the simulation's modal temperatures) against ``V⁻¹ (dΦ T + dΓ w + Γ_P ∂P/∂θ)``
+    from the dense node-coordinate derivatives, step by step."""
     from thermal_edge.lptn import sensitivity, steady_state
 
     m = pm10kw_model
@@ -212,18 +274,21 @@ def test_stretch_forcing_against_dense_derivatives(pm10kw_model, monkeypatch):
     seen = []
     real = sensitivity.Sensitivities.stretch_forcing
 
-    def spy(self, o, T, w, dP, Lp=None, out=None):
-        X = real(self, o, T, w, dP, Lp, out)
-        seen.append((self, o, T, w, dP, Lp, X.copy()))  # X is scratch memory, reused by the next stretch
+    def spy(self, o, T, w, dP, Lp=None, out=None, modal=None):
+        X = real(self, o, T, w, dP, Lp, out, modal)
+        seen.append((self, o, T, w, dP, Lp, X.copy(), modal))  # X is scratch memory, reused by the next stretch
         return X
 
     monkeypatch.setattr(sensitivity.Sensitivities, "stretch_forcing", spy)
     wrt = list(m.adaptable) + ["P_pm_ref", "P_fe_y_ref"]  # two losses' own parameters too
     Simulator(m).simulate(m.nominal(), inputs, dt, T0, wrt=wrt)
     assert seen
-    self, o, T, w, dP, Lp, X = seen[0]
+    self, o, T, w, dP, Lp, X, modal = seen[0]
     d = self.d
     _, Vi = d.basis(o)
+    # the simulation's own modal temperatures of the stretch serve the forcing: they are V⁻¹ T
+    assert modal is not None
+    np.testing.assert_allclose(modal, Vi @ T.T, rtol=0, atol=1e-12 * np.abs(modal).max())
     nb = self.nb
     ref = np.einsum("jab,kb->ajk", d.dPhi[o], T) + np.einsum("jam,km->ajk", d.dGam[o], w)
     ref += np.einsum("al,klj->ajk", d.Gam[o][:, nb:], dP)

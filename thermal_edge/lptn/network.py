@@ -132,6 +132,8 @@ class Network:
         for j, loss in enumerate(model.losses):
             self.loss_map[index[loss.point], j] = 1.0
         self._q_losses = np.nonzero(np.any(self.loss_map[n:] != 0.0, axis=0))[0]  # losses at algebraic points
+        #: the algebraic point of each of those (a loss source sits at one point, weight 1)
+        self._q_loss_point = np.array([int(np.argmax(self.loss_map[n:, j])) for j in self._q_losses], dtype=int)
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
@@ -211,7 +213,15 @@ class Network:
         """
         out = np.empty(np.broadcast_shapes(rhs.shape, LQQ.shape[:-1] + rhs.shape[-1:]))
         for g in self._qq_groups:  # g: (groups, size)
-            out[:, g] = np.linalg.inv(LQQ[:, g[:, :, None], g[:, None, :]]) @ rhs[:, g]
+            blocks = LQQ[:, g[:, :, None], g[:, None, :]]
+            if g.shape[1] == 1:  # single points (most of them): a division, not a LAPACK call each
+                out[:, g] = rhs[:, g] / blocks
+            elif g.shape[1] == 2:  # pairs: the adjugate over the determinant
+                a, b, c, d = blocks[..., 0, 0], blocks[..., 0, 1], blocks[..., 1, 0], blocks[..., 1, 1]
+                inv = np.stack([np.stack([d, -b], axis=-1), np.stack([-c, a], axis=-1)], axis=-2)
+                out[:, g] = (inv / (a * d - b * c)[..., None, None]) @ rhs[:, g]
+            else:
+                out[:, g] = np.linalg.inv(blocks) @ rhs[:, g]
         return out
 
     def _derivatives(self, X: np.ndarray, HK: np.ndarray, HM: np.ndarray, live: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -296,8 +306,9 @@ class Network:
         Xt = np.swapaxes(X, -1, -2)
         A = -(L[:, D, D] - L[:, D, Q] @ X)
         B = KU[:, D, :] - Xt @ KU[:, Q, :]
-        EP = self.loss_map[D][None] - Xt @ self.loss_map[Q][None]
-        W = np.concatenate([B, EP], axis=-1)
+        # M_D − Xᵀ M_Q: a loss source at an algebraic point q reaches the nodes through X[q]
+        W = np.concatenate([B, np.broadcast_to(self.loss_map[D], (K, n, self.n_loss))], axis=-1)
+        W[:, :, nb + self._q_losses] -= np.swapaxes(X[:, self._q_loss_point], 1, 2)
         c, dc = self.capacities(theta, wrt)
         cont = Continuous(A=A, W=W, c=c)
         if len(wrt):

@@ -213,18 +213,23 @@ class Sensitivities:
         w = np.concatenate([self.U[a:b], self.P[a:b]], axis=1)
         dP = self.loss_theta(np.arange(a, b), self.T[a:b]) if self.loss_wrt else None
         Lp = padded_length(b - a)
-        X = self.stretch_forcing(o, self.T[a:b], w, dP, Lp, out=self.scratch.get("forcing", (self.n, self.p, Lp)))
+        # the simulation's modal temperatures of the stretch, when it ran it (no V⁻¹ T again)
+        modal = ns.modal[:, 0] if ns.modal is not None and ns.modal.shape[1] == 1 else None
+        X = self.stretch_forcing(o, self.T[a:b], w, dP, Lp, out=self.scratch.get("forcing", (self.n, self.p, Lp)),
+                                 modal=modal)
         rows, end = ns.solve(X, s, keep, self.scratch)
         out[:] = rows.transpose(2, 0, 1)
         return end
 
     def stretch_forcing(self, o: int, T: np.ndarray, w: np.ndarray, dP: np.ndarray | None,
-                        Lp: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
+                        Lp: int | None = None, out: np.ndarray | None = None,
+                        modal: np.ndarray | None = None) -> np.ndarray:
         """``V⁻¹ (dΦ_j T_i + dΓ_j w_i + Γ_P ∂P/∂θ_j)`` as (n, p, Lp) (time last, for
         :meth:`~thermal_edge.lptn.stretch.Stretch.solve`; zero past the ``B`` steps, ``Lp ≥ B``,
         default ``B``) for temperatures ``T`` (B, n), inputs ``w`` (B, m) of ``Γ`` and the
         losses' derivatives ``dP`` (B, nl, p) at operating point ``o`` (None: no loss law
-        depends on a parameter asked for). ``out`` (n, p, Lp), optional, receives it.
+        depends on a parameter asked for). ``out`` (n, p, Lp), optional, receives it; ``modal``
+        (n, B), optional, is ``V⁻¹ T`` already known (the simulation's states of the stretch).
 
         One product of ``[dPhit_j | V⁻¹ dΓ_j]`` stacked mode-major
         (:meth:`~thermal_edge.lptn.discretise.DiscreteDerivatives.joined`) with ``[V⁻¹ T; w]``,
@@ -238,12 +243,17 @@ class Sensitivities:
         # the inputs of a stretch have a small rank (a constant part, the current's square and
         # the copper losses' temperature terms): w = Ub Wt with Wt (r, m), so V⁻¹ dΓ_j w costs
         # r columns of the product instead of m (terms below RANK_TOL of the largest are round-off)
-        Ub, sv, Wt = np.linalg.svd(w, full_matrices=False)
+        # (the singular values and right vectors of w from its triangular factor: a long, narrow
+        # w decomposes several times faster so; its left factor is then w Wtᵀ)
+        _, sv, Wt = np.linalg.svd(np.linalg.qr(w, mode="r"))
         r = int(np.count_nonzero(sv > RANK_TOL * sv[0])) if len(sv) and sv[0] > 0.0 else 0
         Jr = np.concatenate([J[:, :n], J[:, n:] @ Wt[:r].T], axis=1)
         xi = np.zeros((n + r, Lp))
-        np.matmul(Vi, T.T, out=xi[:n, :B])
-        xi[n:, :B] = (Ub[:, :r] * sv[:r]).T
+        if modal is None:
+            np.matmul(Vi, T.T, out=xi[:n, :B])
+        else:
+            xi[:n, :B] = modal
+        np.matmul(Wt[:r], w.T, out=xi[n:, :B])
         X = np.matmul(Jr, xi, out=None if out is None else out.reshape(n * p, Lp)).reshape(n, p, Lp)
         if dP is not None:
             live = np.nonzero(np.any(dP != 0.0, axis=(0, 1)))[0]  # the loss parameters
@@ -513,8 +523,9 @@ def held_runs(held: np.ndarray, closed: bool, min_len: int = MIN_HELD) -> list[t
     steps = len(held)
     if not closed or not steps:
         return []
-    bounds: list[int] = np.nonzero(~held)[0].tolist() + [steps]
-    return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b - a >= min_len]
+    bounds = np.append(np.nonzero(~held)[0], steps)
+    long = np.nonzero(np.diff(bounds) >= min_len)[0]  # inputs that vary every step: few long runs
+    return list(zip(bounds[long].tolist(), bounds[long + 1].tolist()))
 
 
 def held_steps(env: Mapping[str, Value], steps: int) -> np.ndarray:

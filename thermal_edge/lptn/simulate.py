@@ -143,6 +143,9 @@ class Simulator:
         self.tv = self.losses.nodes  # nodes whose temperature enters losses
         #: (law, column of tv) of every temperature a loss law reads
         self._slope_pairs = [(j, i) for j, ds in enumerate(self.losses.reads) for i in ds]
+        self._slope_laws = np.array([j for j, _ in self._slope_pairs], dtype=int)
+        self._slope_reads = np.array([i for _, i in self._slope_pairs], dtype=int)
+        self._slope_live = self._slope_laws * len(self.tv) + self._slope_reads  # flat in (law, column of tv)
         self.nonaffine = self.losses.nonaffine
 
     # ---------------------------------------------------------------------------------------
@@ -288,7 +291,8 @@ class Simulator:
         held_spans = held_runs(held, closed_ok)  # the sensitivities' closed form
         varying = np.zeros(steps, dtype=bool)
         if self.vectorised and not len(na):
-            varying = varying_steps(dPdT0[:steps], may_change=~held)
+            # the slopes a loss law can have (the temperatures it reads): the others are zero
+            varying = varying_steps(dPdT0[:steps, self._slope_laws, self._slope_reads], may_change=~held)
         spans = stretches(ops, varying & ~covered(held_spans, steps))
         in_span = covered(spans, steps)
         # the simulation's held runs: every run of held inputs from its LEAD-th step on, in blocks
@@ -345,11 +349,11 @@ class Simulator:
             else:
                 o = int(ops[a])
                 V, Vi = d.basis(o)
-                ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b])
+                ns = prepared[(a, b)] = NodeStretch(V, Vi, d.mu[o], GP[o], self.tv, dPdT0[a:b], self._slope_live)
                 fm = np.zeros((n, 1, padded_length(b - a)))
                 wab = np.concatenate([prep.U[a:b], P0[a:b]], axis=1)
                 np.matmul(Vi @ d.Gam[o], wab.T, out=fm[:, 0, : b - a])
-                Ta, _ = ns.solve(fm, T[a][:, None])
+                Ta, _ = ns.solve(fm, T[a][:, None], states=bool(names))  # modal temperatures for the sensitivities
                 T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)
