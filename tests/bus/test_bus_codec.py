@@ -359,6 +359,25 @@ def test_decode_message_flags():
     assert rx.decode_message(object()) is None and rx.stats.decode_error == 1
 
 
+def test_a_can_fd_frame_on_a_classic_frame_is_dropped_as_fd():
+    """The matrix is classic CAN: the same 8 bytes (valid CRC and counter, which cantools decodes
+    as they are) sent as a CAN FD frame are dropped with reason ``fd`` and counted against the
+    frame; sent classic, the next counter is accepted."""
+    import can
+    import cantools
+
+    tx, rx = _fresh_pair()
+    payload = tx.encode("INV_Currents", _currents(1.0))
+    db = cantools.database.load_file(str(DBC_PATH))
+    assert not db.get_message_by_frame_id(0x0A0).is_fd
+    assert db.decode_message(0x0A0, payload)["INV_IphRms"] == pytest.approx(1.0, abs=0.1)
+    assert rx.decode_message(can.Message(arbitration_id=0x0A0, data=payload, is_extended_id=False, is_fd=True)) is None
+    assert rx.stats.fd == 1 and rx.stats.dropped_by_frame["INV_Currents"] == 1 and rx.stats.dropped_total == 1
+    again = tx.encode("INV_Currents", _currents(1.0))
+    assert rx.decode_message(can.Message(arbitration_id=0x0A0, data=again, is_extended_id=False)) is not None
+    assert rx.stats.received["INV_Currents"] == 1
+
+
 def test_frame_lookup(codec):
     assert codec.frame_id("TE_Limits") == 0x2A0 and codec.frame_name(0x2A0) == "TE_Limits"
     assert codec.cycle_time_s("INV_Currents") == pytest.approx(0.01)

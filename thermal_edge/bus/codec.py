@@ -811,13 +811,20 @@ class FrameCodec:
         """Decode a python-can ``can.Message`` (or alike); never raises.
 
         Error frames and extended identifiers count as ``unknown_id``, remote
-        frames as ``dlc``; everything else goes through :meth:`decode`.
+        frames as ``dlc``, CAN FD frames on a frame the DBC defines as classic
+        CAN as ``fd``; everything else goes through :meth:`decode`.
         """
         try:
             if getattr(msg, "is_error_frame", False) or getattr(msg, "is_extended_id", False):
                 with self._lock:
                     self.stats.count_drop("unknown_id")
                 return None
+            if getattr(msg, "is_fd", False):
+                spec = self._frames.get(msg.arbitration_id)
+                if spec is not None and not getattr(spec.message, "is_fd", False):
+                    with self._lock:
+                        self.stats.count_drop("fd", spec.name)
+                    return None
             if getattr(msg, "is_remote_frame", False):
                 spec = self._frames.get(msg.arbitration_id)
                 with self._lock:

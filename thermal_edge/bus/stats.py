@@ -17,6 +17,7 @@ DROP_REASONS: tuple[str, ...] = (
     "unknown_id",
     "dlc",
     "decode_error",
+    "fd",
 )
 
 
@@ -26,11 +27,13 @@ class FrameStats:
 
     Attributes
     ----------
-    crc, counter_repeat, unknown_id, dlc, decode_error : int
+    crc, counter_repeat, unknown_id, dlc, decode_error, fd : int
         Received frames dropped, by reason: wrong CRC; alive counter equal to
         the previous accepted one; identifier not in the DBC (or extended,
         remote or error frame); data length not the DBC's; anything else that
-        could not be decoded (bad input types included).
+        could not be decoded (bad input types included); a CAN FD frame on an
+        identifier the DBC defines as classic CAN (a gateway or inverter set
+        up for FD, whose layout the matrix does not describe).
     lost : int
         Frames missing before an accepted one, from its time stamp, cycle time and
         alive counter together (see :meth:`FrameCodec.decode`); a gap that turns out to
@@ -51,6 +54,7 @@ class FrameStats:
     unknown_id: int = 0
     dlc: int = 0
     decode_error: int = 0
+    fd: int = 0
     lost: int = 0
     counter_resync: int = 0
     clamped: int = 0
