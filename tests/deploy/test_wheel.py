@@ -133,6 +133,23 @@ def test_config_dbc_and_the_inverter_example_from_the_wheel(installed: Installed
     assert "edge.yaml: ok (model pm10kw" in r.stdout and "MC7_Currents" in r.stdout, r.stdout
 
 
+def test_the_machine_model_and_the_unit_from_the_wheel(installed: Installed) -> None:
+    """Outside a checkout: the packaged model printed and written beside a configuration that names
+    it by path passes the check (what the README's install steps do), and the unit printed is the
+    repository's ``deploy/systemd/thermal-edge.service`` byte for byte, its ExecStart the
+    install's command."""
+    etc = installed.work / "etc"
+    (etc / "machines").mkdir(parents=True)
+    (etc / "machines" / "pm10kw.yaml").write_text(installed.run("config", "model", "pm10kw").stdout, encoding="utf-8")
+    (etc / "edge.yaml").write_text(installed.run("config", "example", "--model", "machines/pm10kw.yaml").stdout,
+                                   encoding="utf-8")
+    r = installed.run("run", "--check", "--config", str(etc / "edge.yaml"))
+    assert "edge.yaml: ok (model pm10kw, 39 nodes" in r.stdout, r.stdout
+    unit = installed.run("config", "unit").stdout
+    assert unit == (dl.REPO / "deploy" / "systemd" / "thermal-edge.service").read_text(encoding="utf-8")
+    assert "ExecStart=/opt/thermal-edge/bin/thermal-edge run --config /etc/thermal-edge/edge.yaml" in unit.splitlines()
+
+
 def _csv(path: Path) -> tuple[list[str], list[dict[str, str]]]:
     with path.open(newline="") as fh:
         rows = list(csv.DictReader(line for line in fh if not line.startswith("#")))

@@ -10,6 +10,12 @@ and sends), for ``cantools`` and ``candump`` on a machine without a checkout::
     thermal-edge config dbc > thermal_edge.dbc
     candump -L can0 | python -m cantools decode thermal_edge.dbc
 
+``thermal-edge config model NAME`` prints a packaged machine model, for a copy the user edits;
+``thermal-edge config unit`` prints the systemd unit the package ships::
+
+    thermal-edge config model pm10kw > /etc/thermal-edge/machines/pm10kw.yaml
+    thermal-edge config unit > /etc/systemd/system/thermal-edge.service
+
 ``thermal-edge config inverter-example DIR`` writes the worked example of an inverter with a CAN
 matrix of its own (the Acme MC-7: its ``edge.yaml`` and ``acme-mc7.dbc``) into ``DIR``.
 
@@ -26,7 +32,7 @@ import sys
 from pathlib import Path
 
 from ..errors import UsageError
-from ..shipped import config_path, example_config
+from ..shipped import MACHINES, config_path, example_config, model_file, names
 
 #: the files of the worked example of a foreign inverter (``resources/examples/acme-mc7``)
 INVERTER_EXAMPLE = ("examples", "acme-mc7", ("edge.yaml", "acme-mc7.dbc"))
@@ -44,6 +50,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     ex.set_defaults(func=run_example)
     dbc = which.add_parser("dbc", help="print the CAN matrix the package ships (thermal_edge.dbc)")
     dbc.set_defaults(func=run_dbc)
+    mdl = which.add_parser("model", help="print a packaged machine model (for a copy to edit)")
+    mdl.add_argument("name", metavar="NAME", help=f"a packaged model: {', '.join(names(MACHINES))}")
+    mdl.set_defaults(func=run_model)
+    unit = which.add_parser("unit", help="print the systemd unit (thermal-edge.service)")
+    unit.set_defaults(func=run_unit)
     inv = which.add_parser("inverter-example", help="write the Acme MC-7 example (edge.yaml, acme-mc7.dbc) into DIR")
     inv.add_argument("dir", metavar="DIR", help="a directory (made if missing); files there of the same names are "
                                                 "not overwritten")
@@ -80,6 +91,18 @@ def run_dbc(args: argparse.Namespace) -> int:
     from ..bus.frames import DEFAULT_DBC_PATH
 
     sys.stdout.write(Path(DEFAULT_DBC_PATH).read_text(encoding="utf-8"))
+    return 0
+
+
+def run_model(args: argparse.Namespace) -> int:
+    if args.name.removesuffix(".yaml") not in names(MACHINES):
+        raise UsageError(f"NAME {args.name}: not a packaged model (packaged: {', '.join(names(MACHINES))})")
+    sys.stdout.write(Path(model_file(args.name, "NAME")).read_text(encoding="utf-8"))
+    return 0
+
+
+def run_unit(args: argparse.Namespace) -> int:
+    sys.stdout.write(config_path("deploy", "thermal-edge.service").read_text(encoding="utf-8"))
     return 0
 
 
