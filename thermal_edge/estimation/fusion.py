@@ -186,6 +186,9 @@ class FluxObserver(Observer):
         K = np.linalg.solve(P[np.ix_(idx, idx)] + R, P[idx, :]).T
         K[n:m] = 0.0  # the adaptable parameters are the adapter's (Schmidt), as in the observer
         K[m + 1] = 0.0  # and the change error is considered, never corrected
+        Ku = self.unfused_gain(idx)
+        if Ku is not None:  # the stator's rows: the observer's without the flux estimate, as in Observer.update
+            K[self.unfused_rows] = Ku[self.unfused_rows]
         self._apply(P, S, K, H, R, y - self.T[idx])
         return self.T
 
@@ -241,7 +244,8 @@ class FluxObserver(Observer):
         K[n:m] = 0.0
         K[m + 1] = 0.0  # the change error: considered (see the module's description)
         if corrects is not None:
-            K[np.setdiff1d(np.arange(n), np.asarray(corrects, dtype=int))] = 0.0
+            self.consider(corrects)
+            K[self.unfused_rows] = 0.0
         self._apply(P, S, K, H, np.array([[var]]), np.array([nu]))
         self.node_updates_used += 1
         return True
