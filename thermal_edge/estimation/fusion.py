@@ -45,7 +45,12 @@ the same (a zero row elsewhere does not change them), so the magnet learns what 
 And the winding's protection (the hot spot) keeps resting on the stator's sensors and the model
 alone: an electrical calibration that slips past the disagreement check cannot cool it. The
 corrected rotor still reaches the stator, through the model's conduction in the next prediction,
-as the heat does.
+as the heat does. Nor does it reach the stator through the sensor update: the magnet's narrower
+band would narrow the stator's predicted band through the same cross-covariance and so shrink the
+gain the stator takes from its own sensors. The stator's rows of the sensor gain are therefore
+those of the observer without the flux estimate (:meth:`Observer.unfused_gain`, its covariance
+carried beside from the first flux estimate on); the rotor's rows and the offset's stay the fused
+covariance's optimal gain, and the Joseph form keeps the fused covariance that of the estimate.
 """
 from __future__ import annotations
 
