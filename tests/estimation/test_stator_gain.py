@@ -128,7 +128,7 @@ def test_stator_gain_is_the_unfused_observers_rotor_gain_the_fused_optimum(pm10k
 
 def test_a_covariance_set_from_outside_drops_the_unfused_one(pm10kw, heated):
     """A restart or a gap sets the covariance: the unfused one is dropped, the next direct
-    estimate starts it again from the covariance then (which holds no estimate yet)."""
+    estimate starts it again from the covariance then."""
     obs = FluxObserver(pm10kw, initial_from_run(pm10kw, heated), None, heated.dt)
     m = pm10kw.node_index(MAGNET)
     rotor = rotor_nodes(pm10kw, [m])

@@ -129,9 +129,10 @@ class Observer:
     @P.setter
     def P(self, value: np.ndarray) -> None:
         """Set the temperature covariance; its correlation with the parameters is forgotten (the
-        result stays a covariance). A covariance set from outside (a restart, a gap in the frames)
-        holds no direct estimate's information the observer knows of: :attr:`unfused` is dropped
-        (the next direct estimate starts it again)."""
+        result stays a covariance). :attr:`unfused` is dropped: a covariance set from outside (a
+        restart, a gap in the frames) has no unfused counterpart here; the next direct estimate
+        starts it again from the covariance then, whose share of earlier estimates the filter
+        forgets as it forgets any initial covariance."""
         n = self._n
         self.Pa[:n, :n] = value
         self.Pa[:n, n:] = 0.0
