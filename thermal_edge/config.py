@@ -379,6 +379,13 @@ class FaultConfig:
     #: ... for this many ticks in a row: one glitched reading is not a model fault (a restart from it
     #: would make the next, good, reading disagree by as much and fault again)
     prediction_error_ticks: int = setting(3, min=1, max=60)
+    #: readings this far below the **commissioned** model's open-loop prediction (the model file's
+    #: parameters, never adapted, never restarted from the readings) for ``prediction_error_ticks``
+    #: ticks are not believed: a reference or offset common to every PT100 drifting low looks like a
+    #: machine that cools better, and the adaptation would learn it. 20 K is five times the largest
+    #: open-loop error of a published 4-node network on its measured machine (3.8 K); the readings
+    #: are trusted again within half of it
+    commissioned_gap_k: float = setting(20.0, positive=True, max=100.0)
     # at least the longest tick: a hold shorter than a tick never reaches the bus (0 or 1e-9 s
     # would hand a diverged model back at once, and the limit would keep rising after the fault)
     hold_s: float = setting(30.0, min=MAX_TICK_S)

@@ -20,14 +20,14 @@ from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from . import bus, clock, control, stamps, state, units
+from . import bus, clock, control, readings, stamps, state, units
 from .harness import Case
 
 #: group name -> cases of the group (``full``: the full lengths and counts)
 GROUPS: dict[str, Callable[[bool], Iterator[Case]]] = {**bus.GROUPS, **state.GROUPS, **clock.GROUPS, **stamps.GROUPS,
-                                                     **units.GROUPS}
+                                                     **units.GROUPS, **readings.GROUPS}
 #: groups that run only when named: cases the bench must judge unsafe
-CONTROLS: dict[str, Callable[[bool], Iterator[Case]]] = dict(control.GROUPS)
+CONTROLS: dict[str, Callable[[bool], Iterator[Case]]] = {**control.GROUPS, **readings.CONTROLS}
 
 
 @dataclass

@@ -29,7 +29,7 @@ from benchmarks.faults import control, harness, stamps, wire
 #: marked slow (make test-all; the bench itself runs them all)
 FAST = ("bad_frames", "security", "metrics", "sensor_age", "units")
 SLOW = ("floods", "stale", "bus", "sensors", "stuck", "absurd", "band", "configs", "states", "crash", "load", "soak",
-        "persist", "clock", "time_back")
+        "persist", "clock", "time_back", "readings")
 
 
 #: a TE_Limits silence this long is unsafe in the suite (a generous guard: the service stopped
@@ -68,7 +68,19 @@ def test_fault_group_short_slow(group: str, udp_ok: None, busy_host_gaps: None) 
 
 def test_every_group_is_in_the_suite() -> None:
     assert set(FAST) | set(SLOW) == set(faults.GROUPS)
-    assert set(faults.CONTROLS) == {"control"} and not set(faults.CONTROLS) & set(faults.GROUPS)
+    assert set(faults.CONTROLS) == {"control", "readings_control"} and not set(faults.CONTROLS) & set(faults.GROUPS)
+
+
+@pytest.mark.slow
+def test_every_pt100_drifting_low_with_the_check_out_of_reach_fails_the_bench() -> None:
+    """The readings group's control: the same drift with ``commissioned_gap_k`` at its upper bound
+    (never reached) sends more than the safe current while the plant's winding is over its max,
+    and the bench judges each such tick unsafe."""
+    r = faults.run(only=["readings_control"], progress=False)
+    print("\n" + faults.report_table(r))
+    assert [c.name for c in r.cases] == ["pt100_common_drift_guard_off"]
+    case = r.cases[0]
+    assert case.control and case.passed and case.unsafe >= 1, case.did
 
 
 def test_a_te_limits_pause_of_500_ms_fails_the_bench(udp_ok: None) -> None:

@@ -43,7 +43,7 @@ from .derating import DeratingPolicy, LimitSpec, MeasuredFloor, NodeBand, boundi
 from .estimate import StateEstimate
 from .events import SafetyEvents
 from .flux_input import FluxInput, FluxTick, load_flux_model
-from .health import ModelHealth, StuckSensors, input_reasons
+from .health import CommissionedCheck, ModelHealth, StuckSensors, input_reasons
 from .inputs import InputAccumulator, TickInputs
 from .journal import notice
 from .lookahead import Lookahead
@@ -129,6 +129,7 @@ class ThermalEngine:
             self.flux = FluxInput(config, m, load_flux_model(config), speed)
         self.health = ModelHealth(dc.faults, config.adaptation.adapter.period_s)
         self.stuck = StuckSensors(dc.faults, config.sensors)
+        self.commissioned = CommissionedCheck(dc.faults)
         self.events = SafetyEvents()
         self._restored = restored  # used once, at the start of the state
         self._restart_info: dict[str, float] = {}
@@ -329,14 +330,18 @@ class ThermalEngine:
                    "trusted", gap)
             est.resolve_doubt()
             self.health.restart()
-        if self.health.holding(t) or (why is None and self.health.disagreeing) or doubted:
+        # readings far below the commissioned model: neither believed nor learnt from
+        below = self.commissioned.judge(t, est.commissioned_gap(y, self.sensor_rows))
+        if self.health.holding(t) or (why is None and self.health.disagreeing) or doubted or below:
             # a disagreement not yet confirmed is not trusted either: the safe limit (bounded by the
             # band at the readings) for its ticks, without the hold and the restart of a fault
             forced.insert(0, DerateReason.MODEL_FAULT)
         obs = est.observer
         assert obs is not None  # stepped, or restarted from the readings
         flux = self._fuse_flux(t, obs, u)
-        self._prev_sample = (t, dict(y), obs.T.copy())  # the adapter judges from the observer's state
+        # the adapter judges from the observer's state; readings not believed are none to it
+        learnt = {s: math.nan for s in y} if below or doubted else dict(y)
+        self._prev_sample = (t, learnt, obs.T.copy())
         return self._finish(t, ti, forced, new_results, pred_error, flux)
 
     def _fuse_flux(self, t: float, obs: Observer | None, u: Mapping[str, float]) -> FluxTick | None:
@@ -479,9 +484,11 @@ class ThermalEngine:
         saved = self.estimate.saved()
         if saved is not None:
             st.nodes, st.T, st.sigma, st.P, st.T_pred = saved["nodes"], saved["T"], saved["sigma"], saved["P"], saved["T_pred"]
+            st.T_commissioned = saved["T_commissioned"]
         elif self._restored is not None and self._restored.T:  # not yet running: keep what was loaded
             rs = self._restored
             st.nodes, st.T, st.sigma, st.P, st.T_pred = rs.nodes, rs.T, rs.sigma, rs.P, rs.T_pred
+            st.T_commissioned = rs.T_commissioned
             st.saved_at = rs.saved_at
         return st
 

@@ -6,6 +6,11 @@ its error against the readings is what tells a model gone wrong and triggers ada
 them (from the readings, or from a saved state cooled over the downtime), steps them once a tick,
 restarts them from the readings after a model fault, cools them over a gap in the frames, and takes
 new parameters.
+
+Beside them runs the **commissioned prediction**: the model file's parameters (never adapted) on
+open loop from the first state, never restarted from the readings. What the adaptation learns and
+what a restart takes from the readings both follow readings that drift; this prediction does not,
+so readings that fall far below it are evidence against the readings (:meth:`commissioned_gap`).
 """
 from __future__ import annotations
 
@@ -55,6 +60,10 @@ class StateEstimate:
         #: would raise the limit): that prediction, run on open loop with the parameters of the
         #: fault (:meth:`doubt_gap`); None when no such fault is unresolved
         self._doubt: tuple[Stepper, np.ndarray] | None = None
+        #: the commissioned prediction: the model file's parameters on open loop, °C (None before the start)
+        self._commissioned = Stepper(model, model.nominal(), self.dt)
+        self._commissioned.cache_size = STEPPER_CACHE
+        self._commissioned_x: np.ndarray | None = None
 
     # -- read-only views -------------------------------------------------------------------------
     @property
@@ -114,7 +123,26 @@ class StateEstimate:
         if T0 is None:
             T0 = initial_state(m, ti.inputs, ti.measured, theta)
         self._begin(T0, theta, ti.measured, P0)
+        self._start_commissioned(rs, t, state)
         return info
+
+    def _start_commissioned(self, rs: PersistedState | None, t: float, state: StateConfig) -> None:
+        """The commissioned prediction: kept through a failed tick, restored from the saved one
+        cooled over the downtime, else from the started state."""
+        if self._commissioned_x is not None:
+            return
+        assert self._prediction is not None
+        x = self._prediction.copy()
+        if rs is not None and rs.T_commissioned and len(rs.T_commissioned) == len(x):
+            downtime = t - rs.saved_at
+            last = {k: v for k, v in rs.inputs.items() if math.isfinite(v)}
+            try:
+                if 0 <= downtime <= state.max_downtime_s:
+                    x = cool_down(self.model, self._commissioned.theta, np.array(rs.T_commissioned), downtime, last)[0]
+            except Exception as exc:  # the inputs saved do not cover the model's: from the started state
+                log.warning("cannot cool the saved commissioned prediction over the downtime (%s): "
+                            "starting it from the state", exc)
+        self._commissioned_x = x if np.all(np.isfinite(x)) else self._prediction.copy()
 
     def restart_from_readings(self, ti: TickInputs, theta: np.ndarray, doubt: bool = False) -> None:
         """After a model fault: start again from the usable readings alone. With ``doubt`` (the
@@ -140,6 +168,23 @@ class StateEstimate:
         x = self._doubt[1]
         gaps = [x[r] - measured[s] for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
         return max(gaps) if gaps and math.isfinite(max(gaps)) else None
+
+    def commissioned_gap(self, measured: Mapping[str, float], sensor_rows: Mapping[str, int]) -> tuple[str, float] | None:
+        """The sensor whose reading lies furthest below the commissioned prediction, and by how much
+        (K; negative: every reading above it); None before the start or without a reading."""
+        x = self._commissioned_x
+        if x is None:
+            return None
+        gaps = [(float(x[r] - measured[s]), s) for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
+        if not gaps:
+            return None
+        gap, s = max(gaps)
+        return (s, gap) if math.isfinite(gap) else None
+
+    @property
+    def commissioned(self) -> np.ndarray | None:
+        """The commissioned prediction, °C (None before the start)."""
+        return self._commissioned_x
 
     def resolve_doubt(self) -> None:
         """The readings agree with the prediction from before the fault again: the state and the
@@ -193,6 +238,10 @@ class StateEstimate:
         if self._doubt is not None:
             st, xd = self._doubt
             self._doubt = (st, st.step(xd, dict(u))[0])
+        if self._commissioned_x is not None:
+            xc = self._commissioned.step(self._commissioned_x, dict(u))[0]
+            if np.all(np.isfinite(xc)):  # inputs the model cannot step: it waits for usable ones
+                self._commissioned_x = xc
         obs.predict(dict(u))
         prior = obs.T.copy()
         innov = [abs(measured[s] - prior[r]) for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
@@ -209,6 +258,9 @@ class StateEstimate:
         obs.T = T1
         obs.P = Phi @ obs.P @ Phi.T + np.eye(len(T1)) * grow
         self._prediction = T1.copy()
+        if self._commissioned_x is not None:
+            self._commissioned_x = cool_down(self.model, self._commissioned.theta, self._commissioned_x, gap_s,
+                                             dict(last_inputs))[0]
 
     @property
     def stepper(self) -> Stepper:
@@ -233,7 +285,8 @@ class StateEstimate:
             self._observer.T = np.asarray(estimate, dtype=float).copy()
 
     def saved(self) -> dict[str, list] | None:
-        """The state to persist (nodes, T, sigma, P, T_pred), or None if not started or not finite."""
+        """The state to persist (nodes, T, sigma, P, T_pred, T_commissioned), or None if not started or
+        not finite."""
         obs = self._observer
         if obs is None or not (np.all(np.isfinite(obs.T)) and np.all(np.isfinite(obs.P))):
             return None
@@ -246,4 +299,6 @@ class StateEstimate:
         x = self._prediction
         if x is not None and np.all(np.isfinite(x)):
             out["T_pred"] = [float(v) for v in x]
+        xc = self._commissioned_x
+        out["T_commissioned"] = [float(v) for v in xc] if xc is not None and np.all(np.isfinite(xc)) else []
         return out

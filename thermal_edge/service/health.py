@@ -9,6 +9,10 @@
   ``hold_s``, doubled for each fault that recurs within ``repeat_s`` after the previous hold ended
   (up to ``hold_max_s``): a cause that persists does not get full power back after every hold. It also keeps the window of squared
   open-loop prediction errors over the adaptation period, whose RMS is ``TE_PredErrRms``;
+- the readings against the commissioned model (:class:`CommissionedCheck`): readings that fall more
+  than ``commissioned_gap_k`` below the model file's own open-loop prediction for
+  ``prediction_error_ticks`` ticks are not believed (``model_fault``) until they come back within
+  half of it;
 - the sensors' plausibility over time (:class:`StuckSensors`): a reading that sits still while the
   model, stepped with the measured losses, heats its node by several kelvin is stuck (frozen), a
   sensor fault (kind ``stuck``) until the reading moves again.
@@ -23,8 +27,9 @@ from collections.abc import Iterable, Mapping
 from ..bus.frames import DerateReason
 from ..config import FaultConfig
 from .inputs import TickInputs
+from .journal import notice
 
-__all__ = ["ModelHealth", "StuckSensors", "input_reasons"]
+__all__ = ["CommissionedCheck", "ModelHealth", "StuckSensors", "input_reasons"]
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +145,67 @@ class ModelHealth:
     def new_state(self) -> None:
         """A fresh state (first initialisation): innovations count from zero, the window is kept."""
         self._innovation_ticks = self._prediction_ticks = 0
+
+
+class CommissionedCheck:
+    """Readings far below the commissioned model's prediction: not believed until they agree again.
+
+    The adaptation follows the readings, and a restart after a model fault starts from them: a drift
+    common to every PT100 (one excitation current or ADC reference in the inverter, an offset
+    flashed into it) that reads low slowly enough passes every check made against them, and the
+    machine gets full current while it runs hot. The commissioned prediction (the model file's
+    parameters on open loop, :meth:`.estimate.StateEstimate.commissioned_gap`) follows neither.
+    Only readings *below* it count: above it, believing them costs headroom, not safety.
+
+    Parameters
+    ----------
+    config : FaultConfig
+        ``derating.faults``: ``commissioned_gap_k`` (K) and ``prediction_error_ticks``.
+    """
+
+    def __init__(self, config: FaultConfig) -> None:
+        self.config = config
+        self._ticks = 0
+        self._active = False
+        self._count = 0
+        #: the last gap measured: (sensor, K below the commissioned prediction)
+        self.gap: tuple[str, float] | None = None
+
+    @property
+    def active(self) -> bool:
+        """The readings are not believed now."""
+        return self._active
+
+    @property
+    def count(self) -> int:
+        """Times the readings fell below the commissioned prediction and were not believed."""
+        return self._count
+
+    def judge(self, t: float, gap: tuple[str, float] | None) -> bool:
+        """Record this tick's gap (sensor and K below the commissioned prediction; None: no
+        reading); returns whether the readings are not believed. Logs the start at ERROR and the
+        end at NOTICE."""
+        fc = self.config
+        if gap is None:  # no reading: nothing changes
+            return self._active
+        self.gap = gap
+        sensor, k = gap
+        if self._active:
+            if k <= fc.commissioned_gap_k / 2.0:
+                self._active = False
+                self._ticks = 0
+                notice(log, "the readings agree again with the commissioned model (%s %.1f K below its "
+                       "prediction): trusted", sensor, k)
+            return self._active
+        self._ticks = self._ticks + 1 if k > fc.commissioned_gap_k else 0
+        if self._ticks >= fc.prediction_error_ticks:
+            self._active = True
+            self._count += 1
+            log.error("readings not believed at t=%.0f: %s reads %.1f K below the commissioned model's prediction "
+                      "(more than %.0f K for %d ticks): a drift common to the PT100s, or a machine that cools far "
+                      "better than its model file says (recalibrate it); safe limit until within %.0f K",
+                      t, sensor, k, fc.commissioned_gap_k, self._ticks, fc.commissioned_gap_k / 2.0)
+        return self._active
 
 
 class StuckSensors:

@@ -49,6 +49,7 @@ LABELS: dict[str, tuple[str, ...]] = {
     "node_prediction_celsius": ("node",),
     "sensor_measurement_celsius": ("sensor", "node"),
     "prediction_error_celsius": ("sensor", "node"),
+    "commissioned_gap_celsius": ("sensor",),
     "input_value": ("input",),
     "limited_node_celsius": ("limit", "node", "band"),
     "sensor_age_seconds": ("sensor",),
@@ -122,6 +123,14 @@ class _LiveCollector(Collector):
                     err.add_metric([s, node], out.pred_error[s])
             yield meas
             yield err
+            below = GaugeMetricFamily(P + "commissioned_gap_celsius", "How far the reading furthest below the "
+                                      "commissioned model's open-loop prediction lies below it (negative: every reading "
+                                      "above it); beyond derating.faults.commissioned_gap_k the readings are not believed",
+                                      labels=LABELS["commissioned_gap_celsius"])
+            gap = eng.commissioned.gap
+            if gap is not None:
+                below.add_metric([gap[0]], gap[1])
+            yield below
             if math.isfinite(out.pred_err_rms):
                 yield GaugeMetricFamily(P + "prediction_error_rms_celsius",
                                         "RMS open-loop prediction error over the last adaptation period",
@@ -238,6 +247,9 @@ class _LiveCollector(Collector):
                 ("adaptation_failures", ad.failures, "Adaptations that failed with an error"),
                 ("adaptation_skipped", ad.skipped, "Decisions above the threshold that could not optimise yet"),
                 ("model_faults", eng.model_faults, "Times the model was found diverged (safe limit forced)"),
+                ("readings_doubted", eng.commissioned.count, "Times the readings fell more than "
+                 "derating.faults.commissioned_gap_k below the commissioned model's prediction (not believed, not "
+                 "learnt from; safe limit until within half of it)"),
                 ("ticks", eng.ticks, "Ticks run"),
                 ("frame_gaps", eng.gaps, "Gaps in the frame clock bridged by cooling the state"),
             ):

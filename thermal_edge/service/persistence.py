@@ -238,6 +238,8 @@ class PersistedState:
     T: list[float] = field(default_factory=list)  # best estimate, degC
     sigma: list[float] = field(default_factory=list)  # its standard deviation, K
     T_pred: list[float] = field(default_factory=list)  # open-loop prediction, degC
+    #: the commissioned prediction (the model file's parameters on open loop), degC
+    T_commissioned: list[float] = field(default_factory=list)
     P: list[list[float]] = field(default_factory=list)  # covariance of the estimate, K²
     inputs: dict[str, float] = field(default_factory=dict)  # last inputs (ambient for the cool-down)
     saved_wall: float = 0.0
@@ -295,17 +297,18 @@ class PersistedState:
             T=_list(raw.get("T", []), "T", _number),
             sigma=_list(raw.get("sigma", []), "sigma", _number),
             T_pred=_list(raw.get("T_pred", []), "T_pred", _number),
+            T_commissioned=_list(raw.get("T_commissioned", []), "T_commissioned", _number),
             P=_list(raw.get("P", []), "P", lambda row, w: _list(row, w, _number)),
             inputs=_mapping(raw.get("inputs", {}), "inputs", _number),
             saved_wall=_number(raw.get("saved_wall", 0.0), "saved_wall"),
         )
         n = len(model.nodes)
-        if st.T or st.sigma or st.T_pred or st.P or st.nodes:
+        if st.T or st.sigma or st.T_pred or st.T_commissioned or st.P or st.nodes:
             if st.nodes != list(model.nodes):
                 raise StateError("its node list differs from the model's")
             if len(st.T) != n:
                 raise StateError(f"T has {len(st.T)} values for {n} nodes")
-            for arr, what in ((st.sigma, "sigma"), (st.T_pred, "T_pred")):
+            for arr, what in ((st.sigma, "sigma"), (st.T_pred, "T_pred"), (st.T_commissioned, "T_commissioned")):
                 if arr and len(arr) != n:
                     raise StateError(f"{what} has {len(arr)} values for {n} nodes")
             if any(x < 0 for x in st.sigma):
@@ -316,7 +319,7 @@ class PersistedState:
                 # the observer adds process noise every tick: no saved estimate is exact, and a zero
                 # variance would keep readings from ever correcting the node
                 raise StateError("P has a variance of zero or less (no estimate is exact)")
-            for arr, what in ((st.T, "T"), (st.T_pred, "T_pred")):
+            for arr, what in ((st.T, "T"), (st.T_pred, "T_pred"), (st.T_commissioned, "T_commissioned")):
                 found = TEMPERATURE.series_problem(np.asarray(arr, dtype=float)) if arr else None
                 if found is not None:
                     at, cause = found
