@@ -60,3 +60,17 @@ def test_fit_minutes_out_of_range_is_a_usage_error(tmp_path):
     r = te_here("bench", "magnet", "--data-dir", tmp_path, "--fit-minutes", "200")
     assert r.returncode == 2
     assert "--fit-minutes 200" in r.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not RUN.exists(), reason=f"{RUN} absent (the Paderborn data are never part of this repository)")
+def test_no_stator_target_worse_with_the_service_default():
+    """Commissioned on 30 min (where the fused covariance's optimal gain left the winding's estimate
+    1.5e-6 K² further from its sensor than the observer's): with the stator's sensor gain the
+    observer's own, every stator target's estimate is no worse than the observer's, the magnet
+    still better."""
+    p = magnet.run(PADERBORN, fit_minutes=(30.0,)).parts["30"]
+    x = p["extrapolated"]
+    for s, v in x["stator_mse"].items():
+        assert v <= p["stator_mse"][s]["observer"], s
+    assert x["fused_mse"] < 0.4 * p["observer_mse"]

@@ -45,7 +45,12 @@ the same (a zero row elsewhere does not change them), so the magnet learns what 
 And the winding's protection (the hot spot) keeps resting on the stator's sensors and the model
 alone: an electrical calibration that slips past the disagreement check cannot cool it. The
 corrected rotor still reaches the stator, through the model's conduction in the next prediction,
-as the heat does.
+as the heat does. Nor does it reach the stator through the sensor update: the magnet's narrower
+band would narrow the stator's predicted band through the same cross-covariance and so shrink the
+gain the stator takes from its own sensors. The stator's rows of the sensor gain are therefore
+those of the observer without the flux estimate (:meth:`Observer.unfused_gain`, its covariance
+carried beside from the first flux estimate on); the rotor's rows and the offset's stay the fused
+covariance's optimal gain, and the Joseph form keeps the fused covariance that of the estimate.
 """
 from __future__ import annotations
 
@@ -186,6 +191,9 @@ class FluxObserver(Observer):
         K = np.linalg.solve(P[np.ix_(idx, idx)] + R, P[idx, :]).T
         K[n:m] = 0.0  # the adaptable parameters are the adapter's (Schmidt), as in the observer
         K[m + 1] = 0.0  # and the change error is considered, never corrected
+        Ku = self.unfused_gain(idx)
+        if Ku is not None:  # the stator's rows: the observer's without the flux estimate, as in Observer.update
+            K[self.unfused_rows] = Ku[self.unfused_rows]
         self._apply(P, S, K, H, R, y - self.T[idx])
         return self.T
 
@@ -241,7 +249,8 @@ class FluxObserver(Observer):
         K[n:m] = 0.0
         K[m + 1] = 0.0  # the change error: considered (see the module's description)
         if corrects is not None:
-            K[np.setdiff1d(np.arange(n), np.asarray(corrects, dtype=int))] = 0.0
+            self.consider(corrects)
+            K[self.unfused_rows] = 0.0
         self._apply(P, S, K, H, np.array([[var]]), np.array([nu]))
         self.node_updates_used += 1
         return True

@@ -29,6 +29,13 @@ the parameters' part, and a gain from the state part alone would barely move it.
 name the nodes it corrects (the flux estimate: the rotor's), the others are then considered. The update
 refuses an estimate whose 95 % band does not overlap the model's: a wrong electrical calibration
 must not pull the magnet down; the refusals are counted.
+
+The considered nodes are left alone by such an estimate in the sensor update as well: from the
+first one on, the observer carries beside its covariance the one it would have without any
+(:attr:`Observer.unfused`, the same transition, the same sensor updates with their own optimal gain),
+and the sensor gain's rows of the considered nodes are that covariance's. Their correction by
+their own sensors is then the one of the observer without the estimate, whatever the estimate
+told the rotor; the covariance stays that of the estimate (Joseph form, valid for any gain).
 """
 from __future__ import annotations
 
@@ -108,6 +115,11 @@ class Observer:
         #: direct node estimates used and refused by :meth:`update_node`
         self.node_updates_used = 0
         self.node_updates_refused = 0
+        #: covariance over ``[T; φ_a]`` (K²) the observer would have without the direct node estimates,
+        #: carried from the first one that considers some nodes (None before: it is :attr:`Pa`)
+        self.unfused: np.ndarray | None = None
+        #: the nodes whose sensor gain is :attr:`unfused`'s (those a direct estimate considers)
+        self.unfused_rows = np.zeros(0, dtype=int)
 
     @property
     def P(self) -> np.ndarray:
@@ -117,11 +129,15 @@ class Observer:
     @P.setter
     def P(self, value: np.ndarray) -> None:
         """Set the temperature covariance; its correlation with the parameters is forgotten (the
-        result stays a covariance)."""
+        result stays a covariance). :attr:`unfused` is dropped: a covariance set from outside (a
+        restart, a gap in the frames) has no unfused counterpart here; the next direct estimate
+        starts it again from the covariance then, whose share of earlier estimates the filter
+        forgets as it forgets any initial covariance."""
         n = self._n
         self.Pa[:n, :n] = value
         self.Pa[:n, n:] = 0.0
         self.Pa[n:, :n] = 0.0
+        self.unfused = None
 
     def set_parameters(self, theta: np.ndarray) -> None:
         self.stepper.set_parameters(theta)
@@ -212,6 +228,9 @@ class Observer:
         self.transition = F  # the step's transition over [T; φ_a]: a state carried beside it follows it
         self.Pa = F @ self.Pa @ F.T
         self.Pa[:n, :n] += self.Q
+        if self.unfused is not None:
+            self.unfused = F @ self.unfused @ F.T
+            self.unfused[:n, :n] += self.Q
         self.T = T_next
         return self.T
 
@@ -219,7 +238,8 @@ class Observer:
         """Correct the estimate with the sensors that report (NaN or unknown ones are ignored).
 
         The gain's parameter rows are zero (Schmidt): the covariance update is the Joseph form
-        ``(I − K H) P (I − K H)ᵀ + K R Kᵀ``, valid for that gain.
+        ``(I − K H) P (I − K H)ᵀ + K R Kᵀ``, valid for that gain. After a direct estimate that
+        considered some nodes, their rows are the gain of :attr:`unfused` (:meth:`unfused_gain`).
         """
         ok = [(self.rows[s], float(v)) for s, v in measured.items() if s in self.rows and np.isfinite(v)]
         if not ok:
@@ -231,6 +251,9 @@ class Observer:
         Sy = Pa[np.ix_(idx, idx)] + np.eye(len(idx)) * self.r2
         K = np.zeros((m, len(idx)))
         K[:n] = np.linalg.solve(Sy, Pa[idx, :n]).T
+        Ku = self.unfused_gain(idx)
+        if Ku is not None:
+            K[self.unfused_rows] = Ku[self.unfused_rows]
         self.T = self.T + K[:n] @ (y - self.T[idx])
         A = np.eye(m)
         A[:, idx] -= K
@@ -238,6 +261,37 @@ class Observer:
         self.Pa = 0.5 * (self.Pa + self.Pa.T)
         self.S = self.S - K[:n] @ self.S[idx, :]
         return self.T
+
+    def unfused_gain(self, idx: Sequence[int]) -> np.ndarray | None:
+        """The sensor gain (m, l) for the sensors at node rows ``idx`` of the observer without the
+        direct node estimates (zero parameter rows, as :meth:`update`), and :attr:`unfused`
+        advanced by that update; None while there is no :attr:`unfused`.
+
+        The considered nodes take these rows: what a direct estimate of the rotor says about them
+        reaches them through the model's cross-covariance only, and that is also how it would
+        narrow their predicted band and so shrink their sensors' gain (the magnet heats the
+        winding), the same path the estimate is kept from in :meth:`update_node`. With them, a
+        considered node is corrected by its sensors as without the estimate, and moved by the
+        estimate only where the model's conduction carries the corrected rotor's heat."""
+        Pu = self.unfused
+        if Pu is None:
+            return None
+        n, m = self._n, len(Pu)
+        Ku = np.zeros((m, len(idx)))
+        Ku[:n] = np.linalg.solve(Pu[np.ix_(idx, idx)] + np.eye(len(idx)) * self.r2, Pu[idx, :n]).T
+        A = np.eye(m)
+        A[:, idx] -= Ku
+        Pu = A @ Pu @ A.T + self.r2 * (Ku @ Ku.T)
+        self.unfused = 0.5 * (Pu + Pu.T)
+        return Ku
+
+    def consider(self, corrects: Sequence[int] | np.ndarray) -> None:
+        """A direct estimate corrects only the nodes ``corrects``: the others take their sensor
+        gain from :attr:`unfused` from now on (started here as the covariance so far, which holds
+        no direct estimate yet, or kept)."""
+        self.unfused_rows = np.setdiff1d(np.arange(self._n), np.asarray(corrects, dtype=int))
+        if self.unfused is None and len(self.unfused_rows):
+            self.unfused = self.Pa.copy()
 
     def update_node(self, node: int | Sequence[int], value: float, var: float, inflate: float = 1.0,
                     z: float = 1.959963984540054, corrects: Sequence[int] | np.ndarray | None = None) -> bool:
@@ -257,7 +311,9 @@ class Observer:
         ``corrects`` (node indices, default all): the nodes the estimate may move; the gain's rows
         of the others are zero (Schmidt–Kalman: those nodes are considered, their covariance with
         the corrected ones follows the Joseph form, which is valid for any gain). The corrected
-        rows are the optimal gain's: a zero row elsewhere does not change them.
+        rows are the optimal gain's: a zero row elsewhere does not change them. From then on the
+        sensor update's rows of the considered nodes are those of the observer without direct
+        estimates (:meth:`consider`, :meth:`unfused_gain`).
         """
         if not (np.isfinite(value) and np.isfinite(var) and var > 0.0):
             return False
@@ -276,7 +332,8 @@ class Observer:
         r = var * max(float(inflate), 1.0)
         K[:n] = Ch / (s2 + r)
         if corrects is not None:
-            K[np.setdiff1d(np.arange(n), np.asarray(corrects, dtype=int))] = 0.0
+            self.consider(corrects)
+            K[self.unfused_rows] = 0.0
         self.T = self.T + K[:n] * nu
         A = np.eye(m)
         A[:, :n] -= np.outer(K, h)
