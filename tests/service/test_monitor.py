@@ -162,3 +162,20 @@ def test_the_bus_view_lists_the_frames_of_the_configurations_own_matrix(tmp_path
         sender.join(10)
     assert r.returncode == 0, r.stderr
     assert "MC7_Currents" in r.stdout, r.stdout
+
+
+def test_the_bus_view_of_a_silent_bus_says_nothing_was_heard(tmp_path):
+    """``monitor --bus --once`` on a bus where nobody sends: every frame of the matrix with a cycle
+    time (read here from the DBC by cantools) is listed as never heard, and the screen says that
+    the inverter has no TE_Limits; "stale inputs: none" alone read as all inputs fresh."""
+    from cli_in_process import te_here
+
+    from thermal_edge.bus.frames import DEFAULT_DBC_PATH
+
+    db = cantools.database.load_file(str(DEFAULT_DBC_PATH))
+    cyclic = sorted(m.name for m in db.messages if m.cycle_time)
+    r = te_here("monitor", "--bus", "--once", "--interface", "virtual", "--channel", f"silent-{tmp_path.name}")
+    assert r.returncode == 0, r.stderr
+    heard = next(line for line in r.stdout.splitlines() if line.startswith("never heard: "))
+    assert heard.removeprefix("never heard: ").split(", ") == cyclic
+    assert "no TE_Limits heard: the inverter is on its own protection" in r.stdout

@@ -36,6 +36,26 @@ def test_roundtrip_is_atomic_and_complete(tmp_path, model):
     assert back.P == st.P and back.decisions == st.decisions
 
 
+@pytest.mark.parametrize("offset_s, level, words", [(-3600.0, logging.INFO, "3600 s ago"),
+                                                     (30 * 86400.0, logging.WARNING, "2592000 s in the future")])
+def test_a_load_says_what_it_loaded_and_a_state_from_the_future_is_a_warning(tmp_path, model, caplog, offset_s, level,
+                                                                            words):
+    """Every load is one line with the state's age by this host's clock, its parameter version and
+    what it holds; a state saved 30 days in the future (a clock set wrong) is a WARNING."""
+    import time
+
+    st = state_for(model)
+    st.saved_wall = time.time() + offset_s
+    assert StateStore(tmp_path, model).save(st)
+    with caplog.at_level(logging.INFO, logger="thermal_edge.service.persistence"):
+        assert StateStore(tmp_path, model).load() is not None
+    said = [r for r in caplog.records if r.getMessage().startswith("loaded state file")]
+    assert len(said) == 1 and said[0].levelno == level, [r.getMessage() for r in caplog.records]
+    msg = said[0].getMessage()
+    assert words in msg.replace(f"{abs(offset_s) + 1:.0f} s", f"{abs(offset_s):.0f} s")
+    assert f"parameter version {st.param_version}, 1 learned parameter(s), the thermal state of {len(model.nodes)} nodes" in msg
+
+
 def test_a_failed_write_keeps_the_old_file(tmp_path, model, monkeypatch):
     store = StateStore(tmp_path, model)
     store.save(state_for(model))

@@ -46,7 +46,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="state directory, kept (default: a fresh temporary one, removed when the demo ends)")
     p.add_argument("--record", type=output_file, default=None,
                    help="record the bus traffic to this CAN log (format by suffix: .log candump -L, .asc, .blf, .trc, "
-                        ".mf4, .csv)")
+                        ".mf4, .csv), stamped in simulated time; TE_Limits keeps its 100 ms cycle in wall time, so "
+                        "with --speed above 1 it comes --speed times less often in the log (--speed 1 keeps the "
+                        "contract's cycle)")
     p.add_argument("--voltages", action="store_true",
                    help="the inverter also sends INV_Voltages and the service fuses the magnet estimate from them "
                         "(the configuration's flux.calibration, else one commissioned first on a simulated bench run); "

@@ -86,6 +86,8 @@ class Snapshot:
         Frames missing longer than their timeout (metrics), or not seen for 3 cycle times (bus).
     frame_ages : dict
         Frame name -> seconds since last seen (bus).
+    unheard : list
+        Frames with a cycle time in the CAN matrix never heard on the bus (bus view).
     dropped : int
         Frames dropped by the integrity checks (metrics).
     bus_silent_s : float
@@ -119,6 +121,7 @@ class Snapshot:
     sensors: list[SensorView] = field(default_factory=list)
     stale: list[str] = field(default_factory=list)
     frame_ages: dict[str, float] = field(default_factory=dict)
+    unheard: list[str] = field(default_factory=list)
     dropped: int | None = None
     bus_silent_s: float = 0.0
     flux_used: int | None = None
@@ -265,4 +268,5 @@ class FrameWatch:
         snap = self.snapshot
         snap.frame_ages = {k: now - t for k, t in sorted(self._seen.items())}
         snap.stale = [k for k, age in snap.frame_ages.items() if k in self.cycle_s and age > 3 * self.cycle_s[k]]
+        snap.unheard = sorted(k for k in self.cycle_s if k not in self._seen)
         return snap

@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import time
 
+from ..bus.frames import TE_LIMITS
 from .snapshot import Snapshot
 
 __all__ = ["render"]
@@ -74,6 +75,10 @@ def render(snap: Snapshot, now: float | None = None) -> str:
         for name, age in snap.frame_ages.items():
             lines.append(f"{name:18s} {age:11.2f}{'  STALE' if name in snap.stale else ''}")
     lines.append("")
+    if snap.unheard:
+        lines.append(f"never heard: {', '.join(snap.unheard)}")
+        if TE_LIMITS in snap.unheard:
+            lines.append("no TE_Limits heard: the inverter is on its own protection")
     if snap.bus_silent_s > 0.0:
         lines.append(f"BUS SILENT for {snap.bus_silent_s:.1f} s: TE_Limits carries the safe limit")
     lines.append(f"stale inputs: {', '.join(snap.stale) if snap.stale else 'none'}"

@@ -224,6 +224,11 @@ def _decision(v: Any, what: str) -> dict[str, Any]:
     return dict(v)  # its values are whatever the adapter recorded (JSON, depth-bounded by the parser)
 
 
+#: a state saved this far in the future by this host's clock is announced as such (clocks of two
+#: hosts, or of one host across an NTP step, differ by seconds), s
+FUTURE_TOLERANCE_S = 60.0
+
+
 @dataclass
 class PersistedState:
     """What survives a restart."""
@@ -484,7 +489,24 @@ class StateStore:
             log.warning("state file %s: dropped learned parameter(s) %s: model %s has no parameter of that name "
                         "(renamed or removed by a model update?); kept the others (%s)", self.path,
                         ", ".join(dropped), self.model.name, kept)
+        self._say_loaded(state)
         return state
+
+    def _say_loaded(self, state: PersistedState) -> None:
+        """One line on what was loaded and how old it is by this host's clock; a WARNING for a
+        state saved in the future (a clock set wrong before or now: its age cannot be trusted)."""
+        what = (f"parameter version {state.param_version}, {len(state.parameters)} learned parameter(s), "
+                + (f"the thermal state of {len(state.T)} nodes" if state.T else "no thermal state"))
+        if state.saved_wall <= 0:
+            log.info("loaded state file %s: %s", self.path, what)
+            return
+        age = time.time() - state.saved_wall
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(state.saved_wall))
+        if age < -FUTURE_TOLERANCE_S:
+            log.warning("loaded state file %s saved %.0f s in the future by this host's clock (%s UTC): a clock set "
+                        "wrong, then or now; %s", self.path, -age, when, what)
+        else:
+            log.info("loaded state file %s: saved %s UTC, %.0f s ago; %s", self.path, when, max(age, 0.0), what)
 
     def probe(self) -> bool:
         """Can a save work? Create the directory if needed, write and remove a temporary file.
