@@ -17,6 +17,7 @@ from test_persistence import _engine_config, _feed
 from thermal_edge.bus import DerateReason
 from thermal_edge.lptn import Stepper
 from thermal_edge.service.engine import ThermalEngine
+from thermal_edge.service.estimate import COMMISSIONED_BLOCK
 from thermal_edge.service.persistence import PersistedState
 
 SAFE = 10.0
@@ -49,7 +50,8 @@ def test_a_drift_common_to_every_pt100_is_not_believed_and_the_limit_stays_safe(
     """Every reading drifts low at 2 K/min from 5 min on, up to 40 K (below the 40 K the open-loop
     check against the model in use needs). The first tick the engine refuses the readings is the
     ``prediction_error_ticks``-th tick of a drift beyond ``commissioned_gap_k`` (the plant is the
-    commissioned model, so the gap is the drift; ±1 tick for the readings' half-tick lead), the safe
+    commissioned model, so the gap is the drift), within the block of ticks the prediction steps
+    over, the safe
     limit holds while the drift lasts, one count, one ERROR line; when the readings are right
     again they are trusted within a tick."""
     import logging
@@ -64,11 +66,12 @@ def test_a_drift_common_to_every_pt100_is_not_believed_and_the_limit_stays_safe(
         over = [n for n, d in enumerate(drifts) if d > fc.commissioned_gap_k]
         expected = over[fc.prediction_error_ticks - 1]
         refused = next(n for n, o in enumerate(outs) if o.limits.reason == DerateReason.MODEL_FAULT)
-        assert abs(refused - expected) <= 1, (refused, expected)
+        # the prediction steps once a block of ticks: up to a block late, one tick early (the readings' half-tick lead)
+        assert expected - 1 <= refused <= expected + COMMISSIONED_BLOCK, (refused, expected)
         assert all(o.limits.current_a <= SAFE and o.limits.reason == DerateReason.MODEL_FAULT for o in outs[refused:])
         assert eng.commissioned.count == 1 and eng.health.faults == 0
         # the gap it reports is the drift (the plant is the commissioned model)
-        assert eng.commissioned.gap is not None and abs(eng.commissioned.gap[1] - cap) < 0.5
+        assert eng.commissioned.gap is not None and abs(eng.commissioned.gap[1] - cap) < 1.0
         # the adapter is given no reading while they are not believed
         assert all(math.isnan(v) for v in eng._prev_sample[1].values())
         back, _, _ = _run(eng, model, range(1801, 1861), T, lambda k: 0.0)

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..config import ObserverConfig, StateConfig
 from ..estimation.observer import Observer
-from ..lptn import Model, Stepper, cool_down, initial_state
+from ..lptn import Model, Role, Stepper, cool_down, initial_state
 from .inputs import TickInputs
 from .persistence import PersistedState
 
@@ -33,6 +33,10 @@ log = logging.getLogger(__name__)
 #: operating points (exact speeds) whose transition matrices are kept (18 kB each for pm10kw): a
 #: drive dwells at a few and ramps through others it will not meet again to the rpm
 STEPPER_CACHE = 32
+#: the commissioned prediction steps once per this many ticks, with the block's mean inputs (the
+#: current as RMS, so that the copper losses are kept): it is judged against a 20 K gap on drifts
+#: of minutes, and a step (the losses at the operating point) costs as much as the open loop's
+COMMISSIONED_BLOCK = 10
 
 
 class StateEstimate:
@@ -61,9 +65,11 @@ class StateEstimate:
         #: fault (:meth:`doubt_gap`); None when no such fault is unresolved
         self._doubt: tuple[Stepper, np.ndarray] | None = None
         #: the commissioned prediction: the model file's parameters on open loop, °C (None before the start)
-        self._commissioned = Stepper(model, model.nominal(), self.dt)
+        self._commissioned = Stepper(model, model.nominal(), self.dt * COMMISSIONED_BLOCK)
         self._commissioned.cache_size = STEPPER_CACHE
         self._commissioned_x: np.ndarray | None = None
+        self._block: list[Mapping[str, float]] = []  # the inputs of the ticks since its last step
+        self._current = model.find_input(Role.CURRENT)
 
     # -- read-only views -------------------------------------------------------------------------
     @property
@@ -238,15 +244,27 @@ class StateEstimate:
         if self._doubt is not None:
             st, xd = self._doubt
             self._doubt = (st, st.step(xd, dict(u))[0])
-        if self._commissioned_x is not None:
-            xc = self._commissioned.step(self._commissioned_x, dict(u))[0]
-            if np.all(np.isfinite(xc)):  # inputs the model cannot step: it waits for usable ones
-                self._commissioned_x = xc
+        self._step_commissioned(u)
         obs.predict(dict(u))
         prior = obs.T.copy()
         innov = [abs(measured[s] - prior[r]) for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
         obs.update(dict(measured))
         return innov
+
+    def _step_commissioned(self, u: Mapping[str, float]) -> None:
+        """Collect the tick's inputs; every :data:`COMMISSIONED_BLOCK` ticks step the commissioned
+        prediction over the block with their mean (the current's RMS)."""
+        if self._commissioned_x is None:
+            return
+        self._block.append(u)
+        if len(self._block) < COMMISSIONED_BLOCK:
+            return
+        mean = {k: float(np.sqrt(np.mean([b[k] ** 2 for b in self._block])) if k == self._current
+                         else np.mean([b[k] for b in self._block])) for k in u}
+        self._block = []
+        xc = self._commissioned.step(self._commissioned_x, mean)[0]
+        if np.all(np.isfinite(xc)):  # inputs the model cannot step: it waits for usable ones
+            self._commissioned_x = xc
 
     def bridge(self, gap_s: float, theta: np.ndarray, last_inputs: Mapping[str, float]) -> None:
         """Cool the state at standstill over a gap of ``gap_s`` in the frames (the uncertainty grows)."""
@@ -261,6 +279,7 @@ class StateEstimate:
         if self._commissioned_x is not None:
             self._commissioned_x = cool_down(self.model, self._commissioned.theta, self._commissioned_x, gap_s,
                                              dict(last_inputs))[0]
+            self._block = []
 
     @property
     def stepper(self) -> Stepper:
