@@ -42,3 +42,12 @@ def varied_1h(pm10kw):
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="module")
+def heated(pm10kw, make_run):
+    """20 min of the varied drive cycle on pm10kw with the true magnet (``magnet_2``) as a column:
+    the run the flux-fusion tests feed their voltages from."""
+    res = make_run(pm10kw, "varied_drive.yaml", 1200.0, seed=7)
+    res.run.columns["magnet_true"] = res.truth.node("magnet_2")
+    return res.run

@@ -19,13 +19,6 @@ MAGNET = "magnet_2"
 TRUE = {"r20": 0.0, "v_err": 0.0, "psi20": 0.1, "beta": -1.1e-4, "ld0": 5e-4, "ld1": 0.0, "lq0": 1e-3, "lq1": 0.0}
 
 
-@pytest.fixture(scope="module")
-def heated(pm10kw, make_run):
-    res = make_run(pm10kw, "varied_drive.yaml", 1200.0, seed=7)
-    res.run.columns["magnet_true"] = res.truth.node(MAGNET)
-    return res.run
-
-
 def warmed(model, run: Run, k: int = 600) -> FluxObserver:
     inputs = model_inputs(model, run)
     obs = FluxObserver(model, initial_from_run(model, run), None, run.dt)

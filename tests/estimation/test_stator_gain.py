@@ -8,37 +8,12 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import pytest
+from test_flux_changes import MAGNET, SENSORS, TRUE, electrical
 
-from thermal_edge.data import Run
-from thermal_edge.estimation.flux import PARAMS, Electrical, FluxModel
+from thermal_edge.estimation.flux import PARAMS, FluxModel
 from thermal_edge.estimation.fusion import FluxFusion, FluxObserver, flux_samples, rotor_nodes
 from thermal_edge.estimation.observer import Observer
 from thermal_edge.estimation.predict import initial_from_run, model_inputs
-
-SENSORS = ("slot_winding", "end_winding", "housing")
-MAGNET = "magnet_2"
-TRUE = {"r20": 0.0, "v_err": 0.0, "psi20": 0.1, "beta": -1.1e-4, "ld0": 5e-4, "ld1": 0.0, "lq0": 1e-3, "lq1": 0.0}
-
-
-@pytest.fixture(scope="module")
-def heated(pm10kw, make_run):
-    res = make_run(pm10kw, "varied_drive.yaml", 1200.0, seed=7)
-    res.run.columns["magnet_true"] = res.truth.node(MAGNET)
-    return res.run
-
-
-def voltages(run: Run, magnet_c: np.ndarray, ld_second_half: float) -> Electrical:
-    """3,000 rpm; i_d −40 A in the first half, −120 A in the second, where the true L_d is
-    ``ld_second_half`` (an operating point the commissioning did not see)."""
-    n = len(run)
-    rpm = np.full(n, 3000.0)
-    w = rpm * 2 * np.pi / 60 * 4
-    half = np.arange(n) >= n // 2
-    i_d = np.where(half, -120.0, -40.0)
-    ld = np.where(half, ld_second_half, TRUE["ld0"])
-    u_q = w * (ld * i_d + TRUE["psi20"] + TRUE["beta"] * (magnet_c - 20))
-    return Electrical(np.zeros(n), u_q, i_d, np.zeros(n), rpm, np.full(n, 60.0))
 
 
 def commissioned() -> FluxModel:
@@ -69,7 +44,7 @@ def spd(obs: FluxObserver) -> None:
 
 def test_stator_gain_is_the_unfused_observers_rotor_gain_the_fused_optimum(pm10kw, heated):
     truth = heated.columns["magnet_true"]
-    e = voltages(heated, truth, ld_second_half=5.3e-4)
+    e = electrical(heated, truth, ld_second_half=5.3e-4)
     fm = commissioned()
     fs = flux_samples(fm, e, heated.dt, extrapolate=True)
     inputs = model_inputs(pm10kw, heated)
