@@ -187,11 +187,6 @@ class StateEstimate:
         gap, s = max(gaps)
         return (s, gap) if math.isfinite(gap) else None
 
-    @property
-    def commissioned(self) -> np.ndarray | None:
-        """The commissioned prediction, °C (None before the start)."""
-        return self._commissioned_x
-
     def resolve_doubt(self) -> None:
         """The readings agree with the prediction from before the fault again: the state and the
         open-loop prediction continue from it (the state restarted from the doubted readings
