@@ -13,7 +13,7 @@ import zlib
 import numpy as np
 import pytest
 
-from thermal_edge.lptn.expr import ExprError, evaluate_const, parse
+from thermal_edge.lptn.expr import Bin, Call, ExprError, Name, Num, compile_many, evaluate_const, parse
 
 PY_FUNCS = {
     "exp": math.exp,
@@ -380,3 +380,57 @@ def test_printed_form_reparses_to_the_same_law(text, kinks):
     for _ in range(3):
         env = _point(rng, kinks)
         assert float(np.asarray(e2.compile()(env))) == pytest.approx(float(np.asarray(e.compile()(env))), rel=1e-13, abs=1e-13)
+
+
+def test_one_function_for_many_laws_gives_each_laws_value():
+    """``compile_many`` returns, in order, what each law's own evaluation gives (Python's eval)."""
+    texts = [t for t, _ in CASES[:60]]
+    many = compile_many([parse(t) for t in texts])
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        env = {v: float(rng.uniform(0.1, 1.4)) for v in VARS}
+        ok = [i for i, t in enumerate(texts) if _finite(t, env)]
+        got = many(env)
+        assert len(got) == len(texts)
+        for i in ok:
+            assert float(np.asarray(got[i])) == pytest.approx(py_eval(texts[i], env), rel=1e-12, abs=1e-12)
+
+
+def _finite(text, env) -> bool:
+    try:
+        return math.isfinite(py_eval(text, env))
+    except (ValueError, ZeroDivisionError, OverflowError):
+        return False
+
+
+def test_deeply_nested_law_compiles_beyond_pythons_parenthesis_limit():
+    """Generated code is one statement per node: a tree 600 levels deep (Python's parser refuses
+    200 nested parentheses) evaluates, to the value counted another way."""
+    e = Name("x")
+    for k in range(600):
+        e = Bin("*" if k % 2 else "+", e, Num(1.0 if k % 2 else 0.5))
+    assert float(e.compile()({"x": 2.0})) == 2.0 + 0.5 * 300
+
+
+def test_a_subtree_met_twice_is_evaluated_once():
+    calls = []
+
+    def table(x):
+        calls.append(x)
+        return np.asarray(x) * 3.0
+
+    shared = Call("tab", (Name("x"),), table)
+    f = compile_many([Bin("+", shared, shared), Bin("*", shared, Num(2.0))])
+    assert [float(v) for v in f({"x": 2.0})] == [12.0, 12.0]
+    assert len(calls) == 1
+
+
+def test_non_finite_constants_and_numpy_scalar_division():
+    """Constants without a literal (inf, nan) evaluate, and a division by a numpy scalar zero gives
+    inf as it does on arrays (the service's one-tick environment holds numpy scalars)."""
+    f = Bin("+", Name("x"), Num(math.inf)).compile()
+    assert f({"x": 1.0}) == math.inf
+    g = Bin("*", Name("x"), Num(math.nan)).compile()
+    assert math.isnan(g({"x": 1.0}))
+    with np.errstate(divide="ignore"):
+        assert parse("a / b").compile()({"a": 1.0, "b": np.float64(0.0)}) == math.inf

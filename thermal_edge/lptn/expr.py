@@ -5,7 +5,10 @@ recursive-descent parser (never ``eval``) into an immutable tree of :class:`Expr
 grammar admits numbers, names (letters, digits, ``_`` and ``.``), ``+ - * / **``, parentheses and
 the functions ``exp log sqrt tanh min max abs sign`` plus any lookup tables the model declares.
 Derivatives are taken symbolically on the tree (with light constant folding) and every tree
-compiles to a closure over numpy arrays, so a law evaluates on whole time series at once.
+compiles to a Python function over numpy arrays, so a law evaluates on whole time series at once.
+A tree with operators compiles to generated straight-line code (one statement per node, a
+subtree shared by the tree evaluated once): the service evaluates its laws on single values
+every tick, where calling a closure per node cost more than the arithmetic.
 
 >>> e = parse("2 * x ** 3 + exp(y)")
 >>> str(e.diff("x"))
@@ -15,9 +18,11 @@ compiles to a closure over numpy arrays, so a law evaluates on whole time series
 """
 from __future__ import annotations
 
+import math
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -155,17 +160,7 @@ class Bin(Expr):
         return mul(self, add(mul(db, call("log", a)), div(mul(b, da), a)))
 
     def compile(self) -> Compiled:
-        fa, fb = self.a.compile(), self.b.compile()
-        op = self.op
-        if op == "+":
-            return lambda env: fa(env) + fb(env)
-        if op == "-":
-            return lambda env: fa(env) - fb(env)
-        if op == "*":
-            return lambda env: fa(env) * fb(env)
-        if op == "/":
-            return lambda env: fa(env) / fb(env)
-        return lambda env: np.power(fa(env), fb(env))
+        return _generated([self], single=True)
 
     def substitute(self, values: Mapping[str, Expr]) -> Expr:
         return _bin(self.op, self.a.substitute(values), self.b.substitute(values))
@@ -217,21 +212,7 @@ class Call(Expr):
         raise ExprError(f"cannot differentiate {fn}()")
 
     def compile(self) -> Compiled:
-        fargs = [a.compile() for a in self.args]
-        fn = self.fn
-        if self.table is not None:
-            table = self.table
-            return lambda env: table(*[f(env) for f in fargs])
-        if fn in FUNCTIONS_1:
-            f1, g = FUNCTIONS_1[fn], fargs[0]
-            return lambda env: f1(g(env))
-        if fn in FUNCTIONS_2:
-            f2, g, h = FUNCTIONS_2[fn], fargs[0], fargs[1]
-            return lambda env: f2(g(env), h(env))
-        g, h = fargs
-        if fn == "step_ge":
-            return lambda env: np.where(np.asarray(g(env)) >= h(env), 1.0, 0.0)
-        return lambda env: np.where(np.asarray(g(env)) <= h(env), 1.0, 0.0)
+        return _generated([self], single=True)
 
     def substitute(self, values: Mapping[str, Expr]) -> Expr:
         return call(self.fn, *[a.substitute(values) for a in self.args], table=self.table)
@@ -466,6 +447,80 @@ def parse(text: str | float | int, tables: Mapping[str, Table] | None = None) ->
     return e
 
 
+# ---------------------------------------------------------------------------------------------
+# code generation
+
+def compile_many(exprs: Sequence[Expr]) -> Callable[[Env], list[Value]]:
+    """One function evaluating every expression of ``exprs`` from one environment.
+
+    The values are those each expression's :meth:`Expr.compile` gives (the same operations in the
+    same order), as a list in the order of ``exprs``; one call instead of one per law and per node.
+    """
+    return _generated(list(exprs), single=False)
+
+
+def _generated(exprs: list[Expr], single: bool) -> Callable[[Env], Any]:
+    gen = _CodeGen()
+    results = [gen.emit(e) for e in exprs]
+    ret = results[0] if single else "[" + ", ".join(results) + "]"
+    body = "".join(f"    {line}\n" for line in gen.lines)
+    source = f"def _law(env):\n{body}    return {ret}\n"
+    label = f"{len(exprs)} law(s), {len(gen.lines)} nodes"
+    namespace = dict(gen.globals)
+    exec(compile(source, f"<law {label}>", "exec"), namespace)  # source built from the parsed tree only
+    f: Callable[[Env], Any] = namespace["_law"]
+    return f
+
+
+class _CodeGen:
+    """Straight-line code of expression trees: each node a local, a node object met twice once."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self.globals: dict[str, Any] = {"_pow": np.power, "_where": np.where, "_asarray": np.asarray}
+        self._memo: dict[int, str] = {}
+        self._keep: list[Expr] = []  # the nodes memoised by id stay alive while the code is built
+
+    def _local(self, line: str) -> str:
+        name = f"v{len(self.lines)}"
+        self.lines.append(f"{name} = {line}")
+        return name
+
+    def _global(self, value: Any) -> str:
+        name = f"_g{len(self.globals)}"
+        self.globals[name] = value
+        return name
+
+    def emit(self, e: Expr) -> str:
+        """The name (or literal) holding the value of ``e``, emitting the lines it needs (one
+        Python frame per level of the tree, as evaluating it node by node would take)."""
+        hit = self._memo.get(id(e))
+        if hit is not None:
+            return hit
+        if isinstance(e, Num):
+            out = repr(e.value) if math.isfinite(e.value) else self._global(e.value)
+        elif isinstance(e, Name):
+            out = self._local(f"env[{e.name!r}]")
+        elif isinstance(e, Bin):
+            a, b = self.emit(e.a), self.emit(e.b)
+            out = self._local(f"_pow({a}, {b})" if e.op == "**" else f"{a} {e.op} {b}")
+        elif isinstance(e, Call):
+            args = [self.emit(a) for a in e.args]
+            if e.table is not None:
+                out = self._local(f"{self._global(e.table)}({', '.join(args)})")
+            elif e.fn in FUNCTIONS_1 or e.fn in FUNCTIONS_2:
+                fn = FUNCTIONS_1.get(e.fn) or FUNCTIONS_2[e.fn]
+                out = self._local(f"{self._global(fn)}({', '.join(args)})")
+            else:
+                cmp = ">=" if e.fn == "step_ge" else "<="
+                out = self._local(f"_where(_asarray({args[0]}) {cmp} {args[1]}, 1.0, 0.0)")
+        else:
+            raise ExprError(f"cannot compile {e!r}")
+        self._memo[id(e)] = out
+        self._keep.append(e)
+        return out
+
+
 def is_affine(e: Expr, names: set[str] | frozenset[str]) -> bool:
     """Whether ``e`` is affine in ``names`` by its structure (sums, products with factors free of
     ``names``, division by such factors); functions of ``names`` (``abs``, ``sign``, ``min``, …)
@@ -499,4 +554,5 @@ def evaluate_const(e: Expr) -> float:
     return float(np.asarray(e.compile()({})))
 
 
-__all__ = ["Expr", "ExprError", "Num", "Name", "Bin", "Call", "parse", "as_expr", "evaluate_const", "is_affine"]
+__all__ = ["Expr", "ExprError", "Num", "Name", "Bin", "Call", "parse", "as_expr", "compile_many", "evaluate_const",
+           "is_affine"]

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from .expr import Value, is_affine
+from .expr import Value, compile_many, is_affine
 from .model import Model
 from .network import _Law
 from .vocabulary import temperature_name
@@ -46,6 +46,12 @@ class LossLaws:
         # ∂P_j/∂T at the nodes it reads: (column of dT, compiled derivative)
         self._dT = [[(i, law.expr.diff(t).compile()) for i, t in enumerate(self._tnames) if t in law.expr.free()]
                     for law in self.laws]
+        # the same laws and derivatives as one generated function each: one call per evaluation
+        self._power_all = compile_many([law.expr for law in self.laws])
+        self._dT_at = [(j, i) for j, ds in enumerate(self._dT) for i, _ in ds]
+        self._dT_all = compile_many([self.laws[j].expr.diff(self._tnames[i]) for j, i in self._dT_at])
+        self._params = list(model.parameter_names)
+        self._dtheta_all: dict[tuple[int, ...], tuple[list[tuple[int, int]], Callable[..., list[Value]]]] = {}
 
     def __len__(self) -> int:
         return len(self.laws)
@@ -80,22 +86,21 @@ class LossLaws:
         batch : int, optional
             Number of samples; default: one state (the values are floats).
         """
-        e = self.at(env, T)
+        values = self._power_all(self.at(env, T))
         if batch is None:
-            return np.array([float(law.f(e)) for law in self.laws])
+            return np.array([float(v) for v in values])
         P = np.empty((batch, len(self.laws)))
-        for j, law in enumerate(self.laws):
-            P[:, j] = law.f(e)
+        for j, v in enumerate(values):
+            P[:, j] = v
         return P
 
     def dT(self, env: Mapping[str, Value], T: np.ndarray | None, batch: int | None = None) -> np.ndarray:
         """``∂P/∂T`` (W/K) at the nodes the laws read (columns :attr:`nodes`): (n_loss, len(nodes)),
         or (B, n_loss, len(nodes)) for ``batch=B`` samples (arguments as :meth:`power`)."""
-        e = self.at(env, T)
         out = np.zeros((len(self.laws), len(self.nodes)) if batch is None else (batch, len(self.laws), len(self.nodes)))
-        for j, ds in enumerate(self._dT):
-            for i, f in ds:
-                out[..., j, i] = f(e)
+        if self._dT_at:
+            for (j, i), v in zip(self._dT_at, self._dT_all(self.at(env, T))):
+                out[..., j, i] = v
         return out
 
     def slope_entries(self, env: Mapping[str, Value], T: np.ndarray | None,
@@ -114,13 +119,22 @@ class LossLaws:
                batch: int | None = None) -> np.ndarray:
         """``∂P/∂θ`` (W per parameter unit) for the parameter indices ``wrt``: (n_loss, p), or
         (B, n_loss, p) for ``batch=B`` samples (arguments as :meth:`power`)."""
-        e = self.at(env, T)
         out = np.zeros((len(self.laws), len(wrt)) if batch is None else (batch, len(self.laws), len(wrt)))
-        for j, law in enumerate(self.laws):
-            for q, pi in enumerate(wrt):
-                if pi in law.d:
-                    out[..., j, q] = law.d[pi](e)
+        at, f = self._dtheta_laws(wrt)
+        if at:
+            for (j, q), v in zip(at, f(self.at(env, T))):
+                out[..., j, q] = v
         return out
+
+    def _dtheta_laws(self, wrt: Sequence[int] | np.ndarray) -> tuple[list[tuple[int, int]], Callable[..., list[Value]]]:
+        """The nonzero entries of :meth:`dtheta` for ``wrt`` (law, column) and one function giving them."""
+        key = tuple(int(pi) for pi in wrt)
+        hit = self._dtheta_all.get(key)
+        if hit is None:
+            at = [(j, q) for j, law in enumerate(self.laws) for q, pi in enumerate(key) if pi in law.d]
+            f = compile_many([self.laws[j].expr.diff(self._params[key[q]]) for j, q in at])
+            hit = self._dtheta_all[key] = (at, f)
+        return hit
 
     def depends_on(self, wrt: Sequence[int] | np.ndarray) -> bool:
         """Whether some law depends on one of the parameter indices ``wrt`` (else :meth:`dtheta` is zero)."""

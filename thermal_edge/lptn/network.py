@@ -146,15 +146,18 @@ class Network:
         #: raw inputs that enter conductances: an operating point is a value of these
         self.matrix_inputs: tuple[str, ...] = tuple(sorted(used & set(model.inputs)))
         self.derived = [(k, v.free(), v.compile()) for k, v in model.derived.items()]
+        self._parameter_names = model.parameter_names
 
     # -- environments ---------------------------------------------------------------------
-    def env(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray]) -> dict[str, Value]:
+    def env(self, theta: np.ndarray, inputs: Mapping[str, Value]) -> dict[str, Value]:
         """Name -> value mapping for laws: parameters (floats), inputs and derived inputs (arrays)."""
-        env: dict[str, Value] = dict(zip(self.model.parameter_names, (float(v) for v in theta)))
+        env: dict[str, Value] = dict(zip(self._parameter_names, np.asarray(theta, dtype=float).tolist()))
         env.update(inputs)
         for k, free, f in self.derived:
             if free <= env.keys():  # an operating point carries only the inputs conductances use
-                env[k] = np.asarray(f(env), dtype=float)
+                v = f(env)
+                # a scalar stays a numpy scalar (cheap arithmetic for one tick), a series an array
+                env[k] = np.float64(v) if isinstance(v, (float, np.floating)) else np.asarray(v, dtype=float)
         return env
 
     # -- capacities -----------------------------------------------------------------------

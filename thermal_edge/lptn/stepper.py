@@ -70,8 +70,12 @@ class Stepper:
         return np.array([float(inputs[c]) for c in self.model.boundaries.values()])
 
     def env(self, inputs: Mapping[str, float]) -> dict[str, Value]:
-        """The law environment (parameters, inputs, derived inputs) of one tick's inputs."""
-        return self.net.env(self.theta, {k: np.asarray(float(v)) for k, v in inputs.items()})
+        """The law environment (parameters, inputs, derived inputs) of one tick's inputs.
+
+        The inputs are numpy scalars: arithmetic on them is several times cheaper than on 0-d
+        arrays and follows the same IEEE rules (a division by zero gives ``inf``, not an exception).
+        """
+        return self.net.env(self.theta, {k: np.float64(v) for k, v in inputs.items()})
 
     def losses(self, T: np.ndarray, inputs: Mapping[str, float]) -> np.ndarray:
         """Loss of every loss source (W) at node temperatures ``T`` and these inputs."""
