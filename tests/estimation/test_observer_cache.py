@@ -78,3 +78,35 @@ def test_a_drive_that_dwells_gets_the_dense_derivatives_estimate(pm10kw):
     assert np.allclose(obs.covariance(), dense.covariance(), rtol=1e-9, atol=1e-12)
     assert np.abs(obs.T - dense.T).max() < 1e-9  # K
     assert np.allclose(obs.S, dense.S, rtol=1e-9, atol=1e-12)
+
+
+class DenseJosephObserver(Observer):
+    """The same filter with the sensor update's covariance as the two dense products of its
+    definition, ``A P Aᵀ + r² K Kᵀ`` with ``A = I − K H`` (``H`` selecting the sensors' rows)."""
+
+    def update(self, measured):
+        ok = [(self.rows[s], float(v)) for s, v in measured.items() if s in self.rows and np.isfinite(v)]
+        idx = [i for i, _ in ok]
+        y = np.array([v for _, v in ok])
+        n, m = self._n, len(self.Pa)
+        P = self.Pa
+        K = np.zeros((m, len(idx)))
+        K[:n] = np.linalg.solve(P[np.ix_(idx, idx)] + np.eye(len(idx)) * self.r2, P[idx, :n]).T
+        H = np.zeros((len(idx), m))
+        H[np.arange(len(idx)), idx] = 1.0
+        A = np.eye(m) - K @ H
+        self.T = self.T + K[:n] @ (y - self.T[idx])
+        self.Pa = A @ P @ A.T + self.r2 * (K @ K.T)
+        self.S = self.S - K[:n] @ self.S[idx, :]
+        return self.T
+
+
+def test_the_sensor_update_is_the_dense_joseph_form(pm10kw):
+    """The rank-l covariance update gives the Joseph form's covariance, bands and estimate."""
+    T0 = np.full(len(pm10kw.nodes), 40.0)
+    obs, dense = Observer(pm10kw, T0), DenseJosephObserver(pm10kw, T0)
+    _drive([obs, dense], pm10kw)
+    assert np.allclose(obs.Pa, dense.Pa, rtol=1e-10, atol=1e-13)
+    assert np.allclose(obs.std(), dense.std(), rtol=1e-10, atol=0)
+    assert np.abs(obs.T - dense.T).max() < 1e-10  # K
+    assert not np.array_equal(obs.Pa, Observer(pm10kw, T0).Pa)  # the drive did move the covariance
