@@ -105,8 +105,8 @@ class Lookahead:
         bounds = set(model.boundaries.values())
         used = set(self.stepper.net.matrix_inputs) | _loss_inputs(model)
         self._key_inputs = tuple(k for k in model.inputs if k in used and k != self.current_input and k not in bounds)
-        self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
-        # operating points kept (each ~80 kB for 60 checkpoints and two limits): the key is exact, so
+        self._cache: dict[tuple[float, ...], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+        # operating points kept (each ~40 kB for 60 checkpoints and two limits): the key is exact, so
         # a drive whose speed or torque moves misses most ticks whatever the size; a miss costs one
         # discretisation
         self.cache_size = 16
@@ -115,10 +115,12 @@ class Lookahead:
         self.stepper.set_parameters(theta)
         self._cache.clear()
 
-    def _operator(self, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _operator(self, inputs: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Per operating point (the inputs that enter conductances and losses, except the current and
-        the boundary temperatures): the limited rows of ``Φ^k`` and of ``Σ_{j<k} Φ^j`` for every
-        checkpoint, the boundary input matrix and the two loss forcings (cached)."""
+        the boundary temperatures), as flat (steps · limits, ·) maps to the limited rows at every
+        checkpoint: of the start state (the rows of ``Φ^k``), of the boundary temperatures and of the
+        current-free losses (through ``Σ_{j<k} Φ^j`` and ``Γ``), and the rise per A² (cached; a
+        tick is then three matrix-vector products)."""
         st = self.stepper
         key = tuple(float(inputs[k]) for k in self._key_inputs)
         hit = self._cache.get(key)
@@ -135,7 +137,9 @@ class Lookahead:
         P1 = st.losses(T_eval, {**inputs, self.current_input: 1.0}) - P0  # loss per A²
         GU, GP = Gam[:, : self.nb], Gam[:, self.nb:]
         R, S = _checkpoint_rows(d, self.rows, self.steps)
-        hit = (R, S, GU, GP @ P0, GP @ P1)
+        flat = (self.steps * len(self.rows), n)
+        R2, S2 = R.reshape(flat), S.reshape(flat)
+        hit = (R2, S2 @ GU, S2 @ (GP @ P0), S2 @ (GP @ P1))
         if len(self._cache) >= self.cache_size:
             self._cache.pop(next(iter(self._cache)))
         self._cache[key] = hit
@@ -143,15 +147,15 @@ class Lookahead:
 
     def compute(self, T_upper: np.ndarray, inputs: Mapping[str, float]) -> LookaheadResult:
         """Look-ahead current and time to limit from the (upper-band) state ``T_upper``."""
-        R, S, GU, f0P, f1 = self._operator(inputs)
+        R, SU, s0, s1 = self._operator(inputs)
         U = self.stepper.boundary(inputs)
-        f0 = GU @ U + f0P
         c0 = np.asarray(T_upper, dtype=float)
+        shape = (self.steps, len(self.rows))
         C = np.empty((self.steps + 1, len(self.rows)))
         D = np.zeros_like(C)
         C[0] = c0[self.rows]
-        C[1:] = R @ c0 + S @ f0
-        D[1:] = S @ f1
+        C[1:] = (R @ c0 + SU @ U + s0).reshape(shape)
+        D[1:] = s1.reshape(shape)
         # largest i² with C + i² D <= max at every checkpoint after the start
         room = self.max_c[None, :] - C[1:]
         Dk = D[1:]
