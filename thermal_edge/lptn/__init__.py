@@ -27,6 +27,6 @@ from .vocabulary import DEFAULT_COLUMNS, NodeRole, Role, temperature_name
 __all__ = [
     "Continuous", "DEFAULT_COLUMNS", "Discrete", "DiscreteDerivatives", "EulerDerivatives", "ExprError", "Limit",
     "MissingInputError", "Model", "ModelError", "Network", "NodeRole", "NotPassive", "Parameter", "ParameterError", "Role",
-    "SimulatedRun", "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down", "discretise", "initial_state",
-    "load_model", "parse", "steady_state", "temperature_name",
+    "SimulatedRun", "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down",
+    "discretise", "initial_state", "load_model", "parse", "steady_state", "temperature_name",
 ]
