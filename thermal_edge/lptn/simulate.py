@@ -119,13 +119,12 @@ class _Chunk:
     P: np.ndarray  # (N, nl)
     dPdT: np.ndarray | None  # slopes along the run of laws not affine in T (when asked for)
     slopes: np.ndarray  # (steps, nl, ntv) ∂P/∂T of the affine laws
-    mats: StepMatrices  # the step matrices (of the sensitivities' steps too when ``held_tr`` is set)
+    mats: StepMatrices  # the simulation's step matrices
     need: np.ndarray  # (steps,) the steps the simulation stepped
     in_span: np.ndarray  # (steps,) the steps in vectorised stretches
     held_spans: list[tuple[int, int]]  # held runs for the sensitivities' closed form
     spans: list[tuple[int, int]]  # vectorised stretches
     prepared: dict[tuple[int, int], NodeStretch]
-    held_tr: Transitions | None  # the closed-loop modes of ``held_spans`` (None: not computed yet)
 
 
 class SimulatedRun:
@@ -310,7 +309,7 @@ class Simulator:
         args = (theta.copy(), inputs, float(dt), np.array(T0, dtype=float))
         if len(self._chunks(grouped.ops, N)) > 1:  # chunks are not kept (memory): simulated again if asked
             return SimulatedRun(self, args, self.simulate(*args), None)
-        ch = self._simulate_chunk(args[0], inputs, args[2], args[3], [], grouped, sens=True)
+        ch = self._simulate_chunk(args[0], inputs, args[2], args[3], grouped, sens=True)
         return SimulatedRun(self, args, Trajectory(T=ch.T, P=ch.P, nodes=self.model.nodes), ch)
 
     def _chunks(self, ops: np.ndarray, N: int) -> list[tuple[int, int]]:
@@ -339,19 +338,22 @@ class Simulator:
         """One chunk of :meth:`simulate` from ``T0`` and ``S0`` (full, n × p; None: zero): the
         temperatures, losses, sensitivities (``rows``) and the full ``S`` at the last sample
         (``grouped``: the chunk's steps grouped by operating point, when already known)."""
-        ch = self._simulate_chunk(theta, inputs, dt, T0, widx, grouped, sens=bool(names))
+        # the temperatures first, then the derivatives from what the simulation kept: the same
+        # numbers as discretising with the derivatives at once, and the simulation runs without
+        # their arrays in the cache
+        ch = self._simulate_chunk(theta, inputs, dt, T0, grouped, sens=bool(names))
         if not names:
             return ch.T, ch.P, None, None
         S, S_end = self._chunk_sensitivities(ch, widx, rows, S0)
         return ch.T, ch.P, S, S_end
 
     def _simulate_chunk(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
-                        widx: list[int], grouped: _Grouped | None, sens: bool) -> _Chunk:
-        """The temperatures of one chunk, and what its sensitivities reuse when ``sens``: with
-        ``widx`` everything they need by those parameters; without (``sens`` alone) the solves
-        and the states from which :meth:`_chunk_sensitivities` adds them for any parameters."""
+                        grouped: _Grouped | None, sens: bool) -> _Chunk:
+        """The temperatures of one chunk and, when ``sens``, what its sensitivities reuse: the
+        elimination's solves and the states from which :meth:`_chunk_sensitivities` adds them
+        for any parameters."""
         N = len(next(iter(inputs.values())))
-        prep = self._prepare(theta, inputs, dt, widx, grouped, solves=sens and not widx)
+        prep = self._prepare(theta, inputs, dt, [], grouped, solves=sens)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
         GP = d.Gam[:, :, nb:]
@@ -387,10 +389,7 @@ class Simulator:
             sim_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in blocks]))
             closed = [(a, b, int(u)) for (a, b), u in zip(blocks, sim_tr.index)]
         stepped = ~in_span & ~covered(blocks, steps)
-        held_tr = None
         need = stepped.copy()
-        if widx:  # the steps the sensitivities step too: one set of step matrices for both
-            held_tr, need = self._sensitivity_steps(d, GP, ops, dPdT0[:steps], held_spans, stepped, in_span)
         # the input-driven part of the stepped steps and of each block run's first step (the
         # stretches make their own, in the modal basis)
         want = stepped.copy()
@@ -440,8 +439,7 @@ class Simulator:
             for j, i in self._slope_pairs:
                 P[:, j] += dPdT0[:, j, i] * T[:, self.tv[i]]
         return _Chunk(theta=theta, dt=dt, prep=prep, T=T, P=P, dPdT=dPdT, slopes=dPdT0[:steps], mats=mats,
-                      need=stepped, in_span=in_span, held_spans=held_spans, spans=spans, prepared=prepared,
-                      held_tr=held_tr)
+                      need=stepped, in_span=in_span, held_spans=held_spans, spans=spans, prepared=prepared)
 
     def _sensitivity_steps(self, d: Discrete, GP: np.ndarray, ops: np.ndarray, slopes: np.ndarray,
                            held_spans: list[tuple[int, int]], stepped: np.ndarray,
@@ -460,22 +458,18 @@ class Simulator:
 
     def _chunk_sensitivities(self, ch: _Chunk, widx: list[int], rows: np.ndarray | None,
                              S0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """The sensitivities by ``widx`` of a simulated chunk (``rows``; and the full ``S`` at its
-        last sample). A chunk simulated without them (:meth:`_simulate_chunk` with ``sens``
-        alone) gets the derivatives of its continuous system from the solves it kept and of its
-        discretisation from its eigendecomposition (:func:`~.discretise.derive`), and the step
-        matrices of the sensitivities' steps: the same numbers the simulation with ``widx``
-        computes, without simulating again."""
-        prep, mats, held_tr = ch.prep, ch.mats, ch.held_tr
-        if not isinstance(prep.disc, DiscreteDerivatives):
-            cont = self.net.derivatives(prep.cont, ch.theta, prep.op, widx)
-            prep = replace(prep, disc=derive(prep.disc, cont, ch.dt, self.method))
-            d, nb = prep.disc, prep.U.shape[1]
-            steps = len(ch.need)
-            ops = prep.ops[:steps]
-            held_tr, need = self._sensitivity_steps(d, d.Gam[:, :, nb:], ops, ch.slopes, ch.held_spans, ch.need,
-                                                    ch.in_span)
-            mats = self._step_matrices(d.Phi, d.Gam[:, :, nb:], ops, ch.slopes, need)
+        """The sensitivities by ``widx`` of a chunk simulated with ``sens`` (:meth:`_simulate_chunk`)
+        (``rows``; and the full ``S`` at its last sample): the derivatives of its continuous
+        system from the solves it kept, of its discretisation from its eigendecomposition
+        (:func:`~.discretise.derive`), the step matrices of the steps the sensitivities step,
+        the recursion over its temperatures and losses."""
+        prep = ch.prep
+        cont = self.net.derivatives(prep.cont, ch.theta, prep.op, widx)
+        prep = replace(prep, disc=derive(prep.disc, cont, ch.dt, self.method))
+        d, nb = prep.disc, prep.U.shape[1]
+        ops = prep.ops[: len(ch.need)]
+        held_tr, need = self._sensitivity_steps(d, d.Gam[:, :, nb:], ops, ch.slopes, ch.held_spans, ch.need, ch.in_span)
+        mats = self._step_matrices(d.Phi, d.Gam[:, :, nb:], ops, ch.slopes, need)
         return self._sensitivities(prep, ch.T, ch.P, ch.dPdT, widx, rows, mats, ch.held_spans, ch.spans, ch.slopes,
                                    ch.prepared, held_tr, S0)
 
