@@ -85,6 +85,7 @@ class Objective:
         self.mask = np.isfinite(self.Y)
         self.Y0 = np.where(self.mask, self.Y, 0.0)
         self.w = weights(window.t, weighting, tau_s=tau_s)[:, None] * self.mask
+        self.sqrt_w = np.sqrt(self.w)
         self.prior_weight = prior_weight
         spread = np.array([space.model.parameters[i].spread for i in space.index], dtype=float)
         self.sigma = np.where(spread > 0, spread, (np.log(space.upper) - np.log(space.lower)) / 4.0)
@@ -138,17 +139,22 @@ class Objective:
         p = len(phi)
         if derivatives:
             assert traj.S is not None
-            J = traj.S * theta_sub[None, None, :] * self.mask[:, :, None]  # ∂/∂log θ
-            wr = (self.w * r)[:, :, None]
-            grad = 2.0 * np.sum(wr * J, axis=(0, 1))
-            Jw = J * np.sqrt(self.w)[:, :, None]
-            Jf = Jw.reshape(-1, p)
-            hess = 2.0 * Jf.T @ Jf
+            J = traj.S * theta_sub  # ∂/∂log θ
+            J *= self.mask[:, :, None]
+            grad, hess = self._gradient_hessian(J, r)
         else:
             J, grad, hess = np.zeros((len(r), len(idx), p)), np.zeros(p), np.zeros((p, p))
-        ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, np.sqrt(self.w), traj.T)
+        ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, self.sqrt_w, traj.T)
         self._last = (phi.tobytes(), ev, derivatives, run)
         return ev
+
+    def _gradient_hessian(self, J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The data term's gradient ``2 Σ w r J`` and Gauss-Newton Hessian ``2 Σ w JᵀJ`` from the
+        Jacobian ``J`` (N, ns, p) and residuals ``r`` (N, ns): each one matrix product."""
+        p = J.shape[2]
+        grad = 2.0 * ((self.w * r).reshape(-1) @ J.reshape(-1, p))
+        Jf = (J * self.sqrt_w[:, :, None]).reshape(-1, p)
+        return grad, 2.0 * (Jf.T @ Jf)
 
     def adopt(self, phi: np.ndarray, full: Evaluation, full_names: Sequence[str]) -> Evaluation:
         """The evaluation at ``phi`` taken from ``full`` instead of a simulation, and remembered as
@@ -164,9 +170,8 @@ class Objective:
         J = full.jac[:, :, [names.index(n) for n in self.space.names]]
         r = full.residuals
         pv, pg, ph = self._prior(phi)
-        Jf = (J * np.sqrt(self.w)[:, :, None]).reshape(-1, len(phi))
-        ev = Evaluation(float(np.sum(self.w * r * r)) + pv, 2.0 * np.sum((self.w * r)[:, :, None] * J, axis=(0, 1)) + pg,
-                        2.0 * Jf.T @ Jf + ph, r, J, np.sqrt(self.w), full.T)
+        grad, hess = self._gradient_hessian(J, r)
+        ev = Evaluation(float(np.sum(self.w * r * r)) + pv, grad + pg, hess + ph, r, J, self.sqrt_w, full.T)
         self._last = (phi.tobytes(), ev, True, None)
         return ev
 
