@@ -49,6 +49,7 @@ def test_sensitivities_of_a_kept_run_equal_those_asked_at_once(pm10kw_model, noi
         _same(late.T, now.T)
         _same(late.S, now.S)
         assert late.wrt == tuple(wrt)
+    assert run.sensitivities(()) is run.trajectory and run.trajectory.S is None
 
 
 def test_kept_run_on_paderborn4(paderborn_model, paderborn_run):

@@ -119,8 +119,7 @@ class _Chunk:
     P: np.ndarray  # (N, nl)
     dPdT: np.ndarray | None  # slopes along the run of laws not affine in T (when asked for)
     slopes: np.ndarray  # (steps, nl, ntv) ∂P/∂T of the affine laws
-    mats: StepMatrices  # the simulation's step matrices
-    need: np.ndarray  # (steps,) the steps the simulation stepped
+    stepped: np.ndarray  # (steps,) the steps the simulation stepped
     in_span: np.ndarray  # (steps,) the steps in vectorised stretches
     held_spans: list[tuple[int, int]]  # held runs for the sensitivities' closed form
     spans: list[tuple[int, int]]  # vectorised stretches
@@ -148,8 +147,10 @@ class SimulatedRun:
         from its eigendecomposition, the recursion from its temperatures and losses (a run
         simulated in time chunks keeps none: it is simulated again)."""
         sim, names = self._sim, tuple(wrt)
-        if self._chunk is None or not names:
-            return sim.simulate(*self._args, wrt=names or None, rows=rows)
+        if not names:
+            return self.trajectory
+        if self._chunk is None:
+            return sim.simulate(*self._args, wrt=names, rows=rows)
         keep = None if rows is None else sim._rows(rows)
         widx = list(sim.model.parameter_index(names))
         S, _ = sim._chunk_sensitivities(self._chunk, widx, keep, None)
@@ -217,14 +218,16 @@ class Simulator:
             uniq, ops = np.zeros((1, 0)), np.zeros(steps, dtype=int)
         return _Grouped(env=env, uniq=uniq, ops=np.asarray(ops).reshape(-1))
 
-    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int],
+    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float,
                  grouped: _Grouped | None = None, solves: bool = False) -> _Prepared:
+        """The run's operating points, their continuous system (its elimination's solves kept
+        with ``solves``) and discretisation, the boundary inputs and the law environment."""
         model, net = self.model, self.net
         N = len(next(iter(inputs.values())))
         g = self._grouped(theta, inputs) if grouped is None else grouped
         env, uniq, ops = g.env, g.uniq, g.ops
         op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
-        cont = net.continuous(theta, op, K=len(uniq), wrt=wrt, solves=solves)
+        cont = net.continuous(theta, op, K=len(uniq), solves=solves)
         disc = discretise(cont, dt, self.method, self.max_substep)
         U = np.zeros((N, 0))
         if model.boundaries:
@@ -353,7 +356,7 @@ class Simulator:
         elimination's solves and the states from which :meth:`_chunk_sensitivities` adds them
         for any parameters."""
         N = len(next(iter(inputs.values())))
-        prep = self._prepare(theta, inputs, dt, [], grouped, solves=sens)
+        prep = self._prepare(theta, inputs, dt, grouped, solves=sens)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
         GP = d.Gam[:, :, nb:]
@@ -389,13 +392,12 @@ class Simulator:
             sim_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in blocks]))
             closed = [(a, b, int(u)) for (a, b), u in zip(blocks, sim_tr.index)]
         stepped = ~in_span & ~covered(blocks, steps)
-        need = stepped.copy()
         # the input-driven part of the stepped steps and of each block run's first step (the
         # stretches make their own, in the modal basis)
         want = stepped.copy()
         want[[a for a, _, _ in closed]] = True
         f = self._forcing(d.Gam, ops, prep.U, P0, want)
-        mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
+        mats = self._step_matrices(d.Phi, GP, ops, dPdT0, stepped)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])] if na else []
         opl = ops.tolist()
@@ -438,8 +440,8 @@ class Simulator:
             P, dPdT = P0, None
             for j, i in self._slope_pairs:
                 P[:, j] += dPdT0[:, j, i] * T[:, self.tv[i]]
-        return _Chunk(theta=theta, dt=dt, prep=prep, T=T, P=P, dPdT=dPdT, slopes=dPdT0[:steps], mats=mats,
-                      need=stepped, in_span=in_span, held_spans=held_spans, spans=spans, prepared=prepared)
+        return _Chunk(theta=theta, dt=dt, prep=prep, T=T, P=P, dPdT=dPdT, slopes=dPdT0[:steps],
+                      stepped=stepped, in_span=in_span, held_spans=held_spans, spans=spans, prepared=prepared)
 
     def _sensitivity_steps(self, d: Discrete, GP: np.ndarray, ops: np.ndarray, slopes: np.ndarray,
                            held_spans: list[tuple[int, int]], stepped: np.ndarray,
@@ -467,8 +469,8 @@ class Simulator:
         cont = self.net.derivatives(prep.cont, ch.theta, prep.op, widx)
         prep = replace(prep, disc=derive(prep.disc, cont, ch.dt, self.method))
         d, nb = prep.disc, prep.U.shape[1]
-        ops = prep.ops[: len(ch.need)]
-        held_tr, need = self._sensitivity_steps(d, d.Gam[:, :, nb:], ops, ch.slopes, ch.held_spans, ch.need, ch.in_span)
+        ops = prep.ops[: len(ch.stepped)]
+        held_tr, need = self._sensitivity_steps(d, d.Gam[:, :, nb:], ops, ch.slopes, ch.held_spans, ch.stepped, ch.in_span)
         mats = self._step_matrices(d.Phi, d.Gam[:, :, nb:], ops, ch.slopes, need)
         return self._sensitivities(prep, ch.T, ch.P, ch.dPdT, widx, rows, mats, ch.held_spans, ch.spans, ch.slopes,
                                    ch.prepared, held_tr, S0)
