@@ -16,7 +16,8 @@ eigenvectors of ``Ã``), so the derivatives are kept in that modal basis, ``dΦ�
 ``dΓ̃ = V⁻¹ dΓ``, where ZOH gets them from the rank-one factors of ``dA`` and ``dW`` without any
 dense product per parameter; :attr:`Discrete.dPhi` and :attr:`Discrete.dGam` give the dense
 node-coordinate forms on demand. The method is the type of the result: :class:`Discrete`
-without derivatives, :class:`ZohDerivatives` or :class:`EulerDerivatives` with them.
+without derivatives, :class:`ZohDerivatives` or :class:`EulerDerivatives` with them;
+:func:`derive` adds the derivatives to a discretisation already made, from its eigendecomposition.
 """
 from __future__ import annotations
 
