@@ -139,7 +139,8 @@ class Objective:
         p = len(phi)
         if derivatives:
             assert traj.S is not None
-            J = traj.S * theta_sub  # ∂/∂log θ
+            J = traj.S  # the simulation's own array, made for this evaluation: scaled in place
+            J *= theta_sub  # ∂/∂log θ
             J *= self.mask[:, :, None]
             grad, hess = self._gradient_hessian(J, r)
         else:
