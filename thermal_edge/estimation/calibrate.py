@@ -55,8 +55,10 @@ class _Sum:
     def __init__(self, objectives: list[Objective]) -> None:
         self.objs = objectives
 
-    def value(self, phi: np.ndarray) -> float:
-        return float(sum(o.value(phi) for o in self.objs))
+    def value(self, phi: np.ndarray, keep: bool = False) -> float:
+        """The summed objective; ``keep``: each run's simulation kept for the gradient at ``phi``
+        (:meth:`~.objective.Objective.evaluate`), which the SQP asks for at the points it accepts."""
+        return float(sum(o.evaluate(phi, derivatives=False, keep=keep).value for o in self.objs))
 
     def grad(self, phi: np.ndarray) -> np.ndarray:
         return np.sum([o.evaluate(phi).grad for o in self.objs], axis=0)
@@ -151,7 +153,7 @@ def calibrate(
         if timed_out():
             raise StopIteration
 
-    res = minimize(total.value, de.x, jac=total.grad, method="SLSQP", bounds=space.log_bounds(),
+    res = minimize(lambda phi: total.value(phi, keep=True), de.x, jac=total.grad, method="SLSQP", bounds=space.log_bounds(),
                    options={"maxiter": sqp_iter, "ftol": 1e-14}, callback=sqp_cb)
     phi = res.x if total.value(res.x) <= de.fun else de.x
     values = np.exp(phi)

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..lptn.reduced import AnySimulator
+from ..lptn.simulate import SimulatedRun, Simulator, Trajectory
 from .common import ParamSpace, Window
 
 
@@ -84,11 +85,13 @@ class Objective:
         self.mask = np.isfinite(self.Y)
         self.Y0 = np.where(self.mask, self.Y, 0.0)
         self.w = weights(window.t, weighting, tau_s=tau_s)[:, None] * self.mask
+        self.sqrt_w = np.sqrt(self.w)
         self.prior_weight = prior_weight
         spread = np.array([space.model.parameters[i].spread for i in space.index], dtype=float)
         self.sigma = np.where(spread > 0, spread, (np.log(space.upper) - np.log(space.lower)) / 4.0)
         self.evaluations = 0
-        self._last: tuple[bytes, Evaluation, bool] | None = None
+        #: the last evaluation: its key, itself, whether with derivatives, the simulation kept
+        self._last: tuple[bytes, Evaluation, bool, SimulatedRun | None] | None = None
 
     def _prior(self, phi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         if not self.prior_weight:
@@ -98,17 +101,36 @@ class Objective:
         return (float(self.prior_weight * z @ z), 2 * self.prior_weight * z / self.sigma,
                 np.diag(2 * self.prior_weight / self.sigma**2))
 
-    def evaluate(self, phi: np.ndarray, derivatives: bool = True) -> Evaluation:
-        """Objective at log-parameters ``phi`` (with gradient and GN Hessian when asked)."""
+    def evaluate(self, phi: np.ndarray, derivatives: bool = True, keep: bool = False) -> Evaluation:
+        """Objective at log-parameters ``phi`` (with gradient and GN Hessian when asked).
+
+        ``keep`` (a value without derivatives): keep the simulation, so that the derivatives at
+        this point, when asked for next, come from it (:meth:`~thermal_edge.lptn.Simulator.simulate_run`)
+        instead of a second simulation: the same numbers as asking for them at once.
+        """
         key = phi.tobytes()
-        if self._last is not None and self._last[0] == key and (self._last[2] or not derivatives):
-            return self._last[1]  # a value with derivatives also answers a request for the value
+        last = self._last
+        if last is not None and last[0] == key:
+            if last[2] or not derivatives:
+                return last[1]  # a value with derivatives also answers a request for the value
+            if last[3] is not None:  # the simulation of this point, kept: its sensitivities only
+                traj = last[3].sensitivities(self.space.names, self.rows)
+                return self._evaluation(phi, traj, True, None)
         self.evaluations += 1
         theta_sub = self.space.from_log(phi)
         th = self.space.full(theta_sub)
         W = self.window
+        if keep and not derivatives and isinstance(self.sim, Simulator):
+            run = self.sim.simulate_run(th, W.inputs, W.dt, W.T0)
+            return self._evaluation(phi, run.trajectory, False, run)
         traj = self.sim.simulate(th, W.inputs, W.dt, W.T0, wrt=self.space.names if derivatives else None,
                                  rows=self.rows if derivatives else None)
+        return self._evaluation(phi, traj, derivatives, None)
+
+    def _evaluation(self, phi: np.ndarray, traj: Trajectory, derivatives: bool, run: SimulatedRun | None) -> Evaluation:
+        """The evaluation at ``phi`` from its simulation ``traj`` (with sensitivities when
+        ``derivatives``), remembered as the last one (with ``run``, the simulation kept)."""
+        theta_sub = self.space.from_log(phi)
         idx = [self.sim.model.node_index(r) for r in self.rows]
         pred = traj.T[:, idx]
         r = np.where(self.mask, pred - self.Y0, 0.0)
@@ -117,17 +139,23 @@ class Objective:
         p = len(phi)
         if derivatives:
             assert traj.S is not None
-            J = traj.S * theta_sub[None, None, :] * self.mask[:, :, None]  # ∂/∂log θ
-            wr = (self.w * r)[:, :, None]
-            grad = 2.0 * np.sum(wr * J, axis=(0, 1))
-            Jw = J * np.sqrt(self.w)[:, :, None]
-            Jf = Jw.reshape(-1, p)
-            hess = 2.0 * Jf.T @ Jf
+            J = traj.S  # the simulation's own array, made for this evaluation: scaled in place
+            J *= theta_sub  # ∂/∂log θ
+            J *= self.mask[:, :, None]
+            grad, hess = self._gradient_hessian(J, r)
         else:
             J, grad, hess = np.zeros((len(r), len(idx), p)), np.zeros(p), np.zeros((p, p))
-        ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, np.sqrt(self.w), traj.T)
-        self._last = (key, ev, derivatives)
+        ev = Evaluation(value + pv, grad + pg, hess + ph, r, J, self.sqrt_w, traj.T)
+        self._last = (phi.tobytes(), ev, derivatives, run)
         return ev
+
+    def _gradient_hessian(self, J: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The data term's gradient ``2 Σ w r J`` and Gauss-Newton Hessian ``2 Σ w JᵀJ`` from the
+        Jacobian ``J`` (N, ns, p) and residuals ``r`` (N, ns): each one matrix product."""
+        p = J.shape[2]
+        grad = 2.0 * ((self.w * r).reshape(-1) @ J.reshape(-1, p))
+        Jf = (J * self.sqrt_w[:, :, None]).reshape(-1, p)
+        return grad, 2.0 * (Jf.T @ Jf)
 
     def adopt(self, phi: np.ndarray, full: Evaluation, full_names: Sequence[str]) -> Evaluation:
         """The evaluation at ``phi`` taken from ``full`` instead of a simulation, and remembered as
@@ -143,10 +171,9 @@ class Objective:
         J = full.jac[:, :, [names.index(n) for n in self.space.names]]
         r = full.residuals
         pv, pg, ph = self._prior(phi)
-        Jf = (J * np.sqrt(self.w)[:, :, None]).reshape(-1, len(phi))
-        ev = Evaluation(float(np.sum(self.w * r * r)) + pv, 2.0 * np.sum((self.w * r)[:, :, None] * J, axis=(0, 1)) + pg,
-                        2.0 * Jf.T @ Jf + ph, r, J, np.sqrt(self.w), full.T)
-        self._last = (phi.tobytes(), ev, True)
+        grad, hess = self._gradient_hessian(J, r)
+        ev = Evaluation(float(np.sum(self.w * r * r)) + pv, grad + pg, hess + ph, r, J, self.sqrt_w, full.T)
+        self._last = (phi.tobytes(), ev, True, None)
         return ev
 
     def value(self, phi: np.ndarray) -> float:

@@ -24,17 +24,17 @@ def fit_sqp(obj: Objective, max_iter: int = 3, gradient: str = "analytic", metho
     max_iter : int
         SQP iteration cap (the paper: 3 per adaptation).
     gradient : {"analytic", "numerical"}
-        ``analytic``: the forward-sensitivity gradient, computed with every value SLSQP asks for
-        (one simulation gives both). ``numerical``: scipy's forward differences (one simulation
-        per parameter per gradient; the paper's fmincon baseline).
+        ``analytic``: the forward-sensitivity gradient at the points SLSQP asks it for.
+        ``numerical``: scipy's forward differences (one simulation per parameter per gradient;
+        the paper's fmincon baseline).
 
     Notes
     -----
-    With the analytic gradient each point SLSQP evaluates is simulated once, with its
-    sensitivities: SLSQP asks for the gradient at every point its line search accepts (in E2 of
-    ``bench paper`` four of seven points), and the sensitivities cost a fraction of a simulation
-    on top of the simulation they come with, less than simulating an accepted point twice (its
-    value, then its gradient). BLAS runs on one thread (:func:`~.blas.one_blas_thread`).
+    With the analytic gradient each point SLSQP evaluates is simulated once, and the simulation
+    is kept (:meth:`~.objective.Objective.evaluate` with ``keep``): SLSQP asks for the gradient
+    at the points its line search accepts (in E2 of ``bench paper`` three of six), and their
+    sensitivities then come from that simulation, while a rejected trial point costs a
+    simulation only. BLAS runs on one thread (:func:`~.blas.one_blas_thread`).
     """
     from scipy.optimize import minimize
 
@@ -50,7 +50,7 @@ def fit_sqp(obj: Objective, max_iter: int = 3, gradient: str = "analytic", metho
         fun: Callable[[np.ndarray], float]
         jac: Callable[[np.ndarray], np.ndarray] | str
         if analytic:
-            fun, jac = (lambda phi: obj.evaluate(phi).value), obj.grad
+            fun, jac = (lambda phi: obj.evaluate(phi, derivatives=False, keep=True).value), obj.grad
         else:
             fun, jac = obj.value, "2-point"
         res = minimize(fun, phi0, jac=jac, method="SLSQP", bounds=space.log_bounds(),

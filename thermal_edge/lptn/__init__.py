@@ -19,7 +19,7 @@ from .expr import ExprError, parse
 from .loader import load_model
 from .model import Limit, MissingInputError, Model, ModelError, Parameter, ParameterError
 from .network import Continuous, Network
-from .simulate import Simulator, Trajectory
+from .simulate import SimulatedRun, Simulator, Trajectory
 from .steady import initial_state, steady_state
 from .stepper import Stepper, cool_down
 from .vocabulary import DEFAULT_COLUMNS, NodeRole, Role, temperature_name
@@ -27,6 +27,6 @@ from .vocabulary import DEFAULT_COLUMNS, NodeRole, Role, temperature_name
 __all__ = [
     "Continuous", "DEFAULT_COLUMNS", "Discrete", "DiscreteDerivatives", "EulerDerivatives", "ExprError", "Limit",
     "MissingInputError", "Model", "ModelError", "Network", "NodeRole", "NotPassive", "Parameter", "ParameterError", "Role",
-    "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down", "discretise", "initial_state",
-    "load_model", "parse", "steady_state", "temperature_name",
+    "SimulatedRun", "Simulator", "Stepper", "Trajectory", "UnstableDiscretisation", "ZohDerivatives", "cool_down",
+    "discretise", "initial_state", "load_model", "parse", "steady_state", "temperature_name",
 ]

@@ -16,13 +16,14 @@ eigenvectors of ``Ã``), so the derivatives are kept in that modal basis, ``dΦ�
 ``dΓ̃ = V⁻¹ dΓ``, where ZOH gets them from the rank-one factors of ``dA`` and ``dW`` without any
 dense product per parameter; :attr:`Discrete.dPhi` and :attr:`Discrete.dGam` give the dense
 node-coordinate forms on demand. The method is the type of the result: :class:`Discrete`
-without derivatives, :class:`ZohDerivatives` or :class:`EulerDerivatives` with them.
+without derivatives, :class:`ZohDerivatives` or :class:`EulerDerivatives` with them;
+:func:`derive` adds the derivatives to a discretisation already made, from its eigendecomposition.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -57,6 +58,7 @@ class Discrete:
     Q: np.ndarray  # orthonormal eigenvectors of C^-½ A C^-½ (K, n, n)
     mu: np.ndarray  # eigenvalues of Φ (K, n)
     phi: np.ndarray  # (mu − 1)/λ (K, n)
+    lam: np.ndarray  # eigenvalues λ of C⁻¹A (K, n), 1/s
 
     def basis(self, ops: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The modal basis ``V = diag(1/s) Q`` of ``Φ`` at these operating points, and ``V⁻¹``."""
@@ -266,7 +268,6 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
     s, At, lam, Qm = _eig(cont)
     K, n, _ = cont.A.shape
     eye = np.eye(n)
-    with_d = cont.dg is not None
     Qt = np.swapaxes(Qm, -1, -2)
     if method == "zoh":
         m = 1
@@ -293,10 +294,24 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
     # Γ = (Φ − I) A⁻¹ W = V diag(phi) V⁻¹ C⁻¹ W with V = C^-½ Q: through the eigenvectors (two
     # products) instead of a solve, and with phi = (μ − 1)/λ the slow modes keep their digits
     QtW = Qt @ (cont.W / s[:, None])  # V⁻¹ C⁻¹ W
-    values = dict(Phi=Phi, Gam=(Qm * phi[:, None, :]) @ QtW / s[:, None], substeps=m, s=s, Q=Qm, mu=mu, phi=phi)
-    if not with_d:
-        return Discrete(**values)
+    d = Discrete(Phi=Phi, Gam=(Qm * phi[:, None, :]) @ QtW / s[:, None], substeps=m, s=s, Q=Qm, mu=mu, phi=phi,
+                 lam=lam)
+    return d if cont.dg is None else derive(d, cont, dt, method)
+
+
+def derive(d: Discrete, cont: Continuous, dt: float, method: str = "zoh") -> DiscreteDerivatives:
+    """The discretisation ``d`` of ``cont`` with the exact derivatives ``cont`` carries.
+
+    ``d`` is :func:`discretise` of ``cont`` without derivatives (the same ``A``, ``W``, ``c``,
+    ``dt`` and ``method``); its eigendecomposition serves the derivatives, so that a simulation
+    can be followed by its sensitivities without discretising again: ``derive(discretise(c), c')``
+    is ``discretise(c')`` to the last bit when ``c'`` is ``c`` with derivatives.
+    """
     assert cont.dc is not None and cont.dZ is not None and cont.dV is not None and cont.dg is not None
+    s, Qm, lam = d.s, d.Q, d.lam
+    Qt = np.swapaxes(Qm, -1, -2)
+    QtW = Qt @ (cont.W / s[:, None])  # V⁻¹ C⁻¹ W
+    values = {f.name: getattr(d, f.name) for f in fields(Discrete)}
     H = (Qm * (1.0 / lam)[:, None, :]) @ QtW / s[:, None]  # A⁻¹ W = V diag(1/λ) V⁻¹ C⁻¹ W
     factors = dict(
         Ht=QtW / lam[:, :, None],  # V⁻¹ H
@@ -305,8 +320,13 @@ def discretise(cont: Continuous, dt: float, method: str = "zoh", max_substep: fl
         dg=cont.dg,
     )
     if method == "zoh":
-        Dd, Wc, r = _zoh_divided_differences(cont, dt, lam, mu)
+        Dd, Wc, r = _zoh_divided_differences(cont, dt, lam, d.mu)
         return ZohDerivatives(**values, **factors, Dd=Dd, Wc=Wc, r=r)
+    if method != "euler":
+        raise ValueError(f"unknown discretisation method {method!r} (zoh, euler)")
+    m = d.substeps
+    h = dt / m
+    Phi1 = np.eye(cont.A.shape[-1]) + h * (cont.A / cont.c[:, None])
     Vi = Qt * s  # V⁻¹
     return EulerDerivatives(**values, **factors, dense=sandwich(Vi, _euler_derivatives(cont, Phi1, h, m), Qm / s[:, None]))
 

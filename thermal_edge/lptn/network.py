@@ -12,7 +12,7 @@ with ``A = −(L_DD − L_DQ X)``, ``X = L_QQ⁻¹ L_QD`` and ``W = [K_DU − X�
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import sparse
@@ -42,6 +42,9 @@ class Continuous:
     dZ: np.ndarray | None = None
     dV: np.ndarray | None = None
     dg: np.ndarray | None = None
+    #: the elimination's solves ``X``, ``HK``, ``HM`` (:meth:`Network._derivatives`), kept when
+    #: asked for (:meth:`Network.continuous` with ``solves``) so that the derivatives can follow
+    solves: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def _dense(self, right: np.ndarray | None) -> np.ndarray | None:
         """``−Z diag(dg_j) rightᵀ`` for every parameter ``j``."""
@@ -186,17 +189,21 @@ class Network:
         """Edge conductances ``g`` (K, E) in W/K and ``dg`` (K, p, e) at ``K`` operating points, the
         latter for the :meth:`live_edges` of ``wrt`` only."""
         env = self.env(theta, op)
-        live = self.live_edges(wrt)
         g = np.empty((K, len(self.edge_laws)))
         for e, law in enumerate(self.edge_laws):
             g[:, e] = law.f(env)
+        return g, self._conductance_derivatives(env, K, wrt)
+
+    def _conductance_derivatives(self, env: Mapping[str, Value], K: int, wrt: Sequence[int]) -> np.ndarray:
+        """``dg`` (K, p, e) of the :meth:`live_edges` of ``wrt`` in the law environment ``env``."""
+        live = self.live_edges(wrt)
         dg = np.zeros((K, len(wrt), len(live)))
         for i, e in enumerate(live):
             law = self.edge_laws[e]
             for j, pi in enumerate(wrt):
                 if pi in law.d:
                     dg[:, j, i] = law.d[pi](env)
-        return g, dg
+        return dg
 
     def _assemble(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Laplacian (..., N, N) and point-boundary block (..., N, nb) from edge values (..., E)."""
@@ -275,7 +282,8 @@ class Network:
         return np.concatenate([T, self.solve_qq(L[None, n:, n:], rhs[None, :, None])[0, :, 0]])
 
     def continuous(
-        self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None = None, K: int = 1, wrt: Sequence[int] = ()
+        self, theta: np.ndarray, op: Mapping[str, np.ndarray] | None = None, K: int = 1, wrt: Sequence[int] = (),
+        solves: bool = False,
     ) -> Continuous:
         """The eliminated continuous system at ``K`` operating points (see module docstring).
 
@@ -287,6 +295,10 @@ class Network:
             Values (arrays of length ``K``) of :attr:`matrix_inputs` (others are ignored).
         wrt : sequence of int
             Parameter indices to differentiate with respect to (none: no derivatives).
+        solves : bool, optional
+            Keep the solves the derivatives need (:attr:`Continuous.solves`), so that
+            :meth:`derivatives` can add them later for any parameters. They are the solves the
+            derivatives by ``wrt`` use: the system is the same to the last bit either way.
         """
         op = {k: np.asarray(v, dtype=float) for k, v in (op or {}).items()}
         missing = [k for k in self.matrix_inputs if k not in op]
@@ -301,7 +313,8 @@ class Network:
         if self.n_points > n:
             # one factorisation for the elimination and, with derivatives, the solves they need
             MQ = self.loss_map[Q][:, self._q_losses]
-            rhs = np.concatenate([LQD, KU[:, Q], np.broadcast_to(MQ, (K, *MQ.shape))], axis=-1) if len(wrt) else LQD
+            full = len(wrt) or solves
+            rhs = np.concatenate([LQD, KU[:, Q], np.broadcast_to(MQ, (K, *MQ.shape))], axis=-1) if full else LQD
             XH = self.solve_qq(LQQ, rhs)
             X, HK, HM = XH[..., :n], XH[..., n:n + nb], XH[..., n + nb:]
         else:
@@ -313,8 +326,23 @@ class Network:
         W = np.concatenate([B, np.broadcast_to(self.loss_map[D], (K, n, self.n_loss))], axis=-1)
         W[:, :, nb + self._q_losses] -= np.swapaxes(X[:, self._q_loss_point], 1, 2)
         c, dc = self.capacities(theta, wrt)
-        cont = Continuous(A=A, W=W, c=c)
+        cont = Continuous(A=A, W=W, c=c, solves=(X, HK, HM) if solves else None)
         if len(wrt):
             cont.dZ, cont.dV = self._derivatives(X, HK, HM, self.live_edges(wrt))
             cont.dg, cont.dc = dg, dc
         return cont
+
+    def derivatives(self, cont: Continuous, theta: np.ndarray, op: Mapping[str, np.ndarray] | None,
+                    wrt: Sequence[int]) -> Continuous:
+        """``cont`` with its derivatives by the parameters ``wrt`` added, what
+        :meth:`continuous` with ``wrt`` gives, from the solves ``cont`` kept (made by
+        :meth:`continuous` with ``solves`` at the same ``theta`` and ``op``): no second assembly
+        nor elimination."""
+        if cont.solves is None:
+            raise ValueError("derivatives: the continuous system kept no solves (continuous(..., solves=True))")
+        op = {k: np.asarray(v, dtype=float) for k, v in (op or {}).items()}
+        K = cont.A.shape[0]
+        dg = self._conductance_derivatives(self.env(theta, op), K, wrt)
+        _, dc = self.capacities(theta, wrt)
+        dZ, dV = self._derivatives(*cont.solves, self.live_edges(wrt))
+        return replace(cont, dZ=dZ, dV=dV, dg=dg, dc=dc)

@@ -24,16 +24,16 @@ chunk at a time, not for the whole run.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .discretise import Discrete, DiscreteDerivatives, discretise
+from .discretise import Discrete, DiscreteDerivatives, derive, discretise
 from .expr import Value
 from .held import LEAD, Transitions, run_temperatures, transitions
 from .losses import LossLaws
 from .model import MissingInputError, Model
-from .network import Network
+from .network import Continuous, Network
 from .sensitivity import Sensitivities, held_runs, held_steps
 from .stretch import NodeStretch, covered, padded_length, stretches, varying_steps
 from .transitions import StepMatrices
@@ -104,6 +104,58 @@ class _Prepared:
     disc: Discrete
     U: np.ndarray  # (N, nb)
     env: dict[str, Value]  # per-sample law environment (arrays of length N)
+    cont: Continuous  # the continuous system at the operating points
+    op: dict[str, np.ndarray]  # the operating points' values of the inputs that enter conductances
+
+
+@dataclass
+class _Chunk:
+    """A simulated chunk and what its sensitivities reuse (:meth:`Simulator._chunk_sensitivities`)."""
+
+    theta: np.ndarray
+    dt: float
+    prep: _Prepared
+    T: np.ndarray  # (N, n)
+    P: np.ndarray  # (N, nl)
+    dPdT: np.ndarray | None  # slopes along the run of laws not affine in T (when asked for)
+    slopes: np.ndarray  # (steps, nl, ntv) ∂P/∂T of the affine laws
+    stepped: np.ndarray  # (steps,) the steps the simulation stepped
+    in_span: np.ndarray  # (steps,) the steps in vectorised stretches
+    held_spans: list[tuple[int, int]]  # held runs for the sensitivities' closed form
+    spans: list[tuple[int, int]]  # vectorised stretches
+    prepared: dict[tuple[int, int], NodeStretch]
+
+
+class SimulatedRun:
+    """A simulated run whose sensitivities can follow (:meth:`Simulator.simulate_run`).
+
+    Attributes
+    ----------
+    trajectory : Trajectory
+        The temperatures and losses (no sensitivities).
+    """
+
+    def __init__(self, sim: Simulator, args: tuple[np.ndarray, Mapping[str, np.ndarray], float, np.ndarray],
+                 trajectory: Trajectory, chunk: _Chunk | None) -> None:
+        self._sim, self._args, self._chunk = sim, args, chunk
+        self.trajectory = trajectory
+
+    def sensitivities(self, wrt: Sequence[str], rows: Sequence[str] | None = None) -> Trajectory:
+        """The run with its sensitivities by ``wrt`` (``rows`` only, default all nodes): what
+        :meth:`Simulator.simulate` with ``wrt`` and ``rows`` returns. From the simulation kept:
+        the derivatives of its continuous system from its elimination, of its discretisation
+        from its eigendecomposition, the recursion from its temperatures and losses (a run
+        simulated in time chunks keeps none: it is simulated again)."""
+        sim, names = self._sim, tuple(wrt)
+        if not names:
+            return self.trajectory
+        if self._chunk is None:
+            return sim.simulate(*self._args, wrt=names, rows=rows)
+        keep = None if rows is None else sim._rows(rows)
+        widx = list(sim.model.parameter_index(names))
+        S, _ = sim._chunk_sensitivities(self._chunk, widx, keep, None)
+        tr = self.trajectory
+        return Trajectory(T=tr.T, P=tr.P, wrt=names, nodes=tr.nodes, S=S)
 
 
 class Simulator:
@@ -166,19 +218,21 @@ class Simulator:
             uniq, ops = np.zeros((1, 0)), np.zeros(steps, dtype=int)
         return _Grouped(env=env, uniq=uniq, ops=np.asarray(ops).reshape(-1))
 
-    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, wrt: Sequence[int],
-                 grouped: _Grouped | None = None) -> _Prepared:
+    def _prepare(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float,
+                 grouped: _Grouped | None = None, solves: bool = False) -> _Prepared:
+        """The run's operating points, their continuous system (its elimination's solves kept
+        with ``solves``) and discretisation, the boundary inputs and the law environment."""
         model, net = self.model, self.net
         N = len(next(iter(inputs.values())))
         g = self._grouped(theta, inputs) if grouped is None else grouped
         env, uniq, ops = g.env, g.uniq, g.ops
         op = {k: uniq[:, i] for i, k in enumerate(net.matrix_inputs)}
-        cont = net.continuous(theta, op, K=len(uniq), wrt=wrt)
+        cont = net.continuous(theta, op, K=len(uniq), solves=solves)
         disc = discretise(cont, dt, self.method, self.max_substep)
         U = np.zeros((N, 0))
         if model.boundaries:
             U = np.stack([np.broadcast_to(np.asarray(inputs[c], dtype=float), (N,)) for c in model.boundaries.values()], axis=1)
-        return _Prepared(ops=np.asarray(ops).reshape(-1), disc=disc, U=U, env=env)
+        return _Prepared(ops=np.asarray(ops).reshape(-1), disc=disc, U=U, env=env, cont=cont, op=op)
 
     def _loss_terms(self, env: dict[str, Value], N: int, T: np.ndarray | None,
                     slopes: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
@@ -243,6 +297,24 @@ class Simulator:
         return Trajectory(T=np.concatenate([x[0] for x in parts]), P=np.concatenate([x[1] for x in parts]),
                           wrt=names, nodes=self.model.nodes, S=S_all)
 
+    def simulate_run(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float,
+                     T0: np.ndarray) -> SimulatedRun:
+        """Simulate a run open-loop, keeping what its sensitivities need (:class:`SimulatedRun`).
+
+        For an optimiser that asks for a value first and for the gradient at some of the points
+        only (a line search's rejected trials need none): :meth:`SimulatedRun.sensitivities`
+        adds them later without simulating again, the same numbers as :meth:`simulate` with
+        ``wrt``. Parameters as :meth:`simulate`.
+        """
+        theta = np.asarray(theta, dtype=float)
+        N = len(next(iter(inputs.values())))
+        grouped = self._grouped(theta, inputs)
+        args = (theta.copy(), inputs, float(dt), np.array(T0, dtype=float))
+        if len(self._chunks(grouped.ops, N)) > 1:  # chunks are not kept (memory): simulated again if asked
+            return SimulatedRun(self, args, self.simulate(*args), None)
+        ch = self._simulate_chunk(args[0], inputs, args[2], args[3], grouped, sens=True)
+        return SimulatedRun(self, args, Trajectory(T=ch.T, P=ch.P, nodes=self.model.nodes), ch)
+
     def _chunks(self, ops: np.ndarray, N: int) -> list[tuple[int, int]]:
         """Sample ranges ``(a, b)`` (samples ``a .. b``, consecutive ranges sharing their end
         sample) whose steps (operating points ``ops``) visit at most ``max_operating_points``
@@ -269,8 +341,22 @@ class Simulator:
         """One chunk of :meth:`simulate` from ``T0`` and ``S0`` (full, n × p; None: zero): the
         temperatures, losses, sensitivities (``rows``) and the full ``S`` at the last sample
         (``grouped``: the chunk's steps grouped by operating point, when already known)."""
+        # the temperatures first, then the derivatives from what the simulation kept: the same
+        # numbers as discretising with the derivatives at once, and the simulation runs without
+        # their arrays in the cache
+        ch = self._simulate_chunk(theta, inputs, dt, T0, grouped, sens=bool(names))
+        if not names:
+            return ch.T, ch.P, None, None
+        S, S_end = self._chunk_sensitivities(ch, widx, rows, S0)
+        return ch.T, ch.P, S, S_end
+
+    def _simulate_chunk(self, theta: np.ndarray, inputs: Mapping[str, np.ndarray], dt: float, T0: np.ndarray,
+                        grouped: _Grouped | None, sens: bool) -> _Chunk:
+        """The temperatures of one chunk and, when ``sens``, what its sensitivities reuse: the
+        elimination's solves and the states from which :meth:`_chunk_sensitivities` adds them
+        for any parameters."""
         N = len(next(iter(inputs.values())))
-        prep = self._prepare(theta, inputs, dt, widx, grouped)
+        prep = self._prepare(theta, inputs, dt, grouped, solves=sens)
         d = prep.disc
         n, nb = self.n, prep.U.shape[1]
         GP = d.Gam[:, :, nb:]
@@ -306,21 +392,12 @@ class Simulator:
             sim_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in blocks]))
             closed = [(a, b, int(u)) for (a, b), u in zip(blocks, sim_tr.index)]
         stepped = ~in_span & ~covered(blocks, steps)
-        held_tr = None
-        need = stepped.copy()
-        if names:  # the steps the sensitivities step: not in a stretch nor in a run in closed form
-            sens_closed: list[tuple[int, int]] = []
-            if held_spans:
-                held_tr = transitions(d, GP, self.tv, ops, dPdT0[:steps], np.array([a for a, _ in held_spans]))
-                ok = held_tr.modes.ok[held_tr.index]
-                sens_closed = [r for r, good in zip(held_spans, ok) if good]
-            need |= ~in_span & ~covered(sens_closed, steps)
         # the input-driven part of the stepped steps and of each block run's first step (the
         # stretches make their own, in the modal basis)
         want = stepped.copy()
         want[[a for a, _, _ in closed]] = True
         f = self._forcing(d.Gam, ops, prep.U, P0, want)
-        mats = self._step_matrices(d.Phi, GP, ops, dPdT0, need)
+        mats = self._step_matrices(d.Phi, GP, ops, dPdT0, stepped)
         step_losses = self.losses.stepwise(prep.env, N, na) if na else None
         GPna = [GP[o][:, na] for o in range(GP.shape[0])] if na else []
         opl = ops.tolist()
@@ -353,21 +430,50 @@ class Simulator:
                 fm = np.zeros((n, 1, padded_length(b - a)))
                 wab = np.concatenate([prep.U[a:b], P0[a:b]], axis=1)
                 np.matmul(Vi @ d.Gam[o], wab.T, out=fm[:, 0, : b - a])
-                Ta, _ = ns.solve(fm, T[a][:, None], states=bool(names))  # modal temperatures for the sensitivities
+                Ta, _ = ns.solve(fm, T[a][:, None], states=sens)  # modal temperatures for the sensitivities
                 T[a + 1: b + 1] = Ta[:, 0, :].T
             done = b
         step(done, steps)
         if na:  # the slopes along the run only serve the sensitivities of laws not affine in T
-            P, dPdT = self._loss_terms(prep.env, N, T, slopes=bool(names))
+            P, dPdT = self._loss_terms(prep.env, N, T, slopes=sens)
         else:  # affine laws: P(T) = P(0) + ∂P/∂T T, for the few laws that read a temperature
             P, dPdT = P0, None
             for j, i in self._slope_pairs:
                 P[:, j] += dPdT0[:, j, i] * T[:, self.tv[i]]
-        if not names:
-            return T, P, None, None
-        S, S_end = self._sensitivities(prep, T, P, dPdT, widx, rows, mats, held_spans, spans, dPdT0[:steps],
-                                       prepared, held_tr, S0)
-        return T, P, S, S_end
+        return _Chunk(theta=theta, dt=dt, prep=prep, T=T, P=P, dPdT=dPdT, slopes=dPdT0[:steps],
+                      stepped=stepped, in_span=in_span, held_spans=held_spans, spans=spans, prepared=prepared)
+
+    def _sensitivity_steps(self, d: Discrete, GP: np.ndarray, ops: np.ndarray, slopes: np.ndarray,
+                           held_spans: list[tuple[int, int]], stepped: np.ndarray,
+                           in_span: np.ndarray) -> tuple[Transitions | None, np.ndarray]:
+        """The closed-loop modes of the held runs (None without any) and the steps that get a
+        step matrix: those the simulation steps and those the sensitivities step (not in a
+        stretch nor in a held run in closed form)."""
+        steps = len(stepped)
+        sens_closed: list[tuple[int, int]] = []
+        held_tr = None
+        if held_spans:
+            held_tr = transitions(d, GP, self.tv, ops, slopes, np.array([a for a, _ in held_spans]))
+            ok = held_tr.modes.ok[held_tr.index]
+            sens_closed = [r for r, good in zip(held_spans, ok) if good]
+        return held_tr, stepped | (~in_span & ~covered(sens_closed, steps))
+
+    def _chunk_sensitivities(self, ch: _Chunk, widx: list[int], rows: np.ndarray | None,
+                             S0: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The sensitivities by ``widx`` of a chunk simulated with ``sens`` (:meth:`_simulate_chunk`)
+        (``rows``; and the full ``S`` at its last sample): the derivatives of its continuous
+        system from the solves it kept, of its discretisation from its eigendecomposition
+        (:func:`~.discretise.derive`), the step matrices of the steps the sensitivities step,
+        the recursion over its temperatures and losses."""
+        prep = ch.prep
+        cont = self.net.derivatives(prep.cont, ch.theta, prep.op, widx)
+        prep = replace(prep, disc=derive(prep.disc, cont, ch.dt, self.method))
+        d, nb = prep.disc, prep.U.shape[1]
+        ops = prep.ops[: len(ch.stepped)]
+        held_tr, need = self._sensitivity_steps(d, d.Gam[:, :, nb:], ops, ch.slopes, ch.held_spans, ch.stepped, ch.in_span)
+        mats = self._step_matrices(d.Phi, d.Gam[:, :, nb:], ops, ch.slopes, need)
+        return self._sensitivities(prep, ch.T, ch.P, ch.dPdT, widx, rows, mats, ch.held_spans, ch.spans, ch.slopes,
+                                   ch.prepared, held_tr, S0)
 
     @staticmethod
     def _forcing(Gam: np.ndarray, ops: np.ndarray, U: np.ndarray, P: np.ndarray, want: np.ndarray) -> np.ndarray:
