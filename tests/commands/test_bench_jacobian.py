@@ -32,6 +32,9 @@ def test_varying_case_reports_old_and_new_side_by_side():
     assert v["cpu_speedup_vs_forward"] == pair("numerical_cpu_runs_s", "analytic_cpu_runs_s")
     bound = statistics.median([(r.params + 1) * s / a for s, a in zip(v["simulation_runs_s"], v["analytic_runs_s"])])
     assert v["forward_bound"] == bound
+    # the sensitivities alone: each round's Jacobian less that round's simulation, in limits
+    beyond = statistics.median([(a - s) / v["arith_limit_s"] for a, s in zip(v["analytic_runs_s"], v["simulation_runs_s"])])
+    assert v["sensitivities_over_limit"] == beyond
     # the new way is the old one reordered: the same numbers to round-off
     assert v["vectorised_vs_stepped_max_rel"] < 1e-9 and v["simulation_vs_stepped_max_rel"] < 1e-9
     # a speed that sweeps: one piece and chunks agree, peaks and times measured for both

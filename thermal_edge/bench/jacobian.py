@@ -330,7 +330,18 @@ def _varying(model: object, cols: dict[str, np.ndarray], dt: float, T0: np.ndarr
         "cpu_stepped_over_limit": c_st / limits["arith_limit_cpu_s"],
         "analytic_over_reused_limit": t_an / limits["arith_limit_reused_s"],
         "cpu_analytic_over_reused_limit": c_an / limits["arith_limit_reused_cpu_s"],
+        # the part the limit counts: the Jacobian less its simulation, per round
+        "sensitivities_over_limit": _beyond(times_an, times_sim, limit_s),
+        "cpu_sensitivities_over_limit": _beyond(cpu_an, cpu_sim, limits["arith_limit_cpu_s"]),
+        "stepped_sensitivities_over_limit": _beyond(times_st, times_sim_st, limit_s),
+        "cpu_stepped_sensitivities_over_limit": _beyond(cpu_st, cpu_sim_st, limits["arith_limit_cpu_s"]),
     }
+
+
+def _beyond(total: Sequence[float], part: Sequence[float], limit: float) -> float:
+    """The median over rounds of ``(total − part) / limit``: a Jacobian's time beyond its
+    simulation's (the same round's), in arithmetic limits."""
+    return statistics.median([(a - b) / limit for a, b in zip(total, part)])
 
 
 def swept(cols: dict[str, np.ndarray], speed: str, dt: float, amplitude: float = SWEEP_RPM,
