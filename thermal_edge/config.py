@@ -21,6 +21,7 @@ import difflib
 import errno
 import functools
 import ipaddress
+import logging
 import math
 import os
 import tempfile
@@ -41,6 +42,8 @@ from .lptn.vocabulary import LIMIT, TEMPERATURE, UNIT_SPELLINGS, NodeRole, Role,
 from .settings import AdapterConfig, setting, spec_of
 from .shipped import MACHINES, find
 from .yamlfile import read_document
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from .bus.codec import FrameCodec
@@ -826,11 +829,17 @@ class EdgeConfig:
                                  f"{Path(codec.dbc_path).name}; got {value:g}")
 
     def _check_unit(self, key: str, codec: Any, frame: str, sig: str, want: str) -> None:
-        """Refuse a signal whose DBC unit is not ``want`` (an empty unit is not checked: many DBCs
-        leave it out), naming the scaling that would give ``want`` where the unit is a known one."""
+        """Refuse a signal whose DBC unit is not ``want``, naming the scaling that would give ``want``
+        where the unit is a known one. An empty unit cannot be judged (many DBCs leave it out): a
+        WARNING says in which unit the value is read, so a speed in rad/s does not pass unsaid."""
         signal = codec.message(frame).get_signal_by_name(sig)
         unit = (signal.unit or "").strip()
-        if not unit or is_unit(want, unit):
+        if not unit:
+            log.warning("%s: %s.%s has no unit in %s: read as %s; if the inverter sends another unit, give the "
+                        "signal its unit (or scale it to %s) in the DBC", key, frame, sig, Path(codec.dbc_path).name,
+                        want, want)
+            return
+        if is_unit(want, unit):
             return
         dbc = Path(codec.dbc_path).name
         said = f"{dbc} gives {sig} in {unit!r}, and {key.rsplit('.', 1)[-1]} must be in {want} (edge.yaml converts no units)"

@@ -91,3 +91,20 @@ def test_a_degree_sign_of_a_dbc_saved_in_utf8_is_read(tmp_path):
     assert cantools.database.load_file(str(dbc)).get_message_by_name("INV_StatorTemps").get_signal_by_name(
         "INV_T_Housing").unit == "Â°C"
     _check(cfg)
+
+
+def test_an_empty_unit_is_read_with_a_warning_naming_the_key_and_the_unit_assumed(tmp_path, caplog):
+    """A unit the DBC leaves out cannot be judged: the value is read in the role's unit and one
+    WARNING says so (a speed in rad/s does not pass unsaid); a signal with its unit gets none."""
+    cfg, _ = _config(tmp_path, "INV_Speed", "0.01,0", "")
+    with caplog.at_level("WARNING", logger="thermal_edge.config"):
+        _check(cfg)
+    lines = [r for r in caplog.records if r.name == "thermal_edge.config" and r.levelname == "WARNING"]
+    assert len(lines) == 1
+    msg = lines[0].getMessage()
+    assert msg.startswith("signals.inputs.speed_rpm: INV_Mechanics.INV_Speed has no unit in inverter.dbc: read as rpm")
+    caplog.clear()
+    cfg, _ = _config(tmp_path, "INV_Speed", "0.01,0", "rpm")
+    with caplog.at_level("WARNING", logger="thermal_edge.config"):
+        _check(cfg)
+    assert not [r for r in caplog.records if r.name == "thermal_edge.config"]
