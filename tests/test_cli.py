@@ -215,3 +215,22 @@ def test_run_check_names_a_misspelt_required_key(tmp_path):
     assert out.returncode == 2
     assert out.stderr.strip() == ("thermal-edge run: error: edge.yaml: derating.max_curent_a: unknown key "
                                   "(did you mean 'max_current_a'?)"), out.stderr
+
+
+def test_run_check_says_when_the_state_dir_cannot_be_written_and_still_passes(tmp_path):
+    """A state directory the file system refuses to write (``/proc/self``: nothing can be created
+    there) is the host's state, not a configuration error: the service protects without saving, so
+    ``--check`` passes (exit 0) and says so on stderr, naming the key; a writable one says nothing."""
+    import yaml
+
+    path = edge_yaml(tmp_path, {"interface": "virtual"})
+    raw = yaml.safe_load(path.read_text())
+    raw["state"]["dir"] = "/proc/self"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    out = cli("run", "--check", "--config", str(path))
+    assert out.returncode == 0, out.stderr
+    warned = [ln for ln in out.stderr.splitlines() if "state.dir" in ln]
+    assert len(warned) == 1, out.stderr
+    assert warned[0].startswith("edge.yaml: state.dir: warning: /proc/self cannot be written now ("), out.stderr
+    ok = cli("run", "--check", "--config", str(edge_yaml(tmp_path, {"interface": "virtual"})))
+    assert ok.returncode == 0 and "state.dir" not in ok.stderr, ok.stderr

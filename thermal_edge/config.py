@@ -731,6 +731,22 @@ class EdgeConfig:
         """
         self._check_dir("state.dir", self.state.dir, create)
 
+    def state_dir_problem(self) -> str | None:
+        """Why ``state.dir`` cannot be written now (a file made and removed there), or None.
+
+        Not a configuration error (:meth:`check_state_dir` says why): ``run --check`` reports it so
+        that a service that would protect without saving its state is known before it starts."""
+        d = self.state.dir
+        if not d.is_dir():  # not there yet: the service makes it (check_state_dir judged where)
+            return None
+        try:
+            fd, name = tempfile.mkstemp(prefix=".thermal-edge-check-", dir=d)
+            os.close(fd)
+            os.unlink(name)
+        except OSError as exc:
+            return f"{d} cannot be written now ({exc.strerror or exc})"
+        return None
+
     def check_recording(self) -> None:
         """Check that ``recording.candump`` names a file whose directory is, or can be made, one
         (judged as :meth:`check_state_dir` judges ``state.dir``, without making it): a path that is

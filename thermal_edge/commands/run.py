@@ -68,6 +68,10 @@ def run(args: argparse.Namespace) -> int:
 
                     flux = load_flux_model(config)
                 print(f"{config.fname}: ok (model {model.name}, {len(model.nodes)} nodes, bus {config.bus.interface})")
+                problem = config.state_dir_problem()
+                if problem is not None:
+                    print(f"{config.fname}: state.dir: warning: {problem}: the service will protect without saving "
+                          "its state (and cannot lock the directory against a second service)", file=sys.stderr)
                 if config.flux.enabled:
                     print(f"  {config.flux.frame}: the magnet from the voltages, {config.flux.calibration} "
                           f"({flux.pole_pairs} pole pairs, informative from {flux.speed_min_rpm:.0f} rpm)")
