@@ -408,6 +408,12 @@ class FaultConfig:
     #: carries its ADC's noise (0.1 K sigma flickers over more than 0.2 K within seconds), which
     #: the mean takes out; a healthy reading that rises keeps rising in its mean, this much later
     stuck_smooth_s: float = setting(10.0, min=0.0, max=120.0)
+    #: the RMS current must read at least this fraction of ``|torque| / kt`` (where the torque takes
+    #: a fifth of ``max_current_a`` or more, 3 ticks in a row); below, the current is not believed
+    #: (a sensor fault of the current input, ``current_below_torque``) and the model heats with
+    #: ``|torque| / kt``: a DBC scaling 10x low or a second sender diluting the current frame would
+    #: otherwise underestimate the copper losses until the model is tens of kelvin off
+    current_torque_ratio: float = setting(0.5, positive=True, max=0.95)
 
 
 @dataclass(frozen=True)

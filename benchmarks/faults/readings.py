@@ -1,5 +1,5 @@
 """Readings that lie plausibly, through ``thermal-edge replay``: every PT100 drifting low at once,
-and the winding PT100s frozen with their converter's noise.
+the winding PT100s frozen with their converter's noise, and the current frame read ten times low.
 
 One reference or excitation current shared by the inverter's PT100 inputs drifts, and every
 temperature reads low by the same growing amount, slowly enough that each reading agrees with the
@@ -11,9 +11,12 @@ re-encoded (counter and CRC as the matrix says) reading low by the drift, replay
 adaptation on, and counts the ticks at which the plant's slot winding is above the hot spot's
 ``max_c`` while the limit sent is above the safe current: each is unsafe. The winding PT100s
 frozen from 100 min on, still flickering with 0.1 K of noise in 0.1 K steps (a channel whose
-converter holds its last sample), are judged the same way and must be named stuck. The control case
-(:func:`drift_unguarded`) replays the same log with ``derating.faults.commissioned_gap_k`` at its
-upper bound, which the drift never reaches: it must be judged unsafe.
+converter holds its last sample), are judged the same way and must be named stuck. The current
+frame read ten times low from 50 min on (a DBC scaling, a second sender diluting it) must not be
+believed: no tick above the safe current once the check has confirmed, wherever the machine's
+current is one it judges. The control cases (:func:`drift_unguarded`) replay the same logs with
+``derating.faults.commissioned_gap_k`` at its upper bound, which the drift never reaches, and with
+``current_torque_ratio`` at 0.01: each must be judged unsafe.
 """
 from __future__ import annotations
 
@@ -69,10 +72,10 @@ def frozen_with_noise(seed: int = 0) -> Fault:
     return fault
 
 
-def _faulted(log: Path, out: Path, t0: float, fault: Fault) -> int:
-    """``log`` with every ``INV_StatorTemps`` frame's temperatures passed through ``fault`` and
-    re-encoded (the frame's own counter, the matrix's CRC; ``t0``: the log's first stamp); returns
-    the frames changed."""
+def _faulted(log: Path, out: Path, t0: float, fault: Fault, frame_name: str = TEMPS, prefix: str = "INV_T_") -> int:
+    """``log`` with every ``frame_name`` frame's signals named ``prefix...`` (by default the
+    ``INV_StatorTemps`` temperatures) passed through ``fault`` and re-encoded (the frame's own
+    counter, the matrix's CRC; ``t0``: the log's first stamp); returns the frames changed."""
     codec = FrameCodec()
     changed = 0
     lines = []
@@ -82,9 +85,9 @@ def _faulted(log: Path, out: Path, t0: float, fault: Fault) -> int:
         t = float(stamp.strip("()"))
         msg = can.Message(arbitration_id=int(ident, 16), data=bytes.fromhex(data), is_extended_id=len(ident) > 3)
         dec = codec.decode_message(msg)
-        if dec is not None and dec.name == TEMPS:
-            temps = fault(t - t0, {k: v for k, v in dec.signals.items() if k.startswith("INV_T_")})
-            data = codec.encode(TEMPS, {**dec.signals, **temps}, counter=dec.counter).hex().upper()
+        if dec is not None and dec.name == frame_name:
+            values = fault(t - t0, {k: v for k, v in dec.signals.items() if k.startswith(prefix)})
+            data = codec.encode(frame_name, {**dec.signals, **values}, counter=dec.counter).hex().upper()
             changed += 1
         lines.append(" ".join([stamp, chan, f"{ident}#{data}", *rest]))
     out.write_text("\n".join(lines) + "\n")
@@ -157,6 +160,75 @@ def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str
     return Case.of(name, group, 1, did, c, control=control)
 
 
+#: the current frame's signals read ten times low from this time on (s): a DBC scaling of 0.1 A read
+#: as 1 A, or a second sender diluting the frame (the black-box finding: 20 A read as 6.3 A)
+SCALED_FROM_S, CURRENTS = 3000.0, "INV_Currents"
+
+
+def current_tenfold_low(dt: float, currents: dict[str, float]) -> dict[str, float]:
+    """The currents a tenth of the machine's from :data:`SCALED_FROM_S` on."""
+    return {k: v * 0.1 for k, v in currents.items()} if dt >= SCALED_FROM_S else currents
+
+
+def _believed_low(rows: list[dict[str, str]], truth: list[dict[str, str]], judged_a: float, safe_a: float,
+                  settle_s: float) -> tuple[int, int]:
+    """(ticks after the scaling (and ``settle_s``) whose machine current is at least ``judged_a``,
+    of them those with a limit above ``safe_a``: the current a tenth of the machine's believed)."""
+    by_t = {round(float(r["t"])): float(r["i_rms"]) for r in truth}
+    judged = believed = 0
+    for r in rows:
+        t = round(float(r["t"])) + 1  # the replay's t counts from the first tick, 1 s in
+        i = by_t.get(t)
+        if i is not None and t >= SCALED_FROM_S + settle_s and i >= judged_a:
+            judged += 1
+            believed += float(r["current_limit_a"]) > safe_a + 1e-6
+    return judged, believed
+
+
+def _current_case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str]], t0: float,
+                  faults: dict[str, float], control: bool = False) -> Case:
+    """The current frame ten times low: no tick above the safe current once the check confirms,
+    where the machine's current is one the check judges, and its line in the log."""
+    from thermal_edge.service.current_torque import CONFIRM_TICKS, JUDGED_FROM
+
+    raw = yaml.safe_load(service_config_path("edge.yaml").read_text())
+    safe_a, max_a = float(raw["derating"]["safe_current_a"]), float(raw["derating"]["max_current_a"])
+    changed = _faulted(clean, d / f"{name}.log", t0, current_tenfold_low, CURRENTS, "INV_I")
+    rows, err, rc = _replay(d, d / f"{name}.log", faults)
+    c = Check()
+    c.add(0 if rc == 0 and rows else 1, f"replay exit {rc}: {err.strip()[-200:]}")
+    # settle: the confirming ticks and one tick of the frames' mean crossing the scaling's start
+    judged, believed = _believed_low(rows, truth, JUDGED_FROM * max_a, safe_a, CONFIRM_TICKS + 2.0)
+    c.add(believed, f"{believed} of {judged} ticks with the current read ten times low sent more than {safe_a:.0f} A")
+    c.add(0 if judged else 1, "the machine never drew a judged current after the scaling: nothing was judged")
+    said = "below 0.5 of the"
+    heard = said in err
+    if not control:
+        c.add(0 if heard else 1, f"no log line says {said!r}")
+    did = (f"{changed} {CURRENTS} frames a tenth from {SCALED_FROM_S:.0f} s; {judged} ticks judged, {believed} of them "
+           f"above {safe_a:.0f} A" + (f"; {said!r} logged" if heard else ""))
+    return Case.of(name, group, 1, did, c, control=control)
+
+
+#: the slot-winding PT100 reads this much above the machine's slot winding from this time on (K, s):
+#: a winding whose hottest point is where the model's hot spot is not (the black-box finding: full
+#: current with a slot-winding reading 4 K above the hot spot's band, 3.7 K below the maximum)
+SLOT_RAISE_K, SLOT_RAISED_FROM_S = 25.0, 3000.0
+
+
+def slot_reads_hotter(dt: float, temps: dict[str, float]) -> dict[str, float]:
+    """The slot-winding reading :data:`SLOT_RAISE_K` above the machine's from :data:`SLOT_RAISED_FROM_S`."""
+    return {**temps, "INV_T_WindingSlot": temps["INV_T_WindingSlot"] + SLOT_RAISE_K} if dt >= SLOT_RAISED_FROM_S \
+        else temps
+
+
+def _slot_as_read(truth: list[dict[str, str]]) -> list[dict[str, str]]:
+    """The machine's temperatures with the slot winding as :func:`slot_reads_hotter` reads it: a
+    winding read above its maximum is judged as one above it."""
+    return [{**r, "slot_winding": str(float(r["slot_winding"]) + (SLOT_RAISE_K if float(r["t"]) >= SLOT_RAISED_FROM_S
+                                                                   else 0.0))} for r in truth]
+
+
 DRIFT_TRIED = f"{DRIFT_RATE_K_PER_S * 60:.1f} K/min low from {DRIFT_FROM_S:.0f} s (up to {DRIFT_CAP_K:.0f} K)"
 
 
@@ -171,16 +243,23 @@ def drift(full: bool) -> Iterator[Case]:
         yield _case(d, "winding_pt100s_frozen_with_noise", "readings", clean, truth, t0, frozen_with_noise(),
                     f"with the windings held from {FREEZE_FROM_S:.0f} s (+ {FREEZE_NOISE_K} K noise, "
                     f"{RESOLUTION_K} K steps)", "stuck at", {})
+        yield _current_case(d, "current_dbc_scaled_tenfold_low", "readings", clean, truth, t0, {})
+        yield _case(d, "slot_pt100_hotter_than_the_hot_spot", "readings", clean, _slot_as_read(truth), t0,
+                    slot_reads_hotter, f"with the slot winding {SLOT_RAISE_K:.0f} K hotter from {SLOT_RAISED_FROM_S:.0f} s",
+                    "-> winding", {})
 
 
 def drift_unguarded(full: bool) -> Iterator[Case]:
     """The common drift with ``commissioned_gap_k`` at its upper bound, which the drift never
-    reaches: must be judged unsafe."""
+    reaches, and the current ten times low with ``current_torque_ratio`` at 0.01: each must be
+    judged unsafe."""
     with tempfile.TemporaryDirectory(prefix="te-faults-readings-") as tmp:
         d = Path(tmp)
         clean, truth, t0 = _clean(d, full)
         yield _case(d, "pt100_common_drift_guard_off", "control", clean, truth, t0, common_drift, DRIFT_TRIED,
                     "readings not believed", {"commissioned_gap_k": 100.0}, control=True)
+        yield _current_case(d, "current_tenfold_low_check_off", "control", clean, truth, t0,
+                            {"current_torque_ratio": 0.01}, control=True)
 
 
 GROUPS = {"readings": drift}

@@ -73,14 +73,15 @@ def test_every_group_is_in_the_suite() -> None:
 
 @pytest.mark.slow
 def test_every_pt100_drifting_low_with_the_check_out_of_reach_fails_the_bench() -> None:
-    """The readings group's control: the same drift with ``commissioned_gap_k`` at its upper bound
-    (never reached) sends more than the safe current while the plant's winding is over its max,
-    and the bench judges each such tick unsafe."""
+    """The readings group's controls: the same drift with ``commissioned_gap_k`` at its upper bound
+    (never reached) sends more than the safe current while the plant's winding is over its max, and
+    the current read ten times low with ``current_torque_ratio`` at 0.01 (never below it) is believed
+    at full current; the bench judges each such tick unsafe."""
     r = faults.run(only=["readings_control"], progress=False)
     print("\n" + faults.report_table(r))
-    assert [c.name for c in r.cases] == ["pt100_common_drift_guard_off"]
-    case = r.cases[0]
-    assert case.control and case.passed and case.unsafe >= 1, case.did
+    assert [c.name for c in r.cases] == ["pt100_common_drift_guard_off", "current_tenfold_low_check_off"]
+    for case in r.cases:
+        assert case.control and case.passed and case.unsafe >= 1, case.did
 
 
 def test_a_te_limits_pause_of_500_ms_fails_the_bench(udp_ok: None) -> None:

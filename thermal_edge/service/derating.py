@@ -117,7 +117,7 @@ import numpy as np
 
 from ..bus.frames import DerateReason
 from ..config import DeratingConfig
-from ..lptn import Model, Role
+from ..lptn import Model, NodeRole, Role
 
 __all__ = ["STALL_TICKS", "DeratingPolicy", "LimitSpec", "Limits", "MeasuredFloor", "NodeBand", "bounding_sensors"]
 
@@ -207,7 +207,10 @@ def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], l
     its node is never hotter than the limited node: then a reading at or above the node's warning
     temperature means the limited node is at least that hot, whatever the model's state (the
     end-winding PT100 for the end-winding hot spot; not for the magnet, which is cooler than the
-    winding at low speed).
+    winding at low speed). A sensor on a winding node also bounds every limited winding node: the
+    winding's limit holds for all of its copper, so a slot-winding reading above the end-winding hot
+    spot's estimate is a winding at least that hot, whatever point the model calls the hot spot (a
+    model that runs the hot spot cold, or a steady state where the slot is the hotter point).
 
     Parameters
     ----------
@@ -244,6 +247,10 @@ def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], l
             for (lim, s) in ok:
                 if T[sensors[s]] > T[limits[lim]] + 1e-6:
                     ok[(lim, s)] = False
+    role = {row: model.node_roles.get(node) for row, node in enumerate(model.nodes)}
+    for (lim, s) in ok:
+        if role[limits[lim]] == NodeRole.WINDING and role[sensors[s]] == NodeRole.WINDING:
+            ok[(lim, s)] = True
     out: dict[str, list[str]] = {}
     for (lim, s), v in ok.items():
         if v:

@@ -39,6 +39,7 @@ from ..estimation.observer import Observer
 from ..lptn import Model, Role, load_model
 from .adaptation import Adaptation, AdaptationResult
 from .clock import FrameClockStats
+from .current_torque import CurrentTorqueCheck
 from .derating import DeratingPolicy, LimitSpec, MeasuredFloor, NodeBand, bounding_sensors
 from .estimate import StateEstimate
 from .events import SafetyEvents
@@ -130,6 +131,10 @@ class ThermalEngine:
         self.health = ModelHealth(dc.faults, config.adaptation.adapter.period_s)
         self.stuck = StuckSensors(dc.faults, config.sensors)
         self.commissioned = CommissionedCheck(dc.faults)
+        current, torque = m.find_input(Role.CURRENT), m.find_input(Role.TORQUE)
+        #: the current against the torque (None when the model reads either not)
+        self.current_check = (CurrentTorqueCheck(current, torque, self.kt, dc.max_current_a, dc.faults.current_torque_ratio)
+                              if current is not None and torque is not None else None)
         self.events = SafetyEvents()
         self._restored = restored  # used once, at the start of the state
         self._restart_info: dict[str, float] = {}
@@ -279,6 +284,8 @@ class ThermalEngine:
             return self._output(t, ti, reasons, TeState.STARTING)
 
         u = {k: (v if math.isfinite(v) else self._last_inputs.get(k, math.nan)) for k, v in ti.inputs.items()}
+        if self._doubt_current(t, ti, u):
+            forced = input_reasons(ti)
         # 1. the previous sample (inputs of this interval) to the adapter
         if self._prev_sample is not None:
             t_prev, y_prev, x_prev = self._prev_sample
@@ -351,6 +358,28 @@ class ThermalEngine:
         if fx is None:
             return None
         return fx.fuse(t, obs, float(u.get(fx.speed_input, math.nan)))
+
+    def _doubt_current(self, t: float, ti: TickInputs, u: dict[str, float]) -> bool:
+        """Whether the current reads far below what the torque takes (:mod:`.current_torque`): then it
+        is a fault of the current input (safe limit) and the model heats with ``|T| / kt`` instead."""
+        chk = self.current_check
+        if chk is None:
+            return False
+        v = chk.judge(u)
+        name = chk.current_input
+        if v.started:
+            log.error("current %s at t=%.0f reads %.1f A, below %g of the %.1f A the torque %s of %.1f Nm takes at "
+                      "kt %.3g Nm/A: a scaling in the DBC or a second sender of its frame? Not believed: safe limit, "
+                      "the model heats with %.1f A", name, t, u[name], chk.ratio, v.needed, chk.torque_input,
+                      u[chk.torque_input], chk.kt, v.needed)
+            self.accumulator.bad_readings["current_below_torque"] += 1
+        elif v.ended:
+            notice(log, "current %s agrees again with the torque %s (at t=%.0f)", name, chk.torque_input, t)
+        if not v.doubted:
+            return False
+        ti.faults.setdefault(name, "current_below_torque")
+        u[name] = max(u[name], v.needed) if math.isfinite(u[name]) else v.needed
+        return True
 
     def _withhold_stuck(self, ti: TickInputs, released: list[str]) -> None:
         """The stuck sensors' readings are not used; a required one is a sensor fault (``stuck``)."""

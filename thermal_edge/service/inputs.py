@@ -116,7 +116,7 @@ def _age(t: float, t_reading: float) -> float:
 
 
 #: Every kind of rejected reading, in the order metrics list them.
-FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck")
+FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck", "current_below_torque")
 
 
 def input_ranges(config: EdgeConfig, roles: Mapping[str, Role]) -> dict[str, tuple[float, float]]:
