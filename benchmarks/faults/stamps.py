@@ -1,7 +1,8 @@
 """Fault cases on when a reading was taken: sensor frames that come just after a tick's boundary or
 stamped ahead of the other frames (a sensor age must never read negative), and timestamps that run
 backwards, on the live bus (stamps shuffled by up to seconds) and in CAN logs (a reversed or
-shuffled log refused with one line; a merged log a little out of order replayed).
+shuffled log refused with one line; a merged log a little out of order replayed; a log whose
+first half second precedes a silence exported without ticks across the silence).
 
 Besides the common checks (``TE_Limits`` gaps, limits, crash), a live case fails when a scrape of
 ``/metrics`` shows a negative ``thermal_edge_sensor_age_seconds``, when ticks stop while valid frames
@@ -287,6 +288,7 @@ def log_cases(full: bool) -> Iterator[Case]:
         shuf.write_text("\n".join(shuffled) + "\n")
         yield _refused("replay_shuffled_log", "the log's lines shuffled", shuf, "backwards")
         yield _merged(workdir, lines)
+        yield _silence_first(workdir, lines)
     finally:
         shutil.rmtree(workdir, ignore_errors=True)
 
@@ -320,6 +322,37 @@ def _merged(workdir: Path, lines: list[str]) -> Case:
            f"{'0' if s else 'non-zero'}; {ticks} ticks of {want} boundaries; frame clock: "
            + ("; ".join(f"{k} {v:g}" for k, v in fc.items() if v) or "nothing"))
     return Case.of("replay_merged_log_a_few_ms_out_of_order", "time back", 1, did, c, max(0, want - ticks))
+
+
+#: the silent start's log: frames for this long, then none for this long, then the rest, s
+FIRST_S, SILENT_S = 0.5, 21.5
+
+
+def _silence_first(workdir: Path, lines: list[str]) -> Case:
+    """A log whose first :data:`FIRST_S` of frames is followed by :data:`SILENT_S` without any (a
+    drive switched off just after the logger started): ``export`` must not make ticks across the
+    silence from the frames before it (each such tick is drive data nobody measured)."""
+    t0 = _stamp(lines[0])
+    kept = [ln for ln in lines if not t0 + FIRST_S <= _stamp(ln) < t0 + FIRST_S + SILENT_S]
+    log = workdir / "silent-start.log"
+    log.write_text("\n".join(kept) + "\n")
+    out = workdir / "silent-start.csv"
+    r = subprocess.run(thermal_edge_cmd() + ["export", "--config", str(service_config_path("edge.yaml")), "--out", str(out),
+                                             str(log)], env=env(service=True), cwd=str(workdir), capture_output=True,
+                       text=True, timeout=600)
+    ticks = 0
+    for csv_path in sorted(workdir.glob("silent-start*.csv")):
+        ticks += sum(1 for ln in csv_path.read_text().splitlines()[1:] if ln and not ln.startswith("#"))
+    # the tick boundaries the traffic after the silence spans (and the tick it ends in): at most that
+    # many ticks are measured ones
+    measured = math.floor(_stamp(kept[-1])) - math.floor(t0 + FIRST_S + SILENT_S) + 1
+    invented = max(0, ticks - measured)
+    c = Check()
+    c.add(int(r.returncode != 0), f"export exit {r.returncode}: {r.stderr.strip()[-160:]}")
+    c.add(invented, f"{invented} ticks beyond the {measured} s of traffic after the silence")
+    return Case.of("export_log_whose_first_frames_precede_a_silence", "time back", 1,
+                   f"{FIRST_S:g} s of frames, {SILENT_S:g} s silent, then {measured} s: exported {ticks} ticks, "
+                   f"{invented} invented", c)
 
 
 def time_back(full: bool) -> Iterator[Case]:

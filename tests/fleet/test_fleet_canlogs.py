@@ -92,6 +92,25 @@ def test_a_silence_in_the_log_ends_a_run(logs, tmp_path):
     assert second.source == f"{both}#1" and float(second.meta["epoch_s"]) == T0 + 3601.0
 
 
+def test_a_silence_after_less_than_a_tick_of_frames_is_no_drive_data(logs, tmp_path):
+    """Half a second of frames, 21 s without any, then the drive: the frames before the silence
+    make no tick, and no tick bridges the silence with their values; the one run starts with the
+    drive's own first whole tick."""
+    d = logs[0]
+    lines = (d / "m1" / "drive.log").read_text().splitlines()
+    early = [ln for ln in lines if float(ln.split()[0].strip("()")) < T0 + 0.5]
+    later = tmp_path / "later.log"
+    _emulate(later, seed=5, t0=T0 + 22.0, duration_s=120.0)
+    both = tmp_path / "gap.log"
+    both.write_text("\n".join(early) + "\n" + later.read_text())
+    (run,) = read_can_runs(both)
+    (alone,) = read_can_runs(later)
+    assert early and float(run.meta["epoch_s"]) == T0 + 23.0 == float(alone.meta["epoch_s"])
+    np.testing.assert_array_equal(run.t, alone.t)
+    for c in alone.columns:
+        np.testing.assert_array_equal(run.columns[c], alone.columns[c], err_msg=c)
+
+
 def test_machines_from_directories_of_logs_and_csvs(logs, tmp_path):
     d = logs[0]
     fleet = tmp_path / "fleet"

@@ -167,8 +167,9 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
                 continue
             ts = float(frame.timestamp)
             # the drive was silent (judged on the stamps, before the clock would bridge the gap):
-            # this stretch ends
-            if ts - last > silence and ticks:
+            # this stretch ends, also one of less than a tick (its frames would otherwise be held
+            # as the inputs of every tick across the silence)
+            if ts - last > silence and math.isfinite(last):
                 close_stretch()
                 ticks, acc, clock = [], InputAccumulator(config, roles), FrameClock(tick_s, catchup)
                 dq_means.take()
