@@ -234,3 +234,19 @@ def test_run_check_says_when_the_state_dir_cannot_be_written_and_still_passes(tm
     assert warned[0].startswith("edge.yaml: state.dir: warning: /proc/self cannot be written now ("), out.stderr
     ok = cli("run", "--check", "--config", str(edge_yaml(tmp_path, {"interface": "virtual"})))
     assert ok.returncode == 0 and "state.dir" not in ok.stderr, ok.stderr
+
+
+@pytest.mark.parametrize("value", ["verbose", "trace"])
+def test_run_refuses_a_log_level_from_the_environment_in_one_line(tmp_path, value):
+    """argparse checks ``--log-level``'s choices but not a default from ``THERMAL_EDGE_LOG_LEVEL``
+    (the shipped unit sets it): an unknown one is a user error naming the variable, not a traceback."""
+    path = edge_yaml(tmp_path, {"interface": "virtual"})
+    out = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "run", "--check", "--config", str(path)],
+                         capture_output=True, text=True, cwd=ROOT, env={**ENV, "THERMAL_EDGE_LOG_LEVEL": value}, timeout=300)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip() == (f"thermal-edge run: error: THERMAL_EDGE_LOG_LEVEL: {value!r} is not a log level "
+                                  "(one of debug, info, notice, warning, error)")
+    ok = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "run", "--check", "--config", str(path)],
+                        capture_output=True, text=True, cwd=ROOT, env={**ENV, "THERMAL_EDGE_LOG_LEVEL": "WARNING"},
+                        timeout=300)
+    assert ok.returncode == 0, ok.stderr

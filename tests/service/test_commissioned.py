@@ -77,8 +77,13 @@ def test_a_drift_common_to_every_pt100_is_not_believed_and_the_limit_stays_safe(
         back, _, _ = _run(eng, model, range(1801, 1861), T, lambda k: 0.0)
     assert back[1].limits.reason != DerateReason.MODEL_FAULT
     assert back[-1].limits.current_a > SAFE
-    said = [(r.levelname, r.getMessage()) for r in caplog.records if "commissioned model" in r.getMessage()]
+    said = [(r.levelname, r.getMessage()) for r in caplog.records if "commissioned model" in r.getMessage()
+            and r.name == "thermal_edge.service.health"]
     assert [lv for lv, _ in said] == ["ERROR", "NOTICE"], said
+    # before the refusal, the drift under the gap was held at the commissioned floor (a WARNING)
+    floored = [r for r in caplog.records if r.name == "thermal_edge.service.engine" and "commissioned model's" in
+               r.getMessage() and r.levelname == "WARNING"]
+    assert floored and floored[0].created <= next(r.created for r in caplog.records if r.levelname == "ERROR")
     assert "below the commissioned model's prediction" in said[0][1]
 
 

@@ -131,6 +131,7 @@ class ThermalEngine:
         self.health = ModelHealth(dc.faults, config.adaptation.adapter.period_s)
         self.stuck = StuckSensors(dc.faults, config.sensors)
         self.commissioned = CommissionedCheck(dc.faults)
+        self._floored: set[str] = set()  # limited nodes whose band the commissioned floor sets
         current, torque = m.find_input(Role.CURRENT), m.find_input(Role.TORQUE)
         #: the current against the torque (None when the model reads either not)
         self.current_check = (CurrentTorqueCheck(current, torque, self.kt, dc.max_current_a, dc.faults.current_torque_ratio)
@@ -359,6 +360,30 @@ class ThermalEngine:
             return None
         return fx.fuse(t, obs, float(u.get(fx.speed_input, math.nan)))
 
+    def _commissioned_floor(self, t: float, upper: np.ndarray) -> None:
+        """Raise each limited node's ``upper`` (°C, by row, in place) to the commissioned prediction
+        less ``derating.faults.commissioned_floor_k``: readings that drifted low by less than the
+        gap that refuses them do not take the band further below the model file's prediction than a
+        calibrated model's error. A WARNING when that starts to set a node's band, a NOTICE when
+        it ends."""
+        xc = self.estimate.commissioned_prediction
+        if xc is None:
+            return
+        k = self.config.derating.faults.commissioned_floor_k
+        for ln in self.limited_nodes:
+            floor = float(xc[ln.row]) - k
+            binding = floor > upper[ln.row] + 0.5  # K: more than a reading's rounding
+            if binding and ln.name not in self._floored:
+                log.warning("%s at t=%.0f: the band from the readings (%.1f degC) lies more than %g K below the "
+                            "commissioned model's %.1f degC: derated on %.1f degC (a drift of the PT100s, or a "
+                            "machine that cools better than its model file: recalibrate)", ln.name, t, upper[ln.row],
+                            k, xc[ln.row], floor)
+                self._floored.add(ln.name)
+            elif not binding and ln.name in self._floored and floor < upper[ln.row] - 1.0:
+                notice(log, "%s: the band from the readings is above the commissioned floor again (t=%.0f)", ln.name, t)
+                self._floored.discard(ln.name)
+            upper[ln.row] = max(upper[ln.row], floor)
+
     def _doubt_current(self, t: float, ti: TickInputs, u: dict[str, float]) -> bool:
         """Whether the current reads far below what the torque takes (:mod:`.current_torque`): then it
         is a fault of the current input (safe limit) and the model heats with ``|T| / kt`` instead."""
@@ -436,6 +461,7 @@ class ThermalEngine:
             # a limited node is at least as hot as a sensor that bounds it from below: an estimate
             # the readings have outrun (a model that runs cold) does not hide that
             self.floor.raise_upper(upper, measured)
+            self._commissioned_floor(t, upper)
             # the one definition of the band derated on and sent (TE_Estimates); the replay's
             # per-tick table reads these, never a band of its own. While the voltages observe the
             # magnet its band is a measured one: the smaller margin

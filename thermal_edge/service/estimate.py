@@ -175,6 +175,11 @@ class StateEstimate:
         gaps = [x[r] - measured[s] for s, r in sensor_rows.items() if math.isfinite(measured.get(s, math.nan))]
         return max(gaps) if gaps and math.isfinite(max(gaps)) else None
 
+    @property
+    def commissioned_prediction(self) -> np.ndarray | None:
+        """The commissioned prediction (°C per node; None before the start)."""
+        return self._commissioned_x
+
     def commissioned_gap(self, measured: Mapping[str, float], sensor_rows: Mapping[str, int]) -> tuple[str, float] | None:
         """The sensor whose reading lies furthest below the commissioned prediction, and by how much
         (K; negative: every reading above it); None before the start or without a reading."""
