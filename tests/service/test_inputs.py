@@ -365,3 +365,23 @@ def test_a_current_frame_without_a_value_is_a_fault_not_the_last_value(acc, bad)
     third = acc.take(13.0)
     assert "i_rms" not in third.faults and third.inputs["i_rms"] == pytest.approx(30.0)
     assert "i_rms" in acc.fault_sources
+
+
+def test_an_ambient_a_winding_could_read_is_refused_as_the_air(acc):
+    """215 degC (an 8-bit channel's raw maximum: the sensor unplugged) is inside the PT100s' valid
+    range but not the air's: the ambient input is faulty (out of range, counted), keeps its last
+    value, and the stator readings stay as read; 95 degC air is read."""
+    acc.add(ambient(0.1, amb=30.0), 0.1)
+    acc.add(stator(0.1), 0.1)
+    ti = acc.take(1.0)
+    assert ti.inputs["ambient_c"] == 30.0 and not ti.faults
+    acc.add(ambient(1.1, amb=215.0), 1.1)
+    acc.add(stator(1.1), 1.1)
+    ti = acc.take(2.0)
+    assert ti.faults == {"ambient_c": "out_of_range"} and ti.inputs["ambient_c"] == 30.0
+    assert acc.bad_readings["out_of_range"] == 1 and ti.measured["slot_winding"] == 60.0
+    assert acc.refusal("ambient_c") == "215 degC is outside the plausible -40 to 100 degC"
+    acc.add(ambient(2.1, amb=95.0), 2.1)
+    acc.add(stator(2.1), 2.1)
+    ti = acc.take(3.0)
+    assert ti.inputs["ambient_c"] == 95.0 and not ti.faults

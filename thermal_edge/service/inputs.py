@@ -156,6 +156,11 @@ class InputAccumulator:
         self.lo, self.hi = config.valid_range_c
         self.reduced: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce != "latest"}
         self.latest_inputs: dict[str, InputSignal] = {k: s for k, s in config.inputs.items() if s.reduce == "latest"}
+        # a temperature input (ambient, coolant) within its role's range too: 215 degC (an 8-bit
+        # channel's raw maximum, the sensor unplugged) is a winding's temperature, never the air's
+        self._latest_range: dict[str, tuple[float, float]] = {
+            k: (max(self.lo, r.plausible.lo), min(self.hi, r.plausible.hi))
+            for k in self.latest_inputs if (r := self.roles.get(k)) is not None and r.is_temperature}
         self.sensors: dict[str, SensorSignal] = dict(config.sensors)
         # per frame: what to do with it (each action is called with the frame's signals and its time)
         self._by_frame: dict[str, list[Callable[[Mapping[str, float], float], None]]] = {}
@@ -252,7 +257,7 @@ class InputAccumulator:
             fault = _STATUS_FAULT[status]
         elif not math.isfinite(value):
             fault = "no_value"
-        elif not self.lo <= value <= self.hi:
+        elif not (rng := self._latest_range.get(name, (self.lo, self.hi)))[0] <= value <= rng[1]:
             fault = "out_of_range"
             self.refused[name] = value
         if fault is not None:
@@ -276,7 +281,8 @@ class InputAccumulator:
             plausible = dataclasses.replace(role.plausible, lo=rng[0], hi=rng[1])
         else:  # a temperature: the configured valid range
             base = role.plausible if role is not None and role.is_temperature else TEMPERATURE
-            plausible = dataclasses.replace(base, lo=self.lo, hi=self.hi)
+            lo, hi = self._latest_range.get(name, (self.lo, self.hi))
+            plausible = dataclasses.replace(base, lo=lo, hi=hi)
         return plausible.problem(x)
 
     # ------------------------------------------------------------------------------------------
