@@ -246,7 +246,7 @@ def drift(full: bool) -> Iterator[Case]:
         yield _current_case(d, "current_dbc_scaled_tenfold_low", "readings", clean, truth, t0, {})
         yield _case(d, "slot_pt100_hotter_than_the_hot_spot", "readings", clean, _slot_as_read(truth), t0,
                     slot_reads_hotter, f"with the slot winding {SLOT_RAISE_K:.0f} K hotter from {SLOT_RAISED_FROM_S:.0f} s",
-                    "-> winding", {})
+                    "derate reason", {})
 
 
 def drift_unguarded(full: bool) -> Iterator[Case]:
