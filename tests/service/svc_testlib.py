@@ -369,3 +369,30 @@ async def running(tmp_path, channel, *, speed=150.0, duration=3600.0, metrics=Fa
 
 async def sim_until(emu, t_rel: float, timeout: float = HANG_S) -> None:
     assert await async_wait_until(lambda: emu.elapsed >= t_rel, timeout), f"emulator stuck at {emu.elapsed}"
+
+
+def engine_on_emulator(cfg: Any, cycle: str, seconds: float, alter: Any = None, trace_every_s: float = 1e9) -> tuple:
+    """The engine of ``cfg`` fed, tick by tick through the frame clock, with the simulated machine's
+    frames of the packaged ``cycle`` (open loop) until ``seconds``; ``alter(name, t, signals)``
+    may change a frame's signals first. Returns the tick outputs, the (closed) engine and the
+    emulator (its ``trace()`` is the machine's truth)."""
+    from thermal_edge.bus.codec import DecodedFrame
+    from thermal_edge.service.clock import FrameClock
+    from thermal_edge.service.engine import ThermalEngine
+    from thermal_edge.shipped import config_path
+    from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
+
+    eng = ThermalEngine(cfg)
+    emu = InverterEmulator(EmulatorConfig(cycle_path=config_path("cycles", f"{cycle}.yaml"), t0=0.0, plant_dt_s=0.5,
+                                          trace_every_s=trace_every_s, record_estimates=False, closed_loop=False))
+    clock, outs = FrameClock(cfg.clock.tick_s), []
+    try:
+        while not outs or outs[-1].t < seconds:
+            for ts, name, sig in emu.step(None):
+                f = DecodedFrame(name, 0, alter(name, ts, sig) if alter is not None else sig, 0, ts)
+                for b in eng.ticks_for(clock.observe(f.timestamp)):
+                    outs.append(eng.tick(b))
+                eng.add_frame(f, clock.now())
+    finally:
+        eng.close()
+    return outs, eng, emu

@@ -10,13 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from svc_testlib import engine_on_emulator
 
 from thermal_edge.bench.service import _config
-from thermal_edge.bus.codec import DecodedFrame
-from thermal_edge.service.clock import FrameClock
-from thermal_edge.service.engine import ThermalEngine
-from thermal_edge.shipped import config_path
-from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
 
 LOW_K, SECONDS = 15.0, 2400.0
 
@@ -24,29 +20,19 @@ LOW_K, SECONDS = 15.0, 2400.0
 def _run(floor_k: float) -> tuple[list, np.ndarray, float]:
     """Ticks of the overload cycle with both winding PT100s drifting ``LOW_K`` low, the plant's hot spot at
     each tick's time and the floor used."""
+    def low(name: str, ts: float, sig: dict) -> dict:
+        if name != "INV_StatorTemps":
+            return sig
+        k = min(LOW_K, max(0.0, (ts - 300.0) / 300.0 * LOW_K))  # drifting low from 300 s, LOW_K at 600 s
+        return {**sig, "INV_T_WindingSlot": sig["INV_T_WindingSlot"] - k, "INV_T_EndWinding": sig["INV_T_EndWinding"] - k}
+
     with tempfile.TemporaryDirectory() as tmp:
         cfg = _config(Path(tmp), {"interface": "virtual"}, adapt=False, table4=False,
                       derating={"faults": {"commissioned_floor_k": floor_k}})
-        eng = ThermalEngine(cfg)
-        emu = InverterEmulator(EmulatorConfig(cycle_path=config_path("cycles", "overload.yaml"), t0=0.0,
-                                              plant_dt_s=0.5, trace_every_s=1.0, record_estimates=False,
-                                              closed_loop=False))
-        clock, outs = FrameClock(cfg.clock.tick_s), []
-        while not outs or outs[-1].t < SECONDS:
-            for ts, name, sig in emu.step(None):
-                if name == "INV_StatorTemps":  # drifting low from 300 s, LOW_K reached at 600 s
-                    low = min(LOW_K, max(0.0, (ts - 300.0) / 300.0 * LOW_K))
-                    sig = {**sig, "INV_T_WindingSlot": sig["INV_T_WindingSlot"] - low,
-                           "INV_T_EndWinding": sig["INV_T_EndWinding"] - low}
-                f = DecodedFrame(name, 0, sig, 0, ts)
-                for b in eng.ticks_for(clock.observe(f.timestamp)):
-                    outs.append(eng.tick(b))
-                eng.add_frame(f, clock.now())
-        row = eng.model.node_index(eng.model.limits[0].node) if eng.model.limits[0].name == "hot_spot" else None
-        assert row is not None
-        tr = emu.trace()
-        eng.close()
-    truth = np.interp([o.t for o in outs], tr["t"], tr["T"][:, row])
+        outs, eng, emu = engine_on_emulator(cfg, "overload", SECONDS, low, trace_every_s=1.0)
+    hot = next(lim for lim in eng.model.limits if lim.name == "hot_spot")
+    tr = emu.trace()
+    truth = np.interp([o.t for o in outs], tr["t"], tr["T"][:, eng.model.node_index(hot.node)])
     return outs, truth, floor_k
 
 

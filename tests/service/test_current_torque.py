@@ -11,16 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from svc_testlib import REPO
+from svc_testlib import REPO, engine_on_emulator
 
 from thermal_edge.bench.service import _config
-from thermal_edge.bus.codec import DecodedFrame
 from thermal_edge.bus.frames import DerateReason
-from thermal_edge.service.clock import FrameClock
 from thermal_edge.service.current_torque import CONFIRM_TICKS, JUDGED_FROM, CurrentTorqueCheck
-from thermal_edge.service.engine import ThermalEngine
-from thermal_edge.shipped import config_path
-from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
 
 PADERBORN = REPO.parent / "shared" / "data" / "paderborn" / "run_a.csv"
 
@@ -42,26 +37,18 @@ def test_a_low_current_is_doubted_after_the_confirming_ticks_and_believed_again_
     assert math.isnan(got[1].needed) and got[0].needed == 30.0  # 30 Nm takes 15 A: not judged
 
 
-def _drive(scale_from: float, seconds: float) -> list:
+def _drive(scale_from: float, seconds: float) -> tuple:
     """The engine on the overload cycle's frames, the current frame's signals scaled by 0.1 from
-    ``scale_from`` (s): the tick outputs."""
+    ``scale_from`` (s): the tick outputs, the count of the fault, kt and the safe current."""
+    def tenth(name: str, ts: float, sig: dict) -> dict:
+        if name == "INV_Currents" and ts >= scale_from:
+            return {k: v * 0.1 if isinstance(v, float) else v for k, v in sig.items()}
+        return sig
+
     with tempfile.TemporaryDirectory() as tmp:
         cfg = _config(Path(tmp), {"interface": "virtual"}, adapt=False)
-        eng = ThermalEngine(cfg)
-        emu = InverterEmulator(EmulatorConfig(cycle_path=config_path("cycles", "overload.yaml"), t0=0.0,
-                                              plant_dt_s=0.5, trace_every_s=1e9, record_estimates=False, closed_loop=False))
-        clock, outs = FrameClock(cfg.clock.tick_s), []
-        while not outs or outs[-1].t < seconds:
-            for ts, name, sig in emu.step(None):
-                if name == "INV_Currents" and ts >= scale_from:
-                    sig = {k: v * 0.1 if isinstance(v, float) else v for k, v in sig.items()}
-                f = DecodedFrame(name, 0, sig, 0, ts)
-                for b in eng.ticks_for(clock.observe(f.timestamp)):
-                    outs.append(eng.tick(b))
-                eng.add_frame(f, clock.now())
-        counted = eng.accumulator.bad_readings["current_below_torque"]
-        eng.close()
-    return outs, counted, eng.kt, cfg.derating.safe_current_a
+        outs, eng, _ = engine_on_emulator(cfg, "overload", seconds, tenth)
+    return outs, eng.accumulator.bad_readings["current_below_torque"], eng.kt, cfg.derating.safe_current_a
 
 
 def test_a_current_scaled_ten_times_low_is_a_sensor_fault_and_the_model_heats_with_the_torques(caplog):

@@ -7,15 +7,12 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from svc_testlib import engine_on_emulator
 
 from thermal_edge.bench.service import _config
-from thermal_edge.bus.codec import DecodedFrame
 from thermal_edge.lptn import NodeRole, load_model
-from thermal_edge.service.clock import FrameClock
 from thermal_edge.service.derating import FLOOR_TICKS, bounding_sensors
-from thermal_edge.service.engine import ThermalEngine
 from thermal_edge.shipped import config_path
-from thermal_edge.sim.inverter import EmulatorConfig, InverterEmulator
 
 RAISED_FROM_S, RAISE_K = 600.0, 25.0
 
@@ -33,21 +30,14 @@ def test_a_winding_sensor_bounds_the_winding_limit_even_where_the_model_puts_it_
 
 
 def test_a_slot_reading_above_the_hot_spot_estimate_raises_the_band_sent_to_it():
+    def hotter(name: str, ts: float, sig: dict) -> dict:
+        if name == "INV_StatorTemps" and ts >= RAISED_FROM_S:
+            return {**sig, "INV_T_WindingSlot": sig["INV_T_WindingSlot"] + RAISE_K}
+        return sig
+
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = _config(Path(tmp), {"interface": "virtual"}, adapt=False)
-        eng = ThermalEngine(cfg)
-        emu = InverterEmulator(EmulatorConfig(cycle_path=config_path("cycles", "overload.yaml"), t0=0.0,
-                                              plant_dt_s=0.5, trace_every_s=1e9, record_estimates=False, closed_loop=False))
-        clock, outs = FrameClock(cfg.clock.tick_s), []
-        while not outs or outs[-1].t < RAISED_FROM_S + 120.0:
-            for ts, name, sig in emu.step(None):
-                if name == "INV_StatorTemps" and ts >= RAISED_FROM_S:
-                    sig = {**sig, "INV_T_WindingSlot": sig["INV_T_WindingSlot"] + RAISE_K}
-                f = DecodedFrame(name, 0, sig, 0, ts)
-                for b in eng.ticks_for(clock.observe(f.timestamp)):
-                    outs.append(eng.tick(b))
-                eng.add_frame(f, clock.now())
-        eng.close()
+        outs, _, _ = engine_on_emulator(_config(Path(tmp), {"interface": "virtual"}, adapt=False), "overload",
+                                        RAISED_FROM_S + 120.0, hotter)
     late = [k for k, o in enumerate(outs) if o.t >= RAISED_FROM_S + 60.0]
     raised = 0
     for k in late:
