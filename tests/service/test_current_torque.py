@@ -64,6 +64,7 @@ def test_a_current_scaled_ten_times_low_is_a_sensor_fault_and_the_model_heats_wi
     for o in doubted:  # every judged tick after the confirming ones
         assert o.faults.get("i_rms") == "current_below_torque"
         assert o.limits.reason == DerateReason.SENSOR_FAULT and o.limits.current_a <= safe
+        assert o.lookahead_a <= o.limits.current_a  # no advice (TE_Forecast) above the limit the fault forces
     assert counted >= 1
     # what the model heated with: the current the torque takes (the simulated machine's own), not the
     # frame's tenth: its open-loop prediction is the unscaled run's

@@ -57,7 +57,8 @@ frames) or, with the wall clock, no tick ran for ``STALL_TICKS`` periods (safe l
 tick's, which already held the band at the measured temperatures.
 
 The 30 min look-ahead (the current that could be held for the whole horizon and the time to limit)
-is advice for the vehicle or plant controller in ``TE_Forecast``: it never limits by itself. It is
+is advice for the vehicle or plant controller in ``TE_Forecast``: it never limits by itself. While a
+forced limit holds (the estimate not trusted) it is never above the current limit sent. It is
 a limit only where holding the present limit would reach a max within the reaction time, which is
 exactly step 1.
 

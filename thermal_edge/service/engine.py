@@ -487,6 +487,8 @@ class ThermalEngine:
                     log.warning("look-ahead failed: %s", exc)
                     la_a = math.nan
             limits = self.policy.update(bands, (react_a, react_reason), forced, floor)
+            if forced and math.isfinite(la_a):  # the estimate is not trusted: no advice above the limit sent
+                la_a = min(la_a, limits.current_a)
         else:
             est = np.full(n, math.nan)
             sigma = np.full(n, math.nan)
