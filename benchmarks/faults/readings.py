@@ -139,9 +139,10 @@ def _clean(d: Path, full: bool) -> tuple[Path, list[dict[str, str]], float]:
 
 
 def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str]], t0: float, fault: Fault,
-          tried: str, said: str, faults: dict[str, float], control: bool = False) -> Case:
+          tried: str, said: str | None, faults: dict[str, float], control: bool = False) -> Case:
     """Replay ``clean`` through ``fault`` and judge it: no tick above the safe current while the plant's
-    winding is over its max, and ``said`` in the log (not for a control)."""
+    winding is over its max, and ``said`` in the log (not for a control; None: a plain derate, which
+    the replay does not log)."""
     raw = yaml.safe_load(service_config_path("edge.yaml").read_text())
     max_c = float(raw["derating"]["limits"]["hot_spot"]["max_c"])
     safe_a = float(raw["derating"]["safe_current_a"])
@@ -152,8 +153,8 @@ def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str
     hot, unsafe = _judge(rows, truth, max_c, safe_a)
     c.add(unsafe, f"{unsafe} of {hot} ticks with the slot winding above {max_c:.0f} degC sent more than {safe_a:.0f} A")
     c.add(0 if hot else 1, f"the plant never passed {max_c:.0f} degC: nothing was judged")
-    heard = said in err
-    if not control:
+    heard = said is not None and said in err
+    if not control and said is not None:
         c.add(0 if heard else 1, f"no log line says {said!r}")
     did = (f"{changed} {TEMPS} frames {tried}; winding above max {hot} ticks, {unsafe} of them above {safe_a:.0f} A"
            + (f"; {said!r} logged" if heard else ""))
@@ -246,7 +247,7 @@ def drift(full: bool) -> Iterator[Case]:
         yield _current_case(d, "current_dbc_scaled_tenfold_low", "readings", clean, truth, t0, {})
         yield _case(d, "slot_pt100_hotter_than_the_hot_spot", "readings", clean, _slot_as_read(truth), t0,
                     slot_reads_hotter, f"with the slot winding {SLOT_RAISE_K:.0f} K hotter from {SLOT_RAISED_FROM_S:.0f} s",
-                    "derate reason", {})
+                    None, {})
 
 
 def drift_unguarded(full: bool) -> Iterator[Case]:
