@@ -35,11 +35,11 @@ def run(args: argparse.Namespace) -> int:
     ignore_while_starting()  # a SIGHUP while the service starts must not kill it (the running service logs them)
     from ..service.journal import setup_logging
 
-    # argparse checks --log-level's choices, not a default taken from the environment
+    # argparse checks --log-level's choices, not a default taken from the environment: an unknown
+    # level here came from THERMAL_EDGE_LOG_LEVEL
     level = (args.log_level or "info").strip().lower() or "info"
     if level not in LOG_LEVELS:
-        said = "--log-level" if "--log-level" in sys.argv else "THERMAL_EDGE_LOG_LEVEL"
-        return fail(f"{said}: {args.log_level!r} is not a log level (one of {', '.join(LOG_LEVELS)})")
+        return fail(f"THERMAL_EDGE_LOG_LEVEL: {args.log_level!r} is not a log level (one of {', '.join(LOG_LEVELS)})")
     setup_logging(level)
     from ..bus import BusConfigError, DbcError
     from ..config import ConfigError, load_config

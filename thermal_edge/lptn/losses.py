@@ -43,12 +43,11 @@ class LossLaws:
         self.laws = [_Law(loss.power, model.parameter_names) for loss in model.losses]
         self.affine = [is_affine(loss.power, frozenset(self._tnames)) for loss in model.losses]
         self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
-        # ∂P_j/∂T at the nodes it reads: (column of dT, compiled derivative)
-        self._dT = [[(i, law.expr.diff(t).compile()) for i, t in enumerate(self._tnames) if t in law.expr.free()]
-                    for law in self.laws]
-        # the same laws and derivatives as one generated function each: one call per evaluation
+        # the laws, and each ∂P_j/∂T at a node it reads (law, column of dT), as one generated
+        # function each: one call per evaluation
         self._power_all = compile_many([law.expr for law in self.laws])
-        self._dT_at = [(j, i) for j, ds in enumerate(self._dT) for i, _ in ds]
+        self._dT_at = [(j, i) for j, law in enumerate(self.laws) for i, t in enumerate(self._tnames)
+                       if t in law.expr.free()]
         self._dT_all = compile_many([self.laws[j].expr.diff(self._tnames[i]) for j, i in self._dT_at])
         self._params = list(model.parameter_names)
         self._dtheta_all: dict[tuple[int, ...], tuple[list[tuple[int, int]], Callable[..., list[Value]]]] = {}
@@ -59,7 +58,10 @@ class LossLaws:
     @property
     def reads(self) -> list[list[int]]:
         """Per law, the columns of :meth:`dT` (indices into :attr:`nodes`) it reads."""
-        return [[i for i, _ in ds] for ds in self._dT]
+        out: list[list[int]] = [[] for _ in self.laws]
+        for j, i in self._dT_at:
+            out[j].append(i)
+        return out
 
     @property
     def temperature_dependent(self) -> bool:
@@ -108,12 +110,11 @@ class LossLaws:
         """The entries of :meth:`dT` that a law can make nonzero, for ``batch`` samples: the law
         and the column of each, and their values (batch, entries) in W/K. A model with a loss at
         each of hundreds of nodes has a dense ``dT`` of mostly zeros (and of gigabytes over a run)."""
-        e = self.at(env, T)
-        pairs = [(j, i, f) for j, ds in enumerate(self._dT) for i, f in ds]
-        out = np.empty((batch, len(pairs)))
-        for k, (_, _, f) in enumerate(pairs):
-            out[:, k] = f(e)
-        return (np.array([j for j, _, _ in pairs], dtype=int), np.array([i for _, i, _ in pairs], dtype=int), out)
+        out = np.empty((batch, len(self._dT_at)))
+        if self._dT_at:
+            for k, v in enumerate(self._dT_all(self.at(env, T))):
+                out[:, k] = v
+        return (np.array([j for j, _ in self._dT_at], dtype=int), np.array([i for _, i in self._dT_at], dtype=int), out)
 
     def dtheta(self, env: Mapping[str, Value], T: np.ndarray | None, wrt: Sequence[int] | np.ndarray,
                batch: int | None = None) -> np.ndarray:

@@ -233,7 +233,11 @@ def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], l
     from ..lptn import steady_state
 
     rest = model.at_rest({k: 25.0 for k in model.temperature_inputs})
-    ok = {(lim, s): True for lim in limits for s in sensors}
+    role = {row: model.node_roles.get(node) for row, node in enumerate(model.nodes)}
+    winding = {(lim, s) for lim in limits for s in sensors
+               if role[limits[lim]] == NodeRole.WINDING and role[sensors[s]] == NodeRole.WINDING}
+    # the other pairs bound where no steady state puts the sensor's node above the limited one
+    ok = {(lim, s): True for lim in limits for s in sensors if (lim, s) not in winding}
     for speed in (0.0, 0.5 * rated_speed_rpm, rated_speed_rpm, 2.0 * rated_speed_rpm):
         for frac in (0.25, 0.5, 1.0):
             i = frac * max_current_a
@@ -248,14 +252,11 @@ def bounding_sensors(model: Model, theta: np.ndarray, sensors: dict[str, int], l
             for (lim, s) in ok:
                 if T[sensors[s]] > T[limits[lim]] + 1e-6:
                     ok[(lim, s)] = False
-    role = {row: model.node_roles.get(node) for row, node in enumerate(model.nodes)}
-    for (lim, s) in ok:
-        if role[limits[lim]] == NodeRole.WINDING and role[sensors[s]] == NodeRole.WINDING:
-            ok[(lim, s)] = True
     out: dict[str, list[str]] = {}
-    for (lim, s), v in ok.items():
-        if v:
-            out.setdefault(lim, []).append(s)
+    for lim in limits:  # in the sensors' order
+        for s in sensors:
+            if (lim, s) in winding or ok.get((lim, s), False):
+                out.setdefault(lim, []).append(s)
     return out
 
 
