@@ -392,8 +392,8 @@ class FaultConfig:
     #: a limited node's upper band is never below the commissioned prediction of it less this
     #: (K): readings a little below the commissioned model (under ``commissioned_gap_k``, believed)
     #: do not take the band sent below what the model file predicts by more than a calibrated
-    #: model's own error (3.8 K for the published 4-node network on its machine). Both winding
-    #: PT100s drifting 19 K low had given full current with the hot spot 4.6 K over its max
+    #: model's own error (3.8 K for the published 4-node network on its machine): without it, both
+    #: winding PT100s 19 K low, under the gap, give full current with the hot spot 4.6 K over its max
     commissioned_floor_k: float = setting(5.0, positive=True, max=100.0)
     # at least the longest tick: a hold shorter than a tick never reaches the bus (0 or 1e-9 s
     # would hand a diverged model back at once, and the limit would keep rising after the fault)

@@ -35,8 +35,8 @@ from thermal_edge.bus.codec import FrameCodec
 from .. import ROOT
 from .harness import Case, Check, env, service_config_path, thermal_edge_cmd
 
-#: the drift: from this time on (s), this fast (K/s), up to this much (K) -- the black-box finding
-#: that showed it: 0.5 K/min from 50 min, up to 40 K, the machine overloaded from 100 min on
+#: the drift: from this time on (s), this fast (K/s), up to this much (K): 0.5 K/min from 50 min,
+#: up to 40 K, the machine overloaded from 100 min on
 DRIFT_FROM_S, DRIFT_RATE_K_PER_S, DRIFT_CAP_K = 3000.0, 0.5 / 60.0, 40.0
 TEMPS = "INV_StatorTemps"
 
@@ -162,7 +162,7 @@ def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str
 
 
 #: the current frame's signals read ten times low from this time on (s): a DBC scaling of 0.1 A read
-#: as 1 A, or a second sender diluting the frame (the black-box finding: 20 A read as 6.3 A)
+#: as 1 A, or a second sender diluting the frame (20 A read as 6.3 A)
 SCALED_FROM_S, CURRENTS = 3000.0, "INV_Currents"
 
 
@@ -212,8 +212,7 @@ def _current_case(d: Path, name: str, group: str, clean: Path, truth: list[dict[
 
 
 #: the slot-winding PT100 reads this much above the machine's slot winding from this time on (K, s):
-#: a winding whose hottest point is where the model's hot spot is not (the black-box finding: full
-#: current with a slot-winding reading 4 K above the hot spot's band, 3.7 K below the maximum)
+#: a winding whose hottest point is where the model's hot spot is not
 SLOT_RAISE_K, SLOT_RAISED_FROM_S = 25.0, 3000.0
 
 
