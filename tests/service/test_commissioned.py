@@ -28,10 +28,10 @@ def _drift(k: int, start: int, rate_k_per_s: float, cap_k: float) -> float:
     return min(max(k - start, 0) * rate_k_per_s, cap_k)
 
 
-def _run(eng, model, ticks: range, T: np.ndarray, drift, demand_a: float = 40.0):
+def _run(eng, model, ticks: range, T: np.ndarray, drift, demand_a: float = 40.0, states: list | None = None):
     """Closed loop: the plant (nominal parameters) draws min(demand, the engine's limit); its sensor
     nodes, less ``drift(k)`` K, are the readings. Returns the outputs, the plant's state and the
-    drift of each tick."""
+    drift of each tick; ``states``, when given, receives the plant's state of each tick."""
     st = Stepper(model, model.nominal(), 1.0)
     outs, drifts = [], []
     limit = 0.0
@@ -42,6 +42,8 @@ def _run(eng, model, ticks: range, T: np.ndarray, drift, demand_a: float = 40.0)
         out = _feed(eng, model, 1000.0 + k, T - d, i=i, speed=OP["speed_rpm"])
         limit = out.limits.current_a
         outs.append(out)
+        if states is not None:
+            states.append(T)
         drifts.append(d)
     return outs, T, drifts
 
@@ -61,8 +63,9 @@ def test_a_drift_common_to_every_pt100_is_not_believed_and_the_limit_stays_safe(
     eng = ThermalEngine(cfg, model, None, worker_mode="sync")
     T0 = np.full(len(model.nodes), 25.0)
     start, rate, cap = 300, 2.0 / 60.0, 40.0
+    plant: list = []
     with caplog.at_level(logging.INFO):
-        outs, T, drifts = _run(eng, model, range(1, 1801), T0, lambda k: _drift(k, start, rate, cap))
+        outs, T, drifts = _run(eng, model, range(1, 1801), T0, lambda k: _drift(k, start, rate, cap), states=plant)
         over = [n for n, d in enumerate(drifts) if d > fc.commissioned_gap_k]
         expected = over[fc.prediction_error_ticks - 1]
         refused = next(n for n, o in enumerate(outs) if o.limits.reason == DerateReason.MODEL_FAULT)
@@ -72,6 +75,11 @@ def test_a_drift_common_to_every_pt100_is_not_believed_and_the_limit_stays_safe(
         assert eng.commissioned.count == 1 and eng.health.faults == 0
         # the gap it reports is the drift (the plant is the commissioned model)
         assert eng.commissioned.gap is not None and abs(eng.commissioned.gap[1] - cap) < 1.0
+        # nor are estimates published from them: the hot spot is never shown below the plant's, less
+        # the commissioned prediction's stepping once a block of ticks (the readings lie 20-40 K low)
+        hot = model.node_index(next(lim.node for lim in model.limits if lim.name == "hot_spot"))
+        short = max(plant[n][hot] - o.estimate[hot] for n, o in enumerate(outs) if n >= refused)
+        assert short < 2.0, short
         # the adapter is given no reading while they are not believed
         assert all(math.isnan(v) for v in eng._prev_sample[1].values())
         back, _, _ = _run(eng, model, range(1801, 1861), T, lambda k: 0.0)

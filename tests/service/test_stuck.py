@@ -265,7 +265,9 @@ def test_readings_that_fall_below_the_model_are_not_trusted_until_they_agree_aga
     after the hold for as long as they lie more than ``prediction_error_k / 2`` below the prediction
     from before the fault (run on with the inputs), and full current comes back only once the
     readings are right again. Readings above the prediction (a machine hotter than modelled) are
-    believed after the hold, as before."""
+    believed after the hold, as before. Meanwhile no estimate is published below that prediction:
+    the machine stands at the steady state ``T`` of its constant load (the prediction's own), not
+    at the readings' 45 K below it."""
     import logging
 
     cfg = _engine_config(tmp_path)
@@ -273,18 +275,29 @@ def test_readings_that_fall_below_the_model_are_not_trusted_until_they_agree_aga
     eng = ThermalEngine(cfg, model, None, worker_mode="sync")
     op = {"speed_rpm": 900.0, "i_rms": 19.0, "torque_nm": 106.0, "ambient_c": 25.0}
     T, _ = steady_state(model, op)
-    limits, reasons = [], []
+    limits, reasons, outs = [], [], []
     with caplog.at_level(logging.INFO, logger="thermal_edge.service.engine"):
         for k in range(1, 61):
-            _feed(eng, model, 1000.0 + k, T, i=19.0, speed=900.0)
+            good = _feed(eng, model, 1000.0 + k, T, i=19.0, speed=900.0)
         for k in range(61, 61 + int(3 * fc.hold_s)):  # three holds long
             out = _feed(eng, model, 1000.0 + k, T - 45.0, i=19.0, speed=900.0)
             limits.append(out.limits.current_a)
             reasons.append(out.limits.reason)
+            outs.append(out)
         assert eng.health.faults == 1
         after = slice(int(fc.prediction_error_ticks), None)
         assert all(r == DerateReason.MODEL_FAULT for r in reasons[after])
         assert max(limits[after]) <= cfg.derating.safe_current_a
+        # the open-loop prediction of the last good tick, stepped here with the same inputs
+        st, x = Stepper(model, model.nominal(), 1.0), good.prediction.copy()
+        hot = model.node_index(next(lim.node for lim in model.limits if lim.name == "hot_spot"))
+        for n, o in enumerate(outs):
+            x, _ = st.step(x, {**op, "ambient_c": 25.0})
+            if n >= after.start:
+                assert np.all(o.estimate >= x - 0.05)
+                assert o.hot_spot.estimate_c >= x[hot] - 0.05 and o.hot_spot.upper_c >= x[hot]
+                # that prediction started from the readings 60 s before: its hot spot a few K off the machine's
+                assert o.estimate[hot] >= T[hot] - 5.0
         for k in range(61 + int(3 * fc.hold_s), 61 + int(5 * fc.hold_s)):  # the readings right again
             out = _feed(eng, model, 1000.0 + k, T, i=19.0, speed=900.0)
         assert out.limits.reason != DerateReason.MODEL_FAULT and out.limits.current_a > cfg.derating.safe_current_a

@@ -329,7 +329,8 @@ class ThermalEngine:
             # that runs hot, so the prediction from before runs on until they agree again
             low = bool(pred_error) and max(pred_error.values()) > fc.prediction_error_k
             log.error("model fault at t=%.0f: %s; safe limit for %.0f s, state re-initialised from the readings%s", t,
-                      why, hold, "; the readings lie below the prediction: not trusted until they agree with it" if low else "")
+                      why, hold, "; the readings lie below the prediction: not trusted until they agree with it, and no estimate "
+                      "published below it meanwhile" if low else "")
             est.restart_from_readings(ti, self.adaptation.theta, doubt=low)
             self.health.restart()
         gap = est.doubt_gap(y, self.sensor_rows)
@@ -351,7 +352,9 @@ class ThermalEngine:
         # the adapter judges from the observer's state; readings not believed are none to it
         learnt = {s: math.nan for s in y} if below or doubted else dict(y)
         self._prev_sample = (t, learnt, obs.T.copy())
-        return self._finish(t, ti, forced, new_results, pred_error, flux)
+        # nor are the estimates published from them: no node below the prediction they are judged against
+        reference = est.doubt_prediction if doubted else est.commissioned_prediction if below else None
+        return self._finish(t, ti, forced, new_results, pred_error, flux, reference)
 
     def _fuse_flux(self, t: float, obs: Observer | None, u: Mapping[str, float]) -> FluxTick | None:
         """The tick's flux estimate of the magnet, fused into ``obs`` (None without the voltage input)."""
@@ -430,7 +433,8 @@ class ThermalEngine:
 
     # -- outputs ------------------------------------------------------------------------------------
     def _finish(self, t: float, ti: TickInputs, forced: list[DerateReason], new_results: list[AdaptationResult],
-                pred_error: dict[str, float] | None = None, flux: FluxTick | None = None) -> TickOutput:
+                pred_error: dict[str, float] | None = None, flux: FluxTick | None = None,
+                reference: np.ndarray | None = None) -> TickOutput:
         state = TeState.NOMINAL
         if DerateReason.MODEL_FAULT in forced:
             state = TeState.FAULT
@@ -438,13 +442,15 @@ class ThermalEngine:
             state = TeState.DEGRADED
         elif self.adaptation.deciding:
             state = TeState.ADAPTING
-        return self._output(t, ti, forced, state, new_results, pred_error, flux)
+        return self._output(t, ti, forced, state, new_results, pred_error, flux, reference)
 
     def _output(self, t: float, ti: TickInputs | None, forced: list[DerateReason], state: TeState,
                 new_results: list[AdaptationResult] | None = None, pred_error: dict[str, float] | None = None,
-                flux: FluxTick | None = None) -> TickOutput:
+                flux: FluxTick | None = None, reference: np.ndarray | None = None) -> TickOutput:
         """The tick's output. ``pred_error`` is the open-loop prediction error the tick measured
-        (before a model fault re-initialised the state); without it, the error of the state now."""
+        (before a model fault re-initialised the state); without it, the error of the state now.
+        ``reference`` (°C per node), while the readings are not believed: the prediction they are
+        judged against; the estimate published and its band are not below it."""
         n = len(self.model.nodes)
         la_a, ttl, react_a = math.inf, math.inf, math.inf
         react_reason = DerateReason.NONE
@@ -455,6 +461,8 @@ class ThermalEngine:
         if obs is not None:
             est = obs.T.copy()
             sigma = obs.std()
+            if reference is not None:  # a state rebuilt from readings not believed is not published as such
+                np.maximum(est, reference, out=est)
             pred = x_ol.copy() if x_ol is not None else np.full(n, math.nan)
             observer_upper = est + self.config.derating.band_z * sigma
             upper = observer_upper.copy()

@@ -176,6 +176,12 @@ class StateEstimate:
         return max(gaps) if gaps and math.isfinite(max(gaps)) else None
 
     @property
+    def doubt_prediction(self) -> np.ndarray | None:
+        """The prediction from before an unresolved model fault whose readings lay below it, run on
+        with the inputs (°C per node; None without such a fault)."""
+        return None if self._doubt is None else self._doubt[1]
+
+    @property
     def commissioned_prediction(self) -> np.ndarray | None:
         """The commissioned prediction (°C per node; None before the start)."""
         return self._commissioned_x

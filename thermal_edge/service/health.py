@@ -203,7 +203,8 @@ class CommissionedCheck:
             self._count += 1
             log.error("readings not believed at t=%.0f: %s reads %.1f K below the commissioned model's prediction "
                       "(more than %.0f K for %d ticks): a drift common to the PT100s, or a machine that cools far "
-                      "better than its model file says (recalibrate it); safe limit until within %.0f K",
+                      "better than its model file says (recalibrate it); safe limit, and no estimate published below that "
+                      "prediction, until within %.0f K",
                       t, sensor, k, fc.commissioned_gap_k, self._ticks, fc.commissioned_gap_k / 2.0)
         return self._active
 
