@@ -250,3 +250,19 @@ def test_run_refuses_a_log_level_from_the_environment_in_one_line(tmp_path, valu
                         capture_output=True, text=True, cwd=ROOT, env={**ENV, "THERMAL_EDGE_LOG_LEVEL": "WARNING"},
                         timeout=300)
     assert ok.returncode == 0, ok.stderr
+
+
+@pytest.mark.parametrize("command", ["run --check", "config example", "config dbc"])
+def test_output_into_a_closed_pipe_is_no_error(tmp_path, command):
+    """``thermal-edge run --check | head -1`` and the like: the reader has gone before the command
+    writes (here: the pipe's read end closed first, so the first write fails for certain). That is
+    no error of the input: no ``error:`` line, no traceback, exit 0."""
+    args = command.split() + (["--config", str(edge_yaml(tmp_path, {"interface": "virtual"}))] if "run" in command else [])
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        out = subprocess.run([sys.executable, "-m", "thermal_edge.cli", *args], stdout=w, stderr=subprocess.PIPE,
+                             text=True, cwd=ROOT, env=ENV, timeout=300)
+    finally:
+        os.close(w)
+    assert out.returncode == 0 and out.stderr == "", out.stderr

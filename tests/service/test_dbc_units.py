@@ -108,3 +108,14 @@ def test_an_empty_unit_is_read_with_a_warning_naming_the_key_and_the_unit_assume
     with caplog.at_level("WARNING", logger="thermal_edge.config"):
         _check(cfg)
     assert not [r for r in caplog.records if r.name == "thermal_edge.config"]
+
+
+@pytest.mark.parametrize("encoding", ["utf-8", "cp1252"])
+def test_a_unit_with_a_degree_sign_is_read_as_written_in_either_encoding(tmp_path, encoding):
+    """DBC editors write cp1252, text editors UTF-8: ``°F`` is read as ``°F`` from both (cantools'
+    default cp1252 had made UTF-8's two bytes ``Â°F``), so the refusal names the unit as written."""
+    cfg, dbc = _config(tmp_path, "INV_T_Ambient", "0.1,0", "°F")
+    dbc.write_bytes(dbc.read_text(encoding="utf-8").encode(encoding))
+    with pytest.raises(ConfigError) as err:
+        _check(cfg)
+    assert "inverter.dbc gives INV_T_Ambient in '°F'" in str(err.value), str(err.value)

@@ -320,9 +320,23 @@ def _layout(msg: _DbcMessage) -> tuple[Any, ...]:
         for s in msg.signals)))
 
 
+def dbc_encoding(path: Path) -> str:
+    """The text encoding of the DBC at ``path``: UTF-8 where its bytes are valid UTF-8 (a unit
+    such as ``°C`` written by a text editor), else cp1252 (what DBC editors write, and cantools'
+    default). A cp1252 file with any byte above 127 is almost never valid UTF-8, so the order
+    decides nothing else."""
+    try:
+        path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        return "cp1252"
+    except OSError:  # cantools reports it, in the message the caller gives
+        return "cp1252"
+    return "utf-8"
+
+
 def _load_dbc(path: Path) -> cantools.database.can.Database:
     try:
-        db = cantools.database.load_file(str(path), strict=True)
+        db = cantools.database.load_file(str(path), strict=True, encoding=dbc_encoding(path))
     except Exception as exc:  # cantools raises many types; report one line
         raise DbcError(f"{path}: cannot load DBC: {exc}") from exc
     if not isinstance(db, cantools.database.can.Database):

@@ -93,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
             service = EdgeService(config, model=model)
         except DbcError as exc:
             raise ConfigError(f"{config.fname}: codec.dbc: {line(exc)}") from None
+    except BrokenPipeError:  # the reader of the output went away (`--check | head`): not an error of the input
+        raise
     except (ConfigError, DbcError, BusConfigError, ModelError, OSError) as exc:
         if getattr(args, "debug", False):  # --debug: the traceback of a user error too
             raise
