@@ -35,8 +35,9 @@ test-all: $(STAMP)
 # suite itself never installs anything and skips those tests naming this target):
 # the SocketCAN VM of tests/vm (qemu, a distribution kernel with vcan, a static busybox, can-utils;
 # tests/vm/vmrun.py APT_PACKAGES) and systemd-analyze with the commands the units run
-# (tests/deploy/test_systemd.py). Installs only the packages that are missing: nothing when all are there.
-TEST_DEBS := qemu-system-x86 linux-image-amd64 busybox-static can-utils systemd kmod iproute2
+# (tests/deploy/test_systemd.py), and promtool for the alert rules and dashboard queries (prometheus;
+# tests/deploy/test_prometheus.py). Installs only the packages that are missing: nothing when all are there.
+TEST_DEBS := qemu-system-x86 linux-image-amd64 busybox-static can-utils systemd kmod iproute2 prometheus
 test-deps:
 	@missing=$$(for p in $(TEST_DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q 'ok installed' || echo $$p; done); \
 	missing=$$(echo $$missing); \

@@ -179,3 +179,27 @@ async def test_frames_of_one_id_from_thread_and_loop_leave_in_counter_order(virt
     assert n > 2000 and te.stats.tx_failed == 0
     assert rx.codec.stats.lost == 0 and rx.codec.stats.counter_repeat == 0
     assert len(got) == n
+
+
+def test_on_sent_gets_the_interval_between_frames_the_sink_accepted(monkeypatch):
+    """The cadence as the bus saw it (``thermal_edge_limits_send_interval_seconds``): after each
+    frame the sink accepted, the time since the one accepted before, on a clock set here; a frame
+    the sink refused is no send, so the next interval spans it."""
+    from thermal_edge.bus import cyclic
+
+    clock = iter([0.0, 0.1, 0.35, 0.45, 0.6])
+    monkeypatch.setattr(cyclic.time, "monotonic", lambda: next(clock))
+    accepted = iter([True, True, True, False, True, True])
+    sink_calls: list[int] = []
+
+    def sink(frame_id: int, data: bytes) -> bool:
+        sink_calls.append(frame_id)
+        return next(accepted)
+
+    got: list[float] = []
+    s = cyclic.CyclicSender(FrameCodec(DBC_PATH), sink, "TE_Limits", lambda: LIMITS, period_s=0.1,
+                            on_sent=got.append)
+    for _ in range(6):
+        s.send_once_sync()
+    # accepted at 0.0, 0.1, 0.35, (refused), 0.45, 0.6
+    assert got == pytest.approx([0.1, 0.25, 0.1, 0.15]) and len(sink_calls) == 6 and s.sent == 5

@@ -140,7 +140,7 @@ def grafana_to_promql(expr: str) -> str:
 def test_dashboard_promql_parses(tmp_path: Path) -> None:
     promtool = dl.which("promtool")
     if promtool is None:
-        pytest.skip("promtool not available (Debian: apt-get install prometheus)")
+        pytest.skip("promtool not available (make test-deps installs Debian's prometheus)")
     rules = [{"record": f"dashboard:q{i}", "expr": grafana_to_promql(e)} for i, (_, e) in enumerate(exprs(dashboard()))]
     f = tmp_path / "dashboard-queries.yml"
     f.write_text(yaml.safe_dump({"groups": [{"name": "dashboard", "rules": rules}]}))

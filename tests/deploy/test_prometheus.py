@@ -21,7 +21,7 @@ DURATION = re.compile(r"^(\d+(ms|s|m|h|d|w|y))+$")
 def promtool() -> str:
     exe = dl.which("promtool")
     if exe is None:
-        pytest.skip("promtool not available (Debian: apt-get install prometheus); the schema tests still run")
+        pytest.skip("promtool not available (make test-deps installs Debian's prometheus); the schema tests still run")
     print(subprocess.run([exe, "--version"], capture_output=True, text=True).stdout.splitlines()[0])
     return exe
 

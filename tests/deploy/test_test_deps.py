@@ -32,6 +32,7 @@ def test_make_test_deps_installs_what_the_skipped_tests_need() -> None:
     assert vmrun.INSTALL_TARGET == "make test-deps"
     assert set(vmrun.APT_PACKAGES.values()) <= debs
     assert set(UNIT_COMMANDS.values()) | {"systemd"} <= debs
+    assert "prometheus" in debs  # promtool: tests/deploy/test_prometheus.py, test_grafana.py
 
 
 def test_the_vm_skip_names_the_make_target(monkeypatch) -> None:

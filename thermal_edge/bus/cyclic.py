@@ -64,6 +64,9 @@ class CyclicSender:
         Held while a frame is encoded and handed to the sink, so that frames of one identifier
         leave in counter order whoever sends them (``CanTransport`` shares one with its
         :meth:`~thermal_edge.bus.transport.CanTransport.send`).
+    on_sent : callable(float), optional
+        Given, after each frame the sink accepted, the time since the one before (s, monotonic
+        clock): the cadence as the bus saw it (a metric). Must be quick and must not raise.
     """
 
     def __init__(
@@ -78,6 +81,7 @@ class CyclicSender:
         stats: TransportStats | None = None,
         thread: bool = False,
         send_lock: threading.Lock | None = None,
+        on_sent: Callable[[float], None] | None = None,
     ) -> None:
         if thread and inspect.iscoroutinefunction(provider):
             raise TypeError(f"{frame}: a threaded cyclic sender needs a plain provider function, not a coroutine")
@@ -101,6 +105,8 @@ class CyclicSender:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._send_lock = send_lock if send_lock is not None else threading.Lock()
+        self._on_sent = on_sent
+        self._last_sent: float | None = None  # monotonic time of the last frame the sink accepted
 
     @property
     def running(self) -> bool:
@@ -171,6 +177,11 @@ class CyclicSender:
             self.attempts += 1
             ok = bool(self._sink(self.frame_id, data))
         self.sent += ok
+        if ok:
+            now = time.monotonic()
+            if self._on_sent is not None and self._last_sent is not None:
+                self._on_sent(now - self._last_sent)
+            self._last_sent = now
         return ok
 
     def _encode(self, values: Any, error: Exception | None) -> bytes | None:

@@ -638,6 +638,7 @@ class CanTransport:
         period_s: float | None = None,
         fallback: Fallback | None = None,
         thread: bool = False,
+        on_sent: Callable[[float], None] | None = None,
     ) -> CyclicSender:
         """Send ``frame`` every period from ``provider`` until :meth:`stop`.
 
@@ -655,6 +656,8 @@ class CanTransport:
             Send from a daemon thread of its own on a monotonic fixed-rate schedule, so that
             nothing on the event loop can delay the frame (``TE_Limits``); the provider is
             then called in that thread and must be a plain, thread-safe function.
+        on_sent : callable(float), optional
+            Given the interval since the previous frame sent, after each (s; see :class:`CyclicSender`).
 
         Returns
         -------
@@ -663,7 +666,7 @@ class CanTransport:
         """
         sender = CyclicSender(
             self.codec, self.send_raw, frame, provider, period_s=period_s, fallback=fallback, stats=self.stats,
-            thread=thread, send_lock=self._send_lock,
+            thread=thread, send_lock=self._send_lock, on_sent=on_sent,
         )
         self._cyclic.append(sender)
         return sender.start()

@@ -397,6 +397,11 @@ class ServiceMetrics:
                                    "processor and the interpreter)", registry=r, buckets=buckets)
         self.tick_lateness = Histogram(P + "tick_lateness_seconds", "Start of a tick after its scheduled time (wall clock)",
                                        registry=r, buckets=(0.001, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0))
+        # absolute buckets: what matters is the inverter's timeout (300 ms in the CAN matrix), not the period
+        self.limits_interval = Histogram(P + "limits_send_interval_seconds", "Interval between two TE_Limits frames "
+                                         "handed to the bus (the inverter falls back to its own protection after "
+                                         "300 ms without one)", registry=r,
+                                         buckets=(0.05, 0.09, 0.11, 0.15, 0.2, 0.3, 0.5, 1.0, 2.5))
         self.adapt_duration = Histogram(P + "adaptation_duration_seconds", "Wall time of one adaptation decision",
                                         registry=r, buckets=(0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60))
         self.watchdog_pings = Counter(P + "watchdog_pings", "systemd watchdog notifications sent", registry=r)

@@ -162,7 +162,8 @@ class EdgeService:
         # TE_Limits from a thread of its own: a slow tick, a burst of frames or of metrics connections on the
         # event loop must not delay it past the inverter's 300 ms timeout
         tr.start_cyclic(TE_LIMITS, self._limits_signals, period_s=cfg.transmit.limits_period_s,
-                        fallback=lambda: self.engine.policy.safe(DerateReason.MODEL_FAULT).signals(), thread=True)
+                        fallback=lambda: self.engine.policy.safe(DerateReason.MODEL_FAULT).signals(), thread=True,
+                        on_sent=self.metrics.limits_interval.observe)
         loop = asyncio.get_running_loop()
         if not self.frame_mode:
             tr.start_cyclic(TE_ESTIMATES, lambda: self._last_or_start().estimates_signals(),
