@@ -825,6 +825,8 @@ class EdgeConfig:
                 for sig in wanted:
                     if sig not in signals:
                         raise self.error(key, f"frame {spec.frame} has no signal {sig!r}")
+                if spec.status:
+                    self._check_status(f"{key}.status", codec, spec.frame, spec.status)
                 role = (roles or {}).get(name) if section == "inputs" else None
                 want = TEMPERATURE.unit if section == "sensors" else (role.plausible.unit if role is not None else None)
                 if want is not None:
@@ -855,6 +857,17 @@ class EdgeConfig:
             if value is not None and top is not None and value > top:
                 raise self.error(f"derating.{key}", f"must be at most {top:g}, the largest value {signal} carries in "
                                  f"{Path(codec.dbc_path).name}; got {value:g}")
+
+    def _check_status(self, key: str, codec: Any, frame: str, sig: str) -> None:
+        """Refuse a status signal that is not a whole-number code (scale 1, offset 0, an integer
+        signal): 0 is read as valid, 1-3 as the sensor's faults, any other code as a fault. A
+        temperature mapped there by mistake would otherwise be judged as codes."""
+        signal = codec.message(frame).get_signal_by_name(sig)
+        if signal.is_float or float(signal.scale) != 1.0 or float(signal.offset) != 0.0:
+            kind = "a float" if signal.is_float else f"scaled (factor {float(signal.scale):g}, offset {float(signal.offset):g})"
+            unit = f", unit {signal.unit!r}" if signal.unit else ""
+            raise self.error(key, f"{sig} in {Path(codec.dbc_path).name} is {kind}{unit}: not a status code (a status "
+                             "is a whole number, 0 valid, 1 open circuit, 2 short circuit, 3 not fitted)")
 
     def _check_unit(self, key: str, codec: Any, frame: str, sig: str, want: str) -> None:
         """Refuse a signal whose DBC unit is not ``want``, naming the scaling that would give ``want``

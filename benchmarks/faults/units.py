@@ -6,7 +6,8 @@ key and the unit: a speed 9.5 times too small is still a plausible speed, so onl
 unit can catch it. A DBC that declares the right unit with a wrong scaling (a temperature decoded
 in kelvin, currents 1000 times too large) is refused by ``export`` naming the signal and the unit
 its readings look like, instead of a column of NaN or "no run"; an ambient that reads 215 degC (an
-unplugged channel's raw maximum) is refused as the air's. Each case runs the installed
+unplugged channel's raw maximum) is refused as the air's, and a temperature mapped as a sensor's
+status signal is refused at load (it would be judged as codes). Each case runs the installed
 command in a process of its own, as a user would.
 """
 from __future__ import annotations
@@ -31,6 +32,12 @@ DECLARED = {
     "housing_in_kelvin": ("INV_T_Housing", "0.1,0", "K", "signals.sensors.housing", "offset -273.15"),
     "ambient_in_fahrenheit": ("INV_T_Ambient", "0.1,0", "degF", "signals.inputs.ambient_c", "factor 0.05555556"),
     "currents_in_milliampere": ("INV_Id", "1,0", "mA", "signals.inputs.i_rms", "factor 0.001"),
+}
+#: a temperature mapped as a sensor's status signal (judged as codes, 85.3 degC would be code 85):
+#: signal, its scaling and unit in the user's DBC, the key and the words the refusal must carry
+NOT_A_STATUS = {
+    "temperature_mapped_as_a_status": ("INV_S_Housing", "0.1,0", "degC", "signals.sensors.housing.status",
+                                       "not a status code"),
 }
 #: signal and a wrong scaling with the right unit, and the words ``export``'s refusal must carry
 SCALED = {
@@ -89,6 +96,12 @@ def units(full: bool) -> Iterator[Case]:
             r = _te("run", "--check", "--config", _config(d / name, [signal], scaling, unit))
             c = Check()
             _one_line(c, r, f"edge.yaml: {key}: inverter.dbc gives {signal} in {unit!r}", words)
+            yield Case.of(name, "units", 1, f"run --check: exit {r.returncode}: {r.stderr.strip()[-160:]}", c)
+        for name, (signal, scaling, unit, key, words) in NOT_A_STATUS.items():
+            (d / name).mkdir()
+            r = _te("run", "--check", "--config", _config(d / name, [signal], scaling, unit))
+            c = Check()
+            _one_line(c, r, f"edge.yaml: {key}: {signal} in inverter.dbc is scaled", words)
             yield Case.of(name, "units", 1, f"run --check: exit {r.returncode}: {r.stderr.strip()[-160:]}", c)
         log = d / "drive.log"
         sim = _te("simulate", "--model", "pm10kw", "--cycle", "overload", "--duration", "300" if not full else "1800",

@@ -119,3 +119,16 @@ def test_a_unit_with_a_degree_sign_is_read_as_written_in_either_encoding(tmp_pat
     with pytest.raises(ConfigError) as err:
         _check(cfg)
     assert "inverter.dbc gives INV_T_Ambient in '°F'" in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("scaling, unit, said", [("0.1,0", "degC", "scaled (factor 0.1, offset 0), unit 'degC'"),
+                                                  ("1,-40", "", "scaled (factor 1, offset -40)")])
+def test_a_status_signal_that_is_not_a_code_is_refused_naming_its_key(tmp_path, scaling, unit, said):
+    """A temperature mapped as a sensor's ``status`` would be judged as codes (85.3 °C as code 85):
+    refused at load, naming the key and what the DBC says the signal is."""
+    cfg, _ = _config(tmp_path, "INV_S_Housing", scaling, unit)
+    with pytest.raises(ConfigError) as err:
+        _check(cfg)
+    assert str(err.value) == (f"edge.yaml: signals.sensors.housing.status: INV_S_Housing in inverter.dbc is {said}: "
+                              "not a status code (a status is a whole number, 0 valid, 1 open circuit, 2 short "
+                              "circuit, 3 not fitted)"), str(err.value)

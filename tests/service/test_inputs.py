@@ -385,3 +385,18 @@ def test_an_ambient_a_winding_could_read_is_refused_as_the_air(acc):
     acc.add(stator(2.1), 2.1)
     ti = acc.take(3.0)
     assert ti.inputs["ambient_c"] == 95.0 and not ti.faults
+
+
+@pytest.mark.parametrize("code", [4, 15, 85.3, math.nan])
+def test_a_status_code_the_matrix_does_not_define_is_a_fault_not_valid(acc, code):
+    """Only 0 is valid: another inverter's wider status signal (a code 4 or 15), or a value that is
+    no code at all, is a fault of that reading (``unknown_status``), counted once, its last good
+    value kept out of the tick; the next valid reading is used again."""
+    acc.add(ambient(0.1), 0.1)
+    acc.add(stator(0.1, s_slot=code, slot=61.0), 0.1)
+    ti = acc.take(1.0)
+    assert ti.faults == {"slot_winding": "unknown_status"} and math.isnan(ti.measured["slot_winding"])
+    assert ti.measured["end_winding"] == 62.0 and +acc.bad_readings == {"unknown_status": 1}
+    acc.add(stator(1.1, slot=63.0), 1.1)
+    ti = acc.take(2.0)
+    assert ti.faults == {} and ti.measured["slot_winding"] == 63.0

@@ -106,6 +106,11 @@ _STATUS_FAULT = {int(SensorStatus.OPEN_CIRCUIT): "open_circuit", int(SensorStatu
                  int(SensorStatus.NOT_FITTED): "not_fitted"}
 
 
+def _status_code(x: float) -> int:
+    """A status signal's value as its code; -1 (no code: a fault) for a value that is not a whole number."""
+    return int(x) if math.isfinite(x) and x == int(x) else -1
+
+
 def _age(t: float, t_reading: float) -> float:
     """Seconds from a reading (clock time ``t_reading``) to the tick ending at ``t``; never negative.
 
@@ -116,7 +121,8 @@ def _age(t: float, t_reading: float) -> float:
 
 
 #: Every kind of rejected reading, in the order metrics list them.
-FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck", "current_below_torque")
+FAULT_KINDS = ("open_circuit", "short_circuit", "not_fitted", "out_of_range", "no_value", "stuck", "current_below_torque",
+               "unknown_status")
 
 
 def input_ranges(config: EdgeConfig, roles: Mapping[str, Role]) -> dict[str, tuple[float, float]]:
@@ -250,11 +256,12 @@ class InputAccumulator:
     def _latest_value(self, name: str, signal: str, status_sig: str | None, sig: Mapping[str, float], t: float) -> None:
         slot = self._latest[name]
         value = float(sig[signal])
-        status = int(sig[status_sig]) if status_sig else None
+        status = _status_code(float(sig[status_sig])) if status_sig else None
         slot.status = status
         fault: str | None = None
-        if status is not None and status in _STATUS_FAULT:
-            fault = _STATUS_FAULT[status]
+        if status is not None and status != int(SensorStatus.VALID):
+            # a code the matrix does not define (a wider status signal of another inverter) is not "valid"
+            fault = _STATUS_FAULT.get(status, "unknown_status")
         elif not math.isfinite(value):
             fault = "no_value"
         elif not (rng := self._latest_range.get(name, (self.lo, self.hi)))[0] <= value <= rng[1]:
