@@ -454,3 +454,54 @@ def test_a_replay_whose_sensor_frames_never_pass_their_crc_says_so(recording, tm
     assert f"dropped {changed} (crc {changed})" in r.stdout
     assert "no estimate: the observer never started" in r.stdout
     assert "nan" not in r.stdout.lower() and "RuntimeWarning" not in r.stderr
+
+
+def _judged_ticks(run_csv: Path) -> int:
+    """Ticks whose torque takes a fifth of the maximum current or more (|T| / kt, kt and the maximum
+    from the model and the example configuration): those the current is judged at, counted here
+    from the exported run."""
+    import yaml
+
+    kt = float(load_model(MODEL).drive["kt_nm_per_arms"])
+    max_a = float(yaml.safe_load(CONFIG.read_text())["derating"]["max_current_a"])
+    return int(np.count_nonzero(np.abs(read_run(run_csv).column("torque_nm")) / kt >= 0.2 * max_a))
+
+
+def test_a_current_scaled_ten_times_low_in_the_dbc_is_refused(recording, exported, tmp_path):
+    """The dq currents decoded a tenth of the machine's (factor 0.005 for 0.05): plausible currents,
+    copper losses a hundredth. Every tick the torque takes a sizeable current at reads below half of
+    it: export refuses the log in one line naming the input, the rule and as many ticks as counted
+    here from the good export."""
+    cfg = _config_with_dbc(tmp_path, "INV_Id", "0.005,0")
+    from benchmarks.faults.units import rescaled
+
+    (tmp_path / "wrong.dbc").write_text(rescaled((tmp_path / "wrong.dbc").read_text(), "INV_Iq", "0.005,0"))
+    r = te_here("export", recording, "--config", cfg, "--out", tmp_path / "x.csv")
+    judged = _judged_ticks(exported)
+    assert judged >= 10
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert (f"every one of the {judged} ticks judged reads i_rms (INV_Currents INV_Id/INV_Iq) below 0.5 of "
+            "|torque_nm| / kt (kt 5.6 Nm/A): a scaling of the current in the DBC?") in r.stderr, r.stderr
+
+
+def test_a_current_read_ten_times_low_for_a_while_is_said_and_exported(recording, exported, tmp_path):
+    """From 60 s into the log the current frames carry a tenth (a second sender diluting them): the
+    log is exported, and its summary line says at how many ticks the service would not believe the
+    current: those of the judged ticks after the change, less the two its confirmation waits."""
+    from benchmarks.faults.readings import _faulted
+
+    t0 = float(recording.read_text().split(maxsplit=1)[0].strip("()"))
+    low = tmp_path / "low.log"
+    _faulted(recording, low, t0, lambda dt, c: {k: v * 0.1 for k, v in c.items()} if dt >= 60.0 else c,
+             frame_name="INV_Currents", prefix="INV_I")
+    r = te_here("export", low, "--config", CONFIG, "--out", tmp_path / "x.csv")
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"; (\d+) ticks the service would not believe the current at \(i_rms \(INV_Currents INV_Id/INV_Iq\) "
+                  r"below 0\.5 of \|torque_nm\| / kt \(kt 5\.6 Nm/A\) for 3 ticks or more", r.stderr)
+    assert m, r.stderr
+    good = read_run(exported)
+    import yaml
+
+    kt, max_a = 5.6, float(yaml.safe_load(CONFIG.read_text())["derating"]["max_current_a"])
+    late = (good.t >= 61.0) & (np.abs(good.column("torque_nm")) / kt >= 0.2 * max_a)
+    assert 0 < int(m[1]) and abs(int(m[1]) - (int(np.count_nonzero(late)) - 2)) <= 2, (m[1], np.count_nonzero(late))

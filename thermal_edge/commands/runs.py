@@ -106,7 +106,9 @@ def log_line(got: LogRuns) -> str:
     return (f"{got.frames} frames of the drive's CAN matrix, {dropped} dropped by the integrity checks{why}, "
             f"{got.malformed_lines} damaged lines skipped; {len(got.runs)} run(s) of {ticks} ticks in all"
             + (f" ({got.ticks_left_out} ticks left out: before every input had a value, or in stretches of fewer "
-               "than two complete ticks)" if got.ticks_left_out else ""))
+               "than two complete ticks)" if got.ticks_left_out else "")
+            + (f"; {got.current_doubted} ticks the service would not believe the current at ({got.current_rule} "
+               "for 3 ticks or more: a DBC scaling, a second sender of its frame?)" if got.current_doubted else ""))
 
 
 def _checked(run: Run, path: str, fmt: str, model: Model, sensors: Sequence[str] | None) -> tuple[Run, str]:

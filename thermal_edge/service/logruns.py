@@ -34,6 +34,7 @@ from ..config import EdgeConfig
 from ..data import Run, RunError
 from ..lptn import Role, load_model
 from .clock import FrameClock
+from .current_torque import CurrentTorqueCheck
 from .flux_input import DqMeans
 from .inputs import InputAccumulator, TickInputs
 
@@ -69,6 +70,11 @@ class LogRuns:
         Damaged lines or records of the file, skipped.
     ticks_left_out : int
         Ticks before every model input had a value, and stretches of fewer than two complete ticks.
+    current_judged, current_low, current_doubted : int
+        Ticks whose torque the current is judged against, those whose current read below
+        ``derating.faults.current_torque_ratio`` of what the torque takes, and those the service
+        would not believe it at (three such in a row): a DBC scaling, a second sender of the
+        current's frame (:mod:`.current_torque`). ``current_rule`` says what was judged.
     """
 
     runs: list[Run]
@@ -76,13 +82,42 @@ class LogRuns:
     dropped: dict[str, int] = field(default_factory=dict)
     malformed_lines: int = 0
     ticks_left_out: int = 0
+    current_judged: int = 0
+    current_low: int = 0
+    current_doubted: int = 0
+    current_rule: str = ""
 
 
 @functools.lru_cache(maxsize=4)
-def _input_roles(model_path: str, mtime_ns: int) -> dict[str, Role]:
-    """Which of the model's inputs is the current, the speed, the torque: the model loaded once per
-    file version, not once per log (a fleet reads many logs of one model)."""
-    return dict(load_model(model_path).input_roles)
+def _model_facts(model_path: str, mtime_ns: int) -> tuple[dict[str, Role], float | None]:
+    """Which of the model's inputs is the current, the speed, the torque, and its drive's torque
+    constant (Nm per A rms; None without): the model loaded once per file version, not once per
+    log (a fleet reads many logs of one model)."""
+    m = load_model(model_path)
+    kt = m.drive.get("kt_nm_per_arms") if getattr(m, "drive", None) else None
+    return dict(m.input_roles), float(kt) if kt is not None else None
+
+
+def _current_check(runs: list[Run], config: EdgeConfig, roles: dict[str, Role], kt: float | None,
+                   out: LogRuns) -> None:
+    """The current against the torque, tick by tick, as the service judges it
+    (:class:`.current_torque.CurrentTorqueCheck`): the ticks it would not believe counted in
+    ``out``. Every judged tick reading low is a scaling error of the whole log: refused."""
+    current = next((k for k, r in roles.items() if r is Role.CURRENT and k in config.inputs), None)
+    torque = next((k for k, r in roles.items() if r is Role.TORQUE and k in config.inputs), None)
+    kt = config.derating.kt_nm_per_arms if config.derating.kt_nm_per_arms is not None else kt
+    if current is None or torque is None or kt is None:
+        return
+    d = config.derating
+    for run in runs:
+        chk = CurrentTorqueCheck(current, torque, kt, d.max_current_a, d.faults.current_torque_ratio)
+        for i, tq in zip(run.columns[current], run.columns[torque]):
+            v = chk.judge({current: float(i), torque: float(tq)})
+            if math.isfinite(v.needed):
+                out.current_judged += 1
+                out.current_low += float(i) < chk.ratio * v.needed
+            out.current_doubted += v.doubted
+    out.current_rule = f"{_signal_of(config, current)} below {d.faults.current_torque_ratio:g} of |{torque}| / kt (kt {kt:g} Nm/A)"
 
 
 #: the columns of the dq voltages and currents (``voltages=True``), as ``thermal-edge flux calibrate`` reads them
@@ -139,7 +174,7 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     """
     codec = config.codec.frame_codec(config.fname)
     path_m = Path(config.model.path)
-    roles = _input_roles(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
+    roles, kt = _model_facts(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
     config.check_dbc(codec, roles)
     tick_s, catchup = config.clock.tick_s, config.clock.max_catchup_s
     silence = max(config.timeouts.values(), default=tick_s)
@@ -202,6 +237,10 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     for name, w in why.items():
         if all(np.all(np.isnan(r.columns[name])) for r in out.runs if name in r.columns):
             raise RunError(f"{Path(path)}: every reading of {_signal_of(config, name)} was refused: {w}")
+    _current_check(out.runs, config, roles, kt, out)
+    if out.current_doubted and out.current_low == out.current_judged:
+        raise RunError(f"{Path(path)}: every one of the {out.current_judged} ticks judged reads {out.current_rule}: "
+                       "a scaling of the current in the DBC? (the copper losses go with its square)")
     return out
 
 
