@@ -117,7 +117,8 @@ def _current_check(runs: list[Run], config: EdgeConfig, roles: dict[str, Role], 
                 out.current_judged += 1
                 out.current_low += float(i) < chk.ratio * v.needed
             out.current_doubted += v.doubted
-    out.current_rule = f"{_signal_of(config, current)} below {d.faults.current_torque_ratio:g} of |{torque}| / kt (kt {kt:g} Nm/A)"
+    ratio = d.faults.current_torque_ratio
+    out.current_rule = f"{_signal_of(config, current)} below {ratio:g} of |{torque}| / kt (kt {kt:g} Nm/A)"
 
 
 #: the columns of the dq voltages and currents (``voltages=True``), as ``thermal-edge flux calibrate`` reads them
