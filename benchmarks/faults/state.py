@@ -61,6 +61,16 @@ def learned_parameters() -> dict[str, float]:
     return {k: min(float(p[k]["max"]), float(p[k]["value"]) * LEARNED_SCALE) for k in ("k_a_ew", "c_p_ew", "k_r_ew")}
 
 
+#: the learned parameter whose model value the ``learned_from_another_model_value`` state says was another
+OUTDATED = "k_a_ew"
+
+
+def _nominal_moved(name: str) -> dict[str, float]:
+    """The model values saved with :func:`learned_parameters`, ``name``'s not the model file's (half of it)."""
+    p = _model_parameters()
+    return {k: float(p[k]["value"]) * (0.5 if k == name else 1.0) for k in learned_parameters()}
+
+
 def parameter_metrics(m: dict[str, float]) -> dict[str, float]:
     """``thermal_edge_parameter_value`` by parameter name."""
     out = {}
@@ -325,6 +335,9 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         "zero_covariance": (with_(P=[[0.0] * len(seed["T"]) for _ in seed["T"]], sigma=[0.0] * len(seed["T"])), False),
         # a model update renamed or removed a parameter: the others are kept
         "unknown_parameter_name": (with_(parameters=dict(seed["parameters"], R_nosuch=1.0)), True),
+        # a new model file (or edge.yaml model.parameters) moved where k_a_ew starts: its learned value
+        # belongs to the old start and is dropped, the others kept
+        "learned_from_another_model_value": (with_(nominal=_nominal_moved(OUTDATED)), True),
     }
 
 
@@ -357,6 +370,8 @@ def corrupt_states(full: bool) -> Iterator[Case]:
                 expected = dict(learned_parameters())
                 if name == "parameter_at_bound_roundoff":
                     expected["c_p_ew"] = 300.0
+                if name == "learned_from_another_model_value":  # dropped: the model file's value
+                    expected[OUTDATED] = float(_model_parameters()[OUTDATED]["value"])
                 lost = params_lost(expected, parameter_metrics(m), rel=1e-6) + len(aside)
                 c.add(len(temps), f"temp file(s) left: {temps}")
             else:

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from own_ports import own_tcp_port
 
 
@@ -18,11 +19,13 @@ def _free_port() -> int:
     return own_tcp_port()
 
 
-def _demo(tmp: Path, *extra: str) -> subprocess.CompletedProcess[str]:
+def _demo(tmp: Path, *extra: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "TMPDIR": str(tmp), "OPENBLAS_NUM_THREADS": "1"}  # mkdtemp's directory: this test's
+    if cwd is not None:  # the package from this checkout, wherever the command runs
+        env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[2]), env.get("PYTHONPATH", "")])
     return subprocess.run([sys.executable, "-m", "thermal_edge.cli", "demo", "--duration", "120", "--speed", "300",
                            "--quiet", "--metrics-port", str(_free_port()), *extra],
-                          capture_output=True, text=True, timeout=180, env=env)
+                          capture_output=True, text=True, timeout=180, env=env, cwd=cwd)
 
 
 def test_the_demo_removes_its_own_state_directory(tmp_path):
@@ -37,9 +40,12 @@ def test_the_demo_removes_its_own_state_directory(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_state_directory_given_by_the_user_is_kept(tmp_path):
+@pytest.mark.parametrize("relative", [False, True])
+def test_a_state_directory_given_by_the_user_is_kept(tmp_path, relative):
+    """Kept, with the state saved on stop; a relative one is relative to where the command runs
+    (not to the packaged example configuration's directory, inside the installed package)."""
     mine = tmp_path / "mine"
-    r = _demo(tmp_path, "--state-dir", str(mine))
+    r = _demo(tmp_path, "--state-dir", "mine" if relative else str(mine), cwd=tmp_path if relative else None)
     assert r.returncode == 0, r.stderr[-2000:]
     assert f"state: {mine}" in r.stdout
     state = json.loads((mine / "state.json").read_text())
@@ -105,3 +111,75 @@ def test_demo_without_voltages_sends_none_although_the_configuration_has_a_calib
         assert r.returncode == 0, r.stderr[-2000:]
         counts[extra] = _frames_with_id(log, voltages_id)
     assert counts[()] == 0 and counts[("--voltages",)] > 0, counts
+
+
+FOUR_NODE = """\
+name: four_node
+description: a small machine of four nodes
+discretisation: {method: zoh}
+inputs:
+  speed_rpm: {role: speed, unit: rpm}
+  i_rms: {role: current, unit: A}
+  torque_nm: {role: torque, unit: Nm}
+  ambient_c: {role: ambient, unit: degC}
+boundaries:
+  ambient: ambient_c
+parameters:
+  C_w: {value: 3000, min: 300, max: 30000, unit: J/K, adaptable: true}
+  C_s: {value: 8000, min: 800, max: 80000, unit: J/K}
+  C_m: {value: 2000, min: 200, max: 20000, unit: J/K}
+  C_h: {value: 20000, min: 2000, max: 200000, unit: J/K}
+  G_ws: {value: 8, min: 1, max: 80, unit: W/K, adaptable: true}
+  G_sh: {value: 20, min: 2, max: 200, unit: W/K}
+  G_sm: {value: 2, min: 0.2, max: 20, unit: W/K}
+  G_ha: {value: 6, min: 0.6, max: 60, unit: W/K, adaptable: true}
+  R_ph: {value: 0.05, min: 0.01, max: 0.5, unit: ohm}
+nodes:
+  - {name: winding, capacity: C_w}
+  - {name: stator, capacity: C_s}
+  - {name: magnet, capacity: C_m}
+  - {name: housing, capacity: C_h}
+conductances:
+  - {between: [winding, stator], g: G_ws}
+  - {between: [stator, housing], g: G_sh}
+  - {between: [stator, magnet], g: G_sm}
+  - {between: [housing, ambient], g: G_ha}
+losses:
+  - {node: winding, power: "3 * R_ph * i_rms ** 2 * (1 + 0.0039 * (T.winding - 20))"}
+  - {node: stator, power: "20 + 0.02 * abs(speed_rpm)"}
+sensors:
+  winding_t: {node: winding}
+  housing: {node: housing}
+limits:
+  hot_spot: {node: winding, warn_c: 140, max_c: 155}
+  magnet: {node: magnet, warn_c: 100, max_c: 120}
+drive:
+  kt_nm_per_arms: 1.5
+"""
+
+
+def test_the_demo_runs_a_configuration_for_another_machine(tmp_path):
+    """A user's own 4-node model (sensors ``winding_t`` and ``housing`` on the inverter's slot-winding
+    and housing PT100s), its configuration from ``config example --model`` with its own signals and
+    drive: the demo runs it (the Table 4 start names pm10kw's parameters: it says so and starts at the
+    plant's values), the simulated inverter sends the PT100s the configuration maps, and no tick is
+    a sensor fault."""
+    import yaml
+
+    (tmp_path / "four.yaml").write_text(FOUR_NODE)
+    example = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "config", "example", "--model", "four.yaml"],
+                             capture_output=True, text=True, timeout=60, check=True)
+    raw = yaml.safe_load(example.stdout)
+    raw["signals"]["sensors"] = {
+        "winding_t": {"frame": "INV_StatorTemps", "signal": "INV_T_WindingSlot", "status": "INV_S_WindingSlot"},
+        "housing": {"frame": "INV_StatorTemps", "signal": "INV_T_Housing", "status": "INV_S_Housing"}}
+    raw["derating"].update(kt_nm_per_arms=1.5, max_torque_nm=60.0, safe_torque_nm=15.0)
+    (tmp_path / "edge.yaml").write_text(yaml.safe_dump(raw))
+    r = _demo(tmp_path, "--config", str(tmp_path / "edge.yaml"), "--state-dir", str(tmp_path / "st"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert ("model four_node has not the parameters the Table 4 start moves (k_r_sw, k_c_sw, c_p_sw, R_e_hous): "
+            "the service starts at the plant's values") in r.stdout, r.stdout
+    assert "model at the plant" in r.stdout and re.search(r"^done: .* simulated", r.stdout, re.M), r.stdout[-2000:]
+    assert "sensor_fault" not in r.stdout + r.stderr and "not_fitted" not in r.stdout + r.stderr, r.stdout[-2000:]
+    assert "no reading of" not in r.stdout
+

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from svc_testlib import EDGE_YAML, REPO, write_yaml
+from svc_testlib import EDGE_YAML, MODEL, REPO, write_yaml
 
 from thermal_edge.bus import DecodedFrame
 from thermal_edge.config import config_from_mapping
-from thermal_edge.lptn import Simulator, cool_down, steady_state
+from thermal_edge.lptn import Simulator, cool_down, load_model, steady_state
 from thermal_edge.service.engine import ThermalEngine
 from thermal_edge.service.persistence import KEEP_CORRUPT, PersistedState, StateStore
 
@@ -512,6 +512,51 @@ def test_an_unknown_parameter_is_dropped_and_every_known_one_kept(tmp_path, mode
     assert len(warnings) == 1 and "R_e_house, R_nosuch" in warnings[0] and str(tmp_path / "state.json") in warnings[0]
     assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert [p.name for p in tmp_path.iterdir()] == ["state.json"]  # not moved aside
+
+
+@pytest.mark.parametrize("how", ["model file", "edge.yaml"])
+def test_a_parameter_learned_from_another_model_value_is_dropped(tmp_path, model, caplog, how):
+    """R_e_hous was learned (8.5) from the model's 9.1; the model now says 4.5 (a new model file, or a
+    calibrated value given in edge.yaml's model.parameters: both make the model the service runs).
+    The learned 8.5 belongs to the old start: dropped with one WARNING naming it and both model
+    values, counted; c_p_ew, whose model value did not change, is kept, and so is the thermal state.
+    A state saved before model values were kept with it keeps every learned value."""
+    learned = {"R_e_hous": 8.5, "c_p_ew": 330.0}
+    (tmp_path / "state.json").write_bytes(edited(model, parameters=learned, nominal={"R_e_hous": 9.1, "c_p_ew": 505.0}))
+    if how == "edge.yaml":
+        now = model.with_parameters({"R_e_hous": 4.5})
+    else:
+        text = MODEL.read_text()
+        assert "R_e_hous: {value: 9.1," in text
+        (tmp_path / "pm10kw.yaml").write_text(text.replace("R_e_hous: {value: 9.1,", "R_e_hous: {value: 4.5,"))
+        now = load_model(tmp_path / "pm10kw.yaml")
+    store = StateStore(tmp_path, now)
+    with caplog.at_level(logging.WARNING):
+        st = store.load()
+    assert st is not None and st.parameters == {"c_p_ew": 330.0} and st.T == state_for(model).T
+    assert store.params_dropped == 1 and store.load_errors == 0
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "R_e_hous learned 8.5 from 9.1, the model now says 4.5" in warnings[0], warnings
+    # the model unchanged: both kept; a state without model values (an older file): both kept
+    for nominal in ({"R_e_hous": 9.1, "c_p_ew": 505.0}, None):
+        extra = {"nominal": nominal} if nominal is not None else {}
+        (tmp_path / "state.json").write_bytes(edited(model, parameters=learned, **extra))
+        again = StateStore(tmp_path, model)
+        assert again.load().parameters == learned and again.params_dropped == 0
+
+
+def test_the_engine_saves_the_model_value_each_parameter_was_learned_from(tmp_path, model):
+    """What :meth:`ThermalEngine.persisted` saves names, for every learned parameter, the model's value
+    (the service model's: edge.yaml's model.parameters applied); the state round-trips through the file."""
+    cfg = _engine_config(tmp_path)
+    now = model.with_parameters({"R_e_hous": 4.5})
+    eng = ThermalEngine(cfg, now, None, worker_mode="sync")
+    eng.adaptation._theta[now.parameter_index(["c_p_ew"])[0]] = 330.0
+    st = eng.persisted(1000.0)
+    eng.close()
+    assert st.parameters == {"c_p_ew": 330.0} and st.nominal == {"c_p_ew": 505.0}
+    store = StateStore(tmp_path / "s", now)
+    assert store.save(st) and store.load().nominal == {"c_p_ew": 505.0}
 
 
 def test_an_unknown_parameter_beside_a_bad_value_still_refuses_the_file(tmp_path, model, caplog):

@@ -83,7 +83,14 @@ def run(args: argparse.Namespace) -> int:
     from ..config import ConfigError, config_from_mapping
     from ..lptn import load_model
     from ..service import EdgeService, status_line
-    from ..sim.inverter import EmulatorConfig, InverterEmulator, table4_parameters
+    from ..sim.inverter import (
+        DEFAULT_SENSOR_SIGNALS,
+        STATOR_FRAME,
+        TABLE4_VARIATIONS,
+        EmulatorConfig,
+        InverterEmulator,
+        table4_parameters,
+    )
     from ..sim.pmsm import Pmsm
 
     cfg_path = Path(args.config)
@@ -91,7 +98,9 @@ def run(args: argparse.Namespace) -> int:
     config_from_mapping(raw, cfg_path)  # the file as it is, each key checked and named, before the demo's changes
     channel = f"thermal-edge-demo-{os.getpid()}"
     own_dir = None if args.state_dir else tempfile.mkdtemp(prefix="thermal-edge-demo-")  # removed at the end
-    state_dir = args.state_dir or own_dir
+    # a relative --state-dir is relative to where the user is, not to the configuration file (the
+    # packaged example's lies inside the installed package)
+    state_dir = str(Path(args.state_dir).resolve()) if args.state_dir else own_dir
     raw = dict(raw or {})
     raw["bus"] = {"interface": "virtual", "channel": channel, "preserve_timestamps": True}
     raw["clock"] = {**(raw.get("clock") or {}), "mode": "frame"}
@@ -125,15 +134,30 @@ def run(args: argparse.Namespace) -> int:
         config = config_from_mapping(raw, cfg_path)
         voltages = (f"voltages: off (the inverter sends no INV_Voltages without --voltages; the flux.calibration of "
                     f"{config.fname} is not used)")
-    if args.table4:
+    notes = []
+    missing = [k for k in TABLE4_VARIATIONS if k not in plant_model.parameter_names]
+    table4 = args.table4 and not missing
+    if args.table4 and missing:  # another machine's model: the paper's variations name pm10kw's parameters
+        notes.append(f"model {plant_model.name} has not the parameters the Table 4 start moves ({', '.join(missing)}): "
+                     "the service starts at the plant's values")
+    if table4:
         raw["model"] = {**raw.get("model", {}), "parameters": table4_parameters(plant_model)}
         config = config_from_mapping(raw, cfg_path)
+    # the simulated inverter sends the PT100s of its INV_StatorTemps frame; the configuration says which
+    # of the model's sensors each one is
+    sensor_signals = {spec.signal: name for name, spec in config.sensors.items()
+                      if spec.frame == STATOR_FRAME and spec.signal in DEFAULT_SENSOR_SIGNALS}
+    unsent = [f"{name} ({spec.frame} {spec.signal})" for name, spec in config.sensors.items()
+              if spec.signal not in sensor_signals or spec.frame != STATOR_FRAME]
+    if unsent:
+        notes.append(f"the simulated inverter sends only {STATOR_FRAME}'s {', '.join(DEFAULT_SENSOR_SIGNALS)}: "
+                     f"no reading of {', '.join(unsent)}")
     service = EdgeService(config)
     emu_cfg = EmulatorConfig(model_path=plant_model.path or config_path("machines", "pm10kw.yaml"), cycle_path=args.cycle,
                              duration_s=args.duration, speed=args.speed, current_period_s=args.current_period,
                              temperature_period_s=args.temperature_period, plant_dt_s=max(0.1, args.current_period),
                              closed_loop=not args.open_loop, t0=float(math.floor(time.time())),
-                             pmsm=Pmsm() if config.flux.enabled else None)
+                             pmsm=Pmsm() if config.flux.enabled else None, sensor_signals=sensor_signals)
     emulator = InverterEmulator(emu_cfg, {"interface": "virtual", "channel": channel, "preserve_timestamps": True},
                                 model=plant_model)
 
@@ -153,7 +177,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"metrics: http://{host}:{port}/metrics   state: {state_dir}", flush=True)
         else:
             print(f"metrics: not served (port {args.metrics_port} busy?)   state: {state_dir}", flush=True)
-        print(f"{'model ' + ('off by Table 4' if args.table4 else 'at the plant')}, cycle {Path(args.cycle).stem}, "
+        for note in notes:
+            print(note, flush=True)
+        print(f"{'model ' + ('off by Table 4' if table4 else 'at the plant')}, cycle {Path(args.cycle).stem}, "
               f"{args.speed:g}x, {'open' if args.open_loop else 'closed'} loop; Ctrl-C stops", flush=True)
         if voltages:
             print(voltages, flush=True)

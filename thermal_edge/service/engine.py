@@ -544,9 +544,12 @@ class ThermalEngine:
     def persisted(self, t: float) -> PersistedState:
         """What to save now (parameters, decisions and, once running, the thermal state)."""
         ad, counts = self.adaptation, self.adaptation.counts
-        st = PersistedState(model=self.model.name, saved_at=float(t), parameters=ad.changed(), param_version=counts.version,
+        learned = ad.changed()
+        start = dict(zip(self.model.parameter_names, self.model.nominal()))
+        st = PersistedState(model=self.model.name, saved_at=float(t), parameters=learned, param_version=counts.version,
                             adapt_runs=counts.runs, decisions=ad.decisions, saved_wall=time.time(),
-                            inputs={k: float(v) for k, v in self._last_inputs.items() if math.isfinite(v)})
+                            inputs={k: float(v) for k, v in self._last_inputs.items() if math.isfinite(v)},
+                            nominal={k: float(start[k]) for k in learned})
         saved = self.estimate.saved()
         if saved is not None:
             st.nodes, st.T, st.sigma, st.P, st.T_pred = saved["nodes"], saved["T"], saved["sigma"], saved["P"], saved["T_pred"]

@@ -345,7 +345,8 @@ class _LiveCollector(Collector):
             yield CounterMetricFamily(P + "state_load_errors", "State files that could not be used at start",
                                       value=store.load_errors)
             yield CounterMetricFamily(P + "state_params_dropped", "Learned parameters dropped at start: the model has "
-                                      "no parameter of that name", value=store.params_dropped)
+                                      "no parameter of that name, or its value there changed since they were learned",
+                                      value=store.params_dropped)
             yield CounterMetricFamily(P + "state_save_errors", "State saves that failed", value=store.save_errors)
             yield CounterMetricFamily(P + "state_saves", "State saves", value=store.saves)
             yield CounterMetricFamily(P + "state_save_refused", "State saves refused because the file would not load "

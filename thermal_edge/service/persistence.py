@@ -13,9 +13,10 @@ first and never read beyond :data:`MAX_BYTES`; the JSON is parsed only after a b
 characters and ``NaN``/``Infinity``; then every field is type-checked into the dataclass. An
 unusable file is logged with its name and the reason, counted (:attr:`StateStore.load_errors`),
 moved aside to ``state.json.corrupt-<time>-<pid>`` (the newest :data:`KEEP_CORRUPT` are kept for
-forensics) and the service starts from the defaults. One exception: a learned parameter the model
-no longer has (renamed or removed by a model update) is dropped with a WARNING naming it and
-counted (:attr:`StateStore.params_dropped`); every parameter the model knows is kept.
+forensics) and the service starts from the defaults. Two exceptions: a learned parameter the model
+no longer has (renamed or removed by a model update), or whose value in the model is not the one it
+was learned from (a new model file, a calibrated value in ``edge.yaml``), is dropped with a WARNING
+naming it and counted (:attr:`StateStore.params_dropped`); the other learned parameters are kept.
 
 A state directory that cannot be written (read-only, full, not creatable) is not a reason to stop
 protecting: :meth:`StateStore.probe` says so at start, every save retries, and failed saves are
@@ -60,6 +61,9 @@ log = logging.getLogger(__name__)
 
 FORMAT = "thermal_edge.state"
 VERSION = 1
+#: a learned parameter's model value is the one it was saved with within this relative difference
+#: (a value written to YAML and read back, not a new calibration)
+NOMINAL_REL = 1e-9
 FILENAME = "state.json"
 #: Largest state file read, bytes. A full one (500 decisions, a 40-node covariance) is < 1 MiB;
 #: refusing a larger one costs at most about five times this in memory, beyond it nothing.
@@ -137,7 +141,8 @@ def _parse_constant(text: str) -> Any:
     raise StateError(f"{text} is not a number")
 
 
-def decode(data: bytes, model: Model, dropped: list[str] | None = None) -> PersistedState:
+def decode(data: bytes, model: Model, dropped: list[str] | None = None,
+           outdated: list[tuple[str, float, float, float]] | None = None) -> PersistedState:
     """Bytes of a state file -> a validated state for ``model``; the one check of load and save.
 
     Parameters
@@ -147,6 +152,9 @@ def decode(data: bytes, model: Model, dropped: list[str] | None = None) -> Persi
     dropped : list of str, optional
         Given (on load): parameter names the model does not have are dropped and appended here.
         None (on save): such a name makes the state unusable, so a saved file never holds one.
+    outdated : list, optional
+        Given (on load): learned parameters whose model value changed since they were saved are
+        dropped and appended here (:meth:`PersistedState.from_json`).
 
     Raises
     ------
@@ -172,7 +180,7 @@ def decode(data: bytes, model: Model, dropped: list[str] | None = None) -> Persi
         raise StateError(f"not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except (RecursionError, MemoryError, ValueError) as exc:  # StateError from the hooks included
         raise StateError(f"not usable JSON: {exc}") from None
-    return PersistedState.from_json(raw, model, dropped)
+    return PersistedState.from_json(raw, model, dropped, outdated)
 
 
 # ------------------------------------------------------------------------------------------
@@ -248,18 +256,26 @@ class PersistedState:
     P: list[list[float]] = field(default_factory=list)  # covariance of the estimate, K²
     inputs: dict[str, float] = field(default_factory=dict)  # last inputs (ambient for the cool-down)
     saved_wall: float = 0.0
+    #: the model's own value (its file's, with edge.yaml's model.parameters) of each learned parameter
+    #: when saved: a learned value is kept only while the model still starts that parameter there
+    nominal: dict[str, float] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, Any]:
         return {"format": FORMAT, "version": VERSION, **self.__dict__}
 
     @classmethod
-    def from_json(cls, raw: Any, model: Model, dropped: list[str] | None = None) -> PersistedState:
+    def from_json(cls, raw: Any, model: Model, dropped: list[str] | None = None,
+                  outdated: list[tuple[str, float, float, float]] | None = None) -> PersistedState:
         """Validate a parsed state file into a state for ``model``.
 
         Every field is type-checked; parameters are checked against the model's bounds after
         round-off at a bound is set onto it (:meth:`Model.snap_to_bounds`). With ``dropped`` given,
         parameter names the model does not have are removed and appended to it (a model update
-        that renames one parameter must not cost the others); without, they are an error.
+        that renames one parameter must not cost the others); without, they are an error. With
+        ``outdated`` given, a learned parameter whose value in the model differs from the one
+        saved with it (a new model file, a calibrated value in edge.yaml) is removed and appended
+        as (name, saved model value, model value now, learned value): it was learned from another
+        sta
 
         Raises
         ------
@@ -282,10 +298,16 @@ class PersistedState:
             if k not in raw:
                 raise StateError(f"missing field {k!r}")
         params = _mapping(raw["parameters"], "parameters", _number)
+        nominal = _mapping(raw.get("nominal", {}), "nominal", _number)
         if dropped is not None:
             names = {p.name for p in model.parameters}
             dropped.extend(sorted(k for k in params if k not in names))
             params = {k: v for k, v in params.items() if k in names}
+        if outdated is not None:
+            now = dict(zip(model.parameter_names, model.nominal()))
+            for k in sorted(params):
+                if k in nominal and not math.isclose(nominal[k], now[k], rel_tol=NOMINAL_REL, abs_tol=0.0):
+                    outdated.append((k, nominal[k], float(now[k]), params.pop(k)))
         try:
             params = model.snap_to_bounds(params)
             model.check_parameters(params)
@@ -306,6 +328,7 @@ class PersistedState:
             P=_list(raw.get("P", []), "P", lambda row, w: _list(row, w, _number)),
             inputs=_mapping(raw.get("inputs", {}), "inputs", _number),
             saved_wall=_number(raw.get("saved_wall", 0.0), "saved_wall"),
+            nominal={k: v for k, v in nominal.items() if k in params},
         )
         n = len(model.nodes)
         if st.T or st.sigma or st.T_pred or st.T_commissioned or st.P or st.nodes:
@@ -478,11 +501,18 @@ class StateStore:
             self._bad(f"cannot read: {exc.strerror or exc}")
             return None
         dropped: list[str] = []
+        outdated: list[tuple[str, float, float, float]] = []
         try:
-            state = decode(data, self.model, dropped)
+            state = decode(data, self.model, dropped, outdated)
         except StateError as exc:
             self._bad(str(exc))
             return None
+        if outdated:
+            self.params_dropped += len(outdated)
+            log.warning("state file %s: dropped learned parameter(s) whose value in model %s changed since they were "
+                        "learned (a new model file or edge.yaml model.parameters): %s; they start from the model's",
+                        self.path, self.model.name, "; ".join(f"{k} learned {v:.6g} from {was:.6g}, the model now says "
+                                                              f"{now:.6g}" for k, was, now, v in outdated))
         if dropped:
             self.params_dropped += len(dropped)
             kept = ", ".join(sorted(state.parameters)) or "none"

@@ -82,7 +82,8 @@ from .plant import Plant
 from .pmsm import Pmsm
 from .sensors import pt100
 
-__all__ = ["EmulatorConfig", "InverterEmulator", "TABLE4_VARIATIONS", "main", "write_log"]
+__all__ = ["DEFAULT_SENSOR_SIGNALS", "STATOR_FRAME", "EmulatorConfig", "InverterEmulator", "TABLE4_VARIATIONS", "main",
+           "write_log"]
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +99,8 @@ FREE_WAIT_MAX_S = 120.0
 #: The paper's Table 4 parameter variations (additive, in the parameters' units).
 TABLE4_VARIATIONS: dict[str, float] = {"k_r_sw": 4.0, "k_c_sw": 1.5, "c_p_sw": -50.0, "R_e_hous": -4.0}
 
+#: the frame of the stator PT100s the emulator sends
+STATOR_FRAME = "INV_StatorTemps"
 #: Default PT100 signals -> model sensors (the pm10kw model's production sensor set).
 DEFAULT_SENSOR_SIGNALS: dict[str, str] = {
     "INV_T_WindingSlot": "slot_winding",
