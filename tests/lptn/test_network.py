@@ -215,19 +215,40 @@ def test_node_not_tied_to_a_boundary_is_refused_by_the_loader(kind):
 
 
 def test_a_conductance_that_vanishes_is_not_passive():
-    """A conductance law that is zero at the parameters cuts a node off although the file
-    connects it: the network refuses it when it is made."""
+    """A conductance law that is zero at the parameters cuts a node off although the file connects
+    it: refused when the model is loaded, naming the key and the value. One that vanishes at an
+    operating point only (the speed's law): the network refuses it when it is made there."""
     raw = lumped_raw()
     raw["parameters"]["g_off"] = {"value": 1.0, "min": 1e-9, "max": 2.0}
     raw["nodes"].append({"name": "f1", "capacity": 100})
     raw["conductances"].append({"between": ["f1", raw["nodes"][0]["name"]], "g": "g_off - 1"})
+    k = len(raw["conductances"]) - 1
+    with pytest.raises(ModelError, match=rf"^floating.yaml: conductances\[{k}\].g: must be positive, is 0 W/K at the "
+                                         "nominal parameters$"):
+        build_model(raw, fname="floating.yaml")
+    raw["conductances"][-1]["g"] = "g_off * abs(speed_rpm) / 100 - g_off"  # zero at 100 rpm, negative below
     m = build_model(raw, fname="floating.yaml")
-    n = len(m.nodes)
-    inputs = {k: v[:5] for k, v in tiny_inputs(N=5, seed=23).items()}
-    with pytest.raises(NotPassive, match="boundary"):
-        Simulator(m, method="zoh").simulate(m.nominal(), inputs, 1.0, np.full(n, 25.0))
     with pytest.raises(NotPassive):
         discretise(Network(m).continuous(m.nominal(), {"speed_rpm": np.array([100.0])}), 1.0)
+    with pytest.raises(ModelError, match=rf"conductances\[{k}\]: the conductance is -0.5 W/K at speed_rpm 50: a "
+                                         "conductance must not be negative"):
+        Network(m).continuous(m.nominal(), {"speed_rpm": np.array([300.0, 50.0])}, K=2)
+
+
+@pytest.mark.parametrize("law, key, says", [
+    ("-100", "nodes[{n}].capacity", "must be positive, is -100 J/K"),
+    ("c_x - 150", "nodes[{n}].capacity", "must be positive, is -50 J/K at c_x = 100 (its min)"),
+])
+def test_a_capacity_that_is_not_positive_is_refused_at_load(law, key, says):
+    """A capacity, constant or a law of the parameters, that is not positive at the nominal values or
+    at any one parameter's bound (where the adaptation may take it): refused naming its key."""
+    raw = lumped_raw()
+    raw["parameters"]["c_x"] = {"value": 300.0, "min": 100.0, "max": 900.0}
+    raw["nodes"].append({"name": "f1", "capacity": law})
+    raw["conductances"].append({"between": ["f1", raw["nodes"][0]["name"]], "g": 2.0})
+    with pytest.raises(ModelError) as err:
+        build_model(raw, fname="m.yaml")
+    assert str(err.value) == f"m.yaml: {key.format(n=len(raw['nodes']) - 1)}: {says}"
 
 
 def test_connected_network_is_passive():
@@ -305,3 +326,30 @@ def test_operating_points_grouped_as_numpy_unique_rows(cols):
     np.testing.assert_array_equal(uniq, ref)
     np.testing.assert_array_equal(inv, np.asarray(ref_inv).reshape(-1))
     np.testing.assert_array_equal(uniq[inv], keys)
+
+
+@pytest.mark.parametrize("change, says", [
+    (lambda r: r["conductances"][2].update(g=-8.0), "conductances[2].g: must be positive, is -8 W/K"),
+    (lambda r: r["conductances"][3].update(r=0.0), "conductances[3].r: must be positive, is 0 K/W"),
+    (lambda r: r["conductances"][5].update(r="R_c - 0.1"),
+     "conductances[5].r: must be positive, is -0.05 K/W at R_c = 0.05 (its min)"),
+    # the units a model's values are in: SI; a prefixed one is named with the value converted
+    (lambda r: r["parameters"]["C1"].update(unit="kJ/K", value=0.8, min=0.1, max=5),
+     "parameters.C1.unit: 'kJ/K' is not SI: give the values in J/K (0.8 kJ/K = 800 J/K)"),
+    # a resistance given as a conductance, a conductance as a capacity
+    (lambda r: (r["parameters"]["R_c"].update(unit="K/W"), r["conductances"][5].pop("r"),
+                r["conductances"][5].update(g="R_c")),
+     "conductances[5].g: parameter R_c is in K/W, a resistance: give it as r: R_c (g is a conductance, in W/K)"),
+    (lambda r: (r["parameters"]["G"].update(unit="W/K"), r["nodes"][0].update(capacity="G")),
+     "nodes[0].capacity: parameter G is in W/K, a conductance (capacity is a capacity, in J/K)"),
+    # adaptable, and read by no law: nothing can be learned about it
+    (lambda r: r["parameters"].update(K_unused={"value": 1.0, "min": 0.5, "max": 2.0, "adaptable": True}),
+     "parameters.K_unused.adaptable: no capacity, conductance or loss reads this parameter: nothing can be "
+     "learned about it"),
+])
+def test_a_model_whose_values_cannot_be_right_is_refused_at_load_naming_the_key(change, says):
+    raw = lumped_raw()
+    change(raw)
+    with pytest.raises(ModelError) as err:
+        build_model(raw, fname="m.yaml")
+    assert str(err.value) == f"m.yaml: {says}"

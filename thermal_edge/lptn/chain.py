@@ -229,6 +229,8 @@ def chain_document(nodes: int) -> dict[str, Any]:
         "hot_spot": {"node": f"end_winding_2_{e_back}", "warn_c": 140, "max_c": 155},
         "magnet": {"node": f"magnet_{mid}", "warn_c": 100, "max_c": 120},
     }
+    if S == 1:  # one slice has no axial path in the slot: nothing reads the slot's axial conductivity
+        doc["parameters"]["k_a_sw"]["adaptable"] = False
     return doc
 
 
@@ -244,7 +246,8 @@ def chain_model(nodes: int) -> Model:
     -------
     Model
         Validated as a model file is; named ``chain<nodes>``, three sensors (slot winding,
-        end winding, housing), two limits, fourteen adaptable parameters.
+        end winding, housing), two limits, fourteen adaptable parameters (thirteen with one slice,
+        whose slot has no axial path).
 
     Raises
     ------

@@ -11,9 +11,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..yamlfile import read_document
 from .elements import DIRECTIONS, FACES, arc_capacity, arc_resistances
-from .expr import Expr, ExprError, Num, evaluate_const, parse
+from .expr import Expr, ExprError, Name, Num, evaluate_const, parse
 from .model import (
     DEFAULT_SPREAD,
     Discretisation,
@@ -25,7 +27,17 @@ from .model import (
     Parameter,
 )
 from .tables import Lookup, load_table
-from .vocabulary import LIMIT, TEMPERATURE, NodeRole, Role, is_unit, parse_role, temperature_name, unit_problem
+from .vocabulary import (
+    LIMIT,
+    TEMPERATURE,
+    NodeRole,
+    Role,
+    is_unit,
+    parse_role,
+    scaled_unit,
+    temperature_name,
+    unit_problem,
+)
 
 MATERIAL_KEYS = ("k_r", "k_a", "k_c", "rho", "c_p")
 
@@ -210,6 +222,10 @@ def build_model(
             for what, v in (("value", value), ("min", lo), ("max", hi)):
                 if (why := TEMPERATURE.problem(v)):
                     raise ctx.fail(f"{key}.{what}", why)
+        if (scaled := scaled_unit(str(spec.get("unit", "")))) is not None:
+            si, factor = scaled
+            raise ctx.fail(f"{key}.unit", f"{spec['unit']!r} is not SI: give the values in {si} "
+                                          f"({value:g} {spec['unit']} = {value * factor:g} {si})")
         spread = ctx.number(f"{key}.spread", spec["spread"]) if "spread" in spec else DEFAULT_SPREAD
         if spread < 0:
             raise ctx.fail(f"{key}.spread", f"must be >= 0 (relative σ of the value), got {spread}")
@@ -242,6 +258,8 @@ def build_model(
 
     conns = _list(ctx, raw.get("conductances"), "conductances")
     builder.connect(conns, pnames | op_names, boundaries)
+    _check_positive(ctx, builder.positive, {p.name: p for p in params})
+    _check_units(ctx, builder.positive, {p.name: p for p in params})
     builder.check_connected(boundaries)
 
     temp_names = {temperature_name(n) for n in builder.nodes}
@@ -254,6 +272,15 @@ def build_model(
             raise ctx.fail(f"{key}.node", f"unknown node or point {target!r}")
         law = ctx.law(f"{key}.power", _req(ctx, spec, "power", key), pnames | op_names | temp_names, "a loss")
         losses.append(Loss(target, law, key))
+
+    # an adaptable parameter no law reads would be "adapted" with no effect on any temperature: its
+    # uncertainty is infinite, and the adapter would report changes of nothing
+    used = frozenset().union(*(e.g.free() for e in builder.edges), *(c.free() for c in builder.caps),
+                             *(loss.power.free() for loss in losses))
+    for p in params:
+        if p.adaptable and p.name not in used:
+            raise ctx.fail(f"parameters.{p.name}.adaptable", "no capacity, conductance or loss reads this parameter: "
+                                                             "nothing can be learned about it")
 
     sensors: dict[str, str] = {}
     for k, spec in _mapping(ctx, raw.get("sensors"), "sensors").items():
@@ -312,6 +339,44 @@ def build_model(
     )
 
 
+def _check_positive(ctx: _Ctx, laws: list[tuple[str, str, Expr]], params: Mapping[str, Parameter]) -> None:
+    """Refuse a capacity, conductance or resistance that is not positive: a constant one, or one of
+    the parameters alone at their nominal values or at any one parameter's min or max (where the
+    adaptation may take it). A law of the operating point is judged where it is evaluated."""
+    nominal = {k: p.value for k, p in params.items()}
+    for key, unit, law in laws:
+        free = law.free()
+        if not free <= set(params):
+            continue
+        f = law.compile()
+        where = [("at the nominal parameters" if free else "", nominal)]
+        where += [(f"at {k} = {b:g} (its {side})", {**nominal, k: b}) for k in sorted(free)
+                  for side, b in (("min", params[k].lower), ("max", params[k].upper))]
+        for at, env in where:
+            with np.errstate(all="ignore"):
+                v = float(np.asarray(f(env)))
+            if not v > 0.0:  # NaN too
+                raise ctx.fail(key, f"must be positive, is {v:g} {unit}" + (f" {at}" if at else ""))
+
+
+#: what a law in each unit is, and the key it is given under
+_UNIT_OF = {"J/K": ("a capacity", "capacity"), "W/K": ("a conductance", "g"), "K/W": ("a resistance", "r")}
+
+
+def _check_units(ctx: _Ctx, laws: list[tuple[str, str, Expr]], params: Mapping[str, Parameter]) -> None:
+    """Refuse a capacity, conductance or resistance given as one parameter declared in another of
+    J/K, W/K and K/W (a resistance written as ``g:``, a conductance as a capacity)."""
+    for key, unit, law in laws:
+        if not isinstance(law, Name) or law.name not in params:
+            continue
+        declared = next((u for u in _UNIT_OF if is_unit(u, params[law.name].unit)), None)
+        if declared is None or declared == unit:
+            continue
+        (was, was_key), (want, field) = _UNIT_OF[declared], _UNIT_OF[unit]
+        hint = f": give it as {was_key}: {law.name}" if {declared, unit} == {"W/K", "K/W"} else ""
+        raise ctx.fail(key, f"parameter {law.name} is in {declared}, {was}{hint} ({field} is {want}, in {unit})")
+
+
 def _material(ctx: _Ctx, key: str, spec: Any, pnames: set[str]) -> dict[str, Expr]:
     spec = _mapping(ctx, spec, key)
     out = {}
@@ -335,6 +400,8 @@ class _Builder:
         self.names: dict[str, str] = {}  # name -> key that declared it
         self.faces: dict[str, tuple[str, Expr]] = {}  # "arc.face" -> (mid-point, face resistance)
         self.node_roles: dict[str, NodeRole] = {}
+        #: the laws the file gives that must be positive: (key, unit, law) (:func:`_check_positive`)
+        self.positive: list[tuple[str, str, Expr]] = []
 
     def declare(self, key: str, name: str, internal: bool = False) -> None:
         """Reserve a name; user-given names may not contain ``/`` or ``.`` (kept for arc parts)."""
@@ -348,6 +415,7 @@ class _Builder:
         self.declare(key, name)
         self.nodes.append(name)
         self.caps.append(cap)
+        self.positive.append((f"{key}.capacity", "J/K", cap))
 
     def add_point(self, key: str, name: str, internal: bool = False) -> None:
         self.declare(key, name, internal)
@@ -444,6 +512,9 @@ class _Builder:
                 law = ("g", ctx.law(f"{key}.g", spec["g"], allowed, "a conductance"))
             elif has_r:
                 law = ("r", ctx.law(f"{key}.r", spec["r"], allowed, "a resistance"))
+            if law is not None:
+                self.positive.append((f"{key}.{law[0]}", "W/K" if law[0] == "g" else "K/W", law[1]))
+                _check_positive(ctx, [self.positive[-1]], {})  # a constant one now, before 1/r divides by it
             parsed.append((key, a, b, law))
         uses = Counter(e for _, a, b, _ in parsed for e in (a, b) if e in self.faces)
         # a face with several connections becomes a point of its own

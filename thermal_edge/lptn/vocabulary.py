@@ -220,6 +220,29 @@ def foreign_unit(want: str, unit: str) -> OtherUnit | None:
     return next((o for k, o in FOREIGN_UNITS.get(want, {}).items() if k.casefold() == u), None)
 
 
+#: the SI units of a network's quantities (capacity, conductance, resistance, power, heat-transfer
+#: coefficients, conductivity, specific heat, length): a model file gives its values in these
+NETWORK_UNITS = ("J/K", "W/K", "K/W", "W", "W/(m^2 K)", "W/(m K)", "J/(kg K)", "m")
+#: prefixes a file may put on them by habit, and their factor to the SI unit
+_PREFIXES = {"k": 1e3, "M": 1e6, "m": 1e-3, "c": 1e-2, "µ": 1e-6, "u": 1e-6}
+
+
+def scaled_unit(unit: str) -> tuple[str, float] | None:
+    """``(SI unit, factor)`` for a prefixed spelling of one of :data:`NETWORK_UNITS` (``kJ/K`` is
+    1000 J/K; ``mm`` 0.001 m); None otherwise (the SI unit itself, or a unit this does not know).
+
+    >>> scaled_unit("kJ/K"), scaled_unit("J/K"), scaled_unit("mm")
+    (('J/K', 1000.0), None, ('m', 0.001))
+    """
+    u = unit.strip()
+    for base in NETWORK_UNITS:
+        if len(u) == len(base) + 1 and u.endswith(base) and u[0] in _PREFIXES:
+            if base == "m" and u[0] == "M":  # "Mm" is no length a machine has
+                continue
+            return base, _PREFIXES[u[0]]
+    return None
+
+
 def unit_problem(role: Role, unit: str) -> str | None:
     """Why ``unit`` (as a model file writes an input's unit) is not the unit of ``role``; None if it is."""
     want = role.plausible.unit
@@ -290,5 +313,5 @@ def parse_role(value: object, kind: type[Role] | type[NodeRole]) -> Role | NodeR
 __all__ = [
     "BEARING_SIDE", "DEFAULT_COLUMNS", "FRAME", "KELVIN", "LIMIT", "MILLIAMPERE", "PLAUSIBLE", "TEMPERATURE", "NodeRole",
     "OtherUnit", "Plausible", "Role", "STATOR_IRON", "TEMP_PREFIX", "UNIT_SHARE", "UNIT_SPELLINGS", "parse_role",
-    "temperature_name", "temperature_problems", "unit_problem",
+    "temperature_name", "temperature_problems", "unit_problem", "NETWORK_UNITS", "scaled_unit",
 ]
