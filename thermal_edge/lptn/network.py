@@ -211,8 +211,8 @@ class Network:
         e = int(self._given[i])
         at = ", ".join(f"{name} {float(np.broadcast_to(op[name], (len(g),))[k]):.4g}"
                        for name in self._inputs if name in op)
-        raise ModelError(f"{self._fname}: {self._edge_keys[e]}: the conductance is {g[k, e]:.4g} W/K at {at}: a conductance must not "
-                         "be negative")
+        raise ModelError(f"{self._fname}: {self._edge_keys[e]}: the conductance is {g[k, e]:.4g} W/K at {at}: "
+                         "a conductance must not be negative")
 
     def _conductance_derivatives(self, env: Mapping[str, Value], K: int, wrt: Sequence[int]) -> np.ndarray:
         """``dg`` (K, p, e) of the :meth:`live_edges` of ``wrt`` in the law environment ``env``."""
