@@ -69,10 +69,13 @@ def run(args: argparse.Namespace) -> int:
     lo, hi = model.bounds()
     idx = model.parameter_index(res.names)
     unc = res.uncertainty
+    unresolved = unc.unresolved if unc.unresolved is not None else np.zeros(len(res.names), dtype=bool)
     rows = [[n, res.start[i], res.values[i], lo[idx[i]], hi[idx[i]], 100 * unc.rel_std[i],
-             "yes" if unc.identifiable[i] else "not identifiable"] for i, n in enumerate(res.names)]
+             "yes" if unc.identifiable[i] else
+             "no: acts only together with others (or on nothing)" if unresolved[i] else "not identifiable"]
+            for i, n in enumerate(res.names)]
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
-    print(f"objective (mean squared error, K²): start {res.objective_start:.4g}, after global search "
+    print(f"objective (sum over the sensors of each one's mean squared error, K²): start {res.objective_start:.4g}, after global search "
           f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "
           f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; "
           f"residual σ {np.sqrt(unc.sigma2):.3f} K, "

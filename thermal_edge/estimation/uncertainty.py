@@ -47,11 +47,14 @@ class Uncertainty:
     identifiable: np.ndarray  # bool per parameter: ``rel_std_independent`` below the gate's limit
     tau: float  # the residuals' integrated autocorrelation time, samples (the information is divided by it)
     rel_std_independent: np.ndarray  # σ of log θ as if the residuals were independent (the gate's)
+    #: bool per parameter: moved by a direction the data carry no information on (σ infinite)
+    unresolved: np.ndarray | None = None
 
     @property
     def rel_std(self) -> np.ndarray:
-        """Relative standard deviation of each parameter (std of log θ)."""
-        return np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+        """Relative standard deviation of each parameter (std of log θ; inf where :attr:`unresolved`)."""
+        std = np.sqrt(np.clip(np.diag(self.cov), 0.0, None))
+        return std if self.unresolved is None else np.where(self.unresolved, np.inf, std)
 
     def node_band(self, S: np.ndarray) -> np.ndarray:
         """Half-width (K) of the 95 % band of node predictions from log-parameter sensitivities
@@ -88,11 +91,35 @@ def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = MA
     Jw = (np.sqrt(wt)[:, :, None] * ev.jac).reshape(-1, p)
     data = Jw.T @ Jw
     prior = np.diag(obj.prior_weight * scale / obj.sigma**2) if obj.prior_weight else np.zeros((p, p))  # same units
-    cov = sigma2 * np.linalg.pinv(data / tau + prior, rcond=1e-12)
-    white = sigma2 * np.linalg.pinv(data + prior, rcond=1e-12)
-    gate = np.sqrt(np.clip(np.diag(white), 0.0, None))
+    cov, unresolved = information_inverse(data / tau + prior)
+    white, _ = information_inverse(data + prior)
+    gate = np.where(unresolved, np.inf, np.sqrt(np.clip(sigma2 * np.diag(white), 0.0, None)))
     enough = n_obs - p >= MIN_RESIDUAL_DOF
-    return Uncertainty(obj.space.names, cov, sigma2, (gate < max_rel_std) & enough, tau, gate)
+    return Uncertainty(obj.space.names, sigma2 * cov, sigma2, (gate < max_rel_std) & enough, tau, gate, unresolved)
+
+
+#: an eigenvalue of the information below this fraction of the largest is none: its direction is
+#: not seen in the data (round-off of the exact zero of parameters that only act together)
+INFO_RCOND = 1e-12
+
+
+def information_inverse(info: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of an information matrix (p, p) on the directions the data see, and which
+    parameters a direction they do not see moves (bool, p).
+
+    A direction with no information (parameters that act only together, such as a capacity, a
+    conductance and a loss scaled alike, or a parameter no output depends on) has an infinite
+    variance, not the zero a pseudo-inverse gives it: its parameters are marked. The inverse
+    itself is the pseudo-inverse, so the prediction's variance (to which such a direction adds
+    nothing) stays finite.
+    """
+    lam, V = np.linalg.eigh(0.5 * (info + info.T))
+    top = float(lam.max()) if lam.size else 0.0
+    seen = lam > INFO_RCOND * top if top > 0 else np.zeros(lam.shape, dtype=bool)
+    inv = (V[:, seen] / lam[seen]) @ V[:, seen].T
+    # a parameter is moved by an unseen direction when it has a share of it beyond round-off
+    unresolved = np.any(np.abs(V[:, ~seen]) > 1e-6, axis=1) if (~seen).any() else np.zeros(len(lam), dtype=bool)
+    return inv, unresolved
 
 
 def integrated_autocorrelation(r: np.ndarray, mask: np.ndarray | None = None, c: float = 5.0) -> float:
