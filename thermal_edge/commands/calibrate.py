@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
              "no: acts only together with others (or on nothing)" if unresolved[i] else "not identifiable"]
             for i, n in enumerate(res.names)]
     print(table(["parameter", "start", "fitted", "min", "max", "± % (1σ)", "identifiable"], rows))
-    print(f"objective (sum over the sensors of each one's mean squared error, K²): start {res.objective_start:.4g}, after global search "
+    print(f"objective (sum over the sensors of each one's mean squared error, K²): start {res.objective_start:.4g}, "
+          f"after global search "
           f"{res.objective_global:.4g} ({res.generations} generations: {res.stopped}), after SQP "
           f"{res.objective_final:.4g}; {res.evaluations} evaluations, {res.wall_s:.1f} s; "
           f"residual σ {np.sqrt(unc.sigma2):.3f} K, "
