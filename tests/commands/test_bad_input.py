@@ -628,6 +628,37 @@ def _flux_run(good: Path, out: Path) -> Path:
 
 #: refusals of cycles, torque constants, runs without sensor data, flux files and IPv6 groups
 MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = {
+    "a cycle's ambient in kelvin": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _text(tmp / "k.yaml", "name: c\nambient_c: 298.15\nsegments:\n"
+                                                          "  - {duration_s: 60, speed_rpm: 600, torque_nm: 40}\n"),
+         "--out", tmp / "o.csv"], "k.yaml", ["ambient_c", "looks like kelvin (25 degC)"]),
+    "a cycle's ramp longer than its segment": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", _text(tmp / "r.yaml", "name: c\nsegments:\n"
+                                                          "  - {duration_s: 60, speed_rpm: 600, torque_nm: 40}\n"
+                                                          "  - {duration_s: 30, speed_rpm: 900, torque_nm: 40, ramp_s: 90}\n"),
+         "--out", tmp / "o.csv"], "r.yaml", ["segments[1].ramp_s", "segment's duration_s (30 s)"]),
+    "a negative capacity, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "c.yaml", "capacity: C_w}", 'capacity: "-C_w"}'), "--cycle", CYCLE,
+         "--out", tmp / "o.csv"], "c.yaml", ["nodes[0].capacity", "must be positive, is -2000 J/K"]),
+    "a capacity zero at a bound, replay": lambda tmp, g: (
+        replay(g, model=_model(tmp, "c.yaml", "capacity: C_w}", 'capacity: "C_w - 200"}')), "c.yaml",
+        ["nodes[0].capacity", "is 0 J/K at C_w = 200 (its min)"]),
+    "a resistance of zero, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "r.yaml", "r: R_ha}", "r: 0}"), "--cycle", CYCLE, "--out", tmp / "o.csv"],
+        "r.yaml", ["conductances[1].r", "must be positive, is 0 K/W"]),
+    "a resistance given as g, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "g.yaml", "r: R_ha}", "g: R_ha}"), "--cycle", CYCLE, "--out", tmp / "o.csv"],
+        "g.yaml", ["conductances[1].g", "parameter R_ha is in K/W, a resistance: give it as r: R_ha"]),
+    "a capacity in kJ/K, simulate": lambda tmp, g: (
+        ["simulate", "--model", _model(tmp, "kj.yaml", "C_w: {value: 2000, min: 200, max: 20000, unit: J/K",
+                                        "C_w: {value: 2, min: 0.2, max: 20, unit: kJ/K"), "--cycle", CYCLE,
+         "--out", tmp / "o.csv"], "kj.yaml", ["parameters.C_w.unit", "give the values in J/K (2 kJ/K = 2000 J/K)"]),
+    "an adaptable parameter nothing reads, replay": lambda tmp, g: (
+        replay(g, model=_model(tmp, "u.yaml", "  R_s:", "  K_x: {value: 1, min: 0.5, max: 2, adaptable: true}\n  R_s:")),
+        "u.yaml", ["parameters.K_x.adaptable", "nothing can be learned about it"]),
+    "simulate --effect with a negative time constant": lambda tmp, g: (
+        ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv", "--effect",
+         "sensor_lag:winding_t=tau=-5"], "--effect 'sensor_lag:winding_t=tau=-5'", ["tau must be > 0 s"]),
     "a cycle value not a number": lambda tmp, g: (
         ["simulate", "--model", TWO_NODE, "--cycle", _cycle(tmp, "nan.yaml", speed=".nan"), "--out", tmp / "o.csv"],
         "nan.yaml", ["segments[0].speed_rpm", "finite number"]),

@@ -26,6 +26,12 @@ def test_simulate_help_documents_the_effects(capsys):
     ("sensor_lag", "needs a target"),
     ("speed_convection:nope", "unknown target 'nope'"),
     ("bearing_loss=p=x", "not a number"),
+    # magnitudes the effect's law cannot take: named, not a math domain error or a division by zero
+    ("sensor_lag:end_winding=tau=-5", "tau must be > 0 s (the effect's range is 1 to 3600 s), got -5"),
+    ("sensor_lag:end_winding=tau=0", "tau must be > 0 s"),
+    ("copper_temperature=k100=0", "k100 must be > 0 (the effect's range is 0.3 to 3), got 0"),
+    ("bearing_loss=p=-60", "p must be > 0 W"),
+    ("sensor_lag:end_winding=tau=inf", "tau must be a finite number, got inf"),
 ])
 def test_bad_effect_is_one_line(spec, msg, tmp_path, capsys):
     rc = main(["simulate", "--model", str(PM10KW), "--cycle", str(CYCLE), "--effect", spec, "--out", str(tmp_path / "r.csv")])

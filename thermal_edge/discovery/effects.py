@@ -822,6 +822,16 @@ def hidden_candidate(ctx: Context, spec: str) -> tuple[Candidate, dict[str, floa
     cand = Candidate(eff, target)
     sc = scale(ctx, cand)
     full = {p.short: (p.default * sc if p.primary else p.default) for p in eff.params}
+    for p in eff.params:  # a value the effect's law cannot take (its bounds say which sign it has)
+        v = values.get(p.short)
+        if v is None:
+            continue
+        unit = "" if p.unit in ("", "1") else f" {p.unit}"
+        if not math.isfinite(v):
+            raise EffectError(f"--effect {spec!r}: {p.short} must be a finite number, got {v:g}")
+        if p.lower > 0 and not v > 0:
+            raise EffectError(f"--effect {spec!r}: {p.short} must be > 0{unit} (the effect's range is "
+                              f"{p.lower * sc:g} to {p.upper * sc:g}{unit}), got {v:g}")
     full.update(values)
     return cand, full
 

@@ -78,8 +78,17 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
             raise CycleError(f"{f}: {key}: must be positive, got {v}")
         return float(v)
 
+    def temperature(key: str, v: Any, role: Role) -> float:
+        x = num(key, v)
+        why = role.plausible.problem(x)  # an air at 298.15 "degC" is a kelvin value
+        if why:
+            raise CycleError(f"{f}: {key}: {why}")
+        return x
+
     dt = num("dt_s", raw.get("dt_s", 1.0), positive=True)
-    defaults = {AMBIENT: num(AMBIENT, raw.get(AMBIENT, 25.0)), COOLANT: num(COOLANT, raw.get(COOLANT, raw.get(AMBIENT, 25.0)))}
+    defaults = {AMBIENT: temperature(AMBIENT, raw.get(AMBIENT, 25.0), Role.AMBIENT),
+                COOLANT: temperature(COOLANT, raw.get(COOLANT, raw.get(AMBIENT, 25.0)), Role.COOLANT)}
+    roles = {AMBIENT: Role.AMBIENT, COOLANT: Role.COOLANT}
     segs_raw = raw.get("segments")
     if not isinstance(segs_raw, list) or not segs_raw:
         raise CycleError(f"{f}: segments: expected a non-empty list")
@@ -94,9 +103,12 @@ def load_cycle(path: str | os.PathLike[str]) -> Cycle:
         for req in ("duration_s", SPEED, TORQUE):
             if req not in s:
                 raise CycleError(f"{f}: {key}.{req}: is required")
-        values = {k: num(f"{key}.{k}", s[k] if k in s else defaults[k]) for k in FIELDS}
-        segs.append(Segment(num(f"{key}.duration_s", s["duration_s"], positive=True), values,
-                            num(f"{key}.ramp_s", s.get("ramp_s", 0.0))))
+        values = {k: (temperature(f"{key}.{k}", s[k], roles[k]) if k in roles and k in s else
+                      num(f"{key}.{k}", s[k] if k in s else defaults[k])) for k in FIELDS}
+        duration, ramp = num(f"{key}.duration_s", s["duration_s"], positive=True), num(f"{key}.ramp_s", s.get("ramp_s", 0.0))
+        if not 0.0 <= ramp <= duration:  # the ramp is the start of its segment: it cannot outlast it
+            raise CycleError(f"{f}: {key}.ramp_s: {ramp:g} s must lie within 0 and the segment's duration_s ({duration:g} s)")
+        segs.append(Segment(duration, values, ramp))
     repeat = int(num("repeat", raw.get("repeat", 1), positive=True))
     n = samples(sum(s.duration_s for s in segs) * repeat, dt)
     if n > MAX_SAMPLES:
