@@ -352,3 +352,18 @@ def test_forcing_is_the_dense_derivative_applied(tiny_plus_model, method):
     o = int(ops[0])  # the same rows, all at one operating point
     same = ops == o
     np.testing.assert_allclose(V[same] @ d.forcing(o, y[same], v[same]), dense[same], rtol=0, atol=1e-10 * np.abs(dense).max())
+
+
+def test_euler_at_a_spectral_radius_of_exactly_one_is_refused():
+    """``h λ = -2`` to the last bit (1 node, G = 10 W/K, C = 5 J/K, h = 1 s): an undamped oscillation
+    of ±(T0 − T_amb) forever; round-off may compute the radius a hair below 1. Refused, and a step a
+    little shorter is not."""
+    from thermal_edge.lptn.discretise import euler_substeps
+
+    lam = np.array([-10.0 / 5.0 * (1.0 - 1e-16), -0.01])
+    with pytest.raises(UnstableDiscretisation):
+        euler_substeps(lam, 1.0, None)
+    with pytest.raises(UnstableDiscretisation):
+        euler_substeps(np.array([-2.0 + 2e-12]), 1.0, None)
+    assert euler_substeps(np.array([-2.0]), 1.0, 0.99) == 2
+    assert euler_substeps(np.array([-1.99, -1e-12]), 1.0, None) == 1  # slow modes near 1 are stable

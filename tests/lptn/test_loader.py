@@ -90,6 +90,9 @@ CASES = [
     ("r2 equal r1", _set(["arcs", 0, "r2"], 0.1), "arcs[0].r2", "greater than r1"),
     ("r2 below r1", _set(["arcs", 1, "r2"], 0.05), "arcs[1].r2", "greater than r1"),
     ("negative theta", _set(["arcs", 1, "theta"], -1.0), "arcs[1].theta", "positive"),
+    ("theta in degrees", _set(["arcs", 1, "theta"], 30.0), "arcs[1].theta", "exceeds a full circle (2π = 6.283 rad): "
+     "theta is in rad (30 deg = 0.5236 rad)"),
+    ("a negative conductance", _set(["conductances", 0, "r"], -0.5), "conductances[0].r", "must be positive, is -0.5 K/W"),
     ("zero length", _set(["arcs", 0, "length"], 0), "arcs[0].length", "positive"),
     ("unknown endpoint", _set(["conductances", 1, "between"], ["yoke.r_inn", "wind.r_out"]), "conductances[1].between",
      "yoke.r_inn"),

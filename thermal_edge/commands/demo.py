@@ -157,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
                              duration_s=args.duration, speed=args.speed, current_period_s=args.current_period,
                              temperature_period_s=args.temperature_period, plant_dt_s=max(0.1, args.current_period),
                              closed_loop=not args.open_loop, t0=float(math.floor(time.time())),
-                             pmsm=Pmsm() if config.flux.enabled else None, sensor_signals=sensor_signals)
+                             pmsm=Pmsm.with_kt(config.kt(plant_model)) if config.flux.enabled else None,
+                             sensor_signals=sensor_signals)
     emulator = InverterEmulator(emu_cfg, {"interface": "virtual", "channel": channel, "preserve_timestamps": True},
                                 model=plant_model)
 

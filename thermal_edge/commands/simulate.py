@@ -145,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
                              seed=args.seed, all_nodes=args.all_nodes or args.voltages)
     require_finite(plant, inputs, res.truth.T, "the simulated plant" + (" (with --effect)" if args.effect else ""))
     if args.voltages:
-        add_voltages(plant, res.run, args.seed, keep_nodes=args.all_nodes)
+        pm = add_voltages(plant, res.run, args.seed, keep_nodes=args.all_nodes)
+        comment += f"\nvoltages: {pm.describe()}"
     write_run(args.out, res.run, comment=comment)
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
     print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; peak " +
@@ -169,16 +170,27 @@ def run_can_log(args: argparse.Namespace) -> int:
         st = write_log(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
                        noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
                        current_period_s=args.current_period, temperature_period_s=args.temperature_period,
-                       progress=progress, pmsm=Pmsm() if args.voltages else None)
+                       progress=progress, pmsm=voltage_machine(load_model(args.model, data_dir=args.data_dir))
+                       if args.voltages else None)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
     print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s; peak {peaks}")
     return 0
 
 
-def add_voltages(model: Model, run: Run, seed: int, keep_nodes: bool) -> None:
-    """Add ``u_d_v``, ``u_q_v`` (V peak, :class:`~thermal_edge.sim.pmsm.Pmsm`) and ``pm`` (the mean true
+def voltage_machine(model: Model) -> Pmsm:
+    """The simulated electrical machine of ``model``: the package's, with the flux linkage of the
+    model's torque constant (a model file holds no electrical data), said on stdout."""
+    pm = Pmsm.with_kt(model.drive.get("kt_nm_per_arms"))
+    print(f"voltages: the simulated machine has {pm.describe()}"
+          + ("" if pm == Pmsm() else f" (the flux linkage from model {model.name}'s drive.kt_nm_per_arms, the rest "
+                                      "the package's machine's)"))
+    return pm
+
+
+def add_voltages(model: Model, run: Run, seed: int, keep_nodes: bool) -> Pmsm:
+    """Add ``u_d_v``, ``u_q_v`` (V peak, :func:`voltage_machine`) and ``pm`` (the mean true
     temperature of the model's magnet nodes, °C) to a simulated ``run`` that has every node's
-    ``T_<node>``; the ``T_`` columns go unless ``keep_nodes``.
+    ``T_<node>``; the ``T_`` columns go unless ``keep_nodes``. Returns the machine used.
 
     The stator resistance is at the mean true temperature of the winding nodes: the copper the
     current flows through, not one sensor's reading."""
@@ -190,9 +202,11 @@ def add_voltages(model: Model, run: Run, seed: int, keep_nodes: bool) -> None:
 
     c = run.columns
     winding, magnet = mean_of(NodeRole.WINDING), mean_of(NodeRole.MAGNET)
-    u_d, u_q = Pmsm().voltages(c[DEFAULT_COLUMNS[Role.CURRENT_D]], c[DEFAULT_COLUMNS[Role.CURRENT_Q]], c[SPEED],
-                               winding, magnet, seed)
+    pm = voltage_machine(model)
+    u_d, u_q = pm.voltages(c[DEFAULT_COLUMNS[Role.CURRENT_D]], c[DEFAULT_COLUMNS[Role.CURRENT_Q]], c[SPEED],
+                           winding, magnet, seed)
     if not keep_nodes:
         for k in [k for k in c if k.startswith("T_")]:
             del c[k]
     c["u_d_v"], c["u_q_v"], c["pm"] = u_d, u_q, magnet
+    return pm

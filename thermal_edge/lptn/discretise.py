@@ -246,6 +246,10 @@ def sandwich(left: np.ndarray, mid: np.ndarray, right: np.ndarray) -> np.ndarray
     return out
 
 
+#: explicit Euler needs a spectral radius below 1 by more than the eigenvalues' round-off
+EULER_MARGIN = 1e-9
+
+
 def euler_substeps(lam: np.ndarray, dt: float, max_substep: float | None) -> int:
     """Number of Euler sub-steps: ``ceil(dt / max_substep)``; refuses if that is unstable.
 
@@ -254,7 +258,9 @@ def euler_substeps(lam: np.ndarray, dt: float, max_substep: float | None) -> int
     m = 1 if max_substep is None else max(1, math.ceil(dt / max_substep - 1e-9))
     h = dt / m
     rho = float(np.max(np.abs(1.0 + h * lam)))
-    if rho >= 1.0:
+    # the eigenvalues are negative: the radius reaches 1 on the side of the fastest mode, 1 + h λ = -1
+    # (an undamped oscillation), which round-off may compute a hair inside
+    if 1.0 + h * float(lam.min()) <= -1.0 + EULER_MARGIN:
         h_max = 2.0 / float(-lam.min())
         raise UnstableDiscretisation(
             f"explicit Euler is unstable: spectral radius {rho:.3g} of I + h·C⁻¹A at h = {h:g} s "

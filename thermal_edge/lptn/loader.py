@@ -5,6 +5,7 @@ e.g. ``pm10kw.yaml: arcs[3].r2: must be greater than r1``.
 """
 from __future__ import annotations
 
+import math
 import os
 from collections import Counter
 from collections.abc import Mapping
@@ -434,6 +435,12 @@ class _Builder:
         theta = ctx.number(f"{key}.theta", _req(ctx, spec, "theta", key), positive=True)
         length = ctx.number(f"{key}.length", _req(ctx, spec, "length", key), positive=True)
         count = ctx.number(f"{key}.count", spec.get("count", 1), positive=True)
+        # count arcs of theta side by side around the machine: at most a full circle (theta in rad;
+        # an angle in degrees is the usual cause)
+        if count * theta > 2.0 * math.pi * 1.001:  # (an angle rounded in the file: 12 x 0.5236 rad)
+            raise ctx.fail(f"{key}.theta", f"count x theta = {count:g} x {theta:g} rad = {count * theta:.4g} rad exceeds a "
+                                           f"full circle (2π = 6.283 rad): theta is in rad ({theta:g} deg = "
+                                           f"{math.radians(theta):.4g} rad)")
         mat = _req(ctx, spec, "material", key)
         if isinstance(mat, str):
             if mat not in materials:

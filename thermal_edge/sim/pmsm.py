@@ -24,7 +24,7 @@ under load and reaches ``i_d`` ≈ −10 A at 1,500 rpm and 23 A rms (``L_d i_d`
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,6 +51,27 @@ class Pmsm:
     udc_v: float = 660.0
     #: the largest field-weakening current, A peak (a drive's field-weakening controller saturates)
     i_d_max: float = 150.0
+
+    @property
+    def kt_nm_per_arms(self) -> float:
+        """The torque constant this machine has at 20 °C with ``i_d = 0`` (Nm per A rms):
+        ``1.5 p ψ √2``."""
+        return 1.5 * self.pole_pairs * self.psi20 * math.sqrt(2.0)
+
+    @classmethod
+    def with_kt(cls, kt_nm_per_arms: float | None) -> Pmsm:
+        """The simulated machine with the flux linkage that gives ``kt_nm_per_arms`` (its other
+        electrical values as they are); the default machine when that is its own within 1 %, or
+        when no torque constant is given."""
+        pm = cls()
+        if kt_nm_per_arms is None or abs(kt_nm_per_arms / pm.kt_nm_per_arms - 1.0) < 0.01:
+            return pm
+        return replace(pm, psi20=float(kt_nm_per_arms) / (1.5 * pm.pole_pairs * math.sqrt(2.0)))
+
+    def describe(self) -> str:
+        """One line of what this machine's electrical side is."""
+        return (f"{self.pole_pairs} pole pairs, psi {self.psi20:.4g} Wb at 20 degC (kt {self.kt_nm_per_arms:.3g} Nm/A), "
+                f"r {self.r20:g} ohm, Ld/Lq {self.ld0 * 1e3:g}/{self.lq0 * 1e3:g} mH")
 
     @property
     def u_max(self) -> float:
