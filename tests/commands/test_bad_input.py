@@ -364,6 +364,10 @@ def check(cfg: Path) -> list[object]:
 
 
 CONFIG_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = {
+    "edge.yaml: a limit raised above the machine's": lambda tmp, g: (
+        check(_edge(tmp, lambda r: _put(r, "derating.limits.hot_spot", {"warn_c": 230, "max_c": 250}))),
+        "derating.limits.hot_spot.max_c", ["250 degC is above the machine's 155 degC (pm10kw.yaml: limits.hot_spot.max_c)",
+                                           "may lower a limit, not raise it"]),
     "edge.yaml: limits in kelvin": lambda tmp, g: (
         check(_edge(tmp, lambda r: _put(r, "derating.limits.hot_spot", {"warn_c": 413, "max_c": 428}))),
         "derating.limits.hot_spot.warn_c", ["413 degC looks like kelvin"]),

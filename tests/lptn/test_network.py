@@ -342,6 +342,11 @@ def test_operating_points_grouped_as_numpy_unique_rows(cols):
      "conductances[5].g: parameter R_c is in K/W, a resistance: give it as r: R_c (g is a conductance, in W/K)"),
     (lambda r: (r["parameters"]["G"].update(unit="W/K"), r["nodes"][0].update(capacity="G")),
      "nodes[0].capacity: parameter G is in W/K, a conductance (capacity is a capacity, in J/K)"),
+    # a boundary fed by an input that is no temperature (by its role, or by its unit)
+    (lambda r: (r["inputs"].update(i_rms={"role": "current", "unit": "A"}), r["boundaries"].update(ambient="i_rms")),
+     "boundaries.ambient: input 'i_rms' is the current (A), not a temperature"),
+    (lambda r: (r["inputs"].update(i_rms={"unit": "A"}), r["boundaries"].update(ambient="i_rms")),
+     "boundaries.ambient: input 'i_rms' is in 'A', not a temperature (degC)"),
     # adaptable, and read by no law: nothing can be learned about it
     (lambda r: r["parameters"].update(K_unused={"value": 1.0, "min": 0.5, "max": 2.0, "adaptable": True}),
      "parameters.K_unused.adaptable: no capacity, conductance or loss reads this parameter: nothing can be "

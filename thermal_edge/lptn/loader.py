@@ -203,6 +203,12 @@ def build_model(
     for b, col in boundaries.items():
         if col not in inputs:
             raise ctx.fail(f"boundaries.{b}", f"input {col!r} is not declared under inputs")
+        # a boundary is a temperature: an input with another role or unit would be read as degC
+        role, unit = input_roles.get(col), str(_mapping(ctx, raw_inputs[col], f"inputs.{col}").get("unit", ""))
+        if role is not None and role.plausible.unit != TEMPERATURE.unit:
+            raise ctx.fail(f"boundaries.{b}", f"input {col!r} is the {role.value} ({role.plausible.unit}), not a temperature")
+        if role is None and unit and not is_unit(TEMPERATURE.unit, unit):
+            raise ctx.fail(f"boundaries.{b}", f"input {col!r} is in {unit!r}, not a temperature (degC)")
 
     derived: dict[str, Expr] = {}
     for k, v in _mapping(ctx, raw.get("derived"), "derived").items():
