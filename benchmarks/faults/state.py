@@ -434,6 +434,9 @@ def _config_variants(base: dict[str, Any], workdir: Path) -> dict[str, Any]:
         "valid_range_reversed": set_("signals.valid_range_c", [250, -40]),
         "band_warn_above_max": set_("derating.limits", {**base["derating"]["limits"],
                                                         "hot_spot": {"warn_c": 160, "max_c": 155, "reason": "winding"}}),
+        # the machine's insulation limit is its model file's: a configuration may lower it only
+        "limit_above_the_machines": set_("derating.limits", {**base["derating"]["limits"],
+                                                             "hot_spot": {"warn_c": 230, "max_c": 250, "reason": "winding"}}),
         "max_current_a_string": set_("derating.max_current_a", "forty"),
         "max_current_a_nan": set_("derating.max_current_a", float("nan")),
         "metrics_port_70000": set_("metrics.port", 70000),

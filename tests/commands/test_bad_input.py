@@ -12,6 +12,7 @@ such a file aside with one log line and starts from the model, ``tests/service/t
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -139,7 +140,7 @@ CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]]] = 
     "kelvin, fleet calibrate": lambda tmp, g: (
         ["fleet", "calibrate", "--model", TWO_NODE, p := _map(g, tmp / "m2.csv", "housing", lambda x: x + 273.15),
          "--out", tmp / "f.parquet", "--workers", "1"], str(p), ["column 'housing'", "kelvin"]),  # its only machine
-    "a directory as the run": lambda tmp, g: (replay(tmp), str(tmp), ["is a directory"]),
+    "a directory as the run": lambda tmp, g: (replay(_dir(tmp / "runs")), str(tmp / "runs"), ["is a directory"]),
     "no such run file": lambda tmp, g: (replay(tmp / "nope.csv"), str(tmp / "nope.csv"), ["No such file"]),
     "--set outside the bounds": lambda tmp, g: (replay(g, "--set", "R_wh=9"), "--set R_wh=9", ["bound"]),
     "--plot with an unknown suffix": lambda tmp, g: (replay(g, "--plot", tmp / "f.txt"), "--plot", [".png"]),
@@ -607,6 +608,11 @@ OPTION_CASES["monitor --bus without a bus"] = lambda tmp, g: (["monitor", "--bus
 OPTION_CASES["monitor --bus where there is no such interface"] = lambda tmp, g: (
     ["monitor", "--bus", "--once", "--interface", "no_such_interface", "--channel", "x"], "--bus", ["no_such_interface"])
 
+def _dir(path: Path) -> Path:
+    path.mkdir(exist_ok=True)
+    return path
+
+
 def _text(path: Path, text: str) -> Path:
     path.write_text(text, encoding="utf-8")
     return path
@@ -875,3 +881,27 @@ def test_a_plausible_state_file_loads():
     """The counter-case of the table: the same state in degC is taken."""
     model = load_model(TWO_NODE)
     assert decode(_state(model), model).T == [30.0, 30.0]
+
+
+#: the table of refusals in the commands guide: (case, command, exit status, the line on stderr)
+GUIDE = ROOT / "docs" / "guide" / "commands.md"
+GUIDE_ROWS = re.findall(r"^\| (.+?) \| `(.+?)` \| (\d) \| `(.+)` \|$", GUIDE.read_text(encoding="utf-8"), re.M)
+
+
+def test_the_guides_table_has_rows():
+    assert len(GUIDE_ROWS) >= 30 and all(case in CASES for case, *_ in GUIDE_ROWS)
+
+
+@pytest.mark.parametrize("case, command, status, shown",
+                         [pytest.param(*row, marks=pytest.mark.slow) if row[0] in SLOW else row for row in GUIDE_ROWS])
+def test_the_guides_table_shows_what_each_case_prints(case, command, status, shown, logs_here, good_run):
+    """Each row of the commands guide's table is the line its case prints now (the test's directory
+    and the checkout left out of paths), so the manual cannot drift from the messages."""
+    argv, _, _ = CASES[case](logs_here, good_run)
+    r = te_here(*argv)
+    line = r.stderr.strip()
+    for where in (logs_here, good_run.parent, ROOT):
+        line = line.replace(f"{where}/", "")
+    assert (str(r.returncode), str(argv[0])) == (status, command)
+    assert line == shown.replace("\\|", "|"), f"docs/guide/commands.md row {case!r} shows\n  {shown}\nthe case prints\n  {line}"
+
