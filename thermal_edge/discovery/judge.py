@@ -263,7 +263,8 @@ class Point:
 def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     """Steady operating point (grid over speed, current and ambient, up to beyond the run's
     range) where the two fitted models' sensor temperatures differ most, with the node (of both
-    models) where they differ most at that point."""
+    models) where they differ most at that point. Only points a test run may hold: no current at
+    standstill, every limited node :data:`TEST_MARGIN_K` below its warning temperature."""
     run, model = data.run, a.model
     cols = run.columns
     speed_c, current_c, torque_c, amb_c = (model.find_input(r) for r in (Role.SPEED, Role.CURRENT, Role.TORQUE,
@@ -289,6 +290,11 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     steady: tuple[np.ndarray, np.ndarray] | None = None  # both models' node temperatures at ``best``
     for n in speeds:
         for i in currents:
+            if speed_c is not None and n == 0.0 and i > 0.0:
+                # a locked rotor: the phase currents are DC, the phase at the peak carries twice the
+                # mean copper loss in its coils, which a model fed the RMS current does not see (and
+                # drives forbid stalling at rated current): no test run to recommend
+                continue
             for ta in ambients:
                 inp = dict(med)
                 inp.update({c: v for c, v in ((speed_c, n), (current_c, i), (torque_c, ratio * i)) if c is not None})
@@ -319,11 +325,16 @@ def separating_point(a: F.Fit, b: F.Fit, data: F.Data) -> Point | None:
     return best
 
 
+#: K: a recommended test run keeps every limited node at least this far below its warning
+#: temperature in both fitted models (the models differ there, so neither is known to be right)
+TEST_MARGIN_K = 10.0
+
+
 def _admissible(model: Model, T: np.ndarray) -> bool:
-    """Every limited node below its warning temperature (and every node finite)."""
+    """Every limited node :data:`TEST_MARGIN_K` below its warning temperature (and every node finite)."""
     if not np.all(np.isfinite(T)):
         return False
-    return all(float(T[model.node_index(lim.node)]) < lim.warn_c for lim in model.limits)
+    return all(float(T[model.node_index(lim.node)]) < lim.warn_c - TEST_MARGIN_K for lim in model.limits)
 
 
 def _near(run: Run, inp: dict[str, float], columns: Sequence[str | None]) -> bool:
