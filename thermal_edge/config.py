@@ -233,6 +233,15 @@ MAX_TICK_S = 10.0
 MAX_SILENCE_S = 10.0
 
 
+def _limit_slot(sec: _Section, k: str, values: Mapping[str, Any], default: str | None) -> str | None:
+    """A limit that fills one slot of TE_Estimates: the default when left out, none with ``null``
+    (the slot then carries the DBC's "no value")."""
+    if k in sec.raw and sec.raw[k] is None:
+        return None
+    v = sec.value(k)
+    return default if v is None else sec.string(k, v)
+
+
 def _within_inverter_timeout(v: float) -> str | None:
     if v > MAX_LIMITS_PERIOD_S:
         return (f"must be at most {MAX_LIMITS_PERIOD_S:g} s (the inverter drops TE_Limits after "
@@ -544,7 +553,8 @@ class TransmitConfig:
     """``transmit:`` -- which limit goes into which TE_Estimates slot, cyclic periods, silence."""
 
     hot_spot_limit: str = "hot_spot"
-    magnet_limit: str = "magnet"
+    #: null: the model has no magnet limit (or it is not sent): TE_T_Magnet and TE_T_MagnetUpper carry "no value"
+    magnet_limit: str | None = setting("magnet", parse=_limit_slot)
     # at least 10 ms: faster is a flood (1 µs sent 3,700 TE_Limits/s, most of a 500 kbit/s bus)
     limits_period_s: float = setting(0.1, min=0.01, check=_within_inverter_timeout)
     status_period_s: float = setting(1.0, min=0.1)  # three frames each period
@@ -707,8 +717,9 @@ class EdgeConfig:
                     raise self.error(f"flux.{key}", f"node {n!r} of model {model.name} has role {roles[n].value}, "
                                      f"not {role.value}")
         if fx.magnet_nodes is None and not any(lim.name == self.transmit.magnet_limit for lim in model.limits):
-            raise self.error("flux.magnet_nodes", f"model {model.name} has no limited node {self.transmit.magnet_limit!r} "
-                             "(transmit.magnet_limit): name the magnet nodes here")
+            why = (f"model {model.name} has no limited node {self.transmit.magnet_limit!r} (transmit.magnet_limit)"
+                   if self.transmit.magnet_limit else "transmit.magnet_limit is null")
+            raise self.error("flux.magnet_nodes", f"{why}: name the magnet nodes here")
 
     def check_parameters(self, model: Any) -> None:
         """Check ``model.parameters`` against the model file: known names, values within its bounds.

@@ -523,7 +523,8 @@ class ThermalEngine:
             horizon_s=self.config.lookahead.horizon_s, adapt_runs=ad.runs, adapt_accepted=ad.accepted,
             adapt_rejected=ad.rejected, param_version=ad.version, forced=list(forced),
             stale=stale, faults=faults, new_results=list(new_results or []),
-            hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit), reaction_a=react_a,
+            hot_spot=by_name.get(tr.hot_spot_limit), magnet=by_name.get(tr.magnet_limit) if tr.magnet_limit else None,
+            reaction_a=react_a,
             adapt_status=self.adaptation.status, adapt_refusal=refusal[1] if refusal is not None else "",
             ages=dict(ti.ages) if ti is not None else {}, flux=flux,
         )
