@@ -194,8 +194,8 @@ def test_euler_unstable_step_is_refused_with_a_clear_message():
     h_max = 2.0 / -lam.min()
     rho = np.abs(1.0 + 1.0 * lam).max()
     assert h_max < 0.1 and rho > 1  # the premise: Euler at 1 s diverges
-    with pytest.raises(UnstableDiscretisation) as ei:
-        Simulator(m, method="euler").simulate(m.nominal(), inputs, 1.0, np.full(4, 25.0))
+    with pytest.raises(UnstableDiscretisation) as ei:  # one step asked for (the sub-step limit at the step)
+        Simulator(m, method="euler", max_substep=1.0).simulate(m.nominal(), inputs, 1.0, np.full(4, 25.0))
     msg = str(ei.value)
     assert "spectral radius" in msg
     nums = [float(x) for x in re.findall(r"[-+]?\d+\.?\d*(?:[eE][-+]?\d+)?", msg)]
@@ -362,8 +362,27 @@ def test_euler_at_a_spectral_radius_of_exactly_one_is_refused():
 
     lam = np.array([-10.0 / 5.0 * (1.0 - 1e-16), -0.01])
     with pytest.raises(UnstableDiscretisation):
-        euler_substeps(lam, 1.0, None)
+        euler_substeps(lam, 1.0, 1.0)
     with pytest.raises(UnstableDiscretisation):
-        euler_substeps(np.array([-2.0 + 2e-12]), 1.0, None)
+        euler_substeps(np.array([-2.0 + 2e-12]), 1.0, 1.0)
     assert euler_substeps(np.array([-2.0]), 1.0, 0.99) == 2
     assert euler_substeps(np.array([-1.99, -1e-12]), 1.0, None) == 1  # slow modes near 1 are stable
+    # without a sub-step limit: the fewest sub-steps that are stable (h |λ| ≤ 1.8) instead
+    assert euler_substeps(lam, 1.0, None) == 2 and euler_substeps(np.array([-7.3]), 1.0, None) == 5
+    with pytest.raises(UnstableDiscretisation, match="more than 1000 sub-steps"):
+        euler_substeps(np.array([-5000.0]), 1.0, None)
+
+
+def test_euler_without_a_substep_limit_substeps_a_step_it_cannot_take_at_once():
+    """A step explicit Euler cannot take at once (the stiff model at 1 s) without ``max_substep_s``:
+    as many equal sub-steps as make it stable, the same numbers as those sub-steps asked for."""
+    from thermal_edge.lptn.discretise import euler_substeps
+
+    m = build_model(stiff_raw(), fname="stiff.yaml")
+    inputs = {k: np.full(20, v[0]) for k, v in tiny_inputs(N=20, seed=11).items() if k in m.inputs}
+    k = euler_substeps(_eigs(m, inputs), 1.0, None)
+    assert k > 1
+    auto = Simulator(m, method="euler").simulate(m.nominal(), inputs, 1.0, np.full(4, 25.0)).T
+    asked = Simulator(m, method="euler", max_substep=1.0 / k).simulate(m.nominal(), inputs, 1.0, np.full(4, 25.0)).T
+    np.testing.assert_array_equal(auto, asked)
+    assert np.all(np.isfinite(auto)) and np.abs(auto).max() < 1e3

@@ -250,16 +250,35 @@ def sandwich(left: np.ndarray, mid: np.ndarray, right: np.ndarray) -> np.ndarray
 EULER_MARGIN = 1e-9
 
 
+#: sub-steps explicit Euler takes on its own at most (without ``max_substep_s``): beyond, the
+#: model's fastest node is too fast for the method at this step (zoh is the method for it)
+MAX_AUTO_SUBSTEPS = 1000
+
+
 def euler_substeps(lam: np.ndarray, dt: float, max_substep: float | None) -> int:
     """Number of Euler sub-steps: ``ceil(dt / max_substep)``; refuses if that is unstable.
 
-    ``lam`` are the eigenvalues (1/s, negative) of ``C⁻¹A`` over all operating points.
+    Without ``max_substep``: one step where that is stable, else as few equal sub-steps as are
+    (with a margin: ``h |λ| ≤ 1.8``), so that a step longer than the model was written for (an
+    adapter's decimated window, a candidate of a fit with a small capacity) stays stable; more
+    than :data:`MAX_AUTO_SUBSTEPS` are refused. ``lam`` are the eigenvalues (1/s, negative) of
+    ``C⁻¹A`` over all operating points.
     """
-    m = 1 if max_substep is None else max(1, math.ceil(dt / max_substep - 1e-9))
+    fastest = float(-lam.min()) if lam.size else 0.0
+    if max_substep is None:
+        m = 1 if 1.0 - dt * fastest > -1.0 + EULER_MARGIN else math.ceil(dt * fastest / 1.8)
+        m = min(m, MAX_AUTO_SUBSTEPS + 1)  # beyond: refused below
+    else:
+        m = max(1, math.ceil(dt / max_substep - 1e-9))
     h = dt / m
     rho = float(np.max(np.abs(1.0 + h * lam)))
     # the eigenvalues are negative: the radius reaches 1 on the side of the fastest mode, 1 + h λ = -1
     # (an undamped oscillation), which round-off may compute a hair inside
+    if m > MAX_AUTO_SUBSTEPS:
+        raise UnstableDiscretisation(
+            f"explicit Euler would need more than {MAX_AUTO_SUBSTEPS} sub-steps of the {dt:g} s step (the fastest "
+            f"node's time constant is {1.0 / fastest:.3g} s); use method zoh"
+        )
     if 1.0 + h * float(lam.min()) <= -1.0 + EULER_MARGIN:
         h_max = 2.0 / float(-lam.min())
         raise UnstableDiscretisation(
