@@ -87,11 +87,12 @@ def test_prometheus_and_grafana_mounts() -> None:
     prom = s["prometheus"]
     conf = arg(prom["command"], "--config.file")
     m = mounts(prom)
-    assert (COMPOSE.parent / m[conf][0]).resolve() == (dl.DEPLOY / "prometheus" / "prometheus.yml")
+    assert (COMPOSE.parent / m[conf][0]).resolve() == (dl.DEPLOY / "prometheus" / "prometheus.yml").resolve()
     prom_cfg = yaml.safe_load((dl.DEPLOY / "prometheus" / "prometheus.yml").read_text())
     for rf in prom_cfg["rule_files"]:  # relative to the config file: mounted beside it
         rule_dir = str(Path(conf).parent / Path(rf).parent)
-        assert rule_dir in m and (COMPOSE.parent / m[rule_dir][0]).resolve() == (dl.DEPLOY / "prometheus" / "rules")
+        assert rule_dir in m
+        assert (COMPOSE.parent / m[rule_dir][0]).resolve() == (dl.DEPLOY / "prometheus" / "rules").resolve()
     listen = arg(prom["command"], "--web.listen-address") or "0.0.0.0:9090"
     prom_port = listen.rsplit(":", 1)[1]
     # Prometheus scrapes what the service's config serves
@@ -100,10 +101,12 @@ def test_prometheus_and_grafana_mounts() -> None:
     assert f"{sim_cfg['metrics']['address']}:{sim_cfg['metrics']['port']}" in targets
     graf = s["grafana"]
     gm = mounts(graf)
-    assert (COMPOSE.parent / gm["/etc/grafana/provisioning"][0]).resolve() == (dl.DEPLOY / "grafana" / "provisioning")
+    assert (COMPOSE.parent / gm["/etc/grafana/provisioning"][0]).resolve() == \
+        (dl.DEPLOY / "grafana" / "provisioning").resolve()
     provider = yaml.safe_load((dl.DEPLOY / "grafana" / "provisioning" / "dashboards" / "thermal-edge.yaml").read_text())
     dash_path = provider["providers"][0]["options"]["path"]
-    assert dash_path in gm and (COMPOSE.parent / gm[dash_path][0]).resolve() == (dl.DEPLOY / "grafana" / "dashboards")
+    assert dash_path in gm
+    assert (COMPOSE.parent / gm[dash_path][0]).resolve() == (dl.DEPLOY / "grafana" / "dashboards").resolve()
     home = graf["environment"].get("GF_DASHBOARDS_DEFAULT_HOME_DASHBOARD_PATH")
     assert home is None or (home.startswith(dash_path) and (dl.DEPLOY / "grafana" / "dashboards" / Path(home).name).exists())
     ds = yaml.safe_load((dl.DEPLOY / "grafana" / "provisioning" / "datasources" / "thermal-edge.yaml").read_text())

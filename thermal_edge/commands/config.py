@@ -16,6 +16,13 @@ and sends), for ``cantools`` and ``candump`` on a machine without a checkout::
     thermal-edge config model pm10kw > /etc/thermal-edge/machines/pm10kw.yaml
     thermal-edge config unit > /etc/systemd/system/thermal-edge.service
 
+``thermal-edge config deploy DIR`` writes the deployment files the package ships into ``DIR``: the
+systemd unit, ``vcan.service`` and ``80-can0.network`` (``systemd/``), the Prometheus scrape
+configuration, alert rules and their unit tests (``prometheus/``), the Grafana dashboard and its
+provisioning (``grafana/``)::
+
+    thermal-edge config deploy /tmp/thermal-edge-deploy
+
 ``thermal-edge config inverter-example DIR`` writes the worked example of an inverter with a CAN
 matrix of its own (the Acme MC-7: its ``edge.yaml`` and ``acme-mc7.dbc``) into ``DIR``.
 
@@ -30,6 +37,7 @@ import json
 import re
 import sys
 from pathlib import Path
+from typing import Any
 
 from ..errors import UsageError
 from ..shipped import MACHINES, config_path, example_config, model_file, names
@@ -55,6 +63,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     mdl.set_defaults(func=run_model)
     unit = which.add_parser("unit", help="print the systemd unit (thermal-edge.service)")
     unit.set_defaults(func=run_unit)
+    dep = which.add_parser("deploy", help="write the deployment files (systemd, Prometheus, Grafana) into DIR")
+    dep.add_argument("dir", metavar="DIR", help="a directory (made if missing); files there of the same names are "
+                                                "not overwritten")
+    dep.set_defaults(func=run_deploy)
     inv = which.add_parser("inverter-example", help="write the Acme MC-7 example (edge.yaml, acme-mc7.dbc) into DIR")
     inv.add_argument("dir", metavar="DIR", help="a directory (made if missing); files there of the same names are "
                                                 "not overwritten")
@@ -102,7 +114,42 @@ def run_model(args: argparse.Namespace) -> int:
 
 
 def run_unit(args: argparse.Namespace) -> int:
-    sys.stdout.write(config_path("deploy", "thermal-edge.service").read_text(encoding="utf-8"))
+    sys.stdout.write(config_path("deploy", "systemd", "thermal-edge.service").read_text(encoding="utf-8"))
+    return 0
+
+
+def deploy_files() -> list[tuple[str, ...]]:
+    """The packaged deployment files, each as its path parts under ``deploy/`` (sorted)."""
+    from importlib import resources
+
+    out: list[tuple[str, ...]] = []
+
+    def walk(node: Any, parts: tuple[str, ...]) -> None:
+        for child in node.iterdir():
+            if child.is_dir():
+                walk(child, (*parts, child.name))
+            elif not child.name.startswith(".") and not child.name.endswith(".pyc"):
+                out.append((*parts, child.name))
+
+    walk(resources.files("thermal_edge.resources").joinpath("deploy"), ())
+    return sorted(out)
+
+
+def run_deploy(args: argparse.Namespace) -> int:
+    out = Path(args.dir)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"DIR {out}: not a directory")
+    files = deploy_files()
+    taken = ["/".join(f) for f in files if (out.joinpath(*f)).exists()]
+    if taken:
+        raise UsageError(f"DIR {out}: {', '.join(taken)} already there (not overwritten)")
+    try:
+        for f in files:
+            (out.joinpath(*f[:-1])).mkdir(parents=True, exist_ok=True)
+            out.joinpath(*f).write_bytes(config_path("deploy", *f).read_bytes())
+    except OSError as exc:
+        raise UsageError(f"DIR {out}: {exc.strerror or exc}") from None
+    print(f"wrote {len(files)} files into {out}: {', '.join('/'.join(f) for f in files)}", file=sys.stderr)
     return 0
 
 
