@@ -64,6 +64,11 @@ class _Sum:
         return np.sum([o.evaluate(phi).grad for o in self.objs], axis=0)
 
 
+#: s: a fit starts each run from the line through its first half minute of readings, not from one
+#: noisy sample (:func:`~.predict.start_reading`)
+START_SPAN_S = 30.0
+
+
 def calibrate(
     model: Model, runs: Sequence[Run], names: Sequence[str] | None = None, sensors: Sequence[str] | None = None,
     decimation: int = 1, maxiter: int = 30, popsize: int = 10, seed: int = 0, sqp_iter: int = 30,
@@ -107,7 +112,8 @@ def calibrate(
     objs = []
     for run in runs:
         meas = sensor_columns(model, run, sensors)
-        win = window_from_arrays(model, model_inputs(model, run), meas, initial_from_run(model, run), run.dt, run.t)
+        win = window_from_arrays(model, model_inputs(model, run), meas, initial_from_run(model, run, span_s=START_SPAN_S),
+                                 run.dt, run.t)
         objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform"))
     n_obs = sum(int(np.count_nonzero(np.isfinite(y))) for o in objs for y in o.window.measured.values())
     if n_obs - len(names) < MIN_RESIDUAL_DOF:

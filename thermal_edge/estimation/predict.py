@@ -35,10 +35,29 @@ def sensor_columns(model: Model, run: Run, sensors: Sequence[str] | None = None)
     return {s: run.columns[s] for s in names}
 
 
-def initial_from_run(model: Model, run: Run, theta: np.ndarray | None = None, k: int = 0) -> np.ndarray:
-    """Node temperatures at sample ``k`` from that sample's sensor readings."""
+def start_reading(values: np.ndarray, t: np.ndarray, k: int = 0, span_s: float = 0.0) -> float:
+    """A sensor's reading at sample ``k``: the sample itself, or with ``span_s`` (s) the value at
+    ``t[k]`` of the straight line fitted to the readings of the ``span_s`` after it (at least three:
+    else the sample). One reading's noise would otherwise start an open-loop prediction off by it
+    and bias a fit for as long as the slowest mode remembers it; over half a minute a machine's
+    temperatures are straight to well within a PT100's noise."""
+    x = float(values[k])
+    if span_s <= 0.0:
+        return x
+    sel = (t >= t[k]) & (t <= t[k] + span_s) & np.isfinite(values)
+    if np.count_nonzero(sel) < 3:
+        return x
+    slope, at_k = np.polyfit(t[sel] - t[k], values[sel], 1)
+    return float(at_k)
+
+
+def initial_from_run(model: Model, run: Run, theta: np.ndarray | None = None, k: int = 0,
+                     span_s: float = 0.0) -> np.ndarray:
+    """Node temperatures at sample ``k`` from the sensor readings there (:func:`start_reading`:
+    with ``span_s``, the straight line through the ``span_s`` after it)."""
     inp = {c: float(v[k]) for c, v in model_inputs(model, run).items()}
-    meas = {s: float(v[k]) for s, v in sensor_columns(model, run).items()}
+    t = np.asarray(run.t, dtype=float)
+    meas = {s: start_reading(np.asarray(v, dtype=float), t, k, span_s) for s, v in sensor_columns(model, run).items()}
     return initial_state(model, inp, meas, theta)
 
 
