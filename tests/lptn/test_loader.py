@@ -338,3 +338,31 @@ def test_snap_to_bounds_moves_only_round_off_onto_a_bound(tiny_model):
     snapped = tiny_model.snap_to_bounds({"R_amb": below, "k_cu": 10.0 * (1 + 2e-10), "c_w": 99.0, "h_gap": 50.0})
     assert snapped == {"R_amb": 0.1, "k_cu": 10.0, "c_w": 99.0, "h_gap": 50.0}
     tiny_model.check_parameters({k: v for k, v in snapped.items() if k != "c_w"})
+
+
+@pytest.mark.parametrize("name, text, kind, says", [
+    ("wide.csv", "x,y\n0,0\n1000,10,5\n2000,40\n", "curve", "line 3: 3 values, the header has 2"),
+    ("nan.csv", "x,y\n0,0\n1000,nan\n2000,40\n", "curve", "line 3: 'nan' is not a finite number"),
+    ("text.csv", "x,y\n0,0\n1000,abc\n2000,40\n", "curve", "line 3: 'abc' is not a number"),
+    ("twice.csv", "x,y\n0,0\n1000,10\n1000,40\n", "curve", "line 4: the x does not rise (1000 then 1000)"),
+    ("grid.csv", "i/n,0,1000\n10,1,2\n0,3,4\n20,5,6\n", "grid2d", "line 3: the row axis does not rise (10 then 0)"),
+    ("short.csv", "x,y\n0,0\n", "curve", "2 non-empty lines: a header and at least two rows are needed"),
+])
+def test_a_malformed_table_names_its_line(tmp_path, name, text, kind, says):
+    """A table file's rows are read as the run CSVs are: each one's width, numbers and order
+    checked at load, the line named (a wide row, a NaN, a repeated x or a grid axis out of order
+    would otherwise be read without a word, or overflow a law at an operating point later)."""
+    (tmp_path / name).write_text(text)
+    raw = tiny_raw()
+    raw["tables"] = {"drag": {"file": name, "kind": kind}}
+    with pytest.raises(ModelError) as ei:
+        load_model(write(tmp_path, raw), data_dir=tmp_path)
+    assert str(ei.value) == f"bad_model.yaml: tables.drag: cannot read {tmp_path / name}: {says}"
+
+
+def test_an_unknown_table_kind_is_named_before_the_file_is_looked_for(tmp_path):
+    raw = tiny_raw()
+    raw["tables"] = {"drag": {"file": "nowhere.csv", "kind": "spline3d"}}
+    with pytest.raises(ModelError, match=r"^bad_model\.yaml: tables\.drag\.kind: must be one of curve, grid2d, got "
+                                         r"'spline3d'$"):
+        load_model(write(tmp_path, raw), data_dir=tmp_path)

@@ -64,14 +64,47 @@ def load_table(name: str, path: Path, kind: str, method: str = "nearest") -> Loo
     method : {"nearest", "linear"}
         Look-up between grid points.
     """
+    if kind not in ("curve", "grid2d"):
+        raise ValueError(f"unknown table kind {kind!r} (curve, grid2d)")
+    if method not in ("nearest", "linear"):
+        raise ValueError(f"unknown lookup {method!r} (nearest, linear)")
     with open(path, newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r]
-    if kind == "curve":
-        data = np.array([[float(v) for v in r[:2]] for r in rows[1:]])
-        order = np.argsort(data[:, 0])
-        return Lookup(name, (data[order, 0],), data[order, 1], method)
-    if kind == "grid2d":
-        cols = np.array([float(v) for v in rows[0][1:]])
-        body = np.array([[float(v) for v in r] for r in rows[1:]])
-        return Lookup(name, (body[:, 0], cols), body[:, 1:], method)
-    raise ValueError(f"unknown table kind {kind!r} (curve, grid2d)")
+        rows = [(n, r) for n, r in enumerate(csv.reader(fh), start=1) if r]
+    if len(rows) < 3:
+        raise ValueError(f"{len(rows)} non-empty lines: a header and at least two rows are needed")
+    head_line, head = rows[0]
+    width = 2 if kind == "curve" else len(head)
+    body = np.array([_numbers(n, r, width) for n, r in rows[1:]])
+    if kind == "curve":  # rows in any order: sorted by x, which must not repeat
+        order = np.argsort(body[:, 0], kind="stable")
+        _increasing(body[order, 0], [rows[1:][i][0] for i in order], "x")
+        return Lookup(name, (body[order, 0],), body[order, 1], method)
+    cols = np.array(_numbers(head_line, ["0", *head[1:]], width)[1:])
+    _increasing(cols, [head_line] * len(cols), "column axis")
+    _increasing(body[:, 0], [n for n, _ in rows[1:]], "row axis")
+    return Lookup(name, (body[:, 0], cols), body[:, 1:], method)
+
+
+def _numbers(line: int, row: list[str], width: int) -> list[float]:
+    """The finite numbers of one row of ``width`` values; ValueError naming the line otherwise."""
+    if len(row) != width:
+        raise ValueError(f"line {line}: {len(row)} values, the header has {width}")
+    out = []
+    for v in row:
+        try:
+            x = float(v)
+        except ValueError:
+            raise ValueError(f"line {line}: {v.strip()!r} is not a number") from None
+        if not np.isfinite(x):
+            raise ValueError(f"line {line}: {v.strip()!r} is not a finite number")
+        out.append(x)
+    return out
+
+
+def _increasing(axis: np.ndarray, lines: list[int], what: str) -> None:
+    """An axis the look-up searches must rise strictly (a value twice, or a grid's axis out of
+    order, would pick the wrong entry); ValueError naming the line where it does not."""
+    bad = np.nonzero(np.diff(axis) <= 0)[0]
+    if len(bad):
+        i = int(bad[0]) + 1
+        raise ValueError(f"line {lines[i]}: the {what} does not rise ({axis[i - 1]:g} then {axis[i]:g})")
