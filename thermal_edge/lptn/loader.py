@@ -173,9 +173,9 @@ def build_model(
     for k, spec in _mapping(ctx, raw.get("tables"), "tables").items():
         key = f"tables.{k}"
         _only(ctx, spec, key, ("file", "kind", "lookup", "doc"))
-        for sub, allowed in (("kind", ("curve", "grid2d")), ("lookup", ("nearest", "linear"))):
-            if sub in spec and spec[sub] not in allowed:
-                raise ctx.fail(f"{key}.{sub}", f"must be one of {', '.join(allowed)}, got {spec[sub]!r}")
+        for choice, allowed in (("kind", ("curve", "grid2d")), ("lookup", ("nearest", "linear"))):
+            if choice in spec and spec[choice] not in allowed:
+                raise ctx.fail(f"{key}.{choice}", f"must be one of {', '.join(allowed)}, got {spec[choice]!r}")
         f = base / str(_req(ctx, spec, "file", key))
         if not f.exists():
             raise ctx.fail(f"{key}.file", f"table file {f} not found (give the directory of the model's tables: "
