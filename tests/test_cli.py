@@ -266,3 +266,19 @@ def test_output_into_a_closed_pipe_is_no_error(tmp_path, command):
     finally:
         os.close(w)
     assert out.returncode == 0 and out.stderr == "", out.stderr
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_debug_shows_the_traceback_wherever_it_is_given(tmp_path, where):
+    """``--debug`` before the command or after its options: a user error shows its traceback
+    (the error class named), not "unrecognized arguments"."""
+    args = ["replay", "--model", "pm10kw", "--run", str(tmp_path / "nope.csv")]
+    out = cli(*(["--debug", *args] if where == "before" else [*args, "--debug"]))
+    assert out.returncode != 0 and "Traceback" in out.stderr and "RunError" in out.stderr, out.stderr
+    assert "unrecognized arguments" not in out.stderr
+
+
+def test_calibrate_writes_a_model_file_only_as_yaml(tmp_path):
+    out = cli("calibrate", "--model", "pm10kw", "--run", str(tmp_path / "r.csv"), "--out", str(tmp_path / "m.txt"))
+    assert out.returncode == 2 and out.stderr.strip().endswith("m.txt: a model file ends in .yaml (or .yml)")
+    assert not (tmp_path / "m.txt").exists()

@@ -69,6 +69,9 @@ def innermost_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser(argv)
     args, unknown = parser.parse_known_args(argv)
+    if "--debug" in unknown:  # given after the command (``thermal-edge replay ... --debug``): the same option
+        unknown = [u for u in unknown if u != "--debug"]
+        args.debug = True
     if unknown:  # named by the command that does not know them, as its other option errors are
         innermost_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     warnings_to_stderr()

@@ -18,7 +18,7 @@ from ..data import FORMATS
 from ..estimation.calibrate import PATIENCE, calibrate, write_calibrated
 from ..text_table import table
 from .common import add_model_args, add_set_arg, check_param_names, model_from_args, parse_sets
-from .options import integer, names, output_file, positive_s
+from .options import integer, names, output_model_file, positive_s
 from .progress import bar
 from .runs import add_can_args, read_checked_runs, require_finite_prediction
 
@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_can_args(p, FORMATS)
     p.add_argument("--params", type=names, help="comma-separated parameters to fit (default: the adaptable ones)")
     p.add_argument("--sensors", type=names, help="comma-separated sensors to fit to (default: all in the runs)")
-    p.add_argument("--out", required=True, type=output_file, help="calibrated model file to write")
+    p.add_argument("--out", required=True, type=output_model_file, help="calibrated model file to write (.yaml)")
     p.add_argument("--decimate", type=integer(1), default=1, help="samples per optimiser step")
     p.add_argument("--generations", type=integer(1), default=30, help="differential-evolution generations, at most")
     p.add_argument("--popsize", type=integer(1), default=10, help="population multiplier (default 10)")

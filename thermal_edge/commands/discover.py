@@ -64,7 +64,7 @@ def list_effects(args: argparse.Namespace) -> int:
         if not tg:
             where = f"not placeable: {E.unplaceable_reason(ctx, eff)}"
         elif tg == [None]:
-            where = E.placement(ctx, eff) or "no target"
+            where = E.placement(ctx, eff) or "needs no target"
         else:
             where = f"{len(tg)} targets: " + ", ".join(map(str, tg))
         print(f"{name}: {eff.doc}\n    parameters: {params}\n    {where}")

@@ -144,6 +144,15 @@ def output_file(text: str) -> str:
     return text
 
 
+def output_model_file(text: str) -> str:
+    """A model file to write (:func:`output_file`), named ``.yaml`` or ``.yml``: what reads it back
+    (``--model``, ``model.path``) takes YAML files."""
+    out = output_file(text)
+    if Path(out).suffix.lower() not in (".yaml", ".yml"):
+        raise argparse.ArgumentTypeError(f"{out}: a model file ends in .yaml (or .yml)")
+    return out
+
+
 def output_path(text: str) -> str:
     """A file or a directory to write (the command says which it makes): its parent exists and
     is writable."""

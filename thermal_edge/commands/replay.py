@@ -179,7 +179,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'mean':<18}{'':>5}{m['mse']:>9.3f}{m['fixed_mse']:>10.3f}{m['observer_mse']:>13.3f}")
     ds = out["decisions"]
     print(f"{len(ds)} decisions, {sum(1 for d in ds if d['accepted'])} challengers promoted; "
-          f"median adaptation step {rep['adapt_step_median_s']:.3f} s; final parameters: "
+          + (f"median adaptation step {rep['adapt_step_median_s']:.3f} s; " if math.isfinite(rep["adapt_step_median_s"])
+             else "no adaptation step ran; ")
+          + "final parameters: "
           + ", ".join(f"{k}={v:.4g}" for k, v in rep["final_params"].items()))
     return 0
 

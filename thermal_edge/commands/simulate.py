@@ -149,8 +149,8 @@ def run(args: argparse.Namespace) -> int:
         comment += f"\nvoltages: {pm.describe()}"
     write_run(args.out, res.run, comment=comment)
     hot = {lim.name: float(res.truth.node(lim.node).max()) for lim in plant.limits}
-    print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; peak " +
-          ", ".join(f"{k} {v:.1f} °C" for k, v in hot.items()))
+    print(f"wrote {args.out}: {len(res.run)} samples at {cycle.dt_s:g} s; " +
+          ("peak " + ", ".join(f"{k} {v:.1f} °C" for k, v in hot.items()) if hot else "the model declares no limits"))
     return 0
 
 
