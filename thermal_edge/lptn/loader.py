@@ -179,7 +179,7 @@ def build_model(
         f = base / str(_req(ctx, spec, "file", key))
         if not f.exists():
             raise ctx.fail(f"{key}.file", f"table file {f} not found (give the directory of the model's tables: "
-                                          "--data-dir or THERMAL_EDGE_DATA_DIR)")
+                                          "the model file's data_dir:, --data-dir or THERMAL_EDGE_DATA_DIR)")
         try:
             ctx.tables[k] = load_table(k, f, str(spec.get("kind", "curve")), str(spec.get("lookup", "nearest")))
         except (ValueError, IndexError) as exc:
