@@ -68,6 +68,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
                    help="csv: run CSV (default); can (old name: candump): the inverter's CAN frames as a log in "
                         "the format of --out's suffix: .log (candump -L, decodable with python -m cantools decode "
                         "dbc/thermal_edge.dbc), .asc, .blf, .trc, .mf4, .csv; .gz compresses the text formats")
+    p.add_argument("--config", metavar="EDGE_YAML", default=None,
+                   help="can: put the model's sensors into the inverter's PT100 signals (INV_StatorTemps) as this "
+                        "service configuration maps them (signals.sensors); default: the packaged model's names")
     p.add_argument("--current-period", type=frame_period_s, default=0.01,
                    help="can: INV_Currents/INV_Mechanics period, s (default 0.01 as the DBC)")
     p.add_argument("--temperature-period", type=frame_period_s, default=0.1,
@@ -160,7 +163,9 @@ def run_can_log(args: argparse.Namespace) -> int:
         raise UsageError("--effect is not supported with --format can (the emulator plays the model file)")
     from ..lptn import load_model
 
-    sets = parse_sets(load_model(args.model, data_dir=args.data_dir), args.set)
+    model = load_model(args.model, data_dir=args.data_dir)
+    sets = parse_sets(model, args.set)
+    sensor_signals = _sensor_signals(args.config, model)
     total = round(args.duration if args.duration is not None else load_cycle(args.cycle).duration_s)
     with bar(total, "simulate: CAN log", "s") as pb:
         def progress(elapsed_s: float) -> None:  # whole simulated seconds: a readable count
@@ -170,11 +175,33 @@ def run_can_log(args: argparse.Namespace) -> int:
         st = write_log(args.model, args.cycle, args.out, params=sets, duration_s=args.duration,
                        noise_k=args.noise, resolution_k=args.resolution, seed=args.seed, t0=args.t0,
                        current_period_s=args.current_period, temperature_period_s=args.temperature_period,
-                       progress=progress, pmsm=voltage_machine(load_model(args.model, data_dir=args.data_dir))
-                       if args.voltages else None)
+                       progress=progress, pmsm=voltage_machine(model) if args.voltages else None,
+                       sensor_signals=sensor_signals)
     peaks = ", ".join(f"{k} {v:.1f} °C" for k, v in st.true_max_c.items())
     print(f"wrote {args.out}: {sum(st.frames_sent.values())} frames over {st.sim_seconds:g} s; peak {peaks}")
     return 0
+
+
+def _sensor_signals(config: str | None, model: Model) -> dict[str, str]:
+    """The PT100 signals of the simulated inverter's INV_StatorTemps -> the model's sensors: as the
+    configuration ``config`` maps them, else by the packaged model's names; a note on stdout names
+    the model's sensors the log will not carry."""
+    from ..sim.inverter import DEFAULT_SENSOR_SIGNALS, STATOR_FRAME
+
+    if config is None:
+        mapping = dict(DEFAULT_SENSOR_SIGNALS)
+    else:
+        from ..config import load_config
+
+        cfg = load_config(config)
+        mapping = {spec.signal: name for name, spec in cfg.sensors.items()
+                   if spec.frame == STATOR_FRAME and spec.signal in DEFAULT_SENSOR_SIGNALS}
+    unsent = [s for s in model.sensors if s not in mapping.values()]
+    if unsent:
+        print(f"note: the log carries no reading of {', '.join(unsent)}: the simulated inverter sends "
+              f"{STATOR_FRAME}'s {', '.join(DEFAULT_SENSOR_SIGNALS)}" +
+              (" as the configuration maps them" if config else "; --config EDGE_YAML maps the model's sensors onto them"))
+    return mapping
 
 
 def voltage_machine(model: Model) -> Pmsm:

@@ -682,12 +682,15 @@ def write_log(model_path: str | os.PathLike[str], cycle_path: str | os.PathLike[
               params: Mapping[str, float] | None = None, duration_s: float | None = None, noise_k: float = 0.1,
               resolution_k: float = 0.1, seed: int = 0, t0: float | None = None, current_period_s: float = 0.01,
               temperature_period_s: float = 0.1, channel: str = "can0",
-              progress: Callable[[float], object] | None = None, pmsm: Pmsm | None = None) -> EmulatorSummary:
+              progress: Callable[[float], object] | None = None, pmsm: Pmsm | None = None,
+              sensor_signals: Mapping[str, str] | None = None) -> EmulatorSummary:
     """The inverter frames of a simulated open-loop run as a CAN log in the format of ``out``'s
     suffix (``thermal-edge simulate --format can``); ``progress(elapsed_s)`` as it goes; with
-    ``pmsm`` ``INV_Voltages`` too."""
+    ``pmsm`` ``INV_Voltages`` too; ``sensor_signals``: which model sensor each PT100 signal carries
+    (default :data:`DEFAULT_SENSOR_SIGNALS`)."""
     cfg = EmulatorConfig(model_path=Path(model_path), cycle_path=Path(cycle_path), params=dict(params or {}),
                          duration_s=duration_s, pmsm=pmsm,
+                         sensor_signals=dict(sensor_signals if sensor_signals is not None else DEFAULT_SENSOR_SIGNALS),
                          noise_k=noise_k, resolution_k=resolution_k, seed=seed, t0=t0 if t0 is not None else 1.7e9,
                          current_period_s=current_period_s, temperature_period_s=temperature_period_s,
                          closed_loop=False, plant_dt_s=max(current_period_s, min(1.0, temperature_period_s)))
