@@ -608,6 +608,11 @@ OPTION_CASES["monitor --bus without a bus"] = lambda tmp, g: (["monitor", "--bus
 OPTION_CASES["monitor --bus where there is no such interface"] = lambda tmp, g: (
     ["monitor", "--bus", "--once", "--interface", "no_such_interface", "--channel", "x"], "--bus", ["no_such_interface"])
 
+def _simulate(model: Path, tmp: Path) -> list[object]:
+    """``simulate`` of ``model`` over the test cycle into the test's directory."""
+    return ["simulate", "--model", model, "--cycle", CYCLE, "--out", tmp / "o.csv"]
+
+
 def _dir(path: Path) -> Path:
     path.mkdir(exist_ok=True)
     return path
@@ -648,21 +653,21 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
                                                           "  - {duration_s: 30, speed_rpm: 900, torque_nm: 40, ramp_s: 90}\n"),
          "--out", tmp / "o.csv"], "r.yaml", ["segments[1].ramp_s", "segment's duration_s (30 s)"]),
     "a negative capacity, simulate": lambda tmp, g: (
-        ["simulate", "--model", _model(tmp, "c.yaml", "capacity: C_w}", 'capacity: "-C_w"}'), "--cycle", CYCLE,
-         "--out", tmp / "o.csv"], "c.yaml", ["nodes[0].capacity", "must be positive, is -2000 J/K"]),
+        _simulate(_model(tmp, "c.yaml", "capacity: C_w}", 'capacity: "-C_w"}'), tmp), "c.yaml",
+        ["nodes[0].capacity", "must be positive, is -2000 J/K"]),
     "a capacity zero at a bound, replay": lambda tmp, g: (
         replay(g, model=_model(tmp, "c.yaml", "capacity: C_w}", 'capacity: "C_w - 200"}')), "c.yaml",
         ["nodes[0].capacity", "is 0 J/K at C_w = 200 (its min)"]),
     "a resistance of zero, simulate": lambda tmp, g: (
-        ["simulate", "--model", _model(tmp, "r.yaml", "r: R_ha}", "r: 0}"), "--cycle", CYCLE, "--out", tmp / "o.csv"],
-        "r.yaml", ["conductances[1].r", "must be positive, is 0 K/W"]),
+        _simulate(_model(tmp, "r.yaml", "r: R_ha}", "r: 0}"), tmp), "r.yaml",
+        ["conductances[1].r", "must be positive, is 0 K/W"]),
     "a resistance given as g, simulate": lambda tmp, g: (
-        ["simulate", "--model", _model(tmp, "g.yaml", "r: R_ha}", "g: R_ha}"), "--cycle", CYCLE, "--out", tmp / "o.csv"],
-        "g.yaml", ["conductances[1].g", "parameter R_ha is in K/W, a resistance: give it as r: R_ha"]),
+        _simulate(_model(tmp, "g.yaml", "r: R_ha}", "g: R_ha}"), tmp), "g.yaml",
+        ["conductances[1].g", "parameter R_ha is in K/W, a resistance: give it as r: R_ha"]),
     "a capacity in kJ/K, simulate": lambda tmp, g: (
-        ["simulate", "--model", _model(tmp, "kj.yaml", "C_w: {value: 2000, min: 200, max: 20000, unit: J/K",
-                                        "C_w: {value: 2, min: 0.2, max: 20, unit: kJ/K"), "--cycle", CYCLE,
-         "--out", tmp / "o.csv"], "kj.yaml", ["parameters.C_w.unit", "give the values in J/K (2 kJ/K = 2000 J/K)"]),
+        _simulate(_model(tmp, "kj.yaml", "C_w: {value: 2000, min: 200, max: 20000, unit: J/K",
+                         "C_w: {value: 2, min: 0.2, max: 20, unit: kJ/K"), tmp), "kj.yaml",
+        ["parameters.C_w.unit", "give the values in J/K (2 kJ/K = 2000 J/K)"]),
     "an adaptable parameter nothing reads, replay": lambda tmp, g: (
         replay(g, model=_model(tmp, "u.yaml", "  R_s:", "  K_x: {value: 1, min: 0.5, max: 2, adaptable: true}\n  R_s:")),
         "u.yaml", ["parameters.K_x.adaptable", "nothing can be learned about it"]),

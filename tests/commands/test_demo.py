@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from cmd_testlib import four_node_machine
 from own_ports import own_tcp_port
 
 
@@ -113,49 +114,6 @@ def test_demo_without_voltages_sends_none_although_the_configuration_has_a_calib
     assert counts[()] == 0 and counts[("--voltages",)] > 0, counts
 
 
-FOUR_NODE = """\
-name: four_node
-description: a small machine of four nodes
-discretisation: {method: zoh}
-inputs:
-  speed_rpm: {role: speed, unit: rpm}
-  i_rms: {role: current, unit: A}
-  torque_nm: {role: torque, unit: Nm}
-  ambient_c: {role: ambient, unit: degC}
-boundaries:
-  ambient: ambient_c
-parameters:
-  C_w: {value: 3000, min: 300, max: 30000, unit: J/K, adaptable: true}
-  C_s: {value: 8000, min: 800, max: 80000, unit: J/K}
-  C_m: {value: 2000, min: 200, max: 20000, unit: J/K}
-  C_h: {value: 20000, min: 2000, max: 200000, unit: J/K}
-  G_ws: {value: 8, min: 1, max: 80, unit: W/K, adaptable: true}
-  G_sh: {value: 20, min: 2, max: 200, unit: W/K}
-  G_sm: {value: 2, min: 0.2, max: 20, unit: W/K}
-  G_ha: {value: 6, min: 0.6, max: 60, unit: W/K, adaptable: true}
-  R_ph: {value: 0.05, min: 0.01, max: 0.5, unit: ohm}
-nodes:
-  - {name: winding, capacity: C_w}
-  - {name: stator, capacity: C_s}
-  - {name: magnet, capacity: C_m}
-  - {name: housing, capacity: C_h}
-conductances:
-  - {between: [winding, stator], g: G_ws}
-  - {between: [stator, housing], g: G_sh}
-  - {between: [stator, magnet], g: G_sm}
-  - {between: [housing, ambient], g: G_ha}
-losses:
-  - {node: winding, power: "3 * R_ph * i_rms ** 2 * (1 + 0.0039 * (T.winding - 20))"}
-  - {node: stator, power: "20 + 0.02 * abs(speed_rpm)"}
-sensors:
-  winding_t: {node: winding}
-  housing: {node: housing}
-limits:
-  hot_spot: {node: winding, warn_c: 140, max_c: 155}
-  magnet: {node: magnet, warn_c: 100, max_c: 120}
-drive:
-  kt_nm_per_arms: 1.5
-"""
 
 
 def test_the_demo_runs_a_configuration_for_another_machine(tmp_path):
@@ -164,18 +122,8 @@ def test_the_demo_runs_a_configuration_for_another_machine(tmp_path):
     drive: the demo runs it (the Table 4 start names pm10kw's parameters: it says so and starts at the
     plant's values), the simulated inverter sends the PT100s the configuration maps, and no tick is
     a sensor fault."""
-    import yaml
-
-    (tmp_path / "four.yaml").write_text(FOUR_NODE)
-    example = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "config", "example", "--model", "four.yaml"],
-                             capture_output=True, text=True, timeout=60, check=True)
-    raw = yaml.safe_load(example.stdout)
-    raw["signals"]["sensors"] = {
-        "winding_t": {"frame": "INV_StatorTemps", "signal": "INV_T_WindingSlot", "status": "INV_S_WindingSlot"},
-        "housing": {"frame": "INV_StatorTemps", "signal": "INV_T_Housing", "status": "INV_S_Housing"}}
-    raw["derating"].update(kt_nm_per_arms=1.5, max_torque_nm=60.0, safe_torque_nm=15.0)
-    (tmp_path / "edge.yaml").write_text(yaml.safe_dump(raw))
-    r = _demo(tmp_path, "--config", str(tmp_path / "edge.yaml"), "--state-dir", str(tmp_path / "st"))
+    _, edge = four_node_machine(tmp_path)
+    r = _demo(tmp_path, "--config", str(edge), "--state-dir", str(tmp_path / "st"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert ("model four_node has not the parameters the Table 4 start moves (k_r_sw, k_c_sw, c_p_sw, R_e_hous): "
             "the service starts at the plant's values") in r.stdout, r.stdout

@@ -10,23 +10,9 @@ from pathlib import Path
 
 import can
 import cantools
-import yaml
+from cmd_testlib import four_node_machine
 
 from thermal_edge.bus.frames import DEFAULT_DBC_PATH
-
-
-def _four_node(tmp: Path) -> tuple[Path, Path]:
-    from test_demo import FOUR_NODE  # the user's own 4-node machine of the demo test
-
-    (tmp / "four.yaml").write_text(FOUR_NODE)
-    example = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "config", "example", "--model", "four.yaml"],
-                             capture_output=True, text=True, timeout=60, check=True)
-    raw = yaml.safe_load(example.stdout)
-    raw["signals"]["sensors"] = {
-        "winding_t": {"frame": "INV_StatorTemps", "signal": "INV_T_WindingSlot", "status": "INV_S_WindingSlot"},
-        "housing": {"frame": "INV_StatorTemps", "signal": "INV_T_Housing", "status": "INV_S_Housing"}}
-    (tmp / "edge.yaml").write_text(yaml.safe_dump(raw))
-    return tmp / "four.yaml", tmp / "edge.yaml"
 
 
 def _statuses(log: Path) -> set[tuple[str, str]]:
@@ -46,7 +32,7 @@ def _simulate(model: Path, out: Path, *extra: str) -> subprocess.CompletedProces
 
 
 def test_the_configuration_maps_the_models_sensors_into_the_log(tmp_path):
-    model, edge = _four_node(tmp_path)
+    model, edge = four_node_machine(tmp_path)
     r = _simulate(model, tmp_path / "mapped.log", "--config", str(edge))
     assert r.returncode == 0, r.stderr
     assert "no reading of" not in r.stdout

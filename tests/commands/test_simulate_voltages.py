@@ -7,30 +7,20 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
+from cmd_testlib import four_node_machine
 
 from thermal_edge.data import read_run
 from thermal_edge.sim.pmsm import Pmsm
 
-FOUR_NODE_KT = 1.5  # Nm per A rms: a quarter of the package's machine's
-
-
-def _model(tmp: Path) -> Path:
-    from test_demo import FOUR_NODE  # the user's own 4-node machine of the demo test
-
-    text = FOUR_NODE.replace("  - {name: magnet, capacity: C_m}", "  - {name: magnet, capacity: C_m, role: magnet}")
-    text = text.replace("  - {name: winding, capacity: C_w}", "  - {name: winding, capacity: C_w, role: winding}")
-    assert f"kt_nm_per_arms: {FOUR_NODE_KT}" in text and "role: magnet" in text and "role: winding" in text
-    (tmp / "four.yaml").write_text(text)
-    return tmp / "four.yaml"
+FOUR_NODE_KT = 1.5  # Nm per A rms (the four-node model's drive): a quarter of the package's machine's
 
 
 def test_the_voltages_are_those_of_a_machine_with_the_models_torque_constant(tmp_path):
-    out = tmp_path / "v.csv"
-    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "simulate", "--model", str(_model(tmp_path)), "--cycle",
-                        "overload", "--duration", "1200", "--voltages", "--all-nodes", "--out", str(out)],
+    out, (model, _) = tmp_path / "v.csv", four_node_machine(tmp_path)
+    r = subprocess.run([sys.executable, "-m", "thermal_edge.cli", "simulate", "--model", str(model), "--cycle", "overload",
+                        "--duration", "1200", "--voltages", "--all-nodes", "--out", str(out)],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     psi20 = FOUR_NODE_KT / (1.5 * Pmsm().pole_pairs * math.sqrt(2.0))
