@@ -671,6 +671,9 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
     "an adaptable parameter nothing reads, replay": lambda tmp, g: (
         replay(g, model=_model(tmp, "u.yaml", "  R_s:", "  K_x: {value: 1, min: 0.5, max: 2, adaptable: true}\n  R_s:")),
         "u.yaml", ["parameters.K_x.adaptable", "nothing can be learned about it"]),
+    "a model without sensors, replay": lambda tmp, g: (
+        replay(g, model=_model(tmp, "ns.yaml", "sensors:\n  winding_t: {node: winding}\n  housing: {node: housing_n}\n", "")),
+        "ns.yaml", ["sensors: model two_node declares no sensors", "can be compared with it"]),
     "simulate --effect with a negative time constant": lambda tmp, g: (
         ["simulate", "--model", TWO_NODE, "--cycle", CYCLE, "--out", tmp / "o.csv", "--effect",
          "sensor_lag:winding_t=tau=-5"], "--effect 'sensor_lag:winding_t=tau=-5'", ["tau must be > 0 s"]),

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import difflib
 from collections.abc import Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -139,6 +140,10 @@ def _checked(run: Run, path: str, fmt: str, model: Model, sensors: Sequence[str]
         if close:
             raise RunError(f"{path}: column {close[0]!r} is not a sensor of model {model.name}; "
                            f"did you mean {s!r}? (the run has no column {s!r})")
+    if not model.sensors:  # nothing of the run can be compared with the model
+        where = Path(model.path).name if model.path is not None else f"model {model.name}"
+        raise RunError(f"{where}: sensors: model {model.name} declares no sensors: nothing of the run {path} can be "
+                       "compared with it")
     if not present:
         raise RunError(f"{path}: none of model {model.name}'s sensors ({', '.join(model.sensors)}) is a column "
                        f"of the run (it has: {', '.join(cols)}); the wrong model or the wrong file?")
