@@ -613,6 +613,19 @@ def _simulate(model: Path, tmp: Path) -> list[object]:
     return ["simulate", "--model", model, "--cycle", CYCLE, "--out", tmp / "o.csv"]
 
 
+def _log_law(tmp: Path) -> Path:
+    """The two-node model with a copper loss plus ``log(speed_rpm / 600)``: -inf at standstill."""
+    return _model(tmp, "log.yaml", "power: 3 * R_s * i_rms ** 2}", 'power: "3 * R_s * i_rms ** 2 + log(speed_rpm / 600)"}')
+
+
+def _stopped(good: Path, out: Path) -> Path:
+    """The good run with the machine at standstill for ten samples from sample 100."""
+    header, rows = _table(good)
+    i = header.index("speed_rpm")
+    return _write(out, header, [[("0" if 100 <= k < 110 and j == i else v) for j, v in enumerate(r)]
+                                for k, r in enumerate(rows)])
+
+
 def _dir(path: Path) -> Path:
     path.mkdir(exist_ok=True)
     return path
@@ -671,6 +684,12 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
     "an adaptable parameter nothing reads, replay": lambda tmp, g: (
         replay(g, model=_model(tmp, "u.yaml", "  R_s:", "  K_x: {value: 1, min: 0.5, max: 2, adaptable: true}\n  R_s:")),
         "u.yaml", ["parameters.K_x.adaptable", "nothing can be learned about it"]),
+    "a loss law of log(0) at rest, simulate": lambda tmp, g: (
+        _simulate(_log_law(tmp), tmp), "log.yaml",
+        ["losses[0].power is -inf at speed_rpm = 0", "a logarithm of 0, a division by 0?", "no steady state"]),
+    "a loss law of log(0) at some samples, replay": lambda tmp, g: (
+        replay(_stopped(g, tmp / "stopped.csv"), model=_log_law(tmp)), "log.yaml",
+        ["the open-loop prediction is not finite", "losses[0].power is -inf (a logarithm of 0", "at speed_rpm = 0"]),
     "a model without sensors, replay": lambda tmp, g: (
         replay(g, model=_model(tmp, "ns.yaml", "sensors:\n  winding_t: {node: winding}\n  housing: {node: housing_n}\n", "")),
         "ns.yaml", ["sensors: model two_node declares no sensors", "can be compared with it"]),

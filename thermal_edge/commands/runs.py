@@ -205,8 +205,32 @@ def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
     k, i = (int(x) for x in np.argwhere(bad)[0])
     inputs = ", ".join(f"{c} = {run.columns[c][k]:g}" for c in model.inputs if c in run.columns)
     how = "is not finite" if not np.isfinite(T[k, i]) else f"diverges ({T[k, i]:.3g} degC)"
+    law = _first_infinite_law(model, run, T, k)
     raise ModelError(f"{model.path}: {what} {how} from sample {k + 1} (t = {run.t[k]:g} s) on, node "
-                     f"{model.nodes[i]!r}: a loss or conductance law overflows at {inputs}")
+                     f"{model.nodes[i]!r}: " + (f"{law} at {inputs}" if law else
+                                                f"a loss or conductance law overflows at {inputs}"))
+
+
+def _first_infinite_law(model: Model, run: Run, T: np.ndarray, k: int) -> str | None:
+    """The key of the first loss or conductance law (the model's order) that is not finite at
+    sample ``k``'s inputs and the temperatures of the sample before, with its value (``losses[1].power
+    is -inf``); None when every one is finite there (the state itself ran away)."""
+    from ..lptn import Network, temperature_name
+
+    try:
+        env = Network(model).env(model.nominal(), {c: float(run.columns[c][k]) for c in model.inputs})
+        prev = T[max(k - 1, 0)]
+        env.update({temperature_name(n): float(prev[j]) for j, n in enumerate(model.nodes)})
+        laws = [(f"{loss.key}.power", loss.power) for loss in model.losses]
+        laws += [(e.key, e.g) for e in model.edges if e.key.startswith("conductances[")]
+        with np.errstate(all="ignore"):
+            for key, law in laws:
+                v = float(np.asarray(law.compile()(env)))
+                if not np.isfinite(v):
+                    return f"{key} is {v:g} (a logarithm of 0, a division by 0?)"
+    except Exception:  # naming the law is a courtesy: the refusal stands without it
+        return None
+    return None
 
 
 def require_finite_prediction(model: Model, run: Run) -> None:

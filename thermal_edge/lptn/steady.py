@@ -13,7 +13,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .losses import LossLaws
-from .model import Model
+from .model import Model, ModelError
 from .network import Network
 
 
@@ -39,8 +39,9 @@ def steady_state(
 
     Raises
     ------
-    RuntimeError
-        If the loss feedback does not converge (thermal runaway at these inputs).
+    ModelError
+        A loss law that is not finite at these inputs (named by its key), or a loss feedback that
+        does not converge (thermal runaway at these inputs).
     """
     theta = model.nominal() if theta is None else np.asarray(theta, dtype=float)
     net = Network(model)
@@ -49,13 +50,21 @@ def steady_state(
     laws = LossLaws(model)
     nb = len(U)
     T = np.full(len(model.nodes), float(np.mean(U)) if nb else 20.0)
+    where = model.path.name if model.path is not None else f"model {model.name}"
+    at = ", ".join(f"{k} = {float(v):g}" for k, v in inputs.items() if k in model.inputs)
     for _ in range(max_iter):
-        P = laws.power(env, T)
+        with np.errstate(all="ignore"):
+            P = laws.power(env, T)
+        if not np.all(np.isfinite(P)):
+            j = int(np.argmin(np.isfinite(P)))
+            raise ModelError(f"{where}: {model.losses[j].key}.power is {P[j]:g} at {at} (a logarithm of 0, a "
+                             "division by 0?): no steady state")
         T_new = np.linalg.solve(A, -W @ np.concatenate([U, P]))
         if np.max(np.abs(T_new - T)) < tol:
             return T_new, P
         T = T_new
-    raise RuntimeError(f"steady state of {model.name} did not converge: thermal runaway at these inputs?")
+    raise ModelError(f"{where}: no steady state at {at}: the losses' feedback on the temperatures does not "
+                     "converge (thermal runaway at these inputs?)")
 
 
 def initial_state(
