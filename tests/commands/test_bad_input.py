@@ -735,6 +735,9 @@ MORE_CASES: dict[str, Callable[[Path, Path], tuple[list[object], str, list[str]]
     "flux calibrate --pole-pairs 0": lambda tmp, g: (
         ["flux", "calibrate", _flux_run(g, tmp / "f.csv"), "--out", tmp / "f.json", "--pole-pairs", "0"], "--pole-pairs",
         ["integer >= 1"]),
+    "flux calibrate with a negative resistance prior": lambda tmp, g: (
+        ["flux", "calibrate", _flux_run(g, tmp / "f.csv"), "--out", tmp / "f.json", "--pole-pairs", "4", "--magnet-column",
+         "pm", "--prior", "r20=-0.25,0.05"], "--prior r20=-0.25,0.05", ["r20 is positive (ohm), got a MEAN of -0.25"]),
     "flux calibrate on a run without voltages": lambda tmp, g: (
         ["flux", "calibrate", g, "--out", tmp / "f.json", "--pole-pairs", "4", "--magnet-column", "housing"], str(g),
         ["no column(s) u_d_v, u_q_v"]),

@@ -85,6 +85,10 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
+#: the parameters that are positive whatever the machine (the others may take either sign)
+POSITIVE = ("r20", "psi20", "ld0", "lq0")
+
+
 def _priors(items: list[str]) -> dict[str, tuple[float, float]]:
     out = {}
     for it in items:
@@ -98,6 +102,8 @@ def _priors(items: list[str]) -> dict[str, tuple[float, float]]:
             raise UsageError(f"--prior {it}: unknown parameter {name!r} (known: {', '.join(PARAMS)})")
         if not (math.isfinite(mean) and math.isfinite(sigma) and sigma > 0):
             raise UsageError(f"--prior {it}: MEAN finite and SIGMA > 0")
+        if name in POSITIVE and not mean > 0:  # a resistance, a flux linkage, an inductance
+            raise UsageError(f"--prior {it}: {name} is positive ({UNITS[name]}), got a MEAN of {mean:g}")
         out[name] = (mean, sigma)
     return out
 
