@@ -641,10 +641,9 @@ class EdgeConfig:
         for lim in model.limits:
             warn, mx = self.limit_band(lim)
             if mx > lim.max_c:  # the insulation's or the magnet's limit is the machine's: only its file may raise it
-                where = Path(model.path).name if getattr(model, "path", None) else f"model {model.name}"
                 raise self.error(f"derating.limits.{lim.name}.max_c", f"{mx:g} degC is above the machine's {lim.max_c:g} "
-                                 f"degC ({where}: limits.{lim.name}.max_c): a configuration may lower a limit, not raise "
-                                 "it")
+                                 f"degC ({model.where}: limits.{lim.name}.max_c): a configuration may lower a limit, not "
+                                 "raise it")
             if not mx > warn:
                 raise self.error(f"derating.limits.{lim.name}.max_c", f"must be above warn_c ({warn:g}), got {mx:g}")
             if mx > hi:  # a reading on the way to the limit would be taken for a sensor fault

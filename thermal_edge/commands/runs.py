@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import difflib
 from collections.abc import Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -141,8 +140,7 @@ def _checked(run: Run, path: str, fmt: str, model: Model, sensors: Sequence[str]
             raise RunError(f"{path}: column {close[0]!r} is not a sensor of model {model.name}; "
                            f"did you mean {s!r}? (the run has no column {s!r})")
     if not model.sensors:  # nothing of the run can be compared with the model
-        where = Path(model.path).name if model.path is not None else f"model {model.name}"
-        raise RunError(f"{where}: sensors: model {model.name} declares no sensors: nothing of the run {path} can be "
+        raise RunError(f"{model.where}: sensors: model {model.name} declares no sensors: nothing of the run {path} can be "
                        "compared with it")
     if not present:
         raise RunError(f"{path}: none of model {model.name}'s sensors ({', '.join(model.sensors)}) is a column "
@@ -212,25 +210,21 @@ def require_finite(model: Model, run: Run, T: np.ndarray, what: str) -> None:
 
 
 def _first_infinite_law(model: Model, run: Run, T: np.ndarray, k: int) -> str | None:
-    """The key of the first loss or conductance law (the model's order) that is not finite at
-    sample ``k``'s inputs and the temperatures of the sample before, with its value (``losses[1].power
-    is -inf``); None when every one is finite there (the state itself ran away)."""
-    from ..lptn import Network, temperature_name
+    """The first loss law that is not finite at sample ``k``'s inputs and the temperatures of the
+    sample before, with its value (``losses[1].power is -inf``); None when every one is finite
+    there (the state itself ran away). A conductance that is not finite is refused where the
+    network is made (:class:`~thermal_edge.lptn.Network`)."""
+    from ..lptn import Network
+    from ..lptn.losses import LossLaws
 
     try:
         env = Network(model).env(model.nominal(), {c: float(run.columns[c][k]) for c in model.inputs})
-        prev = T[max(k - 1, 0)]
-        env.update({temperature_name(n): float(prev[j]) for j, n in enumerate(model.nodes)})
-        laws = [(f"{loss.key}.power", loss.power) for loss in model.losses]
-        laws += [(e.key, e.g) for e in model.edges if e.key.startswith("conductances[")]
+        laws = LossLaws(model)
         with np.errstate(all="ignore"):
-            for key, law in laws:
-                v = float(np.asarray(law.compile()(env)))
-                if not np.isfinite(v):
-                    return f"{key} is {v:g} (a logarithm of 0, a division by 0?)"
+            law = laws.not_finite(laws.power(env, T[max(k - 1, 0)]))
     except Exception:  # naming the law is a courtesy: the refusal stands without it
         return None
-    return None
+    return None if law is None else f"{law} (a logarithm of 0, a division by 0?)"
 
 
 def require_finite_prediction(model: Model, run: Run) -> None:

@@ -271,16 +271,16 @@ def euler_substeps(lam: np.ndarray, dt: float, max_substep: float | None) -> int
     else:
         m = max(1, math.ceil(dt / max_substep - 1e-9))
     h = dt / m
-    rho = float(np.max(np.abs(1.0 + h * lam)))
-    # the eigenvalues are negative: the radius reaches 1 on the side of the fastest mode, 1 + h λ = -1
-    # (an undamped oscillation), which round-off may compute a hair inside
     if m > MAX_AUTO_SUBSTEPS:
         raise UnstableDiscretisation(
             f"explicit Euler would need more than {MAX_AUTO_SUBSTEPS} sub-steps of the {dt:g} s step (the fastest "
             f"node's time constant is {1.0 / fastest:.3g} s); use method zoh"
         )
+    # the eigenvalues are negative: the radius reaches 1 on the side of the fastest mode, 1 + h λ = -1
+    # (an undamped oscillation), which round-off may compute a hair inside
     if 1.0 + h * float(lam.min()) <= -1.0 + EULER_MARGIN:
-        h_max = 2.0 / float(-lam.min())
+        rho = float(np.max(np.abs(1.0 + h * lam)))
+        h_max = 2.0 / fastest
         raise UnstableDiscretisation(
             f"explicit Euler is unstable: spectral radius {rho:.3g} of I + h·C⁻¹A at h = {h:g} s "
             f"(stable only for h < {h_max:.3g} s); use method zoh, or a sub-step below {h_max:.3g} s"

@@ -41,6 +41,7 @@ class LossLaws:
         self.nodes = np.array(used, dtype=int)
         self._tnames = [tnames[i] for i in used]
         self.laws = [_Law(loss.power, model.parameter_names) for loss in model.losses]
+        self._keys = [loss.key for loss in model.losses]
         self.affine = [is_affine(loss.power, frozenset(self._tnames)) for loss in model.losses]
         self.nonaffine = [j for j, a in enumerate(self.affine) if not a]
         # the laws, and each ∂P_j/∂T at a node it reads (law, column of dT), as one generated
@@ -95,6 +96,12 @@ class LossLaws:
         for j, v in enumerate(values):
             P[:, j] = v
         return P
+
+    def not_finite(self, P: np.ndarray) -> str | None:
+        """``losses[j].power is -inf`` for the first law whose value in ``P`` (n_loss,) (from
+        :meth:`power`) is not finite (a logarithm or a division by 0 at these inputs); None if all are."""
+        bad = np.nonzero(~np.isfinite(P))[0]
+        return None if not len(bad) else f"{self._keys[int(bad[0])]}.power is {float(P[int(bad[0])]):g}"
 
     def dT(self, env: Mapping[str, Value], T: np.ndarray | None, batch: int | None = None) -> np.ndarray:
         """``∂P/∂T`` (W/K) at the nodes the laws read (columns :attr:`nodes`): (n_loss, len(nodes)),

@@ -165,6 +165,11 @@ class Model:
     input_roles: dict[str, Role] = field(default_factory=dict)
     node_roles: dict[str, NodeRole] = field(default_factory=dict)
 
+    @property
+    def where(self) -> str:
+        """The model file's name for a message, or ``model NAME`` for a model built from a document."""
+        return self.path.name if self.path is not None else f"model {self.name}"
+
     def find_input(self, role: Role) -> str | None:
         """The input that has ``role``, or None when the model has none."""
         return next((k for k, r in self.input_roles.items() if r is role), None)

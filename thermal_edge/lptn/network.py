@@ -140,9 +140,6 @@ class Network:
         self.edge_laws = [_Law(e.g, params) for e in model.edges]
         #: the conductances the file gives between nodes (an arc's T-model has a negative one by design)
         self._given = np.array([i for i, e in enumerate(model.edges) if e.key.startswith("conductances[")], dtype=int)
-        self._edge_keys = [e.key for e in model.edges]
-        self._inputs = tuple(model.inputs)
-        self._fname = model.path.name if model.path is not None else model.name
         self._live: dict[tuple[int, ...], np.ndarray] = {}
         self.cap_laws = [_Law(c, params) for c in model.capacities]
         used: set[str] = set()
@@ -202,17 +199,19 @@ class Network:
         return g, self._conductance_derivatives(env, K, wrt)
 
     def _check_given(self, g: np.ndarray, op: Mapping[str, np.ndarray]) -> None:
-        """A conductance of the file negative (or NaN) at an operating point: the law's error, named
-        with that point (a law of the parameters alone is refused when the model is loaded)."""
-        bad = ~(g[:, self._given] >= 0.0)
+        """A conductance of the file negative or not finite (a division by 0) at an operating point:
+        the law's error, named with that point (a law of the parameters alone is refused when the
+        model is loaded)."""
+        gg = g[:, self._given]
+        bad = ~((gg >= 0.0) & np.isfinite(gg))
         if not bad.any():
             return
         k, i = (int(x) for x in np.argwhere(bad)[0])
         e = int(self._given[i])
-        at = ", ".join(f"{name} {float(np.broadcast_to(op[name], (len(g),))[k]):.4g}"
-                       for name in self._inputs if name in op)
-        raise ModelError(f"{self._fname}: {self._edge_keys[e]}: the conductance is {g[k, e]:.4g} W/K at {at}: "
-                         "a conductance must not be negative")
+        m = self.model
+        at = ", ".join(f"{name} {float(np.broadcast_to(op[name], (len(g),))[k]):.4g}" for name in m.inputs if name in op)
+        why = "must not be negative" if g[k, e] < 0.0 else "must be finite (a division by 0?)"
+        raise ModelError(f"{m.where}: {m.edges[e].key}: the conductance is {g[k, e]:.4g} W/K at {at}: a conductance {why}")
 
     def _conductance_derivatives(self, env: Mapping[str, Value], K: int, wrt: Sequence[int]) -> np.ndarray:
         """``dg`` (K, p, e) of the :meth:`live_edges` of ``wrt`` in the law environment ``env``."""

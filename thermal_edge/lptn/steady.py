@@ -50,21 +50,24 @@ def steady_state(
     laws = LossLaws(model)
     nb = len(U)
     T = np.full(len(model.nodes), float(np.mean(U)) if nb else 20.0)
-    where = model.path.name if model.path is not None else f"model {model.name}"
-    at = ", ".join(f"{k} = {float(v):g}" for k, v in inputs.items() if k in model.inputs)
     for _ in range(max_iter):
         with np.errstate(all="ignore"):
             P = laws.power(env, T)
-        if not np.all(np.isfinite(P)):
-            j = int(np.argmin(np.isfinite(P)))
-            raise ModelError(f"{where}: {model.losses[j].key}.power is {P[j]:g} at {at} (a logarithm of 0, a "
-                             "division by 0?): no steady state")
+        law = laws.not_finite(P)
+        if law is not None:
+            raise ModelError(f"{model.where}: {law} at {_at(model, inputs)} (a logarithm of 0, a division by 0?): "
+                             "no steady state")
         T_new = np.linalg.solve(A, -W @ np.concatenate([U, P]))
         if np.max(np.abs(T_new - T)) < tol:
             return T_new, P
         T = T_new
-    raise ModelError(f"{where}: no steady state at {at}: the losses' feedback on the temperatures does not "
-                     "converge (thermal runaway at these inputs?)")
+    raise ModelError(f"{model.where}: no steady state at {_at(model, inputs)}: the losses' feedback on the "
+                     "temperatures does not converge (thermal runaway at these inputs?)")
+
+
+def _at(model: Model, inputs: Mapping[str, float]) -> str:
+    """The model's inputs of ``inputs``, for a message."""
+    return ", ".join(f"{k} = {float(v):g}" for k, v in inputs.items() if k in model.inputs)
 
 
 def initial_state(

@@ -16,6 +16,12 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from ..lptn import Model, Role
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..config import DeratingConfig
 
 #: the check judges ticks whose torque takes at least this fraction of ``derating.max_current_a``
 JUDGED_FROM = 0.2
@@ -58,6 +64,16 @@ class CurrentTorqueCheck:
         self.judged_from_a = JUDGED_FROM * float(max_current_a)
         self._low_ticks = 0
         self.doubted = False
+
+    @classmethod
+    def of(cls, model: Model, derating: DeratingConfig, kt_nm_per_arms: float | None) -> CurrentTorqueCheck | None:
+        """The check of ``model``'s current and torque inputs with ``derating``'s maximum current and
+        ratio (``derating.faults.current_torque_ratio``); None when the model reads either not, or
+        without a torque constant."""
+        current, torque = model.find_input(Role.CURRENT), model.find_input(Role.TORQUE)
+        if current is None or torque is None or kt_nm_per_arms is None:
+            return None
+        return cls(current, torque, kt_nm_per_arms, derating.max_current_a, derating.faults.current_torque_ratio)
 
     def judge(self, inputs: Mapping[str, float]) -> CurrentVerdict:
         """The verdict on one tick's inputs (the current in A rms, the torque in Nm)."""

@@ -132,10 +132,8 @@ class ThermalEngine:
         self.stuck = StuckSensors(dc.faults, config.sensors)
         self.commissioned = CommissionedCheck(dc.faults)
         self._floored: set[str] = set()  # limited nodes whose band the commissioned floor sets
-        current, torque = m.find_input(Role.CURRENT), m.find_input(Role.TORQUE)
         #: the current against the torque (None when the model reads either not)
-        self.current_check = (CurrentTorqueCheck(current, torque, self.kt, dc.max_current_a, dc.faults.current_torque_ratio)
-                              if current is not None and torque is not None else None)
+        self.current_check = CurrentTorqueCheck.of(m, dc, self.kt)
         self.events = SafetyEvents()
         self._restored = restored  # used once, at the start of the state
         self._restart_info: dict[str, float] = {}

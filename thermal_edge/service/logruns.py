@@ -32,7 +32,7 @@ import numpy as np
 from ..bus.logs import FrameLogReader, LogFormatError, log_suffix, readable_suffixes
 from ..config import EdgeConfig
 from ..data import Run, RunError
-from ..lptn import Role, load_model
+from ..lptn import Model, Role, load_model
 from .clock import FrameClock
 from .current_torque import CurrentTorqueCheck
 from .flux_input import DqMeans
@@ -89,36 +89,29 @@ class LogRuns:
 
 
 @functools.lru_cache(maxsize=4)
-def _model_facts(model_path: str, mtime_ns: int) -> tuple[dict[str, Role], float | None]:
-    """Which of the model's inputs is the current, the speed, the torque, and its drive's torque
-    constant (Nm per A rms; None without): the model loaded once per file version, not once per
-    log (a fleet reads many logs of one model)."""
-    m = load_model(model_path)
-    kt = m.drive.get("kt_nm_per_arms") if getattr(m, "drive", None) else None
-    return dict(m.input_roles), float(kt) if kt is not None else None
+def _model(model_path: str, mtime_ns: int) -> Model:
+    """The configuration's model, loaded once per file version, not once per log (a fleet reads
+    many logs of one model): its inputs' roles and its torque constant."""
+    return load_model(model_path)
 
 
-def _current_check(runs: list[Run], config: EdgeConfig, roles: dict[str, Role], kt: float | None,
-                   out: LogRuns) -> None:
+def _current_check(runs: list[Run], config: EdgeConfig, model: Model, out: LogRuns) -> None:
     """The current against the torque, tick by tick, as the service judges it
     (:class:`.current_torque.CurrentTorqueCheck`): the ticks it would not believe counted in
     ``out``. Every judged tick reading low is a scaling error of the whole log: refused."""
-    current = next((k for k, r in roles.items() if r is Role.CURRENT and k in config.inputs), None)
-    torque = next((k for k, r in roles.items() if r is Role.TORQUE and k in config.inputs), None)
-    kt = config.derating.kt_nm_per_arms if config.derating.kt_nm_per_arms is not None else kt
-    if current is None or torque is None or kt is None:
-        return
-    d = config.derating
     for run in runs:
-        chk = CurrentTorqueCheck(current, torque, kt, d.max_current_a, d.faults.current_torque_ratio)
+        chk = CurrentTorqueCheck.of(model, config.derating, config.kt(model))  # a fresh one per stretch
+        if chk is None:
+            return
+        current, torque = chk.current_input, chk.torque_input
         for i, tq in zip(run.columns[current], run.columns[torque]):
             v = chk.judge({current: float(i), torque: float(tq)})
             if math.isfinite(v.needed):
                 out.current_judged += 1
                 out.current_low += float(i) < chk.ratio * v.needed
             out.current_doubted += v.doubted
-    ratio = d.faults.current_torque_ratio
-    out.current_rule = f"{_signal_of(config, current)} below {ratio:g} of |{torque}| / kt (kt {kt:g} Nm/A)"
+        out.current_rule = (f"{_signal_of(config, current)} below {chk.ratio:g} of |{torque}| / kt "
+                            f"(kt {chk.kt:g} Nm/A)")
 
 
 #: the columns of the dq voltages and currents (``voltages=True``), as ``thermal-edge flux calibrate`` reads them
@@ -175,7 +168,8 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     """
     codec = config.codec.frame_codec(config.fname)
     path_m = Path(config.model.path)
-    roles, kt = _model_facts(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
+    model = _model(str(path_m), path_m.stat().st_mtime_ns if path_m.exists() else 0)
+    roles = dict(model.input_roles)
     config.check_dbc(codec, roles)
     tick_s, catchup = config.clock.tick_s, config.clock.max_catchup_s
     silence = max(config.timeouts.values(), default=tick_s)
@@ -238,7 +232,7 @@ def log_runs(path: str | os.PathLike[str], config: EdgeConfig, voltages: bool = 
     for name, w in why.items():
         if all(np.all(np.isnan(r.columns[name])) for r in out.runs if name in r.columns):
             raise RunError(f"{Path(path)}: every reading of {_signal_of(config, name)} was refused: {w}")
-    _current_check(out.runs, config, roles, kt, out)
+    _current_check(out.runs, config, model, out)
     if out.current_doubted and out.current_low == out.current_judged:
         raise RunError(f"{Path(path)}: every one of the {out.current_judged} ticks judged reads {out.current_rule}: "
                        "a scaling of the current in the DBC? (the copper losses go with its square)")
