@@ -89,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         TABLE4_VARIATIONS,
         EmulatorConfig,
         InverterEmulator,
+        mapped_sensor_signals,
         table4_parameters,
     )
     from ..sim.pmsm import Pmsm
@@ -145,10 +146,9 @@ def run(args: argparse.Namespace) -> int:
         config = config_from_mapping(raw, cfg_path)
     # the simulated inverter sends the PT100s of its INV_StatorTemps frame; the configuration says which
     # of the model's sensors each one is
-    sensor_signals = {spec.signal: name for name, spec in config.sensors.items()
-                      if spec.frame == STATOR_FRAME and spec.signal in DEFAULT_SENSOR_SIGNALS}
+    sensor_signals = mapped_sensor_signals(config.sensors)
     unsent = [f"{name} ({spec.frame} {spec.signal})" for name, spec in config.sensors.items()
-              if spec.signal not in sensor_signals or spec.frame != STATOR_FRAME]
+              if name not in sensor_signals.values()]
     if unsent:
         notes.append(f"the simulated inverter sends only {STATOR_FRAME}'s {', '.join(DEFAULT_SENSOR_SIGNALS)}: "
                      f"no reading of {', '.join(unsent)}")

@@ -186,16 +186,14 @@ def _sensor_signals(config: str | None, model: Model) -> dict[str, str]:
     """The PT100 signals of the simulated inverter's INV_StatorTemps -> the model's sensors: as the
     configuration ``config`` maps them, else by the packaged model's names; a note on stdout names
     the model's sensors the log will not carry."""
-    from ..sim.inverter import DEFAULT_SENSOR_SIGNALS, STATOR_FRAME
+    from ..sim.inverter import DEFAULT_SENSOR_SIGNALS, STATOR_FRAME, mapped_sensor_signals
 
     if config is None:
         mapping = dict(DEFAULT_SENSOR_SIGNALS)
     else:
         from ..config import load_config
 
-        cfg = load_config(config)
-        mapping = {spec.signal: name for name, spec in cfg.sensors.items()
-                   if spec.frame == STATOR_FRAME and spec.signal in DEFAULT_SENSOR_SIGNALS}
+        mapping = mapped_sensor_signals(load_config(config).sensors)
     unsent = [s for s in model.sensors if s not in mapping.values()]
     if unsent:
         print(f"note: the log carries no reading of {', '.join(unsent)}: the simulated inverter sends "

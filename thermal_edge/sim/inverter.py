@@ -83,7 +83,7 @@ from .pmsm import Pmsm
 from .sensors import pt100
 
 __all__ = ["DEFAULT_SENSOR_SIGNALS", "STATOR_FRAME", "EmulatorConfig", "InverterEmulator", "TABLE4_VARIATIONS", "main",
-           "write_log"]
+           "mapped_sensor_signals", "write_log"]
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +109,14 @@ DEFAULT_SENSOR_SIGNALS: dict[str, str] = {
 }
 _STATUS_OF = {"INV_T_WindingSlot": "INV_S_WindingSlot", "INV_T_EndWinding": "INV_S_EndWinding",
               "INV_T_Housing": "INV_S_Housing"}
+
+
+def mapped_sensor_signals(sensors: Mapping[str, Any]) -> dict[str, str]:
+    """The PT100 signals of the emulator's :data:`STATOR_FRAME` -> the sensor each carries, as a
+    service configuration's ``signals.sensors`` (sensor -> frame and signal) maps them; a sensor
+    mapped elsewhere is not sent."""
+    return {spec.signal: name for name, spec in sensors.items()
+            if spec.frame == STATOR_FRAME and spec.signal in DEFAULT_SENSOR_SIGNALS}
 
 
 def table4_parameters(model: Model, sign: float = 1.0) -> dict[str, float]:
