@@ -14,13 +14,16 @@ frozen from 100 min on, still flickering with 0.1 K of noise in 0.1 K steps (a c
 converter holds its last sample), are judged the same way and must be named stuck. The current
 frame read ten times low from 50 min on (a DBC scaling, a second sender diluting it) must not be
 believed: no tick above the safe current once the check has confirmed, wherever the machine's
-current is one it judges. The control cases (:func:`drift_unguarded`) replay the same logs with
+current is one it judges. An inverter whose own DBC has a wider status signal flags the slot
+winding with a code the matrix does not define while its reading lies low: the reading must be a
+sensor fault (``unknown_status``), never a valid one. The control cases (:func:`drift_unguarded`) replay the same logs with
 ``derating.faults.commissioned_gap_k`` at its upper bound, which the drift never reaches, and with
 ``current_torque_ratio`` at 0.01: each must be judged unsafe.
 """
 from __future__ import annotations
 
 import csv
+import re
 import subprocess
 import tempfile
 from collections.abc import Callable, Iterator
@@ -32,6 +35,7 @@ import yaml
 
 from thermal_edge.bus import DerateReason
 from thermal_edge.bus.codec import FrameCodec
+from thermal_edge.bus.frames import DEFAULT_DBC_PATH
 
 from .. import ROOT
 from .harness import Case, Check, env, service_config_path, thermal_edge_cmd
@@ -77,11 +81,13 @@ def frozen_with_noise(seed: int = 0) -> Fault:
     return fault
 
 
-def _faulted(log: Path, out: Path, t0: float, fault: Fault, frame_name: str = TEMPS, prefix: str = "INV_T_") -> int:
+def _faulted(log: Path, out: Path, t0: float, fault: Fault, frame_name: str = TEMPS, prefix: str = "INV_T_",
+             dbc: Path | None = None) -> int:
     """``log`` with every ``frame_name`` frame's signals named ``prefix...`` (by default the
     ``INV_StatorTemps`` temperatures) passed through ``fault`` and re-encoded (the frame's own
-    counter, the matrix's CRC; ``t0``: the log's first stamp); returns the frames changed."""
-    codec = FrameCodec()
+    counter, the matrix's CRC; ``t0``: the log's first stamp; ``dbc``: the inverter's own DBC,
+    default the shipped one); returns the frames changed."""
+    codec = FrameCodec(dbc)
     changed = 0
     lines = []
     for line in log.read_text().splitlines():
@@ -99,10 +105,13 @@ def _faulted(log: Path, out: Path, t0: float, fault: Fault, frame_name: str = TE
     return changed
 
 
-def _replay(workdir: Path, log: Path, faults: dict[str, float]) -> tuple[list[dict[str, str]], str, int]:
-    """Replay ``log`` with the service's configuration, adaptation on and ``faults`` set; returns
-    the per-tick table, stderr and the exit status."""
+def _replay(workdir: Path, log: Path, faults: dict[str, float], dbc: Path | None = None) -> tuple[list[dict[str, str]], str, int]:
+    """Replay ``log`` with the service's configuration (the inverter's DBC ``dbc``, default the
+    shipped one), adaptation on and ``faults`` set; returns the per-tick table, stderr and the
+    exit status."""
     raw = yaml.safe_load(service_config_path("edge.yaml").read_text())
+    if dbc is not None:
+        raw["codec"] = {**(raw.get("codec") or {}), "dbc": str(dbc)}
     raw["model"]["path"] = str(service_config_path("machines", "pm10kw.yaml"))
     raw["adaptation"]["enabled"] = True
     raw["derating"].setdefault("faults", {}).update(faults)
@@ -161,16 +170,17 @@ def _published_short(rows: list[dict[str, str]], truth: list[dict[str, str]]) ->
 
 def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str]], t0: float, fault: Fault,
           tried: str, said: str | None, faults: dict[str, float], control: bool = False,
-          published_k: float | None = None) -> Case:
+          published_k: float | None = None, dbc: Path | None = None) -> Case:
     """Replay ``clean`` through ``fault`` and judge it: no tick above the safe current while the plant's
     winding is over its max, and ``said`` in the log (not for a control; None: a plain derate, which
     the replay does not log). With ``published_k``: while the readings are not believed, no estimate
-    published more than that (K) below the plant's true sensor temperature."""
+    published more than that (K) below the plant's true sensor temperature. ``dbc``: the inverter's
+    own DBC, which writes the faulted log and which the replay reads."""
     raw = yaml.safe_load(service_config_path("edge.yaml").read_text())
     max_c = float(raw["derating"]["limits"]["hot_spot"]["max_c"])
     safe_a = float(raw["derating"]["safe_current_a"])
-    changed = _faulted(clean, d / f"{name}.log", t0, fault)
-    rows, err, rc = _replay(d, d / f"{name}.log", faults)
+    changed = _faulted(clean, d / f"{name}.log", t0, fault, prefix="INV_" if dbc is not None else "INV_T_", dbc=dbc)
+    rows, err, rc = _replay(d, d / f"{name}.log", faults, dbc)
     c = Check()
     c.add(0 if rc == 0 and rows else 1, f"replay exit {rc}: {err.strip()[-200:]}")
     hot, unsafe = _judge(rows, truth, max_c, safe_a)
@@ -259,6 +269,32 @@ def _slot_as_read(truth: list[dict[str, str]]) -> list[dict[str, str]]:
                                                                    else 0.0))} for r in truth]
 
 
+#: from this time on (s) the slot winding's status is a code the matrix does not define, in the 4-bit
+#: status signal of another inverter's DBC (:func:`wide_status_dbc`), and the reading it flags lies
+#: this far low (K): a sensor its inverter knows to be bad, in words the matrix has no name for
+UNKNOWN_FROM_S, UNKNOWN_STATUS, FLAGGED_LOW_K = 3000.0, 5, 40.0
+SLOT_STATUS = "INV_S_WindingSlot"
+
+
+def wide_status_dbc(d: Path) -> Path:
+    """Another inverter's DBC: the shipped one with the slot winding's status 4 bits wide (bits
+    42-45, free in the matrix), written into ``d``."""
+    text, n = re.subn(rf"SG_ {SLOT_STATUS} : 36\|2@1\+ \(1,0\) \[0\|3\]", f"SG_ {SLOT_STATUS} : 42|4@1+ (1,0) [0|15]",
+                      DEFAULT_DBC_PATH.read_text())
+    if n != 1:
+        raise ValueError(f"no 2-bit {SLOT_STATUS} at bit 36 in the shipped DBC")
+    (d / "wide-status.dbc").write_text(text)
+    return d / "wide-status.dbc"
+
+
+def flagged_unknown(dt: float, signals: dict[str, float]) -> dict[str, float]:
+    """From :data:`UNKNOWN_FROM_S` on, the slot winding :data:`FLAGGED_LOW_K` low under status
+    :data:`UNKNOWN_STATUS`."""
+    if dt < UNKNOWN_FROM_S:
+        return signals
+    return {**signals, SLOT_STATUS: float(UNKNOWN_STATUS), "INV_T_WindingSlot": signals["INV_T_WindingSlot"] - FLAGGED_LOW_K}
+
+
 DRIFT_TRIED = f"{DRIFT_RATE_K_PER_S * 60:.1f} K/min low from {DRIFT_FROM_S:.0f} s (up to {DRIFT_CAP_K:.0f} K)"
 
 
@@ -274,6 +310,10 @@ def drift(full: bool) -> Iterator[Case]:
                     f"with the windings held from {FREEZE_FROM_S:.0f} s (+ {FREEZE_NOISE_K} K noise, "
                     f"{RESOLUTION_K} K steps)", "stuck at", {})
         yield _current_case(d, "current_dbc_scaled_tenfold_low", "readings", clean, truth, t0, {})
+        yield _case(d, "status_code_the_matrix_does_not_define", "readings", clean, truth, t0, flagged_unknown,
+                    f"with the slot winding's status {UNKNOWN_STATUS} (a 4-bit signal of the inverter's own DBC) and its "
+                    f"reading {FLAGGED_LOW_K:.0f} K low from {UNKNOWN_FROM_S:.0f} s", "slot_winding (unknown_status)", {},
+                    dbc=wide_status_dbc(d))
         yield _case(d, "slot_pt100_hotter_than_the_hot_spot", "readings", clean, _slot_as_read(truth), t0,
                     slot_reads_hotter, f"with the slot winding {SLOT_RAISE_K:.0f} K hotter from {SLOT_RAISED_FROM_S:.0f} s",
                     None, {})
