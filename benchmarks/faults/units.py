@@ -5,7 +5,9 @@ temperature in K or degF, a current in mA) is refused by ``run --check`` with on
 key and the unit: a speed 9.5 times too small is still a plausible speed, so only the declared
 unit can catch it. A DBC that declares the right unit with a wrong scaling (a temperature decoded
 in kelvin, currents 1000 times too large) is refused by ``export`` naming the signal and the unit
-its readings look like, instead of a column of NaN or "no run"; an ambient that reads 215 degC (an
+its readings look like, instead of a column of NaN or "no run"; currents a tenth of the
+machine's, below what the torque reported needs on every tick judged, are refused naming the
+current's signals; an ambient that reads 215 degC (an
 unplugged channel's raw maximum) is refused as the air's, and a temperature mapped as a sensor's
 status signal is refused at load (it would be judged as codes). Each case runs the installed
 command in a process of its own, as a user would.
@@ -44,6 +46,10 @@ SCALED = {
     "housing_decoded_in_kelvin": ("INV_T_Housing", "0.1,223.15", "every reading of housing", "looks like kelvin"),
     "currents_decoded_in_milliampere": ("INV_Id INV_Iq", "50,0", "i_rms (INV_Currents INV_Id/INV_Iq) refused",
                                         "looks like mA"),
+    # a tenth of the currents (a factor of 0.005 A for 0.05 A): plausible currents, but below what
+    # the torque the inverter reports needs, on every tick judged
+    "currents_decoded_tenfold_low": ("INV_Id INV_Iq", "0.005,0", "i_rms (INV_Currents INV_Id/INV_Iq) below",
+                                     "a scaling of the current in the DBC"),
     # the ambient channel unplugged, reading its raw maximum: 215 degC is a winding's temperature,
     # inside the PT100s' valid range, but never the air's
     "ambient_unplugged_at_215_degc": ("INV_T_Ambient", "0.1,140", "ambient_c (INV_AmbientTemps INV_T_Ambient) refused",
