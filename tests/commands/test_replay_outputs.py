@@ -125,3 +125,16 @@ def test_discover_on_a_run_without_a_gap_prints_no_trend(good_run):
     assert not any(line.startswith("the residual ") for line in r.stdout.splitlines()), r.stdout
     j = te("discover", "--model", TWO_NODE, "--run", good_run, "--json")
     assert json.loads(j.stdout)["gap_status"] == "none"
+
+
+@pytest.mark.parametrize("option, value", [("--threshold", "0.2"), ("--decimate", "5"), ("--sensors", "housing"),
+                                           ("--period", "300")])
+def test_an_adapter_option_without_adapt_is_refused_not_ignored(good_run, tmp_path, option, value):
+    """Open loop runs no adapter: its options would change nothing (the table of ``--out`` is the
+    same to the last digit with any ``--period``), so each is refused in one line naming it."""
+    r = te("replay", "--model", TWO_NODE, "--run", good_run, option, value, "--out", tmp_path / "x.csv")
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"thermal-edge replay: error: {option}: only with --adapt (the open-loop replay runs no adapter)"]
+    assert not (tmp_path / "x.csv").exists()
+    r = te("replay", "--model", TWO_NODE, "--run", good_run, option, value, "--adapt", "--json")
+    assert r.returncode == 0, r.stderr

@@ -64,10 +64,12 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--no-adapt", dest="adapt", action="store_false", help="open-loop prediction (default)")
     mode.add_argument("--adapt", dest="adapt", action="store_true", help="run the online adapter over the run")
-    p.add_argument("--sensors", type=names, help="comma-separated sensors the adapter may learn from (default: all)")
-    p.add_argument("--period", type=positive_s, default=AdapterConfig.period_s, help="adaptation period, s")
-    p.add_argument("--threshold", type=kelvin, default=AdapterConfig.threshold_k, help="adaptation threshold, K RMS")
-    p.add_argument("--decimate", type=integer(1), default=AdapterConfig.decimate, help="samples per optimiser step")
+    p.add_argument("--sensors", type=names,
+                   help="with --adapt: comma-separated sensors the adapter may learn from (default: all)")
+    p.add_argument("--period", type=positive_s, default=AdapterConfig.period_s, help="with --adapt: adaptation period, s")
+    p.add_argument("--threshold", type=kelvin, default=AdapterConfig.threshold_k,
+                   help="with --adapt: adaptation threshold, K RMS")
+    p.add_argument("--decimate", type=integer(1), default=AdapterConfig.decimate, help="with --adapt: samples per optimiser step")
     p.add_argument("--plot", type=output_file, metavar="FILE.png",
                    help="figure: measured, predicted and the observer's band per sensor")
     p.add_argument("--out", type=output_file, metavar="FILE.csv",
@@ -109,6 +111,19 @@ def _refuse_csv_options(args: argparse.Namespace) -> None:
                          f"{args.config} says (adaptation: and observer:); {opt} is for a CSV run")
 
 
+#: options of the online adapter, with their defaults: without ``--adapt`` no adapter runs
+ADAPT_ONLY = {"sensors": None, "threshold": AdapterConfig.threshold_k, "decimate": AdapterConfig.decimate,
+              "period": AdapterConfig.period_s}
+
+
+def _refuse_adapter_options(args: argparse.Namespace) -> None:
+    """An adapter's option given to an open-loop replay of a CSV run would be ignored without a
+    word, so it is refused."""
+    given = [k for k, default in ADAPT_ONLY.items() if getattr(args, k) != default]
+    if given:
+        raise UsageError(f"--{given[0]}: only with --adapt (the open-loop replay runs no adapter)")
+
+
 def run(args: argparse.Namespace) -> int:
     if (why := _check_outputs(args)):
         print(f"thermal-edge replay: error: {why}", file=sys.stderr)
@@ -126,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.model:
         raise UsageError("--model is required for CSV runs")
+    if not args.adapt:
+        _refuse_adapter_options(args)
     model = model_with_sets(model_from_args(args), args.set)
     sensors = tuple(s.strip() for s in args.sensors.split(",") if s.strip()) if args.sensors else None
     rec, data = read_checked(args.run, args.format, model, sensors if args.adapt else None)
