@@ -87,7 +87,7 @@ def _faulted(log: Path, out: Path, t0: float, fault: Fault, frame_name: str = TE
     ``INV_StatorTemps`` temperatures) passed through ``fault`` and re-encoded (the frame's own
     counter, the matrix's CRC; ``t0``: the log's first stamp; ``dbc``: the inverter's own DBC,
     default the shipped one); returns the frames changed."""
-    codec = FrameCodec(dbc)
+    codec = FrameCodec() if dbc is None else FrameCodec(dbc)
     changed = 0
     lines = []
     for line in log.read_text().splitlines():
