@@ -135,7 +135,8 @@ class FluxModel:
         Posterior σ of each parameter (same units): how closely the run pinned it down.
     pole_pairs : int
     bin_a : float
-        Width of the current-magnitude bins of the variance table, A.
+        Width of the current-magnitude bins of the variance table, A peak (the dq current's
+        magnitude, amplitude-invariant: the phase current's amplitude).
     var_u : dict
         Bin index (``int(|i| / bin_a)``) -> mean square cross-validated q-voltage residual, V².
     speed_min_rpm : float
@@ -233,10 +234,10 @@ class FluxModel:
         return np.asarray(T), np.where(ok, sig, np.inf), np.asarray(ok)
 
     def sigma_table(self, speed_rpm: float) -> dict[str, float]:
-        """The variance table as σ (K) per current bin (``"a-b A"``) at this speed, the parameters'
-        part left out."""
+        """The variance table as σ (K) per current bin (``"a-b A peak"``: the dq current's magnitude,
+        the phase current's amplitude) at this speed, the parameters' part left out."""
         wb = abs(float(omega_el(np.asarray(speed_rpm), self.pole_pairs)) * self.params["beta"])
-        return {f"{b * self.bin_a:g}-{(b + 1) * self.bin_a:g} A": float(np.sqrt(v)) / wb for b, v in sorted(self.var_u.items())}
+        return {f"{b * self.bin_a:g}-{(b + 1) * self.bin_a:g} A peak": float(np.sqrt(v)) / wb for b, v in sorted(self.var_u.items())}
 
     def _gradient(self, e: Electrical, T: np.ndarray, ia: np.ndarray) -> np.ndarray:
         """``∂T/∂θ`` over :data:`PARAMS` (..., 8)."""
@@ -474,7 +475,7 @@ def fit_flux_model(e: Electrical, magnet_c: np.ndarray, pole_pairs: int, dt: flo
         early fits have seen little: the table is conservative, the more so the narrower the
         temperature range of the run's first part.
     bin_a : float
-        Current-magnitude bin width of the variance table, A.
+        Current-magnitude bin width of the variance table, A peak (the dq current's magnitude).
     min_samples : int
         A bin needs this many cross-validated samples to be informative.
     sigma_max_k : float
