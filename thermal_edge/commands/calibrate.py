@@ -37,7 +37,9 @@ def register(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--seed", type=integer(0), default=0)
     p.add_argument("--patience", type=integer(1), default=PATIENCE,
                    help=f"stop the global search after this many generations without improvement (default {PATIENCE})")
-    p.add_argument("--max-time", type=positive_s, metavar="SECONDS", help="wall-time budget of the fit, s (default: none)")
+    p.add_argument("--max-time", type=positive_s, metavar="SECONDS",
+                   help="wall-time budget of the fit, s (default: none): no generation or SQP iteration starts "
+                        "after it; the one under way and the uncertainty estimate still finish")
     add_set_arg(p)
     p.set_defaults(func=run)
 
