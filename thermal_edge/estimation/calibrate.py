@@ -21,7 +21,7 @@ from ..data import Run, RunError
 from ..lptn import Model, ModelError, Simulator
 from .common import ParamSpace, decimate, window_from_arrays
 from .objective import Objective
-from .predict import initial_from_run, model_inputs, sensor_columns
+from .predict import initial_from_run, model_inputs, sensor_columns, start_directions
 from .uncertainty import MIN_RESIDUAL_DOF, Uncertainty, estimate_uncertainty
 
 #: Differential evolution's own convergence test: the population's spread of objective values
@@ -114,12 +114,15 @@ def calibrate(
         meas = sensor_columns(model, run, sensors)
         win = window_from_arrays(model, model_inputs(model, run), meas, initial_from_run(model, run, span_s=START_SPAN_S),
                                  run.dt, run.t)
-        objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform"))
+        objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform",
+                              start_free=start_directions(model, run, span_s=START_SPAN_S)))
     n_obs = sum(int(np.count_nonzero(np.isfinite(y))) for o in objs for y in o.window.measured.values())
-    if n_obs - len(names) < MIN_RESIDUAL_DOF:
+    fitted = len(names) + sum(o.nuisance for o in objs)  # with each run's start offsets
+    if n_obs - fitted < MIN_RESIDUAL_DOF:
         raise RunError(f"{', '.join(r.source for r in runs)}: too short to calibrate: {n_obs} readings (samples x "
-                       f"sensors, {decimation} sample(s) per step) for {len(names)} parameters; at least "
-                       f"{len(names) + MIN_RESIDUAL_DOF} needed (with fewer the fit matches them whatever the parameters)")
+                       f"sensors, {decimation} sample(s) per step) for {len(names)} parameters and "
+                       f"{fitted - len(names)} start offsets; at least {fitted + MIN_RESIDUAL_DOF} needed (with fewer "
+                       "the fit matches them whatever the parameters)")
     total = _Sum(objs)
     phi0 = np.log(space.values())
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -164,7 +167,7 @@ def calibrate(
     phi = res.x if total.value(res.x) <= de.fun else de.x
     values = np.exp(phi)
     final_space = ParamSpace(model, names, space.full(values))
-    o = Objective(sim, final_space, objs[0].window, objs[0].sensors, "uniform")
+    o = Objective(sim, final_space, objs[0].window, objs[0].sensors, "uniform", start_free=objs[0].start_free)
     unc = estimate_uncertainty(o, o.evaluate(phi))
     return CalibrationResult(names, space.values(), values, f0, float(de.fun), total.value(phi),
                              int(de.nfev) + int(res.nfev), time.perf_counter() - t0, unc, gen[0], why[0])

@@ -237,7 +237,8 @@ class FluxModel:
         """The variance table as σ (K) per current bin (``"a-b A peak"``: the dq current's magnitude,
         the phase current's amplitude) at this speed, the parameters' part left out."""
         wb = abs(float(omega_el(np.asarray(speed_rpm), self.pole_pairs)) * self.params["beta"])
-        return {f"{b * self.bin_a:g}-{(b + 1) * self.bin_a:g} A peak": float(np.sqrt(v)) / wb for b, v in sorted(self.var_u.items())}
+        return {f"{b * self.bin_a:g}-{(b + 1) * self.bin_a:g} A peak": float(np.sqrt(v)) / wb
+                for b, v in sorted(self.var_u.items())}
 
     def _gradient(self, e: Electrical, T: np.ndarray, ia: np.ndarray) -> np.ndarray:
         """``∂T/∂θ`` over :data:`PARAMS` (..., 8)."""

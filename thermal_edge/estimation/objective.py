@@ -16,6 +16,15 @@ Weights (both normalised to sum 1):
   state the model may not know well, count less.
 * ``forgetting``: ``w_k = exp(−(t_N − t_k)/τ)``: exponential forgetting with time constant ``τ``
   (s), so that slow drifts (aging) are followed.
+
+A free start (``start_free``): the window's initial state comes from its first readings, whose
+noise the slowest mode remembers for hours; a fit would take that memory for the parameters (on a
+simulated fleet, errors of 4 standard deviations on average). The start's offsets along the given
+directions are then fitted alongside, by projection (variable projection with the offsets'
+response ``G`` fixed at the point of the first evaluation: the system is affine in its initial
+state, so ``G`` depends on the parameters only through the transient's shape): residuals and
+Jacobian lose their component in the span of ``G``, ``r ← r − G c`` with ``c`` the weighted least
+squares offsets, and the information left is the parameters' with the offsets unknown.
 """
 from __future__ import annotations
 
@@ -73,11 +82,17 @@ class Objective:
         ``ρ`` relative to the data term at unit residual: the penalty is
         ``ρ · Σ ((φ − φ⁰)/σ)²`` with ``σ`` the parameter's declared ``spread`` (a quarter of its
         log range if it declares none). 0 = plain least squares.
+    start_free : ndarray (n, d), optional
+        Directions of the window's initial state (K per unit) whose offsets are fitted alongside
+        (see the module docstring); default none.
     """
 
     def __init__(self, sim: AnySimulator, space: ParamSpace, window: Window, sensors: list[str] | None = None,
-                 weighting: str = "paper", prior_weight: float = 0.0, tau_s: float = 3600.0) -> None:
+                 weighting: str = "paper", prior_weight: float = 0.0, tau_s: float = 3600.0,
+                 start_free: np.ndarray | None = None) -> None:
         self.sim, self.space, self.window = sim, space, window
+        self.start_free = None if start_free is None or not np.size(start_free) else np.asarray(start_free, dtype=float)
+        self._start_response: np.ndarray | None = None  # G, weighted and flattened (N ns, d)
         model = sim.model
         self.sensors = list(sensors or window.measured)
         self.rows = [model.sensors[s] for s in self.sensors]
@@ -127,6 +142,33 @@ class Objective:
                                  rows=self.rows if derivatives else None)
         return self._evaluation(phi, traj, derivatives, None)
 
+    @property
+    def nuisance(self) -> int:
+        """Offsets of the initial state fitted alongside the parameters (``start_free``'s columns)."""
+        return 0 if self.start_free is None else self.start_free.shape[1]
+
+    def _start_projection(self, pred: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``G`` (N, ns, d), the sensors' response to each free direction of the start (zero where
+        not measured), and the same weighted and flattened (N ns, d): computed at the first call
+        (``pred`` the predicted sensors there, ``th`` its parameters) and kept."""
+        assert self.start_free is not None
+        if self._start_response is None:
+            W = self.window
+            idx = [self.sim.model.node_index(r) for r in self.rows]
+            cols = [self.sim.simulate(th, W.inputs, W.dt, W.T0 + d).T[:, idx] - pred for d in self.start_free.T]
+            G = np.stack(cols, axis=2) * self.mask[:, :, None]
+            self._start_response = G
+        G = self._start_response
+        return G, (G * self.sqrt_w[:, :, None]).reshape(-1, G.shape[2])
+
+    def _free_start(self, G: np.ndarray, Gw: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``x`` (N, ns[, p]) less its weighted least-squares fit by the start's offsets: ``x − G c``."""
+        xw = (x * (self.sqrt_w if x.ndim == 2 else self.sqrt_w[:, :, None])).reshape(len(Gw), -1)
+        c = np.linalg.lstsq(Gw, xw, rcond=None)[0]  # (d, 1 or p)
+        fit = (G.reshape(-1, G.shape[2]) @ c).reshape(x.shape)
+        out: np.ndarray = x - fit
+        return out
+
     def _evaluation(self, phi: np.ndarray, traj: Trajectory, derivatives: bool, run: SimulatedRun | None) -> Evaluation:
         """The evaluation at ``phi`` from its simulation ``traj`` (with sensitivities when
         ``derivatives``), remembered as the last one (with ``run``, the simulation kept)."""
@@ -134,6 +176,9 @@ class Objective:
         idx = [self.sim.model.node_index(r) for r in self.rows]
         pred = traj.T[:, idx]
         r = np.where(self.mask, pred - self.Y0, 0.0)
+        if self.start_free is not None:
+            G, Gw = self._start_projection(pred, self.space.full(theta_sub))
+            r = self._free_start(G, Gw, r)
         value = float(np.sum(self.w * r * r))
         pv, pg, ph = self._prior(phi)
         p = len(phi)
@@ -142,6 +187,8 @@ class Objective:
             J = traj.S  # the simulation's own array, made for this evaluation: scaled in place
             J *= theta_sub  # ∂/∂log θ
             J *= self.mask[:, :, None]
+            if self.start_free is not None:
+                J = self._free_start(G, Gw, J)
             grad, hess = self._gradient_hessian(J, r)
         else:
             J, grad, hess = np.zeros((len(r), len(idx), p)), np.zeros(p), np.zeros((p, p))

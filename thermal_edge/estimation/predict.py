@@ -51,14 +51,31 @@ def start_reading(values: np.ndarray, t: np.ndarray, k: int = 0, span_s: float =
     return float(at_k)
 
 
+def _start(model: Model, run: Run, k: int, span_s: float) -> tuple[dict[str, float], dict[str, float]]:
+    """The inputs at sample ``k`` and each sensor's reading there (:func:`start_reading`)."""
+    inp = {c: float(v[k]) for c, v in model_inputs(model, run).items()}
+    t = np.asarray(run.t, dtype=float)
+    meas = {s: start_reading(np.asarray(v, dtype=float), t, k, span_s) for s, v in sensor_columns(model, run).items()}
+    return inp, meas
+
+
 def initial_from_run(model: Model, run: Run, theta: np.ndarray | None = None, k: int = 0,
                      span_s: float = 0.0) -> np.ndarray:
     """Node temperatures at sample ``k`` from the sensor readings there (:func:`start_reading`:
     with ``span_s``, the straight line through the ``span_s`` after it)."""
-    inp = {c: float(v[k]) for c, v in model_inputs(model, run).items()}
-    t = np.asarray(run.t, dtype=float)
-    meas = {s: start_reading(np.asarray(v, dtype=float), t, k, span_s) for s, v in sensor_columns(model, run).items()}
-    return initial_state(model, inp, meas, theta)
+    return initial_state(model, *_start(model, run, k, span_s), theta)
+
+
+def start_directions(model: Model, run: Run, theta: np.ndarray | None = None, k: int = 0,
+                     span_s: float = 0.0) -> np.ndarray:
+    """How :func:`initial_from_run`'s node temperatures move per kelvin of each sensor's start
+    reading (those that are finite): (n, sensors read), K/K. The unmeasured nodes follow the
+    measured ones (the initial state is linear in the readings), so these are the directions in
+    which a start reading's noise moves the whole initial state."""
+    inp, meas = _start(model, run, k, span_s)
+    base = initial_state(model, inp, meas, theta)
+    cols = [initial_state(model, inp, {**meas, s: v + 1.0}, theta) - base for s, v in meas.items() if np.isfinite(v)]
+    return np.column_stack(cols) if cols else np.zeros((len(base), 0))
 
 
 @dataclass

@@ -86,7 +86,8 @@ def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = MA
     n_obs = int(np.count_nonzero(wt))
     p = ev.jac.shape[2]
     r = ev.residuals
-    sigma2 = float(np.sum(wt * r * r) / max(n_obs - p, 1))
+    dof = n_obs - p - obj.nuisance  # the start's offsets fitted alongside take theirs too
+    sigma2 = float(np.sum(wt * r * r) / max(dof, 1))
     tau = integrated_autocorrelation(r, wt > 0)
     Jw = (np.sqrt(wt)[:, :, None] * ev.jac).reshape(-1, p)
     data = Jw.T @ Jw
@@ -94,7 +95,7 @@ def estimate_uncertainty(obj: Objective, ev: Evaluation, max_rel_std: float = MA
     cov, unresolved = information_inverse(data / tau + prior)
     white, _ = information_inverse(data + prior)
     gate = np.where(unresolved, np.inf, np.sqrt(np.clip(sigma2 * np.diag(white), 0.0, None)))
-    enough = n_obs - p >= MIN_RESIDUAL_DOF
+    enough = dof >= MIN_RESIDUAL_DOF
     return Uncertainty(obj.space.names, sigma2 * cov, sigma2, (gate < max_rel_std) & enough, tau, gate, unresolved)
 
 
