@@ -25,7 +25,7 @@ def _jacobian(kind: str, N: int = 400, seed: int = 3) -> np.ndarray:
 
 def _uncertainty(J: np.ndarray):
     rng = np.random.default_rng(0)
-    obj = SimpleNamespace(w=np.ones(J.shape[:2]), prior_weight=0.0, sigma=np.ones(3),
+    obj = SimpleNamespace(w=np.ones(J.shape[:2]), prior_weight=0.0, sigma=np.ones(3), nuisance=0,
                           space=SimpleNamespace(names=("C", "G", "k")))
     ev = SimpleNamespace(jac=J, residuals=0.1 * rng.normal(size=J.shape[:2]))
     return estimate_uncertainty(obj, ev, max_rel_std=0.5)
