@@ -156,7 +156,7 @@ def _fit(out: Path, stdout: str, names: list[str]) -> tuple[dict[str, float], di
     model = load_model(out)
     values = {n: v for n, v in zip(model.parameter_names, model.nominal()) if n in names}
     rows = {m[1]: (float(m[2]) / 100, m[3])
-            for m in re.finditer(r"^\s*(\S+)\s+\S+\s+\S+\s+\S+\s+\S+\s+(\S+)\s+(yes|no)$", stdout, re.M)}
+            for m in re.finditer(r"^\s*(\S+)\s+\S+\s+\S+\s+\S+\s+\S+\s+(\S+)\s+(yes|not identifiable)$", stdout, re.M)}
     sigma = float(re.search(r"residual σ (\S+) K", stdout)[1])
     return values, {n: rows[n][0] * abs(values[n]) for n in names}, sigma, {n: rows[n][1] for n in names}
 
