@@ -150,13 +150,15 @@ def test_a_window_of_a_few_samples_identifies_nothing():
 
 def test_a_noisy_first_reading_does_not_start_the_fit(pm10kw, make_run, monkeypatch):
     """The plant's readings without noise, but the first sample of every sensor 0.3 K high (one
-    PT100 draw): started from that sample (the control), the open-loop prediction carries the error
-    for as long as the slowest mode remembers it and the fit absorbs it into R_e_hous (4 % off);
-    started from the line through the first half minute (:func:`start_reading`), within 1 % of the
-    plant's (the line still leans a little towards the one high sample among its 31)."""
+    PT100 draw). Started from that sample with the start held (the control), the open-loop
+    prediction carries the error for as long as the slowest mode remembers it and the fit absorbs
+    it into R_e_hous (4 % off). Either guard alone keeps the fit within 1 % of the plant's: the
+    start from the line through the first half minute (:func:`start_reading`; it still leans a
+    little towards the one high sample among its 31), or the start's offsets fitted alongside
+    (:func:`start_directions`)."""
     from thermal_edge.data import Run
     from thermal_edge.estimation import calibrate as calibrate_module
-    from thermal_edge.estimation.predict import start_reading
+    from thermal_edge.estimation.predict import start_directions, start_reading
 
     plant = make_run(pm10kw, "varied_drive.yaml", 2400.0, seed=9, noise=0.0)
     cols = {k: np.array(v, dtype=float) for k, v in plant.run.columns.items()}
@@ -173,6 +175,14 @@ def test_a_noisy_first_reading_does_not_start_the_fit(pm10kw, make_run, monkeypa
         res = calibrate(wrong, [bumped], names=["R_e_hous"], decimation=5, maxiter=4, popsize=4, seed=1)
         return float(dict(zip(res.names, res.values))["R_e_hous"])
 
-    assert fitted() == pytest.approx(9.1, rel=0.01)
+    def held(model, run, theta=None, k=0, span_s=0.0):
+        return np.zeros((len(model.nodes), 0))
+
+    assert fitted() == pytest.approx(9.1, rel=0.01)  # both guards
     monkeypatch.setattr(calibrate_module, "START_SPAN_S", 0.0)
-    assert abs(fitted() / 9.1 - 1.0) > 0.03
+    assert fitted() == pytest.approx(9.1, rel=0.01)  # the offsets fitted, from the one sample
+    monkeypatch.setattr(calibrate_module, "start_directions", held)
+    assert abs(fitted() / 9.1 - 1.0) > 0.03  # neither
+    monkeypatch.setattr(calibrate_module, "START_SPAN_S", 30.0)
+    assert fitted() == pytest.approx(9.1, rel=0.01)  # the line, the start held
+    assert start_directions(pm10kw, bumped).shape == (len(pm10kw.nodes), len(pm10kw.sensors))
