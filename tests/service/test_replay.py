@@ -74,3 +74,55 @@ def test_replay_summary_for_the_command_line(tmp_path):
     assert set(s["max_estimate_c"]) == {"hot_spot", "magnet"}
     text = format_summary(s)
     assert "89 ticks" in text and "hot_spot" in text
+
+
+def _live_tick_outputs_at_the_end(tmp_path, monkeypatch, duration_s: float) -> tuple[int, int]:
+    """(ticks, TickOutput objects alive when the last frame has been read) of a summary-only replay."""
+    import gc
+
+    from thermal_edge.service.engine import ThermalEngine
+    from thermal_edge.service.outputs import TickOutput
+    from thermal_edge.service.replay import replay_log
+
+    log = tmp_path / f"run{duration_s:g}.log"
+    write_candump(MODEL, CYCLES / "rated_heat_cool.yaml", log, duration_s=duration_s, current_period_s=0.1,
+                  temperature_period_s=1.0)
+    cfg = write_yaml(tmp_path / "edge.yaml", edge_raw(tmp_path / "state", {"interface": "virtual"}, table4=False, adapt=False))
+    alive: list[int] = []
+    close = ThermalEngine.close
+
+    def counting_close(engine: ThermalEngine) -> None:  # the replay's loop is over, its locals still held
+        gc.collect()
+        alive.append(sum(1 for o in gc.get_objects() if isinstance(o, TickOutput)))
+        close(engine)
+
+    monkeypatch.setattr(ThermalEngine, "close", counting_close)
+    res, _ = replay_log(log, cfg, per_tick=False)
+    assert len(res.t) == 0 and res.estimate.shape == (0, len(res.nodes))  # nothing per tick returned either
+    return res.totals.ticks, alive[0]
+
+
+def test_a_summary_only_replay_keeps_nothing_per_tick(tmp_path, monkeypatch):
+    ticks1, alive1 = _live_tick_outputs_at_the_end(tmp_path, monkeypatch, 200.0)
+    ticks2, alive2 = _live_tick_outputs_at_the_end(tmp_path, monkeypatch, 400.0)
+    assert (ticks1, ticks2) == (199, 399)
+    assert alive2 == alive1 <= 2  # the engine's last output (and the one being folded in), not one per tick
+
+
+def test_the_streamed_summary_is_the_summary_of_the_per_tick_arrays(tmp_path):
+    from thermal_edge.lptn import load_model
+    from thermal_edge.service.replay import replay_summary
+
+    log = tmp_path / "run.log"
+    write_candump(MODEL, CYCLES / "rated_heat_cool.yaml", log, duration_s=240, current_period_s=0.1,
+                  temperature_period_s=1.0)
+    cfg_path = write_yaml(tmp_path / "edge.yaml", edge_raw(tmp_path / "state", {"interface": "virtual"}, table4=False,
+                                                           adapt=False))
+    s = replay_summary(log, cfg_path)
+    full = replay_candump(log, load_config(cfg_path))  # every tick's arrays, the summary computed from them here
+    model = load_model(MODEL)
+    assert s["ticks"] == len(full.t) == full.totals.ticks
+    assert (s["t_first"], s["t_last"]) == (full.t[0], full.t[-1])
+    assert s["final_estimate_c"] == dict(zip(full.nodes, full.estimate[-1].tolist()))
+    assert s["max_estimate_c"] == {lim.name: float(np.nanmax(full.node(lim.node))) for lim in model.limits}
+    assert s["min_current_limit_a"] == float(np.min(full.current_limit_a))

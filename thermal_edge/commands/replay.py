@@ -130,11 +130,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.format in ("can", "candump"):
         _refuse_csv_options(args)
+        ticks = bool(args.plot or args.out)  # the summary alone keeps nothing per tick: memory flat in the log's length
         replayed, service_model = replay_log(args.run, args.config, args.model, sets=split_sets(args.set),
-                                             keep_outputs=bool(args.plot or args.out))
+                                             keep_outputs=ticks, per_tick=ticks)
         summary = summarise(args.run, replayed, service_model)
-        if (args.plot or args.out) and len(replayed.t) < 2:
-            raise RunError(f"{args.run}: {len(replayed.t)} ticks: nothing to plot or write")
+        if (args.plot or args.out) and replayed.totals.ticks < 2:
+            raise RunError(f"{args.run}: {replayed.totals.ticks} ticks: nothing to plot or write")
         print(json.dumps(summary, indent=2, default=float) if args.json else format_summary(summary))
         if args.plot or args.out:
             _service_outputs(args, service_model, replayed)

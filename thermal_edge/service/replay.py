@@ -11,9 +11,15 @@ jitter of less than a tick is used and counted; a jump back of a tick or more th
 after it keep to is a new segment, joined on without a gap (ticked through, nothing dropped); a
 jump that they contradict is a corrupt stamp, ignored for the clock. The summary says how many of
 each (:func:`format_summary`).
+
+What the summary reports (ticks, first and last tick, final estimate, peaks, lowest current
+limit) is folded in tick by tick (:class:`ReplayTotals`): a replay that asks for the summary alone
+(``per_tick=False``, ``thermal-edge replay --format can`` without ``--out``/``--plot``) keeps
+nothing per tick, so its memory does not grow with the log's length.
 """
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -32,16 +38,63 @@ from .flux_input import OUTCOMES
 from .outputs import TickOutput
 from .persistence import PersistedState
 
-__all__ = ["ReplayResult", "clock_line", "format_summary", "replay_candump", "replay_log", "replay_summary", "summarise",
-           "voltage_line"]
+__all__ = ["ReplayResult", "ReplayTotals", "clock_line", "format_summary", "replay_candump", "replay_log", "replay_summary",
+           "summarise", "voltage_line"]
+
+
+class ReplayTotals:
+    """What the summary of a replay reports, folded in tick by tick (constant memory).
+
+    Parameters
+    ----------
+    n_nodes : int
+        Nodes of the model.
+
+    Attributes
+    ----------
+    ticks : int
+        Ticks folded in.
+    t_first, t_last : float
+        Time of the first and the last tick, s since the epoch (NaN before the first).
+    final_estimate : ndarray (nodes,)
+        The last tick's estimate, °C (NaN before the first).
+    peak : ndarray (nodes,)
+        Highest estimate per node over the ticks, NaN left out (``np.nanmax`` of the column), °C.
+    finite : ndarray of bool (nodes,)
+        Whether the node had a finite estimate at any tick (its peak is meaningless otherwise).
+    min_current_limit_a : float
+        Lowest current limit sent, A rms; NaN if one was NaN (as ``np.min`` of the column).
+    """
+
+    def __init__(self, n_nodes: int) -> None:
+        self.ticks = 0
+        self.t_first = self.t_last = math.nan
+        self.final_estimate = np.full(n_nodes, math.nan)
+        self.peak = np.full(n_nodes, math.nan)
+        self.finite = np.zeros(n_nodes, dtype=bool)
+        self.min_current_limit_a = math.inf
+
+    def add(self, out: TickOutput) -> None:
+        """Fold in one tick's output."""
+        if not self.ticks:
+            self.t_first = float(out.t)
+        self.ticks += 1
+        self.t_last = float(out.t)
+        self.final_estimate = out.estimate
+        np.fmax(self.peak, out.estimate, out=self.peak)
+        self.finite |= np.isfinite(out.estimate)
+        self.min_current_limit_a = float(np.minimum(self.min_current_limit_a, out.limits.current_a))
 
 
 @dataclass
 class ReplayResult:
-    """Per-tick results of a replay.
+    """Results of a replay: its totals and, unless the replay was asked for its summary alone,
+    its per-tick arrays.
 
     ``estimate``, ``sigma``, ``prediction`` are (ticks, nodes) arrays in the model's node order;
-    ``current_limit_a``, ``reason``, ``state`` one value per tick.
+    ``current_limit_a``, ``reason``, ``state`` one value per tick; all of them with no row when
+    the replay kept nothing per tick (``per_tick=False``): ``totals`` then has what the summary
+    reports.
     """
 
     nodes: tuple[str, ...]
@@ -65,13 +118,17 @@ class ReplayResult:
     #: the voltage input's ticks per outcome (:data:`.flux_input.OUTCOMES`, every one listed), None
     #: without ``flux.calibration`` (the service then fuses no voltages)
     flux: dict[str, int] | None = None
+    #: ticks, first and last tick, final estimate, peaks and lowest current limit (kept also without
+    #: the per-tick arrays)
+    totals: ReplayTotals = field(default_factory=lambda: ReplayTotals(0))
 
     def node(self, name: str) -> np.ndarray:
         return self.estimate[:, self.nodes.index(name)]
 
 
 def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: Model | None = None,
-                   state: PersistedState | None = None, keep_outputs: bool = False) -> ReplayResult:
+                   state: PersistedState | None = None, keep_outputs: bool = False,
+                   per_tick: bool = True) -> ReplayResult:
     """Feed a candump log through the service pipeline; returns the estimates per tick.
 
     Parameters
@@ -85,7 +142,10 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     state : PersistedState, optional
         Start from this saved state (as the live service did, if it had one).
     keep_outputs : bool
-        Also return every :class:`TickOutput`.
+        Also return every :class:`TickOutput` (and the per-tick arrays).
+    per_tick : bool
+        Return the per-tick arrays. False (and no ``keep_outputs``): only :attr:`ReplayResult.totals`,
+        what the summary reports, and nothing is kept per tick (memory independent of the log's length).
 
     Raises
     ------
@@ -100,42 +160,54 @@ def replay_candump(path: str | os.PathLike[str], config: EdgeConfig, *, model: M
     engine = ThermalEngine(cfg, model, state, worker_mode="sync")
     clock = FrameClock(cfg.clock.tick_s, cfg.clock.max_catchup_s)
     reader = FrameLogReader(Path(path), codec, include_tx=False)
+    n = len(model.nodes)
+    totals = ReplayTotals(n)
     outs: list[TickOutput] = []
+    # the per-tick rows, as compact as the arrays they become (a TickOutput is several times larger)
+    rows: dict[str, list[Any]] = {k: [] for k in ("t", "estimate", "sigma", "prediction", "current_limit_a", "reason",
+                                                  "state", "pred_err_rms")}
+    rowwise = per_tick or keep_outputs
     n_frames = 0
     try:
         for frame in reader:
             n_frames += 1
             for b in engine.ticks_for(clock.observe(frame.timestamp)):
-                outs.append(engine.tick(b))
+                o = engine.tick(b)
+                totals.add(o)
+                if keep_outputs:
+                    outs.append(o)
+                if rowwise:
+                    for k, v in (("t", o.t), ("estimate", o.estimate), ("sigma", o.sigma), ("prediction", o.prediction),
+                                 ("current_limit_a", o.limits.current_a), ("reason", int(o.limits.reason)),
+                                 ("state", int(o.state)), ("pred_err_rms", o.pred_err_rms)):
+                        rows[k].append(v)
             engine.add_frame(frame, clock.now(), clock.behind(frame.timestamp))
     finally:
         engine.close()
-    n = len(model.nodes)
-    if outs:
-        est = np.array([o.estimate for o in outs])
-        sig = np.array([o.sigma for o in outs])
-        pred = np.array([o.prediction for o in outs])
-    else:
-        est = sig = pred = np.zeros((0, n))
+    table = {k: np.array(v) for k, v in rows.items()}
+    for k in ("estimate", "sigma", "prediction"):
+        if not rows[k]:
+            table[k] = np.zeros((0, n))
     return ReplayResult(
-        nodes=tuple(model.nodes), t=np.array([o.t for o in outs]), estimate=est, sigma=sig, prediction=pred,
-        current_limit_a=np.array([o.limits.current_a for o in outs]), reason=np.array([int(o.limits.reason) for o in outs]),
-        state=np.array([int(o.state) for o in outs]), pred_err_rms=np.array([o.pred_err_rms for o in outs]),
+        nodes=tuple(model.nodes), t=table["t"], estimate=table["estimate"], sigma=table["sigma"],
+        prediction=table["prediction"], current_limit_a=table["current_limit_a"], reason=table["reason"],
+        state=table["state"], pred_err_rms=table["pred_err_rms"],
         decisions=engine.adaptation.decisions, parameters=engine.adaptation.values(), frame_stats=codec.stats.as_dict(),
-        frames=n_frames, malformed_lines=len(reader.malformed_lines), outputs=outs if keep_outputs else [],
+        frames=n_frames, malformed_lines=len(reader.malformed_lines), outputs=outs,
         clock={**clock.stats.as_dict(), "gaps": engine.gaps, "judging": clock.judging},
         flux=None if engine.flux is None else {k: int(engine.flux.counts[k]) for k in OUTCOMES},
+        totals=totals,
     )
 
 
 def replay_log(path: str | os.PathLike[str], config_path: str | os.PathLike[str],
                model_path: str | os.PathLike[str] | None = None, sets: Mapping[str, float] | None = None, *,
-               keep_outputs: bool = False) -> tuple[ReplayResult, Model]:
+               keep_outputs: bool = False, per_tick: bool = True) -> tuple[ReplayResult, Model]:
     """Replay a log with a service configuration file: the result and the model it ran.
 
     ``model_path`` overrides the configuration's model, ``sets`` (``--set``, checked against the
     model's bounds) is merged into its ``model.parameters``; ``keep_outputs`` keeps every tick's
-    :class:`TickOutput`.
+    :class:`TickOutput`; ``per_tick`` False keeps no per-tick arrays (:func:`replay_candump`).
 
     Raises ``thermal_edge.config.ConfigError``, ``FileNotFoundError`` or
     ``thermal_edge.bus.LogFormatError`` with one-line messages (the last also for a log without
@@ -149,12 +221,12 @@ def replay_log(path: str | os.PathLike[str], config_path: str | os.PathLike[str]
     if sets:
         cfg = replace(cfg, model=ModelConfig(cfg.model.path, {**cfg.model.parameters, **sets}))
     model = load_service_model(cfg)
-    res = replay_candump(path, cfg, model=model, keep_outputs=keep_outputs)
+    res = replay_candump(path, cfg, model=model, keep_outputs=keep_outputs, per_tick=per_tick)
     if not res.frames:  # nothing of the drive's CAN matrix: the wrong log, not a short one
         other = int(res.frame_stats.get("unknown_id", 0))
         raise LogFormatError(f"{path}: no frame of the drive's CAN matrix ({other} frame(s) with other identifiers, "
                              f"{res.malformed_lines} malformed line(s)): not a CAN log of this drive, or an empty one")
-    if not len(res.t):  # nothing to report but zeros: refused as a log too short, not printed as a result
+    if not res.totals.ticks:  # nothing to report but zeros: refused as a log too short, not printed as a result
         raise LogFormatError(f"{path}: {res.frames} frame(s) of the drive's CAN matrix but not one tick (a tick needs "
                              f"frames on both sides of a {cfg.clock.tick_s:g} s boundary): too short to replay")
     return res, model
@@ -164,16 +236,18 @@ def replay_summary(path: str | os.PathLike[str], config_path: str | os.PathLike[
                    model_path: str | os.PathLike[str] | None = None,
                    sets: Mapping[str, float] | None = None) -> dict[str, Any]:
     """``thermal-edge replay --format can``: replay a log with a service configuration
-    (:func:`replay_log`) and summarise it (:func:`summarise`)."""
-    res, model = replay_log(path, config_path, model_path, sets)
+    (:func:`replay_log`, nothing kept per tick) and summarise it (:func:`summarise`)."""
+    res, model = replay_log(path, config_path, model_path, sets, per_tick=False)
     return summarise(path, res, model)
 
 
 def summarise(path: str | os.PathLike[str], res: ReplayResult, model: Model) -> dict[str, Any]:
-    """The summary of a replay (JSON-serialisable): frames, ticks, drops, adaptations, peaks."""
+    """The summary of a replay (JSON-serialisable): frames, ticks, drops, adaptations, peaks (from
+    :attr:`ReplayResult.totals`: the same with or without the per-tick arrays)."""
     lim = {name: i for i, name in enumerate(res.nodes)}
+    tot = res.totals
     out: dict[str, Any] = {
-        "log": str(path), "model": model.name, "frames": res.frames, "ticks": int(len(res.t)),
+        "log": str(path), "model": model.name, "frames": res.frames, "ticks": tot.ticks,
         "malformed_lines": res.malformed_lines,
         "frames_lost": int(res.frame_stats["lost"]),
         "frames_dropped": {k: int(res.frame_stats[k]) for k in DROP_REASONS},
@@ -182,14 +256,13 @@ def summarise(path: str | os.PathLike[str], res: ReplayResult, model: Model) -> 
         "frame_clock": res.clock,
         "voltage_input": res.flux,
     }
-    if len(res.t):
-        out["t_first"], out["t_last"] = float(res.t[0]), float(res.t[-1])
-        out["final_estimate_c"] = {n: float(res.estimate[-1, i]) for n, i in lim.items()}
+    if tot.ticks:
+        out["t_first"], out["t_last"] = tot.t_first, tot.t_last
+        out["final_estimate_c"] = {n: float(tot.final_estimate[i]) for n, i in lim.items()}
         # a limited node never estimated (the observer never started: a sensor frame always refused)
         # has no peak: left out, not NaN
-        out["max_estimate_c"] = {l.name: float(np.nanmax(col)) for l in model.limits
-                                 if np.isfinite(col := res.estimate[:, lim[l.node]]).any()}
-        out["min_current_limit_a"] = float(np.min(res.current_limit_a))
+        out["max_estimate_c"] = {l.name: float(tot.peak[lim[l.node]]) for l in model.limits if tot.finite[lim[l.node]]}
+        out["min_current_limit_a"] = tot.min_current_limit_a
     return out
 
 
