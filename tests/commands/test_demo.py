@@ -131,3 +131,35 @@ def test_the_demo_runs_a_configuration_for_another_machine(tmp_path):
     assert "sensor_fault" not in r.stdout + r.stderr and "not_fitted" not in r.stdout + r.stderr, r.stdout[-2000:]
     assert "no reading of" not in r.stdout
 
+
+
+#: runs ``thermal-edge demo`` for the simulated seconds given, one after the other in this process,
+#: and prints what its emulator kept per simulated second: trace rows, estimates and limits received
+_KEPT_PER_RUN = """
+import json, sys
+from thermal_edge.cli import main
+from thermal_edge.sim.inverter import InverterEmulator
+emulators, run = [], InverterEmulator.run
+def recording_run(self, *a, **kw):
+    emulators.append(self)
+    return run(self, *a, **kw)
+InverterEmulator.run = recording_run
+kept = []
+for seconds in sys.argv[1:]:
+    assert main(["demo", "--duration", seconds, "--speed", "1000", "--quiet", "--no-table4", "--metrics-port", "0"]) == 0
+    e = emulators[-1]
+    kept.append([e.elapsed, len(e.trace_t) + len(e.trace_T) + len(e.trace_i), len(e.estimates), len(e.limit_log)])
+print(json.dumps(kept))
+"""
+
+
+def test_the_demos_simulated_machine_keeps_nothing_per_second(tmp_path):
+    """A demo on a show floor runs for days: its simulated inverter keeps no trace of the plant and no
+    log of what the service sends (what grew by 1 kB a simulated second), however long it runs."""
+    env = {**os.environ, "TMPDIR": str(tmp_path), "OPENBLAS_NUM_THREADS": "1"}
+    r = subprocess.run([sys.executable, "-c", _KEPT_PER_RUN, "60", "120"], capture_output=True, text=True, timeout=180,
+                       env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    (t1, *kept1), (t2, *kept2) = json.loads(r.stdout.splitlines()[-1])
+    assert t2 > t1 >= 59.0  # both ran, the second twice as long
+    assert kept1 == kept2 == [0, 0, 0]

@@ -32,7 +32,7 @@ def read_can_runs(path):
 def _emulate(path, **cfg) -> InverterEmulator:
     """The inverter's frames of an open-loop run written to ``path``; the emulator keeps the truth."""
     settings = dict(model_path=MODEL, cycle_path=CYCLE, duration_s=DURATION_S, t0=T0, current_period_s=0.1,
-                    temperature_period_s=1.0, closed_loop=False)
+                    temperature_period_s=1.0, closed_loop=False, trace_every_s=1.0)
     emu = InverterEmulator(EmulatorConfig(**{**settings, **cfg}))
     emu.write_log(path)
     return emu

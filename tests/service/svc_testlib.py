@@ -317,7 +317,7 @@ def emulator_config(**kw: Any):
     from thermal_edge.sim.inverter import EmulatorConfig
 
     base = dict(model_path=MODEL, cycle_path=CYCLES / "overload.yaml", speed=SPEED, t0=T0, current_period_s=CURRENT_PERIOD_S,
-                temperature_period_s=TEMPERATURE_PERIOD_S, plant_dt_s=PLANT_DT_S)
+                temperature_period_s=TEMPERATURE_PERIOD_S, plant_dt_s=PLANT_DT_S, trace_every_s=1.0, record_estimates=True)
     base.update(kw)
     return EmulatorConfig(**base)
 

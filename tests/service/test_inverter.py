@@ -3,6 +3,7 @@ ambient drift, sensor noise and quantisation."""
 from __future__ import annotations
 
 import asyncio
+import gc
 import math
 import time
 
@@ -21,7 +22,7 @@ from thermal_edge.sim.plant import simulate_plant
 
 def emulator(bus: dict | None = None, **kw) -> InverterEmulator:
     base = dict(model_path=MODEL, cycle_path=CYCLES / "varied_drive.yaml", t0=0.0, current_period_s=0.1,
-                temperature_period_s=1.0, plant_dt_s=0.5, duration_s=1200.0)
+                temperature_period_s=1.0, plant_dt_s=0.5, duration_s=1200.0, trace_every_s=1.0, record_estimates=True)
     base.update(kw)
     return InverterEmulator(EmulatorConfig(**base), bus)
 
@@ -192,3 +193,43 @@ def test_real_time_frames_come_at_their_cycle_not_in_bursts():
           f"max {gaps.max() * 1e3:.1f} ms, {np.sum(gaps > 0.08)} over 80 ms; earliest vs its time {early.min() * 1e3:+.1f} ms")
     assert len(stamps) == 300
     assert early.min() >= -PACE_MIN_SLEEP_S  # frames due within PACE_MIN_SLEEP_S go at once
+
+
+def _held_by_the_emulator(seconds: float) -> list[int]:
+    """Bytes allocated by the emulator's own code (not the plant's bounded caches of operating
+    points) and still held after ``seconds``, ``2 * seconds`` and ``3 * seconds`` of a closed loop,
+    with the defaults the demo runs on (no trace, no log of what it receives)."""
+    import tracemalloc
+
+    from thermal_edge.sim import inverter
+
+    emu = InverterEmulator(EmulatorConfig(model_path=MODEL, cycle_path=CYCLES / "varied_drive.yaml", t0=0.0,
+                                          current_period_s=0.5, temperature_period_s=1.0, plant_dt_s=1.0))
+    tick = 0
+    own = [tracemalloc.Filter(True, inverter.__file__)]
+
+    def run_to(t_end: float) -> int:
+        nonlocal tick
+        while emu.elapsed < t_end - 1e-9:
+            emu.step(None)
+            tick += 1  # the service's frames of a tick: its estimates, a limit that changes every tick
+            emu._on_frame(DecodedFrame("TE_Estimates", 0x2A1, {"TE_T_HotSpot": 80.0 + tick % 7, "TE_T_HotSpotUpper": 82.0,
+                                                               "TE_T_Magnet": 60.0, "TE_T_MagnetUpper": 61.0}, 0, emu.sim_time))
+            emu._on_frame(DecodedFrame("TE_Limits", 0x2A0, {"TE_TorqueLimit": 200.0, "TE_CurrentLimit": 30.0 + tick % 5,
+                                                            "TE_DerateActive": 1, "TE_DerateReason": 1}, 0, emu.sim_time))
+        gc.collect()
+        return sum(t.size for t in tracemalloc.take_snapshot().filter_traces(own).traces)
+
+    tracemalloc.start()
+    try:
+        return [run_to(k * seconds) for k in (1, 2, 3)]
+    finally:
+        tracemalloc.stop()
+
+
+def test_the_emulator_holds_nothing_per_second_unless_asked():
+    """A demo or a bench runs the emulator for days: by default it keeps no trace of the plant and no
+    log of the estimates and limits it receives, so what it holds does not grow with the run."""
+    held = _held_by_the_emulator(600.0)
+    # kept per simulated second, the trace and the received log were about 1 kB: 600 kB more each time
+    assert held[2] - held[1] < 5_000 and held[1] - held[0] < 5_000, held

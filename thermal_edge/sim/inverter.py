@@ -37,8 +37,10 @@ currents at that speed, from the plant's *true* winding and magnet temperatures 
 voltage noise, from a random stream of its own, so that the PT100 readings are the same with and
 without the voltage frame).
 
-The plant's true node temperatures are kept (:attr:`InverterEmulator.T`, and a trace every
-``trace_every_s``) for tests.
+The plant's true node temperatures now are :attr:`InverterEmulator.T`. A trace of them (a row
+every ``trace_every_s``) and a log of the ``TE_Estimates`` and ``TE_Limits`` changes received
+(``record_estimates``) are kept only when asked (tests, ``--trace``): they grow with the run, and
+a demo or a bench runs for days.
 
 Run as a process: ``python -m thermal_edge.sim.inverter --help``.
 """
@@ -156,8 +158,12 @@ class EmulatorConfig:
     flow_timeout_s: float = 2.0  # wall
     max_free_s: float | None = None  # simulated s run on without a service before waiting for one again
     service_tick_s: float = 1.0
-    trace_every_s: float = 1.0
-    record_estimates: bool = True  # keep every TE_Estimates and TE_Limits change received (tests); off for long runs
+    #: simulated s between rows of the trace (:meth:`InverterEmulator.trace`); inf: no trace (a row a
+    #: second of a 39-node model is 2 MB per simulated hour, kept for the whole run)
+    trace_every_s: float = math.inf
+    #: keep every TE_Estimates and TE_Limits change received (the trace's ``est_*``, ``limit_*``; about
+    #: 1.5 MB per simulated hour of a closed loop)
+    record_estimates: bool = False
     seed: int = 0
     sensor_signals: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_SENSOR_SIGNALS))
     #: the machine's electrical side: with it the currents have the field-weakening ``i_d`` at high speed
@@ -265,7 +271,7 @@ class InverterEmulator:
         self._ts = self.t0
         self._frame_k = 0
         self._temp_k = 0
-        self._next_trace = 0.0
+        self._next_trace = 0.0 if math.isfinite(cfg.trace_every_s) else math.inf
         self._next_aging = 0.0
         # fault injection (tests)
         self.sensor_status: dict[str, int] = {}
@@ -768,6 +774,7 @@ def main(argv: list[str] | None = None) -> int:
         closed_loop=not args.open_loop, fallback_current_a=args.fallback_current, flow_control=not args.no_flow_control,
         max_lead_s=args.max_lead, seed=args.seed, flow_timeout_s=args.flow_timeout, limits_timeout_s=args.limits_timeout,
         max_free_s=args.max_free, pmsm=Pmsm() if args.voltages else None,
+        trace_every_s=1.0 if args.trace else math.inf, record_estimates=bool(args.trace),
     )
     bus: dict[str, Any] = {"interface": args.interface}
     if "preserve_timestamps" in interface_keywords(args.interface):  # simulated time on virtual/udp buses
