@@ -111,7 +111,9 @@ class EdgeService:
         self.state_lock = StateLock(config.state.dir)
         self.state_lock.acquire()  # before anything is read: a second service on the directory stops here
         self.store = StateStore(config.state.dir, self.model)
-        restored = self.store.load()
+        # a state file this model cannot use is moved aside only once the configuration is accepted
+        # (the end of this constructor): a refused configuration leaves the directory as it was
+        restored = self.store.load(defer=True)
         self.store.probe()  # an unwritable state directory: ERROR, counted; the service protects on and retries
         self.engine = ThermalEngine(config, self.model, restored, worker_mode)
         self.frame_mode = config.clock.mode == "frame"
@@ -146,6 +148,7 @@ class EdgeService:
         self.signals_ignored: dict[str, int] = {}
         self.on_tick: list[Callable[[TickOutput], Any]] = []
         self.max_lateness_s = 0.0
+        self.store.settle()
 
     # ------------------------------------------------------------------------------------------
     async def start(self) -> None:
