@@ -705,7 +705,7 @@ def test_a_refused_configuration_leaves_the_learned_state_in_place(tmp_path, mod
     for the corrected configuration's start."""
     from svc_testlib import edge_raw
 
-    from thermal_edge.errors import ConfigError
+    from thermal_edge.config import ConfigError
     from thermal_edge.service.service import EdgeService
 
     state = tmp_path / "state"
