@@ -21,7 +21,7 @@ import sys  # noqa: E402
 import typing  # noqa: E402
 
 from . import __version__  # noqa: E402
-from .commands import COMMANDS, add_commands, resolve_named_files, warnings_to_stderr  # noqa: E402
+from .commands import COMMANDS, add_commands, resolve_named_files, stream_is_journal, warnings_to_stderr  # noqa: E402
 from .errors import ThermalEdgeError  # noqa: E402
 
 
@@ -46,8 +46,6 @@ def error_line(text: str) -> str:
     """``text``, the one line of a user error, with the journal's priority prefix ``<3>`` (err)
     when stderr is the journal (under systemd): the line that says why the unit stopped must
     show in ``journalctl -p warning`` as the service's own ERROR lines do."""
-    from .service.journal import stream_is_journal
-
     return f"<3>{text}" if stream_is_journal(sys.stderr) else text
 
 
