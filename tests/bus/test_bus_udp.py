@@ -180,7 +180,7 @@ async def test_a_burst_of_own_frames_sent_before_any_echo_is_read_stays_echoes(u
         other.shutdown()
     assert te.stats.foreign_own_id == 1
     errors = [r.getMessage() for r in caplog.records if "sent by another node" in r.getMessage()]
-    assert len(errors) == 1 and errors[0].startswith(f"CAN bus udp_multicast") and " 1 frame(s) " in errors[0]
+    assert len(errors) == 1 and errors[0].startswith("CAN bus udp_multicast") and " 1 frame(s) " in errors[0]
 
 
 async def _until(predicate, timeout: float = HANG_S) -> bool:
