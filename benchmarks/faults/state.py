@@ -339,7 +339,7 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         # saved a day "in the future" (the clock set back: an RTC reset) by a machine 60 K hotter than
         # the readings: its age is unknown, the temperatures start from the readings, the parameters kept
         # (used as it was, it made healthy PT100s "stuck" and a model fault of half an hour)
-        HOT_FUTURE: (with_(saved_at=float(seed["saved_at"]) + 86400.0, T=[x + 60.0 for x in seed["T"]],
+        HOT_FUTURE: (with_(saved_at=time.time() + 86400.0, T=[x + 60.0 for x in seed["T"]],
                            T_pred=[x + 60.0 for x in seed.get("T_pred") or seed["T"]]), True),
         # a new model file (or edge.yaml model.parameters) moved where k_a_ew starts: its learned value
         # belongs to the old start and is dropped, the others kept
