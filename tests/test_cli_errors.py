@@ -40,6 +40,26 @@ def test_a_user_error_is_one_line_and_exit_2():
     assert r.stderr.splitlines() == ["thermal-edge config example: error: --model pm11: no such file"]
 
 
+def test_under_systemd_the_error_line_carries_the_journals_err_priority(tmp_path):
+    """stderr being the journal (``JOURNAL_STREAM`` names its device and inode, as systemd sets it):
+    the one line that says why the unit stopped is filed at priority 3, ``journalctl -p warning``
+    shows it; an argparse error too. On any other stderr the line stays plain."""
+    import os
+
+    err = tmp_path / "journal"
+    for argv, line in ((("config", "example"), "thermal-edge config example: error: --model pm11: no such file"),
+                       (("config", "example", "--nosuch"), "thermal-edge config example: error: unrecognized arguments: "
+                                                           "--nosuch")):
+        with open(err, "w") as fh:
+            st = os.fstat(fh.fileno())
+            r = subprocess.run([sys.executable, "-c", RAISING.format(exc="UsageError('--model pm11: no such file')"), *argv],
+                               stderr=fh, stdout=subprocess.DEVNULL, timeout=120,
+                               env={**os.environ, "JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"})
+        assert r.returncode == 2 and err.read_text().splitlines() == [f"<3>{line}"]
+    r = _run("UsageError('--model pm11: no such file')", "config", "example")
+    assert r.stderr.splitlines() == ["thermal-edge config example: error: --model pm11: no such file"]
+
+
 def test_debug_shows_the_traceback_of_a_user_error():
     r = _run("UsageError('--model pm11: no such file')", "--debug", "config", "example")
     assert r.returncode == 1

@@ -21,7 +21,7 @@ import sys  # noqa: E402
 import typing  # noqa: E402
 
 from . import __version__  # noqa: E402
-from .commands import COMMANDS, add_commands, resolve_named_files, warnings_to_stderr  # noqa: E402
+from .commands import COMMANDS, add_commands, resolve_named_files, stream_is_journal, warnings_to_stderr  # noqa: E402
 from .errors import ThermalEdgeError  # noqa: E402
 
 
@@ -39,7 +39,14 @@ class OneLineParser(argparse.ArgumentParser):
     Sub-command parsers are made of the same class."""
 
     def error(self, message: str) -> typing.NoReturn:
-        self.exit(2, f"{self.prog}: error: {message}\n")
+        self.exit(2, error_line(f"{self.prog}: error: {message}") + "\n")
+
+
+def error_line(text: str) -> str:
+    """``text``, the one line of a user error, with the journal's priority prefix ``<3>`` (err)
+    when stderr is the journal (under systemd): the line that says why the unit stopped must
+    show in ``journalctl -p warning`` as the service's own ERROR lines do."""
+    return f"<3>{text}" if stream_is_journal(sys.stderr) else text
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
@@ -88,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         # named by the (sub-)sub-command, as its option errors are: `thermal-edge flux calibrate: error:`
-        print(f"{innermost_parser(parser, args).prog}: error: {msg}", file=sys.stderr)
+        print(error_line(f"{innermost_parser(parser, args).prog}: error: {msg}"), file=sys.stderr)
         return 2
 
 

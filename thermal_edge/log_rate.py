@@ -9,11 +9,24 @@ command line can install it before any command is chosen.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
-from typing import Any
+from typing import IO, Any
 
-__all__ = ["RateLimit", "warnings_to_stderr"]
+__all__ = ["RateLimit", "stream_is_journal", "warnings_to_stderr"]
+
+
+def stream_is_journal(stream: IO[str], environ: dict[str, str] | None = None) -> bool:
+    """True if ``stream`` is the journal's stream (systemd sets ``JOURNAL_STREAM`` to its device:inode)."""
+    env = os.environ if environ is None else environ
+    js = env.get("JOURNAL_STREAM", "")
+    try:
+        dev, ino = (int(x) for x in js.split(":"))
+        st = os.fstat(stream.fileno())
+    except (ValueError, OSError, AttributeError):
+        return False
+    return st.st_dev == dev and st.st_ino == ino
 
 
 class RateLimit(logging.Filter):

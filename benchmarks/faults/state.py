@@ -46,6 +46,7 @@ from .harness import (
 )
 
 STATE = "state.json"
+HOT_FUTURE = "hot_state_saved_in_the_future"
 LEARNED_SCALE = 1.2  # learned parameters: the nominal value moved by this factor (inside the bounds)
 
 
@@ -335,6 +336,11 @@ def _state_variants(seed: dict[str, Any], full: bool) -> dict[str, tuple[Callabl
         "zero_covariance": (with_(P=[[0.0] * len(seed["T"]) for _ in seed["T"]], sigma=[0.0] * len(seed["T"])), False),
         # a model update renamed or removed a parameter: the others are kept
         "unknown_parameter_name": (with_(parameters=dict(seed["parameters"], R_nosuch=1.0)), True),
+        # saved a day "in the future" (the clock set back: an RTC reset) by a machine 60 K hotter than
+        # the readings: its age is unknown, the temperatures start from the readings, the parameters kept
+        # (used as it was, it made healthy PT100s "stuck" and a model fault of half an hour)
+        HOT_FUTURE: (with_(saved_at=time.time() + 86400.0, T=[x + 60.0 for x in seed["T"]],
+                           T_pred=[x + 60.0 for x in seed.get("T_pred") or seed["T"]]), True),
         # a new model file (or edge.yaml model.parameters) moved where k_a_ew starts: its learned value
         # belongs to the old start and is dropped, the others kept
         "learned_from_another_model_value": (with_(nominal=_nominal_moved(OUTDATED)), True),
@@ -374,6 +380,12 @@ def corrupt_states(full: bool) -> Iterator[Case]:
                     expected[OUTDATED] = float(_model_parameters()[OUTDATED]["value"])
                 lost = params_lost(expected, parameter_metrics(m), rel=1e-6) + len(aside)
                 c.add(len(temps), f"temp file(s) left: {temps}")
+                if name == HOT_FUTURE:  # a model fault needs its ticks: 5 of innovation above 15 K
+                    time.sleep(8.0)
+                    faults = metric(svc.metrics(), "thermal_edge_model_faults_total")
+                    stuck = _log_names(svc, "stuck")
+                    c.add(int(faults > 0 or stuck), f"{faults:.0f} model fault(s){', sensors judged stuck' if stuck else ''}"
+                                                    " against a state of unknown age")
             else:
                 c.add(int(not aside), "the file was not moved aside (the next start meets it again)")
             code = svc.stop()
@@ -644,7 +656,9 @@ def persist(full: bool) -> Iterator[Case]:
     """Signals and unwritable state: each of SIGHUP, SIGUSR1, SIGUSR2, SIGALRM
     is logged by name and ignored while TE_Limits flows on; SIGQUIT stops cleanly with the state saved;
     saves that fail while running are logged again (not only the first) and a failed final save is
-    reported as such with exit 3; a read-only state directory at start does not stop the protection."""
+    reported as such with exit 3; a read-only state directory at start does not stop the protection,
+    nor a full one at the first start (no lock file yet), nor a lock path taken by a directory or a
+    FIFO (named in the log); a configuration refused at start leaves the state file where it was."""
     rounds = 5 if full else 1
     with rig("persist") as r:
         sd = r.workdir / "state"
@@ -747,6 +761,29 @@ def persist(full: bool) -> Iterator[Case]:
         yield Case.of("save_fails_at_stop", "persistence", 1,
                       f"{errors:.0f} failed saves in {took:.0f} s, {len(lines)} ERROR line(s); exit {code}; stop line "
                       f"{'claims saved' if claims else 'says not saved'}", c)
+        yield from _lock_not_a_file(r, sd, learned)
+        yield _refused_config_keeps_the_state(r, sd)
+        # a full state directory at the first start (no lock file yet: its pid cannot be written)
+        fs = r.workdir / "full-state"
+        with _small_fs(fs) as mounted:
+            if mounted:
+                shutil.copy(sd / STATE, fs / STATE)
+                subprocess.run(["dd", "if=/dev/zero", f"of={fs / 'filler'}", "bs=64k"], capture_output=True)
+                svc, first = r.start(r.config(fs, state={"save_interval_s": 0.5}), timeout=20.0)
+                t0 = time.time()
+                time.sleep(2.0)
+                c = common_checks(_bed(svc, r.monitor, r.group, r.port, r.workdir), t0, time.time())
+                c.add(int(first is None), f"no TE_Limits after the start (exit {svc.proc.returncode if svc.proc else None})")
+                failing = metric(svc.metrics(), "thermal_edge_state_save_failing")
+                c.add(int(not failing >= 1), f"state_save_failing {failing:g} while the directory is full")
+                lost = params_lost(learned, parameter_metrics(svc.metrics()), rel=1e-6)
+                code = svc.stop()
+                c.add(svc.tracebacks(), "traceback")
+                yield Case.of("state_dir_full_at_first_start", "persistence", 1,
+                              f"first TE_Limits {'none' if first is None else f'{first:.1f} s'}; state_save_failing "
+                              f"{failing:g}; exit {code}", c, lost)
+            else:
+                yield Case("state_dir_full_at_first_start", "persistence", 0, "not run: mounting a tmpfs needs root")
         # a read-only state directory at start (a filesystem remounted read-only after an I/O error)
         ro = r.workdir / "ro-state"
         with _small_fs(ro) as mounted:
@@ -772,6 +809,56 @@ def persist(full: bool) -> Iterator[Case]:
             yield Case.of("state_dir_read_only_at_start", "persistence", 1,
                           f"first TE_Limits {'none' if first is None else f'{first:.1f} s'}; state_save_failing "
                           f"{failing:g}; exit {code}", c, lost + n)
+
+
+def _lock_not_a_file(r: Rig, sd: Path, learned: dict[str, float]) -> Iterator[Case]:
+    """The lock path taken by a directory or a FIFO: the service starts, protects and names it (it
+    had run silently without its lock, or exited 2 "Invalid argument"); the state is kept."""
+    for kind in ("directory", "fifo"):
+        d = r.workdir / f"lock-{kind}"
+        d.mkdir()
+        shutil.copy(sd / STATE, d / STATE)
+        if kind == "directory":
+            (d / "lock").mkdir()
+        else:
+            os.mkfifo(d / "lock")
+        svc, first = r.start(r.config(d))
+        t0 = time.time()
+        time.sleep(1.5)
+        c = common_checks(_bed(svc, r.monitor, r.group, r.port, r.workdir), t0, time.time())
+        c.add(int(first is None), f"no TE_Limits after the start (exit {svc.proc.returncode if svc.proc else None})")
+        named = _log_names(svc, "cannot lock the state directory", str(d / "lock"))
+        c.add(int(not named), "no line names the lock path")
+        lost = params_lost(learned, parameter_metrics(svc.metrics()), rel=1e-6)
+        code = svc.stop()
+        c.add(int(code != 0), f"exit {code}")
+        c.add(svc.tracebacks(), "traceback")
+        n, _ = _state_check(d, learned)
+        yield Case.of(f"lock_is_a_{kind}", "persistence", 1, f"first TE_Limits {'none' if first is None else f'{first:.1f} s'}"
+                      f"; {'named' if named else 'not named'}; exit {code}", c, lost + n)
+
+
+def _refused_config_keeps_the_state(r: Rig, sd: Path) -> Case:
+    """edge.yaml pointed at another model by mistake: refused (exit 2), and the state file of the
+    machine is where it was, byte for byte (it had been moved aside before the refusal)."""
+    d = r.workdir / "refused-config"
+    d.mkdir()
+    shutil.copy(sd / STATE, d / STATE)
+    before = (d / STATE).read_bytes()
+    raw = r.config(d)
+    raw["model"] = {**raw["model"], "path": str(ROOT / "tests" / "commands" / "models" / "two_node.yaml")}
+    path = d.parent / "refused-config.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    code, err = _run_config(path, [])
+    c = Check()
+    c.add(int(code != 2), f"exit {code}, not 2")
+    kept = (d / STATE).exists() and (d / STATE).read_bytes() == before
+    c.add(int(not kept), "the state file was moved or changed")
+    aside = [p.name for p in d.iterdir() if p.name.startswith(STATE + ".corrupt")]
+    return Case.of("config_refused_keeps_the_state", "persistence", 1,
+                   f"exit {code}: {err.strip().splitlines()[-1][-90:] if err.strip() else 'no message'}; state "
+                   f"{'kept' if kept else 'NOT kept'}{'; moved aside: ' + ', '.join(aside) if aside else ''}", c,
+                   int(not kept))
 
 
 GROUPS = {"crash": crash_safety, "states": corrupt_states, "configs": broken_configs, "soak": soak, "persist": persist}

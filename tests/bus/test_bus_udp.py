@@ -153,5 +153,35 @@ async def test_another_node_sending_this_nodes_limits_is_counted_logged_recorded
     assert not any(f.name == "TE_Limits" for f in frames)  # never decoded, never obeyed
 
 
+async def test_a_burst_of_own_frames_sent_before_any_echo_is_read_stays_echoes(udp_port, caplog):
+    """The frame clock ticking through a gap sends a frame per tick at once, before the loop reads
+    any echo: 2,000 TE_Limits (every payload distinct, as the counter and the limits change) sent
+    without yielding are all recognised as ours when their echoes arrive, none taken for another
+    node's (no ERROR); a frame of another node sent after them still is."""
+    import can
+
+    from thermal_edge.bus import create_bus
+
+    n = 2000
+    te = CanTransport({"interface": "udp_multicast", "port": udp_port, "node": "TE"}, FrameCodec(DBC_PATH))
+    limits_id = te.codec.frame_id("TE_Limits")
+    other = create_bus({"interface": "udp_multicast", "port": udp_port})
+    try:
+        async with te:
+            for k in range(n):  # no await in between: no echo can be read meanwhile
+                assert te.send_raw(limits_id, te.codec.encode("TE_Limits", {**LIMITS, "TE_CurrentLimit": k * 0.05},
+                                                             counter=k % 16))
+            dropped = lambda: udp_socket_drops(te.bus.socket)  # noqa: E731
+            assert await _until(lambda: te.stats.own_echo + dropped() >= n), (te.stats.own_echo, dropped())
+            other.send(can.Message(arbitration_id=limits_id, data=te.codec.encode("TE_Limits", {**LIMITS,
+                                   "TE_CurrentLimit": 0.0}, counter=3), is_extended_id=False))
+            assert await _until(lambda: te.stats.foreign_own_id >= 1)
+    finally:
+        other.shutdown()
+    assert te.stats.foreign_own_id == 1
+    errors = [r.getMessage() for r in caplog.records if "sent by another node" in r.getMessage()]
+    assert len(errors) == 1 and errors[0].startswith("CAN bus udp_multicast") and " 1 frame(s) " in errors[0]
+
+
 async def _until(predicate, timeout: float = HANG_S) -> bool:
     return await async_wait_until(predicate, timeout, 0.01)

@@ -89,6 +89,8 @@ def test_readme_install_steps_then_service_against_the_simulated_machine(tmp_pat
     etc = root / "etc" / "thermal-edge"
     assert (venv / "bin" / "thermal-edge").exists()
     assert (etc / "edge.yaml").exists() and (etc / "machines" / "pm10kw.yaml").exists()
+    # the file the unit's Documentation= names, from the installed package (a wheel has no checkout)
+    assert (venv / "share" / "thermal-edge" / "README.md").read_text(encoding="utf-8") == README.read_text(encoding="utf-8")
     # the configuration runs the installed copy of the model, the one the user edits
     assert yaml.safe_load((etc / "edge.yaml").read_text())["model"]["path"] == "machines/pm10kw.yaml"
     # installed from the checkout, not the repository's editable install

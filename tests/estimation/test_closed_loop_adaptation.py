@@ -159,3 +159,26 @@ def test_a_restart_shows_what_the_saved_decisions_left(tmp_path: Path):
         assert ad.last_refusal == (100.0, "not better", "challenger dropped (not better) on the 1800 s after its fit")
     finally:
         ad.close()
+
+
+def test_a_challenger_with_too_few_samples_scored_is_said_so_not_as_a_nan_score():
+    """After a state re-initialised by a model fault the periods after a fit may hold fewer than
+    three samples with both predictions finite: the judge waits, then drops, and the log says why in
+    words (it had said ``MSE +nan K²``)."""
+    from thermal_edge.estimation.adapter import drop_cause, judge, verdict_reason
+
+    nan = np.full(10, np.nan)
+    some = np.concatenate([np.full(8, np.nan), [0.3, 0.2]])
+    for share, outcome, words in ((0.5, "wait", "waiting for the next period"),
+                                  (1.0, "drop", "challenger dropped (never scored)")):
+        v = judge({"winding": some}, {"winding": nan}, 0.1, 2.0, 0.05, 1.0, share=share)
+        assert v.outcome == outcome and v.samples == 0 and not np.isfinite(v.improvement_k2)
+        reason = verdict_reason(v, 180.0)
+        assert "nan" not in reason.lower() and words in reason and "too few of them scored (0 with" in reason, reason
+    assert drop_cause(v) == "never scored"
+    # a scored verdict keeps its numbers
+    rng = np.random.default_rng(0)
+    a, b = 0.5 + 0.05 * rng.standard_normal(200), 0.05 * rng.standard_normal(200)
+    v = judge({"winding": a}, {"winding": b}, 0.1, 2.0, 0.05, 1.0, share=1.0)
+    assert v.outcome == "promote" and verdict_reason(v, 1800.0).startswith("challenger promoted: better on the 1800 s "
+                                                                            f"after its fit: MSE {v.improvement_k2:+.4g} K²")

@@ -138,6 +138,9 @@ def test_candump_log_decodes_with_cantools(run):
     good = re.compile(r"^\(\d+\.\d+\) can0 [0-9A-F]{3}#[0-9A-F]{16} [RT] :: (INV|TE)_\w+\(")
     bad = [ln for ln in lines if not good.match(ln)]
     assert not bad, bad[:3]
+    # TE_AdaptCount carries the adaptations accepted since start, as the matrix says (not the runs)
+    counts = [int(m[1]) for ln in lines if (m := re.search(r"TE_Status\(.*TE_AdaptCount: (\d+)", ln))]
+    assert counts and counts[-1] == run.accepted < run.runs, (counts[-1:], run.accepted, run.runs)
 
 
 def test_replay_of_the_log_gives_the_same_estimates(run, tmp_path):

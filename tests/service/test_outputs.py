@@ -36,7 +36,7 @@ def _hand_clamped(out: TickOutput) -> dict[str, dict[str, float]]:
         "TE_Status": {"TE_State": int(out.state),
                       "TE_PredErrRms": (0.0 if math.isnan(e) and out.state != TeState.FAULT
                                         else min(e, 655.35) if math.isfinite(e) else 655.35),
-                      "TE_AdaptCount": out.adapt_runs % 65536, "TE_ParamVersion": out.param_version % 256},
+                      "TE_AdaptCount": out.adapt_accepted % 65536, "TE_ParamVersion": out.param_version % 256},
     }
 
 
@@ -46,7 +46,7 @@ def _output(temp: float, ttl: float, la: float, err: float, state: TeState) -> T
     return TickOutput(t=0.0, state=state, limits=Limits(40.0, 220.0, DerateReason.NONE, False), initialized=True,
                       estimate=np.zeros(n), sigma=np.zeros(n), prediction=np.zeros(n), measured={}, inputs={},
                       pred_error={}, pred_err_rms=err, bands=[band], lookahead_a=la, time_to_limit_s=ttl,
-                      horizon_s=1800.0, adapt_runs=70000, adapt_accepted=0, adapt_rejected=0, param_version=300,
+                      horizon_s=1800.0, adapt_runs=90000, adapt_accepted=70000, adapt_rejected=0, param_version=300,
                       forced=[], stale=[], faults={}, hot_spot=band, magnet=band)
 
 

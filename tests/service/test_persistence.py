@@ -485,6 +485,27 @@ def test_restart_of_a_hot_machine_cools_the_saved_state_and_corrects_it(tmp_path
     assert np.max(np.abs(fresh.estimate - truth)) > np.max(np.abs(out.estimate - truth))
 
 
+def test_a_state_saved_in_the_future_starts_the_temperatures_from_the_readings(tmp_path, model, caplog):
+    """The clock set back (an RTC reset, a replay of an earlier log): the hot state's age is unknown,
+    so its temperatures are not used (no phantom hot machine, no sensor judged stuck against it);
+    the learned parameters are kept."""
+    cfg = _engine_config(tmp_path)
+    hot, _ = steady_state(model, {"speed_rpm": 900.0, "i_rms": 24.0, "torque_nm": 134.0, "ambient_c": 25.0})
+    cold, _ = steady_state(model, {"speed_rpm": 0.0, "i_rms": 0.0, "torque_nm": 0.0, "ambient_c": 25.0})
+    saved = PersistedState(model=model.name, saved_at=50_000.0, parameters={"R_e_hous": 8.5}, nodes=list(model.nodes),
+                           T=[float(x) for x in hot], sigma=[0.3] * len(hot), P=(np.eye(len(hot)) * 0.09).tolist(),
+                           inputs={"ambient_c": 25.0, "speed_rpm": 900.0, "i_rms": 24.0, "torque_nm": 134.0})
+    eng = ThermalEngine(cfg, model, saved, worker_mode="sync")
+    with caplog.at_level(logging.WARNING):
+        out = _feed(eng, model, 10_000.0, cold)  # 40,000 s before the state was saved
+    assert out.initialized and eng.restart_info["downtime_s"] == pytest.approx(-40_000.0)
+    assert np.max(np.abs(out.estimate - cold)) < 0.5  # from the readings of a cold machine, not the hot state
+    assert float(eng.adaptation.theta[model.parameter_index(["R_e_hous"])[0]]) == 8.5
+    said = [r.getMessage() for r in caplog.records if "in the future" in r.getMessage()]
+    assert said == ["saved state is 40000 s in the future (clock changed?): its age is unknown, the temperatures start "
+                    "from the readings (the learned parameters are kept)"]
+
+
 def test_engine_persists_what_it_restores(tmp_path, model):
     cfg = _engine_config(tmp_path)
     eng = ThermalEngine(cfg, model, None, worker_mode="sync")
@@ -613,3 +634,85 @@ def test_probe_says_when_the_state_directory_cannot_be_written(tmp_path, model, 
     assert store.failing == 1 and store.save_errors == 1
     assert f"cannot write the state directory {under_a_file / 'state'}" in caplog.text
     assert "protects without persistence; every save retries" in caplog.text
+
+
+# ------------------------------------------------------------------------------------------
+# the single-instance lock: whatever is in the state directory, the service starts and protects
+@pytest.mark.parametrize("what", ["directory", "fifo", "symlink"])
+def test_a_lock_path_that_is_no_lock_file_is_named_and_the_service_starts(tmp_path, caplog, what):
+    from thermal_edge.service.persistence import LOCKNAME, StateLock
+
+    lock = tmp_path / LOCKNAME
+    if what == "directory":
+        lock.mkdir()
+    elif what == "fifo":
+        os.mkfifo(lock)
+    else:
+        lock.symlink_to(tmp_path / "elsewhere")
+    with caplog.at_level(logging.WARNING):
+        held = StateLock(tmp_path).acquire()
+    assert held is False
+    kind = {"directory": "a directory", "fifo": "a FIFO", "symlink": "a symbolic link"}[what]
+    assert [r.getMessage() for r in caplog.records] == [
+        f"cannot lock the state directory through {lock}: it is {kind}, not a lock file (remove it); the service runs "
+        "without the lock that keeps a second service off this directory"]
+
+
+def test_a_lock_file_a_full_disk_cannot_take_the_pid_is_held_all_the_same(tmp_path, monkeypatch):
+    """The pid only names the holder for a second service's message: a full disk that refuses it
+    (an empty lock file left by an earlier start on that disk) leaves the lock held."""
+    import errno
+
+    from thermal_edge.service.persistence import LOCKNAME, StateLock
+
+    real_write = os.write
+
+    def full(fd, data):
+        if os.path.basename(os.readlink(f"/proc/self/fd/{fd}")) == LOCKNAME:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(fd, data)
+
+    monkeypatch.setattr(os, "write", full)
+    (tmp_path / LOCKNAME).write_text("")
+    a = StateLock(tmp_path)
+    assert a.acquire() is True
+    monkeypatch.setattr(os, "write", real_write)
+    # another process is refused while it is held (the pid unknown)
+    import subprocess
+    import sys
+
+    code = ("import sys; from thermal_edge.service.persistence import StateLock, StateDirInUse\n"
+            f"try:\n    StateLock({str(tmp_path)!r}).acquire()\nexcept StateDirInUse as e:\n    print(e); sys.exit(7)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 7 and "in use by another thermal-edge (pid unknown)" in r.stdout, r.stdout + r.stderr
+    a.release()
+
+
+def test_a_state_a_refused_configuration_would_move_aside_stays_in_place(tmp_path, model):
+    """A deferred load refuses the file (another model's) without touching it; :meth:`settle` moves
+    it once the configuration is accepted: a refused configuration leaves the directory as it was."""
+    (tmp_path / "state.json").write_bytes(edited(model, model="another"))
+    store = StateStore(tmp_path, model)
+    assert store.load(defer=True) is None
+    assert [p.name for p in tmp_path.iterdir()] == ["state.json"] and store.load_errors == 0
+    store.settle()
+    assert store.load_errors == 1 and len(store.quarantined) == 1 and not (tmp_path / "state.json").exists()
+
+
+def test_a_refused_configuration_leaves_the_learned_state_in_place(tmp_path, model):
+    """edge.yaml pointed at another model by mistake: the service refuses the configuration (its
+    signals do not fit that model) and the state file of the machine it protected is where it was,
+    for the corrected configuration's start."""
+    from svc_testlib import edge_raw
+
+    from thermal_edge.config import ConfigError
+    from thermal_edge.service.service import EdgeService
+
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / "state.json").write_bytes(edited(model))  # pm10kw's
+    raw = edge_raw(state, {"interface": "virtual", "channel": "refused"}, table4=False, adapt=False)
+    raw["model"]["path"] = str(REPO / "tests" / "commands" / "models" / "two_node.yaml")
+    with pytest.raises(ConfigError):
+        EdgeService(config_from_mapping(raw, path=tmp_path / "edge.yaml"))
+    assert sorted(p.name for p in state.iterdir() if p.name != "lock") == ["state.json"]

@@ -57,11 +57,53 @@ RX_HANDLE_SLICE = 256
 RX_PENDING_MAX = 20_000
 #: Least time between two warnings about undecodable messages, s (the count is exact).
 RX_WARN_INTERVAL_S = 10.0
-#: frames remembered per own identifier to tell our echoes from another node's frames (TE_Limits
-#: at 10 ms is 64 frames in 0.64 s: an echo comes back within milliseconds)
-ECHO_MEMORY = 64
+#: sends remembered per own identifier to tell our echoes from another node's frames. An echo comes
+#: back within milliseconds, but the frame clock ticking through a gap sends a frame per tick at
+#: once (up to ``clock.max_catchup_s`` = 3600 ticks) before the loop reads any echo; 4096 covers
+#: that burst (a few MB at most, answered sends make room as they are read)
+ECHO_MEMORY = 4096
 #: Time a reader thread blocks in one receive, s (how fast it notices a stop).
 RX_THREAD_POLL_S = 0.1
+
+
+class EchoMemory:
+    """The data of the last ``size`` sends of one identifier, each answering one echo, the oldest
+    first; O(1) per send and per echo (a burst of thousands of sends is matched as fast as one).
+
+    >>> m = EchoMemory(2)
+    >>> m.add(b"a"); m.add(b"a"); m.add(b"b")  # the first "a" forgotten
+    >>> m.take(b"a"), m.take(b"a"), m.take(b"b"), m.take(b"b")
+    (True, False, True, False)
+    """
+
+    def __init__(self, size: int) -> None:
+        self._size = size
+        self._order: collections.deque[list[Any]] = collections.deque()  # [data, answered] in send order
+        self._pending: dict[bytes, collections.deque[list[Any]]] = {}  # data -> its unanswered sends, oldest first
+
+    def add(self, data: bytes) -> None:
+        """Remember a send of ``data``."""
+        entry = [data, False]
+        self._order.append(entry)
+        self._pending.setdefault(data, collections.deque()).append(entry)
+        if len(self._order) > self._size:
+            old = self._order.popleft()
+            if not old[1]:  # unanswered: the oldest pending send of its data, forgotten
+                self._drop(old[0])
+
+    def take(self, data: bytes) -> bool:
+        """Whether a remembered send of ``data`` is unanswered; it is answered by this echo."""
+        if data not in self._pending:
+            return False
+        self._drop(data)[1] = True
+        return True
+
+    def _drop(self, data: bytes) -> list[Any]:
+        queue = self._pending[data]
+        entry = queue.popleft()
+        if not queue:
+            del self._pending[data]
+        return entry
 
 
 def _bus_gone(bus: can.BusABC, exc: BaseException) -> bool:
@@ -146,7 +188,7 @@ class CanTransport:
         # the data of the last frames sent per own identifier: a frame received with one of them
         # is our echo only if it carries data we sent (udp_multicast loops every send back);
         # anything else is another node sending this node's frames
-        self._sent: dict[int, collections.deque[bytes]] = {i: collections.deque(maxlen=ECHO_MEMORY) for i in self._own_ids}
+        self._sent: dict[int, EchoMemory] = {i: EchoMemory(ECHO_MEMORY) for i in self._own_ids}
         self._sent_lock = threading.Lock()  # senders' threads append, the loop matches
         self._foreign_warned_at = -float("inf")
         self._foreign_unreported = 0
@@ -530,13 +572,9 @@ class CanTransport:
     def _is_echo(self, msg: can.Message) -> bool:
         """Whether ``msg`` (one of this node's identifiers) carries data this node sent; each send
         answers one echo."""
-        data = bytes(msg.data)
         with self._sent_lock:
             sent = self._sent.get(msg.arbitration_id)
-            if sent is None or data not in sent:
-                return False
-            sent.remove(data)
-            return True
+            return sent is not None and sent.take(bytes(msg.data))
 
     def _foreign(self, msg: can.Message) -> None:
         """Another node sends a frame of this node (two sources of ``TE_Limits`` on one bus: the
@@ -586,7 +624,7 @@ class CanTransport:
         sent = self._sent.get(arbitration_id)
         if sent is not None:  # before the send: its echo may be read before send() returns
             with self._sent_lock:
-                sent.append(bytes(data))
+                sent.add(bytes(data))
         try:
             bus.send(msg, timeout=self.config.send_timeout_s)
         except can.CanTimeoutError as exc:

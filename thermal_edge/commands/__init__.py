@@ -12,9 +12,10 @@ import importlib
 from dataclasses import dataclass
 from types import ModuleType
 
-from ..log_rate import warnings_to_stderr
+from ..log_rate import stream_is_journal, warnings_to_stderr
 
-__all__ = ["COMMANDS", "Command", "add_commands", "resolve_named_files", "warnings_to_stderr"]
+__all__ = ["COMMANDS", "Command", "add_commands", "resolve_named_files", "stream_is_journal",
+           "warnings_to_stderr"]
 
 
 @dataclass(frozen=True)

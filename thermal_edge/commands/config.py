@@ -23,6 +23,12 @@ provisioning (``grafana/``)::
 
     thermal-edge config deploy /tmp/thermal-edge-deploy
 
+``thermal-edge config readme`` prints the README the package was built with (from its installed
+metadata: a wheel carries no checkout), for the file the unit's ``Documentation=`` names::
+
+    sudo install -d /opt/thermal-edge/share/thermal-edge
+    thermal-edge config readme | sudo tee /opt/thermal-edge/share/thermal-edge/README.md >/dev/null
+
 ``thermal-edge config inverter-example DIR`` writes the worked example of an inverter with a CAN
 matrix of its own (the Acme MC-7: its ``edge.yaml`` and ``acme-mc7.dbc``) into ``DIR``.
 
@@ -61,6 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     mdl = which.add_parser("model", help="print a packaged machine model (for a copy to edit)")
     mdl.add_argument("name", metavar="NAME", help=f"a packaged model: {', '.join(names(MACHINES))}")
     mdl.set_defaults(func=run_model)
+    readme = which.add_parser("readme", help="print the README the package was built with (the unit's Documentation=)")
+    readme.set_defaults(func=run_readme)
     unit = which.add_parser("unit", help="print the systemd unit (thermal-edge.service)")
     unit.set_defaults(func=run_unit)
     dep = which.add_parser("deploy", help="write the deployment files (systemd, Prometheus, Grafana) into DIR")
@@ -110,6 +118,20 @@ def run_model(args: argparse.Namespace) -> int:
     if args.name.removesuffix(".yaml") not in names(MACHINES):
         raise UsageError(f"NAME {args.name}: not a packaged model (packaged: {', '.join(names(MACHINES))})")
     sys.stdout.write(Path(model_file(args.name, "NAME")).read_text(encoding="utf-8"))
+    return 0
+
+
+def run_readme(args: argparse.Namespace) -> int:
+    from importlib.metadata import PackageNotFoundError, metadata
+
+    try:
+        text = metadata("thermal_edge").get_payload()  # type: ignore[attr-defined]  # the long description
+    except PackageNotFoundError:
+        text = None
+    if not text:
+        raise UsageError("readme: this installation of thermal_edge carries no README in its metadata "
+                         "(run from a source tree without `pip install`?)")
+    sys.stdout.write(str(text))
     return 0
 
 

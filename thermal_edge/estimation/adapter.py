@@ -139,6 +139,36 @@ class Verdict:
     vetoed_by: tuple[str, ...] = ()  # the sensors that veto a promotion (see :func:`judge`)
 
 
+def drop_cause(v: Verdict) -> str:
+    """Why a dropped challenger was dropped, in a few words."""
+    if v.vetoed_by:
+        return f"predicts {', '.join(v.vetoed_by)} worse"
+    return "not better" if np.isfinite(v.improvement_k2) else "never scored"
+
+
+def verdict_reason(v: Verdict, evidence_s: float) -> str:
+    """The log's words for a verdict on the ``evidence_s`` (s) recorded after the challenger's fit.
+    Too few samples scored (both predictions finite: a state re-initialised after a model fault,
+    readings missing) is said so, not as a NaN score.
+
+    >>> verdict_reason(Verdict("wait", float("nan"), float("nan"), {}, {}, 1), 180.0)[:74]
+    'challenger undecided on the 180 s after its fit: too few of them scored (1'
+    """
+    if np.isfinite(v.improvement_k2):
+        ev = f"{evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs margin {v.margin_k2:.3g} K²"
+    else:
+        ev = (f"{evidence_s:g} s after its fit: too few of them scored ({v.samples} with both predictions finite, 3 "
+              "needed; a state re-initialised or readings missing)")
+    if v.outcome == "promote":
+        return f"challenger promoted: better on the {ev}"
+    if v.outcome == "drop":
+        return f"challenger dropped ({drop_cause(v)}) on the {ev}"
+    if not np.isfinite(v.improvement_k2):
+        return f"challenger undecided on the {ev}; waiting for the next period"
+    wait = "one period: waiting for the next" if not np.isfinite(v.margin_k2) else f"margin {v.margin_k2:.3g} K²"
+    return f"challenger undecided on the {evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs {wait}"
+
+
 def judge(champion: Mapping[str, np.ndarray], challenger: Mapping[str, np.ndarray], noise_k: float, z: float,
           min_gain: float, tolerance_k: float, share: float, blocks: np.ndarray | None = None) -> Verdict:
     """Compare two open-loop predictions' errors (K) per sensor over the same evidence samples.
@@ -534,7 +564,6 @@ class OnlineAdapter:
         d.candidate_error_k = float(np.sqrt(np.mean(e_new**2))) if len(e_new) else float("nan")
         names = self.params
         vals = dict(zip(names, map(float, cand[self.model.parameter_index(names)])))
-        ev = f"{d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs margin {v.margin_k2:.3g} K²"
         if v.outcome == "promote":
             self.promoted_state = (t_last, sh_chal.state_at(t_last)) if sh_chal is not None else None
             self.theta = cand
@@ -545,19 +574,17 @@ class OnlineAdapter:
             d.accepted = True
             d.params = vals
             d.verdict = "promoted"
-            d.reason = f"challenger promoted: better on the {ev}"
+            d.reason = verdict_reason(v, d.evidence_s)
         elif v.outcome == "drop":
             self.challenger = None
             self.shadows = None
             if v.improvement_k2 < 0:  # refuted: the search restarts from the parameters in use
                 self.iterate = None
-            why = f"predicts {', '.join(v.vetoed_by)} worse" if v.vetoed_by else "not better"
-            d.verdict, d.refusal = "dropped", why
-            d.reason = f"challenger dropped ({why}) on the {ev}"
+            d.verdict, d.refusal = "dropped", drop_cause(v)
+            d.reason = verdict_reason(v, d.evidence_s)
         else:
             d.verdict = "undecided"
-            wait = "one period: waiting for the next" if not np.isfinite(v.margin_k2) else f"margin {v.margin_k2:.3g} K²"
-            d.reason = f"challenger undecided on the {d.evidence_s:g} s after its fit: MSE {v.improvement_k2:+.4g} K² vs {wait}"
+            d.reason = verdict_reason(v, d.evidence_s)
 
     def _done(self, d: Decision, t0: float) -> Decision:
         d.duration_s = time.perf_counter() - t0

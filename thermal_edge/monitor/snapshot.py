@@ -259,7 +259,7 @@ class FrameWatch:
         elif frame.name == TE_STATUS:
             snap.state = _enum_name(TeState, s["TE_State"])
             snap.pred_err_rms_k = float(s["TE_PredErrRms"])
-            snap.adapt_runs = int(s["TE_AdaptCount"])
+            snap.adapt_accepted = int(s["TE_AdaptCount"])
             snap.param_version = int(s["TE_ParamVersion"])
 
     def current(self) -> Snapshot:

@@ -120,9 +120,9 @@ class StateEstimate:
                 except Exception as exc:
                     log.warning("cannot cool the saved state over the downtime (%s): starting from the readings", exc)
                     T0 = None
-            elif downtime < 0:
-                log.warning("saved state is %.0f s in the future (clock changed?): using it as it is", -downtime)
-                T0 = np.array(rs.T)
+            elif downtime < 0:  # a clock set back (an RTC reset, a replay of an earlier log): its age is unknown
+                log.warning("saved state is %.0f s in the future (clock changed?): its age is unknown, the temperatures "
+                            "start from the readings (the learned parameters are kept)", -downtime)
             else:
                 log.info("saved state is %.0f s old (more than %.0f s): starting from the readings", downtime,
                          state.max_downtime_s)

@@ -15,11 +15,10 @@ flood the journal. Callers log every event and never rate-limit themselves.
 from __future__ import annotations
 
 import logging
-import os
 import sys
 from typing import IO, Any
 
-from ..log_rate import RateLimit, StderrHandler
+from ..log_rate import RateLimit, StderrHandler, stream_is_journal
 
 __all__ = ["NOTICE", "PRIORITY", "JournalFormatter", "RateLimit", "notice", "priority", "setup_logging",
            "stream_is_journal"]
@@ -44,18 +43,6 @@ def priority(levelno: int) -> int:
 def notice(logger: logging.Logger, msg: str, *args: Any) -> None:
     """Log ``msg % args`` at NOTICE (syslog priority 5)."""
     logger.log(NOTICE, msg, *args)
-
-
-def stream_is_journal(stream: IO[str], environ: dict[str, str] | None = None) -> bool:
-    """True if ``stream`` is the journal's stream (``JOURNAL_STREAM`` names its device:inode)."""
-    env = os.environ if environ is None else environ
-    js = env.get("JOURNAL_STREAM", "")
-    try:
-        dev, ino = (int(x) for x in js.split(":"))
-        st = os.fstat(stream.fileno())
-    except (ValueError, OSError, AttributeError):
-        return False
-    return st.st_dev == dev and st.st_ino == ino
 
 
 class JournalFormatter(logging.Formatter):

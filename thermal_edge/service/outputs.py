@@ -101,6 +101,6 @@ class TickOutput:
         return {
             "TE_State": int(self.state),
             "TE_PredErrRms": 0.0 if no_error else _finite_or(e, math.inf),
-            "TE_AdaptCount": self.adapt_runs % 65536,
+            "TE_AdaptCount": self.adapt_accepted % 65536,  # the matrix: accepted adaptations since start
             "TE_ParamVersion": self.param_version % 256,
         }

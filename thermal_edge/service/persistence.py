@@ -370,13 +370,26 @@ class StateDirInUse(ThermalEdgeError):
     learned parameters and thermal state."""
 
 
+def _kind(mode: int) -> str:
+    """What a file of this ``st_mode`` is, for a message."""
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISLNK, "a symbolic link"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
 class StateLock:
     """An exclusive advisory lock (``flock``) on ``<state dir>/lock`` while a service runs.
 
     The kernel releases it when the process ends, however it ends, so a killed service never
     leaves a stale lock. Within one process the lock is shared (counted): the process is one
     service. A directory that cannot be written is not locked (the store logs that it cannot
-    save; the service protects without persistence).
+    save; the service protects without persistence). A lock path that is not a regular file (a
+    directory, a FIFO, a symbolic link) or a filesystem without locks is not locked either, with
+    a WARNING naming the path: the service must protect whatever is in its state directory. The
+    pid written into the lock file only names the holder for the message of a second service; a
+    full disk that refuses it leaves the lock held.
     """
 
     #: per lock file of this process: [file descriptor, holders]
@@ -404,7 +417,13 @@ class StateLock:
             return True
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            mode = os.lstat(self.path).st_mode if os.path.lexists(self.path) else stat.S_IFREG
+        except OSError:
+            return False  # the store says that it cannot save
+        if not stat.S_ISREG(mode):
+            return self._unlocked(f"it is {_kind(mode)}, not a lock file (remove it)")
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError:
             return False
         try:
@@ -414,14 +433,22 @@ class StateLock:
             os.close(fd)
             raise StateDirInUse(f"state.dir {self.path.parent}: in use by another thermal-edge (pid {holder}); two "
                                 "services on one state directory would overwrite each other's learned state") from None
-        except OSError:  # a filesystem without locks
+        except OSError as exc:  # a filesystem without locks
             os.close(fd)
-            return False
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+            return self._unlocked(f"the filesystem refuses locks ({exc.strerror or exc})")
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError:  # a full disk: the lock is held all the same, only the holder's pid is not named
+            pass
         StateLock._held[self.path] = [fd, 1]
         self.held = True
         return True
+
+    def _unlocked(self, why: str) -> bool:
+        log.warning("cannot lock the state directory through %s: %s; the service runs without the lock that "
+                    "keeps a second service off this directory", self.path, why)
+        return False
 
     def release(self) -> None:
         """Give the lock up (the last holder of this process closes it)."""
@@ -467,12 +494,18 @@ class StateStore:
         self.last_error: str | None = None
         self.last_saved_wall: float | None = None  # wall time of this process's last good save
         self.quarantined: list[Path] = []
+        self._deferred: list[str] | None = None  # why the file was refused, while its move is deferred
 
-    def load(self) -> PersistedState | None:
+    def load(self, defer: bool = False) -> PersistedState | None:
         """The saved state, or None (missing or unusable: then logged, counted, moved aside).
+
+        With ``defer`` an unusable file is moved aside (and said so) only at :meth:`settle`: a
+        service that refuses its configuration after loading must leave the state as it found it
+        (the right configuration's start may well use it).
 
         Never raises; reads at most :data:`MAX_BYTES`. Removes temporary files of interrupted saves first.
         """
+        self._deferred = [] if defer else None
         self._remove_temp_files()
         try:
             st = os.stat(self.path)
@@ -593,7 +626,16 @@ class StateStore:
             self.temp_removed += 1
             log.warning("removed %s left by an interrupted save", self.dir / name)
 
+    def settle(self) -> None:
+        """Move aside the file a deferred :meth:`load` refused (the configuration accepted since)."""
+        pending, self._deferred = self._deferred or [], None
+        for why in pending:
+            self._bad(why)
+
     def _bad(self, why: str) -> None:
+        if self._deferred is not None:
+            self._deferred.append(why)
+            return None
         self.load_errors += 1
         self.last_error = why
         stamp = f"{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}"

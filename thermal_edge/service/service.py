@@ -111,7 +111,9 @@ class EdgeService:
         self.state_lock = StateLock(config.state.dir)
         self.state_lock.acquire()  # before anything is read: a second service on the directory stops here
         self.store = StateStore(config.state.dir, self.model)
-        restored = self.store.load()
+        # a state file this model cannot use is moved aside only once the configuration is accepted
+        # (the end of this constructor): a refused configuration leaves the directory as it was
+        restored = self.store.load(defer=True)
         self.store.probe()  # an unwritable state directory: ERROR, counted; the service protects on and retries
         self.engine = ThermalEngine(config, self.model, restored, worker_mode)
         self.frame_mode = config.clock.mode == "frame"
@@ -127,6 +129,8 @@ class EdgeService:
         self.metrics.limits_now = self._limits_now
         self.metrics.silent_s = self._silent_for
         self._silent = False  # the bus silent longer than transmit.bus_silence_s (said once in the log)
+        self._limits_called: float | None = None  # monotonic time of the TE_Limits sender's last call
+        self._stalled_s = 0.0  # how long the process stood still before that call (0: it did not)
         self._drop_report = DropReport(self.codec.stats)
         self.metrics.extra.append(("frame_clock_lag_seconds", self._clock_lag,
                                    "Wall time minus clock time of the last frame (frame clock; large = behind)"))
@@ -146,6 +150,7 @@ class EdgeService:
         self.signals_ignored: dict[str, int] = {}
         self.on_tick: list[Callable[[TickOutput], Any]] = []
         self.max_lateness_s = 0.0
+        self.store.settle()
 
     # ------------------------------------------------------------------------------------------
     async def start(self) -> None:
@@ -342,7 +347,10 @@ class EdgeService:
 
     def _limits_signals(self) -> dict[str, float | int]:
         # called in the TE_Limits sender thread
+        self._note_stall()
         silent = self._silent_for()
+        if silent is not None and silent <= self._stalled_s + self.engine.policy.bus_silence_s:
+            silent = None  # the frames of the stall wait in the socket: the process stood still, not the bus
         if (silent is not None) != self._silent:  # said once when it begins and once when it ends
             self._silent = silent is not None
             if self._silent:
@@ -352,6 +360,21 @@ class EdgeService:
             else:
                 notice(log, "frames accepted again after the bus was silent: TE_Limits follows the ticks again")
         return self._limits_now().signals()
+
+    def _note_stall(self) -> None:
+        """Say when the TE_Limits sender itself could not run for longer than
+        ``transmit.bus_silence_s``: the whole process stood still (a paused VM, a swap storm,
+        SIGSTOP, no CPU for it), which the inverter sees as missing TE_Limits; what was on the bus
+        meanwhile waits in the socket and is not a silent bus."""
+        now = time.monotonic()
+        last, self._limits_called = self._limits_called, now
+        gap = 0.0 if last is None else now - last
+        if gap > self.engine.policy.bus_silence_s:
+            self._stalled_s = gap
+            log.warning("this process stood still for %.1f s (no TE_Limits sent meanwhile; a paused VM, a swap "
+                        "storm, a stop signal or no CPU for it): not the bus", gap)
+        elif self._stalled_s and gap > 0.0:
+            self._stalled_s = max(self._stalled_s - gap, 0.0)  # forgotten as the sender runs on
 
     def _frame_age(self) -> float | None:
         """Seconds since the last accepted frame (or the start); None while silence is expected (the
