@@ -170,16 +170,17 @@ def _published_short(rows: list[dict[str, str]], truth: list[dict[str, str]]) ->
 
 def _case(d: Path, name: str, group: str, clean: Path, truth: list[dict[str, str]], t0: float, fault: Fault,
           tried: str, said: str | None, faults: dict[str, float], control: bool = False,
-          published_k: float | None = None, dbc: Path | None = None) -> Case:
+          published_k: float | None = None, dbc: Path | None = None, prefix: str = "INV_T_") -> Case:
     """Replay ``clean`` through ``fault`` and judge it: no tick above the safe current while the plant's
     winding is over its max, and ``said`` in the log (not for a control; None: a plain derate, which
     the replay does not log). With ``published_k``: while the readings are not believed, no estimate
     published more than that (K) below the plant's true sensor temperature. ``dbc``: the inverter's
-    own DBC, which writes the faulted log and which the replay reads."""
+    own DBC, which writes the faulted log and which the replay reads; ``prefix`` names the frame's
+    signals ``fault`` sees (default its temperatures)."""
     raw = yaml.safe_load(service_config_path("edge.yaml").read_text())
     max_c = float(raw["derating"]["limits"]["hot_spot"]["max_c"])
     safe_a = float(raw["derating"]["safe_current_a"])
-    changed = _faulted(clean, d / f"{name}.log", t0, fault, prefix="INV_" if dbc is not None else "INV_T_", dbc=dbc)
+    changed = _faulted(clean, d / f"{name}.log", t0, fault, prefix=prefix, dbc=dbc)
     rows, err, rc = _replay(d, d / f"{name}.log", faults, dbc)
     c = Check()
     c.add(0 if rc == 0 and rows else 1, f"replay exit {rc}: {err.strip()[-200:]}")
@@ -313,7 +314,7 @@ def drift(full: bool) -> Iterator[Case]:
         yield _case(d, "status_code_the_matrix_does_not_define", "readings", clean, truth, t0, flagged_unknown,
                     f"with the slot winding's status {UNKNOWN_STATUS} (a 4-bit signal of the inverter's own DBC) and its "
                     f"reading {FLAGGED_LOW_K:.0f} K low from {UNKNOWN_FROM_S:.0f} s", "slot_winding (unknown_status)", {},
-                    dbc=wide_status_dbc(d))
+                    dbc=wide_status_dbc(d), prefix="INV_")
         yield _case(d, "slot_pt100_hotter_than_the_hot_spot", "readings", clean, _slot_as_read(truth), t0,
                     slot_reads_hotter, f"with the slot winding {SLOT_RAISE_K:.0f} K hotter from {SLOT_RAISED_FROM_S:.0f} s",
                     None, {})

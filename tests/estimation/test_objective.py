@@ -86,10 +86,10 @@ def test_a_free_start_fits_the_start_offsets_by_least_squares(pm10kw, varied_1h)
     gradient against central differences of the objective itself."""
     from scipy.optimize import least_squares
 
-    from thermal_edge.estimation.predict import start_directions
+    from thermal_edge.estimation.predict import start_with_directions
 
     run = varied_1h.run
-    D = start_directions(pm10kw, run)
+    _, D = start_with_directions(pm10kw, run)
     assert D.shape == (len(pm10kw.nodes), len(pm10kw.sensors))
     win = _window(pm10kw, run, varied_1h.truth.T[0] + 0.3)  # a start 0.3 K off everywhere
     space = ParamSpace(pm10kw, NAMES[:3], pm10kw.nominal())
@@ -119,11 +119,11 @@ def test_a_start_reading_off_biases_a_fit_only_without_a_free_start(pm10kw, vari
     less, within three of the stated standard deviations, and the residuals white."""
     from scipy.optimize import least_squares
 
-    from thermal_edge.estimation.predict import start_directions
+    from thermal_edge.estimation.predict import start_with_directions
     from thermal_edge.estimation.uncertainty import estimate_uncertainty
 
     run = varied_1h.run
-    D = start_directions(pm10kw, run)
+    _, D = start_with_directions(pm10kw, run)
     names = ("R_e_hous", "r_ins_sw")
     err, z, tau = {}, {}, {}
     for key, free in (("held", None), ("free", D)):

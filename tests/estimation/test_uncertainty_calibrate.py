@@ -155,10 +155,10 @@ def test_a_noisy_first_reading_does_not_start_the_fit(pm10kw, make_run, monkeypa
     it into R_e_hous (4 % off). Either guard alone keeps the fit within 1 % of the plant's: the
     start from the line through the first half minute (:func:`start_reading`; it still leans a
     little towards the one high sample among its 31), or the start's offsets fitted alongside
-    (:func:`start_directions`)."""
+    (:func:`start_with_directions`)."""
     from thermal_edge.data import Run
     from thermal_edge.estimation import calibrate as calibrate_module
-    from thermal_edge.estimation.predict import start_directions, start_reading
+    from thermal_edge.estimation.predict import start_reading, start_with_directions
 
     plant = make_run(pm10kw, "varied_drive.yaml", 2400.0, seed=9, noise=0.0)
     cols = {k: np.array(v, dtype=float) for k, v in plant.run.columns.items()}
@@ -175,14 +175,14 @@ def test_a_noisy_first_reading_does_not_start_the_fit(pm10kw, make_run, monkeypa
         res = calibrate(wrong, [bumped], names=["R_e_hous"], decimation=5, maxiter=4, popsize=4, seed=1)
         return float(dict(zip(res.names, res.values))["R_e_hous"])
 
-    def held(model, run, theta=None, k=0, span_s=0.0):
-        return np.zeros((len(model.nodes), 0))
+    def held(model, run, theta=None, k=0, span_s=0.0):  # the start, no direction of it free
+        return start_with_directions(model, run, theta, k, span_s)[0], np.zeros((len(model.nodes), 0))
 
     assert fitted() == pytest.approx(9.1, rel=0.01)  # both guards
     monkeypatch.setattr(calibrate_module, "START_SPAN_S", 0.0)
     assert fitted() == pytest.approx(9.1, rel=0.01)  # the offsets fitted, from the one sample
-    monkeypatch.setattr(calibrate_module, "start_directions", held)
+    monkeypatch.setattr(calibrate_module, "start_with_directions", held)
     assert abs(fitted() / 9.1 - 1.0) > 0.03  # neither
     monkeypatch.setattr(calibrate_module, "START_SPAN_S", 30.0)
     assert fitted() == pytest.approx(9.1, rel=0.01)  # the line, the start held
-    assert start_directions(pm10kw, bumped).shape == (len(pm10kw.nodes), len(pm10kw.sensors))
+    assert start_with_directions(pm10kw, bumped)[1].shape == (len(pm10kw.nodes), len(pm10kw.sensors))

@@ -21,7 +21,7 @@ from ..data import Run, RunError
 from ..lptn import Model, ModelError, Simulator
 from .common import ParamSpace, decimate, window_from_arrays
 from .objective import Objective
-from .predict import initial_from_run, model_inputs, sensor_columns, start_directions
+from .predict import model_inputs, sensor_columns, start_with_directions
 from .uncertainty import MIN_RESIDUAL_DOF, Uncertainty, estimate_uncertainty
 
 #: Differential evolution's own convergence test: the population's spread of objective values
@@ -112,10 +112,9 @@ def calibrate(
     objs = []
     for run in runs:
         meas = sensor_columns(model, run, sensors)
-        win = window_from_arrays(model, model_inputs(model, run), meas, initial_from_run(model, run, span_s=START_SPAN_S),
-                                 run.dt, run.t)
-        objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform",
-                              start_free=start_directions(model, run, span_s=START_SPAN_S)))
+        T0, free = start_with_directions(model, run, span_s=START_SPAN_S)
+        win = window_from_arrays(model, model_inputs(model, run), meas, T0, run.dt, run.t)
+        objs.append(Objective(sim, space, decimate(win, decimation), list(meas), "uniform", start_free=free))
     n_obs = sum(int(np.count_nonzero(np.isfinite(y))) for o in objs for y in o.window.measured.values())
     fitted = len(names) + sum(o.nuisance for o in objs)  # with each run's start offsets
     if n_obs - fitted < MIN_RESIDUAL_DOF:

@@ -92,7 +92,8 @@ class Objective:
                  start_free: np.ndarray | None = None) -> None:
         self.sim, self.space, self.window = sim, space, window
         self.start_free = None if start_free is None or not np.size(start_free) else np.asarray(start_free, dtype=float)
-        self._start_response: np.ndarray | None = None  # G, weighted and flattened (N ns, d)
+        #: G (N, ns, d) and the pseudo-inverse of its weighted, flattened form (d, N ns): built at the first evaluation
+        self._start_response: tuple[np.ndarray, np.ndarray] | None = None
         model = sim.model
         self.sensors = list(sensors or window.measured)
         self.rows = [model.sensors[s] for s in self.sensors]
@@ -149,23 +150,21 @@ class Objective:
 
     def _start_projection(self, pred: np.ndarray, th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``G`` (N, ns, d), the sensors' response to each free direction of the start (zero where
-        not measured), and the same weighted and flattened (N ns, d): computed at the first call
-        (``pred`` the predicted sensors there, ``th`` its parameters) and kept."""
+        not measured), and the pseudo-inverse of its weighted, flattened form (d, N ns): computed at
+        the first call (``pred`` the predicted sensors there, ``th`` its parameters) and kept."""
         assert self.start_free is not None
         if self._start_response is None:
             W = self.window
             idx = [self.sim.model.node_index(r) for r in self.rows]
             cols = [self.sim.simulate(th, W.inputs, W.dt, W.T0 + d).T[:, idx] - pred for d in self.start_free.T]
             G = np.stack(cols, axis=2) * self.mask[:, :, None]
-            self._start_response = G
-        G = self._start_response
-        return G, (G * self.sqrt_w[:, :, None]).reshape(-1, G.shape[2])
+            self._start_response = G, np.linalg.pinv((G * self.sqrt_w[:, :, None]).reshape(-1, G.shape[2]))
+        return self._start_response
 
-    def _free_start(self, G: np.ndarray, Gw: np.ndarray, x: np.ndarray) -> np.ndarray:
+    def _free_start(self, G: np.ndarray, Gw_pinv: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``x`` (N, ns[, p]) less its weighted least-squares fit by the start's offsets: ``x − G c``."""
-        xw = (x * (self.sqrt_w if x.ndim == 2 else self.sqrt_w[:, :, None])).reshape(len(Gw), -1)
-        c = np.linalg.lstsq(Gw, xw, rcond=None)[0]  # (d, 1 or p)
-        fit = (G.reshape(-1, G.shape[2]) @ c).reshape(x.shape)
+        xw = (x * (self.sqrt_w if x.ndim == 2 else self.sqrt_w[:, :, None])).reshape(Gw_pinv.shape[1], -1)
+        fit = (G.reshape(-1, G.shape[2]) @ (Gw_pinv @ xw)).reshape(x.shape)
         out: np.ndarray = x - fit
         return out
 

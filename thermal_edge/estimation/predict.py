@@ -66,16 +66,16 @@ def initial_from_run(model: Model, run: Run, theta: np.ndarray | None = None, k:
     return initial_state(model, *_start(model, run, k, span_s), theta)
 
 
-def start_directions(model: Model, run: Run, theta: np.ndarray | None = None, k: int = 0,
-                     span_s: float = 0.0) -> np.ndarray:
-    """How :func:`initial_from_run`'s node temperatures move per kelvin of each sensor's start
-    reading (those that are finite): (n, sensors read), K/K. The unmeasured nodes follow the
-    measured ones (the initial state is linear in the readings), so these are the directions in
-    which a start reading's noise moves the whole initial state."""
+def start_with_directions(model: Model, run: Run, theta: np.ndarray | None = None, k: int = 0,
+                          span_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`initial_from_run`'s node temperatures (n,), °C, and how they move per kelvin of each
+    sensor's start reading (those that are finite): (n, sensors read), K/K. The unmeasured nodes
+    follow the measured ones (the initial state is linear in the readings), so these are the
+    directions in which a start reading's noise moves the whole initial state."""
     inp, meas = _start(model, run, k, span_s)
     base = initial_state(model, inp, meas, theta)
     cols = [initial_state(model, inp, {**meas, s: v + 1.0}, theta) - base for s, v in meas.items() if np.isfinite(v)]
-    return np.column_stack(cols) if cols else np.zeros((len(base), 0))
+    return base, np.column_stack(cols) if cols else np.zeros((len(base), 0))
 
 
 @dataclass
